@@ -1,0 +1,168 @@
+"""Command line: ``guidewire3d {demo,phantom,reconstruct,view,bench}``.
+
+Bad input prints one line (``guidewire3d: error: ...``) and exits with status 2; ``--verbose``
+shows the traceback instead.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+import traceback
+
+from guidewire3d.errors import Guidewire3DError
+
+EXIT_BAD_INPUT = 2
+
+
+def _parse_xyz(text: str) -> tuple[float, float, float]:
+    try:
+        vals = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected x,y,z in mm, got {text!r}") from None
+    if len(vals) != 3:
+        raise argparse.ArgumentTypeError(f"expected x,y,z in mm, got {text!r}")
+    return vals
+
+
+def _add_geometry_overrides(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group("C-arm geometry overrides (replace or supply XA tags)")
+    g.add_argument("--sid", type=float, metavar="MM", help="DistanceSourceToDetector (0018,1110)")
+    g.add_argument("--sod", type=float, metavar="MM", help="DistanceSourceToPatient (0018,1111)")
+    g.add_argument("--pixel", type=float, metavar="MM", help="ImagerPixelSpacing (0018,1164)")
+    g.add_argument("--primary", type=float, metavar="DEG", help="PositionerPrimaryAngle (0018,1510), LAO +")
+    g.add_argument("--secondary", type=float, metavar="DEG", help="PositionerSecondaryAngle (0018,1511), CRA +")
+
+
+def geometry_overrides(args) -> dict:
+    return {
+        "sid_mm": getattr(args, "sid", None),
+        "sod_mm": getattr(args, "sod", None),
+        "pixel_mm": getattr(args, "pixel", None),
+        "primary_deg": getattr(args, "primary", None),
+        "secondary_deg": getattr(args, "secondary", None),
+    }
+
+
+# --- subcommands ----------------------------------------------------------------------
+def _add_phantom_parser(sub) -> None:
+    from guidewire3d import phantom
+
+    p = sub.add_parser("phantom", help="write a simulated case (DICOM CT + XA + truth.json)",
+                       description="Write a simulated case with ground truth: DICOM CT series, XA roadmap and "
+                                   "live frames, a held-out second view, and truth.json.")
+    phantom.add_cli_options(p)
+    p.set_defaults(func=phantom.cli_main)
+
+
+def _add_reconstruct_parser(sub) -> None:
+    p = sub.add_parser("reconstruct", help="run the whole chain on a CTA and XA files",
+                       description="CTA vessels -> 2D analysis -> registration -> 3D wire per frame; writes "
+                                   "report.json, VTP/STL, screenshots into --out.")
+    p.add_argument("--cta", required=True, help="CTA DICOM series folder, or NIfTI/NRRD/MHA file")
+    p.add_argument("--roadmap", required=True, help="XA DICOM with the contrast roadmap")
+    p.add_argument("--frames", required=True, help="XA DICOM with the live frames (may be the roadmap file)")
+    p.add_argument("--out", required=True, help="output folder (created; must be empty or absent)")
+    p.add_argument("--roadmap-frame", type=int, default=None, metavar="K",
+                   help="frame of --roadmap to use (default: the most contrast-filled)")
+    p.add_argument("--seed-lps", type=_parse_xyz, action="append", default=None, metavar="X,Y,Z",
+                   help="seed point in LPS mm inside the vessels (repeatable)")
+    p.add_argument("--series-uid", default=None, help="SeriesInstanceUID to read from the CTA folder")
+    p.add_argument("--method", default="vessel", help="3D reconstruction method: vessel (default) or paper")
+    p.add_argument("--segmenter", default="unet", help="guidewire segmentation: unet (default) or ridge")
+    p.add_argument("--force", action="store_true", help="reconstruct even if the registration failed")
+    p.add_argument("--no-images", action="store_true", help="skip screenshot/overlay/metrics PNGs")
+    _add_geometry_overrides(p)
+
+    def run(args):
+        from guidewire3d import pipeline
+
+        return pipeline.cli_reconstruct(args)
+
+    p.set_defaults(func=run)
+
+
+def _add_demo_parser(sub) -> None:
+    p = sub.add_parser("demo", help="generate the default phantom case and reconstruct it",
+                       description="Generate (or reuse) the default simulated case, run reconstruct on it, "
+                                   "and print the errors against the simulator's ground truth.")
+    p.add_argument("--out", default="guidewire3d-demo", help="output folder (default: ./guidewire3d-demo)")
+    p.add_argument("--seed", type=int, default=None, help="phantom seed (default: the fixed demo seed)")
+
+    def run(args):
+        from guidewire3d import pipeline
+
+        return pipeline.cli_demo(args)
+
+    p.set_defaults(func=run)
+
+
+def _add_view_parser(sub) -> None:
+    p = sub.add_parser("view", help="desktop viewer on an output folder or on inputs",
+                       description="Open the pyvista viewer on a reconstruct output folder "
+                                   "(or on --cta/--roadmap/--frames), or render a screenshot offscreen.")
+    p.add_argument("out_dir", nargs="?", help="a folder written by reconstruct/demo")
+    p.add_argument("--cta")
+    p.add_argument("--roadmap")
+    p.add_argument("--frames")
+    p.add_argument("--screenshot", metavar="PATH", help="render offscreen to PATH and exit")
+    p.add_argument("--frame", type=int, default=0, metavar="K", help="frame to show (default 0)")
+    p.add_argument("--size", default="1200x800", metavar="WxH", help="window/screenshot size")
+
+    def run(args):
+        from guidewire3d.viewer import app
+
+        return app.cli_main(args)
+
+    p.set_defaults(func=run)
+
+
+def _add_bench_parser(sub) -> None:
+    p = sub.add_parser("bench", help="benchmarks on simulated cases (the paper's tables with 3D errors)",
+                       description="Run the stage and end-to-end benchmarks over N simulated cases and print "
+                                   "the paper's Table I and II layouts; writes CSV and Markdown.")
+    p.add_argument("--cases", type=int, default=10, help="number of simulated cases (default 10)")
+    p.add_argument("--out", default="bench-results", help="folder for CSV/Markdown tables")
+
+    def run(args):
+        from guidewire3d import pipeline
+
+        return pipeline.cli_bench(args)
+
+    p.set_defaults(func=run)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="guidewire3d",
+        description="Real-time 3D guidewire reconstruction from a CTA and single-view DSA.",
+    )
+    parser.add_argument("--verbose", action="store_true", help="show tracebacks and debug messages")
+    sub = parser.add_subparsers(dest="command", metavar="{demo,phantom,reconstruct,view,bench}")
+    sub.required = True
+    _add_demo_parser(sub)
+    _add_phantom_parser(sub)
+    _add_reconstruct_parser(sub)
+    _add_view_parser(sub)
+    _add_bench_parser(sub)
+    return parser
+
+
+def main(argv=None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        rc = args.func(args)
+        return int(rc or 0)
+    except Guidewire3DError as e:
+        if args.verbose:
+            traceback.print_exc()
+        msg = " ".join(str(e).split())
+        print(f"guidewire3d: error: {msg}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except KeyboardInterrupt:
+        print("guidewire3d: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,322 @@
+"""The 3D vessel centerline graph shared by every stage (``guidewire3d.vessels3d.VesselTree``).
+
+A ``VesselTree`` is a rooted tree over centerline points: ``parent[i]`` is the index of the
+point one step closer to the root (``-1`` for the root). Branches (runs between the root,
+bifurcations and leaves) are derived from it, ordered root -> leaves.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import cached_property
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.sparse.csgraph import dijkstra
+
+from guidewire3d.errors import InputError
+
+__all__ = ["Branch", "VesselTree"]
+
+
+@dataclass(frozen=True, eq=False)
+class Branch:
+    """One branch: ``point_ids`` run from its proximal node (shared with the parent) to its end."""
+
+    index: int
+    point_ids: np.ndarray
+    parent: int  # branch index, -1 for the root branch
+    children: tuple[int, ...]
+
+    @property
+    def is_leaf(self) -> bool:
+        return not self.children
+
+
+@dataclass(frozen=True, eq=False)
+class VesselTree:
+    """Centerline points (LPS mm) with radii, connected as a tree rooted at ``root``."""
+
+    points_lps_mm: np.ndarray  # (N, 3)
+    radius_mm: np.ndarray  # (N,)
+    parent: np.ndarray  # (N,) int, -1 at the root
+
+    def __post_init__(self):
+        p = np.array(self.points_lps_mm, dtype=float, copy=True)
+        r = np.array(self.radius_mm, dtype=float, copy=True).reshape(-1)
+        par = np.array(self.parent, dtype=np.int64, copy=True).reshape(-1)
+        if p.ndim != 2 or p.shape[1] != 3 or len(p) < 2:
+            raise InputError(f"VesselTree needs (N>=2, 3) points, got {p.shape}")
+        if r.shape != (len(p),) or par.shape != (len(p),):
+            raise InputError("VesselTree radius_mm and parent must have one entry per point")
+        if not np.all(np.isfinite(p)) or not np.all(np.isfinite(r)) or np.any(r <= 0):
+            raise InputError("VesselTree points must be finite and radii > 0")
+        roots = np.flatnonzero(par < 0)
+        if len(roots) != 1:
+            raise InputError(f"VesselTree must have exactly one root, got {len(roots)}")
+        if np.any(par >= len(p)):
+            raise InputError("VesselTree parent index out of range")
+        for a in (p, r, par):
+            a.setflags(write=False)
+        object.__setattr__(self, "points_lps_mm", p)
+        object.__setattr__(self, "radius_mm", r)
+        object.__setattr__(self, "parent", par)
+        # reject cycles: every point must reach the root
+        depth = self.depth_from_root
+        if np.any(depth < 0):
+            raise InputError("VesselTree parent links contain a cycle")
+
+    # --- basic structure ----------------------------------------------------------------
+    @property
+    def n_points(self) -> int:
+        return len(self.points_lps_mm)
+
+    @cached_property
+    def root(self) -> int:
+        return int(np.flatnonzero(self.parent < 0)[0])
+
+    @cached_property
+    def children(self) -> list[list[int]]:
+        ch: list[list[int]] = [[] for _ in range(self.n_points)]
+        for i, pa in enumerate(self.parent):
+            if pa >= 0:
+                ch[pa].append(i)
+        return ch
+
+    @cached_property
+    def order(self) -> np.ndarray:
+        """Point indices in breadth-first order from the root (parents before children)."""
+        out = [self.root]
+        k = 0
+        while k < len(out):
+            out.extend(self.children[out[k]])
+            k += 1
+        return np.array(out, dtype=np.int64)
+
+    @cached_property
+    def depth_from_root(self) -> np.ndarray:
+        """Number of edges from the root to each point (-1 if unreachable)."""
+        d = -np.ones(self.n_points, dtype=np.int64)
+        ch: list[list[int]] = [[] for _ in range(self.n_points)]
+        for i, pa in enumerate(self.parent):
+            if pa >= 0:
+                ch[pa].append(i)
+        root = int(np.flatnonzero(self.parent < 0)[0])
+        d[root] = 0
+        stack = [root]
+        while stack:
+            i = stack.pop()
+            for c in ch[i]:
+                d[c] = d[i] + 1
+                stack.append(c)
+        return d
+
+    @cached_property
+    def edges(self) -> np.ndarray:
+        """``(N - 1, 2)`` point-index pairs ``(parent, child)``."""
+        child = np.flatnonzero(self.parent >= 0)
+        return np.column_stack([self.parent[child], child])
+
+    @cached_property
+    def edge_length_mm(self) -> np.ndarray:
+        e = self.edges
+        return np.linalg.norm(self.points_lps_mm[e[:, 1]] - self.points_lps_mm[e[:, 0]], axis=1)
+
+    @cached_property
+    def arclength_from_root_mm(self) -> np.ndarray:
+        s = np.zeros(self.n_points)
+        seg = np.zeros(self.n_points)
+        e = self.edges
+        seg[e[:, 1]] = self.edge_length_mm
+        for i in self.order[1:]:
+            s[i] = s[self.parent[i]] + seg[i]
+        return s
+
+    @cached_property
+    def degree(self) -> np.ndarray:
+        deg = np.zeros(self.n_points, dtype=np.int64)
+        e = self.edges
+        np.add.at(deg, e[:, 0], 1)
+        np.add.at(deg, e[:, 1], 1)
+        return deg
+
+    @property
+    def leaves(self) -> np.ndarray:
+        return np.array([i for i in range(self.n_points) if not self.children[i]], dtype=np.int64)
+
+    @property
+    def bifurcations(self) -> np.ndarray:
+        return np.array([i for i in range(self.n_points) if len(self.children[i]) >= 2], dtype=np.int64)
+
+    @cached_property
+    def branches(self) -> tuple[Branch, ...]:
+        """Runs between nodes (root, bifurcations, leaves), ordered root -> leaves."""
+        out: list[dict] = []
+        # (start node, first child, parent branch)
+        stack = [(self.root, c, -1) for c in reversed(self.children[self.root])]
+        while stack:
+            start, nxt, parent_branch = stack.pop()
+            ids = [start, nxt]
+            while len(self.children[ids[-1]]) == 1:
+                ids.append(self.children[ids[-1]][0])
+            idx = len(out)
+            out.append({"ids": np.array(ids, dtype=np.int64), "parent": parent_branch, "children": []})
+            if parent_branch >= 0:
+                out[parent_branch]["children"].append(idx)
+            for c in reversed(self.children[ids[-1]]):
+                stack.append((ids[-1], c, idx))
+        return tuple(
+            Branch(index=i, point_ids=b["ids"], parent=b["parent"], children=tuple(b["children"]))
+            for i, b in enumerate(out)
+        )
+
+    @cached_property
+    def point_branch(self) -> np.ndarray:
+        """Branch index of each point (a node belongs to the branch that ends at it)."""
+        pb = np.zeros(self.n_points, dtype=np.int64)
+        for b in self.branches:
+            pb[b.point_ids[1:]] = b.index
+        pb[self.root] = 0
+        return pb
+
+    @property
+    def centroid_lps_mm(self) -> np.ndarray:
+        return self.points_lps_mm.mean(axis=0)
+
+    @property
+    def total_length_mm(self) -> float:
+        return float(self.edge_length_mm.sum())
+
+    # --- graph queries ------------------------------------------------------------------
+    @cached_property
+    def adjacency(self) -> sp.csr_matrix:
+        e = self.edges
+        w = np.maximum(self.edge_length_mm, 1e-9)
+        n = self.n_points
+        A = sp.coo_matrix((np.r_[w, w], (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])), shape=(n, n))
+        return A.tocsr()
+
+    def geodesic_mm(self, sources) -> np.ndarray:
+        """Geodesic distances along the tree from each source point index: ``(len(sources), N)``."""
+        return dijkstra(self.adjacency, directed=False, indices=np.atleast_1d(sources))
+
+    def path_to_root(self, i: int) -> np.ndarray:
+        """Point indices from the root to ``i`` (inclusive)."""
+        out = [int(i)]
+        while self.parent[out[-1]] >= 0:
+            out.append(int(self.parent[out[-1]]))
+        return np.array(out[::-1], dtype=np.int64)
+
+    def path(self, i: int, j: int) -> np.ndarray:
+        """Point indices along the tree from ``i`` to ``j`` (inclusive)."""
+        a, b = self.path_to_root(i), self.path_to_root(j)
+        n = min(len(a), len(b))
+        k = 0
+        while k < n and a[k] == b[k]:
+            k += 1
+        # a[k-1] == b[k-1] is the lowest common ancestor
+        return np.concatenate([a[k - 1 :][::-1], b[k:]])
+
+    def nearest_point(self, points_lps_mm) -> tuple[np.ndarray, np.ndarray]:
+        """``(index, distance_mm)`` of the nearest centerline point for each query point."""
+        return self.kdtree.query(np.atleast_2d(np.asarray(points_lps_mm, dtype=float)))
+
+    @cached_property
+    def kdtree(self):
+        from scipy.spatial import cKDTree
+
+        return cKDTree(self.points_lps_mm)
+
+    # --- conversion ---------------------------------------------------------------------
+    def subtree(self, keep) -> "VesselTree":
+        """The tree restricted to ``keep`` (bool mask or indices) which must include a connected part with the root."""
+        keep_mask = np.zeros(self.n_points, bool)
+        keep_mask[np.asarray(keep)] = True
+        new_index = -np.ones(self.n_points, dtype=np.int64)
+        new_index[keep_mask] = np.arange(keep_mask.sum())
+        par = self.parent[keep_mask]
+        new_par = np.where(par >= 0, new_index[np.maximum(par, 0)], -1)
+        return VesselTree(self.points_lps_mm[keep_mask], self.radius_mm[keep_mask], new_par)
+
+    def transformed(self, pose) -> "VesselTree":
+        """The same tree moved by a rigid ``Pose``."""
+        return VesselTree(pose.apply(self.points_lps_mm), self.radius_mm, self.parent)
+
+    def to_dict(self) -> dict:
+        return {
+            "points_lps_mm": np.round(self.points_lps_mm, 5).tolist(),
+            "radius_mm": np.round(self.radius_mm, 5).tolist(),
+            "parent": self.parent.tolist(),
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "VesselTree":
+        try:
+            return cls(np.asarray(d["points_lps_mm"]), np.asarray(d["radius_mm"]), np.asarray(d["parent"]))
+        except KeyError as e:
+            raise InputError(f"vessel tree record is missing field {e.args[0]!r}") from None
+
+    def to_polydata(self):
+        """A VTK polyline per branch with point data ``radius_mm`` and ``branch`` (LPS mm)."""
+        import vtk
+        from vtk.util.numpy_support import numpy_to_vtk
+
+        pts = vtk.vtkPoints()
+        pts.SetData(numpy_to_vtk(np.ascontiguousarray(self.points_lps_mm), deep=True))
+        lines = vtk.vtkCellArray()
+        for b in self.branches:
+            lines.InsertNextCell(len(b.point_ids))
+            for i in b.point_ids:
+                lines.InsertCellPoint(int(i))
+        poly = vtk.vtkPolyData()
+        poly.SetPoints(pts)
+        poly.SetLines(lines)
+        rad = numpy_to_vtk(np.ascontiguousarray(self.radius_mm), deep=True)
+        rad.SetName("radius_mm")
+        poly.GetPointData().AddArray(rad)
+        poly.GetPointData().SetActiveScalars("radius_mm")
+        br = numpy_to_vtk(np.ascontiguousarray(self.point_branch.astype(np.int32)), deep=True)
+        br.SetName("branch")
+        poly.GetPointData().AddArray(br)
+        return poly
+
+    @classmethod
+    def from_polylines(cls, polylines, radii, parents) -> "VesselTree":
+        """Build from branches given as polylines.
+
+        ``polylines[k]`` is ``(n_k, 3)`` from proximal to distal; its first point is the attachment
+        point. ``parents[k]`` is ``(branch, point_index_in_that_branch)`` or ``None`` for the root
+        branch (which must be first). The attachment point of a child is snapped to the parent's
+        point (the child's first point is dropped).
+        """
+        pts: list[np.ndarray] = []
+        rad: list[np.ndarray] = []
+        par: list[np.ndarray] = []
+        offsets: list[int] = []
+        n = 0
+        for k, (pl, rr, pa) in enumerate(zip(polylines, radii, parents)):
+            pl = np.asarray(pl, dtype=float)
+            rr = np.asarray(rr, dtype=float)
+            if pa is None:
+                if k != 0:
+                    raise InputError("only the first branch may be the root")
+                p_local = np.arange(-1, len(pl) - 1) + n
+                p_local[0] = -1
+                pts.append(pl)
+                rad.append(rr)
+                par.append(p_local)
+                offsets.append(n)
+                n += len(pl)
+            else:
+                pb, pi = pa
+                attach = offsets[pb] + (pi if pb == 0 else pi - 1)
+                if pb != 0 and pi == 0:
+                    raise InputError("cannot attach to a child branch's dropped first point")
+                sub = pl[1:]
+                p_local = np.arange(len(sub)) + n - 1
+                p_local[0] = attach
+                pts.append(sub)
+                rad.append(rr[1:])
+                par.append(p_local)
+                offsets.append(n)
+                n += len(sub)
+        return cls(np.vstack(pts), np.concatenate(rad), np.concatenate(par))
