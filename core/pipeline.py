@@ -1,33 +1,257 @@
-"""The stages chained: used by the CLI, the viewer and the Slicer plugin."""
+"""The stages chained: CTA vessels -> 2D roadmap -> registration -> 3D wire per frame.
+
+Used by the CLI (``reconstruct``, ``demo``, ``bench``), the viewer and the Slicer plugin.
+``run`` works on in-memory inputs and returns a ``PipelineResult``; ``run_to_outdir`` reads the
+files, runs, and writes the OUT_DIR described in the README ("Output folder").
+"""
 from __future__ import annotations
 
+import shutil
+import sys
+import tempfile
+import time
+from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
+
 from guidewire3d import io
-from guidewire3d.errors import Guidewire3DError, InputError
+from guidewire3d.errors import InputError
+from guidewire3d.geometry import CArm, Pose
+
+__all__ = ["PipelineResult", "run", "run_to_outdir", "load_inputs", "choose_roadmap_frame"]
+
+
+@dataclass(frozen=True, eq=False)
+class PipelineResult:
+    volume: io.Volume
+    vessels: object  # vessels3d.CTAVessels
+    roadmap_image: np.ndarray
+    roadmap_frame_index: int
+    centerline2d: object  # image2d.Centerline2D
+    carm: CArm
+    frames_carm: CArm
+    registration: object  # registration.RegistrationResult
+    frames: np.ndarray
+    wires2d: list
+    wires3d: list
+    timing: dict = field(default_factory=dict)
+    frame_seconds: list = field(default_factory=list)  # per live frame: segmentation + 2D wire + 3D
+    frame_indices: list = field(default_factory=list)  # index of each live frame in the frames run
+    reconstructed: bool = True  # False when a failed registration stopped the frames
+
+    @property
+    def pose(self) -> Pose:
+        return self.registration.pose
+
+    @property
+    def tree(self):
+        return self.vessels.tree
+
+
+def _say(msg: str, log=None) -> None:
+    if log is not None:
+        log(msg)
 
 
 def load_inputs(cta, roadmap, frames, *, series_uid=None, overrides=None, log=None):
-    """Read and validate every input before anything is written."""
+    """Read and validate every input before anything is computed or written."""
     vol = io.read_volume(cta, series_uid=series_uid, log=log)
     road = io.read_xa(roadmap, overrides=overrides)
-    live = road if Path(frames) == Path(roadmap) else io.read_xa(frames, overrides=overrides)
+    same = Path(frames).resolve() == Path(roadmap).resolve()
+    live = road if same else io.read_xa(frames, overrides=overrides)
     return vol, road, live
 
 
-def cli_reconstruct(args):
+def choose_roadmap_frame(run: io.XARun, roadmap_frame: int | None = None) -> int:
+    """The frame of ``run`` to use as the roadmap: the given one, else the most contrast-filled.
+
+    Contrast fill is measured as the fraction of pixels much darker than the frame's median
+    (vessels attenuate), a cheap and monotone proxy for opacified vessel area.
+    """
+    n = run.n_frames
+    if roadmap_frame is not None:
+        if not 0 <= roadmap_frame < n:
+            raise InputError(f"{run.source}: --roadmap-frame {roadmap_frame} out of range (file has {n} frames)")
+        return int(roadmap_frame)
+    if n == 1:
+        return 0
+    scores = []
+    for f in run.frames:
+        sub = f[::4, ::4]
+        med = float(np.median(sub))
+        mad = float(np.median(np.abs(sub - med))) + 1e-6
+        scores.append(float(np.mean(sub < med - 4.0 * mad)))
+    return int(np.argmax(scores))
+
+
+def run(volume: io.Volume, roadmap: io.XARun, frames: io.XARun, *, roadmap_frame: int | None = None,
+        seeds_lps_mm=None, method: str = "vessel", segmenter: str = "unet", force: bool = False,
+        progress: bool = False, pose: Pose | None = None, log=None) -> PipelineResult:
+    """Run the whole chain on in-memory inputs.
+
+    Parameters
+    ----------
+    volume : io.Volume
+        The CTA in HU.
+    roadmap, frames : io.XARun
+        The contrast roadmap run and the live frames (may be the same run).
+    pose : Pose, optional
+        A pose to use instead of registering (e.g. a user-corrected one); it is refined by LM only.
+    force : bool
+        Reconstruct even when the registration reports failure.
+    """
+    from guidewire3d import image2d, reconstruction, registration, segmentation, vessels3d
+
+    timing: dict[str, float] = {}
+    t0 = time.perf_counter()
+    vessels = vessels3d.extract_vessels(volume, seeds_lps_mm=seeds_lps_mm, progress=progress)
+    timing["cta_vessels"] = time.perf_counter() - t0
+    tree = vessels.tree
+
+    t0 = time.perf_counter()
+    k = choose_roadmap_frame(roadmap, roadmap_frame)
+    road_img = np.asarray(roadmap.frames[k])
+    cl2d = image2d.roadmap_centerline(road_img)
+    timing["roadmap_2d"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    if pose is None:
+        reg = registration.register(tree, cl2d.points_uv_px, roadmap.carm, centerline_radius_px=cl2d.radius_px)
+    else:
+        reg = registration.refine(tree, cl2d.points_uv_px, roadmap.carm, pose, centerline_radius_px=cl2d.radius_px)
+    timing["registration"] = time.perf_counter() - t0
+    _say(f"registration: {'ok' if reg.success else 'FAILED'} ({reg.message}); "
+         f"residual {reg.mean_residual_px:.2f} px, {reg.iterations} iterations", log)
+
+    live = np.asarray(frames.frames)
+    if live is roadmap.frames or frames is roadmap:
+        frame_ids = [i for i in range(frames.n_frames) if i != k] or [k]
+    else:
+        frame_ids = list(range(frames.n_frames))
+    wires2d, wires3d = [], []
+    if not reg.success and not force:
+        timing["frames"] = 0.0
+        return PipelineResult(volume, vessels, road_img, k, cl2d, roadmap.carm, frames.carm, reg,
+                              live[frame_ids], wires2d, wires3d, timing, [], frame_ids, reconstructed=False)
+
+    seg = segmentation.GuidewireSegmenter(method=segmenter)
+    tracker = reconstruction.WireTracker(reg.pose, frames.carm, tree, method=method,
+                                         registration_covariance=getattr(reg, "covariance_6x6", None))
+    root_uv = frames.carm.project(tree.points_lps_mm[tree.root], reg.pose)
+    seg_s = recon_s = 0.0
+    frame_seconds = []
+    iterator = frame_ids
+    if progress:
+        from tqdm import tqdm
+
+        iterator = tqdm(frame_ids, desc="frames", unit="frame", file=sys.stderr, leave=False)
+    for i in iterator:
+        frame = live[i]
+        ta = time.perf_counter()
+        mask = seg.segment(frame)
+        ow = image2d.ordered_wire(mask, image=frame, proximal_hint_uv=root_uv)
+        tb = time.perf_counter()
+        if ow:
+            w3 = tracker.update(ow.points_uv_px, image=frame)
+        else:
+            w3 = _failed_wire(f"2D wire not found: {ow.message}")
+        tc = time.perf_counter()
+        seg_s += tb - ta
+        recon_s += tc - tb
+        wires2d.append(ow)
+        wires3d.append(w3)
+        frame_seconds.append(tc - ta)
+    timing["segmentation_2d_wire"] = seg_s
+    timing["reconstruction_3d"] = recon_s
+    timing["frames"] = seg_s + recon_s
+    return PipelineResult(volume, vessels, road_img, k, cl2d, roadmap.carm, frames.carm, reg,
+                          live[frame_ids], wires2d, wires3d, timing, frame_seconds, frame_ids)
+
+
+def _failed_wire(message: str):
+    """A falsy Wire3D for a frame whose 2D wire could not be extracted."""
+    from guidewire3d.reconstruction import Wire3D
+
+    return Wire3D.failed(message)
+
+
+def run_to_outdir(cta, roadmap, frames, out_dir, *, series_uid=None, overrides=None, roadmap_frame=None,
+                  seeds_lps_mm=None, method="vessel", segmenter="unet", force=False, images=True,
+                  progress=True, replace=False, truth=None, log=None) -> PipelineResult:
+    """Read the files, run, and write the output folder atomically (a staging folder renamed at the end)."""
+    from guidewire3d import export
+
+    out_dir = Path(out_dir)
+    if out_dir.exists() and (not out_dir.is_dir() or any(out_dir.iterdir())):
+        if not (replace and (out_dir / "report.json").exists()):
+            raise InputError(f"{out_dir}: output folder exists and is not empty")
+    t0 = time.perf_counter()
+    vol, road, live = load_inputs(cta, roadmap, frames, series_uid=series_uid, overrides=overrides, log=log)
+    t_load = time.perf_counter() - t0
+    result = run(vol, road, live, roadmap_frame=roadmap_frame, seeds_lps_mm=seeds_lps_mm, method=method,
+                 segmenter=segmenter, force=force, progress=progress, log=log)
+    result.timing["load_inputs"] = t_load
+    inputs = {
+        "cta": str(Path(cta).resolve()),
+        "roadmap": str(Path(roadmap).resolve()),
+        "frames": str(Path(frames).resolve()),
+        "roadmap_frame": result.roadmap_frame_index,
+        "series_uid": vol.series_uid,
+    }
+    out_dir.parent.mkdir(parents=True, exist_ok=True)
+    staging = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.staging-", dir=out_dir.parent))
+    try:
+        t0 = time.perf_counter()
+        export.write_outdir(result, staging, inputs=inputs, images=images, truth=truth)
+        result.timing["export"] = time.perf_counter() - t0
+        export.write_report(result, staging, inputs=inputs, truth=truth)  # again, with export timing
+        if out_dir.exists():
+            old = out_dir.with_name(f".{out_dir.name}.old-{int(time.time() * 1e6)}")
+            out_dir.rename(old)
+            staging.rename(out_dir)
+            shutil.rmtree(old, ignore_errors=True)
+        else:
+            staging.rename(out_dir)
+    except BaseException:
+        shutil.rmtree(staging, ignore_errors=True)
+        raise
+    return result
+
+
+# --------------------------------------------------------------------------------------
+# CLI entry points
+# --------------------------------------------------------------------------------------
+def _stderr(msg: str) -> None:
+    print(msg, file=sys.stderr)
+
+
+def cli_reconstruct(args) -> int:
     from guidewire3d.cli import geometry_overrides
 
-    out = Path(args.out)
-    if out.exists() and (not out.is_dir() or any(out.iterdir())):
-        raise InputError(f"{out}: output folder exists and is not empty")
-    load_inputs(args.cta, args.roadmap, args.frames, series_uid=args.series_uid, overrides=geometry_overrides(args))
-    raise Guidewire3DError("reconstruct: the reconstruction stages are not built yet")
+    result = run_to_outdir(
+        args.cta, args.roadmap, args.frames, args.out, series_uid=args.series_uid,
+        overrides=geometry_overrides(args), roadmap_frame=args.roadmap_frame, seeds_lps_mm=args.seed_lps,
+        method=args.method, segmenter=args.segmenter, force=args.force, images=not args.no_images,
+        progress=True, log=_stderr,
+    )
+    n_ok = sum(1 for w in result.wires3d if w.success)
+    print(f"wrote {args.out}: registration {'ok' if result.registration.success else 'FAILED'} "
+          f"({result.registration.mean_residual_px:.2f} px), {n_ok}/{len(result.wires3d)} frames reconstructed")
+    if not result.reconstructed:
+        _stderr("guidewire3d: registration failed; frames were not reconstructed. Correct it with "
+                f"`guidewire3d view {args.out}` or rerun with --force.")
+        return 1
+    return 0
 
 
-def cli_demo(args):
-    raise Guidewire3DError("demo: the simulator and reconstruction stages are not built yet")
+def cli_demo(args) -> int:
+    from guidewire3d import bench
+
+    return bench.run_demo(out=args.out, seed=args.seed)
 
 
-def cli_bench(args):
-    raise Guidewire3DError("bench: the benchmarks are not built yet")
+def cli_bench(args) -> int:
+    from guidewire3d import bench
+
+    return bench.run_bench(n_cases=args.cases, out=args.out)

@@ -1,0 +1,1008 @@
+"""3D-2D registration of the CTA vessel centerline to the 2D roadmap centerline (issue 6).
+
+The unknown is the pose ``T = T_iso_from_lps`` of :mod:`guidewire3d.geometry` (CTA LPS -> C-arm
+room frame with its origin at the isocentre); the C-arm angles, SID, SOD and pixel size are
+known from the DICOM tags. The pipeline is the paper's:
+
+1. **Start**: the DICOM angles with the isocentre at the vessel-tree centroid
+   (:func:`guidewire3d.geometry.nominal_pose`), or a given ``init_pose``.
+2. **Coarse global search** (:func:`register` with ``global_search=True``): rotations about the
+   vessel centroid on a grid (+-15 deg about the beam axis, +-10 deg about the two detector axes)
+   and, for each rotation, an *exhaustive* search of the in-plane translation (+-40 mm at the
+   isocentre) done as one FFT cross-correlation of truncated distance transforms on a coarse
+   (~8 px) grid. The chamfer cost is symmetric: projected 3D points against the distance transform
+   of the 2D centerline, plus 2D points against the distance transform of the projected 3D
+   centerline (so a partial 2D centerline is not pulled onto the wrong branch). Depth translation
+   is left to LM (it only changes the magnification by a few per cent).
+3. **Levenberg-Marquardt on se(3)** from the best few candidates, with the paper's energy (below),
+   left perturbation ``T <- exp(xi) T`` (rotations act about the isocentre), analytic Jacobians,
+   IRLS weights, the gain-ratio damping update ``mu <- mu max(1/3, 1 - (2 eta - 1)^3)`` (on
+   rejection ``mu <- mu nu, nu <- 2 nu``), ``mu_0 = 1`` and the paper's two convergence tests.
+
+The energy (paper, eq. 3), with closest points recomputed at every evaluation::
+
+    E(T) = 1/N sum_i rho(min(s_i, G_i^2))  +  lam/M sum_j rho(min(s_j, G_j^2))  [+ prior_weight R(T)]
+
+* ``s_i`` (3D -> 2D): squared Mahalanobis norm of ``pi(T p_i) - q_j(i)`` (px), ``q_j(i)`` the 2D
+  centerline point nearest to the projection, found in O(1) from a nearest-index map
+  (``scipy.ndimage.distance_transform_edt(return_indices=True)`` on the rasterised 2D centerline).
+* ``s_j`` (2D -> 3D): the residual is the **perpendicular distance in mm from the 3D centerline
+  point ``T p_i(j)`` to the ray of the 2D point ``q_j``** (the paper's back-projection form,
+  a 2-vector in the plane normal to the ray). ``p_i(j)`` is the 3D point whose projection is
+  nearest to ``q_j`` (a KD-tree over the projected 3D centerline), i.e. the nearest to the ray
+  in angle.
+* Mahalanobis weights: each residual is the difference of a 2D and a 3D point, so its covariance
+  is the sum of both point covariances (2D ``sigma_2d_px``, 3D ``sigma_3d_mm``, each grown with
+  the local vessel radius, and converted to the residual's unit at the point's depth), plus a
+  large variance ``tangent_slack`` along the local centerline tangent (a closest-point match on a
+  sampled curve is uncertain along the curve: this is point-to-line matching, as in generalised
+  ICP).
+* ``rho(s) = s / (1 + sqrt(1 + s / delta^2))`` is the paper's kernel. It is well behaved: it is
+  exactly ``delta^2 (sqrt(1 + s/delta^2) - 1)``, i.e. one half of the standard pseudo-Huber
+  ``2 delta^2 (sqrt(1 + s/delta^2) - 1)`` written in a cancellation-free form (quadratic ``s/2``
+  for small ``s``, ``delta sqrt(s)`` for large), so it is used as written, with ``delta = 1``.
+* ``G``: the kernel is truncated at a gate (``gate_px``, converted to each residual's unit):
+  3D points whose projection has no 2D counterpart (branches without contrast, or outside the
+  image) cost a constant and do not pull. This is what keeps a *partial* 2D centerline (down to a
+  single root-to-leaf path) usable: the 2D -> 3D term is complete and carries the registration.
+  The LM runs twice, with a wide then a narrow gate.
+* Both sums are normalised by their number of terms so that ``lam = 0.1`` is a fixed balance
+  between the two directions whatever the sampling densities.
+* Optional smooth-motion prior (sequences): ``R(T) = ||(dt_mm, r_g dphi_rad)||^2`` with
+  ``(dt, dphi) = log(T prior_pose^-1)`` and ``r_g`` the radius of gyration of the tree.
+
+Tangent coordinates inside LM are ``theta = (t_mm, r_g * phi_rad)`` (both in mm) so that
+``mu_0 = 1`` and the tolerances are meaningful for both parts. The reported ``covariance_6x6`` is
+in the plain left-perturbation tangent space of :class:`Pose` (``(tx, ty, tz)`` mm in the room
+frame, ``(rx, ry, rz)`` rad): ``T_true ~ exp(xi) T_est``, ``xi ~ N(0, C)``.
+
+Quality: ``mean_residual_px`` and ``inlier_fraction`` are measured on the 2D side (every 2D
+centerline point should lie on the projection of the CTA tree; the converse does not hold for a
+partial roadmap). ``success`` is false when either says the answer cannot be trusted.
+"""
+from __future__ import annotations
+
+import time
+import weakref
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import fft as sfft
+from scipy import ndimage as ndi
+from scipy.optimize import linear_sum_assignment
+from scipy.spatial import cKDTree
+
+from guidewire3d.errors import InputError
+from guidewire3d.geometry import CArm, Pose, hat, nominal_pose, so3_exp
+from guidewire3d.vesseltree import VesselTree
+
+__all__ = [
+    "RegistrationResult",
+    "register",
+    "refine",
+    "score",
+    "nudge",
+    "register_epnp",
+    "match_bifurcations",
+    "pseudo_huber",
+    "residuals_px",
+]
+
+# --- defaults (named so the tests and the benchmark can refer to them) ----------------------
+LAMBDA = 0.1  # balance of the 2D -> 3D term
+DELTA = 1.0  # pseudo-Huber cutoff (whitened units)
+MU0 = 1.0  # initial LM damping (theta units, mm)
+EPS_ABS_MM = 1e-4  # ||delta theta|| (mm-equivalent) convergence tolerance
+EPS_REL = 1e-3  # ||J^T W r||_inf < EPS_REL ||r||
+REL_DECREASE_STOP = 1e-6  # accepted step that lowers E by less than this fraction: converged
+MAX_REJECTIONS = 4  # consecutive rejected LM steps at a stationary point: converged
+DELTA_WIDE = 4.0  # kernel cutoff of the first (wide-gate) LM stage
+SIGMA_2D_PX = 1.0  # 2D centerline point uncertainty (px), before radius growth
+SIGMA_3D_MM = 0.3  # 3D centerline point uncertainty (mm), before radius growth
+RADIUS_GROWTH = 0.1  # sigma grows by this fraction of the local vessel radius (in quadrature)
+TANGENT_SLACK_PX = 25.0  # extra std along the local tangent (px at the isocentre): ~point-to-line
+GATE_WIDE_PX = 24.0  # first LM stage gate
+GATE_NARROW_PX = 6.0  # second LM stage gate
+INLIER_PX = 3.0  # a 2D point is an inlier when within this distance of the projected tree
+MAX_MEAN_RESIDUAL_PX = 3.0  # success needs mean inlier residual below this ...
+MIN_INLIER_FRACTION = 0.5  # ... and at least this fraction of 2D points explained
+SEARCH_ROT_INPLANE_DEG = np.arange(-15.0, 15.01, 3.0)
+SEARCH_ROT_OUTPLANE_DEG = np.array([-10.0, 0.0, 10.0])
+SEARCH_SHIFT_MM = 40.0
+SEARCH_CELL_PX = 8.0  # nominal coarse grid for a 512-px image (scaled with the image)
+SEARCH_TRUNC_CELLS = 3.0
+SEARCH_STARTS = 3  # LM starts taken from the search
+
+
+# ============================================================================================
+# results
+# ============================================================================================
+@dataclass(frozen=True, eq=False)
+class RegistrationResult:
+    """Outcome of a registration (falsy when ``success`` is false).
+
+    Attributes
+    ----------
+    pose : Pose
+        ``T_iso_from_lps``.
+    projection_matrix : (3, 4) ndarray
+        Homogeneous LPS mm -> homogeneous ``(u, v)`` px for ``pose``.
+    success : bool
+        False when the residual or the overlap says the pose is not trustworthy.
+    message : str
+        One line: why it stopped and the quality figures.
+    mean_residual_px : float
+        Mean distance (px) of the inlier 2D centerline points to the projected 3D centerline.
+    inlier_fraction : float
+        Fraction of 2D centerline points within ``INLIER_PX`` of the projected 3D centerline.
+    iterations : int
+        LM iterations (all stages and starts).
+    seconds : float
+        Wall time, including the global search.
+    covariance_6x6 : (6, 6) ndarray or None
+        Pose covariance in the left-perturbation tangent space ``(t mm, phi rad)``.
+    energy : float
+        Final value of the robust energy (narrow gate).
+    """
+
+    pose: Pose
+    projection_matrix: np.ndarray
+    success: bool
+    message: str
+    mean_residual_px: float
+    inlier_fraction: float
+    iterations: int
+    seconds: float
+    covariance_6x6: np.ndarray | None = None
+    energy: float = float("nan")
+
+    def __bool__(self) -> bool:
+        return bool(self.success)
+
+    def to_dict(self) -> dict:
+        """JSON-able record (plain lists and floats)."""
+        return {
+            "pose": self.pose.to_dict(),
+            "projection_matrix": np.asarray(self.projection_matrix, dtype=float).tolist(),
+            "success": bool(self.success),
+            "message": str(self.message),
+            "mean_residual_px": _json_float(self.mean_residual_px),
+            "inlier_fraction": _json_float(self.inlier_fraction),
+            "iterations": int(self.iterations),
+            "seconds": float(self.seconds),
+            "covariance_6x6": None if self.covariance_6x6 is None else np.asarray(self.covariance_6x6).tolist(),
+            "energy": _json_float(self.energy),
+        }
+
+
+def _json_float(x) -> float | None:
+    x = float(x)
+    return x if np.isfinite(x) else None
+
+
+# ============================================================================================
+# kernel
+# ============================================================================================
+def pseudo_huber(s, delta: float = DELTA) -> tuple[np.ndarray, np.ndarray]:
+    """The paper's kernel ``rho(s) = s / (1 + sqrt(1 + s/delta^2))`` and its derivative.
+
+    ``rho`` equals ``delta^2 (sqrt(1 + s/delta^2) - 1)``, half the standard pseudo-Huber, in a
+    cancellation-free form. ``rho'(s) = 1 / (2 sqrt(1 + s/delta^2))``.
+
+    Parameters
+    ----------
+    s : array_like of float
+        Squared (Mahalanobis) residual norms, ``>= 0``.
+    delta : float
+        Cutoff.
+
+    Returns
+    -------
+    rho, drho : ndarray
+        Same shape as ``s``.
+    """
+    s = np.asarray(s, dtype=float)
+    root = np.sqrt(1.0 + s / delta**2)
+    return s / (1.0 + root), 0.5 / root
+
+
+# ============================================================================================
+# input normalisation
+# ============================================================================================
+@dataclass(frozen=True, eq=False)
+class _Model3D:
+    points: np.ndarray  # (N, 3) LPS, LM samples (~1 mm)
+    tangents: np.ndarray  # (N, 3) unit
+    sigma_mm: np.ndarray  # (N,)
+    step_mm: float
+    dense: np.ndarray  # (Nd, 3) for scoring, finer
+    coarse: np.ndarray  # (Nc, 3) for the global search
+    centroid: np.ndarray  # (3,) centroid of the input tree points
+    r_g: float  # radius of gyration (mm)
+    bif_ids: np.ndarray  # bifurcation point ids in the input tree
+    has_topology: bool
+
+
+_MODEL_CACHE: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
+
+
+def _resample_tree(tree: VesselTree, step_mm: float):
+    """Points every <= step_mm along every edge; tangents of their edge; radii interpolated."""
+    p, r = tree.points_lps_mm, tree.radius_mm
+    e = tree.edges
+    a, b = p[e[:, 0]], p[e[:, 1]]
+    L = np.linalg.norm(b - a, axis=1)
+    n = np.maximum(np.ceil(L / step_mm).astype(np.int64), 1)
+    edge_of = np.repeat(np.arange(len(e)), n)
+    k = np.arange(n.sum()) - np.repeat(np.cumsum(n) - n, n) + 1  # 1..n per edge
+    f = (k / n[edge_of])[:, None]
+    pts = a[edge_of] + f * (b - a)[edge_of]
+    tang = ((b - a) / np.maximum(L, 1e-12)[:, None])[edge_of]
+    rad = r[e[edge_of, 0]] + f[:, 0] * (r[e[edge_of, 1]] - r[e[edge_of, 0]])
+    # the root point, with the tangent of its first edge
+    root = tree.root
+    first = np.flatnonzero(e[:, 0] == root)
+    t_root = tang[np.flatnonzero(edge_of == first[0])[0]] if len(first) else np.array([1.0, 0, 0])
+    pts = np.vstack([p[root][None], pts])
+    tang = np.vstack([t_root[None], tang])
+    rad = np.r_[r[root], rad]
+    return pts, tang, rad
+
+
+def _pca_lines(points: np.ndarray, k: int = 8) -> tuple[np.ndarray, np.ndarray]:
+    """Local lines of an unordered point cloud sampling curves (principal axis of the k-NN).
+
+    Returns the unit tangents and the points projected onto their local line (which removes
+    the noise across the curve and keeps the position along it).
+    """
+    n, dim = points.shape
+    k = int(min(k, n))
+    if k < 3:
+        t = np.zeros_like(points)
+        t[:, 0] = 1.0
+        return t, points.copy()
+    _, idx = cKDTree(points).query(points, k=k)
+    nbp = points[idx]
+    c = nbp.mean(axis=1)
+    nb = nbp - c[:, None, :]
+    cov = np.einsum("nki,nkj->nij", nb, nb)
+    _, vec = np.linalg.eigh(cov)
+    t = vec[:, :, -1]
+    proj = c + t * np.sum(t * (points - c), axis=1, keepdims=True)
+    return t, proj
+
+
+def _grid_subsample(points: np.ndarray, step: float) -> np.ndarray:
+    """Indices of one point per ``step``-sized grid cell (first occurrence, original order)."""
+    keys = np.floor(points / step).astype(np.int64)
+    _, first = np.unique(keys, axis=0, return_index=True)
+    return np.sort(first)
+
+
+def _model_from_input(tree, carm: CArm) -> _Model3D:
+    px_iso = carm.pixel_at_iso_mm
+    step = float(np.clip(4.0 * px_iso, 0.5, 1.5))  # LM samples: ~4 px at the isocentre
+    dense_step = float(np.clip(px_iso, 0.05, 0.5))
+    coarse_step = float(max(_search_cell_px(carm) * px_iso, 0.5))
+    if isinstance(tree, VesselTree):
+        key = (round(step, 6), round(dense_step, 6), round(coarse_step, 6))
+        cached = _MODEL_CACHE.get(tree)
+        if cached is not None and key in cached:
+            return cached[key]
+        pts, tang, rad = _resample_tree(tree, step)
+        dense, _, _ = _resample_tree(tree, dense_step)
+        coarse, _, _ = _resample_tree(tree, coarse_step)
+        src = tree.points_lps_mm
+        bif = tree.bifurcations
+        has_topology = True
+    else:
+        src = np.asarray(tree, dtype=float)
+        if src.ndim != 2 or src.shape[1] != 3 or len(src) < 2:
+            raise InputError(f"tree must be a VesselTree or (N>=2, 3) points in LPS mm, got shape {src.shape}")
+        if not np.all(np.isfinite(src)):
+            raise InputError("tree points_lps_mm contain non-finite values")
+        keep = _grid_subsample(src, step * 0.7)
+        pts = src[keep]
+        tang = _pca_lines(src)[0][keep]
+        rad = np.ones(len(pts))
+        dense = src
+        coarse = src[_grid_subsample(src, coarse_step)]
+        bif = np.zeros(0, dtype=np.int64)
+        has_topology = False
+    centroid = src.mean(axis=0)
+    r_g = float(np.sqrt(np.mean(np.sum((pts - pts.mean(axis=0)) ** 2, axis=1))))
+    r_g = max(r_g, 5.0)
+    sigma = np.sqrt(SIGMA_3D_MM**2 + (RADIUS_GROWTH * rad) ** 2)
+    model = _Model3D(
+        points=pts, tangents=tang, sigma_mm=sigma, step_mm=step, dense=dense, coarse=coarse,
+        centroid=centroid, r_g=r_g, bif_ids=bif, has_topology=has_topology,
+    )
+    for a in (pts, tang, sigma, dense, coarse, centroid):
+        a.setflags(write=False)
+    if isinstance(tree, VesselTree):
+        _MODEL_CACHE.setdefault(tree, {})[key] = model
+    return model
+
+
+def _search_cell_px(carm: CArm) -> float:
+    return float(max(2.0, round(SEARCH_CELL_PX * max(carm.shape) / 512.0)))
+
+
+@dataclass(frozen=True, eq=False)
+class _Model2D:
+    uv: np.ndarray  # (M, 2) LM samples (px)
+    tangents: np.ndarray  # (M, 2) unit
+    sigma_px: np.ndarray  # (M,)
+    all_uv: np.ndarray  # (Ma, 2) every input point (quality, score)
+    cell: float  # nearest-index raster cell (px)
+    origin: np.ndarray  # (2,) uv of raster cell (0, 0)
+    nn_map: np.ndarray  # (Hr, Wr) int: index into uv of the nearest sample
+
+
+def _check_2d(centerline_uv_px, name="centerline_uv_px") -> np.ndarray:
+    q = np.asarray(centerline_uv_px, dtype=float)
+    if q.ndim != 2 or q.shape[1] != 2:
+        raise InputError(f"{name} must be (M, 2) pixel (u, v) points, got shape {q.shape}")
+    if not np.all(np.isfinite(q)):
+        raise InputError(f"{name} contains non-finite values")
+    return q
+
+
+def _model_2d(q: np.ndarray, radius_px, carm: CArm) -> _Model2D:
+    if radius_px is None:
+        rad = np.zeros(len(q))
+    else:
+        rad = np.asarray(radius_px, dtype=float).reshape(-1)
+        if rad.shape != (len(q),) or not np.all(np.isfinite(rad)):
+            raise InputError(f"centerline_radius_px must be finite with one value per point ({len(q)}), got {rad.shape}")
+    keep = _grid_subsample(q, 1.5)
+    tang_all, smooth = _pca_lines(q)
+    uv, tang = smooth[keep], tang_all[keep]
+    sigma = np.sqrt(SIGMA_2D_PX**2 + (RADIUS_GROWTH * rad[keep]) ** 2)
+    # nearest-index raster (<= ~256 cells on the long side)
+    cell = float(max(1.0, np.ceil(max(carm.shape) / 256.0)))
+    lo = np.minimum(uv.min(axis=0), [-0.5, -0.5]) - cell
+    hi = np.maximum(uv.max(axis=0), [carm.cols - 0.5, carm.rows - 0.5]) + cell
+    origin = lo
+    shape = (int(np.ceil((hi[1] - lo[1]) / cell)) + 1, int(np.ceil((hi[0] - lo[0]) / cell)) + 1)
+    occ_idx = -np.ones(shape, dtype=np.int64)
+    ij = np.rint((uv - origin) / cell).astype(np.int64)
+    occ_idx[ij[:, 1], ij[:, 0]] = np.arange(len(uv))
+    _, (ii, jj) = ndi.distance_transform_edt(occ_idx < 0, return_indices=True)
+    nn_map = occ_idx[ii, jj]
+    for a in (uv, tang, sigma, q, nn_map):
+        a.setflags(write=False)
+    return _Model2D(uv=uv, tangents=tang, sigma_px=sigma, all_uv=q, cell=cell, origin=origin, nn_map=nn_map)
+
+
+# ============================================================================================
+# the energy: residuals, Jacobians, weights
+# ============================================================================================
+@dataclass
+class _Eval:
+    pose: Pose
+    energy: float
+    g: np.ndarray  # (6,) gradient in theta units
+    H: np.ndarray  # (6, 6) Gauss-Newton Hessian (IRLS)
+    rnorm: float  # ||r|| weighted
+    n_in3: int
+    n_in2: int
+    H_info: np.ndarray  # (6, 6) un-normalised information (theta units), for the covariance
+    chi2: float
+    dof: int
+
+
+class _Problem:
+    """Fixed data of one registration: models, camera, rays of the 2D points, settings."""
+
+    def __init__(self, m3: _Model3D, m2: _Model2D, carm: CArm, *, lam, delta, prior_pose=None, prior_weight=0.0):
+        self.m3, self.m2, self.carm = m3, m2, carm
+        self.lam, self.delta = float(lam), float(delta)
+        self.A = carm.axes
+        self.S = carm.source_room_mm
+        self.f = carm.focal_px
+        self.c = carm.principal_point_px
+        self.px_mm_iso = carm.pixel_at_iso_mm
+        self.slack_px = TANGENT_SLACK_PX
+        # 3D point uncertainty in px at the isocentre (fixed: no depth-dependent weights, which
+        # would bias the weakly observed depth)
+        self.sig3_px = m3.sigma_mm / carm.pixel_at_iso_mm
+        self.visible3 = np.ones(len(m3.points), bool)
+        self.scale = np.array([1.0, 1.0, 1.0, 1.0 / m3.r_g, 1.0 / m3.r_g, 1.0 / m3.r_g])  # xi = scale * theta
+        self.prior_pose = prior_pose
+        self.prior_weight = float(prior_weight)
+
+    # --- one evaluation -----------------------------------------------------------------
+    def evaluate(self, pose: Pose, gate_px: float, *, delta: float | None = None, need_jac: bool = True) -> _Eval:
+        m3, m2 = self.m3, self.m2
+        delta = self.delta if delta is None else float(delta)
+        Y = m3.points @ pose.R.T + pose.t  # room frame
+        Xc = (Y - self.S) @ self.A.T
+        z = Xc[:, 2]
+        zs = np.maximum(z, 1e-6)
+        uv = self.f * Xc[:, :2] / zs[:, None] + self.c
+        front = z > 1e-3
+        inimg = front & self.carm.in_image(uv)
+        # projection Jacobian du/dY = (f/z) [[1, 0, -x/z], [0, 1, -y/z]] A, and projected tangents
+        fz = self.f / zs
+        Jc = np.zeros((len(Y), 2, 3))
+        Jc[:, 0, 0] = fz
+        Jc[:, 1, 1] = fz
+        Jc[:, 0, 2] = -fz * Xc[:, 0] / zs
+        Jc[:, 1, 2] = -fz * Xc[:, 1] / zs
+        dudY = Jc @ self.A  # (N, 2, 3)
+        N, M = len(Y), len(m2.uv)
+
+        # ---- 3D -> 2D: projected 3D point vs nearest 2D point (O(1) nearest-index map) ----
+        ij = np.rint((uv - m2.origin) / m2.cell).astype(np.int64)
+        ij[:, 0] = np.clip(ij[:, 0], 0, m2.nn_map.shape[1] - 1)
+        ij[:, 1] = np.clip(ij[:, 1], 0, m2.nn_map.shape[0] - 1)
+        j = m2.nn_map[ij[:, 1], ij[:, 0]]
+        e1 = uv - m2.uv[j]
+        t2 = m2.tangents[j]
+        n2 = np.column_stack([-t2[:, 1], t2[:, 0]])
+        sig_n1 = np.sqrt(m2.sigma_px[j] ** 2 + self.sig3_px**2)
+        sig_t1 = np.sqrt(sig_n1**2 + self.slack_px**2)
+        r1 = np.column_stack([np.sum(t2 * e1, axis=1) / sig_t1, np.sum(n2 * e1, axis=1) / sig_n1])
+        s1 = np.sum(r1 * r1, axis=1)
+        G1 = (gate_px / sig_n1) ** 2
+        ok1 = inimg & self.visible3 & (s1 <= G1)
+        rho1, drho1 = pseudo_huber(np.minimum(s1, G1), delta)
+        E1 = float(np.sum(rho1[inimg & self.visible3]))  # unseen / invisible points: constant 0
+
+        # ---- 2D -> 3D: 2D point vs the 3D point whose projection is nearest (KD-tree) ----
+        # residual = reprojection (px) of that 3D point, measured across its projected tangent
+        uvk = np.where(front[:, None], uv, 1e9)
+        _, i = cKDTree(uvk).query(m2.uv)
+        e2 = uv[i] - m2.uv
+        tp = np.einsum("mkc,mc->mk", dudY[i], m3.tangents[i] @ pose.R.T)  # projected tangent (px/mm)
+        tpn = np.linalg.norm(tp, axis=1)
+        a = np.where(tpn[:, None] > 1e-9, tp / np.maximum(tpn, 1e-12)[:, None], np.array([[1.0, 0.0]]))
+        ap = np.column_stack([-a[:, 1], a[:, 0]])
+        fore = np.minimum(tpn * self.px_mm_iso, 1.0)  # foreshortening of the 3D tangent, 0..1
+        sig_n2 = np.sqrt(m2.sigma_px**2 + self.sig3_px[i] ** 2)
+        sig_t2 = np.sqrt(sig_n2**2 + (self.slack_px * fore) ** 2)
+        r2 = np.column_stack([np.sum(a * e2, axis=1) / sig_t2, np.sum(ap * e2, axis=1) / sig_n2])
+        s2 = np.sum(r2 * r2, axis=1)
+        G2 = (gate_px / sig_n2) ** 2
+        ok2 = front[i] & (s2 <= G2)
+        rho2, drho2 = pseudo_huber(np.minimum(s2, G2), delta)
+        k2 = self.lam * N / M  # 2D -> 3D sum rescaled to the 3D sample count
+        E2 = k2 * float(rho2.sum())
+
+        energy = E1 + E2
+        prior_r = None
+        if self.prior_pose is not None and self.prior_weight > 0:
+            prior_r = (pose @ self.prior_pose.inverse()).log() / self.scale
+            energy += self.prior_weight * float(prior_r @ prior_r)
+        if not need_jac:
+            return _Eval(pose, float(energy), None, None, 0.0, int(ok1.sum()), int(ok2.sum()), None, 0.0, 0)
+
+        # ---- Jacobians (theta units): dr/dtheta = W du/dY [I, -hat(Y) / r_g] ----
+        W1 = np.stack([t2[ok1] / sig_t1[ok1, None], n2[ok1] / sig_n1[ok1, None]], axis=1)  # (n, 2, 2)
+        d1 = W1 @ dudY[ok1]
+        J1 = np.concatenate([d1, np.cross(Y[ok1][:, None, :], d1) / m3.r_g], axis=2)
+        w1 = 2.0 * drho1[ok1]
+        i2 = i[ok2]
+        W2 = np.stack([a[ok2] / sig_t2[ok2, None], ap[ok2] / sig_n2[ok2, None]], axis=1)
+        d2 = W2 @ dudY[i2]
+        J2 = np.concatenate([d2, np.cross(Y[i2][:, None, :], d2) / m3.r_g], axis=2)
+        w2 = 2.0 * k2 * drho2[ok2]
+
+        R1, R2 = r1[ok1], r2[ok2]
+        Jf = np.concatenate([J1.reshape(-1, 6), J2.reshape(-1, 6)])
+        rf = np.concatenate([R1.reshape(-1), R2.reshape(-1)])
+        wf = np.concatenate([np.repeat(w1, 2), np.repeat(w2, 2)])
+        Jw = Jf * wf[:, None]
+        H = Jw.T @ Jf
+        g = Jw.T @ rf
+        rnorm = float(np.sqrt(np.sum(wf * rf * rf)))
+        if prior_r is not None:
+            H = H + 2.0 * self.prior_weight * np.eye(6)
+            g = g + 2.0 * self.prior_weight * prior_r
+        # information for the covariance: un-normalised, robust weights 2 rho' (=1 at 0)
+        vf = np.concatenate([np.repeat(2.0 * drho1[ok1], 2), np.repeat(2.0 * self.lam * drho2[ok2], 2)])
+        H_info = (Jf * vf[:, None]).T @ Jf
+        chi2 = float(np.sum(vf * rf * rf))
+        dof = 2 * (len(R1) + len(R2)) - 6
+        return _Eval(pose, float(energy), g, H, rnorm, int(ok1.sum()), int(ok2.sum()), H_info, chi2, dof)
+
+    def step(self, pose: Pose, h_theta: np.ndarray) -> Pose:
+        return Pose.exp(self.scale * h_theta) @ pose
+
+
+@dataclass
+class _LMOut:
+    pose: Pose
+    ev: _Eval
+    iterations: int
+    status: str
+
+
+def _levenberg_marquardt(prob: _Problem, pose: Pose, *, gate_px: float, max_iterations: int, delta: float | None = None,
+                         eps_abs: float = EPS_ABS_MM, eps_rel: float = EPS_REL) -> _LMOut:
+    """Paper's LM on se(3) with gain-ratio damping (Nielsen), IRLS weights, left perturbation."""
+    ev = prob.evaluate(pose, gate_px, delta=delta)
+    mu, nu = MU0, 2.0
+    status = "max iterations"
+    it = 0
+    rejected = 0
+    while it < max_iterations:
+        it += 1
+        if ev.n_in3 + ev.n_in2 < 6:
+            status = "too few matched points"
+            break
+        try:
+            h = np.linalg.solve(ev.H + mu * np.eye(6), -ev.g)
+        except np.linalg.LinAlgError:
+            status = "singular normal equations"
+            break
+        hn = float(np.linalg.norm(h))
+        grad_small = float(np.abs(ev.g).max()) < eps_rel * max(ev.rnorm, 1e-12)
+        if hn < eps_abs:
+            status = "converged" if grad_small else "converged (step)"
+            break
+        new_pose = prob.step(ev.pose, h)
+        ev_new = prob.evaluate(new_pose, gate_px, delta=delta)
+        pred = float(h @ (mu * h - ev.g))
+        eta = (ev.energy - ev_new.energy) / pred if pred > 0 else -1.0
+        if eta > 0:
+            decrease = ev.energy - ev_new.energy
+            ev = ev_new
+            mu *= max(1.0 / 3.0, 1.0 - (2.0 * eta - 1.0) ** 3)
+            nu = 2.0
+            rejected = 0
+            if hn < 10 * eps_abs and float(np.abs(ev.g).max()) < eps_rel * max(ev.rnorm, 1e-12):
+                status = "converged"
+                break
+            if decrease < REL_DECREASE_STOP * max(ev.energy, 1e-12):
+                status = "converged (energy)"
+                break
+        else:
+            mu *= nu
+            nu *= 2.0
+            rejected += 1
+            # closest-point energies are piecewise smooth: a run of rejected steps at a
+            # stationary point means no further descent is available at this scale
+            if rejected >= MAX_REJECTIONS:
+                status = "converged (stalled)"
+                break
+    return _LMOut(ev.pose, ev, it, status)
+
+
+# ============================================================================================
+# coarse global search
+# ============================================================================================
+def _global_search(m3: _Model3D, m2: _Model2D, carm: CArm, start: Pose, *, n_best: int) -> list[tuple[float, Pose]]:
+    """Rotation grid x exhaustive in-plane shift (FFT chamfer); returns the best ``n_best`` poses."""
+    c0 = _search_cell_px(carm)
+    H, W = int(np.ceil(carm.rows / c0)), int(np.ceil(carm.cols / c0))
+    centre_room = start.apply(m3.centroid)
+    z_c = float((centre_room - carm.source_room_mm) @ carm.beam_direction)
+    mm_per_px = z_c / carm.focal_px
+    m = int(np.ceil(SEARCH_SHIFT_MM / (mm_per_px * c0)))
+    Hp, Wp = sfft.next_fast_len(H + 2 * m + 1), sfft.next_fast_len(W + 2 * m + 1)
+    tau = SEARCH_TRUNC_CELLS
+
+    def cells(uv):
+        return np.floor((uv + 0.5) / c0).astype(np.int64) + m  # padded cell coordinates (col, row)
+
+    # 2D side: points image and truncated DT, fixed
+    q = cells(m2.all_uv)
+    okq = (q[:, 0] >= 0) & (q[:, 0] < Wp) & (q[:, 1] >= 0) & (q[:, 1] < Hp)
+    q = q[okq]
+    P2 = np.zeros((Hp, Wp), np.float32)
+    np.add.at(P2, (q[:, 1], q[:, 0]), 1.0)
+    P2 /= max(P2.sum(), 1.0)
+    occ2 = np.ones((Hp, Wp), np.uint8)
+    occ2[q[:, 1], q[:, 0]] = 0
+    D2 = np.minimum(ndi.distance_transform_edt(occ2), tau).astype(np.float32)
+    # outside the image the 2D side is unknown: a neutral cost
+    inside = np.zeros((Hp, Wp), bool)
+    inside[m : m + H, m : m + W] = True
+    D2[~inside] = 0.5 * tau
+    F_D2 = sfft.rfft2(D2)
+    F_P2 = sfft.rfft2(P2)
+
+    e_u, e_v, d = carm.axes
+    rots = [(a, b, g) for a in SEARCH_ROT_OUTPLANE_DEG for b in SEARCH_ROT_OUTPLANE_DEG for g in SEARCH_ROT_INPLANE_DEG]
+    import cv2
+
+    costs = np.empty(len(rots))
+    shifts = np.zeros((len(rots), 2))
+    poses = []
+    batch = 16
+    for b0 in range(0, len(rots), batch):
+        chunk = rots[b0 : b0 + batch]
+        P3 = np.zeros((len(chunk), Hp, Wp), np.float32)
+        D3 = np.empty((len(chunk), Hp, Wp), np.float32)
+        for k, (ra, rb, rg) in enumerate(chunk):
+            rv = np.radians(ra) * e_u + np.radians(rb) * e_v + np.radians(rg) * d
+            pose_k = Pose.from_rotvec_about(rv, centre_room) @ start
+            poses.append(pose_k)
+            uv = carm.project(m3.coarse, pose_k)
+            cc = cells(uv[np.isfinite(uv).all(axis=1)])
+            ok = (cc[:, 0] >= 0) & (cc[:, 0] < Wp) & (cc[:, 1] >= 0) & (cc[:, 1] < Hp)
+            cc = cc[ok]
+            np.add.at(P3[k], (cc[:, 1], cc[:, 0]), 1.0)
+            P3[k] /= max(P3[k].sum(), 1.0)
+            occ3 = np.full((Hp, Wp), 255, np.uint8)
+            occ3[cc[:, 1], cc[:, 0]] = 0
+            D3[k] = np.minimum(cv2.distanceTransform(occ3, cv2.DIST_L2, cv2.DIST_MASK_PRECISE), tau)
+        F = np.conj(sfft.rfft2(P3, workers=2)) * F_D2[None] + np.conj(sfft.rfft2(D3, workers=2)) * F_P2[None]
+        C = sfft.irfft2(F, s=(Hp, Wp), workers=2)
+        # only shifts within +-m (circular indices)
+        C = np.concatenate([C[:, -m:], C[:, : m + 1]], axis=1)
+        C = np.concatenate([C[:, :, -m:], C[:, :, : m + 1]], axis=2)
+        flat = C.reshape(len(chunk), -1).argmin(axis=1)
+        for k in range(len(chunk)):
+            iy, ix = np.unravel_index(flat[k], C.shape[1:])
+            costs[b0 + k] = C[k, iy, ix]
+            shifts[b0 + k] = (ix - m, iy - m)
+    order = np.argsort(costs)
+    out: list[tuple[float, Pose]] = []
+    for k in order:
+        du, dv = shifts[k] * c0
+        t = (du * e_u + dv * e_v) * mm_per_px
+        cand = Pose(np.eye(3), t) @ poses[k]
+        if any(_pose_close(cand, p, m3, mm=2.0 * c0 * mm_per_px) for _, p in out):
+            continue
+        out.append((float(costs[k]), cand))
+        if len(out) >= n_best:
+            break
+    return out
+
+
+def _pose_close(a: Pose, b: Pose, m3: _Model3D, *, mm: float) -> bool:
+    pa, pb = a.apply(m3.coarse), b.apply(m3.coarse)
+    return float(np.linalg.norm(pa - pb, axis=1).mean()) < mm
+
+
+# ============================================================================================
+# quality
+# ============================================================================================
+def residuals_px(tree, centerline_uv_px, carm: CArm, pose: Pose) -> np.ndarray:
+    """Distance (px) from each 2D centerline point to the projected 3D centerline.
+
+    The 3D centerline is resampled at about one detector pixel (at the isocentre) so that the
+    nearest projected sample is within a fraction of a pixel of the nearest curve point.
+
+    Returns
+    -------
+    (M,) ndarray of float
+    """
+    if not isinstance(carm, CArm):
+        raise InputError(f"carm must be a CArm, got {type(carm).__name__}")
+    q = _check_2d(centerline_uv_px)
+    m3 = _model_from_input(tree, carm)
+    return _residuals_px(m3, q, carm, pose)
+
+
+def _residuals_px(m3: _Model3D, q: np.ndarray, carm: CArm, pose: Pose) -> np.ndarray:
+    uv = carm.project(m3.dense, pose)
+    uv = uv[np.isfinite(uv).all(axis=1)]
+    if len(uv) == 0:
+        return np.full(len(q), np.inf)
+    d, _ = cKDTree(uv).query(q)
+    return d
+
+
+def _quality(m3, q, carm, pose):
+    d = _residuals_px(m3, q, carm, pose)
+    inl = d <= INLIER_PX
+    frac = float(inl.mean()) if len(d) else 0.0
+    mean_in = float(d[inl].mean()) if inl.any() else float("inf")
+    return mean_in, frac, float(np.median(d)) if len(d) else float("inf")
+
+
+def score(tree, centerline_uv_px, carm: CArm, pose: Pose) -> float:
+    """Mean distance (px) of the 2D centerline points to the projected 3D centerline.
+
+    For live display while the user nudges the pose (about 1-2 ms for a few thousand points;
+    the resampled tree is cached per ``VesselTree``). Untruncated, so it keeps decreasing as
+    the pose approaches the truth.
+    """
+    return float(residuals_px(tree, centerline_uv_px, carm, pose).mean())
+
+
+# ============================================================================================
+# public API
+# ============================================================================================
+def _check_common(carm, lam, delta, max_iterations):
+    if not isinstance(carm, CArm):
+        raise InputError(f"carm must be a CArm, got {type(carm).__name__}")
+    if not (np.isfinite(lam) and lam >= 0):
+        raise InputError(f"lam must be >= 0, got {lam}")
+    if not (np.isfinite(delta) and delta > 0):
+        raise InputError(f"delta must be > 0, got {delta}")
+    if int(max_iterations) < 1:
+        raise InputError(f"max_iterations must be >= 1, got {max_iterations}")
+
+
+def _failed(pose, carm, message, t0, iterations=0) -> RegistrationResult:
+    return RegistrationResult(
+        pose=pose, projection_matrix=carm.projection_matrix(pose), success=False, message=message,
+        mean_residual_px=float("inf"), inlier_fraction=0.0, iterations=iterations,
+        seconds=time.perf_counter() - t0, covariance_6x6=None,
+    )
+
+
+def register(
+    tree,
+    centerline_uv_px,
+    carm: CArm,
+    *,
+    init_pose: Pose | None = None,
+    centerline_radius_px=None,
+    global_search: bool = True,
+    lam: float = LAMBDA,
+    delta: float = DELTA,
+    max_iterations: int = 100,
+    prior_pose: Pose | None = None,
+    prior_weight: float = 0.0,
+) -> RegistrationResult:
+    """Register the CTA vessel centerline to the 2D roadmap centerline.
+
+    Parameters
+    ----------
+    tree : VesselTree or (N, 3) ndarray of float
+        3D centerline in LPS mm (a bare point cloud is accepted; it should be dense, <= 1 mm).
+    centerline_uv_px : (M, 2) ndarray of float
+        2D centerline points ``(u, v)`` px of the roadmap (any order; may cover only part of the
+        projected tree).
+    carm : CArm
+        The roadmap's C-arm geometry (DICOM angles, SID, SOD, pixel size, shape).
+    init_pose : Pose, optional
+        Start; default ``nominal_pose(centroid of the tree)``.
+    centerline_radius_px : (M,) ndarray of float, optional
+        Vessel radius at each 2D point: larger vessels get a larger point uncertainty.
+    global_search : bool
+        Run the coarse rotation x in-plane-translation search around the start before LM.
+    lam : float
+        Weight of the 2D -> 3D term (paper: 0.1).
+    delta : float
+        Pseudo-Huber cutoff in whitened units (paper: 1).
+    max_iterations : int
+        LM iteration cap per LM run (paper: 100).
+    prior_pose, prior_weight : Pose, float
+        Smooth-motion prior for sequences: adds ``prior_weight * ||(dt_mm, r_g dphi)||^2``
+        about ``prior_pose`` (``r_g`` = radius of gyration of the tree, mm).
+
+    Returns
+    -------
+    RegistrationResult
+        Never raises on valid input that cannot be registered: ``success`` is then false.
+
+    Raises
+    ------
+    InputError
+        Malformed ``tree``, ``centerline_uv_px``, ``carm`` or options.
+    """
+    t0 = time.perf_counter()
+    _check_common(carm, lam, delta, max_iterations)
+    q = _check_2d(centerline_uv_px)
+    m3 = _model_from_input(tree, carm)
+    start = nominal_pose(m3.centroid) if init_pose is None else init_pose
+    if not isinstance(start, Pose):
+        raise InputError(f"init_pose must be a Pose, got {type(start).__name__}")
+    if prior_pose is not None and not isinstance(prior_pose, Pose):
+        raise InputError(f"prior_pose must be a Pose, got {type(prior_pose).__name__}")
+    if len(q) < 10:
+        return _failed(start, carm, f"2D centerline has only {len(q)} points (need >= 10)", t0)
+    m2 = _model_2d(q, centerline_radius_px, carm)
+    prob = _Problem(m3, m2, carm, lam=lam, delta=delta, prior_pose=prior_pose, prior_weight=prior_weight)
+
+    iterations = 0
+    if global_search:
+        cands = [p for _, p in _global_search(m3, m2, carm, start, n_best=SEARCH_STARTS)]
+        gate_a = max(GATE_WIDE_PX, 3.0 * _search_cell_px(carm))
+    else:
+        cands = [start]
+        gate_a = GATE_WIDE_PX
+    best = None
+    for cand in cands:
+        out = _levenberg_marquardt(prob, cand, gate_px=gate_a, delta=max(DELTA_WIDE, delta),
+                                   max_iterations=int(max_iterations))
+        iterations += out.iterations
+        if best is None or out.ev.energy < best.ev.energy:
+            best = out
+    out = _levenberg_marquardt(prob, best.pose, gate_px=GATE_NARROW_PX, max_iterations=int(max_iterations))
+    iterations += out.iterations
+    return _finish(prob, out, q, carm, iterations, t0)
+
+
+def _finish(prob: _Problem, out: _LMOut, q, carm, iterations, t0) -> RegistrationResult:
+    pose = out.pose
+    mean_in, frac, med = _quality(prob.m3, q, carm, pose)
+    cov = None
+    ev = out.ev
+    if ev.H_info is not None and ev.dof > 0:
+        try:
+            sigma2 = ev.chi2 / ev.dof
+            S = np.diag(prob.scale)
+            cov = S @ np.linalg.inv(ev.H_info) @ S * sigma2
+            cov = 0.5 * (cov + cov.T)
+        except np.linalg.LinAlgError:
+            cov = None
+    ok = (mean_in <= MAX_MEAN_RESIDUAL_PX) and (frac >= MIN_INLIER_FRACTION)
+    why = []
+    if mean_in > MAX_MEAN_RESIDUAL_PX:
+        why.append(f"mean residual {mean_in:.2f} px > {MAX_MEAN_RESIDUAL_PX}")
+    if frac < MIN_INLIER_FRACTION:
+        why.append(f"only {100 * frac:.0f}% of the 2D centerline explained (< {100 * MIN_INLIER_FRACTION:.0f}%)")
+    msg = (
+        f"LM {out.status} after {iterations} iterations; mean residual {mean_in:.2f} px, "
+        f"{100 * frac:.0f}% inliers (<= {INLIER_PX} px), median {med:.2f} px"
+    )
+    if not ok:
+        msg = "untrustworthy: " + "; ".join(why) + " | " + msg
+    return RegistrationResult(
+        pose=pose, projection_matrix=carm.projection_matrix(pose), success=bool(ok), message=msg,
+        mean_residual_px=mean_in, inlier_fraction=frac, iterations=int(iterations),
+        seconds=time.perf_counter() - t0, covariance_6x6=cov, energy=ev.energy,
+    )
+
+
+def refine(tree, centerline_uv_px, carm: CArm, from_pose: Pose, **kw) -> RegistrationResult:
+    """LM only (no global search) from a user-corrected pose. Keywords as :func:`register`."""
+    if not isinstance(from_pose, Pose):
+        raise InputError(f"from_pose must be a Pose, got {type(from_pose).__name__}")
+    kw = dict(kw)
+    kw.pop("global_search", None)
+    kw.pop("init_pose", None)
+    return register(tree, centerline_uv_px, carm, init_pose=from_pose, global_search=False, **kw)
+
+
+def nudge(pose: Pose, carm: CArm, *, centroid_lps_mm, translate_mm=(0.0, 0.0, 0.0), rotate_deg=(0.0, 0.0, 0.0)) -> Pose:
+    """Move the pose by a user correction expressed in the detector frame.
+
+    The rotation (``rotate_deg`` about the detector axes ``(e_u, e_v, d)``, as one rotation
+    vector) is applied about the vessel centroid; then the translation ``translate_mm`` along
+    ``(e_u, e_v, d)`` (image right, image down, along the beam) in the room frame. Positive
+    ``translate_mm[0]`` moves the projected tree toward larger ``u``.
+
+    Parameters
+    ----------
+    pose : Pose
+    carm : CArm
+    centroid_lps_mm : (3,) array_like of float
+        Rotation centre (the vessel centroid, LPS mm).
+    translate_mm, rotate_deg : (3,) array_like of float
+
+    Returns
+    -------
+    Pose
+        A new pose; the input is unchanged.
+    """
+    if not isinstance(pose, Pose):
+        raise InputError(f"pose must be a Pose, got {type(pose).__name__}")
+    if not isinstance(carm, CArm):
+        raise InputError(f"carm must be a CArm, got {type(carm).__name__}")
+    c = np.asarray(centroid_lps_mm, dtype=float).reshape(-1)
+    tr = np.asarray(translate_mm, dtype=float).reshape(-1)
+    rd = np.asarray(rotate_deg, dtype=float).reshape(-1)
+    for name, v in (("centroid_lps_mm", c), ("translate_mm", tr), ("rotate_deg", rd)):
+        if v.shape != (3,) or not np.all(np.isfinite(v)):
+            raise InputError(f"nudge {name} must be 3 finite numbers, got {v.tolist()}")
+    A = carm.axes
+    c_room = pose.apply(c)
+    rot = Pose.from_rotvec_about(A.T @ np.radians(rd), c_room)
+    return Pose(np.eye(3), A.T @ tr) @ rot @ pose
+
+
+# ============================================================================================
+# EPnP baseline
+# ============================================================================================
+def _mirror() -> np.ndarray:
+    return np.diag([-1.0, 1.0, 1.0])
+
+
+def register_epnp(tree_landmarks_lps_mm, landmarks_uv_px, carm: CArm) -> RegistrationResult:
+    """Pose from matched 3D/2D landmarks with OpenCV ``solvePnP(SOLVEPNP_EPNP)`` (paper's baseline).
+
+    The C-arm camera of DESIGN.md has ``det R = -1`` (the radiological display mirrors the
+    camera). OpenCV needs a proper camera, so the mirrored one is converted by flipping its
+    x axis: ``R' = F R``, ``t' = F t`` with ``F = diag(-1, 1, 1)``, which in the image is
+    ``u' = 2 c_u - u``. EPnP is solved on ``(X, u')`` and the result mapped back with ``F``.
+
+    Parameters
+    ----------
+    tree_landmarks_lps_mm : (K, 3) ndarray of float
+    landmarks_uv_px : (K, 2) ndarray of float
+        Matched pairs (``K >= 4``).
+    carm : CArm
+
+    Returns
+    -------
+    RegistrationResult
+        ``mean_residual_px`` is the landmark reprojection error; ``success`` needs ``K >= 4``, a
+        finite solution and a mean reprojection error <= ``MAX_MEAN_RESIDUAL_PX``.
+    """
+    import cv2
+
+    t0 = time.perf_counter()
+    if not isinstance(carm, CArm):
+        raise InputError(f"carm must be a CArm, got {type(carm).__name__}")
+    X = np.asarray(tree_landmarks_lps_mm, dtype=float)
+    uv = np.asarray(landmarks_uv_px, dtype=float)
+    if X.ndim != 2 or X.shape[1] != 3 or uv.ndim != 2 or uv.shape[1] != 2 or len(X) != len(uv):
+        raise InputError(f"landmarks must be (K, 3) and (K, 2) with equal K, got {X.shape} and {uv.shape}")
+    if not (np.all(np.isfinite(X)) and np.all(np.isfinite(uv))):
+        raise InputError("landmarks contain non-finite values")
+    fallback = nominal_pose(X.mean(axis=0)) if len(X) else Pose.identity()
+    if len(X) < 4:
+        return _failed(fallback, carm, f"EPnP needs >= 4 landmark pairs, got {len(X)}", t0)
+    K = carm.intrinsics()
+    uvm = uv.copy()
+    uvm[:, 0] = 2.0 * carm.principal_point_px[0] - uv[:, 0]
+    ok, rvec, tvec = cv2.solvePnP(X.reshape(-1, 1, 3), uvm.reshape(-1, 1, 2), K, None, flags=cv2.SOLVEPNP_EPNP)
+    if not ok or not np.all(np.isfinite(rvec)) or not np.all(np.isfinite(tvec)):
+        return _failed(fallback, carm, "EPnP found no solution", t0)
+    Rp, _ = cv2.Rodrigues(rvec)
+    F = _mirror()
+    R_cam, t_cam = F @ Rp, F @ tvec.reshape(3)
+    A = carm.axes
+    try:
+        pose = Pose(A.T @ R_cam, A.T @ t_cam + carm.source_room_mm)
+    except Exception as e:  # numerically not a rotation
+        return _failed(fallback, carm, f"EPnP returned an invalid pose ({e})", t0)
+    res = np.linalg.norm(carm.project(X, pose) - uv, axis=1)
+    mean = float(res.mean())
+    frac = float(np.mean(res <= INLIER_PX))
+    ok = mean <= MAX_MEAN_RESIDUAL_PX
+    msg = f"EPnP on {len(X)} landmarks; mean reprojection {mean:.2f} px"
+    return RegistrationResult(
+        pose=pose, projection_matrix=carm.projection_matrix(pose), success=bool(ok),
+        message=msg if ok else "untrustworthy: " + msg, mean_residual_px=mean, inlier_fraction=frac,
+        iterations=1, seconds=time.perf_counter() - t0, covariance_6x6=None,
+    )
+
+
+def match_bifurcations(tree, centerline2d_branchpoints_uv_px, carm: CArm, init_pose: Pose, *,
+                       max_distance_px: float = 25.0, n_rounds: int = 3) -> tuple[np.ndarray, np.ndarray]:
+    """Match the tree's bifurcations to 2D branch points for the EPnP baseline.
+
+    The 3D bifurcations are projected with ``init_pose`` and assigned to the 2D branch points by
+    the Hungarian method on pixel distance; a global image shift (the median offset of the
+    matched pairs) is re-estimated and the assignment repeated ``n_rounds`` times, so a start
+    that is off by a translation still matches. Pairs farther than ``max_distance_px`` (after
+    the shift) are dropped.
+
+    Parameters
+    ----------
+    tree : VesselTree
+    centerline2d_branchpoints_uv_px : (B, 2) ndarray of float
+    carm : CArm
+    init_pose : Pose
+
+    Returns
+    -------
+    idx3d : (K,) ndarray of int
+        Point indices into ``tree.points_lps_mm``.
+    idx2d : (K,) ndarray of int
+        Row indices into the branch points.
+    """
+    if not isinstance(tree, VesselTree):
+        raise InputError(f"match_bifurcations needs a VesselTree (for its bifurcations), got {type(tree).__name__}")
+    bp = _check_2d(centerline2d_branchpoints_uv_px, "centerline2d_branchpoints_uv_px")
+    bif = tree.bifurcations
+    empty = (np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64))
+    if len(bif) == 0 or len(bp) == 0:
+        return empty
+    uv = carm.project(tree.points_lps_mm[bif], init_pose)
+    good = np.isfinite(uv).all(axis=1)
+    bif, uv = bif[good], uv[good]
+    if len(bif) == 0:
+        return empty
+    shift = np.zeros(2)
+    r = c = np.zeros(0, dtype=np.int64)
+    for _ in range(max(1, int(n_rounds))):
+        D = np.linalg.norm((uv + shift)[:, None, :] - bp[None, :, :], axis=2)
+        r, c = linear_sum_assignment(D)
+        keep = D[r, c] <= (max_distance_px if _ > 0 else 4.0 * max_distance_px)
+        if keep.sum() == 0:
+            return empty
+        shift = np.median(bp[c[keep]] - uv[r[keep]], axis=0)
+    D = np.linalg.norm((uv + shift)[:, None, :] - bp[None, :, :], axis=2)
+    keep = D[r, c] <= max_distance_px
+    return bif[r[keep]].astype(np.int64), c[keep].astype(np.int64)

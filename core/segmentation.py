@@ -1,0 +1,795 @@
+"""Guidewire segmentation in live XA frames: a small UNet and a classical ridge detector.
+
+Two methods behind one interface (:class:`SegMethod`):
+
+- ``UNET``: an encoder-decoder with skip connections (the paper's UNet, slimmed for CPU: four
+  levels with 6-12-16-24 channels, one convolution at full resolution). It is trained on the
+  simulator's live frames by ``scripts/train_guidewire.py`` and shipped as
+  ``resources/guidewire_unet.safetensors`` (loaded with safetensors, never pickle). Inference runs
+  with onnxruntime (the ONNX graph is exported at run time from the safetensors weights into a
+  cache file) or with torch.
+- ``RIDGE``: a multi-scale Hessian ridge filter (Frangi-type vesselness for dark lines), thresholded
+  with hysteresis. No training, a fast fallback.
+
+Input normalisation (:func:`normalize_frame`) is robust to the raw intensity scale: the frame is
+shifted by its median and divided by its 1-99 percentile spread, both computed on a sub-sampled
+copy of the *whole* frame, so a crop is normalised exactly like the full frame.
+
+Bad frames (blank, saturated, no wire) give an empty mask; nothing is ever fabricated.
+
+:class:`GuidewireSegmenter` is the live-path tracker: the first frame is segmented full-frame; later
+frames only in horizontal strips that cover the previous wire plus a margin (with image context
+around each strip), falling back to full-frame when the wire is lost or reaches the strip border.
+"""
+from __future__ import annotations
+
+import enum
+import hashlib
+import json
+import os
+import tempfile
+import threading
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from guidewire3d.errors import InputError
+
+__all__ = [
+    "SegMethod",
+    "Backend",
+    "UNetConfig",
+    "DEFAULT_WEIGHTS_PATH",
+    "normalize_frame",
+    "frame_is_degenerate",
+    "build_unet",
+    "load_unet",
+    "save_unet",
+    "unet_probability",
+    "ridge_probability",
+    "guidewire_mask",
+    "GuidewireSegmenter",
+]
+
+DEFAULT_WEIGHTS_PATH = Path(__file__).resolve().parent.parent / "resources" / "guidewire_unet.safetensors"
+
+# Normalisation: statistics on every STATS_STEP-th pixel of the full frame.
+STATS_STEP = 4
+Z_CLIP = 6.0
+# A frame whose 0.1-99.9 percentile spread is below this fraction of its level is blank.
+BLANK_REL_SPREAD = 1e-3
+# A frame with more than this fraction of pixels at its maximum (or minimum) value is saturated.
+SATURATED_FRACTION = 0.5
+# Connected components smaller than this (pixels) are dropped from a mask.
+MIN_COMPONENT_PX = 12
+# The network downsamples 3 times: spatial sizes must be multiples of this.
+UNET_MULTIPLE = 8
+
+
+class SegMethod(enum.Enum):
+    """Guidewire segmentation method."""
+
+    UNET = "unet"
+    RIDGE = "ridge"
+
+
+class Backend(enum.Enum):
+    """Inference backend of the UNet."""
+
+    AUTO = "auto"
+    ONNXRUNTIME = "onnxruntime"
+    TORCH = "torch"
+
+
+@dataclass(frozen=True)
+class UNetConfig:
+    """Architecture and decision threshold of the shipped UNet.
+
+    ``channels[k]`` is the width at level ``k`` (level 0 = full resolution); ``level0_convs`` is the
+    number of 3x3 convolutions in the full-resolution encoder and decoder blocks (the other levels
+    have two); ``threshold`` is the probability above which a pixel is wire.
+    """
+
+    channels: tuple[int, ...] = (6, 12, 16, 24)
+    level0_convs: int = 1
+    threshold: float = 0.5
+
+    def to_metadata(self) -> dict[str, str]:
+        return {"channels": json.dumps(list(self.channels)), "level0_convs": str(self.level0_convs),
+                "threshold": repr(float(self.threshold))}
+
+    @classmethod
+    def from_metadata(cls, meta: dict[str, str] | None) -> "UNetConfig":
+        meta = meta or {}
+        d = cls()
+        return cls(channels=tuple(json.loads(meta["channels"])) if "channels" in meta else d.channels,
+                   level0_convs=int(meta.get("level0_convs", d.level0_convs)),
+                   threshold=float(meta.get("threshold", d.threshold)))
+
+
+# --------------------------------------------------------------------------------------------------
+# input handling and normalisation
+# --------------------------------------------------------------------------------------------------
+
+def _as_frame(frame, name: str = "frame") -> np.ndarray:
+    a = np.asarray(frame)
+    if a.ndim == 3 and a.shape[0] == 1:
+        a = a[0]
+    if a.ndim != 2 or min(a.shape) < 8:
+        raise InputError(f"{name}: expected a 2D (H, W) image of at least 8x8 pixels, got shape {a.shape}")
+    if not (np.issubdtype(a.dtype, np.number) or a.dtype == bool):
+        raise InputError(f"{name}: expected a numeric image, got dtype {a.dtype}")
+    return a
+
+
+def _frame_stats(frame: np.ndarray) -> tuple[float, float, bool]:
+    """(median, 1-99 percentile spread, degenerate) of a frame, from a sub-sampled copy."""
+    sub = np.asarray(frame[::STATS_STEP, ::STATS_STEP], dtype=np.float32)
+    if not np.isfinite(sub).all():
+        sub = np.nan_to_num(sub, nan=0.0, posinf=0.0, neginf=0.0)
+    p0, p1, p50, p99, p100 = np.percentile(sub, [0.1, 1.0, 50.0, 99.0, 99.9])
+    lo, hi = float(sub.min()), float(sub.max())
+    spread = float(p99 - p1)
+    level = max(abs(float(p50)), abs(hi), 1e-6)
+    degenerate = bool(
+        (p100 - p0) <= BLANK_REL_SPREAD * level
+        or np.mean(sub >= hi) > SATURATED_FRACTION
+        or np.mean(sub <= lo) > SATURATED_FRACTION
+    )
+    return float(p50), max(spread, 1e-6 * level, 1e-12), degenerate
+
+
+def frame_is_degenerate(frame) -> bool:
+    """True for a blank (constant) or saturated frame, in which no wire can be seen."""
+    return _frame_stats(_as_frame(frame))[2]
+
+
+def normalize_frame(frame, *, stats: tuple[float, float] | None = None) -> np.ndarray:
+    """Normalise a raw XA frame for the network: ``(frame - median) / (p99 - p1)``.
+
+    Parameters
+    ----------
+    frame : (H, W) array of any numeric dtype
+        Raw live frame (MONOCHROME2, wire darker than the background), any intensity scale.
+    stats : (median, spread), optional
+        Statistics to use (those of the full frame when ``frame`` is a crop). Computed on a
+        sub-sampled copy of ``frame`` when omitted.
+
+    Returns
+    -------
+    (H, W) ndarray of float32, clipped to +-6. Invariant to a positive affine change of intensity.
+    """
+    a = _as_frame(frame)
+    if stats is None:
+        med, spread, _ = _frame_stats(a)
+    else:
+        med, spread = float(stats[0]), float(stats[1])
+    z = (a.astype(np.float32) - np.float32(med)) / np.float32(spread)
+    np.clip(z, -Z_CLIP, Z_CLIP, out=z)
+    return z
+
+
+def _check_roi(roi_uv, shape) -> tuple[int, int, int, int]:
+    try:
+        u0, v0, u1, v1 = (int(round(float(x))) for x in roi_uv)
+    except (TypeError, ValueError):
+        raise InputError(f"roi_uv: expected (u0, v0, u1, v1), got {roi_uv!r}") from None
+    h, w = shape
+    u0, u1 = max(u0, 0), min(u1, w)
+    v0, v1 = max(v0, 0), min(v1, h)
+    if u1 <= u0 or v1 <= v0:
+        raise InputError(f"roi_uv: box {tuple(roi_uv)} is empty inside a {w}x{h} frame")
+    return u0, v0, u1, v1
+
+
+def _remove_small(mask: np.ndarray, min_px: int = MIN_COMPONENT_PX) -> np.ndarray:
+    import cv2
+
+    m8 = mask.astype(np.uint8)
+    n, lab, st, _ = cv2.connectedComponentsWithStats(m8, connectivity=8)
+    if n <= 1:
+        return mask.astype(bool)
+    keep = np.zeros(n, bool)
+    keep[1:] = st[1:, cv2.CC_STAT_AREA] >= min_px
+    return keep[lab]
+
+
+# --------------------------------------------------------------------------------------------------
+# the network
+# --------------------------------------------------------------------------------------------------
+
+_UNET_CLASS = None
+
+
+def _unet_class():
+    """The torch module class (defined lazily so that importing this module does not import torch)."""
+    global _UNET_CLASS
+    if _UNET_CLASS is not None:
+        return _UNET_CLASS
+    import torch
+    from torch import nn
+
+    def cbr(i, o):
+        return [nn.Conv2d(i, o, 3, padding=1, bias=False), nn.BatchNorm2d(o), nn.ReLU(inplace=True)]
+
+    class Block(nn.Sequential):
+        def __init__(self, c_in, c_out, n_convs):
+            layers = cbr(c_in, c_out)
+            for _ in range(n_convs - 1):
+                layers += cbr(c_out, c_out)
+            super().__init__(*layers)
+
+    class GuidewireUNet(nn.Module):
+        """UNet: encoder-decoder with skip connections; input (B, 1, H, W) normalised, output logits."""
+
+        def __init__(self, config: UNetConfig):
+            super().__init__()
+            ch = tuple(int(c) for c in config.channels)
+            n0 = int(config.level0_convs)
+            self.config = config
+            self.enc = nn.ModuleList(
+                [Block(1 if k == 0 else ch[k - 1], ch[k], n0 if k == 0 else 2) for k in range(len(ch))])
+            self.up = nn.ModuleList(
+                [nn.ConvTranspose2d(ch[k + 1], ch[k], 2, stride=2) for k in range(len(ch) - 1)])
+            self.dec = nn.ModuleList(
+                [Block(2 * ch[k], ch[k], n0 if k == 0 else 2) for k in range(len(ch) - 1)])
+            self.head = nn.Conv2d(ch[0], 1, 1)
+            self.pool = nn.MaxPool2d(2)
+
+        def forward(self, x):
+            skips = []
+            for k, block in enumerate(self.enc):
+                x = block(x if k == 0 else self.pool(x))
+                skips.append(x)
+            for k in reversed(range(len(self.dec))):
+                x = self.dec[k](torch.cat([self.up[k](x), skips[k]], 1))
+            return self.head(x)
+
+    _UNET_CLASS = GuidewireUNet
+    return GuidewireUNet
+
+
+def build_unet(config: UNetConfig | None = None):
+    """A freshly initialised (untrained) torch UNet of the given architecture."""
+    if config is None:
+        config = UNetConfig()
+    if len(config.channels) < 2 or config.level0_convs < 1:
+        raise InputError(f"UNetConfig: need >= 2 levels and >= 1 level-0 conv, got {config}")
+    return _unet_class()(config)
+
+
+def save_unet(model, path, *, config: UNetConfig | None = None, extra_metadata: dict | None = None) -> Path:
+    """Write a UNet's weights (float32, eval-mode buffers included) and config to a safetensors file."""
+    from safetensors.torch import save_file
+
+    config = config or model.config
+    state = {k: v.detach().to("cpu").contiguous().clone() for k, v in model.state_dict().items()
+             if not k.endswith("num_batches_tracked")}
+    meta = config.to_metadata()
+    meta["format"] = "guidewire3d-unet-v1"
+    for k, v in (extra_metadata or {}).items():
+        meta[str(k)] = v if isinstance(v, str) else json.dumps(v)
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    save_file(state, str(path), metadata=meta)
+    return path
+
+
+def _read_safetensors(path: Path):
+    from safetensors import safe_open
+
+    with safe_open(str(path), framework="pt") as f:
+        meta = f.metadata() or {}
+        tensors = {k: f.get_tensor(k) for k in f.keys()}
+    return tensors, meta
+
+
+def load_unet(path=None):
+    """Load the UNet from a safetensors file (no pickle), in eval mode.
+
+    Parameters
+    ----------
+    path : str or Path, optional
+        Defaults to ``resources/guidewire_unet.safetensors``.
+
+    Returns
+    -------
+    torch.nn.Module
+        The network (CPU, float32, eval mode); its ``config`` attribute is the :class:`UNetConfig`
+        and ``metadata`` holds the file's metadata (training recipe, validation scores).
+    """
+    path = Path(DEFAULT_WEIGHTS_PATH if path is None else path)
+    if not path.is_file():
+        raise InputError(f"{path}: UNet weights file not found")
+    try:
+        tensors, meta = _read_safetensors(path)
+    except Exception as err:  # safetensors raises its own error types
+        raise InputError(f"{path}: not a readable safetensors file ({err})") from None
+    config = UNetConfig.from_metadata(meta)
+    model = build_unet(config)
+    missing, unexpected = model.load_state_dict(tensors, strict=False)
+    missing = [k for k in missing if not k.endswith("num_batches_tracked")]
+    if missing or unexpected:
+        raise InputError(f"{path}: weights do not match the UNet config {config} "
+                         f"(missing {missing[:3]}, unexpected {list(unexpected)[:3]})")
+    model.eval()
+    model.metadata = dict(meta)
+    return model
+
+
+# --------------------------------------------------------------------------------------------------
+# inference backends
+# --------------------------------------------------------------------------------------------------
+
+def _cache_dir() -> Path:
+    base = os.environ.get("GUIDEWIRE3D_CACHE") or os.environ.get("XDG_CACHE_HOME")
+    base = Path(base) if base else Path.home() / ".cache"
+    d = base / "guidewire3d" if not os.environ.get("GUIDEWIRE3D_CACHE") else base
+    try:
+        d.mkdir(parents=True, exist_ok=True)
+        return d
+    except OSError:
+        d = Path(tempfile.gettempdir()) / "guidewire3d-cache"
+        d.mkdir(parents=True, exist_ok=True)
+        return d
+
+
+class _TorchRunner:
+    name = "torch"
+
+    def __init__(self, model, num_threads: int | None):
+        import torch
+
+        self.torch = torch
+        if num_threads:
+            torch.set_num_threads(int(num_threads))
+        self.model = model.to(memory_format=torch.channels_last)
+
+    def __call__(self, batch: np.ndarray) -> np.ndarray:
+        torch = self.torch
+        with torch.inference_mode():
+            x = torch.from_numpy(np.ascontiguousarray(batch)).to(memory_format=torch.channels_last)
+            return self.model(x).float().numpy()
+
+
+class _OrtRunner:
+    name = "onnxruntime"
+
+    def __init__(self, onnx_path: Path, num_threads: int | None):
+        import onnxruntime as ort
+
+        so = ort.SessionOptions()
+        so.intra_op_num_threads = int(num_threads or 2)
+        so.inter_op_num_threads = 1
+        so.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+        so.log_severity_level = 3
+        self.session = ort.InferenceSession(str(onnx_path), so, providers=["CPUExecutionProvider"])
+        self.input_name = self.session.get_inputs()[0].name
+
+    def __call__(self, batch: np.ndarray) -> np.ndarray:
+        return self.session.run(None, {self.input_name: np.ascontiguousarray(batch, dtype=np.float32)})[0]
+
+
+def _export_onnx(model, onnx_path: Path) -> Path:
+    """Export the UNet to ONNX (dynamic batch and size) atomically into ``onnx_path``."""
+    import torch
+
+    tmp = onnx_path.with_name(f".{onnx_path.stem}.{os.getpid()}.{threading.get_ident()}.onnx")
+    x = torch.zeros(1, 1, 64, 64)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        torch.onnx.export(model, (x,), str(tmp), input_names=["x"], output_names=["logits"],
+                          dynamic_axes={"x": {0: "b", 2: "h", 3: "w"}, "logits": {0: "b", 2: "h", 3: "w"}},
+                          opset_version=17, dynamo=False)
+    os.replace(tmp, onnx_path)
+    return onnx_path
+
+
+def export_onnx(weights_path=None, onnx_path=None) -> Path:
+    """Export the safetensors UNet to an ONNX file (cached by the weights' SHA-256 when no path given)."""
+    weights_path = Path(DEFAULT_WEIGHTS_PATH if weights_path is None else weights_path)
+    if onnx_path is None:
+        digest = hashlib.sha256(weights_path.read_bytes()).hexdigest()[:16]
+        onnx_path = _cache_dir() / f"guidewire_unet-{digest}.onnx"
+    onnx_path = Path(onnx_path)
+    if not onnx_path.is_file():
+        _export_onnx(load_unet(weights_path), onnx_path)
+    return onnx_path
+
+
+_RUNNERS: dict = {}
+_RUNNERS_LOCK = threading.Lock()
+
+
+def _get_runner(backend, weights_path=None, num_threads: int | None = None):
+    """A cached inference callable ``(B, 1, H, W) float32 -> logits`` plus its config."""
+    backend = Backend(backend.value if isinstance(backend, Backend) else str(backend).lower())
+    weights_path = Path(DEFAULT_WEIGHTS_PATH if weights_path is None else weights_path)
+    key = (backend, str(weights_path.resolve()), num_threads)
+    with _RUNNERS_LOCK:
+        if key in _RUNNERS:
+            return _RUNNERS[key]
+        model = load_unet(weights_path)
+        runner = None
+        if backend in (Backend.AUTO, Backend.ONNXRUNTIME):
+            try:
+                runner = _OrtRunner(export_onnx(weights_path), num_threads)
+            except ImportError:
+                if backend is Backend.ONNXRUNTIME:
+                    raise
+        if runner is None:
+            runner = _TorchRunner(model, num_threads)
+        _RUNNERS[key] = (runner, model.config)
+        return _RUNNERS[key]
+
+
+def _pad_to_multiple(z: np.ndarray, m: int = UNET_MULTIPLE) -> np.ndarray:
+    h, w = z.shape[-2:]
+    ph, pw = (-h) % m, (-w) % m
+    if ph == 0 and pw == 0:
+        return z
+    pad = [(0, 0)] * (z.ndim - 2) + [(0, ph), (0, pw)]
+    return np.pad(z, pad, mode="reflect")
+
+
+def _sigmoid(x: np.ndarray) -> np.ndarray:
+    return 1.0 / (1.0 + np.exp(-np.clip(x, -30, 30)))
+
+
+def _run_unet_boxes(z: np.ndarray, boxes, runner, *, context_px: int) -> np.ndarray:
+    """UNet probability on the inner ``boxes`` (u0, v0, u1, v1) of normalised frame ``z`` (0 elsewhere).
+
+    Each box is cut out with ``context_px`` of real image around it (reflect-padded at the frame
+    border, then to a multiple of 8); boxes of equal size are batched.
+    """
+    h, w = z.shape
+    prob = np.zeros((h, w), np.float32)
+    c = int(context_px)
+    zp = np.pad(z, c, mode="reflect") if c > 0 else z
+    groups: dict = {}
+    for box in boxes:
+        u0, v0, u1, v1 = box
+        groups.setdefault((v1 - v0, u1 - u0), []).append(box)
+    for (bh, bw), bxs in groups.items():
+        crops = np.stack([zp[v0:v1 + 2 * c, u0:u1 + 2 * c] for (u0, v0, u1, v1) in bxs])
+        crops = _pad_to_multiple(crops)[:, None]
+        logits = runner(crops.astype(np.float32))
+        p = _sigmoid(logits[:, 0, c:c + bh, c:c + bw])
+        for k, (u0, v0, u1, v1) in enumerate(bxs):
+            prob[v0:v1, u0:u1] = p[k]
+    return prob
+
+
+def unet_probability(frame, *, roi_uv=None, backend="auto", weights_path=None,
+                     num_threads: int | None = None, context_px: int = 16) -> np.ndarray:
+    """Per-pixel wire probability from the UNet.
+
+    Parameters
+    ----------
+    frame : (H, W) array
+        Raw live frame.
+    roi_uv : (u0, v0, u1, v1), optional
+        Box (pixels, end-exclusive) to restrict inference to; the probability is 0 outside.
+    backend : {"auto", "onnxruntime", "torch"} or Backend
+    weights_path : path, optional
+        safetensors weights; the shipped ones by default.
+    num_threads : int, optional
+        Intra-op threads (default: onnxruntime 2, torch unchanged).
+    context_px : int
+        Image context added around an ROI.
+
+    Returns
+    -------
+    (H, W) ndarray of float32 in [0, 1]; all zeros for a degenerate (blank / saturated) frame.
+    """
+    a = _as_frame(frame)
+    med, spread, degenerate = _frame_stats(a)
+    if degenerate:
+        return np.zeros(a.shape, np.float32)
+    runner, _ = _get_runner(backend, weights_path, num_threads)
+    z = normalize_frame(a, stats=(med, spread))
+    box = (0, 0, a.shape[1], a.shape[0]) if roi_uv is None else _check_roi(roi_uv, a.shape)
+    return _run_unet_boxes(z, [box], runner, context_px=0 if roi_uv is None else context_px)
+
+
+# --------------------------------------------------------------------------------------------------
+# the classical ridge detector
+# --------------------------------------------------------------------------------------------------
+
+# Frangi blob-suppression and the scale of the ridge-to-probability mapping (in noise units).
+RIDGE_BETA = 0.5
+RIDGE_NOISE_UNITS = 6.0
+RIDGE_HIGH = 0.8
+RIDGE_LOW = 0.45
+RIDGE_WIDTH_FRACTION = 0.35
+
+
+def _hessian_ridge(z: np.ndarray, sigma: float) -> np.ndarray:
+    """Scale-normalised dark-line response at one scale (Frangi-type, on a float32 image)."""
+    import cv2
+
+    g = cv2.GaussianBlur(z, (0, 0), sigmaX=float(sigma), sigmaY=float(sigma), borderType=cv2.BORDER_REFLECT)
+    # 3x3 Sobel second derivatives carry a factor 4 ([1,-2,1] x [1,2,1] and [-1,0,1] x [-1,0,1])
+    scale = float(sigma * sigma) / 4.0
+    dxx = cv2.Sobel(g, cv2.CV_32F, 2, 0, ksize=3, scale=scale, borderType=cv2.BORDER_REFLECT)
+    dyy = cv2.Sobel(g, cv2.CV_32F, 0, 2, ksize=3, scale=scale, borderType=cv2.BORDER_REFLECT)
+    dxy = cv2.Sobel(g, cv2.CV_32F, 1, 1, ksize=3, scale=scale, borderType=cv2.BORDER_REFLECT)
+    tr = dxx + dyy
+    disc = np.sqrt((dxx - dyy) ** 2 + 4 * dxy * dxy)
+    l1 = 0.5 * (tr + disc)  # the largest eigenvalue: positive across a dark line (a valley)
+    l2 = 0.5 * (tr - disc)
+    rb = np.abs(l2) / np.maximum(l1, 1e-12)
+    return np.where(l1 > 0, l1 * np.exp(-(rb * rb) / (2 * RIDGE_BETA ** 2)), 0.0).astype(np.float32)
+
+
+def _ridge_prob_z(z: np.ndarray, sigmas_px) -> np.ndarray:
+    r = np.max(np.stack([_hessian_ridge(z, float(s)) for s in sigmas_px]), axis=0)
+    noise = float(np.median(r[::2, ::2]))
+    if noise <= 0:
+        noise = float(np.mean(r)) + 1e-12
+    return (1.0 - np.exp(-r / (RIDGE_NOISE_UNITS * noise))).astype(np.float32)
+
+
+def _check_sigmas(sigmas_px) -> list[float]:
+    sig = [float(s) for s in np.atleast_1d(sigmas_px)]
+    if not sig or min(sig) <= 0:
+        raise InputError(f"sigmas_px: expected positive scales, got {sigmas_px!r}")
+    return sig
+
+
+def ridge_probability(frame, *, sigmas_px=(1.0, 1.5, 2.5)) -> np.ndarray:
+    """Classical multi-scale ridge (dark thin line) response mapped to [0, 1].
+
+    Scale-normalised Hessian eigenvalues (Frangi-type, blobs suppressed) of the normalised frame,
+    maximum over ``sigmas_px``; the response is divided by its robust background level (median
+    response) so that the mapping ``1 - exp(-r / (6 * median))`` does not depend on the intensity
+    scale and only weakly on the noise level.
+
+    Parameters
+    ----------
+    frame : (H, W) array
+        Raw live frame (wire darker than the background).
+    sigmas_px : sequence of float
+        Gaussian scales in pixels (about the wire radius).
+
+    Returns
+    -------
+    (H, W) ndarray of float32 in [0, 1]; zeros for a degenerate frame.
+    """
+    a = _as_frame(frame)
+    sig = _check_sigmas(sigmas_px)
+    med, spread, degenerate = _frame_stats(a)
+    if degenerate:
+        return np.zeros(a.shape, np.float32)
+    return _ridge_prob_z(normalize_frame(a, stats=(med, spread)), sig)
+
+
+def _ridge_width(z: np.ndarray, m: np.ndarray) -> np.ndarray:
+    """Trim a ridge mask to the wire's width: keep pixels whose darkness below the local background
+    reaches ``RIDGE_WIDTH_FRACTION`` of the darkest nearby ridge pixel."""
+    import cv2
+
+    if not m.any():
+        return m
+    bg = cv2.GaussianBlur(z, (0, 0), 5.0, borderType=cv2.BORDER_REFLECT)
+    dark = bg - cv2.GaussianBlur(z, (0, 0), 0.7, borderType=cv2.BORDER_REFLECT)
+    peak = cv2.dilate(np.where(m, dark, 0).astype(np.float32), np.ones((5, 5), np.uint8))
+    return m & (dark >= RIDGE_WIDTH_FRACTION * peak) & (dark > 0)
+
+
+def _ridge_mask(frame_a: np.ndarray, sigmas_px, roi) -> np.ndarray:
+    """Hysteresis-thresholded ridge mask, optionally only inside ``roi`` (computed on roi + padding)."""
+    from skimage.filters import apply_hysteresis_threshold
+
+    sig = _check_sigmas(sigmas_px)
+    h, w = frame_a.shape
+    med, spread, degenerate = _frame_stats(frame_a)
+    out = np.zeros((h, w), bool)
+    if degenerate:
+        return out
+    u0, v0, u1, v1 = (0, 0, w, h) if roi is None else roi
+    pad = int(np.ceil(3 * max(sig))) + 2
+    a0, b0, a1, b1 = max(u0 - pad, 0), max(v0 - pad, 0), min(u1 + pad, w), min(v1 + pad, h)
+    z = normalize_frame(frame_a[b0:b1, a0:a1], stats=(med, spread))
+    p = _ridge_prob_z(z, sig)
+    m = _remove_small(apply_hysteresis_threshold(p, RIDGE_LOW, RIDGE_HIGH), 3 * MIN_COMPONENT_PX)
+    out[b0:b1, a0:a1] = _ridge_width(z, m)
+    if roi is not None:
+        box = np.zeros_like(out)
+        box[v0:v1, u0:u1] = True
+        out &= box
+    return _remove_small(out, 3 * MIN_COMPONENT_PX)
+
+
+# --------------------------------------------------------------------------------------------------
+# public entry points
+# --------------------------------------------------------------------------------------------------
+
+def _method(method) -> SegMethod:
+    if isinstance(method, SegMethod):
+        return method
+    try:
+        return SegMethod(str(method).lower())
+    except ValueError:
+        raise InputError(f"method: expected one of {[m.value for m in SegMethod]}, got {method!r}") from None
+
+
+def _unet_mask_from_prob(prob: np.ndarray, threshold: float) -> np.ndarray:
+    m = prob > threshold
+    if not m.any():
+        return m
+    return _remove_small(m)
+
+
+def guidewire_mask(frame, *, method="unet", roi_uv=None, backend="auto") -> np.ndarray:
+    """Binary guidewire mask of one live frame.
+
+    Parameters
+    ----------
+    frame : (H, W) array of any numeric dtype
+        Raw XA live frame (MONOCHROME2, the wire darker than the background).
+    method : {"unet", "ridge"} or SegMethod
+    roi_uv : (u0, v0, u1, v1), optional
+        Box in pixels (end-exclusive) to restrict the work to; the mask is False outside.
+    backend : {"auto", "onnxruntime", "torch"}
+        UNet inference backend.
+
+    Returns
+    -------
+    (H, W) ndarray of bool. Empty for blank, saturated or wire-free frames.
+    """
+    a = _as_frame(frame)
+    m = _method(method)
+    roi = None if roi_uv is None else _check_roi(roi_uv, a.shape)
+    if m is SegMethod.RIDGE:
+        return _ridge_mask(a, (1.0, 1.5, 2.5), roi)
+    runner, config = _get_runner(backend)
+    prob = unet_probability(a, roi_uv=roi, backend=backend)
+    return _unet_mask_from_prob(prob, config.threshold)
+
+
+@dataclass(kw_only=True)
+class GuidewireSegmenter:
+    """Stateful guidewire segmentation for a live sequence (tracking mode).
+
+    The first frame (and any frame after the wire was lost) is segmented full-frame. Later frames
+    are segmented only inside horizontal strips covering the previous mask dilated by
+    ``roi_margin_px``; each strip gets ``context_px`` of surrounding image as network context.
+    If the result is empty, or touches a strip border that is not the frame border, the frame is
+    re-segmented full-frame. Every ``full_frame_every`` frames a full-frame pass is forced.
+
+    Parameters
+    ----------
+    method : {"unet", "ridge"} or SegMethod
+    roi_margin_px : int
+        Margin around the previous wire, pixels.
+    backend : {"auto", "onnxruntime", "torch"}
+    num_threads : int, optional
+        Inference threads.
+    strip_px : int
+        Height of the strips (rows); the strip widths are multiples of ``strip_px`` too.
+    context_px : int
+        Image context around each strip (UNet only).
+    full_frame_every : int
+        Force a full-frame pass every this many frames (0: never).
+    """
+
+    method: object = "unet"
+    roi_margin_px: int = 32
+    backend: str = "auto"
+    num_threads: int | None = None
+    strip_px: int = 32
+    context_px: int = 16
+    full_frame_every: int = 0
+    _prev: np.ndarray | None = field(default=None, init=False, repr=False)
+    _count: int = field(default=0, init=False, repr=False)
+    last_mode: str = field(default="", init=False)
+
+    def __post_init__(self):
+        self.method = _method(self.method)
+        if self.roi_margin_px < 0 or self.strip_px < 8 or self.strip_px % UNET_MULTIPLE:
+            raise InputError(f"GuidewireSegmenter: roi_margin_px must be >= 0 and strip_px a multiple of "
+                             f"{UNET_MULTIPLE}, got {self.roi_margin_px}, {self.strip_px}")
+        self.backend = Backend(self.backend.value if isinstance(self.backend, Backend) else str(self.backend).lower())
+
+    def reset(self) -> None:
+        """Forget the previous wire: the next frame is segmented full-frame."""
+        self._prev = None
+        self._count = 0
+        self.last_mode = ""
+
+    # --- strips -----------------------------------------------------------------------------------
+    def _strips(self, prev: np.ndarray) -> list[tuple[int, int, int, int]]:
+        import cv2
+
+        h, w = prev.shape
+        s = self.strip_px
+        r = int(self.roi_margin_px)
+        k = cv2.getStructuringElement(cv2.MORPH_RECT, (2 * r + 1, 2 * r + 1))
+        band = cv2.dilate(prev.astype(np.uint8), k) > 0 if r > 0 else prev
+        nh, nw = -(-h // s), -(-w // s)
+        padded = np.zeros((nh * s, nw * s), bool)
+        padded[:h, :w] = band
+        cells = padded.reshape(nh, s, nw, s).any(axis=(1, 3))
+        boxes = []
+        for i in range(nh):
+            row = cells[i]
+            j = 0
+            while j < nw:
+                if not row[j]:
+                    j += 1
+                    continue
+                j0 = j
+                while j < nw and row[j]:
+                    j += 1
+                v0, v1 = i * s, min((i + 1) * s, h)
+                u0, u1 = j0 * s, min(j * s, w)
+                boxes.append((u0, v0, u1, v1))
+        return boxes
+
+    def _full(self, a: np.ndarray) -> np.ndarray:
+        self.last_mode = "full"
+        if self.method is SegMethod.RIDGE:
+            return _ridge_mask(a, (1.0, 1.5, 2.5), None)
+        runner, config = _get_runner(self.backend, None, self.num_threads)
+        med, spread, degenerate = _frame_stats(a)
+        if degenerate:
+            return np.zeros(a.shape, bool)
+        z = normalize_frame(a, stats=(med, spread))
+        prob = _run_unet_boxes(z, [(0, 0, a.shape[1], a.shape[0])], runner, context_px=0)
+        return _unet_mask_from_prob(prob, config.threshold)
+
+    def _tracked(self, a: np.ndarray, prev: np.ndarray):
+        boxes = self._strips(prev)
+        if not boxes:
+            return None
+        h, w = a.shape
+        if self.method is SegMethod.RIDGE:
+            mask = np.zeros(a.shape, bool)
+            for b in boxes:
+                mask |= _ridge_mask(a, (1.0, 1.5, 2.5), b)
+        else:
+            med, spread, degenerate = _frame_stats(a)
+            if degenerate:
+                return np.zeros(a.shape, bool)
+            runner, config = _get_runner(self.backend, None, self.num_threads)
+            z = normalize_frame(a, stats=(med, spread))
+            prob = _run_unet_boxes(z, boxes, runner, context_px=self.context_px)
+            mask = _unet_mask_from_prob(prob, config.threshold)
+        if not mask.any():
+            return None
+        # the wire must not reach a strip border that is inside the frame
+        covered = np.zeros(a.shape, bool)
+        for u0, v0, u1, v1 in boxes:
+            covered[v0:v1, u0:u1] = True
+        inner = covered.copy()
+        inner[1:, :] &= covered[:-1, :]
+        inner[:-1, :] &= covered[1:, :]
+        inner[:, 1:] &= covered[:, :-1]
+        inner[:, :-1] &= covered[:, 1:]
+        edge = covered & ~inner
+        edge[0, :] = edge[-1, :] = False
+        edge[:, 0] = edge[:, -1] = False
+        if (mask & edge).any():
+            return None
+        self.last_mode = "roi"
+        return mask
+
+    def segment(self, frame) -> np.ndarray:
+        """Segment the next frame; returns an (H, W) bool mask (empty when no wire is seen)."""
+        a = _as_frame(frame)
+        if frame_is_degenerate(a):
+            self.last_mode = "degenerate"
+            self._count += 1
+            return np.zeros(a.shape, bool)
+        mask = None
+        force_full = self.full_frame_every and self._count % self.full_frame_every == 0
+        if self._prev is not None and self._prev.shape == a.shape and self._prev.any() and not force_full:
+            mask = self._tracked(a, self._prev)
+        if mask is None:
+            mask = self._full(a)
+        self._prev = mask if mask.any() else None
+        self._count += 1
+        return mask

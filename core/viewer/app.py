@@ -1,0 +1,248 @@
+"""The desktop viewer: builds the scene, wires keys and sliders to the controller, shows the window.
+
+``guidewire3d view OUT_DIR`` (or ``--cta/--roadmap/--frames`` to run the pipeline first);
+``--screenshot PATH`` renders offscreen and exits. Keys are listed on screen (``scene.HELP``).
+"""
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+
+from guidewire3d.errors import Guidewire3DError, InputError
+
+__all__ = ["parse_size", "open_viewer", "render_outdir_screenshot", "run_interactive", "cli_main", "KEYS"]
+
+DEFAULT_SIZE = (1200, 800)
+PLAY_INTERVAL_MS = 66
+
+
+def parse_size(text) -> tuple[int, int]:
+    """``"1200x800"`` -> ``(1200, 800)``; raises InputError naming ``--size`` otherwise."""
+    if isinstance(text, (tuple, list)):
+        w, h = text
+    else:
+        try:
+            w, h = (int(v) for v in str(text).lower().split("x"))
+        except ValueError:
+            raise InputError(f"--size: expected WxH such as 1200x800, got {text!r}") from None
+    w, h = int(w), int(h)
+    if not (16 <= w <= 8192 and 16 <= h <= 8192):
+        raise InputError(f"--size: width and height must be within 16..8192, got {w}x{h}")
+    return w, h
+
+
+def _prepare_offscreen_env() -> None:
+    os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
+
+
+def open_viewer(out_dir, *, size_px=DEFAULT_SIZE, off_screen: bool = False, frame: int = 0, persist: bool = True):
+    """Load ``out_dir``, build the two-view scene and its controller.
+
+    Returns
+    -------
+    (ViewerController, SceneHandles)
+    """
+    import pyvista as pv
+
+    from guidewire3d.viewer import scene as sc
+    from guidewire3d.viewer.controller import ViewerController
+    from guidewire3d.viewer.data import load_outdir
+
+    if off_screen:
+        _prepare_offscreen_env()
+    case = load_outdir(out_dir)
+    vessels = pv.read(str(case.vessels_path)) if case.vessels_path is not None else None
+    pl = sc.new_plotter(size_px=size_px, off_screen=off_screen, title=f"guidewire3d: {Path(out_dir).name}")
+    w0 = case.wires[0] if case.wires else None
+    handles = sc.build_scene(
+        pl, carm=case.frames_carm, pose=case.pose, vessels=vessels, tree=case.tree,
+        wire_points_lps_mm=None if w0 is None else w0.points_lps_mm,
+        wire_uncertainty_mm=None if w0 is None else w0.uncertainty_mm,
+    )
+    ctl = ViewerController(case, handles, persist=persist)
+    if frame:
+        if case.n_frames and not 0 <= frame < case.n_frames:
+            raise InputError(f"--frame: {frame} is out of range (the case has {case.n_frames} frames)")
+        ctl.set_frame(frame)
+    return ctl, handles
+
+
+def render_outdir_screenshot(out_dir, path, *, frame: int | None = None, size=DEFAULT_SIZE) -> Path:
+    """Render the viewer offscreen for ``out_dir`` at ``frame`` and write a PNG to ``path``."""
+    ctl, handles = open_viewer(out_dir, size_px=parse_size(size), off_screen=True, frame=int(frame or 0),
+                               persist=False)
+    try:
+        return ctl.screenshot(path)
+    finally:
+        handles.plotter.close()
+
+
+# key -> (description, controller action); actions take the controller
+def _keys():
+    from guidewire3d.viewer.controller import Axis, ExportKind
+
+    return {
+        "n": ("next frame", lambda c: c.next_frame()),
+        "N": ("previous frame", lambda c: c.previous_frame()),
+        "space": ("play / pause", lambda c: c.toggle_play()),
+        "g": ("coarse / fine step", lambda c: c.toggle_step()),
+        "j": ("move -u", lambda c: c.nudge(Axis.U, -1)),
+        "l": ("move +u", lambda c: c.nudge(Axis.U, +1)),
+        "i": ("move -v (up)", lambda c: c.nudge(Axis.V, -1)),
+        "k": ("move +v (down)", lambda c: c.nudge(Axis.V, +1)),
+        "d": ("move toward the detector", lambda c: c.nudge(Axis.BEAM, +1)),
+        "D": ("move toward the source", lambda c: c.nudge(Axis.BEAM, -1)),
+        "x": ("rotate + about u", lambda c: c.rotate(Axis.U, +1)),
+        "X": ("rotate - about u", lambda c: c.rotate(Axis.U, -1)),
+        "y": ("rotate + about v", lambda c: c.rotate(Axis.V, +1)),
+        "Y": ("rotate - about v", lambda c: c.rotate(Axis.V, -1)),
+        "z": ("rotate + about the beam", lambda c: c.rotate(Axis.BEAM, +1)),
+        "Z": ("rotate - about the beam", lambda c: c.rotate(Axis.BEAM, -1)),
+        "o": ("refine (LM) from this pose", lambda c: c.refine()),
+        "0": ("reset to the automatic pose", lambda c: c.reset()),
+        "Return": ("apply: reconstruct all frames with this pose", lambda c: c.apply()),
+        "c": ("screenshot PNG", lambda c: c.screenshot()),
+        "t": ("export the current wire (STL+VTP)", lambda c: c.export(ExportKind.CURRENT_WIRE)),
+        "T": ("export all wires", lambda c: c.export(ExportKind.ALL_WIRES)),
+        "V": ("export the vessels", lambda c: c.export(ExportKind.VESSELS)),
+    }
+
+
+KEYS = tuple(_keys())
+
+
+class _App:
+    """Binds keys, sliders and the play timer to a controller. Holds no logic of its own."""
+
+    def __init__(self, ctl, handles):
+        self.ctl = ctl
+        self.h = handles
+        self.pl = handles.plotter
+        self.frame_slider = None
+        self.pose_sliders = {}
+
+    def safe(self, fn):
+        def run():
+            try:
+                fn(self.ctl)
+            except Guidewire3DError as e:
+                self.ctl._say(f"error: {e}")
+            self.sync_widgets()
+            self.pl.render()
+        return run
+
+    def sync_widgets(self):
+        if self.frame_slider is not None:
+            rep = self.frame_slider.GetRepresentation()
+            if int(round(rep.GetValue())) != self.ctl.frame_index:
+                rep.SetValue(self.ctl.frame_index)
+
+    def bind(self):
+        from guidewire3d.viewer import scene as sc
+
+        for key, (_, action) in _keys().items():
+            self.pl.add_key_event(key, self.safe(action))
+        self.pl.add_key_event("7", lambda: (sc.beams_eye_camera(self.h.renderer_3d, self.ctl.case.frames_carm,
+                                                                self.ctl.pose), self.pl.render()))
+        self.pl.add_key_event("8", lambda: (self._overview(), self.pl.render()))
+        self.pl.subplot(0, 0)
+        n = self.ctl.n_frames
+        if n > 1:
+            def on_frame(value):
+                k = int(round(value))
+                if k != self.ctl.frame_index:
+                    self.ctl.set_frame(k)
+            self.frame_slider = self.pl.add_slider_widget(
+                on_frame, [0, n - 1], value=self.ctl.frame_index, title="frame", pointa=(0.06, 0.07),
+                pointb=(0.44, 0.07), interaction_event="always", fmt="%.0f", style="modern", title_height=0.02)
+        self.pl.subplot(0, 1)
+        self._add_pose_slider("u", "U", (0.56, 0.17), (0.76, 0.17), 20.0)
+        self._add_pose_slider("v", "V", (0.78, 0.17), (0.98, 0.17), 20.0)
+        self._add_pose_slider("depth", "BEAM", (0.56, 0.08), (0.76, 0.08), 60.0)
+        self._add_pose_slider("rot beam", "ROT_BEAM", (0.78, 0.08), (0.98, 0.08), 10.0)
+        self.pl.subplot(0, 0)
+        self.pl.iren.add_observer("TimerEvent", self._on_timer)
+
+    def _add_pose_slider(self, title, axis_name, a, b, half_range):
+        from guidewire3d.viewer.controller import Axis
+
+        state = {"last": 0.0}
+
+        def on_change(value):
+            delta = float(value) - state["last"]
+            state["last"] = float(value)
+            if abs(delta) < 1e-9:
+                return
+            if axis_name == "ROT_BEAM":
+                self.ctl.rotate(Axis.BEAM, deg=delta)
+            else:
+                self.ctl.nudge(Axis[axis_name], mm=delta)
+
+        unit = "deg" if axis_name == "ROT_BEAM" else "mm"
+        self.pose_sliders[axis_name] = self.pl.add_slider_widget(
+            on_change, [-half_range, half_range], value=0.0, title=f"{title} ({unit})", pointa=a, pointb=b,
+            interaction_event="always", fmt="%.1f", style="modern", title_height=0.018)
+
+    def _overview(self):
+        from guidewire3d.viewer import scene as sc
+
+        b = self.h.vessels_actor.GetBounds() if self.h.vessels_actor is not None else self.h.wire.actor.GetBounds()
+        sc.overview_camera(self.h.renderer_3d, self.ctl.case.frames_carm, self.ctl.pose, b)
+
+    def _on_timer(self, *_):
+        if self.ctl.playing:
+            self.ctl.next_frame()
+            self.sync_widgets()
+            self.pl.render()
+
+    def show(self):
+        self.pl.show(auto_close=False, interactive_update=True)
+        self.pl.iren.create_timer(PLAY_INTERVAL_MS, repeating=True)
+        self.pl.iren.start()
+        self.pl.close()
+
+
+def run_interactive(out_dir, *, size_px=DEFAULT_SIZE, frame: int = 0) -> int:
+    """Open the viewer window on ``out_dir`` and block until it is closed."""
+    ctl, handles = open_viewer(out_dir, size_px=size_px, off_screen=False, frame=frame)
+    app = _App(ctl, handles)
+    app.bind()
+    app.show()
+    return 0
+
+
+def _run_pipeline(args) -> Path:
+    try:
+        from guidewire3d.pipeline import run_to_outdir
+    except ImportError:
+        run_to_outdir = None
+    if run_to_outdir is None:
+        raise Guidewire3DError("view --cta/--roadmap/--frames: guidewire3d.pipeline.run_to_outdir is not available yet")
+    missing = [f"--{n}" for n in ("cta", "roadmap", "frames") if not getattr(args, n, None)]
+    if missing:
+        raise InputError(f"view: {', '.join(missing)} missing (give all of --cta, --roadmap, --frames, or an OUT_DIR)")
+    out = Path(args.out_dir) if args.out_dir else Path(tempfile.mkdtemp(prefix="guidewire3d-view-"))
+    run_to_outdir(args.cta, args.roadmap, args.frames, out)
+    return out
+
+
+def cli_main(args) -> int:
+    """Entry point of ``guidewire3d view``; returns the exit code."""
+    size = parse_size(getattr(args, "size", None) or "1200x800")
+    frame = int(getattr(args, "frame", 0) or 0)
+    if frame < 0:
+        raise InputError(f"--frame: must be >= 0, got {frame}")
+    if any(getattr(args, n, None) for n in ("cta", "roadmap", "frames")):
+        out_dir = _run_pipeline(args)
+    elif getattr(args, "out_dir", None):
+        out_dir = Path(args.out_dir)
+    else:
+        raise InputError("view: give an OUT_DIR or --cta, --roadmap and --frames")
+    if not (out_dir / "report.json").is_file():
+        raise InputError(f"{out_dir}: no report.json (not a guidewire3d output folder)")
+    if getattr(args, "screenshot", None):
+        path = render_outdir_screenshot(out_dir, args.screenshot, frame=frame, size=size)
+        print(f"screenshot written to {path}")
+        return 0
+    return run_interactive(out_dir, size_px=size, frame=frame)

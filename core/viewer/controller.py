@@ -1,0 +1,398 @@
+"""The viewer's behaviour as plain methods (no window, no callbacks): frames, pose correction, export.
+
+``ViewerController`` holds the current frame and pose of a ``ViewerCase``. When it was given
+scene handles (``scene.build_scene``) it updates them in place; rendering is left to the caller
+(the app renders after each key, tests render when they want).
+"""
+from __future__ import annotations
+
+import enum
+import time
+from pathlib import Path
+
+import numpy as np
+
+from guidewire3d.errors import InputError
+from guidewire3d.geometry import Pose
+from guidewire3d.viewer.data import ViewerCase, WireFrame, display_images_uint8, save_registration
+
+__all__ = ["Axis", "Step", "ExportKind", "ViewerController", "STEP_MM", "STEP_DEG"]
+
+
+class Axis(enum.Enum):
+    """Detector-frame axes: image columns ``e_u``, image rows ``e_v`` and the beam (depth)."""
+
+    U = 0
+    V = 1
+    BEAM = 2
+
+
+class Step(enum.Enum):
+    COARSE = "coarse"
+    FINE = "fine"
+
+
+class ExportKind(enum.Enum):
+    CURRENT_WIRE = "current_wire"
+    ALL_WIRES = "all_wires"
+    VESSELS = "vessels"
+
+
+STEP_MM = {Step.COARSE: 5.0, Step.FINE: 0.5}
+STEP_DEG = {Step.COARSE: 2.0, Step.FINE: 0.25}
+
+
+class ViewerController:
+    """Frame navigation, manual registration correction and export for one case.
+
+    Parameters
+    ----------
+    case : ViewerCase
+    scene : SceneHandles, optional
+        Updated in place on every change.
+    export_dir : path-like, optional
+        Where exports and screenshots go (default ``case.out_dir / "exports"``).
+    persist : bool, keyword-only
+        Save every pose change to ``registration.json`` (default True).
+    """
+
+    def __init__(self, case: ViewerCase, scene=None, *, export_dir=None, persist: bool = True):
+        self._case = case
+        self._scene = scene
+        self._export_dir = Path(export_dir) if export_dir is not None else Path(case.out_dir) / "exports"
+        self._persist = persist
+        self._frame = 0
+        self._step = Step.COARSE
+        self._playing = False
+        self._status = ""
+        self._original_wires = case.wires
+        self._wires_pose = case.automatic_pose  # report.json wires come from the automatic registration
+        self._images_u8 = display_images_uint8(case.images) if case.images is not None else None
+        self._residual_cache: tuple[Pose, float] | None = None
+        if case.messages:
+            self._status = "; ".join(case.messages)
+        if scene is not None:
+            self._refresh_pose()
+            self.set_frame(0)
+
+    # --- state ------------------------------------------------------------------------
+    @property
+    def case(self) -> ViewerCase:
+        return self._case
+
+    @property
+    def pose(self) -> Pose:
+        return self._case.pose
+
+    @property
+    def pose_source(self) -> str:
+        return self._case.pose_source
+
+    @property
+    def frame_index(self) -> int:
+        return self._frame
+
+    @property
+    def n_frames(self) -> int:
+        return self._case.n_frames
+
+    @property
+    def step(self) -> Step:
+        return self._step
+
+    @property
+    def playing(self) -> bool:
+        return self._playing
+
+    @property
+    def status(self) -> str:
+        return self._status
+
+    @property
+    def wire(self) -> WireFrame | None:
+        return self._case.wires[self._frame] if self._case.wires else None
+
+    @property
+    def wires_stale(self) -> bool:
+        """True when the pose changed since the wires were reconstructed (``apply`` re-runs them)."""
+        return not self._wires_pose.allclose(self.pose, atol_mm=1e-6, atol_rad=1e-9)
+
+    def _say(self, text: str) -> None:
+        self._status = text
+        self._refresh_text()
+
+    # --- frames -----------------------------------------------------------------------
+    def set_frame(self, k: int) -> int:
+        """Show frame ``k`` (clamped to the range); the wire tube and the texture change in place."""
+        n = self.n_frames
+        if n == 0:
+            self._frame = 0
+            self._refresh_text()
+            return 0
+        k = int(np.clip(int(k), 0, n - 1))
+        self._frame = k
+        if self._scene is not None:
+            from guidewire3d.viewer import scene as sc
+
+            w = self._case.wires[k]
+            sc.update_wire(self._scene.wire, w.points_lps_mm, w.uncertainty_mm)
+            if self._images_u8 is not None and w.index < len(self._images_u8):
+                sc.set_frame_image(self._scene, self._images_u8[w.index])
+            self._refresh_overlay_wire()
+            self._refresh_text()
+        return k
+
+    def next_frame(self, *, wrap: bool = True) -> int:
+        n = max(self.n_frames, 1)
+        k = self._frame + 1
+        return self.set_frame(k % n if wrap else min(k, n - 1))
+
+    def previous_frame(self, *, wrap: bool = True) -> int:
+        n = max(self.n_frames, 1)
+        k = self._frame - 1
+        return self.set_frame(k % n if wrap else max(k, 0))
+
+    def toggle_play(self) -> bool:
+        self._playing = not self._playing
+        self._refresh_text()
+        return self._playing
+
+    # --- pose correction --------------------------------------------------------------
+    def set_step(self, step: Step) -> None:
+        self._step = Step(step)
+        self._refresh_text()
+
+    def toggle_step(self) -> Step:
+        self.set_step(Step.FINE if self._step is Step.COARSE else Step.COARSE)
+        return self._step
+
+    def nudge(self, axis: Axis, steps: float = 1.0, *, mm: float | None = None) -> Pose:
+        """Translate the vessels along a detector axis by ``steps`` of the current step (or ``mm``)."""
+        from guidewire3d import registration
+
+        axis = Axis(axis)
+        amount = float(mm) if mm is not None else float(steps) * STEP_MM[self._step]
+        t = np.zeros(3)
+        t[axis.value] = amount
+        pose = registration.nudge(self.pose, self._case.frames_carm, centroid_lps_mm=self._case.centroid_lps_mm,
+                                  translate_mm=tuple(t), rotate_deg=(0.0, 0.0, 0.0))
+        self._set_pose(pose, "manual", f"moved {amount:+.2f} mm along {axis.name.lower()}")
+        return pose
+
+    def rotate(self, axis: Axis, steps: float = 1.0, *, deg: float | None = None) -> Pose:
+        """Rotate the vessels about a detector axis through the vessel centroid."""
+        from guidewire3d import registration
+
+        axis = Axis(axis)
+        amount = float(deg) if deg is not None else float(steps) * STEP_DEG[self._step]
+        r = np.zeros(3)
+        r[axis.value] = amount
+        pose = registration.nudge(self.pose, self._case.frames_carm, centroid_lps_mm=self._case.centroid_lps_mm,
+                                  translate_mm=(0.0, 0.0, 0.0), rotate_deg=tuple(r))
+        self._set_pose(pose, "manual", f"rotated {amount:+.2f} deg about {axis.name.lower()}")
+        return pose
+
+    def _require_registration_inputs(self, what: str) -> None:
+        if self._case.tree is None or len(self._case.centerline_uv_px) == 0:
+            raise InputError(f"{self._case.out_dir / 'registration_inputs.npz'}: missing, cannot {what}")
+
+    def residual_px(self) -> float:
+        """Registration residual (px) of the current pose on the roadmap centerline (``registration.score``)."""
+        if self._case.tree is None or len(self._case.centerline_uv_px) == 0:
+            return float("nan")
+        if self._residual_cache is not None and self._residual_cache[0] is self.pose:
+            return self._residual_cache[1]
+        try:
+            from guidewire3d import registration
+        except ImportError:
+            return float("nan")
+        val = float(registration.score(self._case.tree, self._case.centerline_uv_px, self._case.carm, self.pose))
+        self._residual_cache = (self.pose, val)
+        return val
+
+    def refine(self):
+        """Run the LM refinement from the current pose; on success adopt it and re-reconstruct.
+
+        Returns
+        -------
+        RegistrationResult
+            As returned by ``registration.refine`` (its ``success``/``message`` say how it went).
+        """
+        from guidewire3d import registration
+
+        self._require_registration_inputs("refine")
+        t0 = time.perf_counter()
+        res = registration.refine(self._case.tree, self._case.centerline_uv_px, self._case.carm, self.pose)
+        dt = time.perf_counter() - t0
+        if res.success:
+            self._set_pose(res.pose, "manual", f"refined in {dt:.2f} s: {res.mean_residual_px:.2f} px")
+            self.apply()
+        else:
+            self._say(f"refine failed: {res.message} (pose kept)")
+        return res
+
+    def reset(self) -> Pose:
+        """Go back to the automatic pose and its wires."""
+        self._set_pose(self._case.automatic_pose, "automatic", "reset to the automatic registration")
+        if self.wires_stale:
+            self._case = self._case.with_wires(self._original_wires)
+            self._wires_pose = self._case.automatic_pose
+            self.set_frame(self._frame)
+        return self.pose
+
+    def apply(self) -> int:
+        """Re-run ``reconstruction.reconstruct_wire`` on every frame with the current pose.
+
+        Returns the number of frames reconstructed (0 when the reconstruction module is unavailable,
+        the wires are current, or there is no vessel tree).
+        """
+        if not self.wires_stale:
+            self._say("wires already use this pose")
+            return 0
+        if self._case.tree is None:
+            self._say("no vessel tree: wires not reconstructed")
+            return 0
+        try:
+            from guidewire3d import reconstruction
+        except ImportError:
+            self._say("reconstruction module unavailable: wires keep the previous pose")
+            return 0
+        t0 = time.perf_counter()
+        new = []
+        n_ok = 0
+        previous = None
+        for w in self._case.wires:
+            if len(w.wire_uv_px) < 2:
+                new.append(w)
+                continue
+            r = reconstruction.reconstruct_wire(w.wire_uv_px, self.pose, self._case.frames_carm, self._case.tree,
+                                                previous=previous)
+            ok = bool(r.success)
+            n_ok += ok
+            previous = r if ok else None
+            pts = np.asarray(r.points_lps_mm, float).reshape(-1, 3)
+            unc = np.asarray(r.uncertainty_mm, float).reshape(-1)
+            new.append(WireFrame(w.index, ok, str(r.message), pts, unc, w.wire_uv_px,
+                                 float(r.projection_error_px), float(r.length_mm)))
+        self._case = self._case.with_wires(new)
+        self._wires_pose = self.pose
+        self.set_frame(self._frame)
+        self._say(f"reconstructed {n_ok}/{len(new)} frames with the {self.pose_source} pose "
+                  f"in {time.perf_counter() - t0:.2f} s")
+        return len(new)
+
+    def _set_pose(self, pose: Pose, source: str, what: str) -> None:
+        self._case = self._case.with_pose(pose, source=source)
+        saved = ""
+        if self._persist:
+            p = save_registration(self._case.out_dir, pose, source=source, carm=self._case.carm,
+                                  automatic_pose=self._case.automatic_pose, registration=self._case.registration)
+            saved = f"; pose saved to {p}"
+        self._refresh_pose()
+        self._say(what + saved)
+
+    # --- scene refresh ----------------------------------------------------------------
+    def _refresh_pose(self) -> None:
+        if self._scene is None:
+            return
+        from guidewire3d.viewer import scene as sc
+
+        sc.update_carm(self._scene.carm, self._case.frames_carm, self.pose)
+        if self._scene.overlay is not None and self._case.tree is not None:
+            sc.update_overlay(self._scene.overlay,
+                              centerline_uv_px=self._case.frames_carm.project(self._case.tree.points_lps_mm, self.pose))
+        self._refresh_overlay_wire()
+        self._refresh_text()
+
+    def _refresh_overlay_wire(self) -> None:
+        if self._scene is None or self._scene.overlay is None or not self._case.wires:
+            return
+        from guidewire3d.viewer import scene as sc
+
+        w = self._case.wires[self._frame]
+        proj = self._case.frames_carm.project(w.points_lps_mm, self.pose) if len(w.points_lps_mm) else np.zeros((0, 2))
+        sc.update_overlay(self._scene.overlay, wire_uv_px=w.wire_uv_px, wire_proj_uv_px=proj)
+
+    def info_text(self) -> str:
+        w = self.wire
+        res = self.residual_px()
+        parts = [f"frame {self._frame + 1}/{self.n_frames}" + (" (playing)" if self._playing else "")]
+        parts.append(f"residual {res:.2f} px" if np.isfinite(res) else "residual n/a")
+        parts.append(f"pose {self.pose_source}" + (" (wires stale: Return)" if self.wires_stale else ""))
+        parts.append(f"step {self._step.value} ({STEP_MM[self._step]:g} mm / {STEP_DEG[self._step]:g} deg)")
+        if w is not None:
+            if len(w.points_lps_mm) > 1:
+                parts.append(f"wire {w.length_mm:.1f} mm, max unc. {np.max(w.uncertainty_mm):.2f} mm"
+                             if len(w.uncertainty_mm) else f"wire {w.length_mm:.1f} mm")
+            if not w.success:
+                parts.append(f"frame failed: {w.message}")
+        return "\n".join(parts)
+
+    def _refresh_text(self) -> None:
+        if self._scene is None:
+            return
+        from guidewire3d.viewer import scene as sc
+
+        sc.set_text(self._scene.info_text, self.info_text())
+        sc.set_text(self._scene.status_text, self._status)
+
+    # --- export -----------------------------------------------------------------------
+    def export(self, kind: ExportKind, directory=None) -> list[Path]:
+        """Write STL and VTP (LPS mm) of the current wire, all wires, or the vessels.
+
+        Returns the written paths; the status line says where they went.
+        """
+        from guidewire3d import export as ex
+        from guidewire3d.viewer.scene import WIRE_RADIUS_MM
+
+        kind = ExportKind(kind)
+        out = Path(directory) if directory is not None else self._export_dir
+        written: list[Path] = []
+        if kind is ExportKind.VESSELS:
+            if self._case.vessels_path is None:
+                raise InputError(f"{self._case.out_dir}: no vessels.vtp/.stl to export")
+            surf = ex.read_polydata(self._case.vessels_path)
+            for ext in ("vtp", "stl"):
+                written.append(ex.write_polydata(surf, out / f"vessels.{ext}"))
+        else:
+            wires = [self.wire] if kind is ExportKind.CURRENT_WIRE else list(self._case.wires)
+            wires = [w for w in wires if w is not None and len(w.points_lps_mm) >= 2]
+            if not wires:
+                raise InputError(f"frame {self._frame}: no reconstructed wire to export")
+            for w in wires:
+                line = ex.wire_polydata(w)
+                written.append(ex.write_polydata(line, out / f"guidewire_{w.index:04d}.vtp"))
+                written.append(ex.write_polydata(ex.tube_polydata(line, WIRE_RADIUS_MM), out / f"guidewire_{w.index:04d}.stl"))
+        self._say(f"exported {len(written)} files to {out}")
+        return written
+
+    def screenshot(self, path=None, *, size_px=None) -> Path:
+        """Render the current view to a PNG (at ``size_px=(w, h)`` if given) and return its path."""
+        if self._scene is None:
+            raise InputError("screenshot needs a scene (the controller was built without one)")
+        from guidewire3d.viewer import scene as sc
+
+        path = Path(path) if path is not None else self._export_dir / f"screenshot_frame{self._frame:04d}.png"
+        path.parent.mkdir(parents=True, exist_ok=True)
+        pl = self._scene.plotter
+        old = tuple(pl.window_size)
+        self._say(f"screenshot: {path}")
+        if size_px is not None:
+            pl.window_size = tuple(int(s) for s in size_px)
+        if self._scene.renderer_2d is not None:
+            sc.fit_2d_camera(self._scene.renderer_2d, self._case.frames_carm.shape)
+        pl.render()
+        img = pl.screenshot(None, return_img=True)
+        if size_px is not None:
+            pl.window_size = old
+            if self._scene.renderer_2d is not None:
+                sc.fit_2d_camera(self._scene.renderer_2d, self._case.frames_carm.shape)
+            pl.render()
+        from guidewire3d.io import atomic_write_bytes
+        import cv2
+
+        ok, buf = cv2.imencode(".png", np.ascontiguousarray(np.asarray(img)[..., :3][..., ::-1]))
+        if not ok:
+            raise InputError(f"{path}: PNG encoding failed")
+        atomic_write_bytes(path, buf.tobytes())
+        return path

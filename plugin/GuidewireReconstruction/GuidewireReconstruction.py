@@ -1,0 +1,435 @@
+"""3D Slicer scripted module: 3D guidewire reconstruction from a CTA and single-view DSA (guidewire3d).
+
+Layout as Slicer's scripted-module template: module metadata, a thin Widget, a Logic and a Test.
+The computation lives in ``GuidewireReconstructionLib.logic`` (MRML only, no Qt), which imports
+``guidewire3d``; this file imports it lazily, after ``Resources/requirements.txt`` is installed
+into Slicer's Python with ``slicer.packaging.pip_ensure``.
+
+Outside the Slicer application (``pip install slicer-core``: MRML without Qt) this file still
+imports: the Qt-dependent classes are defined only when Slicer provides them.
+"""
+from pathlib import Path
+from typing import Annotated
+
+import slicer
+import vtk
+
+try:  # provided only by the Slicer application (Qt)
+    import qt  # noqa: F401
+    from slicer.ScriptedLoadableModule import (
+        ScriptedLoadableModule,
+        ScriptedLoadableModuleLogic,
+        ScriptedLoadableModuleTest,
+        ScriptedLoadableModuleWidget,
+    )
+    from slicer.parameterNodeWrapper import Choice, parameterNodeWrapper
+    from slicer.util import VTKObservationMixin
+    from slicer import (
+        vtkMRMLLinearTransformNode,
+        vtkMRMLMarkupsFiducialNode,
+        vtkMRMLModelNode,
+        vtkMRMLScalarVolumeNode,
+        vtkMRMLSequenceNode,
+        vtkMRMLTableNode,
+    )
+
+    SLICER_APP = True
+except ImportError:
+    SLICER_APP = False
+
+try:
+    from slicer.i18n import tr as _
+except ImportError:  # Slicer < 5.4 and slicer-core
+
+    def _(text):
+        return text
+
+
+MODULE_DIR = Path(__file__).resolve().parent
+REQUIREMENTS = MODULE_DIR / "Resources" / "requirements.txt"
+#: Values of ``guidewire3d.reconstruction.ReconMethod`` (the combo box choices; tested to match).
+METHOD_CHOICES = ("vessel", "paper", "bspline")
+#: Values of ``guidewire3d.segmentation.SegMethod``.
+SEGMENTER_CHOICES = ("unet", "ridge")
+
+
+def requirements() -> list:
+    """The requirement lines of ``Resources/requirements.txt`` (comments and blanks dropped)."""
+    lines = REQUIREMENTS.read_text().splitlines()
+    return [ln.split("#", 1)[0].strip() for ln in lines if ln.split("#", 1)[0].strip()]
+
+
+def checkoutRoot():
+    """The guidewire3d source checkout this module sits in (``<root>/plugin/GuidewireReconstruction``), or None."""
+    root = MODULE_DIR.parents[1]
+    pyproject = root / "pyproject.toml"
+    if pyproject.is_file() and 'name = "guidewire3d"' in pyproject.read_text(errors="replace"):
+        return root
+    return None
+
+
+def _importable() -> bool:
+    try:
+        import guidewire3d  # noqa: F401
+
+        return True
+    except ImportError:
+        return False
+
+
+def ensureDependencies(requester: str = "GuidewireReconstruction") -> bool:
+    """Install what the module needs into Slicer's Python if missing; True when guidewire3d imports.
+
+    1. ``Resources/requirements.txt`` through ``slicer.packaging.pip_ensure`` (asks the user, shows
+       progress, offers a restart), or ``slicer.util.pip_install`` on Slicer without ``slicer.packaging``.
+    2. ``guidewire3d`` from the checkout this module sits in: ``pip install --no-deps -e <checkout>``
+       (``--no-deps`` keeps pip from installing a second VTK into Slicer).
+    """
+    if _importable():
+        return True
+    packaging = getattr(slicer, "packaging", None)
+    if packaging is not None and hasattr(packaging, "pip_ensure"):
+        packaging.pip_ensure(packaging.load_requirements(str(REQUIREMENTS)), requester=requester)
+    elif SLICER_APP:
+        if not slicer.util.confirmOkCancelDisplay(
+            _("GuidewireReconstruction needs the guidewire3d Python package and its dependencies. Install now?")
+        ):
+            return False
+        slicer.util.pip_install(["-r", str(REQUIREMENTS)])
+    root = checkoutRoot()
+    if root is not None and not _importable() and SLICER_APP:
+        slicer.util.pip_install(["--no-deps", "-e", str(root)])
+    import importlib
+
+    importlib.invalidate_caches()
+    return _importable()
+
+
+def coreLogicClass():
+    """``GuidewireReconstructionLib.logic.GuidewireReconstructionCoreLogic`` (imports guidewire3d)."""
+    from GuidewireReconstructionLib.logic import GuidewireReconstructionCoreLogic
+
+    return GuidewireReconstructionCoreLogic
+
+
+def _path_or_none(p):
+    s = "" if p is None else str(p).strip()
+    return None if s in ("", ".") else Path(s)
+
+
+if SLICER_APP:
+
+    #
+    # GuidewireReconstruction
+    #
+
+    class GuidewireReconstruction(ScriptedLoadableModule):
+        """Module metadata. Base class: Slicer's ScriptedLoadableModule."""
+
+        def __init__(self, parent):
+            ScriptedLoadableModule.__init__(self, parent)
+            self.parent.title = _("Guidewire Reconstruction")
+            self.parent.categories = [_("Cardiac"), _("Registration")]
+            self.parent.dependencies = ["Sequences", "Markups", "Models", "Transforms", "Tables"]
+            self.parent.contributors = ["guidewire3d developers"]
+            self.parent.helpText = _(
+                "Reconstructs the guidewire in 3D from a preoperative CTA and an intraoperative DSA roadmap "
+                "plus live fluoroscopy frames (single view). Outputs: the vessel surface, the centerline, the "
+                "registration as a linear transform (correct it with the transform handles, then press Refine), "
+                "a guidewire tube and curve per frame, and a table of per-frame metrics. "
+                "All computation is done by the guidewire3d Python package, installed on first use."
+            )
+            self.parent.acknowledgementText = _(
+                "Method after 'Real-Time 3D Guidewire Reconstruction from Intraoperative DSA Images for "
+                "Robot-Assisted Endovascular Interventions'. Module layout follows Slicer's scripted-module template."
+            )
+
+    #
+    # Parameter node
+    #
+
+    @parameterNodeWrapper
+    class GuidewireReconstructionParameterNode:
+        """Typed module parameters (saved with the scene).
+
+        ctaVolume: the CTA (HU). roadmapPath/framesPath: XA DICOM files; loading them creates
+        roadmapSequence/framesSequence, which can also be chosen directly. An empty frames input
+        means "the roadmap run". roadmapFrame -1: choose the most contrast-filled frame.
+        """
+
+        ctaVolume: vtkMRMLScalarVolumeNode
+        roadmapPath: Path
+        framesPath: Path
+        roadmapSequence: vtkMRMLSequenceNode
+        framesSequence: vtkMRMLSequenceNode
+        seeds: vtkMRMLMarkupsFiducialNode
+        roadmapFrame: int = -1
+        method: Annotated[str, Choice(list(METHOD_CHOICES))] = "vessel"
+        segmenter: Annotated[str, Choice(list(SEGMENTER_CHOICES))] = "unet"
+        force: bool = False
+        registrationTransform: vtkMRMLLinearTransformNode
+        metricsTable: vtkMRMLTableNode
+        vesselModel: vtkMRMLModelNode
+
+    #
+    # GuidewireReconstructionWidget
+    #
+
+    class GuidewireReconstructionWidget(ScriptedLoadableModuleWidget, VTKObservationMixin):
+        """Thin widget: binds the parameter node, enables the buttons, calls the Logic."""
+
+        def __init__(self, parent=None) -> None:
+            ScriptedLoadableModuleWidget.__init__(self, parent)
+            VTKObservationMixin.__init__(self)
+            self.logic = None
+            self._parameterNode = None
+            self._parameterNodeGuiTag = None
+
+        def setup(self) -> None:
+            ScriptedLoadableModuleWidget.setup(self)
+            uiWidget = slicer.util.loadUI(self.resourcePath("UI/GuidewireReconstruction.ui"))
+            self.layout.addWidget(uiWidget)
+            self.ui = slicer.util.childWidgetVariables(uiWidget)
+            uiWidget.setMRMLScene(slicer.mrmlScene)
+            self.logic = GuidewireReconstructionLogic()
+
+            self.addObserver(slicer.mrmlScene, slicer.mrmlScene.StartCloseEvent, self.onSceneStartClose)
+            self.addObserver(slicer.mrmlScene, slicer.mrmlScene.EndCloseEvent, self.onSceneEndClose)
+            self.ui.installButton.connect("clicked(bool)", self.onInstallButton)
+            self.ui.applyButton.connect("clicked(bool)", self.onApplyButton)
+            self.ui.refineButton.connect("clicked(bool)", self.onRefineButton)
+            self.ui.adjustButton.connect("toggled(bool)", self.onAdjustToggled)
+            self.ui.saveButton.connect("clicked(bool)", self.onSaveButton)
+            self.initializeParameterNode()
+
+        def cleanup(self) -> None:
+            self.removeObservers()
+
+        def enter(self) -> None:
+            self.initializeParameterNode()
+
+        def exit(self) -> None:
+            if self._parameterNode:
+                self._parameterNode.disconnectGui(self._parameterNodeGuiTag)
+                self._parameterNodeGuiTag = None
+                self.removeObserver(self._parameterNode, vtk.vtkCommand.ModifiedEvent, self._checkCanApply)
+
+        def onSceneStartClose(self, caller, event) -> None:
+            self.setParameterNode(None)
+
+        def onSceneEndClose(self, caller, event) -> None:
+            if self.parent.isEntered:
+                self.initializeParameterNode()
+
+        def initializeParameterNode(self) -> None:
+            self.setParameterNode(self.logic.getParameterNode())
+            if not self._parameterNode.ctaVolume:
+                first = slicer.mrmlScene.GetFirstNodeByClass("vtkMRMLScalarVolumeNode")
+                if first:
+                    self._parameterNode.ctaVolume = first
+
+        def setParameterNode(self, inputParameterNode) -> None:
+            if self._parameterNode:
+                self._parameterNode.disconnectGui(self._parameterNodeGuiTag)
+                self.removeObserver(self._parameterNode, vtk.vtkCommand.ModifiedEvent, self._checkCanApply)
+            self._parameterNode = inputParameterNode
+            if self._parameterNode:
+                # widgets carry a "SlicerParameterName" dynamic property in the .ui file
+                self._parameterNodeGuiTag = self._parameterNode.connectGui(self.ui)
+                self.addObserver(self._parameterNode, vtk.vtkCommand.ModifiedEvent, self._checkCanApply)
+            self._checkCanApply()
+
+        def _checkCanApply(self, caller=None, event=None) -> None:
+            p = self._parameterNode
+            installed = self.logic.dependenciesInstalled()
+            self.ui.installButton.visible = not installed
+            ready = bool(p and p.ctaVolume and (p.roadmapSequence or _path_or_none(p.roadmapPath)))
+            self.ui.applyButton.enabled = installed and ready
+            self.ui.applyButton.toolTip = _("Run the reconstruction") if ready else _("Select the CTA and the XA roadmap")
+            has_result = self.logic.hasResult()
+            self.ui.refineButton.enabled = has_result
+            self.ui.adjustButton.enabled = has_result
+            self.ui.saveButton.enabled = has_result
+
+        def onInstallButton(self) -> None:
+            with slicer.util.tryWithErrorDisplay(_("Failed to install guidewire3d."), waitCursor=True):
+                ensureDependencies()
+            self._checkCanApply()
+
+        def onApplyButton(self) -> None:
+            with slicer.util.tryWithErrorDisplay(_("Reconstruction failed."), waitCursor=True):
+                self.ui.statusLabel.text = self.logic.process(self._parameterNode)
+            self._checkCanApply()
+
+        def onRefineButton(self) -> None:
+            with slicer.util.tryWithErrorDisplay(_("Refinement failed."), waitCursor=True):
+                self.ui.statusLabel.text = self.logic.refine(self._parameterNode)
+
+        def onAdjustToggled(self, on: bool) -> None:
+            with slicer.util.tryWithErrorDisplay(_("Cannot show the transform handles.")):
+                self.logic.setTransformInteraction(self._parameterNode, on)
+
+        def onSaveButton(self) -> None:
+            directory = qt.QFileDialog.getExistingDirectory(None, _("Save outputs to folder"))
+            if not directory:
+                return
+            with slicer.util.tryWithErrorDisplay(_("Saving failed."), waitCursor=True):
+                paths = self.logic.core.save_outputs(directory)
+                self.ui.statusLabel.text = _("Saved {n} files to {d}").format(n=len(paths), d=directory)
+
+    #
+    # GuidewireReconstructionLogic
+    #
+
+    class GuidewireReconstructionLogic(ScriptedLoadableModuleLogic):
+        """Maps the parameter node onto ``GuidewireReconstructionCoreLogic`` (no GUI calls)."""
+
+        def __init__(self) -> None:
+            ScriptedLoadableModuleLogic.__init__(self)
+            self._core = None
+
+        def getParameterNode(self):
+            return GuidewireReconstructionParameterNode(super().getParameterNode())
+
+        @staticmethod
+        def dependenciesInstalled() -> bool:
+            return _importable()
+
+        @property
+        def core(self):
+            if self._core is None or self._core.scene is not slicer.mrmlScene:
+                self._core = coreLogicClass()(slicer.mrmlScene)
+            return self._core
+
+        def hasResult(self) -> bool:
+            return self._core is not None and self._core.result is not None
+
+        def _xa(self, sequence, path, what: str):
+            if sequence is not None:
+                return sequence, None
+            p = _path_or_none(path)
+            if p is None:
+                return None, None
+            return self.core.load_xa(p, name=f"{what} {p.stem}"), p
+
+        def process(self, p) -> str:
+            """Run the reconstruction with the parameters of ``p``; returns a one-line summary."""
+            from GuidewireReconstructionLib.logic import OutputNodes
+
+            roadmap, _unused = self._xa(p.roadmapSequence, p.roadmapPath, "Roadmap")
+            if roadmap is None:
+                raise ValueError("select an XA roadmap file or sequence")
+            p.roadmapSequence = roadmap
+            frames, _unused = self._xa(p.framesSequence, p.framesPath, "Frames")
+            if frames is not None:
+                p.framesSequence = frames
+            outputs = self.core.outputs
+            if p.registrationTransform is not None or p.metricsTable is not None or p.vesselModel is not None:
+                outputs = OutputNodes(**{**outputs.__dict__, "transform": p.registrationTransform or outputs.transform,
+                                         "table": p.metricsTable or outputs.table,
+                                         "vessel_model": p.vesselModel or outputs.vessel_model})
+            out = self.core.process(cta_volume_node=p.ctaVolume, roadmap=roadmap, frames=frames, seeds_node=p.seeds,
+                                    roadmap_frame=int(p.roadmapFrame), method=p.method, segmenter=p.segmenter,
+                                    force=bool(p.force), outputs=outputs)
+            p.registrationTransform = out.transform
+            p.metricsTable = out.table
+            p.vesselModel = out.vessel_model
+            return self.summary()
+
+        def refine(self, p) -> str:
+            """Refine from the (user-corrected) registration transform; returns a one-line summary."""
+            reg = self.core.refine(transform_node=p.registrationTransform, force=bool(p.force))
+            if not reg.success and not p.force:
+                return _("Refine failed ({m}); the transform and wires were not changed.").format(m=reg.message)
+            return self.summary()
+
+        def setTransformInteraction(self, p, on: bool) -> None:
+            node = p.registrationTransform or self.core.outputs.transform
+            if node is None:
+                raise ValueError("no registration transform yet: run Apply first")
+            node.CreateDefaultDisplayNodes()
+            node.GetDisplayNode().SetEditorVisibility(bool(on))
+
+        def summary(self) -> str:
+            core = self.core
+            reg = core.registration
+            ok = sum(1 for w in core.wires3d if w.success)
+            return _("Registration {state} ({res:.2f} px); {ok}/{n} frames reconstructed.").format(
+                state=_("ok") if reg.success else _("FAILED"), res=float(reg.mean_residual_px), ok=ok, n=len(core.wires3d))
+
+    #
+    # GuidewireReconstructionTest
+    #
+
+    class GuidewireReconstructionTest(ScriptedLoadableModuleTest):
+        """Runs the module on a simulated case inside Slicer and asserts the numbers."""
+
+        #: the accuracy the tests require (issue 7's 3D tolerance); see tests/test_plugin.py
+        MEAN_ERROR_MM = 0.7
+
+        def setUp(self):
+            slicer.mrmlScene.Clear()
+
+        def runTest(self):
+            self.assertTrue(ensureDependencies(), "guidewire3d could not be installed")
+            self.setUp()
+            self.test_reconstruction_matches_truth()
+            self.setUp()
+            self.test_bad_input_raises()
+
+        def _case(self):
+            import tempfile
+
+            from guidewire3d import phantom
+
+            self._tmp = tempfile.TemporaryDirectory()
+            case = phantom.simulate(phantom.PhantomOptions(seed=7, n_frames=3))
+            case_dir = phantom.write_case(case, Path(self._tmp.name) / "case")
+            return phantom.load_truth(case_dir), case_dir
+
+        def test_reconstruction_matches_truth(self):
+            import numpy as np
+
+            from guidewire3d import metrics
+            from GuidewireReconstructionLib.logic import lps_to_ras, pose_from_transform_node
+
+            self.delayDisplay("Simulating a case")
+            truth, case_dir = self._case()
+            first = sorted((case_dir / "ct").iterdir())[0]
+            cta = slicer.util.loadVolume(str(first), {"singleFile": False})
+            logic = GuidewireReconstructionLogic()
+            p = logic.getParameterNode()
+            p.ctaVolume = cta
+            p.roadmapPath = case_dir / "roadmap.dcm"
+            p.framesPath = case_dir / "frames.dcm"
+            self.delayDisplay("Running the reconstruction")
+            logic.process(p)
+            core = logic.core
+            # the transform node holds the registration pose in RAS
+            T = slicer.util.arrayFromTransformMatrix(p.registrationTransform, toWorld=False)
+            np.testing.assert_allclose(np.linalg.inv(T), lps_to_ras(core.registration.pose.matrix), atol=1e-6)
+            self.assertTrue(pose_from_transform_node(p.registrationTransform).allclose(core.registration.pose, atol_mm=1e-6))
+            # every reconstructed wire (curve node, RAS) agrees with the truth converted to RAS
+            errors = []
+            for curve, fid in zip(core.outputs.wire_curves, core.outputs.frame_indices):
+                if curve.GetNumberOfControlPoints() < 2:
+                    continue
+                est_ras = slicer.util.arrayFromMarkupsControlPoints(curve)
+                vis = np.asarray(truth.wire_visible[fid], bool)
+                truth_ras = lps_to_ras(np.asarray(truth.wire_lps_mm[fid])[vis])
+                errors.append(metrics.wire_errors_mm(est_ras, truth_ras)["mean_error_mm"])
+            self.assertGreater(len(errors), 0)
+            self.assertLessEqual(float(np.mean(errors)), self.MEAN_ERROR_MM)
+            self.assertEqual(p.metricsTable.GetNumberOfRows(), len(core.wires3d))
+            self.delayDisplay(f"Mean 3D wire error {np.mean(errors):.2f} mm over {len(errors)} frames")
+
+        def test_bad_input_raises(self):
+            from guidewire3d.errors import InputError
+
+            logic = GuidewireReconstructionLogic()
+            p = logic.getParameterNode()
+            with self.assertRaises(ValueError):
+                logic.process(p)  # no roadmap
+            p.roadmapPath = Path(slicer.app.temporaryPath) / "does-not-exist.dcm"
+            with self.assertRaisesRegex(InputError, "no such file"):
+                logic.process(p)

@@ -1,0 +1,23 @@
+"""MRML-only part of the GuidewireReconstruction Slicer module (imports under ``pip install slicer-core``)."""
+from .logic import (  # noqa: F401
+    CARM_ATTRIBUTE,
+    ROLE_ATTRIBUTE,
+    WIRE_RADIUS_MM,
+    GuidewireReconstructionCoreLogic,
+    OutputNodes,
+    Segmenter,
+    WireMethod,
+    create_headless_scene,
+    detector_points_room_lps_mm,
+    lps_to_ras,
+    polydata_lps_to_ras,
+    pose_from_transform_node,
+    pose_to_transform_node,
+    ras_to_lps,
+    seeds_from_node,
+    volume_from_node,
+    volume_to_node,
+    wire_tube_polydata,
+    xa_from_sequence_node,
+    xa_to_sequence_node,
+)

@@ -1,0 +1,772 @@
+"""MRML-only logic of the GuidewireReconstruction module (no Qt: runs under ``pip install slicer-core``).
+
+It adapts MRML nodes to the numpy inputs of ``guidewire3d``, runs the pipeline, and turns the
+results back into MRML nodes. It makes no GUI calls.
+
+Coordinate frames
+-----------------
+``guidewire3d`` works in DICOM patient LPS (mm); Slicer's world frame is RAS (mm). The two differ by
+``F = diag(-1, -1, 1)`` (a 180 degree rotation about the S axis). The conversion happens in this
+module only, through the pair :func:`lps_to_ras` / :func:`ras_to_lps`:
+
+* points and vectors ``(..., 3)``: ``x_ras = F x_lps``;
+* rigid/affine 4x4 transforms between two LPS-like frames: ``T_ras = F4 T_lps F4`` with
+  ``F4 = diag(-1, -1, 1, 1)``.
+
+The registration transform node
+-------------------------------
+The registration estimates ``Pose`` ``T_iso_from_lps``: CTA LPS points -> C-arm room frame (axes
+parallel to LPS, origin at the isocentre). The linear transform node stores it expressed in RAS::
+
+    node.GetMatrixTransformFromParent() == lps_to_ras(pose.matrix) == F4 @ pose.matrix @ F4
+
+i.e. "from parent" maps world (CTA) RAS to room RAS. Nodes drawn in room coordinates (the C-arm
+source and detector, the roadmap centerline on the detector) are children of the transform, so
+Slicer shows them where the registration puts the C-arm relative to the CTA. Moving the transform
+with Slicer's interaction handles moves the C-arm; :meth:`GuidewireReconstructionCoreLogic.refine`
+reads the matrix back (``pose = Pose.from_matrix(ras_to_lps(from_parent))``) and refines it.
+"""
+from __future__ import annotations
+
+import json
+import logging
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+import slicer
+import vtk
+from vtk.util.numpy_support import numpy_to_vtk, vtk_to_numpy
+
+from guidewire3d import io
+from guidewire3d.errors import InputError, ReconstructionError, RegistrationError
+from guidewire3d.geometry import CArm, Pose
+from guidewire3d.reconstruction import ReconMethod
+from guidewire3d.segmentation import SegMethod
+
+__all__ = [
+    "WireMethod",
+    "Segmenter",
+    "HeadlessScene",
+    "lps_to_ras",
+    "ras_to_lps",
+    "create_headless_scene",
+    "volume_from_node",
+    "volume_to_node",
+    "seeds_from_node",
+    "xa_to_sequence_node",
+    "xa_from_sequence_node",
+    "polydata_lps_to_ras",
+    "wire_tube_polydata",
+    "pose_to_transform_node",
+    "pose_from_transform_node",
+    "detector_points_room_lps_mm",
+    "OutputNodes",
+    "GuidewireReconstructionCoreLogic",
+    "WIRE_RADIUS_MM",
+    "CARM_ATTRIBUTE",
+    "ROLE_ATTRIBUTE",
+]
+
+log = logging.getLogger(__name__)
+
+#: Radius (mm) of the displayed guidewire tube: a 0.035 inch wire is 0.89 mm across.
+WIRE_RADIUS_MM = 0.45
+#: Node attribute holding the C-arm geometry (JSON of ``CArm.to_dict``) of an XA sequence node.
+CARM_ATTRIBUTE = "GuidewireReconstruction.CArm"
+#: Node attribute naming the role of each output node (``vessels``, ``wire``, ...).
+ROLE_ATTRIBUTE = "GuidewireReconstruction.Role"
+
+_F = np.diag([-1.0, -1.0, 1.0])  # LPS <-> RAS; the only place this matrix is written
+_F4 = np.diag([-1.0, -1.0, 1.0, 1.0])
+
+
+# The choices are the library's own enums (the parameter node stores them by value).
+WireMethod = ReconMethod  #: 3D reconstruction method, ``pipeline.run(method=...)``
+Segmenter = SegMethod  #: 2D guidewire segmentation, ``pipeline.run(segmenter=...)``
+
+
+# --------------------------------------------------------------------------------------
+# LPS <-> RAS: the one pair of conversion helpers
+# --------------------------------------------------------------------------------------
+def _convert(a) -> np.ndarray:
+    a = np.asarray(a, dtype=float)
+    if a.shape == (4, 4):
+        return _F4 @ a @ _F4
+    if a.ndim >= 1 and a.shape[-1] == 3:
+        return a @ _F.T
+    raise InputError(f"LPS/RAS conversion needs points (..., 3) or a 4x4 transform, got shape {a.shape}")
+
+
+def lps_to_ras(a) -> np.ndarray:
+    """LPS -> RAS for points/vectors ``(..., 3)`` (``F x``) or a 4x4 transform (``F4 T F4``).
+
+    Returns a new array; the input is not modified.
+    """
+    return _convert(a)
+
+
+def ras_to_lps(a) -> np.ndarray:
+    """RAS -> LPS, the inverse of :func:`lps_to_ras` (the same matrix: ``F`` is its own inverse)."""
+    return _convert(a)
+
+
+# --------------------------------------------------------------------------------------
+# Scene set-up without the Slicer application
+# --------------------------------------------------------------------------------------
+@dataclass
+class HeadlessScene:
+    """A ``vtkMRMLScene`` with the application logic and the module logics the module uses."""
+
+    scene: object
+    app_logic: object
+    logics: dict
+
+
+def create_headless_scene(*, home_directory=None) -> HeadlessScene:
+    """Create a scene usable without Slicer's Qt application and make it ``slicer.mrmlScene``.
+
+    Used by the tests and by scripts run with ``pip install slicer-core``; inside Slicer the
+    application already provides ``slicer.mrmlScene`` with these logics. ``home_directory``
+    (optional) receives an empty ``ColorFiles`` folder, which silences the color logic's search.
+
+    The application logic and the Colors, Volumes, Models, Markups and Sequences module logics are
+    set on it, so that ``AddDefaultStorageNode`` and archetype volume loading work.
+    """
+    import tempfile
+
+    scene = slicer.vtkMRMLScene()
+    app = slicer.vtkSlicerApplicationLogic()
+    home = Path(home_directory or tempfile.gettempdir())
+    if home_directory is not None:
+        (home / "ColorFiles").mkdir(parents=True, exist_ok=True)  # the color logic scans it (empty is fine)
+    app.SetHomeDirectory(str(home))
+    app.SetShareDirectory(".")
+    app.SetMRMLScene(scene)
+    logics = {}
+    for name, cls in (
+        ("Colors", slicer.vtkSlicerColorLogic),
+        ("Volumes", slicer.vtkSlicerVolumesLogic),
+        ("Models", slicer.vtkSlicerModelsLogic),
+        ("Markups", slicer.vtkSlicerMarkupsLogic),
+        ("Sequences", slicer.vtkSlicerSequencesLogic),
+        ("Transforms", slicer.vtkSlicerTransformLogic),
+        ("Tables", slicer.vtkSlicerTablesLogic),
+    ):
+        logic = cls()
+        logic.SetMRMLApplicationLogic(app)
+        logic.SetMRMLScene(scene)
+        app.SetModuleLogic(name, logic)
+        logics[name] = logic
+    slicer.mrmlScene = scene
+    return HeadlessScene(scene, app, logics)
+
+
+# --------------------------------------------------------------------------------------
+# Inputs: MRML -> numpy
+# --------------------------------------------------------------------------------------
+def _matrix(vtk_matrix) -> np.ndarray:
+    return np.array([[vtk_matrix.GetElement(i, j) for j in range(4)] for i in range(4)])
+
+
+def _vtk_matrix(a) -> vtk.vtkMatrix4x4:
+    m = vtk.vtkMatrix4x4()
+    for i in range(4):
+        for j in range(4):
+            m.SetElement(i, j, float(a[i, j]))
+    return m
+
+
+def _world_matrix(node) -> np.ndarray:
+    """4x4 linear map from the node's local RAS to world RAS (identity when untransformed)."""
+    parent = node.GetParentTransformNode()
+    if parent is None:
+        return np.eye(4)
+    if not parent.IsTransformToWorldLinear():
+        raise InputError(f"{node.GetName()}: is under a non-linear transform; harden or remove it first")
+    m = vtk.vtkMatrix4x4()
+    parent.GetMatrixTransformToWorld(m)
+    return _matrix(m)
+
+
+def volume_from_node(volume_node) -> io.Volume:
+    """A ``guidewire3d.io.Volume`` (HU, LPS placement) from a scalar volume node (parent transform applied)."""
+    if volume_node is None or not volume_node.IsA("vtkMRMLScalarVolumeNode"):
+        raise InputError("CTA volume: select a scalar volume node")
+    if volume_node.GetImageData() is None:
+        raise InputError(f"{volume_node.GetName()}: volume node has no image data")
+    if volume_node.GetImageData().GetNumberOfScalarComponents() != 1:
+        raise InputError(f"{volume_node.GetName()}: expected a scalar volume (1 component)")
+    arr = np.array(slicer.util.arrayFromVolume(volume_node), dtype=np.float32, copy=True)  # (k, j, i)
+    m = vtk.vtkMatrix4x4()
+    volume_node.GetIJKToRASMatrix(m)
+    ijk_to_ras = _world_matrix(volume_node) @ _matrix(m)
+    axes_lps = ras_to_lps(ijk_to_ras[:3, :3].T).T  # columns: i, j, k steps in LPS
+    spacing = np.linalg.norm(axes_lps, axis=0)
+    if np.any(spacing <= 0):
+        raise InputError(f"{volume_node.GetName()}: degenerate IJK to RAS matrix")
+    direction = axes_lps / spacing
+    origin = ras_to_lps(ijk_to_ras[:3, 3])
+    return io.Volume(arr, tuple(spacing), tuple(origin), direction, source=volume_node.GetName())
+
+
+def volume_to_node(vol: io.Volume, *, name: str = "CTA", scene=None):
+    """A new scalar volume node holding ``vol`` with the IJK -> RAS matrix of its LPS placement."""
+    scene = scene or slicer.mrmlScene
+    node = scene.AddNewNodeByClass("vtkMRMLScalarVolumeNode", name)
+    a = vol.affine_lps
+    ijk_to_ras = np.eye(4)
+    ijk_to_ras[:3, :3] = lps_to_ras(a[:3, :3].T).T
+    ijk_to_ras[:3, 3] = lps_to_ras(a[:3, 3])
+    node.SetIJKToRASMatrix(_vtk_matrix(ijk_to_ras))
+    slicer.util.updateVolumeFromArray(node, np.ascontiguousarray(vol.array_zyx))
+    node.CreateDefaultDisplayNodes()
+    return node
+
+
+def seeds_from_node(markups_node) -> np.ndarray | None:
+    """``(N, 3)`` LPS seed points (world coordinates) of a markups node; ``None`` when empty/absent."""
+    if markups_node is None:
+        return None
+    n = markups_node.GetNumberOfControlPoints()
+    if n == 0:
+        return None
+    ras = np.array([markups_node.GetNthControlPointPositionWorld(i) for i in range(n)], dtype=float)
+    return ras_to_lps(ras)
+
+
+# --------------------------------------------------------------------------------------
+# XA runs <-> sequence nodes
+# --------------------------------------------------------------------------------------
+def xa_to_sequence_node(run: io.XARun, *, name: str = "XA", scene=None):
+    """A sequence node with one 2D scalar volume per frame and the C-arm geometry as an attribute.
+
+    Each frame is shown as a 2D image (column ``u`` -> screen right, row ``v`` -> screen down in
+    the axial view) with the detector pixel spacing. A sequence browser is added so the frames can
+    be played in Slicer.
+    """
+    scene = scene or slicer.mrmlScene
+    seq = scene.AddNewNodeByClass("vtkMRMLSequenceNode", name)
+    seq.SetIndexName("frame")
+    seq.SetIndexUnit("")
+    seq.SetIndexType(seq.NumericIndex)
+    ps = run.carm.pixel_mm
+    ijk_to_ras = np.eye(4)
+    ijk_to_ras[:3, :3] = lps_to_ras(np.diag([ps, ps, 1.0]))  # index axes along L, P: upright image
+    for t, frame in enumerate(run.frames):
+        img = slicer.vtkMRMLScalarVolumeNode()
+        img.SetName(f"{name} frame {t}")
+        img.SetIJKToRASMatrix(_vtk_matrix(ijk_to_ras))
+        image = vtk.vtkImageData()
+        image.SetDimensions(run.carm.cols, run.carm.rows, 1)
+        image.GetPointData().SetScalars(numpy_to_vtk(np.ascontiguousarray(frame, dtype=np.float32).ravel(), deep=True))
+        img.SetAndObserveImageData(image)
+        seq.SetDataNodeAtValue(img, str(t))
+    seq.SetAttribute(CARM_ATTRIBUTE, json.dumps(run.carm.to_dict()))
+    if run.frame_time_ms is not None:
+        seq.SetAttribute("GuidewireReconstruction.FrameTimeMs", repr(float(run.frame_time_ms)))
+    seq.SetAttribute("GuidewireReconstruction.Source", str(run.source))
+    browser = scene.AddNewNodeByClass("vtkMRMLSequenceBrowserNode", f"{name} browser")
+    browser.SetAndObserveMasterSequenceNodeID(seq.GetID())
+    return seq
+
+
+def xa_from_sequence_node(seq_node) -> io.XARun:
+    """The ``io.XARun`` stored by :func:`xa_to_sequence_node` (frames and C-arm geometry)."""
+    if seq_node is None or not seq_node.IsA("vtkMRMLSequenceNode"):
+        raise InputError("XA input: select a sequence node created from an XA file")
+    name = seq_node.GetName()
+    text = seq_node.GetAttribute(CARM_ATTRIBUTE)
+    if not text:
+        raise InputError(f"{name}: sequence node has no C-arm geometry (attribute {CARM_ATTRIBUTE})")
+    carm = CArm.from_dict(json.loads(text))
+    n = seq_node.GetNumberOfDataNodes()
+    if n == 0:
+        raise InputError(f"{name}: sequence node has no frames")
+    frames = []
+    for t in range(n):
+        node = seq_node.GetNthDataNode(t)
+        image = node.GetImageData() if node is not None and node.IsA("vtkMRMLScalarVolumeNode") else None
+        if image is None:
+            raise InputError(f"{name}: frame {t} is not a scalar volume with image data")
+        dims = image.GetDimensions()
+        if (dims[1], dims[0]) != tuple(carm.shape) or dims[2] != 1:
+            raise InputError(f"{name}: frame {t} is {dims[0]}x{dims[1]}x{dims[2]}, expected {carm.cols}x{carm.rows}x1")
+        frames.append(vtk_to_numpy(image.GetPointData().GetScalars()).reshape(carm.rows, carm.cols))
+    ft = seq_node.GetAttribute("GuidewireReconstruction.FrameTimeMs")
+    return io.XARun(np.stack(frames).astype(np.float32), carm, source=seq_node.GetAttribute("GuidewireReconstruction.Source") or name,
+                    frame_time_ms=float(ft) if ft else None)
+
+
+# --------------------------------------------------------------------------------------
+# Outputs: numpy -> MRML
+# --------------------------------------------------------------------------------------
+def _f_transform() -> vtk.vtkTransform:
+    t = vtk.vtkTransform()
+    t.SetMatrix(_vtk_matrix(_embed3(lps_to_ras(np.eye(3)))))  # rows of I moved as points: F itself
+    return t
+
+
+def _embed3(m3) -> np.ndarray:
+    m = np.eye(4)
+    m[:3, :3] = m3
+    return m
+
+
+def polydata_lps_to_ras(poly_lps) -> vtk.vtkPolyData:
+    """A new polydata with points (and normals) moved from LPS to RAS. The input is not modified."""
+    f = vtk.vtkTransformPolyDataFilter()
+    f.SetInputData(poly_lps)
+    f.SetTransform(_f_transform())
+    f.Update()
+    out = vtk.vtkPolyData()
+    out.DeepCopy(f.GetOutput())
+    return out
+
+
+def _polyline(points_ras_mm, point_arrays: dict | None = None) -> vtk.vtkPolyData:
+    p = np.ascontiguousarray(points_ras_mm, dtype=float)
+    pts = vtk.vtkPoints()
+    pts.SetData(numpy_to_vtk(p, deep=True))
+    lines = vtk.vtkCellArray()
+    lines.InsertNextCell(len(p))
+    for i in range(len(p)):
+        lines.InsertCellPoint(i)
+    poly = vtk.vtkPolyData()
+    poly.SetPoints(pts)
+    poly.SetLines(lines)
+    for name, values in (point_arrays or {}).items():
+        arr = numpy_to_vtk(np.ascontiguousarray(values, dtype=float), deep=True)
+        arr.SetName(name)
+        poly.GetPointData().AddArray(arr)
+    return poly
+
+
+def wire_tube_polydata(points_ras_mm, uncertainty_mm=None, *, radius_mm: float = WIRE_RADIUS_MM,
+                       sides: int = 12) -> vtk.vtkPolyData:
+    """A closed tube of ``radius_mm`` around the wire polyline ``(N, 3)`` (RAS mm).
+
+    Point data ``uncertainty_mm`` (per wire point, interpolated along the tube) colours the tube.
+    """
+    p = np.asarray(points_ras_mm, dtype=float)
+    if p.ndim != 2 or p.shape[1] != 3 or len(p) < 2:
+        raise ReconstructionError(f"wire tube needs (N>=2, 3) points, got {p.shape}")
+    keep = np.r_[True, np.linalg.norm(np.diff(p, axis=0), axis=1) > 1e-6]  # tube filter needs distinct points
+    arrays = {}
+    if uncertainty_mm is not None:
+        arrays["uncertainty_mm"] = np.asarray(uncertainty_mm, dtype=float)[keep]
+    line = _polyline(p[keep], arrays)
+    tube = vtk.vtkTubeFilter()
+    tube.SetInputData(line)
+    tube.SetRadius(float(radius_mm))
+    tube.SetNumberOfSides(int(sides))
+    tube.CappingOn()
+    tube.Update()
+    out = vtk.vtkPolyData()
+    out.DeepCopy(tube.GetOutput())
+    if uncertainty_mm is not None:
+        out.GetPointData().SetActiveScalars("uncertainty_mm")
+    return out
+
+
+def pose_to_transform_node(pose: Pose, node) -> None:
+    """Store ``pose`` (``T_iso_from_lps``) in a linear transform node: from-parent = ``lps_to_ras(pose.matrix)``."""
+    node.SetMatrixTransformFromParent(_vtk_matrix(lps_to_ras(pose.matrix)))
+
+
+def pose_from_transform_node(node) -> Pose:
+    """The ``Pose`` held by a registration transform node (inverse of :func:`pose_to_transform_node`).
+
+    Only the node's own matrix is read; a parent transform above it is an error.
+    """
+    if node is None or not node.IsA("vtkMRMLLinearTransformNode"):
+        raise RegistrationError("registration transform: select a linear transform node")
+    if node.GetParentTransformNode() is not None:
+        raise RegistrationError(f"{node.GetName()}: registration transform must not have a parent transform")
+    m = vtk.vtkMatrix4x4()
+    node.GetMatrixTransformFromParent(m)
+    T = ras_to_lps(_matrix(m))
+    # re-orthonormalise the rotation (interaction and float32 storage leave ~1e-7 drift)
+    u, _, vt = np.linalg.svd(T[:3, :3])
+    R = u @ vt
+    if np.linalg.det(R) < 0:
+        raise RegistrationError(f"{node.GetName()}: transform is a reflection, not a rigid registration")
+    if np.abs(T[:3, :3] - R).max() > 1e-3:
+        raise RegistrationError(f"{node.GetName()}: transform has scaling or shear; only rotation and translation are allowed")
+    return Pose(R, T[:3, 3])
+
+
+def detector_points_room_lps_mm(uv_px, carm: CArm) -> np.ndarray:
+    """Pixels ``(N, 2)`` ``(u, v)`` -> their points on the detector, in the room frame (LPS axes, mm)."""
+    uv = np.atleast_2d(np.asarray(uv_px, dtype=float))
+    e_u, e_v, _ = carm.axes
+    c = carm.principal_point_px
+    return (carm.detector_centre_room_mm + (uv[:, :1] - c[0]) * carm.pixel_mm * e_u
+            + (uv[:, 1:2] - c[1]) * carm.pixel_mm * e_v)
+
+
+def _carm_polydata_room_ras(carm: CArm) -> vtk.vtkPolyData:
+    """The C-arm in the room frame (RAS): the detector outline and the four rays from the source."""
+    src = lps_to_ras(carm.source_room_mm)
+    corners = lps_to_ras(carm.detector_corners_lps_mm(Pose.identity()))  # identity pose: room frame
+    pts = np.vstack([src[None], corners])
+    points = vtk.vtkPoints()
+    points.SetData(numpy_to_vtk(np.ascontiguousarray(pts), deep=True))
+    lines = vtk.vtkCellArray()
+    for a, b in ((1, 2), (2, 3), (3, 4), (4, 1), (0, 1), (0, 2), (0, 3), (0, 4)):
+        lines.InsertNextCell(2)
+        lines.InsertCellPoint(a)
+        lines.InsertCellPoint(b)
+    poly = vtk.vtkPolyData()
+    poly.SetPoints(points)
+    poly.SetLines(lines)
+    return poly
+
+
+def _points_polydata(points_ras_mm) -> vtk.vtkPolyData:
+    p = np.ascontiguousarray(points_ras_mm, dtype=float).reshape(-1, 3)
+    pts = vtk.vtkPoints()
+    pts.SetData(numpy_to_vtk(p, deep=True))
+    verts = vtk.vtkCellArray()
+    for i in range(len(p)):
+        verts.InsertNextCell(1)
+        verts.InsertCellPoint(i)
+    poly = vtk.vtkPolyData()
+    poly.SetPoints(pts)
+    poly.SetVerts(verts)
+    return poly
+
+
+def _set_curve_points(curve, points_ras_mm) -> None:
+    p = np.asarray(points_ras_mm, dtype=float).reshape(-1, 3)
+    pts = vtk.vtkPoints()
+    pts.SetData(numpy_to_vtk(np.ascontiguousarray(p), deep=True))
+    curve.SetControlPointPositionsWorld(pts)
+
+
+def _fill_table(table_node, columns: list[tuple[str, str, list]]) -> None:
+    table = vtk.vtkTable()
+    for name, kind, values in columns:
+        arr = {"int": vtk.vtkIntArray, "float": vtk.vtkDoubleArray, "str": vtk.vtkStringArray}[kind]()
+        arr.SetName(name)
+        for v in values:
+            arr.InsertNextValue(v)
+        table.AddColumn(arr)
+    table_node.SetAndObserveTable(table)
+
+
+# --------------------------------------------------------------------------------------
+# The logic
+# --------------------------------------------------------------------------------------
+@dataclass
+class OutputNodes:
+    """The MRML nodes written by :class:`GuidewireReconstructionCoreLogic` (all coordinates RAS)."""
+
+    transform: object = None  # vtkMRMLLinearTransformNode: registration (see module docstring)
+    table: object = None  # vtkMRMLTableNode: per-frame metrics
+    vessel_model: object = None  # vtkMRMLModelNode: CTA vessel surface
+    centerline_curves: list = field(default_factory=list)  # vtkMRMLMarkupsCurveNode per tree branch
+    carm_model: object = None  # vtkMRMLModelNode: source + detector, child of ``transform``
+    roadmap_points_model: object = None  # vtkMRMLModelNode: 2D roadmap centerline on the detector, child of ``transform``
+    wire_models: list = field(default_factory=list)  # vtkMRMLModelNode (tube) per live frame
+    wire_curves: list = field(default_factory=list)  # vtkMRMLMarkupsCurveNode per live frame
+    frame_indices: list = field(default_factory=list)  # index in the frames run of each wire node
+
+    def all_nodes(self) -> list:
+        singles = [self.transform, self.table, self.vessel_model, self.carm_model, self.roadmap_points_model]
+        return [n for n in singles + self.centerline_curves + self.wire_models + self.wire_curves if n is not None]
+
+
+class GuidewireReconstructionCoreLogic:
+    """Runs ``guidewire3d`` on MRML inputs and writes MRML outputs (no Qt, no GUI calls).
+
+    Parameters
+    ----------
+    scene : vtkMRMLScene, optional
+        Defaults to ``slicer.mrmlScene``.
+    centerline_step_mm : float
+        Control-point spacing of the centerline curves (the tree is resampled for display).
+    """
+
+    def __init__(self, scene=None, *, centerline_step_mm: float = 2.0):
+        self.scene = scene or slicer.mrmlScene
+        if self.scene is None:
+            raise InputError("no MRML scene: set slicer.mrmlScene or pass scene=")
+        self.centerline_step_mm = float(centerline_step_mm)
+        self.result = None  # pipeline.PipelineResult of the last process()
+        self.method = WireMethod.VESSEL
+        self.registration = None  # the registration currently shown (after refine: the refined one)
+        self.wires3d: list = []
+        self.outputs = OutputNodes()
+
+    # --- inputs -------------------------------------------------------------------------
+    def load_xa(self, path, *, name: str | None = None):
+        """Read an XA DICOM file into a new sequence node (frames + C-arm geometry attribute)."""
+        run = io.read_xa(path)
+        return xa_to_sequence_node(run, name=name or Path(path).stem, scene=self.scene)
+
+    @staticmethod
+    def _xa(value, what: str) -> io.XARun:
+        if value is None or (isinstance(value, (str, Path)) and not str(value)):
+            raise InputError(f"{what}: give an XA DICOM file path or a sequence node")
+        if isinstance(value, io.XARun):
+            return value
+        if isinstance(value, (str, Path)):
+            return io.read_xa(value)
+        return xa_from_sequence_node(value)
+
+    # --- the whole chain -------------------------------------------------------------------
+    def process(self, *, cta_volume_node, roadmap, frames=None, seeds_node=None, roadmap_frame: int | None = None,
+                method: WireMethod | str = WireMethod.VESSEL, segmenter: Segmenter | str = Segmenter.UNET,
+                force: bool = False, outputs: OutputNodes | None = None, pose: Pose | None = None) -> OutputNodes:
+        """Run the pipeline and write (or update) the output nodes.
+
+        Parameters
+        ----------
+        cta_volume_node : vtkMRMLScalarVolumeNode
+            The CTA (HU). Its IJK -> RAS matrix (and a linear parent transform) place it.
+        roadmap, frames : str | Path | vtkMRMLSequenceNode | io.XARun
+            The contrast roadmap run and the live frames (``frames=None``: the roadmap run).
+        seeds_node : vtkMRMLMarkupsFiducialNode, optional
+            Seed points inside the vessels of interest.
+        roadmap_frame : int, optional
+            Frame of the roadmap run to use (``None`` or negative: the most contrast-filled).
+        outputs : OutputNodes, optional
+            Existing output nodes to update; missing ones are created.
+        pose : Pose, optional
+            Start from this pose (refined only) instead of registering from the nominal one.
+        """
+        from guidewire3d import pipeline
+
+        method = WireMethod(method)
+        segmenter = Segmenter(segmenter)
+        vol = volume_from_node(cta_volume_node)
+        road = self._xa(roadmap, "roadmap")
+        live = road if frames is None else self._xa(frames, "frames")
+        seeds = seeds_from_node(seeds_node)
+        if roadmap_frame is not None and roadmap_frame < 0:
+            roadmap_frame = None
+        t0 = time.perf_counter()
+        result = pipeline.run(vol, road, live, roadmap_frame=roadmap_frame, seeds_lps_mm=seeds, method=method.value,
+                              segmenter=segmenter.value, force=force, progress=False, pose=pose, log=log.info)
+        log.info("guidewire3d pipeline: %.1f s", time.perf_counter() - t0)
+        return self.show_result(result, method=method, outputs=outputs)
+
+    def show_result(self, result, *, method: WireMethod | str = WireMethod.VESSEL,
+                    outputs: OutputNodes | None = None) -> OutputNodes:
+        """Write (or update) the output nodes from a ``pipeline.PipelineResult`` and keep it for :meth:`refine`."""
+        self.result = result
+        self.method = WireMethod(method)
+        self.registration = result.registration
+        self.wires3d = list(result.wires3d)
+        if outputs is not None:
+            self.outputs = outputs
+        self._write_static_outputs()
+        self._write_registration_outputs()
+        self._write_wire_outputs()
+        return self.outputs
+
+    def refine(self, *, transform_node=None, force: bool = False):
+        """Refine the registration from the pose in the transform node, then update it and the wires.
+
+        Reads the (possibly user-edited) transform node, converts it back to ``T_iso_from_lps``,
+        runs ``registration.refine`` and, on success (or with ``force``), stores the refined pose in
+        the node and reconstructs every frame's wire again. Returns the ``RegistrationResult``.
+        """
+        from guidewire3d import registration
+
+        if self.result is None:
+            raise RegistrationError("refine: run Apply (process) first")
+        node = transform_node or self.outputs.transform
+        start = pose_from_transform_node(node)
+        res = self.result
+        cl = res.centerline2d
+        kwargs = {}
+        if getattr(cl, "radius_px", None) is not None:
+            kwargs["centerline_radius_px"] = cl.radius_px
+        reg = registration.refine(res.tree, cl.points_uv_px, res.carm, start, **kwargs)
+        log.info("refine: %s (%s), residual %.2f px", "ok" if reg.success else "FAILED", reg.message, reg.mean_residual_px)
+        if not reg.success and not force:
+            return reg
+        self.outputs.transform = node
+        self.registration = reg
+        self._write_registration_outputs()
+        self.wires3d = self._reconstruct_all(reg)
+        self._write_wire_outputs()
+        return reg
+
+    def _reconstruct_all(self, reg) -> list:
+        """Every live frame's wire again with the pose of ``reg`` (tracking prior as in the pipeline)."""
+        from guidewire3d import reconstruction
+
+        res = self.result
+        tracker = reconstruction.WireTracker(reg.pose, res.frames_carm, res.tree, method=self.method.value,
+                                             registration_covariance=getattr(reg, "covariance_6x6", None))
+        out = []
+        for frame, w2 in zip(res.frames, res.wires2d):
+            if w2:
+                out.append(tracker.update(w2.points_uv_px, image=frame))
+            else:
+                out.append(reconstruction.Wire3D.failed(f"2D wire not found: {getattr(w2, 'message', '')}"))
+        return out
+
+    # --- writing nodes -----------------------------------------------------------------------
+    def _new(self, cls: str, name: str, role: str):
+        node = self.scene.AddNewNodeByClass(cls, self.scene.GenerateUniqueName(name))
+        node.SetAttribute(ROLE_ATTRIBUTE, role)
+        return node
+
+    def _model(self, node, name: str, role: str, poly, *, color=(1.0, 1.0, 1.0), opacity: float = 1.0):
+        if node is None:
+            node = self._new("vtkMRMLModelNode", name, role)
+        node.SetAndObservePolyData(poly)
+        if node.GetDisplayNode() is None:
+            node.CreateDefaultDisplayNodes()
+            d = node.GetDisplayNode()
+            d.SetColor(*color)
+            d.SetOpacity(opacity)
+        return node
+
+    def _curve(self, node, name: str, role: str, points_ras_mm, *, color=(1.0, 1.0, 0.0)):
+        if node is None:
+            node = self._new("vtkMRMLMarkupsCurveNode", name, role)
+            node.SetCurveTypeToLinear()
+            node.CreateDefaultDisplayNodes()
+            d = node.GetDisplayNode()
+            d.SetSelectedColor(*color)
+            d.SetColor(*color)
+            d.SetPointLabelsVisibility(False)
+            d.SetPropertiesLabelVisibility(False)
+            d.SetGlyphScale(1.0)
+        _set_curve_points(node, points_ras_mm)
+        node.SetLocked(True)
+        return node
+
+    def _write_static_outputs(self) -> None:
+        """Vessel surface, centerline curves, C-arm model and the roadmap centerline on the detector."""
+        res, o = self.result, self.outputs
+        o.vessel_model = self._model(o.vessel_model, "GW vessel surface", "vessels",
+                                     polydata_lps_to_ras(res.vessels.surface), color=(0.85, 0.3, 0.3), opacity=0.35)
+        tree = res.tree
+        from guidewire3d.metrics import resample_polyline
+
+        branches = [resample_polyline(tree.points_lps_mm[b.point_ids], self.centerline_step_mm) for b in tree.branches]
+        for k, pts in enumerate(branches):
+            node = o.centerline_curves[k] if k < len(o.centerline_curves) else None
+            node = self._curve(node, f"GW centerline {k}", "centerline", lps_to_ras(pts), color=(0.2, 0.6, 1.0))
+            if k >= len(o.centerline_curves):
+                o.centerline_curves.append(node)
+        for extra in o.centerline_curves[len(branches):]:
+            self.scene.RemoveNode(extra)
+        del o.centerline_curves[len(branches):]
+
+        if o.transform is None:
+            o.transform = self._new("vtkMRMLLinearTransformNode", "GW registration (CTA to C-arm)", "registration")
+        o.carm_model = self._model(o.carm_model, "GW C-arm", "carm", _carm_polydata_room_ras(res.carm), color=(0.9, 0.9, 0.2))
+        o.carm_model.SetAndObserveTransformNodeID(o.transform.GetID())
+        uv = np.asarray(res.centerline2d.points_uv_px, dtype=float)
+        o.roadmap_points_model = self._model(o.roadmap_points_model, "GW roadmap centerline (detector)", "roadmap",
+                                             _points_polydata(lps_to_ras(detector_points_room_lps_mm(uv, res.carm))),
+                                             color=(0.2, 1.0, 0.4))
+        o.roadmap_points_model.GetDisplayNode().SetPointSize(3.0)
+        o.roadmap_points_model.SetAndObserveTransformNodeID(o.transform.GetID())
+
+    def _write_registration_outputs(self) -> None:
+        reg, node = self.registration, self.outputs.transform
+        pose_to_transform_node(reg.pose, node)
+        for key, value in (("Success", str(bool(reg.success))), ("Message", str(reg.message)),
+                           ("MeanResidualPx", f"{float(reg.mean_residual_px):.6g}"),
+                           ("Iterations", str(int(reg.iterations))), ("Seconds", f"{float(reg.seconds):.6g}")):
+            node.SetAttribute(f"GuidewireReconstruction.Registration.{key}", value)
+
+    def _write_wire_outputs(self) -> None:
+        res, o = self.result, self.outputs
+        frame_ids = list(getattr(res, "frame_indices", None) or range(len(self.wires3d)))
+        if o.table is None:
+            o.table = self._new("vtkMRMLTableNode", "GW frame metrics", "metrics")
+        models, curves = [], []
+        last_ok = max((i for i, w in enumerate(self.wires3d) if w.success), default=-1)
+        for i, (fid, w) in enumerate(zip(frame_ids, self.wires3d)):
+            model = o.wire_models[i] if i < len(o.wire_models) else None
+            curve = o.wire_curves[i] if i < len(o.wire_curves) else None
+            if w.success and len(w.points_lps_mm) >= 2:
+                pts = lps_to_ras(w.points_lps_mm)
+                model = self._model(model, f"GW guidewire frame {fid:04d}", "wire",
+                                    wire_tube_polydata(pts, w.uncertainty_mm), color=(0.1, 1.0, 0.1))
+                dn = model.GetDisplayNode()
+                dn.SetActiveScalarName("uncertainty_mm")
+                dn.SetScalarVisibility(True)
+                curve = self._curve(curve, f"GW guidewire curve frame {fid:04d}", "wire_curve", pts, color=(0.1, 1.0, 0.1))
+            else:  # keep the node (index stays aligned with the frames) but empty it
+                model = self._model(model, f"GW guidewire frame {fid:04d}", "wire", vtk.vtkPolyData())
+                curve = self._curve(curve, f"GW guidewire curve frame {fid:04d}", "wire_curve", np.zeros((0, 3)))
+            model.SetAttribute("GuidewireReconstruction.Frame", str(fid))
+            curve.SetAttribute("GuidewireReconstruction.Frame", str(fid))
+            model.GetDisplayNode().SetVisibility(i == last_ok)
+            curve.GetDisplayNode().SetVisibility(i == last_ok)
+            models.append(model)
+            curves.append(curve)
+        for extra in o.wire_models[len(models):] + o.wire_curves[len(curves):]:
+            self.scene.RemoveNode(extra)
+        o.wire_models, o.wire_curves, o.frame_indices = models, curves, frame_ids
+        secs = list(getattr(res, "frame_seconds", []) or [])
+        secs += [float("nan")] * (len(self.wires3d) - len(secs))
+        ws = self.wires3d
+
+        def _stat(w, fn):
+            u = np.asarray(w.uncertainty_mm, dtype=float)
+            return float(fn(u)) if w.success and u.size else float("nan")
+
+        _fill_table(o.table, [
+            ("frame", "int", [int(f) for f in frame_ids]),
+            ("success", "int", [int(bool(w.success)) for w in ws]),
+            ("points", "int", [int(len(w.points_lps_mm)) if w.success else 0 for w in ws]),
+            ("length_mm", "float", [float(w.length_mm) if w.success else float("nan") for w in ws]),
+            ("projection_error_px", "float", [float(w.projection_error_px) if w.success else float("nan") for w in ws]),
+            ("mean_uncertainty_mm", "float", [_stat(w, np.mean) for w in ws]),
+            ("max_uncertainty_mm", "float", [_stat(w, np.max) for w in ws]),
+            ("seconds", "float", [float(s) for s in secs[: len(ws)]]),
+            ("message", "str", [str(w.message) for w in ws]),
+        ])
+
+    # --- saving -------------------------------------------------------------------------
+    def save_outputs(self, directory) -> list[Path]:
+        """Write every output node through its storage node; returns the written files.
+
+        Vessel surface ``.stl``, wire tubes and C-arm ``.vtk`` (keeps the uncertainty scalars),
+        curves ``.mrk.json``, metrics ``.tsv``, registration ``.h5``. Model and markups files are
+        written in LPS, as Slicer does by default; loading them back gives the same RAS nodes.
+        """
+        directory = Path(directory)
+        directory.mkdir(parents=True, exist_ok=True)
+        written = []
+        o = self.outputs
+        plan = [(o.vessel_model, "stl"), (o.carm_model, "vtk"), (o.roadmap_points_model, "vtk"), (o.transform, "h5"),
+                (o.table, "tsv")]
+        plan += [(n, "mrk.json") for n in o.centerline_curves + o.wire_curves]
+        plan += [(n, "vtk") for n in o.wire_models]
+        for node, ext in plan:
+            if node is None:
+                continue
+            if node.IsA("vtkMRMLModelNode") and (node.GetPolyData() is None or node.GetPolyData().GetNumberOfPoints() == 0):
+                continue
+            if node.IsA("vtkMRMLMarkupsNode") and node.GetNumberOfControlPoints() == 0:
+                continue
+            storage = node.GetStorageNode()
+            if storage is None:
+                node.AddDefaultStorageNode()
+                storage = node.GetStorageNode()
+            if storage is None:
+                raise InputError(f"{node.GetName()}: no storage node (is the application logic set on the scene?)")
+            path = directory / f"{_safe_name(node.GetName())}.{ext}"
+            storage.SetFileName(str(path))
+            if not storage.WriteData(node):
+                raise InputError(f"{path}: writing {node.GetName()} failed")
+            written.append(path)
+        return written
+
+
+def _safe_name(name: str) -> str:
+    return "".join(c if c.isalnum() or c in "-_." else "_" for c in name).strip("_") or "node"

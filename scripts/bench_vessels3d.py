@@ -1,0 +1,127 @@
+"""Benchmark of the CTA vessel stage (issue 4) against the simulator's truth.
+
+Usage::
+
+    nice .venv/bin/python scripts/bench_vessels3d.py [--seeds 20] [--volume small|large] [--first-seed 0]
+
+Half of the cases have distractors (bone, contrast blobs): odd seeds. Prints one row per case and
+the medians. Measures, per case:
+
+* ``mean_mm`` / ``p95_mm``: distance of every estimated centerline point to the true centerline
+  (densely resampled at 0.1 mm), and ``cover_mm``: mean distance of the true points to the estimate;
+* ``recall``: fraction of true branches with median radius >= 1 mm whose points (beyond their
+  first 2 radii, which sit inside the parent) are mostly (>= 80 %) within max(1 mm, r) of the estimate;
+* ``false``: estimated branches whose points are mostly (>= 50 %) farther than max(1.5 mm, 1.5 r)
+  from the true centerline;
+* ``r_err_mm``: median of |estimated radius - true radius at the nearest true point|;
+* ``dice``: mask vs the true lumen; ``bad_distr``: distractor voxels in the mask farther than 2 mm
+  from the true lumen (must be 0);
+* ``t_s``: wall seconds of ``extract_vessels``.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import time
+
+import numpy as np
+from scipy import ndimage as ndi
+from scipy.spatial import cKDTree
+
+
+def dense_tree_points(tree, step=0.1):
+    pts, rad = [], []
+    P, R = tree.points_lps_mm, tree.radius_mm
+    for a, b in tree.edges:
+        n = max(int(np.ceil(np.linalg.norm(P[b] - P[a]) / step)), 1)
+        w = np.linspace(0, 1, n, endpoint=False)[:, None]
+        pts.append(P[a] * (1 - w) + P[b] * w)
+        rad.append(R[a] * (1 - w[:, 0]) + R[b] * w[:, 0])
+    pts.append(P)
+    rad.append(R)
+    return np.vstack(pts), np.concatenate(rad)
+
+
+def evaluate(case, res):
+    from guidewire3d.metrics import dice
+
+    truth, est = case.tree, res.tree
+    tp, tr = dense_tree_points(truth)
+    kd_t = cKDTree(tp)
+    d, j = kd_t.query(est.points_lps_mm)
+    ep, _ = dense_tree_points(est)
+    kd_e = cKDTree(ep)
+    cover, _ = kd_e.query(truth.points_lps_mm)
+    r_err = np.abs(est.radius_mm - tr[j])
+    # branch recall for true branches of radius >= 1 mm
+    hits, n_big = 0, 0
+    for b in truth.branches:
+        ids = b.point_ids
+        r_med = float(np.median(truth.radius_mm[ids]))
+        if r_med < 1.0:
+            continue
+        s = truth.arclength_from_root_mm[ids] - truth.arclength_from_root_mm[ids[0]]
+        body = ids[s > 2 * truth.radius_mm[ids[0]]] if b.parent >= 0 else ids
+        if len(body) < 2:
+            continue
+        n_big += 1
+        dd, _ = kd_e.query(truth.points_lps_mm[body])
+        if np.mean(dd <= np.maximum(1.0, truth.radius_mm[body])) >= 0.8:
+            hits += 1
+    false = 0
+    for b in est.branches:
+        ids = b.point_ids[1:] if len(b.point_ids) > 2 else b.point_ids
+        dd, jj = kd_t.query(est.points_lps_mm[ids])
+        if np.mean(dd > np.maximum(1.5, 1.5 * tr[jj])) >= 0.5:
+            false += 1
+    sp_zyx = np.asarray(case.volume.spacing_mm)[::-1]
+    far = ndi.distance_transform_edt(~case.lumen_mask_zyx, sampling=sp_zyx) > 2.0
+    bad = int((res.mask_zyx & case.distractor_mask_zyx & far).sum()) if case.distractor_mask_zyx is not None else 0
+    return dict(
+        mean_mm=float(d.mean()), p95_mm=float(np.percentile(d, 95)), cover_mm=float(cover.mean()),
+        recall=hits / max(n_big, 1), n_true=n_big, false=false, r_err_mm=float(np.median(r_err)),
+        dice=dice(res.mask_zyx, case.lumen_mask_zyx), bad_distr=bad,
+    )
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--seeds", type=int, default=20)
+    ap.add_argument("--first-seed", type=int, default=0)
+    ap.add_argument("--volume", default="small", choices=["small", "large"])
+    a = ap.parse_args(argv)
+    from guidewire3d.phantom import PhantomOptions, simulate
+    from guidewire3d.vessels3d import extract_vessels
+
+    cpu = platform.processor() or platform.machine()
+    try:
+        with open("/proc/cpuinfo") as f:
+            cpu = next(line.split(":", 1)[1].strip() for line in f if line.startswith("model name"))
+    except (OSError, StopIteration):
+        pass
+    print(f"machine: {cpu}, {os.cpu_count()} cores, Python {platform.python_version()}, volume={a.volume}")
+    cols = ["seed", "distr", "shape", "mean_mm", "p95_mm", "cover_mm", "recall", "n_true", "false", "r_err_mm",
+            "dice", "bad_distr", "t_s"]
+    print(" | ".join(f"{c:>9}" for c in cols))
+    rows = []
+    for seed in range(a.first_seed, a.first_seed + a.seeds):
+        distr = seed % 2 == 1
+        case = simulate(PhantomOptions(seed=seed, distractors=distr, volume=a.volume))
+        t0 = time.perf_counter()
+        res = extract_vessels(case.volume)
+        t = time.perf_counter() - t0
+        m = evaluate(case, res)
+        m.update(seed=seed, distr=int(distr), t_s=t, shape="x".join(map(str, case.volume.shape_zyx)))
+        rows.append(m)
+        print(" | ".join(f"{m[c]:>9.3f}" if isinstance(m[c], float) else f"{m[c]!s:>9}" for c in cols), flush=True)
+    print("median    | " + " | ".join(
+        f"{np.median([r[c] for r in rows]):>9.3f}" if c not in ("seed", "distr", "shape") else f"{'':>9}"
+        for c in cols[1:]))
+    print(f"worst: p95_mm {max(r['p95_mm'] for r in rows):.3f}, recall {min(r['recall'] for r in rows):.3f}, "
+          f"false {max(r['false'] for r in rows)}, bad_distr {max(r['bad_distr'] for r in rows)}, "
+          f"t_s {max(r['t_s'] for r in rows):.1f}")
+
+
+if __name__ == "__main__":
+    main()

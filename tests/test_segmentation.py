@@ -1,0 +1,179 @@
+"""Guidewire segmentation: shipped UNet and ridge detector against the simulator's truth masks."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from guidewire3d.errors import InputError
+from guidewire3d.metrics import dice
+from guidewire3d.phantom import PhantomOptions, simulate
+from guidewire3d.segmentation import (
+    DEFAULT_WEIGHTS_PATH,
+    Backend,
+    GuidewireSegmenter,
+    SegMethod,
+    frame_is_degenerate,
+    guidewire_mask,
+    load_unet,
+    normalize_frame,
+    ridge_probability,
+    unet_probability,
+)
+
+# held-out seeds (training uses 1000-1999)
+SEED_THIN, SEED_THICK = 7, 8
+N_FRAMES = 3
+UNET_MIN_DICE = 0.88          # per-frame mean on held-out frames (benchmark: see scripts/bench_segmentation.py)
+RIDGE_MIN_DICE = 0.75
+ROI_VS_FULL_MIN_DICE = 0.97
+BACKEND_MAX_ABS_DIFF = 1e-3
+
+
+@pytest.fixture(scope="module")
+def cases():
+    out = {}
+    for seed, diam in ((SEED_THIN, 0.36), (SEED_THICK, 0.89)):
+        sim = simulate(PhantomOptions(seed=seed, n_frames=N_FRAMES, wire_diameter_mm=diam, dose=1.0), make_ct=False)
+        out[diam] = (np.asarray(sim.frames), np.asarray(sim.wire_mask))
+    return out
+
+
+def test_shipped_weights_are_small_safetensors():
+    assert DEFAULT_WEIGHTS_PATH.is_file()
+    assert DEFAULT_WEIGHTS_PATH.stat().st_size < 5 * 1024 * 1024
+    header_len = int.from_bytes(DEFAULT_WEIGHTS_PATH.read_bytes()[:8], "little")
+    assert DEFAULT_WEIGHTS_PATH.read_bytes()[8:9] == b"{" and header_len > 0  # safetensors JSON header
+
+
+@pytest.mark.parametrize("diameter", [0.36, 0.89])
+def test_unet_dice_on_heldout_frames(cases, diameter):
+    frames, masks = cases[diameter]
+    scores = [dice(guidewire_mask(f, method="unet"), m) for f, m in zip(frames, masks)]
+    assert np.mean(scores) >= UNET_MIN_DICE, scores
+
+
+@pytest.mark.parametrize("method", list(SegMethod))
+def test_every_method_member_segments_the_wire(cases, method):
+    frames, masks = cases[0.89]
+    by_member = guidewire_mask(frames[0], method=method)
+    by_string = guidewire_mask(frames[0], method=method.value)
+    assert np.array_equal(by_member, by_string)
+    floor = UNET_MIN_DICE if method is SegMethod.UNET else RIDGE_MIN_DICE
+    assert dice(by_member, masks[0]) >= floor
+
+
+@pytest.mark.parametrize("diameter", [0.36, 0.89])
+def test_ridge_quality(cases, diameter):
+    frames, masks = cases[diameter]
+    scores = [dice(guidewire_mask(f, method=SegMethod.RIDGE), m) for f, m in zip(frames, masks)]
+    assert np.mean(scores) >= RIDGE_MIN_DICE, scores
+    # the ridge response separates wire from background
+    p = ridge_probability(frames[0])
+    assert np.median(p[masks[0]]) > 0.8
+    assert np.median(p[~masks[0]]) < 0.3
+
+
+@pytest.mark.parametrize("method", list(SegMethod))
+def test_roi_tracking_matches_full_frame(cases, method):
+    frames, _ = cases[0.36]
+    seg = GuidewireSegmenter(method=method, roi_margin_px=32)
+    modes = []
+    for f in frames:
+        tracked = seg.segment(f)
+        modes.append(seg.last_mode)
+        full = guidewire_mask(f, method=method)
+        assert dice(tracked, full) >= ROI_VS_FULL_MIN_DICE
+    assert modes[0] == "full" and modes[1:] == ["roi"] * (len(frames) - 1)
+    seg.reset()
+    seg.segment(frames[0])
+    assert seg.last_mode == "full"
+
+
+def test_roi_restricts_the_mask(cases):
+    frames, masks = cases[0.89]
+    vv, uu = np.nonzero(masks[0])
+    roi = (int(uu.min()) - 10, int(vv.min()) - 10, int(np.median(uu)), int(vv.max()) + 10)
+    m = guidewire_mask(frames[0], roi_uv=roi)
+    outside = np.ones_like(m)
+    outside[roi[1]:roi[3], roi[0]:roi[2]] = False
+    assert not m[outside].any()
+    full = guidewire_mask(frames[0])
+    inner = (slice(roi[1] + 16, roi[3] - 16), slice(roi[0] + 16, roi[2] - 16))
+    assert dice(m[inner], full[inner]) >= ROI_VS_FULL_MIN_DICE
+
+
+@pytest.mark.parametrize("method", list(SegMethod))
+def test_bad_frames_give_an_empty_mask(method):
+    rng = np.random.default_rng(0)
+    blank = np.zeros((256, 256), np.uint16)
+    flat = np.full((256, 256), 1234.0)
+    saturated = np.full((256, 256), 65535, np.uint16)
+    saturated[:10, :10] = rng.integers(0, 65535, (10, 10))
+    noise_only = rng.poisson(3000.0, (256, 256)).astype(np.float32)  # a flat field: no wire
+    for frame, degenerate in ((blank, True), (flat, True), (saturated, True), (noise_only, False)):
+        assert frame_is_degenerate(frame) == degenerate
+        assert not guidewire_mask(frame, method=method).any()
+        seg = GuidewireSegmenter(method=method)
+        assert not seg.segment(frame).any()
+
+
+def test_ordered_wire_reports_failure_on_empty_mask():
+    from guidewire3d.image2d import ordered_wire
+
+    mask = guidewire_mask(np.zeros((128, 128), np.float32))
+    ow = ordered_wire(mask)
+    assert not ow and not ow.success and ow.message
+
+
+def test_normalisation_is_invariant_to_gain_and_offset(cases):
+    frame = cases[0.36][0][0]
+    z = normalize_frame(frame)
+    z2 = normalize_frame(frame * 3.7 + 250.0)
+    np.testing.assert_allclose(z, z2, atol=1e-4)
+    m1 = guidewire_mask(frame)
+    m2 = guidewire_mask((frame * 0.25).astype(np.uint16))  # rescaled and quantised
+    assert dice(m1, m2) >= ROI_VS_FULL_MIN_DICE
+
+
+def test_loader_uses_no_pickle(monkeypatch, cases):
+    import pickle
+
+    import torch
+
+    def forbidden(*a, **k):
+        raise AssertionError("pickle-based loading was used")
+
+    monkeypatch.setattr(torch, "load", forbidden)
+    monkeypatch.setattr(pickle, "load", forbidden)
+    monkeypatch.setattr(pickle, "loads", forbidden)
+    model = load_unet()
+    frames, masks = cases[0.89]
+    z = normalize_frame(frames[0])[None, None]
+    with torch.inference_mode():
+        p = torch.sigmoid(model(torch.from_numpy(z)))[0, 0].numpy() > model.config.threshold
+    assert dice(p, masks[0]) >= UNET_MIN_DICE
+
+
+@pytest.mark.parametrize("backend", list(Backend))
+def test_backends_agree(cases, backend):
+    frame = cases[0.36][0][1]
+    ref = unet_probability(frame, backend="torch")
+    p = unet_probability(frame, backend=backend)
+    assert np.abs(p - ref).max() <= BACKEND_MAX_ABS_DIFF
+
+
+def test_bad_input_raises(tmp_path):
+    with pytest.raises(InputError, match="frame"):
+        guidewire_mask(np.zeros((4, 5, 6)))
+    with pytest.raises(InputError, match="method"):
+        guidewire_mask(np.zeros((64, 64)), method="fcn")
+    with pytest.raises(InputError, match="roi_uv"):
+        guidewire_mask(np.ones((64, 64)), roi_uv=(10, 10, 5, 5))
+    with pytest.raises(InputError, match="sigmas_px"):
+        ridge_probability(np.ones((64, 64)), sigmas_px=(0.0,))
+    with pytest.raises(InputError, match="not found"):
+        load_unet(tmp_path / "missing.safetensors")
+    bad = tmp_path / "bad.safetensors"
+    bad.write_bytes(b"not a safetensors file")
+    with pytest.raises(InputError, match="safetensors"):
+        load_unet(bad)
