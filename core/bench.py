@@ -66,7 +66,7 @@ def _case_dir_for_seed(seed: int | None) -> Path:
 
     if seed is None:
         return phantom.default_case_dir(progress=True)
-    cache = phantom.cache_root() / f"demo-seed{seed}-v{phantom.CACHE_VERSION}"
+    cache = phantom._cache_root() / f"demo-seed{seed}-v{phantom.CACHE_VERSION}"
     if not (cache / "truth.json").exists():
         case = phantom.simulate(phantom.PhantomOptions(seed=seed), progress=True)
         phantom.write_case(case, cache)

@@ -57,7 +57,12 @@ HYSTERESIS_LOW = 0.85             # x Otsu threshold of the feature
 HYSTERESIS_HIGH = 1.5             # x Otsu threshold of the feature
 MIN_COMPONENT_FRACTION = 0.001    # components smaller than this fraction of the image are dropped
 MIN_COMPONENT_OF_LARGEST = 0.1    # ... and those smaller than this fraction of the largest (the tree)
+COARSE_FACTOR = 3                 # second detection pass on a 3x binned image (wide vessels); 1: off
+WIDTH_COMPLETION = True           # grow detections to full width (FWHM of a wide top-hat)
+WIDE_RADIUS_PX = 12.0             # its top-hat radius; also the search distance
+HALF_MAX = 0.5                    # fraction of the local vessel contrast at the vessel edge
 FOV_DARK_FRACTION = 0.25          # smoothed intensity below this x median = outside the collimator
+BORDER_PX = 2                     # image border band ignored (edge artefacts)
 FOV_MARGIN_PX = 5.0               # erosion of the field of view (edge responses)
 # Ordered-wire parameters.
 MIN_WIRE_LENGTH_PX = 10.0         # a shorter longest path is "no wire"
@@ -68,8 +73,11 @@ MAX_PIECES = 24                   # only the largest pieces are considered for b
 TANGENT_BACK_PX = 6               # end tangent from this many pixels back along the piece
 BRIDGE_MAX_ANGLE_DEG = 50.0       # gap vector vs each end's outward tangent
 BRIDGE_FREE_PX = 2.5              # gaps up to this length are bridged regardless of direction
-REFINE_STEP_PX = 0.25             # sampling step across the normal
+TIP_CAP_FRACTION = 0.25          # mask end cap beyond the tip, x local width (flat 0 .. round 0.5)
+PROFILE_STEP_PX = 0.5            # sampling step across the normal (centring)
+REFINE_STEP_PX = 0.25             # sampling step along the tangent (end extension)
 REFINE_SMOOTH_PX = 2.0            # Gaussian smoothing (arc length) of the pixel path before normals
+SATURATED_FRACTION = 0.5         # frame with this fraction of pixels at its maximum: saturated
 BLANK_REL_SPREAD = 1e-3           # image 1-99 % spread below this x its level: blank/saturated
 
 
@@ -124,13 +132,16 @@ def _normalise01(a: np.ndarray) -> tuple[np.ndarray, bool]:
 
 
 def _dark_vessels_auto(im01: np.ndarray, scale: float) -> bool:
-    """Polarity: compare the strongest dark-ridge and bright-ridge responses (thin lines)."""
-    from skimage.filters import sato
+    """Polarity: compare the strongest dark and bright line-sized details (black vs white top-hat
+    with a disk wider than the vessels, on a subsampled copy)."""
+    from skimage.morphology import disk
 
-    small = im01[:: max(1, int(round(scale))), :: max(1, int(round(scale)))]
-    r_dark = sato(small, sigmas=(1.0, 2.0), black_ridges=True)
-    r_bright = sato(small, sigmas=(1.0, 2.0), black_ridges=False)
-    return float(np.percentile(r_dark, 98)) >= float(np.percentile(r_bright, 98))
+    k = max(1, int(round(2.0 * scale)))
+    small = ndi.uniform_filter(im01, size=k)[::k, ::k]
+    fp = disk(max(2, int(round(WIDE_RADIUS_PX * scale / k))))
+    dark = ndi.grey_closing(small, footprint=fp) - small
+    bright = small - ndi.grey_opening(small, footprint=fp)
+    return float(np.percentile(dark, 99.5)) >= float(np.percentile(bright, 99.5))
 
 
 def _field_of_view(im01: np.ndarray, margin_px: int) -> np.ndarray:
@@ -138,28 +149,32 @@ def _field_of_view(im01: np.ndarray, margin_px: int) -> np.ndarray:
     sm = ndi.uniform_filter(im01, size=2 * margin_px + 1)
     med = float(np.median(sm))
     fov = sm > FOV_DARK_FRACTION * med if med > 0 else np.ones_like(sm, bool)
-    fov[:margin_px] = fov[-margin_px:] = False
-    fov[:, :margin_px] = fov[:, -margin_px:] = False
-    return ndi.binary_erosion(fov, iterations=margin_px)
+    # Erode away from the shutter edges only; the image border itself loses BORDER_PX.
+    fov = ndi.binary_erosion(fov, iterations=margin_px, border_value=1)
+    b = BORDER_PX
+    fov[:b] = fov[-b:] = False
+    fov[:, :b] = fov[:, -b:] = False
+    return fov
 
 
-def _vessel_feature(image, dark_vessels):
-    """Top-hat x vesselness feature in [0, ~1] and the field-of-view mask."""
+def _vessel_feature(a: np.ndarray, dark_vessels, scale: float | None = None):
+    """Top-hat x vesselness feature in [0, ~1], the field-of-view mask, the attenuation image and
+    the length scale used (px per reference px)."""
     from skimage.filters import sato
     from skimage.morphology import disk
 
-    a = _as_image(image, "image")
     im01, ok = _normalise01(a)
     if not ok:
-        return None, None
-    scale = max(a.shape) / REFERENCE_SIZE_PX
+        return None, None, None, None
+    if scale is None:
+        scale = max(a.shape) / REFERENCE_SIZE_PX
     if dark_vessels is None:
         dark_vessels = _dark_vessels_auto(im01, scale)
     if not dark_vessels:
         im01 = 1.0 - im01
     fov = _field_of_view(im01, max(2, int(round(FOV_MARGIN_PX * scale))))
     if fov.sum() < 64:
-        return None, None
+        return None, None, None, None
     att = -np.log(im01 + 1.0 / 255.0)                  # vessels bright in attenuation
     att = np.where(fov, att, np.median(att[fov]))
     r_bg = max(2, int(round(BACKGROUND_RADIUS_PX * scale)))
@@ -172,9 +187,9 @@ def _vessel_feature(image, dark_vessels):
     t99 = float(np.percentile(tophat[fov], 99))
     v99 = float(np.percentile(ves[fov], 99))
     if t99 <= 0 or v99 <= 0:
-        return None, None
+        return None, None, None, None
     feat = np.sqrt(np.clip(tophat / t99, 0, None) * np.clip(ves / v99, 0, None))
-    return feat, fov
+    return feat, fov, att, scale
 
 
 def _drop_small(mask: np.ndarray, min_px: int, connectivity: int = 2) -> np.ndarray:
@@ -207,24 +222,79 @@ def vessel_mask(image, *, dark_vessels: bool | None = None) -> np.ndarray:
     InputError
         If ``image`` is not a finite 2D numeric array of at least 8x8 pixels.
     """
+    a = _as_image(image, "image")
+    im01, ok = _normalise01(a)
+    if not ok:
+        return np.zeros(a.shape, bool)
+    scale = max(a.shape) / REFERENCE_SIZE_PX
+    if dark_vessels is None:
+        dark_vessels = _dark_vessels_auto(im01, scale)
+    m, fov, att = _detect(a, bool(dark_vessels), scale)
+    if m is None:
+        return np.zeros(a.shape, bool)
+    f = COARSE_FACTOR
+    if f > 1 and min(a.shape) >= 64 * f:
+        # Coarse pass: the same detector on an f-times binned image finds vessels f times wider.
+        h, w = (a.shape[0] // f) * f, (a.shape[1] // f) * f
+        binned = a[:h, :w].reshape(h // f, f, w // f, f).mean(axis=(1, 3))
+        mc, _, _ = _detect(binned, bool(dark_vessels), scale)
+        if mc is not None:
+            up = np.zeros(a.shape, bool)
+            up[:h, :w] = np.repeat(np.repeat(mc, f, axis=0), f, axis=1)
+            m = m | (up & fov)
+    m = _filter_components(m)
+    if WIDTH_COMPLETION and m.any():
+        m = _complete_width(m, att, fov, scale)
+    return m
+
+
+def _detect(a: np.ndarray, dark_vessels: bool, scale: float):
+    """One detection pass: hysteresis on the feature (thresholds relative to its Otsu level)."""
     from skimage.filters import apply_hysteresis_threshold, threshold_otsu
 
-    a = _as_image(image, "image")
-    feat, fov = _vessel_feature(a, dark_vessels)
+    feat, fov, att, _ = _vessel_feature(a, dark_vessels, scale)
     if feat is None:
-        return np.zeros(a.shape, bool)
+        return None, None, None
     vals = feat[fov]
     if float(vals.max()) - float(vals.min()) <= 1e-9:
-        return np.zeros(a.shape, bool)
+        return None, None, None
     t = float(threshold_otsu(vals))
-    m = apply_hysteresis_threshold(feat, HYSTERESIS_LOW * t, HYSTERESIS_HIGH * t)
+    return apply_hysteresis_threshold(feat, HYSTERESIS_LOW * t, HYSTERESIS_HIGH * t), fov, att
+
+
+def _filter_components(m: np.ndarray) -> np.ndarray:
+    """Drop components smaller than a fraction of the image or of the largest component."""
     lab, n = ndi.label(m, structure=np.ones((3, 3), bool))
     if n == 0:
         return m
     size = np.bincount(lab.ravel())
     size[0] = 0
-    keep = (size >= MIN_COMPONENT_FRACTION * a.size) & (size >= MIN_COMPONENT_OF_LARGEST * size.max())
+    keep = (size >= MIN_COMPONENT_FRACTION * m.size) & (size >= MIN_COMPONENT_OF_LARGEST * size.max())
     return keep[lab]
+
+
+def _complete_width(m: np.ndarray, att: np.ndarray, fov: np.ndarray, scale: float) -> np.ndarray:
+    """Grow the detected vessels to their full width: pixels near the mask whose large-radius
+    top-hat is at least half of the local vessel contrast (full width at half maximum). This also
+    fills wide vessels whose small-radius top-hat is hollow."""
+    from skimage.morphology import disk
+
+    k = max(1, int(round(2.0 * scale)))                  # work on a k-times subsampled grid
+    small = att[::k, ::k]
+    r_l = max(2, int(round(WIDE_RADIUS_PX * scale / k)))
+    th_l = small - ndi.grey_opening(small, footprint=disk(r_l))
+    zoom = (att.shape[0] / small.shape[0], att.shape[1] / small.shape[1])
+    th_l = ndi.zoom(th_l, zoom, order=1, grid_mode=True, mode="nearest")[: att.shape[0], : att.shape[1]]
+    win = 2 * int(round(WIDE_RADIUS_PX * scale)) + 1
+    local = ndi.maximum_filter(np.where(m, th_l, 0.0), size=win)
+    near = ndi.binary_dilation(m, iterations=max(1, int(round(WIDE_RADIUS_PX * scale))))
+    grown = near & fov & (th_l >= HALF_MAX * local) & (local > 0)
+    # Keep only grown pixels connected to the detected vessels.
+    lab, n = ndi.label(grown | m, structure=np.ones((3, 3), bool))
+    hit = np.zeros(n + 1, bool)
+    hit[np.unique(lab[m])] = True
+    hit[0] = False
+    return hit[lab]
 
 
 # --------------------------------------------------------------------------------------------
@@ -430,30 +500,153 @@ def _failed(msg: str) -> OrderedWire:
     return OrderedWire(points_uv_px=np.zeros((0, 2)), success=False, message=msg)
 
 
-def _longest_paths(skel: np.ndarray):
-    """Longest (geodesic diameter) path of each skeleton piece, as ordered (row, col) pixel arrays,
-    largest pieces first."""
+def _diameter_path(g, rr, cc, node0):
+    """Geodesic diameter path (double Dijkstra) of the component holding ``node0``."""
+    d0 = csgraph.dijkstra(g, directed=False, indices=node0)
+    d0[~np.isfinite(d0)] = -1.0
+    a = int(np.argmax(d0))
+    d1, pred = csgraph.dijkstra(g, directed=False, indices=a, return_predecessors=True)
+    d1[~np.isfinite(d1)] = -1.0
+    b = int(np.argmax(d1))
+    node, seq = b, []
+    while node >= 0:
+        seq.append(node)
+        node = pred[node]
+    seq = np.asarray(seq[::-1])
+    return np.column_stack([rr[seq], cc[seq]]).astype(float), float(d1[b])
+
+
+def _away_tangent(p: np.ndarray, end: int, centre: np.ndarray) -> np.ndarray:
+    """Unit direction along branch ``p`` leaving its ``end`` (0: first point, 1: last point)."""
+    q = p if end == 0 else p[::-1]
+    k = min(TANGENT_BACK_PX, len(q) - 1)
+    t = q[k] - q[0] if k >= 1 else q[0] - centre
+    n = np.linalg.norm(t)
+    return t / n if n > 0 else np.zeros(2)
+
+
+def _traces(g, rr, cc, lab, comp_ids, merge_px: float):
+    """Good-continuation traces of the skeleton pieces that contain junctions.
+
+    The skeleton is cut into branches at its junction pixels; junction clusters joined by a
+    branch shorter than ``merge_px`` are merged (an X crossing thins into two T junctions).
+    From every free end the trace follows, at each junction, the unused branch whose direction
+    best continues the incoming one, so crossings (a wire looping over itself) are passed
+    straight and spurs are left. Returns ``{component: ((M, 2) rows/cols, length_px)}`` with the
+    longest trace of each component.
+    """
+    deg = np.diff(g.indptr)
+    junc = deg >= 3
+    jidx, bidx = np.flatnonzero(junc), np.flatnonzero(~junc)
+    if len(jidx) == 0 or len(bidx) == 0:
+        return {}
+    n = len(rr)
+    ncl, cl = csgraph.connected_components(g[jidx][:, jidx], directed=False)
+    clus = np.full(n, -1)
+    clus[jidx] = cl
+    gb = g[bidx][:, bidx]
+    nbr, bl = csgraph.connected_components(gb, directed=False)
+    sdeg = np.diff(gb.indptr)
+    order = np.lexsort((sdeg, bl))
+    starts = order[np.searchsorted(bl[order], np.arange(nbr))]
+    dist = csgraph.dijkstra(gb, directed=False, indices=starts, min_only=True)
+    ordr = np.lexsort((dist, bl))
+    bounds = np.searchsorted(bl[ordr], np.arange(nbr + 1))
+    pts = np.column_stack([rr, cc]).astype(float)
+    parent = list(range(ncl))
+
+    def find(x):
+        while parent[x] != x:
+            parent[x] = parent[parent[x]]
+            x = parent[x]
+        return x
+
+    branches = []                                   # (points, length, [cluster at end 0, end 1], comp)
+    for k in range(nbr):
+        nodes = bidx[ordr[bounds[k]:bounds[k + 1]]]
+        if lab[nodes[0]] not in comp_ids:
+            continue
+        ends = []
+        for e in (nodes[0], nodes[-1]):
+            nb = g.indices[g.indptr[e]:g.indptr[e + 1]]
+            c = clus[nb]
+            c = c[c >= 0]
+            ends.append(c)
+        c0 = int(ends[0][0]) if len(ends[0]) else -1
+        c1s = [int(x) for x in ends[1] if int(x) != c0] if len(nodes) == 1 else [int(x) for x in ends[1]]
+        c1 = c1s[0] if c1s else -1
+        length = float(dist[ordr[bounds[k + 1] - 1]])
+        branches.append([pts[nodes], length, [c0, c1], int(lab[nodes[0]])])
+    for b in branches:                              # merge split crossings
+        c0, c1 = b[2]
+        if c0 >= 0 and c1 >= 0 and c0 != c1 and b[1] < merge_px:
+            parent[find(c0)] = find(c1)
+            b.append(True)                          # internal to a merged junction
+    cpos_sum = np.zeros((ncl, 2))
+    cpos_n = np.zeros(ncl)
+    root = np.array([find(c) for c in range(ncl)])
+    np.add.at(cpos_sum, root[cl], pts[jidx])
+    np.add.at(cpos_n, root[cl], 1.0)
+    cpos = cpos_sum / np.maximum(cpos_n, 1.0)[:, None]
+    incident: dict[int, list[tuple[int, int]]] = {}
+    for k, b in enumerate(branches):
+        if len(b) > 4:
+            continue
+        for e in (0, 1):
+            if b[2][e] >= 0:
+                b[2][e] = int(root[b[2][e]])
+                incident.setdefault(b[2][e], []).append((k, e))
+    cos_min = np.cos(np.radians(180.0 - BRIDGE_MAX_ANGLE_DEG * 2.0))
+    best: dict[int, tuple[np.ndarray, float]] = {}
+    for k0, b0 in enumerate(branches):
+        if len(b0) > 4:
+            continue
+        for e0 in (0, 1):
+            if b0[2][e0] >= 0:
+                continue                            # start only at free ends
+            used = {k0}
+            seq = [b0[0] if e0 == 0 else b0[0][::-1]]
+            total = b0[1]
+            k, out = k0, 1 - e0
+            while branches[k][2][out] >= 0:
+                c = branches[k][2][out]
+                d_in = -_away_tangent(branches[k][0], out, cpos[c])
+                cand = [(k2, e2) for k2, e2 in incident.get(c, ()) if k2 not in used]
+                if not cand:
+                    break
+                cosv = [float(d_in @ _away_tangent(branches[k2][0], e2, cpos[c])) for k2, e2 in cand]
+                j = int(np.argmax(cosv))
+                if cosv[j] < cos_min:
+                    break
+                k2, e2 = cand[j]
+                nxt = branches[k2][0] if e2 == 0 else branches[k2][0][::-1]
+                total += branches[k2][1] + float(np.linalg.norm(nxt[0] - seq[-1][-1]))
+                seq.append(nxt)
+                used.add(k2)
+                k, out = k2, 1 - e2
+            comp = b0[3]
+            if comp not in best or total > best[comp][1]:
+                best[comp] = (np.vstack(seq), total)
+    return best
+
+
+def _longest_paths(skel: np.ndarray, merge_px: float):
+    """Longest path of each skeleton piece, as ordered (row, col) pixel arrays with their lengths,
+    largest pieces first: the good-continuation trace for pieces with junctions (see
+    :func:`_traces`), the geodesic diameter (double Dijkstra) otherwise."""
     rr, cc, g = _pixel_graph(skel)
     n_comp, lab = csgraph.connected_components(g, directed=False)
     size = np.bincount(lab, minlength=n_comp)
-    comps = [c for c in np.argsort(-size)[:MAX_PIECES] if size[c] >= MIN_PIECE_PX]
+    comps = [int(c) for c in np.argsort(-size)[:MAX_PIECES] if size[c] >= MIN_PIECE_PX]
     if not comps:
         return []
-    first = np.array([np.argmax(lab == c) for c in comps])
-    d0 = csgraph.dijkstra(g, directed=False, indices=first)
-    d0[~np.isfinite(d0)] = -1.0
-    a = np.argmax(d0, axis=1)                      # farthest node from an arbitrary one: a diameter end
-    d1, pred = csgraph.dijkstra(g, directed=False, indices=a, return_predecessors=True)
-    d1[~np.isfinite(d1)] = -1.0
-    b = np.argmax(d1, axis=1)
+    traced = _traces(g, rr, cc, lab, set(comps), merge_px)
     paths = []
-    for k in range(len(comps)):
-        node, seq = b[k], []
-        while node >= 0:
-            seq.append(node)
-            node = pred[k, node]
-        seq = np.asarray(seq[::-1])
-        paths.append((np.column_stack([rr[seq], cc[seq]]).astype(float), float(d1[k, b[k]])))
+    for c in comps:
+        diam = _diameter_path(g, rr, cc, int(np.argmax(lab == c)))
+        tr = traced.get(c)
+        # The trace wins unless it is much shorter than the diameter (a trace stopped early).
+        paths.append(tr if tr is not None and tr[1] >= 0.8 * diam[1] else diam)
     return paths
 
 
@@ -564,7 +757,7 @@ def _refine(p_rc: np.ndarray, maskf: np.ndarray, darkness: np.ndarray | None, ha
     """Move each point of an ordered (row, col) polyline to the weighted centroid of the mask
     (times the image darkness, if given) sampled along its normal."""
     nrm = _normals(p_rc)
-    offs = np.arange(-half_px, half_px + 1e-9, REFINE_STEP_PX)
+    offs = np.arange(-half_px, half_px + 1e-9, PROFILE_STEP_PX)
     samp = p_rc[:, None, :] + offs[None, :, None] * nrm[:, None, :]          # (N, K, 2)
     w = ndi.map_coordinates(maskf, [samp[..., 0].ravel(), samp[..., 1].ravel()], order=1,
                             mode="constant", cval=0.0).reshape(samp.shape[:2])
@@ -601,7 +794,7 @@ def _extend_end(p_rc: np.ndarray, maskf: np.ndarray, at_end: bool, max_px: float
     offs = np.arange(-max_px, max_px + 1e-9, REFINE_STEP_PX)
     across = e[None, :] + offs[:, None] * nrm[None, :]
     width = ndi.map_coordinates(maskf, [across[:, 0], across[:, 1]], order=1, mode="constant").sum() * REFINE_STEP_PX
-    ext = reach - 0.5 * width
+    ext = reach - TIP_CAP_FRACTION * width
     if ext <= 0.25:
         return p_rc
     new = e + ext * t
@@ -647,9 +840,13 @@ def ordered_wire(mask, *, image=None, proximal_hint_uv=None, max_gap_px: float =
     m_full = _as_mask(mask, "mask")
     img = None
     if image is not None:
-        img = _as_image(image, "image")
+        img = np.asarray(image)
         if img.shape != m_full.shape:
             raise InputError(f"image: shape {img.shape} differs from the mask's {m_full.shape}")
+        if img.dtype == bool or not np.issubdtype(img.dtype, np.number):
+            raise InputError(f"image: expected a numeric image, got dtype {img.dtype}")
+        if np.issubdtype(img.dtype, np.floating) and not np.isfinite(img).all():
+            raise InputError("image: image contains NaN or infinite values")
     hint = None
     if proximal_hint_uv is not None:
         hint = np.asarray(proximal_hint_uv, float).reshape(-1)
@@ -658,10 +855,13 @@ def ordered_wire(mask, *, image=None, proximal_hint_uv=None, max_gap_px: float =
     if not np.isfinite(max_gap_px) or max_gap_px < 0:
         raise InputError(f"max_gap_px: expected a finite value >= 0, got {max_gap_px}")
     if img is not None:
-        sub = img[::4, ::4]
+        sub = img[::4, ::4].astype(np.float64)
         lo, hi = np.percentile(sub, [1, 99])
         if hi - lo <= BLANK_REL_SPREAD * max(abs(lo), abs(hi), 1e-12):
             return _failed("image is blank or saturated (no intensity contrast)")
+        at_max = float(np.mean(sub >= sub.max()))
+        if at_max >= SATURATED_FRACTION:
+            return _failed(f"image is saturated ({100 * at_max:.0f}% of the pixels at the maximum)")
     n_on = int(np.count_nonzero(m_full))
     if n_on == 0:
         return _failed("empty guidewire mask")
@@ -677,7 +877,8 @@ def ordered_wire(mask, *, image=None, proximal_hint_uv=None, max_gap_px: float =
     m = m_full[r0:r1, c0:c1]
 
     skel = skeletonize(m)
-    paths = _longest_paths(skel)
+    half_width = 0.5 * float(m.sum()) / max(float(skel.sum()), 1.0)   # mean half-width, px
+    paths = _longest_paths(skel, merge_px=4.0 * half_width + 2.0)
     if not paths:
         return _failed("no skeleton piece of the mask is long enough to be a guidewire")
     path_rc, n_bridges = _bridge(paths, float(max_gap_px))
@@ -692,12 +893,10 @@ def ordered_wire(mask, *, image=None, proximal_hint_uv=None, max_gap_px: float =
 
     # Sub-pixel centring.
     maskf = m.astype(np.float64)
-    half_width = 0.5 * comp_area / max(raw_len, 1.0)          # mean half-width of the wire, px
     half = float(np.clip(np.ceil(half_width + 2.0), 2.0, 8.0))
     darkness = None
     if img is not None:
-        roi = img[r0:r1, c0:c1]
-        darkness = -ndi.gaussian_filter(roi, 0.7)          # wire darker: larger darkness
+        darkness = -img[r0:r1, c0:c1].astype(np.float64)    # wire darker: larger darkness
     p = _smooth_polyline(path_rc, REFINE_SMOOTH_PX)
     p = _refine(p, maskf, darkness, half)
     p = _smooth_polyline(p, 1.0)

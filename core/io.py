@@ -49,6 +49,17 @@ MAX_VOXELS_DEFAULT = 512 * 512 * 1200
 # --------------------------------------------------------------------------------------
 # atomic writes
 # --------------------------------------------------------------------------------------
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+def _chmod_default(path, *, directory: bool = False) -> None:
+    """Give a temporary file (mkstemp: 0600) or folder (mkdtemp: 0700) the usual permissions."""
+    os.chmod(path, (0o777 if directory else 0o666) & ~_umask())
+
+
 def atomic_write_bytes(path, data: bytes) -> Path:
     """Write ``data`` to ``path`` through a temporary file in the same folder, then rename."""
     path = Path(path)
@@ -57,6 +68,7 @@ def atomic_write_bytes(path, data: bytes) -> Path:
     try:
         with os.fdopen(fd, "wb") as f:
             f.write(data)
+        _chmod_default(tmp)
         os.replace(tmp, path)
     except BaseException:
         if os.path.exists(tmp):
@@ -80,6 +92,7 @@ def atomic_write_via(path, writer) -> Path:
     os.close(fd)
     try:
         writer(tmp)
+        _chmod_default(tmp)
         os.replace(tmp, path)
     except BaseException:
         if os.path.exists(tmp):
@@ -392,6 +405,7 @@ def write_ct_series(vol: Volume, out_dir, *, patient_name: str = "Phantom^Guidew
             writer.Execute(sl)
         if out_dir.exists():
             out_dir.rmdir()
+        _chmod_default(tmp_dir, directory=True)
         os.replace(tmp_dir, out_dir)
     except BaseException:
         import shutil

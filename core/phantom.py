@@ -48,7 +48,7 @@ import numpy as np
 from scipy import ndimage
 
 from guidewire3d.errors import GeometryError, InputError
-from guidewire3d.geometry import CArm, Pose, nominal_pose, so3_exp
+from guidewire3d.geometry import CArm, Pose, so3_exp
 from guidewire3d.io import Volume
 from guidewire3d.vesseltree import VesselTree
 
@@ -327,16 +327,16 @@ def _grow_tree(rng, lo, hi):
     d0 = np.zeros(3)
     d0[axis] = sign
     d0 = _unit(d0 + 0.35 * _perp_unit(d0, rng) * rng.uniform(0.2, 1.0))
-    trunk_len = rng.uniform(0.85, 1.05) * ext[axis]
+    trunk_len = rng.uniform(0.75, 0.95) * ext[axis]
     r_trunk = rng.uniform(2.6, 3.2)
     polys, radii, parents, levels = [], [], [], []
-    p, r = _grow(rng, start, d0, trunk_len, r_trunk, r_trunk * rng.uniform(0.65, 0.85), lo, hi, tort)
+    p, r = _grow(rng, start, d0, trunk_len, r_trunk, r_trunk * rng.uniform(0.65, 0.85), lo, hi, 0.6 * tort)
     polys.append(p), radii.append(r), parents.append(None), levels.append(0)
     size = float(np.mean(ext))
     spec = {  # level: (children per parent, length fraction of box, end radius range)
-        1: ((2, 3), (0.4, 0.7), (1.0, 1.5)),
-        2: ((1, 2), (0.25, 0.45), (0.8, 1.1)),
-        3: ((1, 1), (0.15, 0.3), (0.8, 0.85)),
+        1: ((2, 4), (0.45, 0.8), (1.0, 1.5)),
+        2: ((1, 3), (0.3, 0.5), (0.8, 1.1)),
+        3: ((1, 2), (0.15, 0.3), (0.8, 0.85)),
     }
     queue = [0]
     while queue:
@@ -344,7 +344,7 @@ def _grow_tree(rng, lo, hi):
         lev = levels[b] + 1
         if lev > 3:
             continue
-        if lev == 3 and rng.random() < 0.5:
+        if lev == 3 and rng.random() < 0.4:
             continue
         (nmin, nmax), (fl, fh), (re_lo, re_hi) = spec[lev]
         n_child = int(rng.integers(nmin, nmax + 1))
@@ -422,28 +422,13 @@ def _make_tree(rng, lo, hi, grid: _Grid):
 # ======================================================================================
 # lumen: signed depth of the union of tubes
 # ======================================================================================
-def _tree_segments(tree: VesselTree):
-    e = tree.edges
-    a = tree.points_lps_mm[e[:, 0]]
-    b = tree.points_lps_mm[e[:, 1]]
-    return a, b, tree.radius_mm[e[:, 0]], tree.radius_mm[e[:, 1]]
-
-
-def _capsule_depth(x, a, b, ra, rb):
-    """Depth ``r(t) - |x - axis(t)|`` of points ``x`` (..., 3) in a tapered capsule a->b."""
-    ab = b - a
-    L2 = max(float(ab @ ab), 1e-12)
-    t = np.clip(((x - a) @ ab) / L2, 0.0, 1.0)
-    q = a + t[..., None] * ab
-    return ra + (rb - ra) * t - np.linalg.norm(x - q, axis=-1)
-
-
-def lumen_depth_mm(tree: VesselTree, points_lps_mm, *, k_nearest: int = 24) -> np.ndarray:
+def lumen_depth_mm(tree: VesselTree, points_lps_mm, *, k_nearest: int = 64) -> np.ndarray:
     """Signed depth inside the lumen (mm; positive inside, negative outside) of ``(N, 3)`` points.
 
     The lumen is the union of tapered capsules around the tree's edges (the simulator's model);
     the depth is the largest ``radius(t) - distance to the edge axis`` over the edges near each
-    point. Far from the tree (more than the largest radius + 5 mm) the value is a lower bound.
+    point (the ``k_nearest`` nearest centreline points and their edges). Far from the tree the value
+    is a lower bound of the true depth (i.e. it never overstates how deep a point is).
     """
     pts = np.atleast_2d(np.asarray(points_lps_mm, dtype=float))
     k = min(k_nearest, tree.n_points)
@@ -537,39 +522,43 @@ def _smooth_field(rng, shape, coarse, amplitude) -> np.ndarray:
     return (f * (amplitude / max(float(f.std()), 1e-6))).astype(np.float32)
 
 
-def _synth_ct(rng, grid: _Grid, depth, distractor_hu, distractor_mask, volume: VolumeSize, tree):
+def _synth_ct(rng, grid: _Grid, depth, stamps, volume: VolumeSize, tree):
+    """HU volume: soft tissue, contrast lumen with partial volume, distractor stamps, blur, noise."""
     shape = grid.shape_zyx
     sp = np.asarray(grid.spacing_xyz)
-    hu = np.float32(40.0) + _smooth_field(rng, shape, (6, 6, 6), rng.uniform(4.0, 9.0))
+    hu = _smooth_field(rng, shape, (6, 6, 6), rng.uniform(4.0, 9.0))
+    hu += np.float32(40.0)
     if volume is VolumeSize.LARGE:  # a body outline with air outside
         nz, ny, nx = shape
         yy, xx = np.mgrid[0:ny, 0:nx].astype(np.float32)
         cx, cy = (nx - 1) / 2, (ny - 1) / 2 + rng.uniform(-10, 10)
         ax, ay = nx * rng.uniform(0.42, 0.48), ny * rng.uniform(0.32, 0.4)
         body = ((xx - cx) / ax) ** 2 + ((yy - cy) / ay) ** 2 <= 1.0
-        hu = np.where(body[None], hu, np.float32(-1000.0))
-    # contrast, fading slightly along the tree
+        hu[:, ~body] = np.float32(-1000.0)
+    # contrast, fading slightly along the tree, with a partial-volume edge
     c0 = rng.uniform(250.0, 500.0)
     vox = float(np.cbrt(np.prod(sp)))
-    frac = np.clip(0.5 + depth / vox, 0.0, 1.0)
-    near = frac > 0
-    if near.any():
-        zi, yi, xi = np.nonzero(near)
+    zi, yi, xi = np.nonzero(depth > -0.5 * vox)
+    if len(zi):
+        frac = np.clip(0.5 + depth[zi, yi, xi] / vox, 0.0, 1.0)
         pts = grid.lo + np.column_stack([xi, yi, zi]) * sp
         _, nn = tree.kdtree.query(pts)
         s = tree.arclength_from_root_mm[nn]
-        c = c0 * (1.0 - 0.15 * s / max(s.max(), 1.0))
-        hu[zi, yi, xi] = hu[zi, yi, xi] * (1 - frac[zi, yi, xi]) + c * frac[zi, yi, xi]
-    if distractor_mask is not None and distractor_mask.any():
-        hu = np.where(distractor_mask, distractor_hu, hu)
+        c = c0 * (1.0 - 0.15 * s / max(float(tree.arclength_from_root_mm.max()), 1.0))
+        hu[zi, yi, xi] = hu[zi, yi, xi] * (1 - frac) + c * frac
+    for sl, m, v in stamps:
+        sub = hu[sl]
+        sub[m] = np.broadcast_to(v, m.shape)[m]
     # mild blur (scanner PSF), then correlated noise
     sig_mm = rng.uniform(0.35, 0.6)
     hu = ndimage.gaussian_filter(hu, sigma=(sig_mm / sp[2], sig_mm / sp[1], sig_mm / sp[0]), mode="nearest")
     noise = rng.standard_normal(size=shape, dtype=np.float32)
     noise = ndimage.gaussian_filter(noise, sigma=0.7, mode="wrap")
-    noise *= np.float32(rng.uniform(8.0, 20.0) / max(float(noise.std()), 1e-6))
-    hu = hu + noise
-    return np.clip(hu, -1024, 3071).astype(np.float32)
+    noise *= np.float32(rng.uniform(8.0, 20.0) / max(float(noise[::4, ::4, ::4].std()), 1e-6))
+    hu += noise
+    del noise
+    np.clip(hu, -1024, 3071, out=hu)
+    return hu
 
 
 def _distractors(rng, grid: _Grid, depth, pad_mm):
@@ -577,30 +566,37 @@ def _distractors(rng, grid: _Grid, depth, pad_mm):
 
     Each structure is tried at a few random places (scored on a coarse voxel subset) and the one
     that overlaps the vessels least is kept; voxels closer than 3 mm to the lumen are carved out.
+    Returns ``(stamps, mask)``: ``stamps`` are ``(slices, submask, hu)`` to paint into the CT.
     """
     shape = grid.shape_zyx
     nz, ny, nx = shape
     sp = np.asarray(grid.spacing_xyz)
-    axes = [grid.origin_xyz[2] + sp[2] * np.arange(nz), grid.origin_xyz[1] + sp[1] * np.arange(ny),
-            grid.origin_xyz[0] + sp[0] * np.arange(nx)]
-
-    def mesh(stride):
-        z, y, x = (a[::stride] for a in axes)
-        return z[:, None, None], y[None, :, None], x[None, None, :]
-
+    axes = [np.float32(grid.origin_xyz[2]) + np.float32(sp[2]) * np.arange(nz, dtype=np.float32),
+            np.float32(grid.origin_xyz[1]) + np.float32(sp[1]) * np.arange(ny, dtype=np.float32),
+            np.float32(grid.origin_xyz[0]) + np.float32(sp[0]) * np.arange(nx, dtype=np.float32)]
     free = depth <= -min(3.0, pad_mm - 0.01)  # >= 3 mm outside the lumen
-    free_c = free[::3, ::3, ::3]
     lo, hi = grid.lo, grid.hi
     ext = hi - lo
-    hu = np.zeros(shape, np.float32)
     mask = np.zeros(shape, bool)
+
+    def region(q, stride):
+        """Slices (z, y, x) of the structure's bounding box and its voxel-centre coordinates."""
+        blo, bhi = q["bbox"]
+        sl = []
+        for k, (a, l, h) in enumerate(zip(axes, blo[::-1], bhi[::-1])):
+            i0, i1 = int(np.searchsorted(a, l)), int(np.searchsorted(a, h, side="right"))
+            sl.append(slice(i0, max(i1, i0), stride))
+        z, y, x = (a[s] for a, s in zip(axes, sl))
+        return tuple(sl), (z[:, None, None], y[None, :, None], x[None, None, :])
 
     def spine_params():
         period = rng.uniform(24, 30)
-        return dict(cx=rng.uniform(lo[0] + 0.2 * ext[0], hi[0] - 0.2 * ext[0]),
-                    cy=rng.uniform(lo[1] + 0.55 * ext[1], hi[1] + 0.1 * ext[1]),
-                    ax=rng.uniform(14, 20), ay=rng.uniform(11, 15), period=period, disc=rng.uniform(4, 6),
-                    phase=rng.uniform(0, period), shell=rng.uniform(950, 1200), core=rng.uniform(700, 850))
+        cx = rng.uniform(lo[0] + 0.2 * ext[0], hi[0] - 0.2 * ext[0])
+        cy = rng.uniform(lo[1] + 0.55 * ext[1], hi[1] + 0.1 * ext[1])
+        ax, ay = rng.uniform(14, 20), rng.uniform(11, 15)
+        return dict(cx=cx, cy=cy, ax=ax, ay=ay, period=period, disc=rng.uniform(4, 6),
+                    phase=rng.uniform(0, period), shell=rng.uniform(950, 1200), core=rng.uniform(700, 850),
+                    bbox=(np.array([cx - ax, cy - ay, lo[2] - 5]), np.array([cx + ax, cy + ay, hi[2] + 5])))
 
     def spine(q, zz, yy, xx):
         rr = ((xx - q["cx"]) / q["ax"]) ** 2 + ((yy - q["cy"]) / q["ay"]) ** 2
@@ -612,10 +608,15 @@ def _distractors(rng, grid: _Grid, depth, pad_mm):
         n_ribs = int(rng.integers(2, 4))
         z0 = rng.uniform(lo[2] + 10, hi[2] - 10)
         gap = rng.uniform(18, 26)
-        return dict(cx=rng.uniform(lo[0], hi[0]), cy=rng.uniform(lo[1], hi[1]), R=rng.uniform(0.45, 0.7) * ext[0],
-                    zc=[z0 + (j - n_ribs / 2) * gap for j in range(n_ribs)],
-                    rad=[rng.uniform(3.5, 5.0) for _ in range(n_ribs)], tilt=rng.uniform(-0.3, 0.3),
-                    value=rng.uniform(700, 1100))
+        cx, cy = rng.uniform(lo[0], hi[0]), rng.uniform(lo[1], hi[1])
+        R = rng.uniform(0.45, 0.7) * ext[0]
+        zc = [z0 + (j - n_ribs / 2) * gap for j in range(n_ribs)]
+        tilt = rng.uniform(-0.3, 0.3)
+        reach_z = 5.0 + abs(tilt) * (R + 5.0)
+        return dict(cx=cx, cy=cy, R=R, zc=zc, rad=[rng.uniform(3.5, 5.0) for _ in range(n_ribs)], tilt=tilt,
+                    value=rng.uniform(700, 1100),
+                    bbox=(np.array([cx - R - 5, cy - R - 5, min(zc) - reach_z]),
+                          np.array([cx + R + 5, cy + R + 5, max(zc) + reach_z])))
 
     def ribs(q, zz, yy, xx):
         rho = np.sqrt((xx - q["cx"]) ** 2 + (yy - q["cy"]) ** 2)
@@ -625,7 +626,9 @@ def _distractors(rng, grid: _Grid, depth, pad_mm):
         return m, np.float32(q["value"])
 
     def blob_params():
-        return dict(c=lo + rng.uniform(0.1, 0.9, 3) * ext, rad=rng.uniform(9, 22, 3), value=rng.uniform(250, 450))
+        c = lo + rng.uniform(0.1, 0.9, 3) * ext
+        rad = rng.uniform(9, 22, 3)
+        return dict(c=c, rad=rad, value=rng.uniform(250, 450), bbox=(c - rad, c + rad))
 
     def blob(q, zz, yy, xx):
         c, r = q["c"], q["rad"]
@@ -634,24 +637,28 @@ def _distractors(rng, grid: _Grid, depth, pad_mm):
 
     kinds = [(spine_params, spine) if rng.random() < 0.6 else (ribs_params, ribs)]
     kinds += [(blob_params, blob)] * int(rng.integers(1, 3))
-    coarse = mesh(3)
-    full = mesh(1)
+    stamps = []
     for make_params, fn in kinds:
         best, best_score = None, -np.inf
         for _ in range(8):
             q = make_params()
-            m, _ = fn(q, *coarse)
-            m = np.broadcast_to(m, free_c.shape)
-            score = float((m & free_c).sum() - 4 * (m & ~free_c).sum())
+            sl, mesh = region(q, 3)
+            fc = free[sl]
+            if fc.size == 0:
+                continue
+            m, _ = fn(q, *mesh)
+            m = np.broadcast_to(m, fc.shape)
+            score = float((m & fc).sum() - 4 * (m & ~fc).sum())
             if m.any() and score > best_score:
                 best, best_score = q, score
         if best is None:
             continue
-        m, v = fn(best, *full)
-        m = np.broadcast_to(m, shape) & free & ~mask
-        hu = np.where(m, v, hu)
-        mask |= m
-    return hu, mask
+        sl, mesh = region(best, 1)
+        m, v = fn(best, *mesh)
+        m = np.broadcast_to(m, free[sl].shape) & free[sl] & ~mask[sl]
+        mask[sl] |= m
+        stamps.append((sl, m, np.broadcast_to(v, m.shape)))
+    return stamps, mask
 
 
 # ======================================================================================
@@ -682,7 +689,7 @@ def _sample_views(rng, tree: VesselTree, pose: Pose, detector_px: int) -> tuple[
     probe = CArm(pa, sa, sid, sod, 1.0, shape)
     uv = probe.project(tree.points_lps_mm, pose)
     extent_det_mm = float(np.max(np.ptp(uv, axis=0)))
-    fill = rng.uniform(0.8, 1.2)
+    fill = rng.uniform(0.85, 1.3)
     pixel = round(float(np.clip(extent_det_mm / (detector_px * fill), 0.15, 0.4)), 4)
     main = CArm(pa, sa, sid, sod, pixel, shape)
     d0 = _beam(pa, sa)
@@ -773,9 +780,10 @@ def _wire_shape(rng, tree: VesselTree, path_ids, wire_r, cath_r, cath_len_mm):
     offset = (1 - w_corner)[:, None] * offset + w_corner[:, None] * inner
     mag = np.linalg.norm(offset, axis=1)
     offset *= (np.minimum(mag, rho) / np.maximum(mag, 1e-12))[:, None]
-    x = c + offset
+    # stiffness: the offsets vary smoothly, and kinks of the centreline (bifurcations) are rounded
     stiff = rng.uniform(1.0, 2.0) * (1.5 if wire_r > 0.3 else 1.0)
-    x = ndimage.gaussian_filter1d(x, stiff / step, axis=0, mode="nearest")
+    offset = ndimage.gaussian_filter1d(offset, stiff / step, axis=0, mode="nearest")
+    x = ndimage.gaussian_filter1d(c, 1.0 / step, axis=0, mode="nearest") + offset
     x = _project_into_spheres(x, c, rho)
     # uniform arclength, then make sure of the constraint again
     xr, _, _ = _resample(x, step)
@@ -831,75 +839,95 @@ def render_tube_line_integral(carm: CArm, pose: Pose, chains, *, supersample: in
 
     Returns
     -------
-    (rows, cols) float32 array of chord lengths (mm).
+    (rows, cols) float32 array of chord lengths (mm) (and the sub-sample image if asked).
     """
     ss = int(supersample)
     H, W = carm.shape
+    fine = np.zeros((H * ss, W * ss), np.float32)
+    _accumulate_segments(carm, pose, *_mitre_chains(chains), ss=ss, out=fine)
+    coarse = _block_mean(fine, ss)
+    return (coarse, fine) if return_fine else coarse
+
+
+def _block_mean(fine, ss):
+    if ss == 1:
+        return fine.copy()
+    import cv2
+
+    H, W = fine.shape[0] // ss, fine.shape[1] // ss
+    return cv2.resize(np.ascontiguousarray(fine, np.float32), (W, H), interpolation=cv2.INTER_AREA)
+
+
+def _accumulate_segments(carm: CArm, pose: Pose, a_all, b_all, r_all, na_all, nb_all, *, ss: int, out):
+    """Add the exact chord length of each pixel sub-sample's ray through each mitred cylinder.
+
+    Segment ``k`` is the cylinder of radius ``r_all[k]`` around ``a_all[k] -> b_all[k]``, cut by the
+    planes through ``a`` and ``b`` with normals ``na``/``nb``. ``out`` is the ``(H*ss, W*ss)`` image.
+    """
+    if len(a_all) == 0:
+        return out
+    H, W = carm.shape
     Pm = carm.projection_matrix(pose)
-    M = Pm[:, :3]
-    Minv = np.linalg.inv(M)
+    Minv = np.linalg.inv(Pm[:, :3])
     C = -Minv @ Pm[:, 3]
     f = carm.focal_px
-    a_all, b_all, r_all, na_all, nb_all = _mitre_chains(chains)
-    fine = np.zeros((H * ss, W * ss), np.float32)
-    if len(a_all):
-        ha = np.c_[a_all, np.ones(len(a_all))] @ Pm.T
-        hb = np.c_[b_all, np.ones(len(b_all))] @ Pm.T
-        uva, uvb = ha[:, :2] / ha[:, 2:], hb[:, :2] / hb[:, 2:]
-        rpx = r_all * f / np.minimum(ha[:, 2], hb[:, 2])
-        off = (ss - 1) / 2.0
-        for k in range(len(a_all)):
-            reach = rpx[k] + 1.0
-            ulo = min(uva[k, 0], uvb[k, 0]) - reach
-            uhi = max(uva[k, 0], uvb[k, 0]) + reach
-            vlo = min(uva[k, 1], uvb[k, 1]) - reach
-            vhi = max(uva[k, 1], uvb[k, 1]) + reach
-            i0 = max(int(np.floor(ulo * ss + off)), 0)
-            i1 = min(int(np.ceil(uhi * ss + off)) + 1, W * ss)
-            j0 = max(int(np.floor(vlo * ss + off)), 0)
-            j1 = min(int(np.ceil(vhi * ss + off)) + 1, H * ss)
-            if i0 >= i1 or j0 >= j1:
-                continue
-            u = (np.arange(i0, i1) - off) / ss
-            v = (np.arange(j0, j1) - off) / ss
-            # ray directions M^-1 (u, v, 1), normalised
-            dx = Minv[0, 0] * u[None, :] + Minv[0, 1] * v[:, None] + Minv[0, 2]
-            dy = Minv[1, 0] * u[None, :] + Minv[1, 1] * v[:, None] + Minv[1, 2]
-            dz = Minv[2, 0] * u[None, :] + Minv[2, 1] * v[:, None] + Minv[2, 2]
-            nrm = 1.0 / np.sqrt(dx * dx + dy * dy + dz * dz)
-            dx *= nrm
-            dy *= nrm
-            dz *= nrm
-            a, b, r = a_all[k], b_all[k], r_all[k]
-            t = _unit(b - a)
-            w = C - a
-            wt = w @ t
-            wp = w - wt * t
-            ot = dx * t[0] + dy * t[1] + dz * t[2]
-            A = np.maximum(1.0 - ot * ot, 1e-12)
-            Bq = dx * wp[0] + dy * wp[1] + dz * wp[2]
-            Cq = wp @ wp - r * r
-            disc = Bq * Bq - A * Cq
-            sq = np.sqrt(np.maximum(disc, 0.0))
-            s_lo = (-Bq - sq) / A
-            s_hi = (-Bq + sq) / A
-            # start plane (X - a).na >= 0 ; end plane (X - b).nb <= 0
-            na, nb = na_all[k], nb_all[k]
-            g1 = w @ na
-            h1 = dx * na[0] + dy * na[1] + dz * na[2]
-            g2 = (C - b) @ nb
-            h2 = dx * nb[0] + dy * nb[1] + dz * nb[2]
-            with np.errstate(divide="ignore", invalid="ignore"):
-                c1 = -g1 / h1
-                c2 = -g2 / h2
-            s_lo = np.where(h1 > 0, np.maximum(s_lo, c1), s_lo)
-            s_hi = np.where(h1 < 0, np.minimum(s_hi, c1), s_hi)
-            s_hi = np.where(h2 > 0, np.minimum(s_hi, c2), s_hi)
-            s_lo = np.where(h2 < 0, np.maximum(s_lo, c2), s_lo)
-            chord = np.where(disc > 0, np.maximum(s_hi - s_lo, 0.0), 0.0)
-            fine[j0:j1, i0:i1] += chord.astype(np.float32)
-    coarse = fine.reshape(H, ss, W, ss).mean(axis=(1, 3)) if ss > 1 else fine.copy()
-    return (coarse, fine) if return_fine else coarse
+    ha = np.c_[a_all, np.ones(len(a_all))] @ Pm.T
+    hb = np.c_[b_all, np.ones(len(b_all))] @ Pm.T
+    uva, uvb = ha[:, :2] / ha[:, 2:], hb[:, :2] / hb[:, 2:]
+    rpx = r_all * f / np.minimum(ha[:, 2], hb[:, 2])
+    off = (ss - 1) / 2.0
+    reach = rpx + 1.0
+    ulo = np.minimum(uva[:, 0], uvb[:, 0]) - reach
+    uhi = np.maximum(uva[:, 0], uvb[:, 0]) + reach
+    vlo = np.minimum(uva[:, 1], uvb[:, 1]) - reach
+    vhi = np.maximum(uva[:, 1], uvb[:, 1]) + reach
+    I0 = np.maximum(np.floor(ulo * ss + off).astype(int), 0)
+    I1 = np.minimum(np.ceil(uhi * ss + off).astype(int) + 1, W * ss)
+    J0 = np.maximum(np.floor(vlo * ss + off).astype(int), 0)
+    J1 = np.minimum(np.ceil(vhi * ss + off).astype(int) + 1, H * ss)
+    T_all = _unit(b_all - a_all)
+    W_all = C - a_all
+    G1 = np.einsum("ij,ij->i", W_all, na_all)
+    G2 = np.einsum("ij,ij->i", C - b_all, nb_all)
+    for k in np.flatnonzero((I0 < I1) & (J0 < J1)):
+        i0, i1, j0, j1 = I0[k], I1[k], J0[k], J1[k]
+        u = (np.arange(i0, i1) - off) / ss
+        v = (np.arange(j0, j1) - off) / ss
+        # unit ray directions M^-1 (u, v, 1)
+        dx = Minv[0, 0] * u[None, :] + (Minv[0, 1] * v + Minv[0, 2])[:, None]
+        dy = Minv[1, 0] * u[None, :] + (Minv[1, 1] * v + Minv[1, 2])[:, None]
+        dz = Minv[2, 0] * u[None, :] + (Minv[2, 1] * v + Minv[2, 2])[:, None]
+        nrm = 1.0 / np.sqrt(dx * dx + dy * dy + dz * dz)
+        dx *= nrm
+        dy *= nrm
+        dz *= nrm
+        t, w, r = T_all[k], W_all[k], r_all[k]
+        wt = w @ t
+        wp = w - wt * t
+        ot = dx * t[0] + dy * t[1] + dz * t[2]
+        A = np.maximum(1.0 - ot * ot, 1e-12)
+        Bq = dx * wp[0] + dy * wp[1] + dz * wp[2]
+        disc = Bq * Bq - A * (wp @ wp - r * r)
+        hit = disc > 0
+        if not hit.any():
+            continue
+        sq = np.sqrt(np.where(hit, disc, 0.0))
+        s_lo = (-Bq - sq) / A
+        s_hi = (-Bq + sq) / A
+        # start plane (X - a).na >= 0 ; end plane (X - b).nb <= 0, with X = C + s * ray
+        na, nb = na_all[k], nb_all[k]
+        h1 = dx * na[0] + dy * na[1] + dz * na[2]
+        h2 = dx * nb[0] + dy * nb[1] + dz * nb[2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            c1 = -G1[k] / h1
+            c2 = -G2[k] / h2
+        s_lo = np.where(h1 > 0, np.maximum(s_lo, c1), s_lo)
+        s_hi = np.where(h1 < 0, np.minimum(s_hi, c1), s_hi)
+        s_hi = np.where(h2 > 0, np.minimum(s_hi, c2), s_hi)
+        s_lo = np.where(h2 < 0, np.maximum(s_lo, c2), s_lo)
+        chord = np.where(hit, np.maximum(s_hi - s_lo, 0.0), 0.0)
+        out[j0:j1, i0:i1] += chord.astype(np.float32)
+    return out
 
 
 def _tree_chains(tree: VesselTree):
@@ -972,7 +1000,7 @@ def _expose(rng, att, *, b0, n0, psf_px, gain_field, gain):
 
 def _wire_mask(fine_chord, ss, uv_list, shape):
     H, W = shape
-    cover = (fine_chord > 0).reshape(H, ss, W, ss).mean(axis=(1, 3))
+    cover = _block_mean((fine_chord > 0).astype(np.float32), ss)
     mask = cover >= 0.34
     for uv in uv_list:
         if len(uv) < 2:
@@ -1072,12 +1100,13 @@ def simulate(options: PhantomOptions = PhantomOptions(), *, make_ct: bool = True
         depth = _lumen_depth_grid(tree, grid, pad_mm=pad)
         lumen_mask = depth >= 0
         if options.distractors:
-            d_hu, dist_mask = _distractors(rd, grid, depth, pad)
+            stamps, dist_mask = _distractors(rd, grid, depth, pad)
         else:
-            d_hu, dist_mask = None, np.zeros(grid.shape_zyx, bool)
+            stamps, dist_mask = [], np.zeros(grid.shape_zyx, bool)
         bar.update()
         stage("CT synthesis")
-        hu = _synth_ct(rc, grid, depth, d_hu, dist_mask, vsize, tree)
+        hu = _synth_ct(rc, grid, depth, stamps, vsize, tree)
+        del depth, stamps
         volume = Volume(hu, grid.spacing_xyz, grid.origin_xyz, np.eye(3), source=f"phantom seed {options.seed}")
         lumen_mask.setflags(write=False)
         dist_mask.setflags(write=False)
@@ -1089,13 +1118,13 @@ def simulate(options: PhantomOptions = PhantomOptions(), *, make_ct: bool = True
     shape = carm.shape
     b0 = rx.uniform(3000, 12000)
     n0 = 300.0 * float(options.dose) * (carm.pixel_mm / 0.2) ** 2
-    mu_contrast = rx.uniform(0.08, 0.2)  # 1/mm, display-equivalent iodine attenuation
+    mu_contrast = rx.uniform(0.1, 0.22)  # 1/mm, display-equivalent iodine attenuation
     mu_wire = rx.uniform(0.45, 0.9)  # 1/mm
-    mu_cath = rx.uniform(0.08, 0.16)  # 1/mm
+    mu_cath = rx.uniform(0.2, 0.35)  # 1/mm, braided catheter wall
     gain_field = _gain_field(shape)
     tree_chains = _tree_chains(tree)
     lumen_L, lumen_fine = render_tube_line_integral(carm, pose, tree_chains, supersample=2, return_fine=True)
-    vessel_mask = (lumen_fine > 0).reshape(shape[0], 2, shape[1], 2).mean(axis=(1, 3)) >= 0.5
+    vessel_mask = _block_mean((lumen_fine > 0).astype(np.float32), 2) >= 0.5
     psf_main = _psf_sigma_px(rx, carm)
     psf_held = _psf_sigma_px(rx, held)
     roadmap = _expose(rx, mu_contrast * lumen_L, b0=b0, n0=4 * n0, psf_px=psf_main, gain_field=gain_field, gain=1.0)
@@ -1109,24 +1138,39 @@ def simulate(options: PhantomOptions = PhantomOptions(), *, make_ct: bool = True
     held_frames = np.empty((T,) + shape, np.float32)
     wire_mask = np.zeros((T,) + shape, bool)
     uv_main, uv_held, visible = [], [], []
+    n_pts = [len(w) for w in wires]
+    wire_segs = _mitre_chains([(wires[-1], np.full(len(wires[-1]), wire_r))])
+    static = not options.motion_mm
+    views = [(carm, bg_main, psf_main, frames), (held, bg_held, psf_held, held_frames)]
+    fine_acc = [np.zeros((shape[0] * ss_wire, shape[1] * ss_wire), np.float32) for _ in views]
+    done = [0, 0]  # segments already accumulated (static anatomy: frames only add segments)
+    cath_att = [None, None]
     for t in range(T):
-        pose_t = pose if not options.motion_mm else pose @ Pose(np.eye(3), motion[t])
+        pose_t = pose if static else pose @ Pose(np.eye(3), motion[t])
         w = wires[t]
-        for view, bg, psf, out in ((carm, bg_main, psf_main, frames), (held, bg_held, psf_held, held_frames)):
-            Lw, Lw_fine = render_tube_line_integral(view, pose_t, [(w, np.full(len(w), wire_r))],
-                                                    supersample=ss_wire, return_fine=True)
+        for iv, (view, bg, psf, out) in enumerate(views):
+            if not static:
+                fine_acc[iv][:] = 0
+                done[iv] = 0
+            n_seg = n_pts[t] - 1
+            seg = tuple(x[done[iv]:n_seg] for x in wire_segs)
+            _accumulate_segments(view, pose_t, *seg, ss=ss_wire, out=fine_acc[iv])
+            done[iv] = n_seg
+            Lw = _block_mean(fine_acc[iv], ss_wire)
             att = mu_wire * Lw + bg
             if len(catheter):
-                Lo = render_tube_line_integral(view, pose_t, [(catheter, np.full(len(catheter), cath_outer))])
-                Li = render_tube_line_integral(view, pose_t, [(catheter, np.full(len(catheter), cath_inner))])
-                att = att + mu_cath * np.maximum(Lo - Li, 0)
+                if cath_att[iv] is None or not static:
+                    Lo = render_tube_line_integral(view, pose_t, [(catheter, np.full(len(catheter), cath_outer))])
+                    Li = render_tube_line_integral(view, pose_t, [(catheter, np.full(len(catheter), cath_inner))])
+                    cath_att[iv] = mu_cath * np.maximum(Lo - Li, 0)
+                att = att + cath_att[iv]
             gain = 1.0 + rx.normal(0, 0.015)
             out[t] = _expose(rx, att, b0=b0, n0=n0, psf_px=psf, gain_field=gain_field, gain=gain)
             uv = view.project(w, pose_t)
             if view is carm:
                 uv_main.append(uv)
                 visible.append(carm.in_image(uv))
-                wire_mask[t] = _wire_mask(Lw_fine, ss_wire, [uv], shape)
+                wire_mask[t] = _wire_mask(fine_acc[iv], ss_wire, [uv], shape)
             else:
                 uv_held.append(uv)
     bar.update()
@@ -1331,7 +1375,7 @@ def default_case_dir(*, cache_dir=None, progress: bool = True) -> Path:
     case = simulate(opts, progress=progress)
     try:
         return write_case(case, folder)
-    except InputError:
+    except (InputError, OSError):
         if (folder / "truth.json").is_file():  # written concurrently by another process
             return folder
         raise

@@ -206,6 +206,7 @@ def run_to_outdir(cta, roadmap, frames, out_dir, *, series_uid=None, overrides=N
         export.write_outdir(result, staging, inputs=inputs, images=images, truth=truth)
         result.timing["export"] = time.perf_counter() - t0
         export.write_report(result, staging, inputs=inputs, truth=truth)  # again, with export timing
+        io._chmod_default(staging, directory=True)
         if out_dir.exists():
             old = out_dir.with_name(f".{out_dir.name}.old-{int(time.time() * 1e6)}")
             out_dir.rename(old)

@@ -11,21 +11,30 @@ Default method (``ReconMethod.VESSEL``)
        points whose projection lies within the projected lumen radius (+ a margin) of it.
     3. Viterbi over the anchors: the unary cost is how far the anchor lies outside the projected
        lumen; the pairwise cost asks the tree move between consecutive choices to be *connected*
-       (geodesic ~ Euclidean distance, so no jump to an overlapping vessel), to reproduce the 2D
-       step (which makes foreshortening consistent) and to be distal (retreats towards the root
-       are penalised). A small start cost prefers the proximal candidate. In tracking mode an extra
-       unary cost keeps the choices on the previous frame's root-to-tip path (advance allowed).
+       (geodesic ~ Euclidean distance, so no jump to an overlapping vessel or across a crossing
+       of the wire with itself), to reproduce the 2D step (which makes foreshortening consistent)
+       and to be distal (retreats towards the root are penalised). A small start cost prefers the
+       proximal candidate. In tracking mode (``previous``) an extra unary cost keeps the choices
+       on the previous frame's root -> tip path: advancing beyond the old tip or retracting is
+       free, entering a side branch costs in proportion to the distance into it. A path that
+       ends nearer the root than it starts triggers a try on the reversed 2D wire (the output is
+       always proximal -> distal).
     4. The chosen nodes are joined along the tree into one path. Each 2D wire point's ray is
-       intersected with the nearby path segments (ray-segment closest approach); the 3D point is
-       the closest-approach point on the ray, i.e. the middle of the ray's chord through the
-       local tube (a point of the lumen, on the ray).
+       intersected with the nearby path segments (ray-segment closest approach, preferring the
+       path position interpolated between the anchors). The feasible depths are the chord of the
+       ray through the tube the wire's centre can occupy (radius minus ``wire_clearance_mm``).
+       Inside that chord the point is put at the depth of the expected wire position: the
+       centerline moved towards the outer side of bends (``outer_bend_prior``; a wire pushed
+       through a curved vessel rides its outer wall), i.e. the chord's middle on straight parts.
     5. A penalised cubic B-spline (P-spline, the paper's smoothness weight lambda = 0.1) smooths
        the 3D points; lambda is halved until the projection stays within ``max_projection_px`` of
        the input wire (mean) and 2.5x that (max).
     6. Uncertainty per point (3x3 covariance, reported as ``sqrt(trace)`` mm, i.e. the RMS 3D
-       error it predicts): the lumen chord along the ray (a uniform depth over the chord: std =
+       error it predicts): the chord along the ray as a uniform depth interval (std =
        chord / sqrt(12)), the paper's propagation ``J+ (sigma_geo^2 I + sigma_img^2 gI gI^T) J+^T``
-       and, if given, the registration covariance pushed through the pose.
+       (``J+`` the pseudo-inverse of the 2x3 projection Jacobian, ``gI`` the image gradient at the
+       pixel when ``image`` is given) and, if given, the registration covariance pushed through
+       the pose (``dX = R^T (-dt + [x]x dphi)`` for a left perturbation).
 
 ``ReconMethod.PAPER`` applies the paper's closed-form depth literally (it is a two-view
 triangulation formula; with one view and the registration's R, t it gives an arbitrary depth),
@@ -45,7 +54,7 @@ from scipy.linalg import solveh_banded
 from scipy.spatial import cKDTree
 
 from guidewire3d.errors import InputError, ReconstructionError
-from guidewire3d.geometry import CArm, Pose, hat
+from guidewire3d.geometry import CArm, Pose
 from guidewire3d.vesseltree import VesselTree
 
 __all__ = [
@@ -82,11 +91,15 @@ class ReconOptions:
     sigma_jump_mm: float = 0.5  #: pairwise: geodesic minus Euclidean distance (connectivity)
     sigma_retreat_mm: float = 1.0  #: pairwise: distance moved towards the root
     start_cost_per_mm: float = 0.002  #: prefers the proximal candidate at the first anchor
+    reverse_mm: float = 5.0  #: a chosen path ending this much nearer the root triggers a reversed try
     min_coverage: float = 0.6  #: fraction of anchors that must have a candidate
-    track_tolerance_mm: float = 15.0  #: tracking: free advance beyond / off the previous path
-    sigma_track_mm: float = 2.0  #: tracking: cost scale beyond the tolerance
+    track_tolerance_mm: float = 1.0  #: tracking: free distance off the previous root->tip path
+    track_confirm_mm: float = 10.0  #: tracking: the last this-many mm of the previous path are not a prior
+    sigma_track_mm: float = 2.0  #: tracking: cost per this many mm further off it
     outer_bend_prior: bool = True  #: place the depth towards the outer side of bends (wire rides it)
     outer_bend_mm: float = 20.0  #: full hug where the radius of curvature is below this
+    outer_bend_fraction: float = 0.7  #: ... of this fraction of the room the wire has
+    chord_clearance: bool = True  #: the depth interval is the chord of radius - wire_clearance_mm
     bend_scale_mm: float = 3.0  #: centerline smoothing for its curvature
     wire_clearance_mm: float = 0.35  #: wire radius + margin kept from the wall (prior only)
     smoothing_lambda: float = 0.1  #: paper's smoothness weight (P-spline, see module doc)
@@ -284,6 +297,8 @@ class ReconstructionContext:
             self.pos_in_branch[b.point_ids[1:]] = np.arange(1, len(b.point_ids))
         self.pos_in_branch[dense.root] = 0
         self._branch_len = np.array([len(b.point_ids) for b in br])
+        self.radius_eff = (np.maximum(self.radius - opt.wire_clearance_mm, 0.5 * self.radius)
+                           if opt.chord_clearance else self.radius)
         self.outer_offset = self._outer_bend_offset(opt) if opt.outer_bend_prior else np.zeros_like(self.points)
         self._scratch = -np.ones(dense.n_points, np.int64)
 
@@ -314,7 +329,7 @@ class ReconstructionContext:
         kappa = np.linalg.norm(k, axis=1)
         n = k / np.maximum(kappa, 1e-12)[:, None]
         rho = np.maximum(self.radius - opt.wire_clearance_mm, 0.0)
-        return -n * (rho * np.clip(kappa * opt.outer_bend_mm, 0.0, 1.0))[:, None]
+        return -n * (opt.outer_bend_fraction * rho * np.clip(kappa * opt.outer_bend_mm, 0.0, 1.0))[:, None]
 
     # --- tree queries ------------------------------------------------------------------------
     def lca_s(self, i, j) -> np.ndarray:
@@ -485,10 +500,13 @@ def _covariance(ctx, X, uv, *, depth_std_mm, extra_iso_mm2, image, registration_
         img = np.asarray(image, dtype=float)
         if img.ndim != 2:
             raise InputError(f"reconstruction: image must be 2D (rows, cols), got shape {img.shape}")
-        gv, gu = np.gradient(img)
-        ui = np.clip(np.rint(uv[:, 0]).astype(int), 0, img.shape[1] - 1)
-        vi = np.clip(np.rint(uv[:, 1]).astype(int), 0, img.shape[0] - 1)
-        g = np.column_stack([gu[vi, ui], gv[vi, ui]])
+        # central differences at the wire's pixels only (the image gradient, intensity per px)
+        H, Wd = img.shape
+        ui = np.clip(np.rint(uv[:, 0]).astype(int), 1, Wd - 2)
+        vi = np.clip(np.rint(uv[:, 1]).astype(int), 1, H - 2)
+        g = 0.5 * np.column_stack([img[vi, ui + 1] - img[vi, ui - 1], img[vi + 1, ui] - img[vi - 1, ui]])
+        lo, hi = float(np.nanmin(img)), float(np.nanmax(img))
+        g = g / (hi - lo) if hi > lo else np.zeros_like(g)  # intensities normalised to [0, 1] (paper)
         S2 += opt.sigma_img**2 * g[:, :, None] * g[:, None, :]
     cov = Jp @ S2 @ np.transpose(Jp, (0, 2, 1))
     d = ctx.rays(uv)
@@ -501,7 +519,10 @@ def _covariance(ctx, X, uv, *, depth_std_mm, extra_iso_mm2, image, registration_
         x_room = ctx.pose.apply(X)
         G = np.zeros((M, 3, 6))
         G[:, :, :3] = -np.eye(3)
-        G[:, :, 3:] = np.stack([hat(xr) for xr in x_room])  # -[phi]x x = [x]x phi
+        # -phi x x = [x]x phi
+        G[:, 0, 4], G[:, 0, 5] = -x_room[:, 2], x_room[:, 1]
+        G[:, 1, 3], G[:, 1, 5] = x_room[:, 2], -x_room[:, 0]
+        G[:, 2, 3], G[:, 2, 4] = -x_room[:, 1], x_room[:, 0]
         G = ctx.pose.R.T[None] @ G
         cov += G @ C @ np.transpose(G, (0, 2, 1))
     return cov
@@ -574,7 +595,10 @@ def _viterbi(ctx, uv_a, cand, outside, opt, track_tip):
     safe = np.maximum(cand, 0)
     U = (outside / opt.sigma_outside_px) ** 2
     if track_tip is not None:
-        off = ctx.s[safe] - ctx.lca_s(safe, track_tip)
+        # distance off the previous frame's root -> tip path into a side branch; advancing beyond
+        # the previous tip (into its subtree) or retracting along the path is free
+        lca = ctx.lca_s(safe, track_tip)
+        off = np.where(lca >= ctx.s[track_tip] - 1e-9, 0.0, ctx.s[safe] - lca)
         U = U + np.maximum(off - opt.track_tolerance_mm, 0.0) / opt.sigma_track_mm
     U = np.where(valid, U, np.inf)
     # pairwise costs for all steps at once: (A-1, K, K)
@@ -640,8 +664,9 @@ def _place_on_path(ctx, uv, anchor_idx, nodes):
         P = np.r_[P, P]
     d = ctx.rays(uv)
     pa_ids, pb_ids = P[:-1], P[1:]
+    rad = ctx.radius_eff
     s, dist, u, half, r = _ray_segments(ctx.source, d, ctx.points[pa_ids], ctx.points[pb_ids],
-                                        ctx.radius[pa_ids], ctx.radius[pb_ids], seg)
+                                        rad[pa_ids], rad[pb_ids], seg)
     # nearest segment to the ray, preferring the path position interpolated between the anchors
     # (this decides the depth where the vessel runs along the beam and many segments touch the ray)
     seg_len = np.linalg.norm(ctx.points[pb_ids] - ctx.points[pa_ids], axis=1)[seg]
@@ -691,10 +716,18 @@ def _reconstruct_vessel(ctx, uv, *, track_tip, image, registration_covariance, o
     if not np.isfinite(total):
         return Wire3D.failed("no connected path through the vessel tree explains the 2D wire",
                              seconds=time.perf_counter() - t0)
+    reversed_note = ""
+    if ctx.s[nodes[-1]] < ctx.s[nodes[0]] - opt.reverse_mm:
+        # the path runs towards the root: the 2D wire was probably given distal -> proximal
+        r_aidx = len(uv) - 1 - aidx[::-1]
+        r_nodes, r_total = _viterbi(ctx, uv[::-1][r_aidx], cand[::-1], outside[::-1], opt, track_tip)
+        if r_total < total:
+            uv, aidx, nodes, total = uv[::-1].copy(), r_aidx, r_nodes, r_total
+            reversed_note = "; the 2D wire looked distal -> proximal: output reversed to proximal -> distal"
     X, tid, half, dist, r = _place_on_path(ctx, uv, aidx, nodes)
     miss = np.maximum(dist - r, 0.0)
     depth_std = 2.0 * half / np.sqrt(12.0) + miss
-    msg = f"ok: {len(uv)} points, {100 * coverage:.0f}% of anchors on the tree, path cost {total:.1f}"
+    msg = f"ok: {len(uv)} points, {100 * coverage:.0f}% of anchors on the tree, path cost {total:.1f}" + reversed_note
     if coverage < 1.0:
         msg += " (gaps bridged)"
     ids = np.where(miss > 0, -1, tid)
@@ -742,8 +775,12 @@ def _track_tip(ctx, previous: Wire3D | None):
     ids = ids[ids >= 0]
     if len(ids) == 0 or ids.max() >= ctx.tree.n_points:
         return None
-    # the most distal chosen point (largest arclength from the root)
-    return int(ids[np.argmax(ctx.s[ids])])
+    # the most distal chosen point (largest arclength from the root), moved back by
+    # track_confirm_mm: a branch entered in the last few mm of the previous frame is not locked in
+    tip = int(ids[np.argmax(ctx.s[ids])])
+    rp = ctx.root_path(tip)
+    k = int(np.searchsorted(ctx.s[rp], ctx.s[tip] - ctx.options.track_confirm_mm, side="right")) - 1
+    return int(rp[max(k, 0)])
 
 
 def reconstruct_wire(wire_uv_px, pose: Pose, carm: CArm, tree: VesselTree, *, previous: Wire3D | None = None,
@@ -768,7 +805,8 @@ def reconstruct_wire(wire_uv_px, pose: Pose, carm: CArm, tree: VesselTree, *, pr
     registration_covariance : (6, 6) ndarray, optional
         Pose covariance in the left-perturbation tangent ``(tx, ty, tz, rx, ry, rz)`` (mm, rad).
     image : (rows, cols) ndarray, optional
-        The frame; its gradient enters the paper's uncertainty term.
+        The frame; its gradient (intensities min-max normalised to [0, 1], per px) enters the
+        paper's uncertainty term ``sigma_img^2 gI gI^T``.
 
     Returns
     -------

@@ -69,11 +69,12 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import fft as sfft
 from scipy import ndimage as ndi
+from scipy import sparse as sp
 from scipy.optimize import linear_sum_assignment
 from scipy.spatial import cKDTree
 
 from guidewire3d.errors import InputError
-from guidewire3d.geometry import CArm, Pose, hat, nominal_pose, so3_exp
+from guidewire3d.geometry import CArm, Pose, nominal_pose, so3_log
 from guidewire3d.vesseltree import VesselTree
 
 __all__ = [
@@ -95,18 +96,21 @@ MU0 = 1.0  # initial LM damping (theta units, mm)
 EPS_ABS_MM = 1e-4  # ||delta theta|| (mm-equivalent) convergence tolerance
 EPS_REL = 1e-3  # ||J^T W r||_inf < EPS_REL ||r||
 REL_DECREASE_STOP = 1e-6  # accepted step that lowers E by less than this fraction: converged
-MAX_REJECTIONS = 4  # consecutive rejected LM steps at a stationary point: converged
 DELTA_WIDE = 4.0  # kernel cutoff of the first (wide-gate) LM stage
-SIGMA_2D_PX = 1.0  # 2D centerline point uncertainty (px), before radius growth
-SIGMA_3D_MM = 0.3  # 3D centerline point uncertainty (mm), before radius growth
+STABILISER = 1e-3  # weak pull (per mm^2 of theta) toward the LM stage's start: keeps directions the
+# data do not determine (depth and a rotation when only one vessel path is visible) at the start
+VISIBILITY_ROUNDS = 3  # narrow LM stage repeated while the visible 3D segments change
+PATIENCE = 5  # accepted LM steps without a new lowest energy before stopping
+SIGMA_2D_PX = 0.5  # 2D centerline point uncertainty (px), before radius growth
+SIGMA_3D_MM = 0.05  # 3D centerline point uncertainty (mm), before radius growth
 RADIUS_GROWTH = 0.1  # sigma grows by this fraction of the local vessel radius (in quadrature)
 TANGENT_SLACK_PX = 25.0  # extra std along the local tangent (px at the isocentre): ~point-to-line
 GATE_WIDE_PX = 24.0  # first LM stage gate
-GATE_NARROW_PX = 6.0  # second LM stage gate
+GATE_NARROW_PX = 3.0  # second LM stage gate
 INLIER_PX = 3.0  # a 2D point is an inlier when within this distance of the projected tree
 MAX_MEAN_RESIDUAL_PX = 3.0  # success needs mean inlier residual below this ...
 MIN_INLIER_FRACTION = 0.5  # ... and at least this fraction of 2D points explained
-SEARCH_ROT_INPLANE_DEG = np.arange(-15.0, 15.01, 3.0)
+SEARCH_ROT_INPLANE_DEG = np.arange(-15.0, 15.01, 5.0)
 SEARCH_ROT_OUTPLANE_DEG = np.array([-10.0, 0.0, 10.0])
 SEARCH_SHIFT_MM = 40.0
 SEARCH_CELL_PX = 8.0  # nominal coarse grid for a 512-px image (scaled with the image)
@@ -221,6 +225,8 @@ class _Model3D:
     r_g: float  # radius of gyration (mm)
     bif_ids: np.ndarray  # bifurcation point ids in the input tree
     has_topology: bool
+    branch: np.ndarray  # (N,) branch index of each LM sample (all 0 without topology)
+    neighbours: object  # (N, N) sparse 0/1: samples within ~1.6 steps (support dilation)
 
 
 _MODEL_CACHE: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
@@ -239,6 +245,7 @@ def _resample_tree(tree: VesselTree, step_mm: float):
     pts = a[edge_of] + f * (b - a)[edge_of]
     tang = ((b - a) / np.maximum(L, 1e-12)[:, None])[edge_of]
     rad = r[e[edge_of, 0]] + f[:, 0] * (r[e[edge_of, 1]] - r[e[edge_of, 0]])
+    branch = tree.point_branch[e[edge_of, 1]]
     # the root point, with the tangent of its first edge
     root = tree.root
     first = np.flatnonzero(e[:, 0] == root)
@@ -246,15 +253,12 @@ def _resample_tree(tree: VesselTree, step_mm: float):
     pts = np.vstack([p[root][None], pts])
     tang = np.vstack([t_root[None], tang])
     rad = np.r_[r[root], rad]
-    return pts, tang, rad
+    branch = np.r_[tree.point_branch[root], branch]
+    return pts, tang, rad, branch
 
 
 def _pca_lines(points: np.ndarray, k: int = 8) -> tuple[np.ndarray, np.ndarray]:
-    """Local lines of an unordered point cloud sampling curves (principal axis of the k-NN).
-
-    Returns the unit tangents and the points projected onto their local line (which removes
-    the noise across the curve and keeps the position along it).
-    """
+    """Unit tangents of an unordered point cloud sampling curves (principal axis of the k-NN)."""
     n, dim = points.shape
     k = int(min(k, n))
     if k < 3:
@@ -262,14 +266,54 @@ def _pca_lines(points: np.ndarray, k: int = 8) -> tuple[np.ndarray, np.ndarray]:
         t[:, 0] = 1.0
         return t, points.copy()
     _, idx = cKDTree(points).query(points, k=k)
-    nbp = points[idx]
-    c = nbp.mean(axis=1)
-    nb = nbp - c[:, None, :]
+    nb = points[idx] - points[idx].mean(axis=1, keepdims=True)
     cov = np.einsum("nki,nkj->nij", nb, nb)
     _, vec = np.linalg.eigh(cov)
+    return vec[:, :, -1], points.copy()
+
+
+def _smooth_curve_2d(points: np.ndarray, k: int = 10) -> tuple[np.ndarray, np.ndarray]:
+    """Denoise 2D centerline points with a local quadratic fit (unbiased on curved vessels).
+
+    For each point, its k nearest neighbours are expressed in their principal frame ``(s, n)``
+    and ``n = a + b s + c s^2`` is fitted by least squares; the point is moved onto the fitted
+    curve at its own ``s`` and its tangent is the curve's. A plain local-line fit would pull
+    points toward the centre of curvature, i.e. shrink the projected tree, which biases the
+    (weakly observed) depth.
+
+    Returns
+    -------
+    tangents, points : (M, 2) ndarray
+    """
+    n = len(points)
+    k = int(min(k, n))
+    if k < 4:
+        return _pca_lines(points)
+    _, idx = cKDTree(points).query(points, k=k)
+    nbp = points[idx]
+    c = nbp.mean(axis=1)
+    d = nbp - c[:, None, :]
+    cov = np.einsum("nki,nkj->nij", d, d)
+    _, vec = np.linalg.eigh(cov)
     t = vec[:, :, -1]
-    proj = c + t * np.sum(t * (points - c), axis=1, keepdims=True)
-    return t, proj
+    nn = np.column_stack([-t[:, 1], t[:, 0]])
+    sk = np.einsum("nki,ni->nk", d, t)
+    nk = np.einsum("nki,ni->nk", d, nn)
+    V = np.stack([np.ones_like(sk), sk, sk * sk], axis=2)  # (n, k, 3)
+    A = np.einsum("nki,nkj->nij", V, V) + 1e-6 * np.eye(3)
+    rhs = np.einsum("nki,nk->ni", V, nk)
+    coef = np.linalg.solve(A, rhs[..., None])[..., 0]
+    s0 = np.sum((points - c) * t, axis=1)
+    n0 = coef[:, 0] + coef[:, 1] * s0 + coef[:, 2] * s0 * s0
+    fit_rms = np.sqrt(np.mean((np.einsum("nki,ni->nk", V, coef) - nk) ** 2, axis=1))
+    smooth = c + s0[:, None] * t + n0[:, None] * nn
+    tang = t + (coef[:, 1] + 2.0 * coef[:, 2] * s0)[:, None] * nn
+    tang /= np.linalg.norm(tang, axis=1, keepdims=True)
+    # where the neighbourhood is not one curve (bifurcations, crossings), keep the raw point
+    bad = fit_rms > 1.0
+    smooth[bad] = points[bad]
+    tang[bad] = t[bad]
+    return tang, smooth
 
 
 def _grid_subsample(points: np.ndarray, step: float) -> np.ndarray:
@@ -289,9 +333,9 @@ def _model_from_input(tree, carm: CArm) -> _Model3D:
         cached = _MODEL_CACHE.get(tree)
         if cached is not None and key in cached:
             return cached[key]
-        pts, tang, rad = _resample_tree(tree, step)
-        dense, _, _ = _resample_tree(tree, dense_step)
-        coarse, _, _ = _resample_tree(tree, coarse_step)
+        pts, tang, rad, branch = _resample_tree(tree, step)
+        dense = _resample_tree(tree, dense_step)[0]
+        coarse = _resample_tree(tree, coarse_step)[0]
         src = tree.points_lps_mm
         bif = tree.bifurcations
         has_topology = True
@@ -308,16 +352,21 @@ def _model_from_input(tree, carm: CArm) -> _Model3D:
         dense = src
         coarse = src[_grid_subsample(src, coarse_step)]
         bif = np.zeros(0, dtype=np.int64)
+        branch = np.zeros(len(pts), dtype=np.int64)
         has_topology = False
     centroid = src.mean(axis=0)
     r_g = float(np.sqrt(np.mean(np.sum((pts - pts.mean(axis=0)) ** 2, axis=1))))
     r_g = max(r_g, 5.0)
     sigma = np.sqrt(SIGMA_3D_MM**2 + (RADIUS_GROWTH * rad) ** 2)
+    neighbours = cKDTree(pts).sparse_distance_matrix(cKDTree(pts), 1.6 * step, output_type="coo_matrix").tocsr()
+    neighbours.data[:] = 1.0
+    neighbours = neighbours + sp.identity(len(pts), format="csr")
     model = _Model3D(
         points=pts, tangents=tang, sigma_mm=sigma, step_mm=step, dense=dense, coarse=coarse,
-        centroid=centroid, r_g=r_g, bif_ids=bif, has_topology=has_topology,
+        centroid=centroid, r_g=r_g, bif_ids=bif, has_topology=has_topology, branch=branch,
+        neighbours=neighbours,
     )
-    for a in (pts, tang, sigma, dense, coarse, centroid):
+    for a in (pts, tang, sigma, dense, coarse, centroid, branch):
         a.setflags(write=False)
     if isinstance(tree, VesselTree):
         _MODEL_CACHE.setdefault(tree, {})[key] = model
@@ -355,8 +404,8 @@ def _model_2d(q: np.ndarray, radius_px, carm: CArm) -> _Model2D:
         rad = np.asarray(radius_px, dtype=float).reshape(-1)
         if rad.shape != (len(q),) or not np.all(np.isfinite(rad)):
             raise InputError(f"centerline_radius_px must be finite with one value per point ({len(q)}), got {rad.shape}")
-    keep = _grid_subsample(q, 1.5)
-    tang_all, smooth = _pca_lines(q)
+    keep = _grid_subsample(q, 2.0)
+    tang_all, smooth = _smooth_curve_2d(q)
     uv, tang = smooth[keep], tang_all[keep]
     sigma = np.sqrt(SIGMA_2D_PX**2 + (RADIUS_GROWTH * rad[keep]) ** 2)
     # nearest-index raster (<= ~256 cells on the long side)
@@ -382,18 +431,21 @@ def _model_2d(q: np.ndarray, radius_px, carm: CArm) -> _Model2D:
 class _Eval:
     pose: Pose
     energy: float
-    g: np.ndarray  # (6,) gradient in theta units
-    H: np.ndarray  # (6, 6) Gauss-Newton Hessian (IRLS)
-    rnorm: float  # ||r|| weighted
-    n_in3: int
-    n_in2: int
-    H_info: np.ndarray  # (6, 6) un-normalised information (theta units), for the covariance
-    chi2: float
-    dof: int
+    corr: tuple  # (j, i): nearest 2D sample of each 3D sample, nearest 3D sample of each 2D sample
+    g: np.ndarray | None = None  # (6,) gradient (theta units)
+    H: np.ndarray | None = None  # (6, 6) Gauss-Newton Hessian with IRLS weights
+    rnorm: float = 0.0  # weighted residual norm
+    n_in3: int = 0
+    n_in2: int = 0
+    H_info: np.ndarray | None = None  # (6, 6) information (theta units) for the covariance
+    chi2: float = 0.0
+    dof: int = 0
+    dist3_px: np.ndarray | None = None  # (N,) 3D -> 2D distance (px), inf outside the image
+    dist2_px: np.ndarray | None = None  # (M,) 2D -> 3D distance (px)
 
 
 class _Problem:
-    """Fixed data of one registration: models, camera, rays of the 2D points, settings."""
+    """Fixed data of one registration: models, camera, settings; evaluates the energy."""
 
     def __init__(self, m3: _Model3D, m2: _Model2D, carm: CArm, *, lam, delta, prior_pose=None, prior_weight=0.0):
         self.m3, self.m2, self.carm = m3, m2, carm
@@ -404,16 +456,38 @@ class _Problem:
         self.c = carm.principal_point_px
         self.px_mm_iso = carm.pixel_at_iso_mm
         self.slack_px = TANGENT_SLACK_PX
-        # 3D point uncertainty in px at the isocentre (fixed: no depth-dependent weights, which
-        # would bias the weakly observed depth)
+        # 3D point uncertainty in px at the isocentre (fixed: depth-dependent weights would bias
+        # the weakly observed depth)
         self.sig3_px = m3.sigma_mm / carm.pixel_at_iso_mm
         self.visible3 = np.ones(len(m3.points), bool)
         self.scale = np.array([1.0, 1.0, 1.0, 1.0 / m3.r_g, 1.0 / m3.r_g, 1.0 / m3.r_g])  # xi = scale * theta
         self.prior_pose = prior_pose
         self.prior_weight = float(prior_weight)
+        self.anchor = None  # start of the current LM stage (weak stabiliser, see STABILISER)
+
+    def set_visibility(self, pose: Pose, gate_px: float) -> None:
+        """Decide which 3D centerline samples are in the roadmap (have contrast, were extracted).
+
+        A 3D sample is *supported* when it is the match (nearest projected sample, within
+        ``gate_px``) of at least one 2D point; the support is dilated by one sample along the
+        centerline. Unsupported samples leave the 3D -> 2D term (they cost the gate constant), so
+        a partial roadmap (down to a single root-to-leaf path, or a branch that fades out) does
+        not pull the rest of the tree onto whatever 2D vessel lies nearby.
+        """
+        ev = self.evaluate(pose, gate_px, need_jac=False)
+        i = ev.corr[1]
+        supported = np.zeros(len(self.m3.points))
+        supported[i[ev.dist2_px <= gate_px]] = 1.0
+        self.visible3 = (self.m3.neighbours @ supported) > 0
 
     # --- one evaluation -----------------------------------------------------------------
-    def evaluate(self, pose: Pose, gate_px: float, *, delta: float | None = None, need_jac: bool = True) -> _Eval:
+    def evaluate(self, pose: Pose, gate_px: float, *, delta: float | None = None, need_jac: bool = True,
+                 corr: tuple | None = None) -> _Eval:
+        """Energy at ``pose`` (and its IRLS normal equations with ``need_jac``).
+
+        With ``corr`` the closest-point correspondences are held fixed (LM trial steps: the
+        energy is then smooth and the gain ratio meaningful); otherwise they are recomputed.
+        """
         m3, m2 = self.m3, self.m2
         delta = self.delta if delta is None else float(delta)
         Y = m3.points @ pose.R.T + pose.t  # room frame
@@ -422,22 +496,22 @@ class _Problem:
         zs = np.maximum(z, 1e-6)
         uv = self.f * Xc[:, :2] / zs[:, None] + self.c
         front = z > 1e-3
-        inimg = front & self.carm.in_image(uv)
-        # projection Jacobian du/dY = (f/z) [[1, 0, -x/z], [0, 1, -y/z]] A, and projected tangents
-        fz = self.f / zs
-        Jc = np.zeros((len(Y), 2, 3))
-        Jc[:, 0, 0] = fz
-        Jc[:, 1, 1] = fz
-        Jc[:, 0, 2] = -fz * Xc[:, 0] / zs
-        Jc[:, 1, 2] = -fz * Xc[:, 1] / zs
-        dudY = Jc @ self.A  # (N, 2, 3)
+        seen = front & self.carm.in_image(uv) & self.visible3
         N, M = len(Y), len(m2.uv)
 
-        # ---- 3D -> 2D: projected 3D point vs nearest 2D point (O(1) nearest-index map) ----
-        ij = np.rint((uv - m2.origin) / m2.cell).astype(np.int64)
-        ij[:, 0] = np.clip(ij[:, 0], 0, m2.nn_map.shape[1] - 1)
-        ij[:, 1] = np.clip(ij[:, 1], 0, m2.nn_map.shape[0] - 1)
-        j = m2.nn_map[ij[:, 1], ij[:, 0]]
+        if corr is None:
+            # 3D -> 2D: O(1) lookup in the nearest-index map of the rasterised 2D centerline
+            ij = np.rint((uv - m2.origin) / m2.cell).astype(np.int64)
+            ij[:, 0] = np.clip(ij[:, 0], 0, m2.nn_map.shape[1] - 1)
+            ij[:, 1] = np.clip(ij[:, 1], 0, m2.nn_map.shape[0] - 1)
+            j = m2.nn_map[ij[:, 1], ij[:, 0]]
+            # 2D -> 3D: KD-tree over the projected 3D centerline
+            uvk = np.where(front[:, None], uv, 1e9)
+            _, i = cKDTree(uvk).query(m2.uv)
+            corr = (j, i)
+        j, i = corr
+
+        # ---- 3D -> 2D: projected 3D point vs nearest 2D point, across the 2D tangent ----
         e1 = uv - m2.uv[j]
         t2 = m2.tangents[j]
         n2 = np.column_stack([-t2[:, 1], t2[:, 0]])
@@ -446,16 +520,16 @@ class _Problem:
         r1 = np.column_stack([np.sum(t2 * e1, axis=1) / sig_t1, np.sum(n2 * e1, axis=1) / sig_n1])
         s1 = np.sum(r1 * r1, axis=1)
         G1 = (gate_px / sig_n1) ** 2
-        ok1 = inimg & self.visible3 & (s1 <= G1)
+        ok1 = seen & (s1 <= G1)
         rho1, drho1 = pseudo_huber(np.minimum(s1, G1), delta)
-        E1 = float(np.sum(rho1[inimg & self.visible3]))  # unseen / invisible points: constant 0
+        # unseen (outside the image, behind the source) and invisible points cost the gate
+        # constant, like gated ones: candidates with different visibility compare fairly
+        E1 = float(np.sum(np.where(seen, rho1, pseudo_huber(G1, delta)[0])))
 
-        # ---- 2D -> 3D: 2D point vs the 3D point whose projection is nearest (KD-tree) ----
-        # residual = reprojection (px) of that 3D point, measured across its projected tangent
-        uvk = np.where(front[:, None], uv, 1e9)
-        _, i = cKDTree(uvk).query(m2.uv)
+        # ---- 2D -> 3D: reprojection of the matched 3D point, across its projected tangent ----
         e2 = uv[i] - m2.uv
-        tp = np.einsum("mkc,mc->mk", dudY[i], m3.tangents[i] @ pose.R.T)  # projected tangent (px/mm)
+        dudY_i = self._dudy(Xc[i], zs[i])
+        tp = np.einsum("mkc,mc->mk", dudY_i, m3.tangents[i] @ pose.R.T)  # projected tangent (px/mm)
         tpn = np.linalg.norm(tp, axis=1)
         a = np.where(tpn[:, None] > 1e-9, tp / np.maximum(tpn, 1e-12)[:, None], np.array([[1.0, 0.0]]))
         ap = np.column_stack([-a[:, 1], a[:, 0]])
@@ -475,24 +549,28 @@ class _Problem:
         if self.prior_pose is not None and self.prior_weight > 0:
             prior_r = (pose @ self.prior_pose.inverse()).log() / self.scale
             energy += self.prior_weight * float(prior_r @ prior_r)
+        stab_r = None
+        if self.anchor is not None:
+            stab_r = self._tangent_offset(pose, self.anchor)
+            energy += STABILISER * float(stab_r @ stab_r)
         if not need_jac:
-            return _Eval(pose, float(energy), None, None, 0.0, int(ok1.sum()), int(ok2.sum()), None, 0.0, 0)
+            d3 = np.where(front & self.carm.in_image(uv), np.linalg.norm(e1, axis=1), np.inf)
+            return _Eval(pose, float(energy), corr, n_in3=int(ok1.sum()), n_in2=int(ok2.sum()), dist3_px=d3,
+                         dist2_px=np.linalg.norm(e2, axis=1))
 
         # ---- Jacobians (theta units): dr/dtheta = W du/dY [I, -hat(Y) / r_g] ----
         W1 = np.stack([t2[ok1] / sig_t1[ok1, None], n2[ok1] / sig_n1[ok1, None]], axis=1)  # (n, 2, 2)
-        d1 = W1 @ dudY[ok1]
+        d1 = W1 @ self._dudy(Xc[ok1], zs[ok1])
         J1 = np.concatenate([d1, np.cross(Y[ok1][:, None, :], d1) / m3.r_g], axis=2)
-        w1 = 2.0 * drho1[ok1]
         i2 = i[ok2]
         W2 = np.stack([a[ok2] / sig_t2[ok2, None], ap[ok2] / sig_n2[ok2, None]], axis=1)
-        d2 = W2 @ dudY[i2]
+        d2 = W2 @ dudY_i[ok2]
         J2 = np.concatenate([d2, np.cross(Y[i2][:, None, :], d2) / m3.r_g], axis=2)
-        w2 = 2.0 * k2 * drho2[ok2]
 
         R1, R2 = r1[ok1], r2[ok2]
         Jf = np.concatenate([J1.reshape(-1, 6), J2.reshape(-1, 6)])
         rf = np.concatenate([R1.reshape(-1), R2.reshape(-1)])
-        wf = np.concatenate([np.repeat(w1, 2), np.repeat(w2, 2)])
+        wf = np.concatenate([np.repeat(2.0 * drho1[ok1], 2), np.repeat(2.0 * k2 * drho2[ok2], 2)])
         Jw = Jf * wf[:, None]
         H = Jw.T @ Jf
         g = Jw.T @ rf
@@ -500,12 +578,30 @@ class _Problem:
         if prior_r is not None:
             H = H + 2.0 * self.prior_weight * np.eye(6)
             g = g + 2.0 * self.prior_weight * prior_r
-        # information for the covariance: un-normalised, robust weights 2 rho' (=1 at 0)
+        if stab_r is not None:
+            H = H + 2.0 * STABILISER * np.eye(6)
+            g = g + 2.0 * STABILISER * stab_r
+        # information for the covariance: un-normalised sums, robust weights 2 rho' (= 1 at 0)
         vf = np.concatenate([np.repeat(2.0 * drho1[ok1], 2), np.repeat(2.0 * self.lam * drho2[ok2], 2)])
         H_info = (Jf * vf[:, None]).T @ Jf
         chi2 = float(np.sum(vf * rf * rf))
         dof = 2 * (len(R1) + len(R2)) - 6
-        return _Eval(pose, float(energy), g, H, rnorm, int(ok1.sum()), int(ok2.sum()), H_info, chi2, dof)
+        return _Eval(pose, float(energy), corr, g, H, rnorm, int(ok1.sum()), int(ok2.sum()), H_info, chi2, dof)
+
+    def _dudy(self, Xc: np.ndarray, zs: np.ndarray) -> np.ndarray:
+        """Projection Jacobian ``du/dY = (f/z) [[1, 0, -x/z], [0, 1, -y/z]] A``: (n, 2, 3)."""
+        fz = self.f / zs
+        Jc = np.zeros((len(zs), 2, 3))
+        Jc[:, 0, 0] = fz
+        Jc[:, 1, 1] = fz
+        Jc[:, 0, 2] = -fz * Xc[:, 0] / zs
+        Jc[:, 1, 2] = -fz * Xc[:, 1] / zs
+        return Jc @ self.A
+
+    def _tangent_offset(self, pose: Pose, ref: Pose) -> np.ndarray:
+        """``log(pose ref^-1)`` in theta units, to first order (cheap; for priors)."""
+        dR = pose.R @ ref.R.T
+        return np.concatenate([pose.t - dR @ ref.t, so3_log(dR) * self.m3.r_g])
 
     def step(self, pose: Pose, h_theta: np.ndarray) -> Pose:
         return Pose.exp(self.scale * h_theta) @ pose
@@ -521,12 +617,18 @@ class _LMOut:
 
 def _levenberg_marquardt(prob: _Problem, pose: Pose, *, gate_px: float, max_iterations: int, delta: float | None = None,
                          eps_abs: float = EPS_ABS_MM, eps_rel: float = EPS_REL) -> _LMOut:
-    """Paper's LM on se(3) with gain-ratio damping (Nielsen), IRLS weights, left perturbation."""
+    """Paper's LM on se(3): IRLS weights, left perturbation, gain-ratio damping (Nielsen).
+
+    Closest points are recomputed at every accepted pose; a trial step is judged with the
+    current correspondences held fixed, so the gain ratio compares like with like.
+    """
+    prob.anchor = pose
     ev = prob.evaluate(pose, gate_px, delta=delta)
+    best = ev
+    since_best = 0
     mu, nu = MU0, 2.0
     status = "max iterations"
     it = 0
-    rejected = 0
     while it < max_iterations:
         it += 1
         if ev.n_in3 + ev.n_in2 < 6:
@@ -538,35 +640,36 @@ def _levenberg_marquardt(prob: _Problem, pose: Pose, *, gate_px: float, max_iter
             status = "singular normal equations"
             break
         hn = float(np.linalg.norm(h))
-        grad_small = float(np.abs(ev.g).max()) < eps_rel * max(ev.rnorm, 1e-12)
         if hn < eps_abs:
+            grad_small = float(np.abs(ev.g).max()) < eps_rel * max(ev.rnorm, 1e-12)
             status = "converged" if grad_small else "converged (step)"
             break
         new_pose = prob.step(ev.pose, h)
-        ev_new = prob.evaluate(new_pose, gate_px, delta=delta)
-        pred = float(h @ (mu * h - ev.g))
-        eta = (ev.energy - ev_new.energy) / pred if pred > 0 else -1.0
+        trial = prob.evaluate(new_pose, gate_px, delta=delta, need_jac=False, corr=ev.corr)
+        pred = 0.5 * float(h @ (mu * h - ev.g))  # decrease predicted by the IRLS quadratic model
+        eta = (ev.energy - trial.energy) / pred if pred > 0 else -1.0
         if eta > 0:
-            decrease = ev.energy - ev_new.energy
-            ev = ev_new
+            ev = prob.evaluate(new_pose, gate_px, delta=delta)  # new correspondences
             mu *= max(1.0 / 3.0, 1.0 - (2.0 * eta - 1.0) ** 3)
             nu = 2.0
-            rejected = 0
-            if hn < 10 * eps_abs and float(np.abs(ev.g).max()) < eps_rel * max(ev.rnorm, 1e-12):
+            grad_small = float(np.abs(ev.g).max()) < eps_rel * max(ev.rnorm, 1e-12)
+            if ev.energy < best.energy * (1.0 - REL_DECREASE_STOP):
+                best, since_best = ev, 0
+            else:
+                since_best += 1
+            if hn < 10 * eps_abs and grad_small:
                 status = "converged"
                 break
-            if decrease < REL_DECREASE_STOP * max(ev.energy, 1e-12):
+            if since_best >= PATIENCE:
+                # closest-point updates are cycling without lowering the energy
                 status = "converged (energy)"
                 break
         else:
             mu *= nu
             nu *= 2.0
-            rejected += 1
-            # closest-point energies are piecewise smooth: a run of rejected steps at a
-            # stationary point means no further descent is available at this scale
-            if rejected >= MAX_REJECTIONS:
-                status = "converged (stalled)"
-                break
+    prob.anchor = None
+    if best.energy < ev.energy:
+        ev = best
     return _LMOut(ev.pose, ev, it, status)
 
 
@@ -801,13 +904,21 @@ def register(
         gate_a = GATE_WIDE_PX
     best = None
     for cand in cands:
+        prob.set_visibility(cand, gate_a)
         out = _levenberg_marquardt(prob, cand, gate_px=gate_a, delta=max(DELTA_WIDE, delta),
                                    max_iterations=int(max_iterations))
         iterations += out.iterations
         if best is None or out.ev.energy < best.ev.energy:
             best = out
-    out = _levenberg_marquardt(prob, best.pose, gate_px=GATE_NARROW_PX, max_iterations=int(max_iterations))
-    iterations += out.iterations
+    # narrow stage; the set of visible 3D segments is re-decided at its result until it settles
+    out = best
+    for _round in range(VISIBILITY_ROUNDS):
+        before = prob.visible3.copy()
+        prob.set_visibility(out.pose, GATE_NARROW_PX)
+        if _round > 0 and np.array_equal(before, prob.visible3):
+            break
+        out = _levenberg_marquardt(prob, out.pose, gate_px=GATE_NARROW_PX, max_iterations=int(max_iterations))
+        iterations += out.iterations
     return _finish(prob, out, q, carm, iterations, t0)
 
 

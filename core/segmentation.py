@@ -47,6 +47,7 @@ __all__ = [
     "build_unet",
     "load_unet",
     "save_unet",
+    "export_onnx",
     "unet_probability",
     "ridge_probability",
     "guidewire_mask",

@@ -18,7 +18,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-slicer = pytest.importorskip("slicer")
+import slicer  # noqa: E402  (slicer-core: a test dependency, never skipped)
 import vtk  # noqa: E402
 from vtk.util.numpy_support import vtk_to_numpy  # noqa: E402
 
@@ -37,7 +37,18 @@ from GuidewireReconstructionLib import logic as L  # noqa: E402
 EXACT = 1e-9  # mm: pure coordinate bookkeeping
 FLOAT32_MM = 1e-4  # mm: values that went through float32 VTK arrays or files
 MEAN_ERROR_TOL_MM = 0.7  # issue 7's 3D tolerance: mean distance of the wire to the truth
-REFINE_MTRE_TOL_MM = 2.0  # registration success criterion of the benchmark (mTRE < 2 mm)
+REGISTRATION_SANITY_MM = 5.0  # mTRE vs truth: catches frame mix-ups (an LPS/RAS flip is off by 100s of mm);
+#                               the registration's own accuracy is tested in test_registration.py
+REFINE_CONTRACTION = 0.25  # Refine must bring a moved pose's projection back to within this fraction of the offset
+
+
+def _projection_offset_px(carm, pose_a, pose_b, points_lps_mm) -> float:
+    """Mean 2D distance (px) between the projections of the points under two poses.
+
+    A single view constrains the pose in the image plane; depth along the beam is weakly observable,
+    so Refine is judged by where it puts the vessels in the image (and by the 3D wire errors).
+    """
+    return float(np.linalg.norm(carm.project(points_lps_mm, pose_a) - carm.project(points_lps_mm, pose_b), axis=1).mean())
 
 
 @pytest.fixture()
@@ -417,3 +428,216 @@ def test_ui_parameter_names_match_the_parameter_node():
                 "${MODULE_NAME}Lib/logic.py"):
         assert rel in cmake
         assert (PLUGIN_DIR / rel.replace("${MODULE_NAME}", "GuidewireReconstruction")).is_file()
+
+
+def test_process_rejects_bad_inputs_before_running(hs, tmp_path):
+    core = L.GuidewireReconstructionCoreLogic(hs.scene)
+    with pytest.raises(InputError, match="scalar volume"):
+        core.process(cta_volume_node=None, roadmap=tmp_path / "x.dcm")
+    vol = L.volume_to_node(_oblique_volume(np.random.default_rng(8)), scene=hs.scene)
+    with pytest.raises(InputError, match="roadmap: give an XA"):
+        core.process(cta_volume_node=vol, roadmap="")
+    with pytest.raises(InputError, match="no such file"):
+        core.process(cta_volume_node=vol, roadmap=tmp_path / "missing.dcm")
+    with pytest.raises(ValueError, match="not a valid ReconMethod"):
+        core.process(cta_volume_node=vol, roadmap=tmp_path / "missing.dcm", method="nearest")
+    assert core.result is None
+
+
+# ------------------------------------------------------------------------------------------
+# End to end on the simulator's written case
+# ------------------------------------------------------------------------------------------
+SEGMENTER = SegMethod.RIDGE  # independent of trained weights; see the report for the UNet numbers
+
+
+def _parameters(**kw):
+    """What the module's parameter node holds (the wrapper's attributes), as a plain object."""
+    p = dict(ctaVolume=None, roadmapPath=Path("."), framesPath=Path("."), roadmapSequence=None, framesSequence=None,
+             seeds=None, roadmapFrame=-1, method="vessel", segmenter="unet", force=False, registrationTransform=None,
+             metricsTable=None, vesselModel=None)
+    p.update(kw)
+    return SimpleNamespace(**p)
+
+
+@pytest.fixture(scope="module")
+def e2e(small_case, small_case_dir, tmp_path_factory):
+    """The module logic run once on the written small case, as the Widget's Apply does.
+
+    The DICOM CT is loaded by vtkSlicerVolumesLogic; the XA files become sequence nodes; the
+    metrics table is a node the user picked beforehand.
+    """
+    home = tmp_path_factory.mktemp("slicer-home")
+    h = L.create_headless_scene(home_directory=home)
+    first = sorted((small_case_dir / "ct").iterdir())[0]
+    cta = h.logics["Volumes"].AddArchetypeVolume(str(first), "CTA", 0)
+    table = h.scene.AddNewNodeByClass("vtkMRMLTableNode", "my table")
+    p = _parameters(ctaVolume=cta, roadmapPath=small_case_dir / "roadmap.dcm", framesPath=small_case_dir / "frames.dcm",
+                    segmenter=SEGMENTER.value, metricsTable=table)
+    core = L.GuidewireReconstructionCoreLogic(h.scene, app_logic=h.app_logic)
+    summary = core.process_parameters(p)
+    yield SimpleNamespace(h=h, core=core, out=core.outputs, case=small_case, cta=cta, p=p, table=table,
+                          summary=summary, wires=list(core.wires3d), pose=core.registration.pose)
+    h.scene.Clear(1)
+
+
+def test_e2e_parameters_are_read_and_written_back(e2e):
+    p, out, case = e2e.p, e2e.out, e2e.case
+    assert out.table is e2e.table and p.metricsTable is e2e.table  # the user's node is filled
+    assert p.registrationTransform is out.transform and p.vesselModel is out.vessel_model
+    for seq, name in ((p.roadmapSequence, "roadmap.dcm"), (p.framesSequence, "frames.dcm")):
+        run = L.xa_from_sequence_node(seq)
+        np.testing.assert_array_equal(run.frames, io.read_xa(Path(p.roadmapPath).parent / name).frames)
+    n = case.frames.shape[0]
+    assert e2e.summary == f"Registration ok ({e2e.core.registration.mean_residual_px:.2f} px); {n}/{n} frames reconstructed."
+    e2e.core.set_transform_interaction(True)
+    assert out.transform.GetDisplayNode().GetEditorVisibility() == 1
+    e2e.core.set_transform_interaction(False)
+    assert out.transform.GetDisplayNode().GetEditorVisibility() == 0
+
+
+def _curve_errors(out, case) -> list[float]:
+    errors = []
+    for curve, fid in zip(out.wire_curves, out.frame_indices):
+        if curve.GetNumberOfControlPoints() < 2:
+            continue
+        est_ras = slicer.util.arrayFromMarkupsControlPoints(curve)
+        vis = np.asarray(case.wire_visible[fid], bool)
+        truth_ras = L.lps_to_ras(np.asarray(case.wire_lps_mm[fid])[vis])
+        errors.append(metrics.wire_errors_mm(est_ras, truth_ras)["mean_error_mm"])
+    return errors
+
+
+def test_e2e_browsing_the_frames_shows_each_frames_wire(e2e):
+    out, p = e2e.out, e2e.p
+    browser = e2e.core._browser_for(p.framesSequence)
+    assert browser.IsSynchronizedSequenceNodeID(out.wire_sequence.GetID(), False)
+    frames = L.xa_from_sequence_node(p.framesSequence).frames
+    for t, model in zip(out.frame_indices, out.wire_models):
+        browser.SetSelectedItemNumber(t)
+        e2e.core.update_proxies(browser)
+        proxy = browser.GetProxyNode(out.wire_sequence)
+        np.testing.assert_array_equal(_points(proxy), _points(model))
+        image = browser.GetProxyNode(p.framesSequence).GetImageData()
+        np.testing.assert_array_equal(vtk_to_numpy(image.GetPointData().GetScalars()).reshape(frames[t].shape), frames[t])
+    assert not any(m.GetDisplayNode().GetVisibility() for m in out.wire_models)  # the proxy shows the wire
+
+
+def test_e2e_wires_are_ras_and_match_truth(e2e):
+    out, case = e2e.out, e2e.case
+    assert e2e.core.registration.success
+    assert len(out.wire_curves) == len(out.wire_models) == case.frames.shape[0]
+    errors = _curve_errors(out, case)
+    assert len(errors) == case.frames.shape[0]  # every frame reconstructed
+    assert float(np.mean(errors)) <= MEAN_ERROR_TOL_MM
+    # the same numbers in LPS: the nodes are the library's wires converted once
+    for curve, model, w in zip(out.wire_curves, out.wire_models, e2e.wires):
+        np.testing.assert_allclose(L.ras_to_lps(slicer.util.arrayFromMarkupsControlPoints(curve)), w.points_lps_mm,
+                                   atol=FLOAT32_MM)
+        lo, hi = np.array(model.GetPolyData().GetBounds()).reshape(3, 2).T
+        ras = L.lps_to_ras(w.points_lps_mm)
+        assert np.all(lo <= ras.min(0)) and np.all(hi >= ras.max(0))
+    # the vessel surface (RAS) encloses the true centerline (converted to RAS)
+    bounds = np.array(out.vessel_model.GetPolyData().GetBounds()).reshape(3, 2)
+    tree_ras = L.lps_to_ras(case.tree.points_lps_mm)
+    assert np.mean(np.all((tree_ras >= bounds[:, 0] - 1.0) & (tree_ras <= bounds[:, 1] + 1.0), axis=1)) > 0.95
+
+
+def test_e2e_transform_matches_registration(e2e):
+    core, out, case = e2e.core, e2e.out, e2e.case
+    m = vtk.vtkMatrix4x4()
+    out.transform.GetMatrixTransformFromParent(m)
+    np.testing.assert_allclose(_matrix(m), L.lps_to_ras(core.registration.pose.matrix), atol=1e-9)
+    # the registered projection of the RAS tree, through the node's matrix, is the library's projection
+    T_ras = _matrix(m)
+    X_ras = L.lps_to_ras(case.tree.points_lps_mm)
+    room_lps = L.ras_to_lps(X_ras @ T_ras[:3, :3].T + T_ras[:3, 3])
+    np.testing.assert_allclose(case.carm.project(room_lps), core.result.carm.project(case.tree.points_lps_mm, core.registration.pose),
+                               atol=1e-6)
+    assert metrics.mtre_mm(core.registration.pose, case.pose, case.tree.points_lps_mm) < REGISTRATION_SANITY_MM
+    assert out.table.GetNumberOfRows() == case.frames.shape[0]
+
+
+def test_e2e_outputs_save_and_reload(e2e, tmp_path):
+    paths = e2e.core.save_outputs(tmp_path)
+    case = e2e.case
+    for curve in e2e.out.wire_curves:
+        path = tmp_path / f"{L._safe_name(curve.GetName())}.mrk.json"
+        back = e2e.h.scene.AddNewNodeByClass("vtkMRMLMarkupsCurveNode")
+        back.AddDefaultStorageNode()
+        back.GetStorageNode().SetFileName(str(path))
+        assert back.GetStorageNode().ReadData(back)
+        np.testing.assert_allclose(slicer.util.arrayFromMarkupsControlPoints(back),
+                                   slicer.util.arrayFromMarkupsControlPoints(curve), atol=FLOAT32_MM)
+    stl = next(p for p in paths if p.suffix == ".stl")
+    back = e2e.h.scene.AddNewNodeByClass("vtkMRMLModelNode")
+    back.AddDefaultStorageNode()
+    back.GetStorageNode().SetFileName(str(stl))
+    assert back.GetStorageNode().ReadData(back)
+    np.testing.assert_allclose(back.GetPolyData().GetBounds(), e2e.out.vessel_model.GetPolyData().GetBounds(), atol=1e-3)
+    assert len(_curve_errors(e2e.out, case)) == case.frames.shape[0]
+
+
+@pytest.mark.parametrize("method", list(ReconMethod))
+def test_e2e_every_method_writes_its_wires(e2e, method):
+    core = e2e.core
+    wires = core.update_wires(method=method)
+    for w, curve, model in zip(wires, core.outputs.wire_curves, core.outputs.wire_models):
+        n = curve.GetNumberOfControlPoints()
+        if w.success:
+            np.testing.assert_allclose(slicer.util.arrayFromMarkupsControlPoints(curve), L.lps_to_ras(w.points_lps_mm),
+                                       atol=FLOAT32_MM)
+        else:
+            assert n == 0 and model.GetPolyData().GetNumberOfPoints() == 0
+    t = core.outputs.table.GetTable()
+    assert [t.GetValueByName(i, "success").ToInt() for i in range(len(wires))] == [int(w.success) for w in wires]
+    if method is ReconMethod.VESSEL:
+        assert float(np.mean(_curve_errors(core.outputs, e2e.case))) <= MEAN_ERROR_TOL_MM
+    core.update_wires(method=ReconMethod.VESSEL)
+
+
+def test_e2e_refine_from_a_user_moved_transform(e2e):
+    """The clinician drags the C-arm off by 3 mm / 2 degrees; Refine brings it back and redoes the wires."""
+    core, out, case = e2e.core, e2e.out, e2e.case
+    reg0 = e2e.pose  # the automatic registration
+    pts = case.tree.points_lps_mm
+    nudge = Pose.exp([3.0, -2.0, 1.5, *np.radians([2.0, -1.0, 1.0])])
+    moved = nudge @ reg0
+    carm = core.result.carm
+    offset = _projection_offset_px(carm, moved, reg0, pts)
+    assert offset > 10.0
+    L.pose_to_transform_node(moved, out.transform)  # what the interaction handles do, in RAS
+    summary = core.refine_parameters(e2e.p)  # the Widget's Refine button
+    assert summary.startswith("Registration ok")
+    reg = core.registration
+    assert _projection_offset_px(carm, reg.pose, reg0, pts) < REFINE_CONTRACTION * offset  # back where it was
+    assert metrics.mtre_mm(reg.pose, case.pose, pts) < REGISTRATION_SANITY_MM
+    assert L.pose_from_transform_node(out.transform).allclose(reg.pose, atol_mm=1e-6, atol_rad=1e-9)
+    assert out.transform.GetAttribute("GuidewireReconstruction.Registration.Source") == "refined"
+    errors = _curve_errors(out, case)
+    assert len(errors) == case.frames.shape[0] and float(np.mean(errors)) <= MEAN_ERROR_TOL_MM
+    for curve, w in zip(out.wire_curves, core.wires3d):
+        np.testing.assert_allclose(slicer.util.arrayFromMarkupsControlPoints(curve), L.lps_to_ras(w.points_lps_mm),
+                                   atol=FLOAT32_MM)
+
+
+def test_e2e_failed_registration_then_manual_correction_and_refine(e2e):
+    """Registration failed: no wires. The clinician moves the C-arm close, presses Refine: wires appear."""
+    import dataclasses
+
+    case = e2e.case
+    failed = dataclasses.replace(e2e.core.result, registration=dataclasses.replace(
+        e2e.core.registration, success=False, message="synthetic failure"), wires2d=[], wires3d=[], reconstructed=False)
+    core = L.GuidewireReconstructionCoreLogic(e2e.h.scene, app_logic=e2e.h.app_logic)
+    out = core.show_result(failed, segmenter=SEGMENTER)
+    n = case.frames.shape[0]
+    assert [c.GetNumberOfControlPoints() for c in out.wire_curves] == [0] * n
+    assert out.transform.GetAttribute("GuidewireReconstruction.Registration.Success") == "False"
+    close = Pose.exp([1.5, -1.0, 1.0, *np.radians([1.0, 0.5, -0.5])]) @ e2e.pose
+    L.pose_to_transform_node(close, out.transform)
+    carm, pts = failed.carm, case.tree.points_lps_mm
+    offset = _projection_offset_px(carm, close, e2e.pose, pts)
+    reg = core.refine()
+    assert reg.success
+    assert _projection_offset_px(carm, reg.pose, e2e.pose, pts) < REFINE_CONTRACTION * offset
+    errors = _curve_errors(out, case)
+    assert len(errors) == n and float(np.mean(errors)) <= MEAN_ERROR_TOL_MM

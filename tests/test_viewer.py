@@ -130,6 +130,24 @@ def test_scene_bounds_and_point_counts(viewer, synth):
     assert h.overlay.centerline.n_cells == synth.tree.n_points - 1
 
 
+def test_update_wire_drops_repeated_points_and_keeps_their_uncertainty():
+    pl = sc.new_plotter(size_px=(64, 64), off_screen=True, two_views=False)
+    try:
+        h = sc.add_wire(pl, np.zeros((0, 3)), np.zeros(0))
+        assert not h.actor.GetVisibility()
+        pts = np.array([[0, 0, 0], [1, 0, 0], [1, 0, 0], [2, 1, 0], [3, 1, 1.0]])
+        unc = np.array([0.1, 0.2, 0.25, 0.3, 0.4])
+        pts_in, unc_in = pts.copy(), unc.copy()
+        sc.update_wire(h, pts, unc)
+        np.testing.assert_array_equal(pts, pts_in)  # inputs untouched
+        np.testing.assert_array_equal(unc, unc_in)
+        np.testing.assert_allclose(np.asarray(h.polyline.points), pts[[0, 1, 3, 4]])
+        np.testing.assert_allclose(h.polyline.point_data["uncertainty_mm"], unc[[0, 1, 3, 4]])
+        assert h.actor.GetVisibility() and h.polyline.n_cells == 1
+    finally:
+        pl.close()
+
+
 # --------------------------------------------------------------------------------------
 # scene: pixels
 # --------------------------------------------------------------------------------------
@@ -208,11 +226,70 @@ def test_2d_view_centerline_overlay_lies_on_the_dark_vessels(viewer, synth):
 # --------------------------------------------------------------------------------------
 # controller
 # --------------------------------------------------------------------------------------
+def _texture(h) -> np.ndarray:
+    from vtk.util.numpy_support import vtk_to_numpy
+
+    rows, cols = h.overlay.shape
+    return vtk_to_numpy(h.carm.texture_image.GetPointData().GetScalars())[:, 0].reshape(rows, cols)
+
+
+def test_roadmap_toggle_shows_the_registration_target(viewer, synth):
+    ctl, h = viewer
+    np.testing.assert_allclose(ctl.case.roadmap_image, synth.roadmap, atol=0.51)
+    ctl.set_frame(1)
+    assert ctl.toggle_roadmap() is True
+    np.testing.assert_array_equal(_texture(h), display_images_uint8(ctl.case.roadmap_image[None])[0])
+    assert h.overlay.roadmap_centerline_actor.GetVisibility()
+    assert h.overlay.wire2d.n_points == 0 and h.overlay.wire_proj.n_points == 0
+    np.testing.assert_allclose(np.asarray(h.overlay.roadmap_centerline.points)[:, :2],
+                               synth.centerline_uv_px * [1, -1], atol=1e-9)
+    assert "ROADMAP" in ctl.info_text()
+    assert ctl.toggle_roadmap() is False
+    np.testing.assert_array_equal(_texture(h), display_images_uint8(ctl.case.images)[1])
+    assert not h.overlay.roadmap_centerline_actor.GetVisibility()
+    assert h.overlay.wire2d.n_points == len(ctl.wire.wire_uv_px)
+
+
+def test_a_failed_frame_hides_the_tube_and_says_why(case_dir, synth):
+    rep = json.loads((case_dir / "report.json").read_text())
+    rep["frames"][1].update(success=False, message="wire misses the vessel tree", points_lps_mm=[],
+                            uncertainty_mm=[])
+    (case_dir / "report.json").write_text(json.dumps(rep))
+    ctl, h = open_viewer(case_dir, size_px=SIZE, off_screen=True)
+    try:
+        assert h.wire.actor.GetVisibility()
+        ctl.set_frame(1)
+        assert not h.wire.actor.GetVisibility() and h.wire.polyline.n_points == 0
+        assert "frame failed: wire misses the vessel tree" in ctl.info_text()
+        assert h.overlay.wire2d.n_points == len(synth.wires_lps_mm[1])  # the detected 2D wire is still shown
+        ctl.set_frame(2)
+        assert h.wire.actor.GetVisibility() and h.wire.polyline.n_points == len(synth.wires_lps_mm[2])
+    finally:
+        h.plotter.close()
+
+
+def test_case_without_wires_still_steps_through_the_frames(case_dir, synth):
+    rep = json.loads((case_dir / "report.json").read_text())
+    rep["frames"] = []
+    (case_dir / "report.json").write_text(json.dumps(rep))
+    ctl, h = open_viewer(case_dir, size_px=SIZE, off_screen=True)
+    try:
+        assert ctl.n_frames == len(synth.images) and ctl.wire is None
+        assert not h.wire.actor.GetVisibility()
+        assert ctl.set_frame(2) == 2
+        np.testing.assert_array_equal(_texture(h), display_images_uint8(ctl.case.images)[2])
+        assert "no reconstructed wires" in ctl.info_text()
+        with pytest.raises(InputError, match="no reconstructed wire to export"):
+            ctl.export(ExportKind.CURRENT_WIRE)
+    finally:
+        h.plotter.close()
+
+
 def test_set_frame_updates_the_tube_in_place(viewer, synth):
     ctl, h = viewer
     actor, tube, line = h.wire.actor, h.wire.tube, h.wire.polyline
     n_actors = h.renderer_3d.GetActors().GetNumberOfItems()
-    u8 = display_images_uint8(synth.images)
+    u8 = display_images_uint8(ctl.case.images)
     from vtk.util.numpy_support import vtk_to_numpy
 
     for k in (2, 3, 1):
@@ -328,9 +405,14 @@ def test_export_writes_models_that_read_back(viewer, synth, tmp_path, kind):
     if kind is ExportKind.VESSELS:
         assert sorted(p.name for p in paths) == ["vessels.stl", "vessels.vtp"]
         src = ex.read_polydata(synth.out_dir / "vessels.vtp")
+        src_pts = pv.wrap(src).points
         for p in paths:
             back = ex.read_polydata(p)
-            assert back.GetNumberOfPoints() == src.GetNumberOfPoints()
+            if p.suffix == ".vtp":
+                assert back.GetNumberOfPoints() == src.GetNumberOfPoints()
+            else:  # STL stores float32 triangles; the reader merges identical vertices
+                assert back.GetNumberOfPoints() == len(np.unique(src_pts.astype(np.float32), axis=0))
+                assert back.GetNumberOfCells() == pv.wrap(src).triangulate().n_cells
             np.testing.assert_allclose(back.GetBounds(), src.GetBounds(), atol=1e-4)
         return
     frames = [2] if kind is ExportKind.CURRENT_WIRE else [0, 1, 2, 3]
@@ -375,10 +457,39 @@ def test_cli_screenshot_and_errors(synth, tmp_path, capsys):
     assert cli.main(["view", str(synth.out_dir), "--screenshot", str(out), "--frame", "9"]) == 2
     assert "--frame: 9 is out of range" in capsys.readouterr().err
     assert cli.main(["view", str(tmp_path / "nothing")]) == 2
+    with pytest.MonkeyPatch.context() as mp:
+        mp.delenv("DISPLAY", raising=False)
+        mp.delenv("WAYLAND_DISPLAY", raising=False)
+        assert cli.main(["view", str(synth.out_dir)]) == 2
+        assert "no display" in capsys.readouterr().err
     assert cli.main(["view"]) == 2
     assert parse_size("1200x800") == (1200, 800)
     with pytest.raises(InputError, match="--size"):
         parse_size("3x3")
+
+
+def test_cli_runs_the_pipeline_first_with_inputs(synth, tmp_path, monkeypatch, capsys):
+    import cv2
+
+    from guidewire3d import pipeline
+
+    calls = []
+
+    def fake_run_to_outdir(cta, roadmap, frames, out_dir, **kw):
+        calls.append((cta, roadmap, frames, Path(out_dir)))
+        shutil.copytree(synth.out_dir, out_dir)
+
+    monkeypatch.setattr(pipeline, "run_to_outdir", fake_run_to_outdir)
+    out_dir, shot = tmp_path / "new_out", tmp_path / "shot.png"
+    rc = cli.main(["view", str(out_dir), "--cta", "ct_dir", "--roadmap", "r.dcm", "--frames", "f.dcm",
+                   "--screenshot", str(shot), "--size", "400x300"])
+    assert rc == 0 and calls == [("ct_dir", "r.dcm", "f.dcm", out_dir)]
+    assert cv2.imread(str(shot)).shape == (300, 400, 3)
+    assert cli.main(["view", "--cta", "ct_dir", "--screenshot", str(shot)]) == 2
+    assert "--roadmap, --frames missing" in capsys.readouterr().err
+    monkeypatch.delattr(pipeline, "run_to_outdir")
+    assert cli.main(["view", str(tmp_path / "o2"), "--cta", "c", "--roadmap", "r", "--frames", "f"]) == 2
+    assert "run_to_outdir is not available" in capsys.readouterr().err
 
 
 # --------------------------------------------------------------------------------------

@@ -34,6 +34,7 @@ class SyntheticCase:
     wires_lps_mm: tuple
     uncertainty_mm: tuple
     images: np.ndarray
+    roadmap: np.ndarray
 
 
 def make_tree(*, centre_lps_mm=(12.0, -160.0, 1040.0)) -> VesselTree:
@@ -91,6 +92,9 @@ def render_frames(tree, carm, pose, wires_lps_mm, *, seed: int = 0) -> np.ndarra
     vessel = VESSEL_CONTRAST * np.sqrt(depth)
     frames = []
     for w in wires_lps_mm:
+        if w is None:  # the contrast roadmap: vessels only, fully opacified
+            frames.append((BACKGROUND - 1.6 * vessel + rng.normal(0.0, 15.0, size=len(grid))).reshape(rows, cols))
+            continue
         wuv = carm.project(resample_polyline(w, 0.2), pose)
         dw, _ = cKDTree(wuv).query(grid)
         wire = WIRE_CONTRAST * np.clip(1.5 - dw, 0.0, 1.0)
@@ -131,6 +135,9 @@ def write_synthetic_outdir(root, *, n_frames: int = 4, shape=(240, 320), primary
     images = render_frames(tree, carm, pose, wires, seed=seed)
     frames_path = root / "frames.dcm"
     io.write_xa(frames_path, images, carm)
+    roadmap = render_frames(tree, carm, pose, [None], seed=seed + 1)
+    roadmap_path = root / "roadmap.dcm"
+    io.write_xa(roadmap_path, roadmap, carm)
 
     pts, rad = _dense_centerline(tree, 0.5)
     cl_uv, z = carm.project(pts, pose, return_depth=True)
@@ -162,7 +169,7 @@ def write_synthetic_outdir(root, *, n_frames: int = 4, shape=(240, 320), primary
     P = carm.projection_matrix(pose)
     report = {
         "version": 1,
-        "inputs": {"cta": str(root / "cta"), "roadmap": str(frames_path), "frames": str(frames_path),
+        "inputs": {"cta": str(root / "cta"), "roadmap": str(roadmap_path), "frames": str(frames_path),
                    "roadmap_frame": 0, "series_uid": "1.2.3"},
         "carm": carm.to_dict(), "frames_carm": carm.to_dict(), "pose": pose.matrix.tolist(),
         "projection_matrix": P.tolist(), "registration": reg, "frames": frames, "timing": {"total": 0.0},
@@ -171,7 +178,7 @@ def write_synthetic_outdir(root, *, n_frames: int = 4, shape=(240, 320), primary
     (out / "registration.json").write_text(json.dumps({
         "pose": pose.matrix.tolist(), "automatic_pose": pose.matrix.tolist(), "projection_matrix": P.tolist(),
         "carm": carm.to_dict(), "source": "automatic", "registration": reg}))
-    return SyntheticCase(out, frames_path, carm, pose, tree, cl_uv, tuple(wires), tuple(uncs), images)
+    return SyntheticCase(out, frames_path, carm, pose, tree, cl_uv, tuple(wires), tuple(uncs), images, roadmap[0])
 
 
 if __name__ == "__main__":

@@ -14,7 +14,7 @@ from guidewire3d.errors import Guidewire3DError, InputError
 __all__ = ["parse_size", "open_viewer", "render_outdir_screenshot", "run_interactive", "cli_main", "KEYS"]
 
 DEFAULT_SIZE = (1200, 800)
-PLAY_INTERVAL_MS = 66
+PLAY_INTERVAL_MS = 50
 
 
 def parse_size(text) -> tuple[int, int]:
@@ -59,6 +59,7 @@ def open_viewer(out_dir, *, size_px=DEFAULT_SIZE, off_screen: bool = False, fram
         pl, carm=case.frames_carm, pose=case.pose, vessels=vessels, tree=case.tree,
         wire_points_lps_mm=None if w0 is None else w0.points_lps_mm,
         wire_uncertainty_mm=None if w0 is None else w0.uncertainty_mm,
+        roadmap_centerline_uv_px=case.centerline_uv_px,
     )
     ctl = ViewerController(case, handles, persist=persist)
     if frame:
@@ -73,7 +74,7 @@ def render_outdir_screenshot(out_dir, path, *, frame: int | None = None, size=DE
     ctl, handles = open_viewer(out_dir, size_px=parse_size(size), off_screen=True, frame=int(frame or 0),
                                persist=False)
     try:
-        return ctl.screenshot(path)
+        return ctl.screenshot(path, announce=False)
     finally:
         handles.plotter.close()
 
@@ -87,6 +88,7 @@ def _keys():
         "N": ("previous frame", lambda c: c.previous_frame()),
         "space": ("play / pause", lambda c: c.toggle_play()),
         "g": ("coarse / fine step", lambda c: c.toggle_step()),
+        "a": ("roadmap / live frame in the 2D view", lambda c: c.toggle_roadmap()),
         "j": ("move -u", lambda c: c.nudge(Axis.U, -1)),
         "l": ("move +u", lambda c: c.nudge(Axis.U, +1)),
         "i": ("move -v (up)", lambda c: c.nudge(Axis.V, -1)),
@@ -102,11 +104,17 @@ def _keys():
         "o": ("refine (LM) from this pose", lambda c: c.refine()),
         "0": ("reset to the automatic pose", lambda c: c.reset()),
         "Return": ("apply: reconstruct all frames with this pose", lambda c: c.apply()),
-        "c": ("screenshot PNG", lambda c: c.screenshot()),
+        "c": ("screenshot PNG (window size)", lambda c: c.screenshot()),
+        "h": ("screenshot PNG at twice the window size", lambda c: c.screenshot(size_px=_twice(c))),
         "t": ("export the current wire (STL+VTP)", lambda c: c.export(ExportKind.CURRENT_WIRE)),
         "T": ("export all wires", lambda c: c.export(ExportKind.ALL_WIRES)),
         "V": ("export the vessels", lambda c: c.export(ExportKind.VESSELS)),
     }
+
+
+def _twice(ctl) -> tuple[int, int]:
+    w, h = ctl.window_size_px
+    return 2 * w, 2 * h
 
 
 KEYS = tuple(_keys())
@@ -121,6 +129,7 @@ class _App:
         self.pl = handles.plotter
         self.frame_slider = None
         self.pose_sliders = {}
+        self._slider_states = {}
 
     def safe(self, fn):
         def run():
@@ -133,6 +142,10 @@ class _App:
         return run
 
     def sync_widgets(self):
+        if self.ctl.pose_source == "automatic":  # after a reset the slider offsets start again at 0
+            for name, w in self.pose_sliders.items():
+                self._slider_states[name]["last"] = 0.0
+                w.GetRepresentation().SetValue(0.0)
         if self.frame_slider is not None:
             rep = self.frame_slider.GetRepresentation()
             if int(round(rep.GetValue())) != self.ctl.frame_index:
@@ -157,8 +170,8 @@ class _App:
                 on_frame, [0, n - 1], value=self.ctl.frame_index, title="frame", pointa=(0.06, 0.07),
                 pointb=(0.44, 0.07), interaction_event="always", fmt="%.0f", style="modern", title_height=0.02)
         self.pl.subplot(0, 1)
-        self._add_pose_slider("u", "U", (0.56, 0.17), (0.76, 0.17), 20.0)
-        self._add_pose_slider("v", "V", (0.78, 0.17), (0.98, 0.17), 20.0)
+        self._add_pose_slider("u", "U", (0.56, 0.21), (0.76, 0.21), 20.0)
+        self._add_pose_slider("v", "V", (0.78, 0.21), (0.98, 0.21), 20.0)
         self._add_pose_slider("depth", "BEAM", (0.56, 0.08), (0.76, 0.08), 60.0)
         self._add_pose_slider("rot beam", "ROT_BEAM", (0.78, 0.08), (0.98, 0.08), 10.0)
         self.pl.subplot(0, 0)
@@ -168,6 +181,7 @@ class _App:
         from guidewire3d.viewer.controller import Axis
 
         state = {"last": 0.0}
+        self._slider_states[axis_name] = state
 
         def on_change(value):
             delta = float(value) - state["last"]
@@ -205,6 +219,12 @@ class _App:
 
 def run_interactive(out_dir, *, size_px=DEFAULT_SIZE, frame: int = 0) -> int:
     """Open the viewer window on ``out_dir`` and block until it is closed."""
+    import sys
+
+    if sys.platform.startswith("linux") and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
+        raise InputError("view: no display (DISPLAY is not set); use --screenshot PATH, or run under xvfb-run")
+    if os.environ.get("VTK_DEFAULT_OPENGL_WINDOW") == "vtkEGLRenderWindow":
+        del os.environ["VTK_DEFAULT_OPENGL_WINDOW"]  # EGL renders offscreen only; a window needs X
     ctl, handles = open_viewer(out_dir, size_px=size_px, off_screen=False, frame=frame)
     app = _App(ctl, handles)
     app.bind()
@@ -213,10 +233,9 @@ def run_interactive(out_dir, *, size_px=DEFAULT_SIZE, frame: int = 0) -> int:
 
 
 def _run_pipeline(args) -> Path:
-    try:
-        from guidewire3d.pipeline import run_to_outdir
-    except ImportError:
-        run_to_outdir = None
+    from guidewire3d import pipeline
+
+    run_to_outdir = getattr(pipeline, "run_to_outdir", None)
     if run_to_outdir is None:
         raise Guidewire3DError("view --cta/--roadmap/--frames: guidewire3d.pipeline.run_to_outdir is not available yet")
     missing = [f"--{n}" for n in ("cta", "roadmap", "frames") if not getattr(args, n, None)]

@@ -68,6 +68,9 @@ class ViewerController:
         self._original_wires = case.wires
         self._wires_pose = case.automatic_pose  # report.json wires come from the automatic registration
         self._images_u8 = display_images_uint8(case.images) if case.images is not None else None
+        self._roadmap_u8 = (display_images_uint8(case.roadmap_image[None])[0]
+                            if case.roadmap_image is not None else None)
+        self._show_roadmap = False
         self._residual_cache: tuple[Pose, float] | None = None
         if case.messages:
             self._status = "; ".join(case.messages)
@@ -110,7 +113,22 @@ class ViewerController:
 
     @property
     def wire(self) -> WireFrame | None:
-        return self._case.wires[self._frame] if self._case.wires else None
+        """The reconstructed wire at the current position (None when the case has no wires)."""
+        return self._case.wires[self._frame] if self._frame < len(self._case.wires) else None
+
+    @property
+    def window_size_px(self) -> tuple[int, int]:
+        """The scene's window size ``(w, h)`` (``(0, 0)`` without a scene)."""
+        return tuple(int(v) for v in self._scene.plotter.window_size) if self._scene is not None else (0, 0)
+
+    @property
+    def showing_roadmap(self) -> bool:
+        return self._show_roadmap
+
+    @property
+    def view_carm(self):
+        """The C-arm of what the 2D view shows: the roadmap's when it is shown, else the live frames'."""
+        return self._case.carm if self._show_roadmap else self._case.frames_carm
 
     @property
     def wires_stale(self) -> bool:
@@ -123,7 +141,7 @@ class ViewerController:
 
     # --- frames -----------------------------------------------------------------------
     def set_frame(self, k: int) -> int:
-        """Show frame ``k`` (clamped to the range); the wire tube and the texture change in place."""
+        """Show frame position ``k`` (clamped); the wire tube and the texture change in place."""
         n = self.n_frames
         if n == 0:
             self._frame = 0
@@ -134,13 +152,39 @@ class ViewerController:
         if self._scene is not None:
             from guidewire3d.viewer import scene as sc
 
-            w = self._case.wires[k]
-            sc.update_wire(self._scene.wire, w.points_lps_mm, w.uncertainty_mm)
-            if self._images_u8 is not None and w.index < len(self._images_u8):
-                sc.set_frame_image(self._scene, self._images_u8[w.index])
+            w = self.wire
+            if w is not None:
+                sc.update_wire(self._scene.wire, w.points_lps_mm, w.uncertainty_mm)
+            self._refresh_image()
             self._refresh_overlay_wire()
             self._refresh_text()
         return k
+
+    def _refresh_image(self) -> None:
+        if self._scene is None:
+            return
+        from guidewire3d.viewer import scene as sc
+
+        if self._show_roadmap and self._roadmap_u8 is not None:
+            sc.set_frame_image(self._scene, self._roadmap_u8)
+            return
+        idx = self._case.frame_indices[self._frame] if self.n_frames else 0
+        if self._images_u8 is not None and idx < len(self._images_u8):
+            sc.set_frame_image(self._scene, self._images_u8[idx])
+
+    def toggle_roadmap(self) -> bool:
+        """Show the contrast roadmap (what the registration matched) instead of the live frame, or back."""
+        if self._roadmap_u8 is None and not self._show_roadmap:
+            self._say("no roadmap image available")
+            return False
+        self._show_roadmap = not self._show_roadmap
+        ov = self._scene.overlay if self._scene is not None else None
+        if ov is not None and ov.roadmap_centerline_actor is not None:
+            ov.roadmap_centerline_actor.SetVisibility(self._show_roadmap)
+        self._refresh_pose()
+        self._refresh_image()
+        self._say("showing the roadmap" if self._show_roadmap else "showing the live frames")
+        return self._show_roadmap
 
     def next_frame(self, *, wrap: bool = True) -> int:
         n = max(self.n_frames, 1)
@@ -174,7 +218,7 @@ class ViewerController:
         amount = float(mm) if mm is not None else float(steps) * STEP_MM[self._step]
         t = np.zeros(3)
         t[axis.value] = amount
-        pose = registration.nudge(self.pose, self._case.frames_carm, centroid_lps_mm=self._case.centroid_lps_mm,
+        pose = registration.nudge(self.pose, self.view_carm, centroid_lps_mm=self._case.centroid_lps_mm,
                                   translate_mm=tuple(t), rotate_deg=(0.0, 0.0, 0.0))
         self._set_pose(pose, "manual", f"moved {amount:+.2f} mm along {axis.name.lower()}")
         return pose
@@ -187,7 +231,7 @@ class ViewerController:
         amount = float(deg) if deg is not None else float(steps) * STEP_DEG[self._step]
         r = np.zeros(3)
         r[axis.value] = amount
-        pose = registration.nudge(self.pose, self._case.frames_carm, centroid_lps_mm=self._case.centroid_lps_mm,
+        pose = registration.nudge(self.pose, self.view_carm, centroid_lps_mm=self._case.centroid_lps_mm,
                                   translate_mm=(0.0, 0.0, 0.0), rotate_deg=tuple(r))
         self._set_pose(pose, "manual", f"rotated {amount:+.2f} deg about {axis.name.lower()}")
         return pose
@@ -285,9 +329,12 @@ class ViewerController:
         self._case = self._case.with_pose(pose, source=source)
         saved = ""
         if self._persist:
-            p = save_registration(self._case.out_dir, pose, source=source, carm=self._case.carm,
-                                  automatic_pose=self._case.automatic_pose, registration=self._case.registration)
-            saved = f"; pose saved to {p}"
+            try:
+                p = save_registration(self._case.out_dir, pose, source=source, carm=self._case.carm,
+                                      automatic_pose=self._case.automatic_pose, registration=self._case.registration)
+                saved = f"; pose saved to {p}"
+            except OSError as e:
+                saved = f"; pose NOT saved ({e.__class__.__name__}: {e})"
         self._refresh_pose()
         self._say(what + saved)
 
@@ -297,29 +344,44 @@ class ViewerController:
             return
         from guidewire3d.viewer import scene as sc
 
-        sc.update_carm(self._scene.carm, self._case.frames_carm, self.pose)
+        sc.update_carm(self._scene.carm, self.view_carm, self.pose)
         if self._scene.overlay is not None and self._case.tree is not None:
             sc.update_overlay(self._scene.overlay,
-                              centerline_uv_px=self._case.frames_carm.project(self._case.tree.points_lps_mm, self.pose))
+                              centerline_uv_px=self.view_carm.project(self._case.tree.points_lps_mm, self.pose))
         self._refresh_overlay_wire()
         self._refresh_text()
 
     def _refresh_overlay_wire(self) -> None:
-        if self._scene is None or self._scene.overlay is None or not self._case.wires:
+        if self._scene is None or self._scene.overlay is None:
             return
         from guidewire3d.viewer import scene as sc
 
-        w = self._case.wires[self._frame]
+        w = self.wire
+        if w is None or self._show_roadmap:
+            sc.update_overlay(self._scene.overlay, wire_uv_px=np.zeros((0, 2)), wire_proj_uv_px=np.zeros((0, 2)))
+            return
         proj = self._case.frames_carm.project(w.points_lps_mm, self.pose) if len(w.points_lps_mm) else np.zeros((0, 2))
         sc.update_overlay(self._scene.overlay, wire_uv_px=w.wire_uv_px, wire_proj_uv_px=proj)
 
     def info_text(self) -> str:
         w = self.wire
         res = self.residual_px()
-        parts = [f"frame {self._frame + 1}/{self.n_frames}" + (" (playing)" if self._playing else "")]
+        if self._show_roadmap:
+            parts = ["ROADMAP (cyan: its 2D centerline; a: back to live)"]
+        elif self.n_frames:
+            idx = self._case.frame_indices[self._frame]
+            parts = [f"frame {idx} [{self._frame + 1} of {self.n_frames}]" + (" (playing)" if self._playing else "")]
+        else:
+            parts = ["no live frames"]
+        if not self._case.wires:
+            parts.append("no reconstructed wires in this folder")
         parts.append(f"residual {res:.2f} px" if np.isfinite(res) else "residual n/a")
         parts.append(f"pose {self.pose_source}" + (" (wires stale: Return)" if self.wires_stale else ""))
+        reg = self._case.registration
+        if self.pose_source == "automatic" and reg and not reg.get("success", True):
+            parts.append("AUTOMATIC REGISTRATION FAILED: check the overlay, correct, refine (o)")
         parts.append(f"step {self._step.value} ({STEP_MM[self._step]:g} mm / {STEP_DEG[self._step]:g} deg)")
+        parts.append("yellow: CTA centerline; magenta: 2D wire; green: 3D wire")
         if w is not None:
             if len(w.points_lps_mm) > 1:
                 parts.append(f"wire {w.length_mm:.1f} mm, max unc. {np.max(w.uncertainty_mm):.2f} mm"
@@ -366,7 +428,7 @@ class ViewerController:
         self._say(f"exported {len(written)} files to {out}")
         return written
 
-    def screenshot(self, path=None, *, size_px=None) -> Path:
+    def screenshot(self, path=None, *, size_px=None, announce: bool = True) -> Path:
         """Render the current view to a PNG (at ``size_px=(w, h)`` if given) and return its path."""
         if self._scene is None:
             raise InputError("screenshot needs a scene (the controller was built without one)")
@@ -376,7 +438,8 @@ class ViewerController:
         path.parent.mkdir(parents=True, exist_ok=True)
         pl = self._scene.plotter
         old = tuple(pl.window_size)
-        self._say(f"screenshot: {path}")
+        if announce:
+            self._say(f"screenshot: {path}")
         if size_px is not None:
             pl.window_size = tuple(int(s) for s in size_px)
         if self._scene.renderer_2d is not None:

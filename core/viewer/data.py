@@ -91,6 +91,8 @@ class ViewerCase:
         One per live frame, in frame order.
     images : (T, rows, cols) ndarray of float32 or None
         The live frames (read from ``inputs.frames``), None if that file is unavailable.
+    roadmap_image : (rows, cols) ndarray of float32 or None
+        The contrast roadmap frame the registration used (``inputs.roadmap``, ``roadmap_frame``).
     vessels_path, centerline_path : Path or None
     messages : tuple of str
         Non-fatal problems found while loading (missing optional files).
@@ -111,10 +113,20 @@ class ViewerCase:
     centerline_path: Path | None
     inputs: dict
     messages: tuple[str, ...] = ()
+    roadmap_image: np.ndarray | None = None
+
+    @property
+    def frame_indices(self) -> tuple[int, ...]:
+        """Live-frame indices the viewer steps through: the reconstructed ones, else every image."""
+        if self.wires:
+            return tuple(int(w.index) for w in self.wires)
+        if self.images is not None:
+            return tuple(range(len(self.images)))
+        return ()
 
     @property
     def n_frames(self) -> int:
-        return len(self.wires)
+        return len(self.frame_indices)
 
     @property
     def centroid_lps_mm(self) -> np.ndarray:
@@ -246,8 +258,8 @@ def load_outdir(out_dir, *, load_images: bool = True) -> ViewerCase:
 
     inputs = dict(report.get("inputs") or {})
     images = None
+    fpath = inputs.get("frames")
     if load_images:
-        fpath = inputs.get("frames")
         if fpath and Path(fpath).is_file():
             run = io.read_xa(fpath)
             if tuple(run.frames.shape[1:]) != frames_carm.shape:
@@ -255,6 +267,18 @@ def load_outdir(out_dir, *, load_images: bool = True) -> ViewerCase:
             images = run.frames
         else:
             msgs.append(f"live frames not found ({fpath}): detector shown blank")
+    roadmap_image = None
+    if load_images:
+        rpath = inputs.get("roadmap")
+        k = int(inputs.get("roadmap_frame", 0) or 0)
+        if rpath and fpath and Path(rpath).resolve() == Path(fpath).resolve() and images is not None:
+            roadmap_image = images[min(k, len(images) - 1)]
+        elif rpath and Path(rpath).is_file():
+            road = io.read_xa(rpath)
+            if tuple(road.frames.shape[1:]) == carm.shape:
+                roadmap_image = road.frames[min(k, len(road.frames) - 1)]
+            else:
+                msgs.append(f"roadmap {rpath}: size {road.frames.shape[1:]} differs from carm {carm.shape}")
     if images is not None and wires and len(images) < max(w.index for w in wires) + 1:
         msgs.append(f"only {len(images)} live frames for frame indices up to {max(w.index for w in wires)}")
 
@@ -278,6 +302,7 @@ def load_outdir(out_dir, *, load_images: bool = True) -> ViewerCase:
         centerline_path=centerline,
         inputs=inputs,
         messages=tuple(msgs),
+        roadmap_image=roadmap_image,
     )
 
 

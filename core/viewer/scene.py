@@ -51,6 +51,7 @@ VESSEL_COLOR = (0.9, 0.75, 0.72)
 CENTERLINE_2D_COLOR = (1.0, 0.85, 0.1)
 WIRE_2D_COLOR = (1.0, 0.2, 0.8)
 WIRE_PROJ_COLOR = (0.2, 1.0, 0.4)
+ROADMAP_CENTERLINE_COLOR = (0.1, 0.85, 1.0)
 FRUSTUM_COLOR = (0.55, 0.75, 1.0)
 BACKGROUND_3D = (0.08, 0.09, 0.12)
 BACKGROUND_2D = (0.0, 0.0, 0.0)
@@ -160,6 +161,8 @@ class Overlay2DHandles:
     wire_proj: object
     wire_proj_actor: object
     shape: tuple[int, int]
+    roadmap_centerline: object = None  # pyvista.PolyData points: the 2D roadmap centerline (registration target)
+    roadmap_centerline_actor: object = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -208,15 +211,20 @@ def _renderer(plotter, index: int):
 # --------------------------------------------------------------------------------------
 # 3D content
 # --------------------------------------------------------------------------------------
-def add_vessels(plotter, surface, *, opacity: float = 0.22, color=VESSEL_COLOR):
-    """The vessel surface (LPS mm), semi-transparent. Returns the actor."""
+def add_vessels(plotter, surface, *, opacity: float = 0.35, color=VESSEL_COLOR, max_triangles: int = 60000):
+    """The vessel surface (LPS mm), semi-transparent (decimated above ``max_triangles``). Returns the actor."""
     import pyvista as pv
 
-    mesh = pv.wrap(surface)
-    mesh = mesh.copy(deep=False)
+    mesh = pv.wrap(surface).copy(deep=False)
     mesh.clear_data()
-    return plotter.add_mesh(mesh, color=color, opacity=opacity, smooth_shading=True, specular=0.2,
-                            name="vessels", reset_camera=False)
+    mesh = mesh.triangulate()
+    if mesh.n_cells > max_triangles:  # display only: software rendering is fill/vertex bound
+        mesh = mesh.decimate_pro(1.0 - max_triangles / mesh.n_cells, preserve_topology=True)
+    actor = plotter.add_mesh(mesh, color=color, opacity=opacity, smooth_shading=True, specular=0.2,
+                             ambient=0.35, diffuse=0.7, name="vessels", reset_camera=False)
+    # one translucent layer (front faces) reads better and halves the blending work
+    actor.GetProperty().BackfaceCullingOn()
+    return actor
 
 
 def add_centerline(plotter, tree, *, line_width: float = 2.0, show_scalar_bar: bool = True):
@@ -224,7 +232,7 @@ def add_centerline(plotter, tree, *, line_width: float = 2.0, show_scalar_bar: b
     import pyvista as pv
 
     poly = pv.wrap(tree.to_polydata())
-    sb = dict(title="vessel radius (mm)", vertical=False, position_x=0.55, position_y=0.90, width=0.4, height=0.06,
+    sb = dict(title="vessel radius (mm)", vertical=False, position_x=0.60, position_y=0.90, width=0.36, height=0.06,
               n_labels=3, fmt="%.1f", label_font_size=12, title_font_size=12)
     return plotter.add_mesh(poly, scalars="radius_mm", cmap=RADIUS_CMAP, line_width=line_width,
                             render_lines_as_tubes=False, show_scalar_bar=show_scalar_bar, scalar_bar_args=sb,
@@ -254,8 +262,8 @@ def add_wire(plotter, points_lps_mm, uncertainty_mm, *, radius_mm: float = WIRE_
     tube.SetNumberOfSides(int(sides))
     tube.CappingOn()
     tube.SetVaryRadiusToVaryRadiusOff()
-    sb = dict(title="uncertainty (mm)", vertical=True, position_x=0.84, position_y=0.22, width=0.07,
-              height=0.45, n_labels=5, fmt="%.1f", label_font_size=12, title_font_size=12)
+    sb = dict(title="wire uncertainty (mm)", vertical=False, position_x=0.60, position_y=0.78, width=0.36,
+              height=0.06, n_labels=5, fmt="%.1f", label_font_size=12, title_font_size=12)
     # our own mapper on the tube's output port, so a changed polyline re-runs the tube at render time
     from pyvista.plotting.mapper import DataSetMapper
 
@@ -399,7 +407,8 @@ def update_carm(handles: CArmHandles, carm: CArm, pose: Pose) -> None:
 # --------------------------------------------------------------------------------------
 # 2D content
 # --------------------------------------------------------------------------------------
-def add_overlay_2d(plotter, shape, *, texture, centerline_edges=None, line_width: float = 2.0) -> Overlay2DHandles:
+def add_overlay_2d(plotter, shape, *, texture, centerline_edges=None, roadmap_centerline_uv_px=None,
+                   line_width: float = 2.0) -> Overlay2DHandles:
     """The 2D view in the current subplot: the frame (shared texture) and empty overlays.
 
     Parameters
@@ -409,6 +418,8 @@ def add_overlay_2d(plotter, shape, *, texture, centerline_edges=None, line_width
         From ``make_image_texture`` (shared with the detector plane so one update changes both).
     centerline_edges : (E, 2) int array, optional
         Point-index pairs of the projected centerline (the tree's edges).
+    roadmap_centerline_uv_px : (M, 2) array, optional
+        The 2D roadmap centerline (what the registration matched), drawn as points, hidden at first.
     """
     import pyvista as pv
 
@@ -434,7 +445,12 @@ def add_overlay_2d(plotter, shape, *, texture, centerline_edges=None, line_width
     _set_polyline(wp, np.zeros((0, 3)))
     wp_actor = plotter.add_mesh(wp, color=WIRE_PROJ_COLOR, line_width=line_width, name="wire_proj",
                                 lighting=False, reset_camera=False)
-    return Overlay2DHandles(img, img_actor, cl, cl_actor, w2, w2_actor, wp, wp_actor, (rows, cols))
+    rc = pv.PolyData(_uv_to_plane(np.zeros((0, 2)) if roadmap_centerline_uv_px is None else roadmap_centerline_uv_px,
+                                  Z_OVERLAY_2D[0] - 0.25))
+    rc_actor = plotter.add_mesh(rc, color=ROADMAP_CENTERLINE_COLOR, point_size=2.0, style="points",
+                                name="roadmap_centerline", lighting=False, reset_camera=False)
+    rc_actor.SetVisibility(False)
+    return Overlay2DHandles(img, img_actor, cl, cl_actor, w2, w2_actor, wp, wp_actor, (rows, cols), rc, rc_actor)
 
 
 def update_overlay(handles: Overlay2DHandles, *, centerline_uv_px=None, wire_uv_px=None, wire_proj_uv_px=None) -> None:
@@ -511,7 +527,7 @@ def beams_eye_camera(renderer, carm: CArm, pose: Pose) -> None:
     _mark_camera_set(renderer)
 
 
-def overview_camera(renderer, carm: CArm, pose: Pose, focus_bounds, *, margin: float = 1.7) -> None:
+def overview_camera(renderer, carm: CArm, pose: Pose, focus_bounds, *, margin: float = 1.4) -> None:
     """Look at the vessels over the X-ray source's shoulder, the textured detector behind them.
 
     The view direction is the beam turned about 35 degrees toward the image columns and a little
@@ -591,17 +607,19 @@ def world_to_display_px(renderer, points) -> np.ndarray:
 # the whole scene
 # --------------------------------------------------------------------------------------
 HELP = (
-    "n/N frame +/-   space play   g coarse/fine\n"
+    "n/N frame +/-   space play   a roadmap\n"
+    "g coarse/fine step\n"
     "j/l  i/k  d/D   move u / v / depth\n"
     "x/X y/Y z/Z     rotate about u / v / beam\n"
     "o refine  0 reset  Return apply\n"
-    "c screenshot  t/T wire(s)  V vessels\n"
+    "c/h screenshot (x1/x2)  t/T wire(s)  V vessels\n"
     "7 beam's-eye  8 overview"
 )
 
 
 def build_scene(plotter, *, carm: CArm, pose: Pose, image_u8=None, vessels=None, tree=None,
-                wire_points_lps_mm=None, wire_uncertainty_mm=None, show_help: bool = True) -> SceneHandles:
+                wire_points_lps_mm=None, wire_uncertainty_mm=None, roadmap_centerline_uv_px=None,
+                show_help: bool = True) -> SceneHandles:
     """Add every actor of the viewer to ``plotter`` and return the handles.
 
     With a ``(1, 2)`` plotter the 3D view is subplot ``(0, 0)`` and the 2D view ``(0, 1)``;
@@ -620,6 +638,9 @@ def build_scene(plotter, *, carm: CArm, pose: Pose, image_u8=None, vessels=None,
         The first wire to show.
     """
     two = tuple(plotter.shape) == (1, 2)
+    for r in plotter.renderers:
+        # plain alpha blending: order-independent transparency doubles the render time in software GL
+        r.SetUseOIT(False)
     plotter.subplot(0, 0)
     r3 = _renderer(plotter, 0)
     r3.SetBackground(*BACKGROUND_3D)
@@ -643,7 +664,7 @@ def build_scene(plotter, *, carm: CArm, pose: Pose, image_u8=None, vessels=None,
         lo, hi = tree.points_lps_mm.min(0), tree.points_lps_mm.max(0)
         fb = (lo[0], hi[0], lo[1], hi[1], lo[2], hi[2])
     else:
-        c = carm.source_lps_mm(pose) * 0 + pose.inverse().apply(np.zeros(3))
+        c = pose.inverse().apply(np.zeros(3))  # the isocentre
         fb = (c[0] - 50, c[0] + 50, c[1] - 50, c[1] + 50, c[2] - 50, c[2] + 50)
     overview_camera(r3, carm, pose, fb)
 
@@ -654,7 +675,8 @@ def build_scene(plotter, *, carm: CArm, pose: Pose, image_u8=None, vessels=None,
         r2 = _renderer(plotter, 1)
         r2.SetBackground(*BACKGROUND_2D)
         edges = tree.edges if tree is not None else None
-        overlay = add_overlay_2d(plotter, carm.shape, texture=texture, centerline_edges=edges)
+        overlay = add_overlay_2d(plotter, carm.shape, texture=texture, centerline_edges=edges,
+                                 roadmap_centerline_uv_px=roadmap_centerline_uv_px)
         if tree is not None:
             update_overlay(overlay, centerline_uv_px=carm.project(tree.points_lps_mm, pose))
         info = add_text(r2, "", top=True, font_size=13)

@@ -22,7 +22,7 @@ try:  # provided only by the Slicer application (Qt)
         ScriptedLoadableModuleTest,
         ScriptedLoadableModuleWidget,
     )
-    from slicer.parameterNodeWrapper import Choice, parameterNodeWrapper
+    from slicer.parameterNodeWrapper import Choice, WithinRange, parameterNodeWrapper
     from slicer.util import VTKObservationMixin
     from slicer import (
         vtkMRMLLinearTransformNode,
@@ -163,7 +163,7 @@ if SLICER_APP:
         roadmapSequence: vtkMRMLSequenceNode
         framesSequence: vtkMRMLSequenceNode
         seeds: vtkMRMLMarkupsFiducialNode
-        roadmapFrame: int = -1
+        roadmapFrame: Annotated[int, WithinRange(-1, 99999)] = -1
         method: Annotated[str, Choice(list(METHOD_CHOICES))] = "vessel"
         segmenter: Annotated[str, Choice(list(SEGMENTER_CHOICES))] = "unet"
         force: bool = False
@@ -216,6 +216,7 @@ if SLICER_APP:
 
         def onSceneStartClose(self, caller, event) -> None:
             self.setParameterNode(None)
+            self.logic.reset()  # its output nodes are about to be removed
 
         def onSceneEndClose(self, caller, event) -> None:
             if self.parent.isEntered:
@@ -298,64 +299,27 @@ if SLICER_APP:
         @property
         def core(self):
             if self._core is None or self._core.scene is not slicer.mrmlScene:
-                self._core = coreLogicClass()(slicer.mrmlScene)
+                app = getattr(slicer, "app", None)
+                self._core = coreLogicClass()(slicer.mrmlScene, app_logic=app.applicationLogic() if app else None)
             return self._core
 
         def hasResult(self) -> bool:
             return self._core is not None and self._core.result is not None
 
-        def _xa(self, sequence, path, what: str):
-            if sequence is not None:
-                return sequence, None
-            p = _path_or_none(path)
-            if p is None:
-                return None, None
-            return self.core.load_xa(p, name=f"{what} {p.stem}"), p
+        def reset(self) -> None:
+            """Forget the last result and its output nodes (the scene is being closed)."""
+            self._core = None
 
-        def process(self, p) -> str:
-            """Run the reconstruction with the parameters of ``p``; returns a one-line summary."""
-            from GuidewireReconstructionLib.logic import OutputNodes
+        def process(self, parameterNode) -> str:
+            """Run the reconstruction with the parameters of ``parameterNode``; returns a summary line."""
+            return self.core.process_parameters(parameterNode)
 
-            roadmap, _unused = self._xa(p.roadmapSequence, p.roadmapPath, "Roadmap")
-            if roadmap is None:
-                raise ValueError("select an XA roadmap file or sequence")
-            p.roadmapSequence = roadmap
-            frames, _unused = self._xa(p.framesSequence, p.framesPath, "Frames")
-            if frames is not None:
-                p.framesSequence = frames
-            outputs = self.core.outputs
-            if p.registrationTransform is not None or p.metricsTable is not None or p.vesselModel is not None:
-                outputs = OutputNodes(**{**outputs.__dict__, "transform": p.registrationTransform or outputs.transform,
-                                         "table": p.metricsTable or outputs.table,
-                                         "vessel_model": p.vesselModel or outputs.vessel_model})
-            out = self.core.process(cta_volume_node=p.ctaVolume, roadmap=roadmap, frames=frames, seeds_node=p.seeds,
-                                    roadmap_frame=int(p.roadmapFrame), method=p.method, segmenter=p.segmenter,
-                                    force=bool(p.force), outputs=outputs)
-            p.registrationTransform = out.transform
-            p.metricsTable = out.table
-            p.vesselModel = out.vessel_model
-            return self.summary()
+        def refine(self, parameterNode) -> str:
+            """Refine from the (user-corrected) registration transform; returns a summary line."""
+            return self.core.refine_parameters(parameterNode)
 
-        def refine(self, p) -> str:
-            """Refine from the (user-corrected) registration transform; returns a one-line summary."""
-            reg = self.core.refine(transform_node=p.registrationTransform, force=bool(p.force))
-            if not reg.success and not p.force:
-                return _("Refine failed ({m}); the transform and wires were not changed.").format(m=reg.message)
-            return self.summary()
-
-        def setTransformInteraction(self, p, on: bool) -> None:
-            node = p.registrationTransform or self.core.outputs.transform
-            if node is None:
-                raise ValueError("no registration transform yet: run Apply first")
-            node.CreateDefaultDisplayNodes()
-            node.GetDisplayNode().SetEditorVisibility(bool(on))
-
-        def summary(self) -> str:
-            core = self.core
-            reg = core.registration
-            ok = sum(1 for w in core.wires3d if w.success)
-            return _("Registration {state} ({res:.2f} px); {ok}/{n} frames reconstructed.").format(
-                state=_("ok") if reg.success else _("FAILED"), res=float(reg.mean_residual_px), ok=ok, n=len(core.wires3d))
+        def setTransformInteraction(self, parameterNode, on: bool) -> None:
+            self.core.set_transform_interaction(on, transform_node=parameterNode.registrationTransform)
 
     #
     # GuidewireReconstructionTest
@@ -383,7 +347,7 @@ if SLICER_APP:
             from guidewire3d import phantom
 
             self._tmp = tempfile.TemporaryDirectory()
-            case = phantom.simulate(phantom.PhantomOptions(seed=7, n_frames=3))
+            case = phantom.simulate(phantom.PhantomOptions(seed=3, n_frames=4))  # = tests/conftest.py small_case
             case_dir = phantom.write_case(case, Path(self._tmp.name) / "case")
             return phantom.load_truth(case_dir), case_dir
 
@@ -402,6 +366,7 @@ if SLICER_APP:
             p.ctaVolume = cta
             p.roadmapPath = case_dir / "roadmap.dcm"
             p.framesPath = case_dir / "frames.dcm"
+            p.segmenter = "ridge"  # the configuration tests/test_plugin.py checks (no trained weights needed)
             self.delayDisplay("Running the reconstruction")
             logic.process(p)
             core = logic.core
@@ -418,17 +383,40 @@ if SLICER_APP:
                 vis = np.asarray(truth.wire_visible[fid], bool)
                 truth_ras = lps_to_ras(np.asarray(truth.wire_lps_mm[fid])[vis])
                 errors.append(metrics.wire_errors_mm(est_ras, truth_ras)["mean_error_mm"])
-            self.assertGreater(len(errors), 0)
+            self.assertEqual(len(errors), truth.n_frames)  # every frame reconstructed
             self.assertLessEqual(float(np.mean(errors)), self.MEAN_ERROR_MM)
             self.assertEqual(p.metricsTable.GetNumberOfRows(), len(core.wires3d))
             self.delayDisplay(f"Mean 3D wire error {np.mean(errors):.2f} mm over {len(errors)} frames")
+
+            # outputs save and reload through their storage nodes
+            paths = core.save_outputs(Path(self._tmp.name) / "out")
+            curve = core.outputs.wire_curves[-1]
+            saved = next(q for q in paths if q.name.startswith(curve.GetName().replace(" ", "_")))
+            back = slicer.util.loadMarkups(str(saved))
+            np.testing.assert_allclose(slicer.util.arrayFromMarkupsControlPoints(back),
+                                       slicer.util.arrayFromMarkupsControlPoints(curve), atol=1e-4)
+
+            # Refine after the user moved the C-arm: the vessels project back where the registration put them
+            from guidewire3d.geometry import Pose
+            from GuidewireReconstructionLib.logic import pose_to_transform_node
+
+            auto = core.registration.pose
+            pts = truth.tree.points_lps_mm
+            carm = core.result.carm
+            offset = lambda a, b: float(np.linalg.norm(carm.project(pts, a) - carm.project(pts, b), axis=1).mean())  # noqa: E731
+            moved = Pose.exp([3.0, -2.0, 1.5, *np.radians([2.0, -1.0, 1.0])]) @ auto
+            pose_to_transform_node(moved, p.registrationTransform)
+            logic.refine(p)
+            self.assertTrue(core.registration.success)
+            self.assertLess(offset(core.registration.pose, auto), 0.25 * offset(moved, auto))
+            self.delayDisplay("Refine brought the moved C-arm back")
 
         def test_bad_input_raises(self):
             from guidewire3d.errors import InputError
 
             logic = GuidewireReconstructionLogic()
             p = logic.getParameterNode()
-            with self.assertRaises(ValueError):
+            with self.assertRaisesRegex(InputError, "roadmap"):
                 logic.process(p)  # no roadmap
             p.roadmapPath = Path(slicer.app.temporaryPath) / "does-not-exist.dcm"
             with self.assertRaisesRegex(InputError, "no such file"):

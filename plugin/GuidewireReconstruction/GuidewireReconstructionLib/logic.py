@@ -43,7 +43,7 @@ from vtk.util.numpy_support import numpy_to_vtk, vtk_to_numpy
 from guidewire3d import io
 from guidewire3d.errors import InputError, ReconstructionError, RegistrationError
 from guidewire3d.geometry import CArm, Pose
-from guidewire3d.reconstruction import ReconMethod
+from guidewire3d.reconstruction import ReconMethod, Wire3D
 from guidewire3d.segmentation import SegMethod
 
 __all__ = [
@@ -80,7 +80,8 @@ CARM_ATTRIBUTE = "GuidewireReconstruction.CArm"
 ROLE_ATTRIBUTE = "GuidewireReconstruction.Role"
 
 _F = np.diag([-1.0, -1.0, 1.0])  # LPS <-> RAS; the only place this matrix is written
-_F4 = np.diag([-1.0, -1.0, 1.0, 1.0])
+_F4 = np.eye(4)
+_F4[:3, :3] = _F
 
 
 # The choices are the library's own enums (the parameter node stores them by value).
@@ -472,10 +473,12 @@ class OutputNodes:
     roadmap_points_model: object = None  # vtkMRMLModelNode: 2D roadmap centerline on the detector, child of ``transform``
     wire_models: list = field(default_factory=list)  # vtkMRMLModelNode (tube) per live frame
     wire_curves: list = field(default_factory=list)  # vtkMRMLMarkupsCurveNode per live frame
+    wire_sequence: object = None  # vtkMRMLSequenceNode: the tube per frame, synchronised with the frames' browser
     frame_indices: list = field(default_factory=list)  # index in the frames run of each wire node
 
     def all_nodes(self) -> list:
-        singles = [self.transform, self.table, self.vessel_model, self.carm_model, self.roadmap_points_model]
+        singles = [self.transform, self.table, self.vessel_model, self.carm_model, self.roadmap_points_model,
+                   self.wire_sequence]
         return [n for n in singles + self.centerline_curves + self.wire_models + self.wire_curves if n is not None]
 
 
@@ -486,17 +489,24 @@ class GuidewireReconstructionCoreLogic:
     ----------
     scene : vtkMRMLScene, optional
         Defaults to ``slicer.mrmlScene``.
+    app_logic : vtkSlicerApplicationLogic, optional
+        Its Sequences module logic updates the wire sequence's proxy node when the frames are
+        browsed (inside Slicer: ``slicer.app.applicationLogic()``).
     centerline_step_mm : float
         Control-point spacing of the centerline curves (the tree is resampled for display).
     """
 
-    def __init__(self, scene=None, *, centerline_step_mm: float = 2.0):
+    def __init__(self, scene=None, *, app_logic=None, centerline_step_mm: float = 2.0):
         self.scene = scene or slicer.mrmlScene
+        self.app_logic = app_logic  # vtkSlicerApplicationLogic: gives the Sequences logic (proxy updates)
+        self.frames_sequence = None  # the frames' sequence node of the last process(), if any
         if self.scene is None:
             raise InputError("no MRML scene: set slicer.mrmlScene or pass scene=")
         self.centerline_step_mm = float(centerline_step_mm)
         self.result = None  # pipeline.PipelineResult of the last process()
         self.method = WireMethod.VESSEL
+        self.segmenter = Segmenter.UNET
+        self.wires2d: list = []  # ordered 2D wire per live frame (image2d.OrderedWire)
         self.registration = None  # the registration currently shown (after refine: the refined one)
         self.wires3d: list = []
         self.outputs = OutputNodes()
@@ -545,6 +555,7 @@ class GuidewireReconstructionCoreLogic:
         vol = volume_from_node(cta_volume_node)
         road = self._xa(roadmap, "roadmap")
         live = road if frames is None else self._xa(frames, "frames")
+        live_node = roadmap if frames is None else frames
         seeds = seeds_from_node(seeds_node)
         if roadmap_frame is not None and roadmap_frame < 0:
             roadmap_frame = None
@@ -552,15 +563,27 @@ class GuidewireReconstructionCoreLogic:
         result = pipeline.run(vol, road, live, roadmap_frame=roadmap_frame, seeds_lps_mm=seeds, method=method.value,
                               segmenter=segmenter.value, force=force, progress=False, pose=pose, log=log.info)
         log.info("guidewire3d pipeline: %.1f s", time.perf_counter() - t0)
-        return self.show_result(result, method=method, outputs=outputs)
+        is_seq = hasattr(live_node, "IsA") and live_node.IsA("vtkMRMLSequenceNode")
+        return self.show_result(result, method=method, segmenter=segmenter, outputs=outputs,
+                                frames_sequence=live_node if is_seq else None)
 
     def show_result(self, result, *, method: WireMethod | str = WireMethod.VESSEL,
-                    outputs: OutputNodes | None = None) -> OutputNodes:
-        """Write (or update) the output nodes from a ``pipeline.PipelineResult`` and keep it for :meth:`refine`."""
+                    segmenter: Segmenter | str = Segmenter.UNET, outputs: OutputNodes | None = None,
+                    frames_sequence=None) -> OutputNodes:
+        """Write (or update) the output nodes from a ``pipeline.PipelineResult`` and keep it for :meth:`refine`.
+
+        ``frames_sequence`` (the live frames' sequence node) gets a synchronised wire sequence.
+        """
         self.result = result
         self.method = WireMethod(method)
+        self.segmenter = Segmenter(segmenter)
+        self.frames_sequence = frames_sequence
         self.registration = result.registration
+        self.wires2d = list(result.wires2d)
         self.wires3d = list(result.wires3d)
+        if len(self.wires3d) != len(result.frames):  # the pipeline stopped before the frames
+            self.wires3d = [Wire3D.failed("not reconstructed: the registration failed (adjust the transform, then "
+                                          "Refine)")] * len(result.frames)
         if outputs is not None:
             self.outputs = outputs
         self._write_static_outputs()
@@ -592,25 +615,108 @@ class GuidewireReconstructionCoreLogic:
             return reg
         self.outputs.transform = node
         self.registration = reg
-        self._write_registration_outputs()
-        self.wires3d = self._reconstruct_all(reg)
-        self._write_wire_outputs()
+        self._write_registration_outputs(source="refined")
+        self.update_wires()
         return reg
 
-    def _reconstruct_all(self, reg) -> list:
-        """Every live frame's wire again with the pose of ``reg`` (tracking prior as in the pipeline)."""
+    def update_wires(self, *, method: WireMethod | str | None = None) -> list:
+        """Reconstruct every live frame's wire again with the current registration and write the wire nodes.
+
+        ``method`` (default: the one of the last :meth:`process`) selects the 3D reconstruction.
+        The 2D wires of the last run are reused; when the run stopped before the frames (failed
+        registration, no ``force``), they are extracted now, as the pipeline does. Returns the new
+        ``Wire3D`` list.
+        """
         from guidewire3d import reconstruction
 
-        res = self.result
+        if self.result is None:
+            raise ReconstructionError("update_wires: run Apply (process) first")
+        if method is not None:
+            self.method = WireMethod(method)
+        res, reg = self.result, self.registration
+        if len(self.wires2d) != len(res.frames):
+            self.wires2d = self._extract_2d_wires(reg.pose)
         tracker = reconstruction.WireTracker(reg.pose, res.frames_carm, res.tree, method=self.method.value,
                                              registration_covariance=getattr(reg, "covariance_6x6", None))
-        out = []
-        for frame, w2 in zip(res.frames, res.wires2d):
+        wires = []
+        for frame, w2 in zip(res.frames, self.wires2d):
             if w2:
-                out.append(tracker.update(w2.points_uv_px, image=frame))
+                wires.append(tracker.update(w2.points_uv_px, image=frame))
             else:
-                out.append(reconstruction.Wire3D.failed(f"2D wire not found: {getattr(w2, 'message', '')}"))
-        return out
+                wires.append(reconstruction.Wire3D.failed(f"2D wire not found: {getattr(w2, 'message', '')}"))
+        self.wires3d = wires
+        self._write_wire_outputs()
+        return wires
+
+    def _extract_2d_wires(self, pose: Pose) -> list:
+        """Segment each live frame and order its wire (proximal end: the projected vessel-tree root)."""
+        from guidewire3d import image2d, segmentation
+
+        res = self.result
+        seg = segmentation.GuidewireSegmenter(method=self.segmenter.value)
+        root_uv = res.frames_carm.project(res.tree.points_lps_mm[res.tree.root], pose)
+        return [image2d.ordered_wire(seg.segment(f), image=f, proximal_hint_uv=root_uv) for f in res.frames]
+
+    # --- the module's parameter node ---------------------------------------------------------
+    def process_parameters(self, p) -> str:
+        """Run :meth:`process` with the module's parameter node ``p``; returns a one-line summary.
+
+        ``p`` is the module's ``@parameterNodeWrapper`` (or any object with the same attributes):
+        ``ctaVolume``, ``roadmapPath``/``roadmapSequence``, ``framesPath``/``framesSequence``, ``seeds``,
+        ``roadmapFrame``, ``method``, ``segmenter``, ``force``, ``registrationTransform``,
+        ``metricsTable``, ``vesselModel``. An XA file is loaded into a new sequence node, which is
+        written back to ``p``; so are the output nodes created by the run.
+        """
+        roadmap = self._xa_parameter(p.roadmapSequence, p.roadmapPath, "Roadmap")
+        if roadmap is None:
+            raise InputError("roadmap: give an XA DICOM file path or a sequence node")
+        p.roadmapSequence = roadmap
+        frames = self._xa_parameter(p.framesSequence, p.framesPath, "Frames")
+        if frames is not None:
+            p.framesSequence = frames
+        o = self.outputs
+        outputs = OutputNodes(**{**o.__dict__, "transform": p.registrationTransform or o.transform,
+                                 "table": p.metricsTable or o.table, "vessel_model": p.vesselModel or o.vessel_model})
+        out = self.process(cta_volume_node=p.ctaVolume, roadmap=roadmap, frames=frames, seeds_node=p.seeds,
+                           roadmap_frame=int(p.roadmapFrame), method=p.method, segmenter=p.segmenter,
+                           force=bool(p.force), outputs=outputs)
+        p.registrationTransform = out.transform
+        p.metricsTable = out.table
+        p.vesselModel = out.vessel_model
+        return self.summary()
+
+    def refine_parameters(self, p) -> str:
+        """Run :meth:`refine` from ``p.registrationTransform``; returns a one-line summary."""
+        reg = self.refine(transform_node=p.registrationTransform, force=bool(p.force))
+        if not reg.success and not p.force:
+            return f"Refine failed ({reg.message}); the transform and the wires were not changed."
+        return self.summary()
+
+    def _xa_parameter(self, sequence, path, what: str):
+        if sequence is not None:
+            return sequence
+        text = "" if path is None else str(path).strip()
+        if text in ("", "."):  # an empty pathlib.Path parameter reads back as "."
+            return None
+        return self.load_xa(text, name=f"{what} {Path(text).stem}")
+
+    def summary(self) -> str:
+        """One line: registration state and residual, frames reconstructed."""
+        if self.registration is None:
+            return "No result yet."
+        reg = self.registration
+        ok = sum(1 for w in self.wires3d if w.success)
+        return (f"Registration {'ok' if reg.success else 'FAILED'} ({float(reg.mean_residual_px):.2f} px); "
+                f"{ok}/{len(self.wires3d)} frames reconstructed.")
+
+    def set_transform_interaction(self, visible: bool, *, transform_node=None) -> None:
+        """Show or hide Slicer's interaction handles on the registration transform (moves the C-arm)."""
+        node = transform_node or self.outputs.transform
+        if node is None:
+            raise RegistrationError("no registration transform yet: run Apply first")
+        if node.GetDisplayNode() is None:
+            node.CreateDefaultDisplayNodes()
+        node.GetDisplayNode().SetEditorVisibility(bool(visible))
 
     # --- writing nodes -----------------------------------------------------------------------
     def _new(self, cls: str, name: str, role: str):
@@ -673,17 +779,21 @@ class GuidewireReconstructionCoreLogic:
         o.roadmap_points_model.GetDisplayNode().SetPointSize(3.0)
         o.roadmap_points_model.SetAndObserveTransformNodeID(o.transform.GetID())
 
-    def _write_registration_outputs(self) -> None:
+    def _write_registration_outputs(self, *, source: str = "automatic") -> None:
+        """The pose into the transform node; quality figures and ``Source`` (automatic | refined) as attributes."""
         reg, node = self.registration, self.outputs.transform
         pose_to_transform_node(reg.pose, node)
-        for key, value in (("Success", str(bool(reg.success))), ("Message", str(reg.message)),
-                           ("MeanResidualPx", f"{float(reg.mean_residual_px):.6g}"),
-                           ("Iterations", str(int(reg.iterations))), ("Seconds", f"{float(reg.seconds):.6g}")):
+        items = [("Success", str(bool(reg.success))), ("Message", str(reg.message)),
+                 ("MeanResidualPx", f"{float(reg.mean_residual_px):.6g}"),
+                 ("Iterations", str(int(reg.iterations))), ("Seconds", f"{float(reg.seconds):.6g}"), ("Source", source)]
+        if getattr(reg, "inlier_fraction", None) is not None:
+            items.append(("InlierFraction", f"{float(reg.inlier_fraction):.6g}"))
+        for key, value in items:
             node.SetAttribute(f"GuidewireReconstruction.Registration.{key}", value)
 
     def _write_wire_outputs(self) -> None:
         res, o = self.result, self.outputs
-        frame_ids = list(getattr(res, "frame_indices", None) or range(len(self.wires3d)))
+        frame_ids = list(getattr(res, "frame_indices", None) or range(len(self.wires3d)))[: len(self.wires3d)]
         if o.table is None:
             o.table = self._new("vtkMRMLTableNode", "GW frame metrics", "metrics")
         models, curves = [], []
@@ -704,13 +814,16 @@ class GuidewireReconstructionCoreLogic:
                 curve = self._curve(curve, f"GW guidewire curve frame {fid:04d}", "wire_curve", np.zeros((0, 3)))
             model.SetAttribute("GuidewireReconstruction.Frame", str(fid))
             curve.SetAttribute("GuidewireReconstruction.Frame", str(fid))
-            model.GetDisplayNode().SetVisibility(i == last_ok)
-            curve.GetDisplayNode().SetVisibility(i == last_ok)
             models.append(model)
             curves.append(curve)
         for extra in o.wire_models[len(models):] + o.wire_curves[len(curves):]:
             self.scene.RemoveNode(extra)
         o.wire_models, o.wire_curves, o.frame_indices = models, curves, frame_ids
+        browsed = self._write_wire_sequence()
+        # with a browsable sequence its proxy shows the wire of the current frame; else show the last wire
+        for i, (model, curve) in enumerate(zip(models, curves)):
+            model.GetDisplayNode().SetVisibility(not browsed and i == last_ok)
+            curve.GetDisplayNode().SetVisibility(i == last_ok)
         secs = list(getattr(res, "frame_seconds", []) or [])
         secs += [float("nan")] * (len(self.wires3d) - len(secs))
         ws = self.wires3d
@@ -727,9 +840,69 @@ class GuidewireReconstructionCoreLogic:
             ("projection_error_px", "float", [float(w.projection_error_px) if w.success else float("nan") for w in ws]),
             ("mean_uncertainty_mm", "float", [_stat(w, np.mean) for w in ws]),
             ("max_uncertainty_mm", "float", [_stat(w, np.max) for w in ws]),
-            ("seconds", "float", [float(s) for s in secs[: len(ws)]]),
+            ("frame_seconds", "float", [float(s) for s in secs[: len(ws)]]),  # pipeline: 2D + 3D per frame
+            ("reconstruction_seconds", "float", [float(w.seconds) for w in ws]),  # 3D step of the shown wire
             ("message", "str", [str(w.message) for w in ws]),
         ])
+
+    def _browser_for(self, sequence_node):
+        for i in range(self.scene.GetNumberOfNodesByClass("vtkMRMLSequenceBrowserNode")):
+            b = self.scene.GetNthNodeByClass(i, "vtkMRMLSequenceBrowserNode")
+            master = b.GetMasterSequenceNode()
+            if master is not None and master.GetID() == sequence_node.GetID():
+                return b
+        return None
+
+    def update_proxies(self, browser) -> None:
+        """Refresh the browser's proxy nodes (Slicer does it on its own when frames are browsed)."""
+        logic = self.app_logic.GetModuleLogic("Sequences") if self.app_logic is not None else None
+        if logic is not None:
+            logic.UpdateProxyNodesFromSequences(browser)
+
+    def _write_wire_sequence(self) -> bool:
+        """The wire tube of every frame of the frames' sequence, synchronised with its browser.
+
+        Frames without a reconstructed wire get an empty model. Returns False (and writes nothing)
+        when the frames did not come from a browsable sequence node.
+        """
+        o, src = self.outputs, self.frames_sequence
+        if src is None or self.scene.GetNodeByID(src.GetID()) is not src:
+            return False
+        browser = self._browser_for(src)
+        if browser is None:
+            return False
+        if o.wire_sequence is None or self.scene.GetNodeByID(o.wire_sequence.GetID()) is None:
+            o.wire_sequence = self._new("vtkMRMLSequenceNode", "GW guidewire (sequence)", "wire_sequence")
+        seq = o.wire_sequence
+        seq.RemoveAllDataNodes()
+        seq.SetIndexName(src.GetIndexName())
+        seq.SetIndexUnit(src.GetIndexUnit())
+        seq.SetIndexType(src.GetIndexType())
+        by_frame = dict(zip(o.frame_indices, o.wire_models))
+        for t in range(src.GetNumberOfDataNodes()):
+            poly = vtk.vtkPolyData()
+            model = by_frame.get(t)
+            if model is not None and model.GetPolyData() is not None:
+                poly.DeepCopy(model.GetPolyData())
+            item = slicer.vtkMRMLModelNode()
+            item.SetName(f"GW guidewire frame {t:04d}")
+            item.SetAndObservePolyData(poly)
+            seq.SetDataNodeAtValue(item, src.GetNthIndexValue(t))
+        if not browser.IsSynchronizedSequenceNodeID(seq.GetID(), True):
+            browser.AddSynchronizedSequenceNode(seq)
+            browser.SetSaveChanges(seq, False)
+        self.update_proxies(browser)
+        proxy = browser.GetProxyNode(seq)
+        if proxy is not None:
+            proxy.SetAttribute(ROLE_ATTRIBUTE, "wire_proxy")
+            if proxy.GetDisplayNode() is None:
+                proxy.CreateDefaultDisplayNodes()
+            d = proxy.GetDisplayNode()
+            d.SetColor(0.1, 1.0, 0.1)
+            d.SetActiveScalarName("uncertainty_mm")
+            d.SetScalarVisibility(True)
+            d.SetVisibility(True)
+        return True
 
     # --- saving -------------------------------------------------------------------------
     def save_outputs(self, directory) -> list[Path]:

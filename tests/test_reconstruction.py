@@ -1,0 +1,326 @@
+import json
+
+import numpy as np
+import pytest
+
+from guidewire3d.errors import InputError
+from guidewire3d.geometry import CArm, Pose, nominal_pose
+from guidewire3d.metrics import polyline_length, resample_polyline
+from guidewire3d.reconstruction import (
+    ReconMethod,
+    ReconOptions,
+    Wire3D,
+    WireTracker,
+    build_context,
+    paper_depth_mm,
+    reconstruct_wire,
+)
+from guidewire3d.vesseltree import VesselTree
+
+EXACT_MM = 0.05  # noise-free wire on the centerline: mean 3D error
+EXACT_MAX_MM = 0.4  # ... and worst point: the spline rounds the test trees' sharp (90 deg) corners
+INSIDE_TOL_MM = 0.1  # reconstructed points may leave the lumen by this much (smoothing)
+RETREAT_TOL_MM = 1.0  # allowed step back towards the root along the chosen tree points
+NO_PRIOR = ReconOptions(outer_bend_prior=False)
+AP = CArm(0.0, 0.0, 1000.0, 700.0, 0.3, (512, 512))  # beam along -y, u along +x, v along -z
+
+
+def _line(a, b, step=0.5):
+    a, b = np.asarray(a, float), np.asarray(b, float)
+    n = max(int(np.ceil(np.linalg.norm(b - a) / step)), 1)
+    return a + np.linspace(0, 1, n + 1)[:, None] * (b - a)
+
+
+def _chain(*pts, step=0.5):
+    segs = [_line(pts[k], pts[k + 1], step) for k in range(len(pts) - 1)]
+    return np.vstack([segs[0]] + [s[1:] for s in segs[1:]])
+
+
+def _overlap_tree():
+    """Trunk down -z, then two branches A and B that overlap in the AP projection for 20 mm
+    (same x, z; y = +12 vs -12 mm, i.e. different depths) and then diverge (A up, B down)."""
+    trunk = _chain([0, 0, 40], [0, 0, 0])
+    a = _chain([0, 0, 0], [20, 12, 0], [35, 12, 12])
+    b = _chain([0, 0, 0], [20, -12, 0], [35, -12, -12])
+    tree = VesselTree.from_polylines(
+        [trunk, a, b], [np.full(len(trunk), 3.0), np.full(len(a), 2.0), np.full(len(b), 2.0)],
+        [None, (0, len(trunk) - 1), (0, len(trunk) - 1)])
+    return tree, len(trunk)
+
+
+def _loop_tree():
+    """A trunk and a branch whose projection loops over itself (a prolate cycloid) at two depths."""
+    trunk = _chain([-10, 0, 40], [-10, 0, 12])
+    t = np.linspace(-np.pi, np.pi, 400)  # self-crossing at t = +-2.28, y = +-7.3 mm
+    loop = np.column_stack([4 * t - 12 * np.sin(t), 8 * np.sin(t / 2), 12 * np.cos(t)])
+    loop = resample_polyline(np.vstack([trunk[-1], loop]), 0.5)
+    return VesselTree.from_polylines([trunk, loop], [np.full(len(trunk), 2.5), np.full(len(loop), 1.6)],
+                                     [None, (0, len(trunk) - 1)])
+
+
+def _pose(tree):
+    return nominal_pose(tree.centroid_lps_mm)
+
+
+def _wire_on(tree, leaf, offset_fn=None, step=0.2):
+    """A wire along the root->leaf path (optionally offset), resampled every ``step`` mm."""
+    ids = tree.path_to_root(leaf)
+    P = tree.points_lps_mm[ids]
+    if offset_fn is not None:
+        P = P + offset_fn(P, tree.radius_mm[ids])
+    return resample_polyline(P, step), ids
+
+
+def _dist_to_tube(tree, X):
+    """Signed distance (mm) of points to the tube surface (negative inside) over all segments."""
+    e = tree.edges
+    A, B = tree.points_lps_mm[e[:, 0]], tree.points_lps_mm[e[:, 1]]
+    rA, rB = tree.radius_mm[e[:, 0]], tree.radius_mm[e[:, 1]]
+    AB = B - A
+    u = np.clip(np.einsum("nsk,sk->ns", X[:, None, :] - A[None], AB) / np.einsum("sk,sk->s", AB, AB), 0, 1)
+    C = A[None] + u[..., None] * AB[None]
+    return (np.linalg.norm(X[:, None, :] - C, axis=-1) - (rA + u * (rB - rA))).min(axis=1)
+
+
+# ------------------------------------------------------------------------------------------------
+def test_exact_recovery_noise_free_centerline_wire():
+    tree, _ = _overlap_tree()
+    pose = _pose(tree)
+    for leaf in tree.leaves:
+        W, _ = _wire_on(tree, int(leaf))
+        uv = AP.project(W, pose)
+        w = reconstruct_wire(uv, pose, AP, tree, options=NO_PRIOR)
+        assert w.success, w.message
+        err = np.linalg.norm(w.points_lps_mm - W, axis=1)
+        assert err.mean() < EXACT_MM and err.max() < EXACT_MAX_MM
+        assert w.projection_error_px < 0.1
+        assert abs(w.length_mm - polyline_length(W)) / polyline_length(W) < 0.01
+
+
+def test_exact_recovery_of_the_wire_the_bend_prior_describes():
+    tree = _loop_tree()
+    pose = _pose(tree)
+    ctx = build_context(pose, AP, tree)
+    # the wire the prior expects: centerline + outer-bend offset (both on the dense context tree)
+    leaf = int(ctx.dense.leaves[0])
+    ids = ctx.dense.path_to_root(leaf)
+    W = resample_polyline(ctx.points[ids] + ctx.outer_offset[ids], 0.2)
+    w = reconstruct_wire(AP.project(W, pose), pose, AP, tree)
+    err = np.linalg.norm(w.points_lps_mm - W, axis=1)
+    assert w.success and err.mean() < 2 * EXACT_MM and np.percentile(err, 95) < EXACT_MAX_MM
+
+
+def test_overlapping_branches_resolved_by_connectivity():
+    tree, n_trunk = _overlap_tree()
+    pose = _pose(tree)
+    for leaf in tree.leaves:
+        W, path = _wire_on(tree, int(leaf))
+        w = reconstruct_wire(AP.project(W, pose), pose, AP, tree)
+        on = np.zeros(tree.n_points, bool)
+        on[path] = True
+        assert w.success and on[w.tree_point_ids[w.tree_point_ids >= 0]].all()
+        # the overlap stretch is at y = +-12 mm: depth must come from the right branch
+        err = np.linalg.norm(w.points_lps_mm - W, axis=1)
+        assert err.max() < 1.0
+
+
+def test_wire_crossing_itself_in_projection():
+    tree = _loop_tree()
+    pose = _pose(tree)
+    W, path = _wire_on(tree, int(tree.leaves[0]))
+    uv = AP.project(W, pose)
+    # the projection really crosses itself: two wire points far apart along the wire, < 2 px apart
+    from scipy.spatial import cKDTree
+
+    pairs = cKDTree(uv).query_pairs(2.0, output_type="ndarray")
+    assert np.any(np.abs(pairs[:, 0] - pairs[:, 1]) > 100)
+    w = reconstruct_wire(uv, pose, AP, tree)
+    err = np.linalg.norm(w.points_lps_mm - W, axis=1)
+    assert w.success and err.max() < 1.2 and err.mean() < 0.5
+
+
+def test_points_inside_lumen_and_proximal_to_distal():
+    rng = np.random.default_rng(7)
+    tree, _ = _overlap_tree()
+    pose = _pose(tree)
+
+    def wander(P, r):
+        # smooth random offset of up to 60 % of the radius, perpendicular-ish
+        k = np.cumsum(rng.normal(0, 0.2, (len(P), 3)), axis=0)
+        k -= k.mean(axis=0)
+        k /= np.maximum(np.linalg.norm(k, axis=1, keepdims=True), 1e-9)
+        return 0.6 * r[:, None] * k * np.abs(np.sin(np.linspace(0, 6, len(P))))[:, None]
+
+    W, path = _wire_on(tree, int(tree.leaves[0]), wander)
+    uv = AP.project(W, pose) + rng.normal(0, 0.3, (len(W), 2))
+    w = reconstruct_wire(uv, pose, AP, tree)
+    assert w.success, w.message
+    assert _dist_to_tube(tree, w.points_lps_mm).max() < INSIDE_TOL_MM
+    s = tree.arclength_from_root_mm[w.tree_point_ids]
+    assert np.all(w.tree_point_ids >= 0)
+    assert np.all(np.diff(s) > -RETREAT_TOL_MM)  # monotone distally, at worst small retreats
+    assert np.linalg.norm(w.points_lps_mm[0] - W[0]) < 1.5 and np.linalg.norm(w.points_lps_mm[-1] - W[-1]) < 1.5
+    assert np.all(np.diff(w.arclength_mm) >= 0) and np.isclose(w.arclength_mm[-1], w.length_mm)
+
+
+def test_wire_missing_the_tree_fails():
+    tree, _ = _overlap_tree()
+    pose = _pose(tree)
+    W, _ = _wire_on(tree, int(tree.leaves[0]))
+    uv = AP.project(W, pose) + np.array([150.0, 0.0])
+    for method in ReconMethod:
+        if method is ReconMethod.PAPER:
+            continue  # the closed form never looks at the tree
+        w = reconstruct_wire(uv, pose, AP, tree, method=method)
+        assert not w and not w.success and "misses" in w.message and len(w.points_lps_mm) == 0
+
+
+def test_every_method_and_the_paper_closed_form_honestly():
+    tree, _ = _overlap_tree()
+    pose = _pose(tree)
+    W, _ = _wire_on(tree, int(tree.leaves[0]))
+    uv = AP.project(W, pose)
+    err = {}
+    for method in ReconMethod:
+        w = reconstruct_wire(uv, pose, AP, tree, method=method)
+        assert w.success and w.method == method.value
+        err[method] = np.linalg.norm(w.points_lps_mm - W, axis=1).mean()
+        assert w.projection_error_px < 1.0  # every method keeps the projection (depth is the issue)
+    assert err[ReconMethod.VESSEL] < 0.5
+    assert err[ReconMethod.BSPLINE] < 3.0
+    # the paper's one-view closed form: the depth does not depend on the anatomy at all...
+    d = paper_depth_mm(uv, pose, AP)
+    other = VesselTree(tree.points_lps_mm + [0.0, 30.0, 0.0], tree.radius_mm, tree.parent)
+    w_other = reconstruct_wire(uv, pose, AP, other, method="paper")
+    w_paper = reconstruct_wire(uv, pose, AP, tree, method=ReconMethod.PAPER)
+    assert np.allclose(w_other.points_lps_mm, w_paper.points_lps_mm)
+    # ...it is the two-view formula |t x R^T k| / |R^T k x k| with the registration's (R, t)
+    R, t = AP.extrinsics(pose)
+    k = np.r_[(uv[0] - AP.principal_point_px) / AP.focal_px, 1.0]
+    assert np.isclose(d[0], np.linalg.norm(np.cross(t, R.T @ k)) / np.linalg.norm(np.cross(R.T @ k, k)))
+    # ...so with one view it gives a depth of the order of |t| (source to isocentre), nearly constant
+    # over the wire: it flattens the wire onto a surface and misses its depth by millimetres
+    true_depth = AP.project(W, pose, return_depth=True)[1]
+    assert abs(np.median(d) / np.linalg.norm(t) - 1.0) < 0.1
+    assert np.ptp(d) < 0.5 * np.ptp(true_depth)
+    assert np.abs(d - true_depth).mean() > 2.0 and err[ReconMethod.PAPER] > 20 * err[ReconMethod.VESSEL]
+
+
+def test_method_by_name_and_bad_inputs():
+    tree, _ = _overlap_tree()
+    pose = _pose(tree)
+    uv = AP.project(_wire_on(tree, int(tree.leaves[0]))[0], pose)
+    uv_copy = uv.copy()
+    a = reconstruct_wire(uv, pose, AP, tree, method="VESSEL")
+    b = reconstruct_wire(uv, pose, AP, tree, method=ReconMethod.VESSEL)
+    assert np.allclose(a.points_lps_mm, b.points_lps_mm)
+    assert np.array_equal(uv, uv_copy)  # input untouched
+    with pytest.raises(InputError, match="unknown method"):
+        reconstruct_wire(uv, pose, AP, tree, method="stereo")
+    with pytest.raises(InputError, match=r"wire_uv_px must be \(M, 2\)"):
+        reconstruct_wire(uv[:, :1], pose, AP, tree)
+    with pytest.raises(InputError, match="non-finite"):
+        reconstruct_wire(np.r_[uv, [[np.nan, 1.0]]], pose, AP, tree)
+    with pytest.raises(InputError, match="registration_covariance"):
+        reconstruct_wire(uv, pose, AP, tree, registration_covariance=np.eye(3))
+    assert not reconstruct_wire(uv[:1], pose, AP, tree)
+
+
+def test_uncertainty_terms_and_calibration():
+    rng = np.random.default_rng(3)
+    tree, _ = _overlap_tree()
+    pose = _pose(tree)
+    W, _ = _wire_on(tree, int(tree.leaves[1]), lambda P, r: 0.5 * r[:, None] * np.array([0.0, 1.0, 0.0]))
+    uv = AP.project(W, pose)
+    base = reconstruct_wire(uv, pose, AP, tree)
+    err = np.linalg.norm(base.points_lps_mm - W, axis=1)
+    assert np.mean(err <= 2 * base.uncertainty_mm) > 0.95
+    # the lumen chord dominates the depth direction: the largest axis of Sigma is close to the ray
+    _, dirs = AP.rays(uv, pose)
+    evals, evecs = np.linalg.eigh(base.covariance_mm2)
+    assert np.median(np.abs(np.einsum("nk,nk->n", evecs[:, :, -1], dirs))) > 0.9
+    assert np.allclose(base.uncertainty_mm, np.sqrt(np.trace(base.covariance_mm2, axis1=1, axis2=2)))
+    with_reg = reconstruct_wire(uv, pose, AP, tree, registration_covariance=np.diag([1.0, 1, 1, 1e-4, 1e-4, 1e-4]))
+    assert np.all(with_reg.uncertainty_mm > base.uncertainty_mm + 0.5)
+    img = rng.normal(0, 1.0, AP.shape)
+    with_img = reconstruct_wire(uv, pose, AP, tree, image=img)
+    # the paper's image term with sigma_img = 0.1 on a [0, 1]-normalised image is negligible...
+    assert np.all(with_img.uncertainty_mm >= base.uncertainty_mm - 1e-12)
+    assert np.all(with_img.uncertainty_mm < 1.01 * base.uncertainty_mm)
+    # ...it grows the covariance along the image gradient when sigma_img is large
+    loud = reconstruct_wire(uv, pose, AP, tree, image=img, options=ReconOptions(sigma_img=30.0))
+    assert np.mean(loud.uncertainty_mm > base.uncertainty_mm + 1e-3) > 0.9 and np.mean(loud.uncertainty_mm - base.uncertainty_mm) > 0.1
+
+
+def test_tracking_keeps_the_branch_through_a_broken_frame_and_flags_failures():
+    tree, n_trunk = _overlap_tree()
+    pose = _pose(tree)
+    WA, path_a = _wire_on(tree, int(tree.leaves[0]))
+    WB, path_b = _wire_on(tree, int(tree.leaves[1]))
+    on_a = np.zeros(tree.n_points, bool)
+    on_a[path_a] = True
+    on_b = np.zeros(tree.n_points, bool)
+    on_b[path_b] = True
+    uvA = AP.project(WA, pose)
+    # broken frame: the segmentation lost the distal part; what is left ends inside the overlap,
+    # where branches A and B project onto each other
+    s_tr = np.r_[0, np.cumsum(np.linalg.norm(np.diff(WA, axis=0), axis=1))]
+    broken = uvA[s_tr < 40.0 + 15.0]  # trunk 40 mm + 15 mm of the 23 mm overlap
+    tracker = WireTracker(pose, AP, tree)
+    w1 = tracker.update(uvA)
+    w2 = tracker.update(broken)
+    w_off = tracker.update(uvA + [200.0, 0.0])  # a frame that cannot be reconstructed
+    w3 = tracker.update(broken)
+    assert w1 and w2 and w3 and not w_off and tracker.failed_frames == [2]
+    for w in (w1, w2, w3):
+        assert on_a[w.tree_point_ids[w.tree_point_ids >= 0]].all()
+    # the prior decides the ambiguous frame: after a frame on B the same broken wire goes to B
+    tb = WireTracker(pose, AP, tree)
+    tb.update(AP.project(WB, pose))
+    wb = tb.update(broken)
+    assert on_b[wb.tree_point_ids[wb.tree_point_ids >= 0]].all()
+    # and the depth follows: A is at y = +12 mm, B at -12 mm in the overlap
+    assert w3.points_lps_mm[-1, 1] > 5.0 and wb.points_lps_mm[-1, 1] < -5.0
+
+
+def test_result_record_and_context_cache():
+    tree, _ = _overlap_tree()
+    pose = _pose(tree)
+    uv = AP.project(_wire_on(tree, int(tree.leaves[0]))[0], pose)
+    w = reconstruct_wire(uv, pose, AP, tree)
+    d = json.loads(json.dumps(w.to_dict()))
+    assert d["success"] is True and np.allclose(d["points_lps_mm"], w.points_lps_mm, atol=1e-4)
+    assert len(d["uncertainty_mm"]) == len(d["tree_point_ids"]) == w.n_points
+    f = Wire3D.failed("nothing")
+    assert not f and json.loads(json.dumps(f.to_dict()))["projection_error_px"] is None
+    assert build_context(pose, AP, tree) is build_context(pose, AP, tree)
+    assert build_context(Pose(pose.R, pose.t), AP, tree) is not build_context(pose, AP, tree)
+    with pytest.raises(ValueError):
+        w.points_lps_mm[0, 0] = 1.0  # read-only result
+
+
+def test_simulator_sequence_oracle_accuracy():
+    phantom = pytest.importorskip("guidewire3d.phantom")
+    case = phantom.simulate(phantom.PhantomOptions(seed=3, n_frames=3), make_ct=False)
+    tracker = WireTracker(case.pose, case.carm, case.tree)
+    on = np.zeros(case.tree.n_points, bool)
+    on[case.wire_path_point_ids] = True
+    for t in range(3):
+        vis = case.wire_visible[t]
+        W = case.wire_lps_mm[t][vis]
+        w = tracker.update(case.wire_uv_px[t][vis])
+        assert w.success, w.message
+        err = np.linalg.norm(w.points_lps_mm - W, axis=1)
+        assert w.projection_error_px < 1.0 and err.mean() < 0.8
+        assert abs(w.length_mm - polyline_length(W)) / polyline_length(W) < 0.05
+        assert on[w.tree_point_ids[w.tree_point_ids >= 0]].mean() > 0.95
+
+
+def test_reversed_input_is_returned_proximal_to_distal():
+    tree, _ = _overlap_tree()
+    pose = _pose(tree)
+    W, _ = _wire_on(tree, int(tree.leaves[0]))
+    uv = AP.project(W, pose)
+    w = reconstruct_wire(uv[::-1], pose, AP, tree)
+    assert w.success and "reversed" in w.message
+    assert np.linalg.norm(w.points_lps_mm - W, axis=1).mean() < 0.5

@@ -1,0 +1,304 @@
+"""Tests of the 3D-2D registration (issue 6) on small synthetic trees with known poses."""
+import json
+
+import numpy as np
+import pytest
+
+from guidewire3d import registration as reg
+from guidewire3d.errors import InputError
+from guidewire3d.geometry import CArm, Pose, nominal_pose, so3_log
+from guidewire3d.metrics import mtre_mm, resample_polyline
+from guidewire3d.vesseltree import VesselTree
+
+EXACT_MM = 0.3  # noise-free recovery (depth along the beam is the weakest direction)
+RECOVER_MM = 1.0
+RECOVER_DEG = 0.5
+INPLANE_MM = 0.3
+ROUND_TRIP_MM = 0.5
+
+
+def _curve(rng, start, direction, length_mm, step=1.0, curl=0.08):
+    pts = [np.asarray(start, float)]
+    d = np.asarray(direction, float) / np.linalg.norm(direction)
+    w = np.zeros(3)
+    for _ in range(int(length_mm / step)):
+        w = 0.85 * w + rng.normal(scale=curl, size=3)
+        d = d + 0.3 * step * w
+        d /= np.linalg.norm(d)
+        pts.append(pts[-1] + step * d)
+    return np.array(pts)
+
+
+def _tree(seed, centre=(10.0, -150.0, 1200.0), n_branches=8, extent=70.0):
+    rng = np.random.default_rng(seed)
+    centre = np.asarray(centre, float)
+    d0 = rng.normal(size=3)
+    d0 /= np.linalg.norm(d0)
+    root = _curve(rng, centre - d0 * extent * 0.5, d0, extent * 1.1)
+    polys, radii, parents = [root], [np.linspace(2.0, 1.2, len(root))], [None]
+    for _ in range(1, n_branches):
+        pb = int(rng.integers(0, len(polys)))
+        pi = int(rng.integers(5, len(polys[pb]) - 5))
+        base = polys[pb][pi]
+        t = polys[pb][pi + 1] - polys[pb][pi - 1]
+        t /= np.linalg.norm(t)
+        side = rng.normal(size=3)
+        side -= side @ t * t
+        side /= np.linalg.norm(side)
+        pl = _curve(rng, base, 0.6 * t + 0.8 * side, rng.uniform(20, 50))
+        polys.append(pl)
+        radii.append(np.linspace(1.3, 0.7, len(pl)))
+        parents.append((pb, pi))
+    return VesselTree.from_polylines(polys, radii, parents)
+
+
+def _case(seed):
+    rng = np.random.default_rng(seed)
+    tree = _tree(seed)
+    carm = CArm(rng.uniform(-40, 40), rng.uniform(-25, 25), 1200.0, 800.0, 0.3, (512, 512))
+    axis = rng.normal(size=3)
+    axis /= np.linalg.norm(axis)
+    true = (Pose.from_rotvec_about(axis * np.radians(2.0), np.zeros(3)) @ Pose(np.eye(3), rng.normal(scale=3, size=3))
+            @ nominal_pose(tree.centroid_lps_mm))
+    return tree, carm, true
+
+
+def _centerline(tree, carm, pose, rng=None, *, noise_px=0.0, ids=None):
+    polys = [tree.points_lps_mm[b.point_ids] for b in tree.branches] if ids is None else [tree.points_lps_mm[ids]]
+    uv = np.vstack([resample_polyline(carm.project(resample_polyline(p, 0.1), pose), 1.0) for p in polys])
+    if noise_px:
+        uv = uv + rng.normal(scale=noise_px, size=uv.shape)
+    return uv[carm.in_image(uv)]
+
+
+def _perturb(pose, tree, rot_deg, trans_mm, seed):
+    rng = np.random.default_rng(seed)
+    axis = rng.normal(size=3)
+    axis /= np.linalg.norm(axis)
+    d = rng.normal(size=3)
+    d /= np.linalg.norm(d)
+    c = pose.apply(tree.centroid_lps_mm)
+    return Pose(np.eye(3), d * trans_mm) @ Pose.from_rotvec_about(axis * np.radians(rot_deg), c) @ pose
+
+
+def _errors(est, true, tree, carm):
+    """(mTRE mm, rotation error deg, in-plane centroid error mm)."""
+    d = est @ true.inverse()
+    c = true.apply(tree.centroid_lps_mm)
+    shift = carm.axes @ (d.apply(c) - c)
+    return mtre_mm(est, true, tree.points_lps_mm), float(np.degrees(np.linalg.norm(so3_log(d.R)))), float(np.linalg.norm(shift[:2]))
+
+
+@pytest.fixture(scope="module")
+def case0():
+    return _case(0)
+
+
+# ---------------------------------------------------------------------------------------------
+def test_kernel_is_half_the_standard_pseudo_huber():
+    s = np.r_[0.0, np.logspace(-6, 8, 50)]
+    for delta in (0.5, 1.0, 3.0):
+        rho, drho = reg.pseudo_huber(s, delta)
+        standard = 2 * delta**2 * (np.sqrt(1 + s / delta**2) - 1)
+        np.testing.assert_allclose(rho, 0.5 * standard, rtol=1e-9, atol=1e-12)
+        h = 1e-6 * np.maximum(s, 1.0)
+        numeric = (reg.pseudo_huber(s + h, delta)[0] - reg.pseudo_huber(np.maximum(s - h, 0), delta)[0]) / (
+            (s + h) - np.maximum(s - h, 0))
+        np.testing.assert_allclose(drho, numeric, rtol=1e-4)
+    assert np.all(np.diff(reg.pseudo_huber(s)[0]) >= 0)  # monotone, no cancellation blow-up
+
+
+def test_exact_recovery_noise_free(case0):
+    tree, carm, true = case0
+    uv = _centerline(tree, carm, true)
+    init = _perturb(true, tree, 2.0, 4.0, seed=1)
+    r = reg.register(tree, uv, carm, init_pose=init)
+    mtre, rot, inplane = _errors(r.pose, true, tree, carm)
+    assert r.success, r.message
+    assert mtre < EXACT_MM and rot < 0.1 and inplane < 0.05
+    assert r.mean_residual_px < 0.5 and r.inlier_fraction > 0.98
+    np.testing.assert_allclose(r.projection_matrix, carm.projection_matrix(r.pose))
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_recovery_from_perturbation_with_noise(seed):
+    tree, carm, true = _case(seed)
+    uv = _centerline(tree, carm, true, np.random.default_rng(seed), noise_px=0.5)
+    init = _perturb(true, tree, 8.0, 15.0, seed=10 + seed)
+    assert _errors(init, true, tree, carm)[0] > 10.0
+    r = reg.register(tree, uv, carm, init_pose=init)
+    mtre, rot, inplane = _errors(r.pose, true, tree, carm)
+    assert r.success, r.message
+    assert mtre < RECOVER_MM, (mtre, r.message)
+    assert rot < RECOVER_DEG
+    assert inplane < INPLANE_MM
+    cov = r.covariance_6x6
+    assert cov.shape == (6, 6) and np.allclose(cov, cov.T) and np.all(np.linalg.eigvalsh(cov) > 0)
+
+
+def test_nominal_start(case0):
+    tree, carm, true = case0
+    uv = _centerline(tree, carm, true, np.random.default_rng(3), noise_px=0.5)
+    r = reg.register(tree, uv, carm)  # DICOM angles, isocentre at the tree centroid
+    assert r.success and _errors(r.pose, true, tree, carm)[0] < RECOVER_MM
+
+
+def test_wrong_start_without_search_is_flagged(case0):
+    tree, carm, true = case0
+    uv = _centerline(tree, carm, true)
+    init = _perturb(true, tree, 35.0, 40.0, seed=5)
+    r = reg.register(tree, uv, carm, init_pose=init, global_search=False)
+    assert _errors(r.pose, true, tree, carm)[0] > 5.0
+    assert not r.success and not r
+    assert "untrustworthy" in r.message
+
+
+def test_unrelated_tree_is_flagged(case0):
+    tree, carm, true = case0
+    uv = _centerline(tree, carm, true)
+    other = _tree(99, centre=tree.centroid_lps_mm)
+    r = reg.register(other, uv, carm)
+    assert not r.success, r.message
+
+
+def test_single_path_partial_2d(case0):
+    tree, carm, true = case0
+    leaf = int(tree.leaves[np.argmax(tree.arclength_from_root_mm[tree.leaves])])
+    path = tree.path_to_root(leaf)
+    uv = _centerline(tree, carm, true, np.random.default_rng(4), noise_px=0.3, ids=path)
+    projected = carm.project(tree.points_lps_mm, true)
+    assert len(path) < 0.6 * len(projected)  # the 2D covers a fraction of the tree only
+    init = _perturb(true, tree, 3.0, 5.0, seed=6)
+    r = reg.register(tree, uv, carm, init_pose=init)
+    assert r.success, r.message
+    path_mtre = mtre_mm(r.pose, true, tree.points_lps_mm[path])
+    assert path_mtre < RECOVER_MM * 2, path_mtre
+    assert _errors(r.pose, true, tree, carm)[2] < 1.0
+
+
+def test_inputs_are_not_modified(case0):
+    tree, carm, true = case0
+    uv = _centerline(tree, carm, true)
+    rad = np.full(len(uv), 2.0)
+    uv0, rad0, t0, R0 = uv.copy(), rad.copy(), true.t.copy(), true.R.copy()
+    pts = tree.points_lps_mm.copy()
+    init = _perturb(true, tree, 2.0, 3.0, seed=7)
+    reg.register(tree.points_lps_mm.copy(), uv, carm, init_pose=init, centerline_radius_px=rad)
+    reg.register(tree, uv, carm, init_pose=init, centerline_radius_px=rad, global_search=False)
+    reg.score(tree, uv, carm, true)
+    reg.nudge(true, carm, centroid_lps_mm=tree.centroid_lps_mm, translate_mm=(1, 2, 3), rotate_deg=(1, 0, 0))
+    assert np.array_equal(uv, uv0) and np.array_equal(rad, rad0)
+    assert np.array_equal(true.t, t0) and np.array_equal(true.R, R0) and np.array_equal(tree.points_lps_mm, pts)
+
+
+def test_point_cloud_input_matches_tree_input(case0):
+    tree, carm, true = case0
+    dense = np.vstack([resample_polyline(tree.points_lps_mm[b.point_ids], 0.5) for b in tree.branches])
+    uv = _centerline(tree, carm, true)
+    init = _perturb(true, tree, 2.0, 4.0, seed=8)
+    r = reg.register(dense, uv, carm, init_pose=init)
+    assert r.success and _errors(r.pose, true, tree, carm)[0] < RECOVER_MM
+
+
+def test_nudge_semantics(case0):
+    tree, carm, true = case0
+    c = tree.centroid_lps_mm
+    uv0 = carm.project(c, true)
+    moved = reg.nudge(true, carm, centroid_lps_mm=c, translate_mm=(2.0, 0.0, 0.0))
+    du = carm.project(c, moved) - uv0
+    assert du[0] > 0 and abs(du[1]) < 1e-6  # along e_u: image right only
+    z = (true.apply(c) - carm.source_room_mm) @ carm.beam_direction
+    assert np.isclose(du[0], 2.0 * carm.focal_px / z, rtol=1e-6)
+    spun = reg.nudge(true, carm, centroid_lps_mm=c, rotate_deg=(0.0, 0.0, 10.0))
+    assert np.allclose(carm.project(c, spun), uv0, atol=1e-6)  # rotation about the centroid
+    assert np.isclose((spun @ true.inverse()).rotation_angle_deg(), 10.0)
+    back = reg.nudge(moved, carm, centroid_lps_mm=c, translate_mm=(-2.0, 0.0, 0.0))
+    assert back.allclose(true, atol_mm=1e-9)
+
+
+def test_nudge_then_refine_round_trip(case0):
+    tree, carm, true = case0
+    uv = _centerline(tree, carm, true, np.random.default_rng(9), noise_px=0.5)
+    r0 = reg.register(tree, uv, carm, init_pose=_perturb(true, tree, 1.0, 2.0, seed=9))
+    away = reg.nudge(r0.pose, carm, centroid_lps_mm=tree.centroid_lps_mm, translate_mm=(3.0, -2.0, 4.0),
+                     rotate_deg=(2.0, -1.0, 3.0))
+    assert mtre_mm(away, r0.pose, tree.points_lps_mm) > 3.0
+    r1 = reg.refine(tree, uv, carm, away)
+    assert r1.success
+    assert mtre_mm(r1.pose, r0.pose, tree.points_lps_mm) < ROUND_TRIP_MM
+
+
+def test_score_decreases_toward_truth(case0):
+    tree, carm, true = case0
+    uv = _centerline(tree, carm, true)
+    far = _perturb(true, tree, 5.0, 8.0, seed=11)
+    xi = (far @ true.inverse()).log()
+    scores = [reg.score(tree, uv, carm, Pose.exp(a * xi) @ true) for a in np.linspace(1.0, 0.0, 9)]
+    assert np.all(np.diff(scores) < 0), scores
+    assert scores[-1] < 0.3
+
+
+def test_smooth_motion_prior_pulls_to_prior(case0):
+    tree, carm, true = case0
+    uv = _centerline(tree, carm, true)
+    prior = _perturb(true, tree, 1.0, 2.0, seed=12)
+    free = reg.register(tree, uv, carm, init_pose=prior, global_search=False)
+    held = reg.register(tree, uv, carm, init_pose=prior, global_search=False, prior_pose=prior, prior_weight=1e6)
+    assert mtre_mm(free.pose, true, tree.points_lps_mm) < EXACT_MM
+    assert mtre_mm(held.pose, prior, tree.points_lps_mm) < 0.05
+
+
+def test_epnp_baseline_exact_and_mirror(case0):
+    tree, carm, true = case0
+    rng = np.random.default_rng(13)
+    X = tree.centroid_lps_mm + rng.uniform(-30, 30, size=(12, 3))
+    uv = carm.project(X, true)
+    r = reg.register_epnp(X, uv, carm)
+    assert r.success and np.linalg.det(r.pose.R) > 0
+    assert mtre_mm(r.pose, true, X) < 0.05
+    assert r.mean_residual_px < 0.01
+    few = reg.register_epnp(X[:3], uv[:3], carm)
+    assert not few.success and "4" in few.message
+
+
+def test_match_bifurcations_under_shifted_start(case0):
+    tree, carm, true = case0
+    bif = tree.bifurcations
+    uv = carm.project(tree.points_lps_mm[bif], true)
+    order = np.random.default_rng(14).permutation(len(bif))
+    start = reg.nudge(true, carm, centroid_lps_mm=tree.centroid_lps_mm, translate_mm=(4.0, -3.0, 0.0))
+    i3, i2 = reg.match_bifurcations(tree, uv[order], carm, start)
+    assert len(i3) == len(bif)
+    assert np.array_equal(i3, bif[order][i2])
+
+
+def test_result_to_dict_is_json(case0):
+    tree, carm, true = case0
+    uv = _centerline(tree, carm, true)
+    r = reg.register(tree, uv, carm, init_pose=true, global_search=False)
+    d = json.loads(json.dumps(r.to_dict()))
+    assert d["success"] is True and len(d["projection_matrix"]) == 3
+    assert Pose.from_dict(d["pose"]).allclose(r.pose, atol_mm=1e-9)
+    failed = reg.register(tree, uv[:5], carm)
+    assert not failed.success and json.loads(json.dumps(failed.to_dict()))["mean_residual_px"] is None
+
+
+def test_bad_inputs_raise(case0):
+    tree, carm, true = case0
+    uv = _centerline(tree, carm, true)
+    with pytest.raises(InputError, match="centerline_uv_px"):
+        reg.register(tree, uv[:, :1], carm)
+    with pytest.raises(InputError, match="non-finite"):
+        reg.register(tree, np.vstack([uv, [np.nan, 1.0]]), carm)
+    with pytest.raises(InputError, match="tree"):
+        reg.register(np.zeros((5, 2)), uv, carm)
+    with pytest.raises(InputError, match="carm"):
+        reg.register(tree, uv, "not a carm")
+    with pytest.raises(InputError, match="centerline_radius_px"):
+        reg.register(tree, uv, carm, centerline_radius_px=np.ones(3))
+    with pytest.raises(InputError, match="lam"):
+        reg.register(tree, uv, carm, lam=-1)
+    with pytest.raises(InputError, match="translate_mm"):
+        reg.nudge(true, carm, centroid_lps_mm=tree.centroid_lps_mm, translate_mm=(1, 2))
+    with pytest.raises(InputError, match="landmarks"):
+        reg.register_epnp(np.zeros((5, 3)), np.zeros((4, 2)), carm)
