@@ -9,16 +9,21 @@ Three stages of the paper's pipeline live here (DESIGN.md, "The flow of data"):
   top-hat, multi-scale Hessian vesselness (Sato) of the top-hat, a combined feature
   ``sqrt(top-hat * vesselness)``, hysteresis thresholds relative to the feature's Otsu threshold,
   and removal of components smaller than a fixed fraction of the image or of the largest
-  component (the vessel tree is connected; noise and unlabelled side branches are not). Every length scales with
+  component (the vessel tree is connected; noise and unlabelled side branches are not), then
+  growth to the full vessel width (half maximum of a wide top-hat). Vessels wider than the
+  default range (a simulated aorta-sized trunk) need ``max_radius_px``: a second pass on a
+  binned image. Every length scales with
   the image size (reference: 300 px), so no parameter is tuned per image.
 - :func:`roadmap_centerline` skeletonises that mask and applies the paper's skeleton criteria:
   keep end points and branch points, drop spurs (terminal branches shorter than the local vessel
   width). Points carry the local radius (distance transform, px).
 - :func:`ordered_wire` turns a guidewire mask into an ordered, sub-pixel polyline:
   Zhang-Suen thinning, an 8-connected pixel graph, the longest path of each skeleton piece
-  (double Dijkstra: spurs drop out), bridging of pieces whose ends are close and whose directions
-  agree, sub-pixel centring across the normal, extension of both ends to the mask's end caps,
-  proximal -> distal ordering and resampling at ~1 px.
+  (a good-continuation trace through junctions, so a wire looping over itself is followed
+  through the crossing and spurs are left; double Dijkstra for junction-free pieces), bridging of
+  pieces whose ends are close and whose directions agree, sub-pixel centring across the normal
+  (mask centroid, weighted by the frame's darkness when given), extension of both ends to the
+  mask's end caps, proximal -> distal ordering and resampling at ~1 px.
 - :func:`wire_graph_spectrum` builds the paper's gradient-weighted path graph and its Laplacian
   eigenbasis, and projects the wire's discrete curvature onto it.
 
@@ -57,7 +62,8 @@ HYSTERESIS_LOW = 0.85             # x Otsu threshold of the feature
 HYSTERESIS_HIGH = 1.5             # x Otsu threshold of the feature
 MIN_COMPONENT_FRACTION = 0.001    # components smaller than this fraction of the image are dropped
 MIN_COMPONENT_OF_LARGEST = 0.1    # ... and those smaller than this fraction of the largest (the tree)
-COARSE_FACTOR = 3                 # second detection pass on a 3x binned image (wide vessels); 1: off
+FINE_MAX_RADIUS_PX = 6.0          # widest vessel radius the single-resolution pass covers
+MAX_COARSE_FACTOR = 8             # largest binning of the coarse pass (see max_radius_px)
 WIDTH_COMPLETION = True           # grow detections to full width (FWHM of a wide top-hat)
 WIDE_RADIUS_PX = 12.0             # its top-hat radius; also the search distance
 HALF_MAX = 0.5                    # fraction of the local vessel contrast at the vessel edge
@@ -72,6 +78,8 @@ MIN_PIECE_PX = 3                  # skeleton pieces with fewer pixels are noise
 MAX_PIECES = 24                   # only the largest pieces are considered for bridging
 TANGENT_BACK_PX = 6               # end tangent from this many pixels back along the piece
 BRIDGE_MAX_ANGLE_DEG = 50.0       # gap vector vs each end's outward tangent
+TURN_PENALTY_PX = 10.0            # trail score: length - this x (1 - cos turn) at each junction
+TRACE_MAX_STEPS = 5000            # search budget of the trail search
 BRIDGE_FREE_PX = 2.5              # gaps up to this length are bridged regardless of direction
 TIP_CAP_FRACTION = 0.25          # mask end cap beyond the tip, x local width (flat 0 .. round 0.5)
 PROFILE_STEP_PX = 0.5            # sampling step across the normal (centring)
@@ -201,7 +209,7 @@ def _drop_small(mask: np.ndarray, min_px: int, connectivity: int = 2) -> np.ndar
     return (size >= min_px)[lab]
 
 
-def vessel_mask(image, *, dark_vessels: bool | None = None) -> np.ndarray:
+def vessel_mask(image, *, dark_vessels: bool | None = None, max_radius_px: float | None = None) -> np.ndarray:
     """Segment the vessels of a 2D angiogram.
 
     Parameters
@@ -210,7 +218,12 @@ def vessel_mask(image, *, dark_vessels: bool | None = None) -> np.ndarray:
         Subtracted DSA roadmap or a plain (non-subtracted) XA frame, any dtype and intensity scale.
     dark_vessels : bool or None
         ``True`` if contrast-filled vessels are darker than the background (X-ray convention),
-        ``False`` if brighter; ``None`` detects the polarity from the thin-ridge responses.
+        ``False`` if brighter; ``None`` detects the polarity (dark vs bright top-hat details).
+    max_radius_px : float, optional
+        Radius of the widest vessel expected, px (e.g. from the CTA and the C-arm magnification).
+        ``None``: vessels up to ``FINE_MAX_RADIUS_PX`` x (image size / 300 px), typical of
+        coronary angiograms. A larger value adds a second detection pass on an f-times binned
+        image, ``f = ceil(max_radius_px / (FINE_MAX_RADIUS_PX x scale))`` (at most 8).
 
     Returns
     -------
@@ -220,7 +233,8 @@ def vessel_mask(image, *, dark_vessels: bool | None = None) -> np.ndarray:
     Raises
     ------
     InputError
-        If ``image`` is not a finite 2D numeric array of at least 8x8 pixels.
+        If ``image`` is not a finite 2D numeric array of at least 8x8 pixels, or a bad
+        ``max_radius_px``.
     """
     a = _as_image(image, "image")
     im01, ok = _normalise01(a)
@@ -232,20 +246,38 @@ def vessel_mask(image, *, dark_vessels: bool | None = None) -> np.ndarray:
     m, fov, att = _detect(a, bool(dark_vessels), scale)
     if m is None:
         return np.zeros(a.shape, bool)
-    f = COARSE_FACTOR
+    th_l = _wide_tophat(att, scale)
+    f = 1
+    if max_radius_px is not None:
+        if not (np.isfinite(max_radius_px) and max_radius_px > 0):
+            raise InputError(f"max_radius_px: expected a positive number of pixels, got {max_radius_px!r}")
+        f = int(min(MAX_COARSE_FACTOR, np.ceil(max_radius_px / (FINE_MAX_RADIUS_PX * scale))))
     if f > 1 and min(a.shape) >= 64 * f:
         # Coarse pass: the same detector on an f-times binned image finds vessels f times wider.
         h, w = (a.shape[0] // f) * f, (a.shape[1] // f) * f
         binned = a[:h, :w].reshape(h // f, f, w // f, f).mean(axis=(1, 3))
         mc, _, _ = _detect(binned, bool(dark_vessels), scale)
-        if mc is not None:
+        if mc is not None and mc.any():
             up = np.zeros(a.shape, bool)
             up[:h, :w] = np.repeat(np.repeat(mc, f, axis=0), f, axis=1)
             m = m | (up & fov)
     m = _filter_components(m)
     if WIDTH_COMPLETION and m.any():
-        m = _complete_width(m, att, fov, scale)
+        m = _complete_width(m, th_l, fov, scale)
     return m
+
+
+def _wide_tophat(att: np.ndarray, scale: float) -> np.ndarray:
+    """White top-hat of the attenuation with a disk of WIDE_RADIUS_PX (computed on a subsampled
+    grid, interpolated back): the local contrast of vessels up to that radius."""
+    from skimage.morphology import disk
+
+    k = max(1, int(round(2.0 * scale)))
+    small = att[::k, ::k]
+    r_l = max(2, int(round(WIDE_RADIUS_PX * scale / k)))
+    th_l = small - ndi.grey_opening(small, footprint=disk(r_l))
+    zoom = (att.shape[0] / small.shape[0], att.shape[1] / small.shape[1])
+    return ndi.zoom(th_l, zoom, order=1, grid_mode=True, mode="nearest")[: att.shape[0], : att.shape[1]]
 
 
 def _detect(a: np.ndarray, dark_vessels: bool, scale: float):
@@ -273,18 +305,10 @@ def _filter_components(m: np.ndarray) -> np.ndarray:
     return keep[lab]
 
 
-def _complete_width(m: np.ndarray, att: np.ndarray, fov: np.ndarray, scale: float) -> np.ndarray:
-    """Grow the detected vessels to their full width: pixels near the mask whose large-radius
-    top-hat is at least half of the local vessel contrast (full width at half maximum). This also
-    fills wide vessels whose small-radius top-hat is hollow."""
-    from skimage.morphology import disk
-
-    k = max(1, int(round(2.0 * scale)))                  # work on a k-times subsampled grid
-    small = att[::k, ::k]
-    r_l = max(2, int(round(WIDE_RADIUS_PX * scale / k)))
-    th_l = small - ndi.grey_opening(small, footprint=disk(r_l))
-    zoom = (att.shape[0] / small.shape[0], att.shape[1] / small.shape[1])
-    th_l = ndi.zoom(th_l, zoom, order=1, grid_mode=True, mode="nearest")[: att.shape[0], : att.shape[1]]
+def _complete_width(m: np.ndarray, th_l: np.ndarray, fov: np.ndarray, scale: float) -> np.ndarray:
+    """Grow the detected vessels to their full width: pixels near the mask whose wide top-hat is
+    at least half of the local vessel contrast (full width at half maximum). This also fills wide
+    vessels whose small-radius top-hat is hollow."""
     win = 2 * int(round(WIDE_RADIUS_PX * scale)) + 1
     local = ndi.maximum_filter(np.where(m, th_l, 0.0), size=win)
     near = ndi.binary_dilation(m, iterations=max(1, int(round(WIDE_RADIUS_PX * scale))))
@@ -332,13 +356,13 @@ def _pixel_graph(skel: np.ndarray):
     return rr, cc, g
 
 
-def _prune_spurs(skel: np.ndarray, radius: np.ndarray, *, min_spur_px: float, n_iter: int = 3) -> np.ndarray:
+def _prune_spurs(skel: np.ndarray, radius: np.ndarray, *, min_spur_px: float, n_iter: int = 6) -> np.ndarray:
     """Remove terminal branches (end point to junction) shorter than max(min_spur_px, 2 x radius
     at the junction). Iterated, then re-thinned; isolated pieces are kept."""
     from skimage.morphology import skeletonize
 
     sk = skel.copy()
-    for _ in range(n_iter):
+    for it in range(n_iter):
         nb = _neighbour_count(sk)
         junction = (nb >= 3) & sk
         if not junction.any():
@@ -358,11 +382,14 @@ def _prune_spurs(skel: np.ndarray, radius: np.ndarray, *, min_spur_px: float, n_
         rmax = np.asarray(rmax, float)
         # Radius at the parent junction ~ the largest radius of the branch's neighbourhood.
         thresh = np.maximum(min_spur_px, 2.0 * rmax)
-        spur = has_end & touches & (size < thresh)
+        # One pass of spur removal (no cascade into the branches the spurs hung from), then
+        # only the leftover stubs inside junction neighbourhoods.
+        spur = has_end & touches & (size < thresh) & (it == 0)
         spur[0] = False
-        if not spur.any():
+        stub = ends & (lab == 0)                   # end pixels inside a junction's neighbourhood
+        if not spur.any() and not stub.any():
             break
-        sk = sk & ~spur[lab]
+        sk = sk & ~spur[lab] & ~stub
         sk = skeletonize(sk)
     return sk
 
@@ -399,7 +426,7 @@ class Centerline2D:
         return int(len(self.points_uv_px))
 
 
-def roadmap_centerline(image, *, mask=None) -> Centerline2D:
+def roadmap_centerline(image, *, mask=None, max_radius_px: float | None = None) -> Centerline2D:
     """Vessel centerline (skeleton with local radius) of a roadmap image.
 
     Parameters
@@ -408,6 +435,8 @@ def roadmap_centerline(image, *, mask=None) -> Centerline2D:
         Contrast XA frame (subtracted DSA or not).
     mask : (H, W) array_like of bool, optional
         Vessel mask to use instead of :func:`vessel_mask` of ``image``.
+    max_radius_px : float, optional
+        Passed to :func:`vessel_mask` (widest expected vessel radius, px) when ``mask`` is None.
 
     Returns
     -------
@@ -424,7 +453,7 @@ def roadmap_centerline(image, *, mask=None) -> Centerline2D:
 
     a = _as_image(image, "image")
     if mask is None:
-        m = vessel_mask(a)
+        m = vessel_mask(a, max_radius_px=max_radius_px)
     else:
         m = _as_mask(mask, "mask")
         if m.shape != a.shape:
@@ -530,9 +559,9 @@ def _traces(g, rr, cc, lab, comp_ids, merge_px: float):
 
     The skeleton is cut into branches at its junction pixels; junction clusters joined by a
     branch shorter than ``merge_px`` are merged (an X crossing thins into two T junctions).
-    From every free end the trace follows, at each junction, the unused branch whose direction
-    best continues the incoming one, so crossings (a wire looping over itself) are passed
-    straight and spurs are left. Returns ``{component: ((M, 2) rows/cols, length_px)}`` with the
+    From every free end a depth-first search follows trails (each branch at most once) and keeps
+    the one with the best length minus turning penalty, so crossings (a wire looping over itself)
+    are passed straight, hairpins whose limbs touch are followed round, and spurs are left. Returns ``{component: ((M, 2) rows/cols, length_px)}`` with the
     longest trace of each component.
     """
     deg = np.diff(g.indptr)
@@ -596,38 +625,46 @@ def _traces(g, rr, cc, lab, comp_ids, merge_px: float):
             if b[2][e] >= 0:
                 b[2][e] = int(root[b[2][e]])
                 incident.setdefault(b[2][e], []).append((k, e))
-    cos_min = np.cos(np.radians(180.0 - BRIDGE_MAX_ANGLE_DEG * 2.0))
-    best: dict[int, tuple[np.ndarray, float]] = {}
+    # Depth-first search over trails (each branch used once) from every free end; the score is the
+    # length minus a turning penalty at each junction, so the longest trail wins and, among
+    # equally long ones (which way round a loop), the smoothest.
+    best: dict[int, tuple[float, list, float]] = {}
+    budget = [TRACE_MAX_STEPS]
+
+    def away(k, e, c):
+        return _away_tangent(branches[k][0], e, cpos[c])
+
     for k0, b0 in enumerate(branches):
         if len(b0) > 4:
             continue
         for e0 in (0, 1):
             if b0[2][e0] >= 0:
                 continue                            # start only at free ends
-            used = {k0}
-            seq = [b0[0] if e0 == 0 else b0[0][::-1]]
-            total = b0[1]
-            k, out = k0, 1 - e0
-            while branches[k][2][out] >= 0:
+            stack = [(k0, 1 - e0, frozenset([k0]), [(k0, e0)], b0[1], b0[1])]
+            while stack and budget[0] > 0:
+                budget[0] -= 1
+                k, out, used, trail, length, score = stack.pop()
+                comp = b0[3]
+                if comp not in best or score > best[comp][0]:
+                    best[comp] = (score, trail, length)
                 c = branches[k][2][out]
-                d_in = -_away_tangent(branches[k][0], out, cpos[c])
-                cand = [(k2, e2) for k2, e2 in incident.get(c, ()) if k2 not in used]
-                if not cand:
-                    break
-                cosv = [float(d_in @ _away_tangent(branches[k2][0], e2, cpos[c])) for k2, e2 in cand]
-                j = int(np.argmax(cosv))
-                if cosv[j] < cos_min:
-                    break
-                k2, e2 = cand[j]
-                nxt = branches[k2][0] if e2 == 0 else branches[k2][0][::-1]
-                total += branches[k2][1] + float(np.linalg.norm(nxt[0] - seq[-1][-1]))
-                seq.append(nxt)
-                used.add(k2)
-                k, out = k2, 1 - e2
-            comp = b0[3]
-            if comp not in best or total > best[comp][1]:
-                best[comp] = (np.vstack(seq), total)
-    return best
+                if c < 0:
+                    continue
+                d_in = -away(k, out, c)
+                last = branches[k][0][-1] if out == 1 else branches[k][0][0]
+                for k2, e2 in incident.get(c, ()):
+                    if k2 in used:
+                        continue
+                    cosv = float(d_in @ away(k2, e2, c))
+                    nxt = branches[k2][0][0] if e2 == 0 else branches[k2][0][-1]
+                    step = branches[k2][1] + float(np.linalg.norm(nxt - last))
+                    stack.append((k2, 1 - e2, used | {k2}, trail + [(k2, e2)], length + step,
+                                  score + step - TURN_PENALTY_PX * (1.0 - cosv)))
+    out_paths: dict[int, tuple[np.ndarray, float]] = {}
+    for comp, (_, trail, length) in best.items():
+        seq = [branches[k][0] if e == 0 else branches[k][0][::-1] for k, e in trail]
+        out_paths[comp] = (np.vstack(seq), length)
+    return out_paths
 
 
 def _longest_paths(skel: np.ndarray, merge_px: float):
@@ -773,8 +810,9 @@ def _refine(p_rc: np.ndarray, maskf: np.ndarray, darkness: np.ndarray | None, ha
 
 
 def _extend_end(p_rc: np.ndarray, maskf: np.ndarray, at_end: bool, max_px: float) -> np.ndarray:
-    """Extend one end along its tangent to where the mask's centre line leaves the mask, minus the
-    half-width (a round end cap of radius = half-width around the true end)."""
+    """Extend one end along its tangent to where the mask's centre line leaves the mask, minus
+    ``TIP_CAP_FRACTION`` x the local mask width (the end cap: 0 for a flat cut, 0.5 for a round
+    cap; the rasterised mask of a tube's end lies in between)."""
     k = min(4, len(p_rc) - 1)
     if k < 1:
         return p_rc
@@ -805,7 +843,8 @@ def ordered_wire(mask, *, image=None, proximal_hint_uv=None, max_gap_px: float =
     """Ordered sub-pixel guidewire centerline from a guidewire mask.
 
     Zhang-Suen thinning of the mask, an 8-connected pixel graph, the longest path of each skeleton
-    piece, bridging of pieces whose end points are within ``max_gap_px`` with agreeing directions,
+    piece (a good-continuation trace through junctions and crossings; spurs are left), bridging of
+    pieces whose end points are within ``max_gap_px`` with agreeing directions,
     sub-pixel centring across the local normal, extension of both ends to the mask's end caps,
     proximal -> distal ordering and resampling at ~1 px.
 
@@ -874,7 +913,13 @@ def ordered_wire(mask, *, image=None, proximal_hint_uv=None, max_gap_px: float =
     pad = 8
     r0, r1 = max(rows[0] - pad, 0), min(rows[-1] + pad + 1, m_full.shape[0])
     c0, c1 = max(cols[0] - pad, 0), min(cols[-1] + pad + 1, m_full.shape[1])
-    m = m_full[r0:r1, c0:c1]
+    # Where the wire leaves the image, continue the mask beyond the border (edge replication) so
+    # that the skeleton does not fork at the cut; points outside the image are dropped at the end.
+    H, W = m_full.shape
+    ext = ((pad if r0 == 0 else 0, pad if r1 == H else 0), (pad if c0 == 0 else 0, pad if c1 == W else 0))
+    m = np.pad(m_full[r0:r1, c0:c1], ext, mode="edge") if any(map(any, ext)) else m_full[r0:r1, c0:c1]
+    o_r, o_c = r0 - ext[0][0], c0 - ext[1][0]           # ROI (0, 0) in image pixels
+    m = np.array(m, dtype=bool, copy=True)              # skeletonize needs a writable array
 
     skel = skeletonize(m)
     half_width = 0.5 * float(m.sum()) / max(float(skel.sum()), 1.0)   # mean half-width, px
@@ -897,12 +942,22 @@ def ordered_wire(mask, *, image=None, proximal_hint_uv=None, max_gap_px: float =
     darkness = None
     if img is not None:
         darkness = -img[r0:r1, c0:c1].astype(np.float64)    # wire darker: larger darkness
+        if any(map(any, ext)):
+            darkness = np.pad(darkness, ext, mode="edge")
     p = _smooth_polyline(path_rc, REFINE_SMOOTH_PX)
     p = _refine(p, maskf, darkness, half)
     p = _smooth_polyline(p, 1.0)
     p = _extend_end(p, maskf, True, half + 2.0)
     p = _extend_end(p, maskf, False, half + 2.0)
-    uv = resample_polyline(p[:, ::-1] + np.array([c0, r0], float), 1.0)
+    uv = p[:, ::-1] + np.array([o_c, o_r], float)
+    inside = (uv[:, 0] >= -0.5) & (uv[:, 0] <= W - 0.5) & (uv[:, 1] >= -0.5) & (uv[:, 1] <= H - 0.5)
+    if not inside.all():
+        idx = np.flatnonzero(inside)
+        if len(idx) < 2:
+            return _failed("the wire path lies outside the image")
+        runs = np.split(idx, np.flatnonzero(np.diff(idx) > 1) + 1)
+        uv = uv[max(runs, key=len)]                      # the longest stretch inside the image
+    uv = resample_polyline(uv, 1.0)
 
     # Proximal -> distal.
     h, w = m_full.shape

@@ -46,7 +46,7 @@ from __future__ import annotations
 import enum
 import time
 from collections import OrderedDict
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 
 import numpy as np
 from scipy.interpolate import BSpline
@@ -81,15 +81,17 @@ class ReconMethod(enum.Enum):
 class ReconOptions:
     """Tuning of the reconstruction (defaults are the ones benchmarked)."""
 
+    centerline_smoothing_mm: float = 0.0  #: smooth the tree's centerline and radii at this scale (0: off)
     densify_px: float = 3.0  #: target projected spacing of the (densified) tree points
     densify_radius: float = 0.4  #: ... but at least this fraction of the vessel radius
     dp_step_px: float = 5.0  #: spacing of the Viterbi anchors along the 2D wire
     candidates: int = 16  #: at most this many tree points per anchor
-    margin_px: float = 3.0  #: candidates may lie this far outside the projected lumen
+    margin_px: float = 5.0  #: candidates may lie this far outside the projected lumen
     sigma_outside_px: float = 1.5  #: unary: distance outside the projected lumen
     sigma_step_px: float = 3.0  #: pairwise: 2D step of the tree point vs of the wire
     sigma_jump_mm: float = 0.5  #: pairwise: geodesic minus Euclidean distance (connectivity)
     sigma_retreat_mm: float = 1.0  #: pairwise: distance moved towards the root
+    skip_cost: float = 4.0  #: cost per distal anchor left unexplained when the path ends early
     start_cost_per_mm: float = 0.002  #: prefers the proximal candidate at the first anchor
     reverse_mm: float = 5.0  #: a chosen path ending this much nearer the root triggers a reversed try
     min_coverage: float = 0.6  #: fraction of anchors that must have a candidate
@@ -100,14 +102,28 @@ class ReconOptions:
     outer_bend_mm: float = 20.0  #: full hug where the radius of curvature is below this
     outer_bend_fraction: float = 0.7  #: ... of this fraction of the room the wire has
     chord_clearance: bool = True  #: the depth interval is the chord of radius - wire_clearance_mm
-    bend_scale_mm: float = 3.0  #: centerline smoothing for its curvature
-    wire_clearance_mm: float = 0.35  #: wire radius + margin kept from the wall (prior only)
+    bend_scale_mm: float = 5.0  #: centerline smoothing for its curvature
+    wire_clearance_mm: float = 0.35  #: wire radius + margin kept from the wall (chord and prior)
     smoothing_lambda: float = 0.1  #: paper's smoothness weight (P-spline, see module doc)
     knot_px: float = 5.0  #: spline knot spacing along the 2D wire
     max_projection_px: float = 1.0  #: the smoothed wire stays within this (mean) of the 2D wire
     fail_projection_px: float = 3.0  #: a result worse than this (mean) is a failure
     sigma_geo_px: float = 2.0  #: paper's geometric uncertainty
     sigma_img: float = 0.1  #: paper's image uncertainty (scales the image gradient)
+
+    def __post_init__(self):
+        for f in fields(self):
+            v = getattr(self, f.name)
+            if isinstance(v, bool):
+                continue
+            if not np.isfinite(v) or v < 0 or (v == 0 and f.name not in _MAY_BE_ZERO):
+                raise InputError(f"ReconOptions.{f.name} must be a finite positive number, got {v!r}")
+        if int(self.candidates) != self.candidates or self.candidates < 1:
+            raise InputError(f"ReconOptions.candidates must be a positive integer, got {self.candidates!r}")
+
+
+_MAY_BE_ZERO = {"centerline_smoothing_mm", "start_cost_per_mm", "track_tolerance_mm", "track_confirm_mm",
+                "margin_px", "wire_clearance_mm", "sigma_img", "min_coverage"}
 
 
 # --------------------------------------------------------------------------------------------
@@ -222,6 +238,34 @@ def _densify(tree: VesselTree, step_mm) -> tuple[VesselTree, np.ndarray]:
     return dense, orig.astype(np.int64)
 
 
+def _smooth_tree(tree: VesselTree, sigma_mm: float) -> VesselTree:
+    """The tree with its points and radii smoothed along the tree (Gaussian-like, ``sigma_mm``).
+
+    Repeated averaging of each point with its tree neighbours (root and leaves fixed); a CTA
+    centerline carries voxel-scale wiggles that would otherwise become wire length.
+    """
+    if sigma_mm <= 0:
+        return tree
+    e = tree.edges
+    h = float(np.median(tree.edge_length_mm))
+    k = int(np.clip(np.round(1.5 * (sigma_mm / max(h, 1e-6)) ** 2), 0, 200))
+    if k == 0:
+        return tree
+    deg = tree.degree.astype(float)
+    fixed = (deg <= 1) | (tree.parent < 0)
+    P = tree.points_lps_mm.copy()
+    R = tree.radius_mm.copy()
+    for _ in range(k):
+        accP, accR = P.copy(), R.copy()
+        np.add.at(accP, e[:, 0], P[e[:, 1]])
+        np.add.at(accP, e[:, 1], P[e[:, 0]])
+        np.add.at(accR, e[:, 0], R[e[:, 1]])
+        np.add.at(accR, e[:, 1], R[e[:, 0]])
+        P = np.where(fixed[:, None], P, accP / (1.0 + deg)[:, None])
+        R = np.where(fixed, R, accR / (1.0 + deg))
+    return VesselTree(P, R, tree.parent)
+
+
 class ReconstructionContext:
     """Everything that depends only on (tree, C-arm, pose), computed once.
 
@@ -237,7 +281,7 @@ class ReconstructionContext:
         self.options = opt = options or ReconOptions()
         # candidate spacing: ~densify_px in the image, coarser in wide vessels (0.4 radius)
         step_mm = np.maximum(max(opt.densify_px * carm.pixel_at_iso_mm, 0.05), opt.densify_radius * tree.radius_mm)
-        dense, self.orig_id = _densify(tree, step_mm)
+        dense, self.orig_id = _densify(_smooth_tree(tree, opt.centerline_smoothing_mm), step_mm)
         self.dense = dense
         self.points = dense.points_lps_mm
         self.radius = dense.radius_mm
@@ -367,7 +411,8 @@ _CACHE: OrderedDict = OrderedDict()
 _CACHE_SIZE = 6
 
 
-def build_context(pose: Pose, carm: CArm, tree: VesselTree, *, options: ReconOptions | None = None) -> ReconstructionContext:
+def build_context(pose: Pose, carm: CArm, tree: VesselTree, *,
+                  options: ReconOptions | None = None) -> ReconstructionContext:
     """The cached :class:`ReconstructionContext` of (pose, carm, tree, options).
 
     The cache holds the objects themselves (so their ids stay valid) for the last few calls.
@@ -613,26 +658,36 @@ def _viterbi(ctx, uv_a, cand, outside, opt, track_tip):
     a = Uc[1:] - (uv_a[1:] - uv_a[:-1])[:, None, :]
     m2 = (np.einsum("akx,akx->ak", Uc[:-1], Uc[:-1])[:, :, None] + np.einsum("akx,akx->ak", a, a)[:, None, :]
           - 2.0 * Uc[:-1] @ np.transpose(a, (0, 2, 1)))
+    # pseudo-Huber on the 2D step mismatch: quadratic up to sigma_step_px, then linear (a wire
+    # cutting the corner of a bifurcation leaves the centerline's candidates for a few anchors)
     C = (
-        np.maximum(m2, 0.0) / opt.sigma_step_px**2
+        2.0 * (np.sqrt(1.0 + np.maximum(m2, 0.0) / opt.sigma_step_px**2) - 1.0)
         + np.maximum(geo - e3, 0.0) / opt.sigma_jump_mm
         + up / opt.sigma_retreat_mm
     )
     acc = U[0] + opt.start_cost_per_mm * ctx.s[safe[0]]
     back = np.zeros((A - 1, K), np.int64)
     ar = np.arange(K)
+    # the path may end before the last anchor, paying skip_cost per anchor left unexplained (a
+    # distal part outside every lumen, e.g. a missing or mis-registered end branch, is then not
+    # forced onto a far branch by a long jump)
+    end_t, end_k = 0, int(np.argmin(acc))
+    end_cost = float(acc[end_k]) + opt.skip_cost * (A - 1)
     for t in range(A - 1):
         tot = acc[:, None] + C[t]
         b = tot.argmin(axis=0)
         back[t] = b
         acc = tot[b, ar]
         acc += U[t + 1]
-    best = np.empty(A, np.int64)
-    best[-1] = int(np.argmin(acc))
-    total = float(acc[best[-1]])
-    for t in range(A - 2, -1, -1):
+        k = int(np.argmin(acc))
+        c = float(acc[k]) + opt.skip_cost * (A - 2 - t)
+        if c < end_cost:
+            end_t, end_k, end_cost = t + 1, k, c
+    best = np.empty(end_t + 1, np.int64)
+    best[-1] = end_k
+    for t in range(end_t - 1, -1, -1):
         best[t] = back[t, best[t + 1]]
-    return cand[np.arange(A), best], total
+    return cand[np.arange(end_t + 1), best], end_cost
 
 
 def _place_on_path(ctx, uv, anchor_idx, nodes):
@@ -713,7 +768,9 @@ def _reconstruct_vessel(ctx, uv, *, track_tip, image, registration_covariance, o
             f"need {100 * opt.min_coverage:.0f}%)", seconds=time.perf_counter() - t0)
     aidx, cand, outside = aidx[has], cand[has], outside[has]
     nodes, total = _viterbi(ctx, uv[aidx], cand, outside, opt, track_tip)
-    if not np.isfinite(total):
+    n_skipped = len(aidx) - len(nodes)
+    aidx = aidx[: len(nodes)]
+    if not np.isfinite(total) or len(nodes) < 2:
         return Wire3D.failed("no connected path through the vessel tree explains the 2D wire",
                              seconds=time.perf_counter() - t0)
     reversed_note = ""
@@ -721,8 +778,9 @@ def _reconstruct_vessel(ctx, uv, *, track_tip, image, registration_covariance, o
         # the path runs towards the root: the 2D wire was probably given distal -> proximal
         r_aidx = len(uv) - 1 - aidx[::-1]
         r_nodes, r_total = _viterbi(ctx, uv[::-1][r_aidx], cand[::-1], outside[::-1], opt, track_tip)
-        if r_total < total:
-            uv, aidx, nodes, total = uv[::-1].copy(), r_aidx, r_nodes, r_total
+        if r_total < total and len(r_nodes) >= 2:
+            uv, aidx, nodes, total = uv[::-1].copy(), r_aidx[: len(r_nodes)], r_nodes, r_total
+            n_skipped = len(r_aidx) - len(r_nodes)
             reversed_note = "; the 2D wire looked distal -> proximal: output reversed to proximal -> distal"
     X, tid, half, dist, r = _place_on_path(ctx, uv, aidx, nodes)
     miss = np.maximum(dist - r, 0.0)
@@ -730,6 +788,8 @@ def _reconstruct_vessel(ctx, uv, *, track_tip, image, registration_covariance, o
     msg = f"ok: {len(uv)} points, {100 * coverage:.0f}% of anchors on the tree, path cost {total:.1f}" + reversed_note
     if coverage < 1.0:
         msg += " (gaps bridged)"
+    if n_skipped:
+        msg += f"; the last {n_skipped} anchors fit no lumen (placed beyond the path's end)"
     ids = np.where(miss > 0, -1, tid)
     return _finish(ctx, X, uv, ids, depth_std, miss**2, image=image, registration_covariance=registration_covariance,
                    opt=opt, method=ReconMethod.VESSEL, t0=t0, message=msg)

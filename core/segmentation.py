@@ -439,28 +439,36 @@ def _sigmoid(x: np.ndarray) -> np.ndarray:
     return 1.0 / (1.0 + np.exp(-np.clip(x, -30, 30)))
 
 
-def _run_unet_boxes(z: np.ndarray, boxes, runner, *, context_px: int) -> np.ndarray:
-    """UNet probability on the inner ``boxes`` (u0, v0, u1, v1) of normalised frame ``z`` (0 elsewhere).
+def _run_unet_boxes(frame: np.ndarray, stats, boxes, runner, *, context_px: int) -> np.ndarray:
+    """UNet probability on the inner ``boxes`` (u0, v0, u1, v1) of a raw frame (0 elsewhere).
 
     Each box is cut out with ``context_px`` of real image around it (reflect-padded at the frame
-    border, then to a multiple of 8); boxes of equal size are batched.
+    border, then to a multiple of 8), normalised with the full frame's ``stats``; boxes of equal
+    size are batched into one network call.
     """
-    h, w = z.shape
+    h, w = frame.shape
     prob = np.zeros((h, w), np.float32)
     c = int(context_px)
-    zp = np.pad(z, c, mode="reflect") if c > 0 else z
+    fp = np.pad(frame, c, mode="reflect") if c > 0 else frame
     groups: dict = {}
     for box in boxes:
         u0, v0, u1, v1 = box
         groups.setdefault((v1 - v0, u1 - u0), []).append(box)
     for (bh, bw), bxs in groups.items():
-        crops = np.stack([zp[v0:v1 + 2 * c, u0:u1 + 2 * c] for (u0, v0, u1, v1) in bxs])
-        crops = _pad_to_multiple(crops)[:, None]
-        logits = runner(crops.astype(np.float32))
+        crops = np.stack([fp[v0:v1 + 2 * c, u0:u1 + 2 * c] for (u0, v0, u1, v1) in bxs])
+        crops = _pad_to_multiple(normalize_frame_stack(crops, stats))[:, None]
+        logits = runner(crops)
         p = _sigmoid(logits[:, 0, c:c + bh, c:c + bw])
         for k, (u0, v0, u1, v1) in enumerate(bxs):
             prob[v0:v1, u0:u1] = p[k]
     return prob
+
+
+def normalize_frame_stack(crops: np.ndarray, stats) -> np.ndarray:
+    """:func:`normalize_frame` of a (B, H, W) stack of crops with given ``(median, spread)``."""
+    z = (np.asarray(crops, np.float32) - np.float32(stats[0])) / np.float32(stats[1])
+    np.clip(z, -Z_CLIP, Z_CLIP, out=z)
+    return z
 
 
 def unet_probability(frame, *, roi_uv=None, backend="auto", weights_path=None,
@@ -479,7 +487,8 @@ def unet_probability(frame, *, roi_uv=None, backend="auto", weights_path=None,
     num_threads : int, optional
         Intra-op threads (default: onnxruntime 2, torch unchanged).
     context_px : int
-        Image context added around an ROI.
+        Image context added around the box (reflected at the frame border, so that the network's
+        zero padding never sits next to image content).
 
     Returns
     -------
@@ -490,9 +499,8 @@ def unet_probability(frame, *, roi_uv=None, backend="auto", weights_path=None,
     if degenerate:
         return np.zeros(a.shape, np.float32)
     runner, _ = _get_runner(backend, weights_path, num_threads)
-    z = normalize_frame(a, stats=(med, spread))
     box = (0, 0, a.shape[1], a.shape[0]) if roi_uv is None else _check_roi(roi_uv, a.shape)
-    return _run_unet_boxes(z, [box], runner, context_px=0 if roi_uv is None else context_px)
+    return _run_unet_boxes(a, (med, spread), [box], runner, context_px=context_px)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -504,6 +512,7 @@ RIDGE_BETA = 0.5
 RIDGE_NOISE_UNITS = 6.0
 RIDGE_HIGH = 0.8
 RIDGE_LOW = 0.45
+RIDGE_SIGMAS_PX = (1.0, 1.5, 2.5)
 RIDGE_WIDTH_FRACTION = 0.35
 
 
@@ -540,7 +549,7 @@ def _check_sigmas(sigmas_px) -> list[float]:
     return sig
 
 
-def ridge_probability(frame, *, sigmas_px=(1.0, 1.5, 2.5)) -> np.ndarray:
+def ridge_probability(frame, *, sigmas_px=RIDGE_SIGMAS_PX) -> np.ndarray:
     """Classical multi-scale ridge (dark thin line) response mapped to [0, 1].
 
     Scale-normalised Hessian eigenvalues (Frangi-type, blobs suppressed) of the normalised frame,
@@ -645,7 +654,7 @@ def guidewire_mask(frame, *, method="unet", roi_uv=None, backend="auto") -> np.n
     m = _method(method)
     roi = None if roi_uv is None else _check_roi(roi_uv, a.shape)
     if m is SegMethod.RIDGE:
-        return _ridge_mask(a, (1.0, 1.5, 2.5), roi)
+        return _ridge_mask(a, RIDGE_SIGMAS_PX, roi)
     runner, config = _get_runner(backend)
     prob = unet_probability(a, roi_uv=roi, backend=backend)
     return _unet_mask_from_prob(prob, config.threshold)
@@ -730,41 +739,32 @@ class GuidewireSegmenter:
                 boxes.append((u0, v0, u1, v1))
         return boxes
 
-    def _full(self, a: np.ndarray) -> np.ndarray:
+    def _full(self, a: np.ndarray, stats) -> np.ndarray:
         self.last_mode = "full"
         if self.method is SegMethod.RIDGE:
-            return _ridge_mask(a, (1.0, 1.5, 2.5), None)
+            return _ridge_mask(a, RIDGE_SIGMAS_PX, None)
         runner, config = _get_runner(self.backend, None, self.num_threads)
-        med, spread, degenerate = _frame_stats(a)
-        if degenerate:
-            return np.zeros(a.shape, bool)
-        z = normalize_frame(a, stats=(med, spread))
-        prob = _run_unet_boxes(z, [(0, 0, a.shape[1], a.shape[0])], runner, context_px=0)
+        prob = _run_unet_boxes(a, stats, [(0, 0, a.shape[1], a.shape[0])], runner, context_px=self.context_px)
         return _unet_mask_from_prob(prob, config.threshold)
 
-    def _tracked(self, a: np.ndarray, prev: np.ndarray):
+    def _tracked(self, a: np.ndarray, prev: np.ndarray, stats):
         boxes = self._strips(prev)
         if not boxes:
             return None
-        h, w = a.shape
+        covered = np.zeros(a.shape, bool)
+        for u0, v0, u1, v1 in boxes:
+            covered[v0:v1, u0:u1] = True
         if self.method is SegMethod.RIDGE:
-            mask = np.zeros(a.shape, bool)
-            for b in boxes:
-                mask |= _ridge_mask(a, (1.0, 1.5, 2.5), b)
+            vv, uu = np.nonzero(covered.any(axis=1))[0], np.nonzero(covered.any(axis=0))[0]
+            bbox = (int(uu[0]), int(vv[0]), int(uu[-1]) + 1, int(vv[-1]) + 1)
+            mask = _ridge_mask(a, RIDGE_SIGMAS_PX, bbox) & covered
         else:
-            med, spread, degenerate = _frame_stats(a)
-            if degenerate:
-                return np.zeros(a.shape, bool)
             runner, config = _get_runner(self.backend, None, self.num_threads)
-            z = normalize_frame(a, stats=(med, spread))
-            prob = _run_unet_boxes(z, boxes, runner, context_px=self.context_px)
+            prob = _run_unet_boxes(a, stats, boxes, runner, context_px=self.context_px)
             mask = _unet_mask_from_prob(prob, config.threshold)
         if not mask.any():
             return None
         # the wire must not reach a strip border that is inside the frame
-        covered = np.zeros(a.shape, bool)
-        for u0, v0, u1, v1 in boxes:
-            covered[v0:v1, u0:u1] = True
         inner = covered.copy()
         inner[1:, :] &= covered[:-1, :]
         inner[:-1, :] &= covered[1:, :]
@@ -781,16 +781,18 @@ class GuidewireSegmenter:
     def segment(self, frame) -> np.ndarray:
         """Segment the next frame; returns an (H, W) bool mask (empty when no wire is seen)."""
         a = _as_frame(frame)
-        if frame_is_degenerate(a):
+        med, spread, degenerate = _frame_stats(a)
+        if degenerate:
+            self._prev = None
             self.last_mode = "degenerate"
             self._count += 1
             return np.zeros(a.shape, bool)
         mask = None
         force_full = self.full_frame_every and self._count % self.full_frame_every == 0
         if self._prev is not None and self._prev.shape == a.shape and self._prev.any() and not force_full:
-            mask = self._tracked(a, self._prev)
+            mask = self._tracked(a, self._prev, (med, spread))
         if mask is None:
-            mask = self._full(a)
+            mask = self._full(a, (med, spread))
         self._prev = mask if mask.any() else None
         self._count += 1
         return mask

@@ -556,10 +556,6 @@ def _ridge_from(m, D_vox, sp_rel, eps, delta) -> np.ndarray:
     return out
 
 
-def _trilinear(a: np.ndarray, pts_zyx: np.ndarray) -> np.ndarray:
-    return ndi.map_coordinates(a, pts_zyx.T, order=1, mode="nearest")
-
-
 def _smooth_polyline(p: np.ndarray, sigma_pts: float, fix_ends: bool = True) -> np.ndarray:
     if len(p) < 3 or sigma_pts <= 0:
         return p.copy()
@@ -694,7 +690,18 @@ def centerline_from_mask(mask_zyx, *, spacing_mm, origin_lps_mm, direction=None,
             length = lengths[k]
             short = length < opt.spur_factor * r_j
             if short or (sup < opt.min_ridge_support and length < 3 * opt.spur_factor * r_j):
-                prune.append(k)
+                prune.append((k, int(junction), length))
+        # a junction that would lose all but one of its paths is a vessel end that forks into
+        # the corners of its cap: keep its longest spur so that the vessel keeps its length
+        by_j: dict[int, list] = {}
+        for k, j, length in prune:
+            by_j.setdefault(j, []).append((length, k))
+        prune = []
+        for j, lst in by_j.items():
+            lst.sort()
+            if len(lst) >= deg[j] - 1:
+                lst = lst[:-1]
+            prune.extend(k for _, k in lst)
         if not prune:
             break
         skel = _skeleton_image(sk.prune_paths(prune), mp.shape)
@@ -712,6 +719,8 @@ def centerline_from_mask(mask_zyx, *, spacing_mm, origin_lps_mm, direction=None,
     pts, rad, par = _branches_to_points(tree_par, root, vox, pos_vox, Ds, D_mm, mp, sp_zyx, sp_rel, h, opt)
     bar.update()
     bar.close()
+    if len(pts) < 2:
+        raise SegmentationError("centerline_from_mask: no vessels found (the mask is too small for a centerline)")
     pts_lps = (pts + off) @ M.T + o
     return VesselTree(pts_lps, rad, par)
 
@@ -738,7 +747,7 @@ def _voxel_tree(vox: np.ndarray, D_mm: np.ndarray, sp_zyx: np.ndarray, seed_zyx)
         A = coo_matrix((w, (pairs[:, 0], pairs[:, 1])), shape=(n, n)).tocsr()
     else:
         A = coo_matrix((n, n)).tocsr()
-    ncomp, comp = connected_components(A, directed=False)
+    _, comp = connected_components(A, directed=False)
     T = minimum_spanning_tree(A)
     T = T + T.T
     deg = np.diff(T.tocsr().indptr)
@@ -795,6 +804,11 @@ def _branches_to_points(par, root, vox, pos, Ds, D_mm, mp, sp_zyx, sp_rel, h, op
             if len(children[ids[0]]) < 2 and ids[0] != root:
                 continue
             length = np.linalg.norm(np.diff(vox[ids] * sp_zyx, axis=0), axis=1).sum()
+            sibling_leaves = [np.linalg.norm(np.diff(vox[i2] * sp_zyx, axis=0), axis=1).sum()
+                              for k2, (i2, _) in enumerate(br) if i2[0] == ids[0] and k2 not in has_child]
+            n_other = len(children[ids[0]]) + (0 if ids[0] == root else 1) - 1
+            if len(sibling_leaves) >= n_other and length >= max(sibling_leaves):
+                continue  # the node would become an end: keep its longest spur
             if length < opt.spur_factor * r_vox[ids[0]] and len(br) > 1:
                 for i in ids[1:]:
                     children[par[i]].remove(i) if i in children[par[i]] else None
@@ -805,6 +819,8 @@ def _branches_to_points(par, root, vox, pos, Ds, D_mm, mp, sp_zyx, sp_rel, h, op
             break
 
     br = runs()
+    if not br:
+        raise SegmentationError("centerline_from_mask: no vessels found (the mask is too small for a centerline)")
     # sub-voxel ridge refinement of every used voxel: Newton step in the cross-section plane
     used = np.unique(np.concatenate([np.asarray(ids) for ids, _ in br]))
     gv, Hv = _derivs_at(Ds, vox[used].astype(int), sp_rel)
@@ -828,14 +844,13 @@ def _branches_to_points(par, root, vox, pos, Ds, D_mm, mp, sp_zyx, sp_rel, h, op
     pts_all, rad_all, par_all = [], [], []
     end_index = {}  # skeleton voxel id of a run end -> output point index
     count = 0
-    step_vox = opt.step_mm
     for ids, pb in br:
         ids = np.asarray(ids)
         p_mm = refined[ids] * sp_zyx
         sig = opt.smooth_mm / max(np.mean(np.linalg.norm(np.diff(vox[ids] * sp_zyx, axis=0), axis=1)), 1e-6)
         p_mm = _smooth_polyline(p_mm, sig)
         if len(p_mm) >= 2 and np.linalg.norm(p_mm[-1] - p_mm[0]) > 0 or len(p_mm) > 2:
-            q_mm, u = _resample_by_arclength(p_mm, step_vox)
+            q_mm, u = _resample_by_arclength(p_mm, opt.step_mm)
         else:
             q_mm, u = p_mm, np.arange(len(p_mm), dtype=float)
         q = q_mm / sp_zyx
@@ -849,6 +864,13 @@ def _branches_to_points(par, root, vox, pos, Ds, D_mm, mp, sp_zyx, sp_rel, h, op
         r = r_raw - GAP_FACTOR * h_mean ** 2 / np.maximum(r_raw, h)
         r = ndi.median_filter(r, size=min(5, len(r)), mode="nearest") if len(r) >= 3 else r
         r = np.maximum(r, 0.25 * h)
+        # the skeleton stops short of rounded vessel ends: extend leaf ends (and the root end)
+        if not children[ids[-1]]:
+            eq, er = _extend_end(q, r, mp, sp_zyx, opt.step_mm)
+            q, r = np.vstack([q, eq]), np.r_[r, er]
+        if ids[0] == root:
+            eq, er = _extend_end(q[::-1], r[::-1], mp, sp_zyx, opt.step_mm)
+            q, r = np.vstack([eq[::-1], q]), np.r_[er[::-1], r]
         # assemble: the first point is the parent's end node (shared)
         start_id = ids[0]
         if start_id in end_index:
@@ -873,6 +895,43 @@ def _branches_to_points(par, root, vox, pos, Ds, D_mm, mp, sp_zyx, sp_rel, h, op
     rad = np.concatenate(rad_all)
     parr = np.concatenate(par_all).astype(np.int64)
     return pts, rad, parr
+
+
+def _extend_end(q: np.ndarray, r: np.ndarray, mp: np.ndarray, sp_zyx: np.ndarray, step_mm: float):
+    """Points continuing the polyline ``q`` (index units) past its last point, along its tangent.
+
+    A point is added while the lumen ahead of it (along the tangent) is still at least as long as
+    the local radius: the axis of a vessel with a rounded end runs up to the centre of its cap.
+    Returns ``(M, 3)`` index points and ``(M,)`` radii (the end radius).
+    """
+    qm = q * sp_zyx
+    if len(qm) < 2:
+        return np.zeros((0, 3)), np.zeros(0)
+    s = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(qm, axis=0), axis=1))]
+    back = qm[np.searchsorted(s, s[-1] - max(2.0, 2 * step_mm))]
+    t = qm[-1] - back
+    if np.linalg.norm(t) < 1e-6:
+        return np.zeros((0, 3)), np.zeros(0)
+    t /= np.linalg.norm(t)
+    r_end = float(np.median(r[-3:]))
+    shape = np.array(mp.shape)
+
+    def inside(p_mm):
+        i = np.round(p_mm / sp_zyx).astype(int)
+        return bool(np.all(i >= 0) and np.all(i < shape) and mp[tuple(i)])
+
+    out = []
+    p = qm[-1].copy()
+    probe = np.arange(0.25, r_end + 1e-6, 0.25)
+    for _ in range(int(np.ceil((2 * r_end + 1.0) / step_mm))):
+        nxt = p + step_mm * t
+        if not all(inside(nxt + d * t) for d in np.r_[0.0, probe]):
+            break
+        out.append(nxt)
+        p = nxt
+    if not out:
+        return np.zeros((0, 3)), np.zeros(0)
+    return np.array(out) / sp_zyx, np.full(len(out), r_end)
 
 
 # --------------------------------------------------------------------------------------

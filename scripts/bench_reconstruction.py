@@ -7,8 +7,9 @@ second view), the uncertainty calibration and the tracking branch-jump count.
 Rows
 ----
 * ``oracle`` inputs: the truth tree, the true pose and the true 2D wire (visible part).
-* ``realistic`` inputs: the truth tree perturbed (smooth ~0.3 mm centerline noise, ~0.3 mm radius
-  noise, an extra small branch in half the cases, a missing non-path leaf branch in the other
+* ``realistic`` inputs: the truth tree perturbed (0.3 mm RMS centerline noise and 0.3 mm RMS radius
+  noise, both correlated over ~2 mm along the tree, an extra small branch in half the cases, a
+  missing non-path leaf branch in the other
   half), the pose perturbed by a random left perturbation with mTRE 0.5-1 mm, the 2D wire = true
   projection resampled at 1 px + 0.4 px Gaussian noise, visible part only, a missing tip of 0-5 px
   in half the frames.
@@ -68,16 +69,20 @@ def _smooth_on_tree(tree: VesselTree, field: np.ndarray, iters: int) -> np.ndarr
     return f
 
 
-def perturb_tree(rng, tree: VesselTree, path_ids, *, point_mm=0.3, radius_mm=0.3, mode="extra"):
+def perturb_tree(rng, tree: VesselTree, path_ids, *, point_mm=0.3, radius_mm=0.3, mode="extra", smooth_iters=24):
     """A 'segmented' tree: smooth noise on points and radii, plus an extra or a missing small branch.
+
+    The noise is white noise averaged over tree neighbours ``smooth_iters`` times (24 at the
+    phantom's 0.5 mm spacing: correlation over ~2 mm, as left by ``vessels3d``'s 1 mm smoothing
+    along branches), scaled to ``point_mm`` / ``radius_mm`` RMS.
 
     Returns ``(tree, old_to_new)`` where ``old_to_new[i]`` is the new index of truth point ``i``
     (-1 if removed).
     """
     n = tree.n_points
-    noise = _smooth_on_tree(tree, rng.normal(size=(n, 3)), 6)
+    noise = _smooth_on_tree(tree, rng.normal(size=(n, 3)), smooth_iters)
     noise *= point_mm / np.sqrt(np.mean(np.sum(noise**2, axis=1)))
-    rn = _smooth_on_tree(tree, rng.normal(size=n), 6)
+    rn = _smooth_on_tree(tree, rng.normal(size=n), smooth_iters)
     rn *= radius_mm / np.sqrt(np.mean(rn**2))
     P = tree.points_lps_mm + noise
     R = np.maximum(tree.radius_mm + rn, 0.4)
@@ -313,6 +318,14 @@ def run(n_cases: int, n_frames: int, first_seed: int, verbose: bool) -> int:
                 cpu_ms = 1e3 * (time.process_time() - c0)
                 if w and prev is not None and switched(tr, prev.tree_point_ids, w.tree_point_ids):
                     switches[name] += 1
+                    if verbose:
+                        ids = w.tree_point_ids[w.tree_point_ids >= 0]
+                        if os.environ.get("BENCH_DUMP"):
+                            np.savez(f"{os.environ['BENCH_DUMP']}/switch_{seed}_{t}.npz", uv=uv, prev_ids=prev.tree_point_ids,
+                                     ids=w.tree_point_ids, W=W, pts=tr.points_lps_mm, rad=tr.radius_mm, par=tr.parent,
+                                     R=trk.pose.R, tt=trk.pose.t, pth=pth)
+                        print(f"  switch: {name} seed {seed} frame {t}: branches {sorted(set(tr.point_branch[ids].tolist()))} "
+                              f"true {sorted(set(tr.point_branch[pth].tolist()))}", file=sys.stderr)
                 rows[name].append(dict(wire_metrics(w, W, ho_true, hcarm, pose, uv), cpu_ms=cpu_ms) if w else None)
                 if w and off_path(tr, w.tree_point_ids, pth):
                     jumps[name] += 1

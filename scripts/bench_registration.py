@@ -119,7 +119,7 @@ def run(cases, modes, levels, n_pert, rng, log, epnp=True):
                 row = dict(case=c["seed"], mode=mode, level=lv, init_mtre=mtre_mm(start_pose, true, P),
                            mtre=mtre_mm(r.pose, true, P), mtre_path=mtre_mm(r.pose, true, path_P),
                            flagged=bool(r.success), wall=wall, cpu=cpu, it=r.iterations,
-                           res=r.mean_residual_px, inl=r.inlier_fraction)
+                           res=r.mean_residual_px, inl=r.inlier_fraction, std=r.pose_std_mm)
                 if epnp and mode != "path":
                     i3, i2 = reg.match_bifurcations(tree, bp, carm, start_pose)
                     e = reg.register_epnp(P[i3], bp[i2], carm) if len(i3) else None
@@ -160,6 +160,9 @@ def table(rows, mode, levels, out):
     fl = np.array([r["flagged"] for r in R])
     out(f"quality flag vs truth (all starts): flagged-ok & good {np.sum(fl & ok)}, flagged-ok & bad {np.sum(fl & ~ok)}, "
         f"flagged-fail & good {np.sum(~fl & ok)}, flagged-fail & bad {np.sum(~fl & ~ok)}")
+    ratio = np.array([r["mtre"] / r["std"] for r in R if np.isfinite(r["std"]) and r["std"] > 0])
+    if len(ratio):
+        out(f"mTRE / covariance 1-sigma (pose_std_mm): median {np.median(ratio):.1f} (1 would be a calibrated covariance)")
     out(f"time per registration (incl. global search): median wall {1e3 * np.median([r['wall'] for r in R]):.0f} ms, "
         f"median CPU {1e3 * np.median([r['cpu'] for r in R]):.0f} ms, median LM iterations {np.median([r['it'] for r in R]):.0f}")
 
@@ -172,7 +175,15 @@ def main(argv=None):
     p.add_argument("--modes", default="image2d,truth,path", help="comma list of image2d, truth, path")
     p.add_argument("--cache", default=os.environ.get("GW_BENCH_CACHE", "/tmp/gw_bench_registration"))
     p.add_argument("--quick", action="store_true", help="levels 0, 5/10 and 10/20 only")
+    p.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
+                   help="override a registration module constant (experiments), e.g. --set SEARCH_STARTS=2")
+    p.add_argument("--save", default="", help="write the per-registration rows to this pickle")
     a = p.parse_args(argv)
+    for kv in a.set:
+        name, value = kv.split("=", 1)
+        if not hasattr(reg, name):
+            p.error(f"--set: registration has no constant {name}")
+        setattr(reg, name, type(getattr(reg, name))(value))
     cache = Path(a.cache) if a.cache else None
     if cache:
         cache.mkdir(parents=True, exist_ok=True)
@@ -190,8 +201,12 @@ def main(argv=None):
     print(f"success = mTRE < {SUCCESS_MM} mm over the true centerline points; 'path mTRE' is over the path's points")
     rng = np.random.default_rng(12345)
     rows = run(cases, a.modes.split(","), levels, a.perturbations, rng, log)
+    if a.set:
+        print(f"overrides: {a.set}")
     for mode in a.modes.split(","):
         table(rows, mode, levels, print)
+    if a.save:
+        Path(a.save).write_bytes(pickle.dumps(rows))
     return 0
 
 

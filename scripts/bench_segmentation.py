@@ -59,12 +59,13 @@ def load_cases(n_seeds, n_frames, cache_dir):
     return cases
 
 
-def wire_errors(mask, frame, uv_true, vis):
+def wire_errors(mask, frame, uv_true, vis, ow=None):
     """(success, centerline mean distance px, tip error px or nan) of ordered_wire on a mask."""
     from guidewire3d.image2d import ordered_wire
     from guidewire3d.metrics import mean_closest_distance, resample_polyline
 
-    ow = ordered_wire(mask, image=frame)
+    if ow is None:
+        ow = ordered_wire(mask, image=frame)
     if not ow:
         return False, np.nan, np.nan
     truth = np.asarray(uv_true)[np.asarray(vis, bool)]
@@ -101,7 +102,7 @@ def run_methods(cases, backend, threads, *, quality=True):
                 if quality:
                     truth = c["masks"][t]
                     p, rc = precision_recall(mask, truth)
-                    ok, dist, tip = wire_errors(mask, frame, c["uv"][t], c["vis"][t])
+                    ok, dist, tip = wire_errors(mask, frame, c["uv"][t], c["vis"][t], ow)
                     r.update(dice=dice(mask, truth), precision=p, recall=rc, ok=ok, dist=dist, tip=tip)
                 rows.append(r)
     # reference: ordered_wire on the truth mask (the floor of the centerline metric)
@@ -156,7 +157,11 @@ def print_tables(rows, backend, threads):
 
 
 def print_timing(rows, backend, threads):
-    print(f"\nTiming per 512x512 frame (median ms), backend {backend}, {threads} threads")
+    import os
+
+    load = ", ".join(f"{x:.1f}" for x in os.getloadavg())
+    print(f"\nTiming per 512x512 frame (median ms), backend {backend}, {threads} threads "
+          f"(host load average {load} on {os.cpu_count()} cores)")
     print(f"{'Method':<8} {'mode':<22} {'frames':>6} {'segment ms':>11} {'ordered_wire ms':>16} {'total ms':>9} {'FPS':>6}")
     for name in ("UNet", "Ridge"):
         for want in ("full", "roi"):

@@ -297,3 +297,10 @@ def test_seed_keeps_the_connected_vessels(request):
     far = np.array([[1e4, 1e4, 1e4]])
     with pytest.raises(SegmentationError, match="seeds"):
         segment_vessels(case.volume, seeds_lps_mm=far)
+
+
+def test_tiny_mask_is_no_vessel():
+    m = np.zeros((9, 9, 9), bool)
+    m[4, 4, 4] = True  # a single voxel has no centerline
+    with pytest.raises(SegmentationError, match="no vessels found"):
+        centerline_from_mask(m, spacing_mm=(0.5, 0.5, 0.5), origin_lps_mm=(0, 0, 0))

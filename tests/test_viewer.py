@@ -268,6 +268,39 @@ def test_a_failed_frame_hides_the_tube_and_says_why(case_dir, synth):
         h.plotter.close()
 
 
+def test_cta_slices_pass_through_the_vessels_in_lps(viewer, synth, tmp_path):
+    from viewer_fixture import CTA_TISSUE_HU, CTA_VESSEL_HU
+
+    ctl, h = viewer
+    n_before = h.renderer_3d.GetActors().GetNumberOfItems()
+    assert ctl.toggle_cta() is True
+    slices = ctl.cta_slices
+    c = ctl.case.centroid_lps_mm
+    b = np.asarray(slices.bounds).reshape(3, 2)
+    assert np.all(b[:, 0] < c) and np.all(b[:, 1] > c)
+    # tree points lying on a slice plane sample bright lumen there; points 15 mm off the tree do not
+    pts = synth.tree.points_lps_mm
+    near = np.abs(pts - c) < 0.3  # (N, 3): point i is within 0.3 mm of the slice normal to axis k
+    idx, axis = np.nonzero(near)
+    assert len(idx) >= 3
+    on = pts[idx].copy()
+    on[np.arange(len(idx)), axis] = c[axis]  # snap onto the slice plane
+    off = on.copy()
+    off[np.arange(len(idx)), (axis + 1) % 3] += 15.0  # 15 mm away within the same plane: tissue
+    mid = 0.5 * (CTA_VESSEL_HU + CTA_TISSUE_HU)
+    p_on = pv.PolyData(on).sample(slices, tolerance=1e-3)
+    p_off = pv.PolyData(off).sample(slices, tolerance=1e-3)
+    assert np.all(p_on["vtkValidPointMask"] == 1)
+    assert np.all(p_on["HU"] > mid)
+    assert np.mean(p_off["HU"][p_off["vtkValidPointMask"] == 1] < mid) > 0.8
+    assert h.renderer_3d.GetActors().GetNumberOfItems() == n_before + 1
+    assert ctl.toggle_cta() is False and not ctl.cta_actor.GetVisibility()
+    ctl.case.inputs["cta"] = str(tmp_path / "gone")
+    ctl2 = ViewerController(ctl.case, h, persist=False)
+    with pytest.raises(InputError, match="not there any more"):
+        ctl2.toggle_cta()
+
+
 def test_case_without_wires_still_steps_through_the_frames(case_dir, synth):
     rep = json.loads((case_dir / "report.json").read_text())
     rep["frames"] = []

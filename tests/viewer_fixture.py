@@ -51,6 +51,24 @@ def make_tree(*, centre_lps_mm=(12.0, -160.0, 1040.0)) -> VesselTree:
     return VesselTree.from_polylines([trunk, left, right, side], radii, [None, (0, 59), (0, 59), (0, 25)])
 
 
+CTA_VESSEL_HU = 450.0
+CTA_TISSUE_HU = 40.0
+
+
+def make_cta(tree: VesselTree, *, spacing_mm=(1.0, 1.0, 1.5), margin_mm: float = 12.0) -> io.Volume:
+    """A small CTA around the tree: tissue at 40 HU, lumen (within the tree radius) at 450 HU."""
+    lo = tree.points_lps_mm.min(0) - margin_mm
+    hi = tree.points_lps_mm.max(0) + margin_mm
+    sp = np.asarray(spacing_mm, float)
+    n = np.ceil((hi - lo) / sp).astype(int) + 1
+    zz, yy, xx = np.mgrid[0:n[2], 0:n[1], 0:n[0]]
+    pts = np.column_stack([xx.ravel(), yy.ravel(), zz.ravel()]) * sp + lo
+    dense, rad = _dense_centerline(tree, 0.5)
+    d, i = cKDTree(dense).query(pts)
+    hu = np.where(d <= rad[i], CTA_VESSEL_HU, CTA_TISSUE_HU).astype(np.float32).reshape(n[2], n[1], n[0])
+    return io.Volume(hu, tuple(sp), tuple(lo))
+
+
 def tree_polylines(tree: VesselTree):
     return [tree.points_lps_mm[b.point_ids] for b in tree.branches], [tree.radius_mm[b.point_ids] for b in tree.branches]
 
@@ -133,6 +151,8 @@ def write_synthetic_outdir(root, *, n_frames: int = 4, shape=(240, 320), primary
     pose = Pose(pose.R, pose.t + np.array([1.5, -2.0, 3.0]))
     wires, uncs = make_wires(tree, n_frames)
     images = render_frames(tree, carm, pose, wires, seed=seed)
+    cta_path = root / "cta.mha"
+    io.write_volume(make_cta(tree), cta_path)
     frames_path = root / "frames.dcm"
     io.write_xa(frames_path, images, carm)
     roadmap = render_frames(tree, carm, pose, [None], seed=seed + 1)
@@ -169,8 +189,8 @@ def write_synthetic_outdir(root, *, n_frames: int = 4, shape=(240, 320), primary
     P = carm.projection_matrix(pose)
     report = {
         "version": 1,
-        "inputs": {"cta": str(root / "cta"), "roadmap": str(roadmap_path), "frames": str(frames_path),
-                   "roadmap_frame": 0, "series_uid": "1.2.3"},
+        "inputs": {"cta": str(cta_path), "roadmap": str(roadmap_path), "frames": str(frames_path),
+                   "roadmap_frame": 0, "series_uid": ""},
         "carm": carm.to_dict(), "frames_carm": carm.to_dict(), "pose": pose.matrix.tolist(),
         "projection_matrix": P.tolist(), "registration": reg, "frames": frames, "timing": {"total": 0.0},
     }

@@ -89,6 +89,7 @@ def _keys():
         "space": ("play / pause", lambda c: c.toggle_play()),
         "g": ("coarse / fine step", lambda c: c.toggle_step()),
         "a": ("roadmap / live frame in the 2D view", lambda c: c.toggle_roadmap()),
+        "9": ("CTA slices on / off", lambda c: c.toggle_cta()),
         "j": ("move -u", lambda c: c.nudge(Axis.U, -1)),
         "l": ("move +u", lambda c: c.nudge(Axis.U, +1)),
         "i": ("move -v (up)", lambda c: c.nudge(Axis.V, -1)),
@@ -131,14 +132,16 @@ class _App:
         self.pose_sliders = {}
         self._slider_states = {}
 
-    def safe(self, fn):
-        def run():
+    def safe(self, fn, *, render: bool = True):
+        """Wrap a controller action: errors go to the status line, widgets follow, then one render."""
+        def run(value=None):  # keys call it with no argument, sliders with their value
             try:
-                fn(self.ctl)
+                fn(self.ctl) if value is None else fn(self.ctl, value)
             except Guidewire3DError as e:
-                self.ctl._say(f"error: {e}")
+                self.ctl.notify(f"error: {' '.join(str(e).split())}")
             self.sync_widgets()
-            self.pl.render()
+            if render:
+                self.pl.render()
         return run
 
     def sync_widgets(self):
@@ -156,18 +159,18 @@ class _App:
 
         for key, (_, action) in _keys().items():
             self.pl.add_key_event(key, self.safe(action))
-        self.pl.add_key_event("7", lambda: (sc.beams_eye_camera(self.h.renderer_3d, self.ctl.case.frames_carm,
+        self.pl.add_key_event("7", lambda: (sc.beams_eye_camera(self.h.renderer_3d, self.ctl.view_carm,
                                                                 self.ctl.pose), self.pl.render()))
         self.pl.add_key_event("8", lambda: (self._overview(), self.pl.render()))
         self.pl.subplot(0, 0)
         n = self.ctl.n_frames
         if n > 1:
-            def on_frame(value):
+            def on_frame(ctl, value):
                 k = int(round(value))
-                if k != self.ctl.frame_index:
-                    self.ctl.set_frame(k)
+                if k != ctl.frame_index:
+                    ctl.set_frame(k)
             self.frame_slider = self.pl.add_slider_widget(
-                on_frame, [0, n - 1], value=self.ctl.frame_index, title="frame", pointa=(0.06, 0.07),
+                self.safe(on_frame, render=False), [0, n - 1], value=self.ctl.frame_index, title="frame", pointa=(0.06, 0.07),
                 pointb=(0.44, 0.07), interaction_event="always", fmt="%.0f", style="modern", title_height=0.02)
         self.pl.subplot(0, 1)
         self._add_pose_slider("u", "U", (0.56, 0.21), (0.76, 0.21), 20.0)
@@ -176,6 +179,21 @@ class _App:
         self._add_pose_slider("rot beam", "ROT_BEAM", (0.78, 0.08), (0.98, 0.08), 10.0)
         self.pl.subplot(0, 0)
         self.pl.iren.add_observer("TimerEvent", self._on_timer)
+        if self.h.renderer_2d is not None:  # before each render of the 2D view
+            self.h.renderer_2d.AddObserver("StartEvent", self._keep_2d_flat)
+
+    def _keep_2d_flat(self, *_):
+        """The 2D view may pan and zoom but not rotate: put its camera back facing the image."""
+        r2 = self.h.renderer_2d
+        if r2 is None:
+            return
+        cam = r2.GetActiveCamera()
+        fx, fy, _ = cam.GetFocalPoint()
+        if cam.GetViewUp() != (0.0, 1.0, 0.0) or cam.GetPosition()[:2] != (fx, fy):
+            cam.SetFocalPoint(fx, fy, 0.0)
+            cam.SetPosition(fx, fy, 1000.0)
+            cam.SetViewUp(0.0, 1.0, 0.0)
+            cam.SetClippingRange(900.0, 1100.0)
 
     def _add_pose_slider(self, title, axis_name, a, b, half_range):
         from guidewire3d.viewer.controller import Axis
@@ -183,19 +201,19 @@ class _App:
         state = {"last": 0.0}
         self._slider_states[axis_name] = state
 
-        def on_change(value):
+        def on_change(ctl, value):
             delta = float(value) - state["last"]
             state["last"] = float(value)
             if abs(delta) < 1e-9:
                 return
             if axis_name == "ROT_BEAM":
-                self.ctl.rotate(Axis.BEAM, deg=delta)
+                ctl.rotate(Axis.BEAM, deg=delta)
             else:
-                self.ctl.nudge(Axis[axis_name], mm=delta)
+                ctl.nudge(Axis[axis_name], mm=delta)
 
         unit = "deg" if axis_name == "ROT_BEAM" else "mm"
         self.pose_sliders[axis_name] = self.pl.add_slider_widget(
-            on_change, [-half_range, half_range], value=0.0, title=f"{title} ({unit})", pointa=a, pointb=b,
+            self.safe(on_change, render=False), [-half_range, half_range], value=0.0, title=f"{title} ({unit})", pointa=a, pointb=b,
             interaction_event="always", fmt="%.1f", style="modern", title_height=0.018)
 
     def _overview(self):

@@ -14,7 +14,7 @@ import numpy as np
 
 from guidewire3d.errors import InputError
 from guidewire3d.geometry import Pose
-from guidewire3d.viewer.data import ViewerCase, WireFrame, display_images_uint8, save_registration
+from guidewire3d.viewer.data import ViewerCase, WireFrame, display_images_uint8, load_cta, save_registration
 
 __all__ = ["Axis", "Step", "ExportKind", "ViewerController", "STEP_MM", "STEP_DEG"]
 
@@ -71,6 +71,8 @@ class ViewerController:
         self._roadmap_u8 = (display_images_uint8(case.roadmap_image[None])[0]
                             if case.roadmap_image is not None else None)
         self._show_roadmap = False
+        self._cta_actor = None
+        self._cta_slices = None
         self._residual_cache: tuple[Pose, float] | None = None
         if case.messages:
             self._status = "; ".join(case.messages)
@@ -134,6 +136,10 @@ class ViewerController:
     def wires_stale(self) -> bool:
         """True when the pose changed since the wires were reconstructed (``apply`` re-runs them)."""
         return not self._wires_pose.allclose(self.pose, atol_mm=1e-6, atol_rad=1e-9)
+
+    def notify(self, text: str) -> None:
+        """Put ``text`` on the status line."""
+        self._say(text)
 
     def _say(self, text: str) -> None:
         self._status = text
@@ -200,6 +206,34 @@ class ViewerController:
         self._playing = not self._playing
         self._refresh_text()
         return self._playing
+
+    def toggle_cta(self) -> bool:
+        """Show or hide three orthogonal CTA slices through the vessel centroid (loaded on first use)."""
+        if self._scene is None:
+            raise InputError("CTA slices need a scene (the controller was built without one)")
+        if self._cta_actor is None:
+            from guidewire3d.viewer import scene as sc
+
+            vol = load_cta(self._case)
+            pl = self._scene.plotter
+            if len(pl.renderers) > 1:
+                pl.subplot(0, 0)
+            self._cta_slices, self._cta_actor = sc.add_cta_slices(pl, vol, self._case.centroid_lps_mm)
+            self._say("CTA slices through the vessel centroid (9: hide)")
+            return True
+        vis = not bool(self._cta_actor.GetVisibility())
+        self._cta_actor.SetVisibility(vis)
+        self._say("CTA slices shown" if vis else "CTA slices hidden")
+        return vis
+
+    @property
+    def cta_actor(self):
+        return self._cta_actor
+
+    @property
+    def cta_slices(self):
+        """The slice surfaces (``pyvista.PolyData`` with point data ``HU``), None until first shown."""
+        return self._cta_slices
 
     # --- pose correction --------------------------------------------------------------
     def set_step(self, step: Step) -> None:
@@ -387,7 +421,8 @@ class ViewerController:
                 parts.append(f"wire {w.length_mm:.1f} mm, max unc. {np.max(w.uncertainty_mm):.2f} mm"
                              if len(w.uncertainty_mm) else f"wire {w.length_mm:.1f} mm")
             if not w.success:
-                parts.append(f"frame failed: {w.message}")
+                msg = " ".join(w.message.split())
+                parts.append(f"frame failed: {msg[:52] + '...' if len(msg) > 55 else msg}")
         return "\n".join(parts)
 
     def _refresh_text(self) -> None:

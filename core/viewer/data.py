@@ -20,6 +20,7 @@ __all__ = [
     "load_outdir",
     "save_registration",
     "display_images_uint8",
+    "load_cta",
 ]
 
 
@@ -354,3 +355,25 @@ def display_images_uint8(images, *, low_pct: float = 0.5, high_pct: float = 99.5
     if not np.isfinite(lo) or not np.isfinite(hi) or hi <= lo:
         lo, hi = float(np.nanmin(a)), float(np.nanmax(a)) + 1e-6
     return np.clip((a - lo) * (255.0 / (hi - lo)), 0, 255).astype(np.uint8)
+
+
+def load_cta(case: ViewerCase):
+    """Read the CTA the case was reconstructed from (``report.json`` ``inputs.cta``).
+
+    Returns
+    -------
+    guidewire3d.io.Volume
+
+    Raises
+    ------
+    InputError
+        If the path is not recorded or does not exist any more.
+    """
+    from guidewire3d import io
+
+    path = case.inputs.get("cta")
+    if not path:
+        raise InputError(f"{case.out_dir / 'report.json'}: inputs.cta is not recorded")
+    if not Path(path).exists():
+        raise InputError(f"{path}: the CTA of this case is not there any more")
+    return io.read_volume(path, series_uid=case.inputs.get("series_uid") or None)

@@ -39,6 +39,8 @@ __all__ = [
     "overview_camera",
     "fit_2d_camera",
     "world_to_display_px",
+    "volume_image_data",
+    "add_cta_slices",
     "WIRE_RADIUS_MM",
     "UNCERTAINTY_CLIM_MM",
 ]
@@ -47,7 +49,7 @@ WIRE_RADIUS_MM = 0.8
 UNCERTAINTY_CLIM_MM = (0.0, 2.0)
 UNCERTAINTY_CMAP = "plasma"
 RADIUS_CMAP = "viridis"
-VESSEL_COLOR = (0.9, 0.75, 0.72)
+VESSEL_COLOR = (0.95, 0.6, 0.55)
 CENTERLINE_2D_COLOR = (1.0, 0.85, 0.1)
 WIRE_2D_COLOR = (1.0, 0.2, 0.8)
 WIRE_PROJ_COLOR = (0.2, 1.0, 0.4)
@@ -211,7 +213,7 @@ def _renderer(plotter, index: int):
 # --------------------------------------------------------------------------------------
 # 3D content
 # --------------------------------------------------------------------------------------
-def add_vessels(plotter, surface, *, opacity: float = 0.35, color=VESSEL_COLOR, max_triangles: int = 60000):
+def add_vessels(plotter, surface, *, opacity: float = 0.3, color=VESSEL_COLOR, max_triangles: int = 60000):
     """The vessel surface (LPS mm), semi-transparent (decimated above ``max_triangles``). Returns the actor."""
     import pyvista as pv
 
@@ -221,7 +223,7 @@ def add_vessels(plotter, surface, *, opacity: float = 0.35, color=VESSEL_COLOR, 
     if mesh.n_cells > max_triangles:  # display only: software rendering is fill/vertex bound
         mesh = mesh.decimate_pro(1.0 - max_triangles / mesh.n_cells, preserve_topology=True)
     actor = plotter.add_mesh(mesh, color=color, opacity=opacity, smooth_shading=True, specular=0.2,
-                             ambient=0.35, diffuse=0.7, name="vessels", reset_camera=False)
+                             ambient=0.6, diffuse=0.7, name="vessels", reset_camera=False)
     # one translucent layer (front faces) reads better and halves the blending work
     actor.GetProperty().BackfaceCullingOn()
     return actor
@@ -402,6 +404,37 @@ def update_carm(handles: CArmHandles, carm: CArm, pose: Pose) -> None:
     handles.frustum.Modified()
     handles.detector.points = np.asarray(corners, float)
     handles.detector.Modified()
+
+
+def volume_image_data(volume):
+    """A ``pyvista.ImageData`` of a ``guidewire3d.io.Volume`` in LPS mm (point data ``HU``)."""
+    import pyvista as pv
+
+    nz, ny, nx = volume.shape_zyx
+    img = pv.ImageData(dimensions=(nx, ny, nz), spacing=volume.spacing_mm, origin=volume.origin_lps_mm)
+    img.direction_matrix = np.asarray(volume.direction, float)
+    img.point_data["HU"] = np.asarray(volume.array_zyx, dtype=np.float32).ravel(order="C")
+    return img
+
+
+def add_cta_slices(plotter, volume, centre_lps_mm, *, window_hu=(-150.0, 650.0), opacity: float = 1.0):
+    """Three orthogonal CTA slices (LPS axes) through ``centre_lps_mm``, grey window ``window_hu``.
+
+    Returns ``(slices, actor)``: the sliced ``pyvista.MultiBlock`` merged to one PolyData, and its actor.
+    """
+    img = volume_image_data(volume)
+    c = np.asarray(centre_lps_mm, float)
+    import pyvista as pv
+    import vtk
+
+    append = vtk.vtkAppendPolyData()
+    for s in img.slice_orthogonal(x=float(c[0]), y=float(c[1]), z=float(c[2])):
+        append.AddInputData(s)
+    append.Update()
+    slices = pv.wrap(append.GetOutput())
+    actor = plotter.add_mesh(slices, scalars="HU", cmap="gray", clim=list(window_hu), opacity=opacity,
+                             show_scalar_bar=False, lighting=False, name="cta_slices", reset_camera=False)
+    return slices, actor
 
 
 # --------------------------------------------------------------------------------------
@@ -613,7 +646,7 @@ HELP = (
     "x/X y/Y z/Z     rotate about u / v / beam\n"
     "o refine  0 reset  Return apply\n"
     "c/h screenshot (x1/x2)  t/T wire(s)  V vessels\n"
-    "7 beam's-eye  8 overview"
+    "7 beam's-eye  8 overview  9 CTA slices"
 )
 
 
