@@ -91,7 +91,7 @@ class ReconOptions:
     sigma_step_px: float = 3.0  #: pairwise: 2D step of the tree point vs of the wire
     sigma_jump_mm: float = 0.5  #: pairwise: geodesic minus Euclidean distance (connectivity)
     sigma_retreat_mm: float = 1.0  #: pairwise: distance moved towards the root
-    skip_cost: float = 4.0  #: cost per distal anchor left unexplained when the path ends early
+    skip_cost: float = 15.0  #: cost per distal anchor left unexplained when the path ends early
     start_cost_per_mm: float = 0.002  #: prefers the proximal candidate at the first anchor
     reverse_mm: float = 5.0  #: a chosen path ending this much nearer the root triggers a reversed try
     min_coverage: float = 0.6  #: fraction of anchors that must have a candidate

@@ -98,7 +98,7 @@ class CenterlineOptions:
     ridge_sigma_vox: float = 0.0  # smoothing of D for the ridge test (0: the raw transform)
     refine_sigma_vox: float = 1.0  # smoothing of D for the sub-voxel ridge position
     spur_factor: float = 2.0  # terminal branches shorter than this x local radius are spurs
-    min_ridge_support: float = 0.5  # terminal branches with fewer ridge points are spurs
+    min_ridge_support: float = 0.25  # short terminal branches with fewer ridge points are spurs
     step_mm: float = 0.5  # resampling step
     smooth_mm: float = 1.0  # Gaussian smoothing along each branch (sigma, mm)
 

@@ -320,10 +320,6 @@ def run(n_cases: int, n_frames: int, first_seed: int, verbose: bool) -> int:
                     switches[name] += 1
                     if verbose:
                         ids = w.tree_point_ids[w.tree_point_ids >= 0]
-                        if os.environ.get("BENCH_DUMP"):
-                            np.savez(f"{os.environ['BENCH_DUMP']}/switch_{seed}_{t}.npz", uv=uv, prev_ids=prev.tree_point_ids,
-                                     ids=w.tree_point_ids, W=W, pts=tr.points_lps_mm, rad=tr.radius_mm, par=tr.parent,
-                                     R=trk.pose.R, tt=trk.pose.t, pth=pth)
                         print(f"  switch: {name} seed {seed} frame {t}: branches {sorted(set(tr.point_branch[ids].tolist()))} "
                               f"true {sorted(set(tr.point_branch[pth].tolist()))}", file=sys.stderr)
                 rows[name].append(dict(wire_metrics(w, W, ho_true, hcarm, pose, uv), cpu_ms=cpu_ms) if w else None)
