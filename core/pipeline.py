@@ -112,7 +112,9 @@ def run(volume: io.Volume, roadmap: io.XARun, frames: io.XARun, *, roadmap_frame
     t0 = time.perf_counter()
     k = choose_roadmap_frame(roadmap, roadmap_frame)
     road_img = np.asarray(roadmap.frames[k])
-    cl2d = image2d.roadmap_centerline(road_img)
+    # the widest CTA vessel, in roadmap pixels at the isocentre, bounds the 2D vesselness scales
+    max_radius_px = float(tree.radius_mm.max()) / roadmap.carm.pixel_at_iso_mm * 1.5
+    cl2d = image2d.roadmap_centerline(road_img, max_radius_px=max_radius_px)
     timing["roadmap_2d"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
