@@ -110,6 +110,8 @@ class ReconOptions:
     fail_projection_px: float = 3.0  #: a result worse than this (mean) is a failure
     sigma_geo_px: float = 2.0  #: paper's geometric uncertainty
     sigma_img: float = 0.1  #: paper's image uncertainty (scales the image gradient)
+    lumen_spread: float = 0.3  #: std of the wire's offset from its expected lumen position / the room it has
+    sigma_centerline_mm: float = 0.2  #: CTA centerline error across the vessel (per axis)
 
     def __post_init__(self):
         for f in fields(self):
@@ -484,6 +486,14 @@ def _smooth(ctx: ReconstructionContext, X, uv, *, lam: float, opt: ReconOptions)
     return Xs, lam
 
 
+def _tangent(X) -> np.ndarray:
+    """(N, 3) unit tangents of a polyline (central differences)."""
+    if len(X) < 2:
+        return np.tile([1.0, 0.0, 0.0], (len(X), 1))
+    T = np.gradient(X, axis=0)
+    return T / np.maximum(np.linalg.norm(T, axis=1, keepdims=True), 1e-12)
+
+
 def _curvature(X) -> np.ndarray:
     n = len(X)
     if n < 3:
@@ -534,8 +544,14 @@ def _projection_jacobian(ctx: ReconstructionContext, X) -> np.ndarray:
     return J @ ctx.Rc
 
 
-def _covariance(ctx, X, uv, *, depth_std_mm, extra_iso_mm2, image, registration_covariance, opt):
-    """(M, 3, 3) covariance: depth interval along the ray + paper's propagation + registration."""
+def _ray_shift_covariance(ctx, X, uv, *, image, registration_covariance, opt):
+    """(M, 3, 3) covariance of the displacement of each point's ray, at the point (mm^2).
+
+    The paper's ``J+ (sigma_geo^2 I + sigma_img^2 gI gI^T) J+^T`` (a pixel error of the 2D wire
+    moves the ray sideways) plus, if given, the registration covariance pushed through the pose
+    (``dX = R^T (-dt + [x]x dphi)`` for a left perturbation: the pose error moves the ray in CTA
+    coordinates).
+    """
     M = len(X)
     J = _projection_jacobian(ctx, X)
     JJt = J @ np.transpose(J, (0, 2, 1))
@@ -554,13 +570,8 @@ def _covariance(ctx, X, uv, *, depth_std_mm, extra_iso_mm2, image, registration_
         g = g / (hi - lo) if hi > lo else np.zeros_like(g)  # intensities normalised to [0, 1] (paper)
         S2 += opt.sigma_img**2 * g[:, :, None] * g[:, None, :]
     cov = Jp @ S2 @ np.transpose(Jp, (0, 2, 1))
-    d = ctx.rays(uv)
-    cov += (depth_std_mm**2)[:, None, None] * d[:, :, None] * d[:, None, :]
-    cov += extra_iso_mm2[:, None, None] * np.eye(3)
     if registration_covariance is not None:
-        C = np.asarray(registration_covariance, dtype=float)
-        if C.shape != (6, 6) or not np.all(np.isfinite(C)):
-            raise InputError(f"reconstruction: registration_covariance must be a finite 6x6 matrix, got {C.shape}")
+        C = _check_registration_covariance(registration_covariance)
         x_room = ctx.pose.apply(X)
         G = np.zeros((M, 3, 6))
         G[:, :, :3] = -np.eye(3)
@@ -570,6 +581,63 @@ def _covariance(ctx, X, uv, *, depth_std_mm, extra_iso_mm2, image, registration_
         G[:, 2, 3], G[:, 2, 4] = -x_room[:, 1], x_room[:, 0]
         G = ctx.pose.R.T[None] @ G
         cov += G @ C @ np.transpose(G, (0, 2, 1))
+    return cov
+
+
+def _check_registration_covariance(registration_covariance) -> np.ndarray:
+    C = np.asarray(registration_covariance, dtype=float)
+    if C.shape != (6, 6) or not np.all(np.isfinite(C)):
+        raise InputError(f"reconstruction: registration_covariance must be a finite 6x6 matrix, got {C.shape}")
+    return C
+
+
+def _outer(a, b=None):
+    return a[:, :, None] * (a if b is None else b)[:, None, :]
+
+
+def _covariance(ctx, X, uv, *, depth_std_mm, extra_iso_mm2, image, registration_covariance, opt):
+    """(M, 3, 3) unconstrained covariance (no lumen absorption): depth interval along the ray +
+    the full ray shift (paper's propagation + registration) + an isotropic extra term.
+
+    Used by the methods without a lumen constraint (``PAPER``, ``BSPLINE``)."""
+    cov = _ray_shift_covariance(ctx, X, uv, image=image, registration_covariance=registration_covariance, opt=opt)
+    d = ctx.rays(uv)
+    cov += (depth_std_mm**2)[:, None, None] * _outer(d)
+    cov += extra_iso_mm2[:, None, None] * np.eye(3)
+    return cov
+
+
+def _covariance_lumen(ctx, X, uv, *, tangent, half_width_mm, miss_mm, image, registration_covariance, opt):
+    """(M, 3, 3) covariance of points placed in the lumen (``ReconMethod.VESSEL``), see the module doc.
+
+    ``tangent`` (M, 3): unit vessel direction at each point; ``half_width_mm`` (M,): half width,
+    across the vessel and in the plane of the ray, of the room the wire's centre has
+    (``sqrt(rho^2 - dist^2)``); ``miss_mm`` (M,): how far the ray passes outside that room (0 inside).
+    """
+    d = ctx.rays(uv)
+    t = tangent
+    n = np.cross(d, t)
+    sin = np.linalg.norm(n, axis=1)
+    # a ray (nearly) along the vessel: any direction normal to the ray
+    alt = np.cross(d, np.where(np.abs(d[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]]))
+    n = np.where((sin > 1e-6)[:, None], n / np.maximum(sin, 1e-12)[:, None],
+                 alt / np.linalg.norm(alt, axis=1, keepdims=True))
+    cos = np.abs(np.einsum("mk,mk->m", d, t))
+    q = np.cross(t, n)  # across the vessel, in the plane of the ray and the vessel
+    m = np.cross(n, d)  # normal to the ray, in the plane of the ray and the vessel
+    # a sideways ray shift along m slides the point along the vessel (no error across the wire)
+    # as long as the placement can follow it: the weighted closest approach of _place_on_path
+    # leaves the fraction cos / (cos^2 + k^2 sin^2) of it across the vessel, k = along / dist scale
+    k2 = (_ALONG_MM / _DIST_MM) ** 2
+    gain = cos / np.maximum(cos**2 + k2 * sin**2, 1e-12)
+    A = _outer(n) + gain[:, None, None] * _outer(q, m)
+    S = _ray_shift_covariance(ctx, X, uv, image=image, registration_covariance=registration_covariance, opt=opt)
+    cov = A @ S @ np.transpose(A, (0, 2, 1))
+    # where the wire sits in the lumen (across the vessel, along q) and the CTA centerline error
+    lumen = (opt.lumen_spread * half_width_mm) ** 2 + opt.sigma_centerline_mm**2
+    cov += lumen[:, None, None] * _outer(q)
+    # off the lumen (a ray that misses the path's tube by miss_mm): that much more, across the wire
+    cov += (miss_mm**2)[:, None, None] * (np.eye(3) - _outer(t))
     return cov
 
 
@@ -726,7 +794,7 @@ def _place_on_path(ctx, uv, anchor_idx, nodes):
     # (this decides the depth where the vessel runs along the beam and many segments touch the ray)
     seg_len = np.linalg.norm(ctx.points[pb_ids] - ctx.points[pa_ids], axis=1)[seg]
     along = (seg + u - p[:, None]) * seg_len
-    cost = np.where(segok, (dist / 0.25) ** 2 + (along / 1.5) ** 2, np.inf)
+    cost = np.where(segok, (dist / _DIST_MM) ** 2 + (along / _ALONG_MM) ** 2, np.inf)
     w = np.argmin(cost, axis=1)
     s_, d_, u_, h_, r_ = (x[m, w] for x in (s, dist, u, half, r))
     sw = seg[m, w]
@@ -740,12 +808,24 @@ def _place_on_path(ctx, uv, anchor_idx, nodes):
     return X, tid, h_, d_, r_
 
 
-def _finish(ctx, X, uv, tid, depth_std, extra, *, image, registration_covariance, opt, method, t0, message):
+#: _place_on_path's segment choice: ray-axis distance and distance along the path from the
+#: position interpolated between the anchors, each in units of (mm)
+_DIST_MM = 0.25
+_ALONG_MM = 1.5
+
+
+def _finish(ctx, X, uv, tid, depth_std, extra, *, image, registration_covariance, opt, method, t0, message,
+            lumen=None):
     Xs, lam = _smooth(ctx, X, uv, lam=opt.smoothing_lambda, opt=opt)
     proj = ctx.project(Xs)
     perr = float(np.linalg.norm(proj - uv, axis=1).mean())
-    cov = _covariance(ctx, Xs, uv, depth_std_mm=depth_std, extra_iso_mm2=extra, image=image,
-                      registration_covariance=registration_covariance, opt=opt)
+    if lumen is None:
+        cov = _covariance(ctx, Xs, uv, depth_std_mm=depth_std, extra_iso_mm2=extra, image=image,
+                          registration_covariance=registration_covariance, opt=opt)
+    else:
+        half_width, miss = lumen
+        cov = _covariance_lumen(ctx, Xs, uv, tangent=_tangent(Xs), half_width_mm=half_width, miss_mm=miss,
+                                image=image, registration_covariance=registration_covariance, opt=opt)
     unc = np.sqrt(np.clip(np.trace(cov, axis1=1, axis2=2), 0.0, None))
     arc = _arclength(Xs)
     ok = bool(np.isfinite(perr) and perr <= opt.fail_projection_px and np.all(np.isfinite(Xs)))
@@ -785,6 +865,7 @@ def _reconstruct_vessel(ctx, uv, *, track_tip, image, registration_covariance, o
     X, tid, half, dist, r = _place_on_path(ctx, uv, aidx, nodes)
     miss = np.maximum(dist - r, 0.0)
     depth_std = 2.0 * half / np.sqrt(12.0) + miss
+    half_width = np.sqrt(np.maximum(r * r - dist * dist, 0.0))
     msg = f"ok: {len(uv)} points, {100 * coverage:.0f}% of anchors on the tree, path cost {total:.1f}" + reversed_note
     if coverage < 1.0:
         msg += " (gaps bridged)"
@@ -792,7 +873,7 @@ def _reconstruct_vessel(ctx, uv, *, track_tip, image, registration_covariance, o
         msg += f"; the last {n_skipped} anchors fit no lumen (placed beyond the path's end)"
     ids = np.where(miss > 0, -1, tid)
     return _finish(ctx, X, uv, ids, depth_std, miss**2, image=image, registration_covariance=registration_covariance,
-                   opt=opt, method=ReconMethod.VESSEL, t0=t0, message=msg)
+                   opt=opt, method=ReconMethod.VESSEL, t0=t0, message=msg, lumen=(half_width, miss))
 
 
 def _reconstruct_paper(ctx, uv, *, image, registration_covariance, opt, t0):

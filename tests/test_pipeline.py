@@ -89,3 +89,36 @@ def test_roadmap_frame_choice_prefers_contrast(small_case):
 
     with pytest.raises(InputError, match="out of range"):
         choose_roadmap_frame(run, 3)
+
+
+def test_demo_reports_errors_against_truth(tmp_path, monkeypatch, capsys):
+    """`guidewire3d demo` end to end on the default phantom case (in a private cache)."""
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    out = tmp_path / "demo"
+    rc = main(["demo", "--out", str(out)])
+    text = capsys.readouterr().out
+    assert rc == 0, text
+    assert "registration: ok" in text and "FPS" in text and f"guidewire3d view {out}" in text
+    rep = json.loads((out / "report.json").read_text())
+    tr = rep["truth"]
+    assert tr["mtre_mm"] < MTRE_MM
+    errs = [f["mean_error_mm"] for f in tr["frames"] if f["success"]]
+    assert len(errs) >= len(tr["frames"]) - 1 and np.median(errs) < MEAN_3D_ERROR_MM
+    # a second run replaces the demo's own folder instead of refusing it
+    assert main(["demo", "--out", str(out)]) == 0
+
+
+def test_bench_writes_tables(tmp_path, capsys):
+    from guidewire3d import bench
+
+    out = tmp_path / "bench"
+    assert bench.run_bench(n_cases=1, out=out, first_seed=100) == 0
+    text = capsys.readouterr().out
+    assert "Table I" in text and "Table II" in text
+    import csv
+
+    with (out / "table2.csv").open(encoding="utf-8") as f:
+        rows = list(csv.reader(f))
+    proposed = next(r for r in rows if r[0].startswith("Proposed"))
+    assert float(proposed[4]) < MEAN_3D_ERROR_MM  # 3D error column, mm
+    assert (out / "bench.md").read_text(encoding="utf-8").count("|") > 20

@@ -1,0 +1,510 @@
+"""Learned 2D vessel segmentation for real (non-subtracted) angiograms: a small UNet.
+
+The classical :func:`guidewire3d.image2d.vessel_mask` (top-hat x Hessian vesselness) is tuned
+for clean subtracted roadmaps; on real coronary angiograms (catheter, ribs, diaphragm, low
+contrast of small branches) a UNet trained on manually labelled frames does better. This module
+holds that network, its input normalisation, training helpers (random crops with augmentation,
+Dice + BCE loss) and inference.
+
+- Input (:func:`normalize_angiogram`): the image is resampled so that its longer side is
+  ``REFERENCE_SIZE_PX`` (the training images' size; vessel widths in px scale with the
+  image size, as in the classical method), then mapped to ``[0, 1]`` between its 1 and 99
+  percentiles (on the field of view, clipped slightly beyond), with vessels dark (a
+  bright-vessel image is inverted). The network sees ``2 x (x - 0.5)``.
+- Network (:class:`VesselUNetConfig`): four levels (default 12-24-48-96 channels), two 3x3
+  conv + BatchNorm + ReLU per level, max-pool down, transposed-conv up, skip connections,
+  a 1x1 head giving logits.
+- Weights: ``resources/vessel_unet.safetensors`` (safetensors, never pickle), written by
+  ``scripts/train_vessels2d.py`` (trained on the 40 real coronary angiograms of
+  ``shared/data/coronary-angiograms``; its metadata records the recipe and the 5-fold
+  cross-validated Dice).
+- Inference (:func:`vessel_probability`, :func:`learned_vessel_mask`): the whole image at
+  once (reflect-padded to a multiple of 16), probability >= ``THRESHOLD``, resampled back
+  to the input size.
+
+torch is imported only inside functions.
+"""
+from __future__ import annotations
+
+import json
+import threading
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from guidewire3d.errors import InputError
+
+__all__ = [
+    "DEFAULT_WEIGHTS_PATH",
+    "VesselUNetConfig",
+    "normalize_angiogram",
+    "build_vessel_unet",
+    "save_vessel_unet",
+    "load_vessel_unet",
+    "vessel_probability",
+    "learned_vessel_mask",
+    "TrainOptions",
+    "train_vessel_unet",
+    "dice_bce_loss",
+]
+
+DEFAULT_WEIGHTS_PATH = Path(__file__).resolve().parent.parent / "resources" / "vessel_unet.safetensors"
+FORMAT_TAG = "guidewire3d-vessel-unet-v1"
+
+REFERENCE_SIZE_PX = 300        # longer image side the network works at (the training images' size)
+NORM_PERCENTILES = (1.0, 99.0)  # intensity range mapped to [0, 1]
+NORM_CLIP = (-0.25, 1.25)       # normalised values are clipped to this range
+UNET_MULTIPLE = 16              # 4 levels: 3 poolings -> multiple of 8; 16 leaves margin
+THRESHOLD = 0.5                 # vessel probability threshold
+MIN_COMPONENT_PX = 20           # components smaller than this (at reference size) are dropped
+
+
+@dataclass(frozen=True)
+class VesselUNetConfig:
+    """Architecture of the vessel UNet.
+
+    Attributes
+    ----------
+    channels : tuple of int
+        Feature channels per level, finest first (one pooling between levels).
+    in_channels : int
+        Input channels (1: the normalised image).
+    """
+
+    channels: tuple[int, ...] = (12, 24, 48, 96)
+    in_channels: int = 1
+
+    def to_metadata(self) -> dict[str, str]:
+        return {"channels": json.dumps(list(self.channels)), "in_channels": str(self.in_channels)}
+
+    @classmethod
+    def from_metadata(cls, meta: dict[str, str]) -> VesselUNetConfig:
+        try:
+            return cls(channels=tuple(int(c) for c in json.loads(meta["channels"])),
+                       in_channels=int(meta.get("in_channels", "1")))
+        except (KeyError, ValueError, TypeError) as err:
+            raise InputError(f"vessel UNet metadata: bad or missing architecture ({err})") from None
+
+
+# --------------------------------------------------------------------------------------------------
+# input normalisation
+# --------------------------------------------------------------------------------------------------
+
+def _as_image(image, name: str = "image") -> np.ndarray:
+    a = np.asarray(image)
+    if a.ndim != 2 or min(a.shape) < 8:
+        raise InputError(f"{name}: expected a 2D image of at least 8x8 pixels, got shape {a.shape}")
+    if a.dtype == bool:
+        a = a.astype(np.float32)
+    if not np.issubdtype(a.dtype, np.number):
+        raise InputError(f"{name}: expected a numeric array, got dtype {a.dtype}")
+    a = a.astype(np.float32, copy=False)
+    if not np.all(np.isfinite(a)):
+        raise InputError(f"{name}: image contains NaN or infinite values")
+    return a
+
+
+def _reference_shape(shape: tuple[int, int]) -> tuple[int, int]:
+    s = REFERENCE_SIZE_PX / max(shape)
+    return max(8, int(round(shape[0] * s))), max(8, int(round(shape[1] * s)))
+
+
+def _resize(a: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    import cv2
+
+    if a.shape == tuple(shape):
+        return a.astype(np.float32, copy=True)
+    interp = cv2.INTER_AREA if shape[0] < a.shape[0] else cv2.INTER_LINEAR
+    return cv2.resize(a.astype(np.float32), (shape[1], shape[0]), interpolation=interp)
+
+
+def normalize_angiogram(image, *, dark_vessels: bool | None = None) -> np.ndarray:
+    """The network input: the image at reference size, robustly scaled to ~[0, 1], vessels dark.
+
+    Parameters
+    ----------
+    image : (H, W) array_like of numbers
+        Angiogram, any dtype and intensity scale.
+    dark_vessels : bool or None
+        ``False`` inverts the image (bright vessels); ``None`` detects the polarity with the
+        classical detector of :mod:`guidewire3d.image2d`.
+
+    Returns
+    -------
+    (h, w) ndarray of float32
+        ``max(h, w) == REFERENCE_SIZE_PX``; 0 / 1 at the 1 / 99 intensity percentiles, clipped to
+        ``NORM_CLIP``. All 0.5 for a flat image.
+
+    Raises
+    ------
+    InputError
+        If ``image`` is not a finite 2D numeric array of at least 8x8 pixels.
+    """
+    a = _as_image(image)
+    if dark_vessels is None:
+        dark_vessels = _detect_dark(a)
+    r = _resize(a, _reference_shape(a.shape))
+    if not dark_vessels:
+        r = -r
+    lo, hi = (float(x) for x in np.percentile(r, NORM_PERCENTILES))
+    if hi - lo <= 1e-6 * max(abs(lo), abs(hi), 1e-12):
+        return np.full(r.shape, 0.5, np.float32)
+    return np.clip((r - lo) / (hi - lo), *NORM_CLIP).astype(np.float32)
+
+
+def _detect_dark(a: np.ndarray) -> bool:
+    from guidewire3d import image2d
+
+    im01, ok = image2d._normalise01(a.astype(np.float64))
+    if not ok:
+        return True
+    return bool(image2d._dark_vessels_auto(im01, max(a.shape) / image2d.REFERENCE_SIZE_PX))
+
+
+# --------------------------------------------------------------------------------------------------
+# the network
+# --------------------------------------------------------------------------------------------------
+
+_UNET_CLASS = None
+
+
+def _unet_class():
+    """The torch module class (defined lazily so that importing this module does not import torch)."""
+    global _UNET_CLASS
+    if _UNET_CLASS is not None:
+        return _UNET_CLASS
+    import torch
+    from torch import nn
+
+    def block(i, o):
+        return nn.Sequential(nn.Conv2d(i, o, 3, padding=1, bias=False), nn.BatchNorm2d(o), nn.ReLU(inplace=True),
+                             nn.Conv2d(o, o, 3, padding=1, bias=False), nn.BatchNorm2d(o), nn.ReLU(inplace=True))
+
+    class VesselUNet(nn.Module):
+        """UNet; input (B, C, H, W) with H, W multiples of 2**(levels-1); output logits (B, 1, H, W)."""
+
+        def __init__(self, config: VesselUNetConfig):
+            super().__init__()
+            ch = tuple(int(c) for c in config.channels)
+            self.config = config
+            self.enc = nn.ModuleList([block(config.in_channels if k == 0 else ch[k - 1], ch[k])
+                                      for k in range(len(ch))])
+            self.up = nn.ModuleList([nn.ConvTranspose2d(ch[k + 1], ch[k], 2, stride=2) for k in range(len(ch) - 1)])
+            self.dec = nn.ModuleList([block(2 * ch[k], ch[k]) for k in range(len(ch) - 1)])
+            self.head = nn.Conv2d(ch[0], 1, 1)
+            self.pool = nn.MaxPool2d(2)
+
+        def forward(self, x):
+            skips = []
+            for k, enc in enumerate(self.enc):
+                x = enc(x if k == 0 else self.pool(x))
+                skips.append(x)
+            for k in reversed(range(len(self.dec))):
+                x = self.dec[k](torch.cat([self.up[k](x), skips[k]], 1))
+            return self.head(x)
+
+    _UNET_CLASS = VesselUNet
+    return VesselUNet
+
+
+def build_vessel_unet(config: VesselUNetConfig | None = None):
+    """A freshly initialised (untrained) torch vessel UNet."""
+    config = config or VesselUNetConfig()
+    if len(config.channels) < 2 or min(config.channels) < 1 or config.in_channels < 1:
+        raise InputError(f"VesselUNetConfig: need >= 2 levels of >= 1 channel, got {config}")
+    return _unet_class()(config)
+
+
+def save_vessel_unet(model, path, *, extra_metadata: dict | None = None) -> Path:
+    """Write the weights (float32, BatchNorm running statistics included) and config to safetensors."""
+    from safetensors.torch import save_file
+
+    state = {k: v.detach().to("cpu").float().contiguous().clone() for k, v in model.state_dict().items()
+             if not k.endswith("num_batches_tracked")}
+    meta = model.config.to_metadata()
+    meta["format"] = FORMAT_TAG
+    for k, v in (extra_metadata or {}).items():
+        meta[str(k)] = v if isinstance(v, str) else json.dumps(v)
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    save_file(state, str(path), metadata=meta)
+    return path
+
+
+def load_vessel_unet(path=None):
+    """Load the vessel UNet from a safetensors file (no pickle), in eval mode on the CPU.
+
+    Parameters
+    ----------
+    path : str or Path, optional
+        Defaults to ``resources/vessel_unet.safetensors``.
+
+    Returns
+    -------
+    torch.nn.Module
+        The network; ``config`` is its :class:`VesselUNetConfig` and ``metadata`` the file's
+        metadata (training recipe, cross-validated Dice).
+
+    Raises
+    ------
+    InputError
+        Missing or unreadable file, or weights that do not match the recorded architecture.
+    """
+    from safetensors import safe_open
+
+    path = Path(DEFAULT_WEIGHTS_PATH if path is None else path)
+    if not path.is_file():
+        raise InputError(f"{path}: vessel UNet weights file not found")
+    try:
+        with safe_open(str(path), framework="pt") as f:
+            meta = dict(f.metadata() or {})
+            tensors = {k: f.get_tensor(k) for k in f.keys()}
+    except Exception as err:  # safetensors raises its own error types
+        raise InputError(f"{path}: not a readable safetensors file ({err})") from None
+    if meta.get("format") != FORMAT_TAG:
+        raise InputError(f"{path}: not a vessel UNet file (format {meta.get('format')!r})")
+    model = build_vessel_unet(VesselUNetConfig.from_metadata(meta))
+    missing, unexpected = model.load_state_dict(tensors, strict=False)
+    missing = [k for k in missing if not k.endswith("num_batches_tracked")]
+    if missing or unexpected:
+        raise InputError(f"{path}: weights do not match the architecture {model.config} "
+                         f"(missing {missing[:3]}, unexpected {list(unexpected)[:3]})")
+    model.eval()
+    model.metadata = meta
+    return model
+
+
+_MODELS: dict[str, object] = {}
+_MODELS_LOCK = threading.Lock()
+
+
+def _cached_model(weights_path):
+    key = str(Path(DEFAULT_WEIGHTS_PATH if weights_path is None else weights_path).resolve())
+    with _MODELS_LOCK:
+        if key not in _MODELS:
+            _MODELS[key] = load_vessel_unet(key)
+        return _MODELS[key]
+
+
+# --------------------------------------------------------------------------------------------------
+# inference
+# --------------------------------------------------------------------------------------------------
+
+def _net_input(x01: np.ndarray) -> np.ndarray:
+    return (2.0 * (x01 - 0.5)).astype(np.float32)
+
+
+def _predict_logits(model, x01: np.ndarray) -> np.ndarray:
+    """Logits of the network on a normalised (h, w) image (reflect-padded to UNET_MULTIPLE)."""
+    import torch
+
+    h, w = x01.shape
+    ph, pw = (-h) % UNET_MULTIPLE, (-w) % UNET_MULTIPLE
+    z = np.pad(_net_input(x01), ((ph // 2, ph - ph // 2), (pw // 2, pw - pw // 2)), mode="reflect")
+    with torch.inference_mode():
+        out = model(torch.from_numpy(np.ascontiguousarray(z))[None, None])[0, 0].numpy()
+    return out[ph // 2: ph // 2 + h, pw // 2: pw // 2 + w]
+
+
+def vessel_probability(image, *, dark_vessels: bool | None = None, weights_path=None, model=None) -> np.ndarray:
+    """Per-pixel vessel probability of an angiogram by the vessel UNet.
+
+    Parameters
+    ----------
+    image : (H, W) array_like of numbers
+        Angiogram (non-subtracted coronary XA is what the shipped model was trained on).
+    dark_vessels : bool or None
+        Polarity (see :func:`normalize_angiogram`).
+    weights_path : str or Path, optional
+        Safetensors weights; default ``resources/vessel_unet.safetensors`` (loaded once, cached).
+    model : torch.nn.Module, optional
+        A network to use instead of loading one (training / cross-validation).
+
+    Returns
+    -------
+    (H, W) ndarray of float32 in [0, 1]
+    """
+    a = _as_image(image)
+    x = normalize_angiogram(a, dark_vessels=dark_vessels)
+    net = model if model is not None else _cached_model(weights_path)
+    logits = _predict_logits(net, x)
+    prob = 1.0 / (1.0 + np.exp(-np.clip(logits, -30.0, 30.0)))
+    return np.clip(_resize(prob, a.shape), 0.0, 1.0).astype(np.float32)
+
+
+def learned_vessel_mask(image, *, dark_vessels: bool | None = None, weights_path=None, model=None,
+                        threshold: float = THRESHOLD) -> np.ndarray:
+    """Vessel mask of an angiogram by the vessel UNet: probability >= ``threshold``, tiny components
+    (below ``MIN_COMPONENT_PX`` at reference size) removed.
+
+    Parameters are those of :func:`vessel_probability`, plus ``threshold`` in (0, 1).
+
+    Returns
+    -------
+    (H, W) ndarray of bool
+        All False for a flat (blank) image.
+
+    Raises
+    ------
+    InputError
+        Bad image, weights file or threshold.
+    """
+    from scipy import ndimage as ndi
+
+    if not (0.0 < float(threshold) < 1.0):
+        raise InputError(f"threshold: expected a probability in (0, 1), got {threshold!r}")
+    a = _as_image(image)
+    lo, hi = (float(v) for v in np.percentile(a, [0.5, 99.5]))
+    if hi - lo <= 1e-3 * max(abs(lo), abs(hi), 1e-12):
+        return np.zeros(a.shape, bool)
+    m = vessel_probability(a, dark_vessels=dark_vessels, weights_path=weights_path, model=model) >= threshold
+    if m.any():
+        lab, n = ndi.label(m, structure=np.ones((3, 3), bool))
+        sizes = np.bincount(lab.ravel(), minlength=n + 1)
+        min_px = MIN_COMPONENT_PX * (max(a.shape) / REFERENCE_SIZE_PX) ** 2
+        keep = sizes >= min_px
+        keep[0] = False
+        m = keep[lab]
+    return m
+
+
+# --------------------------------------------------------------------------------------------------
+# training
+# --------------------------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class TrainOptions:
+    """Training recipe (random crops, augmentation, Dice + BCE, Adam with cosine decay).
+
+    Attributes
+    ----------
+    steps : int
+        Optimiser steps.
+    batch : int
+        Crops per step.
+    crop_px : int
+        Crop side at reference size, px (multiple of UNET_MULTIPLE).
+    lr : float
+        Adam's initial learning rate (cosine decay to 5 % of it).
+    weight_decay : float
+        Adam's L2 weight decay.
+    scale_range : (float, float)
+        Random zoom factors (small scale changes).
+    seed : int
+        Seeds numpy and torch.
+    """
+
+    steps: int = 600
+    batch: int = 8
+    crop_px: int = 160
+    lr: float = 3e-3
+    weight_decay: float = 1e-5
+    scale_range: tuple[float, float] = (0.85, 1.18)
+    seed: int = 0
+
+
+def dice_bce_loss(logits, target):
+    """Binary cross-entropy plus (1 - soft Dice) over the batch (torch tensors, (B, 1, H, W))."""
+    import torch.nn.functional as F
+
+    bce = F.binary_cross_entropy_with_logits(logits, target)
+    p = logits.sigmoid()
+    inter = (p * target).sum()
+    dice = (2.0 * inter + 1.0) / (p.sum() + target.sum() + 1.0)
+    return bce + (1.0 - dice)
+
+
+def _augment_crop(x01: np.ndarray, m: np.ndarray, crop: int, rng: np.random.Generator,
+                  scale_range: tuple[float, float]) -> tuple[np.ndarray, np.ndarray]:
+    """One random crop of (normalised image, mask) with geometric and photometric augmentation."""
+    import cv2
+
+    zoom = float(np.exp(rng.uniform(np.log(scale_range[0]), np.log(scale_range[1]))))
+    src = int(round(crop / zoom))
+    h, w = x01.shape
+    pad = max(0, src - min(h, w)) // 2 + 1
+    if pad > 0:
+        x01 = np.pad(x01, pad, mode="reflect")
+        m = np.pad(m, pad, mode="reflect")
+        h, w = x01.shape
+    r0 = int(rng.integers(0, h - src + 1))
+    c0 = int(rng.integers(0, w - src + 1))
+    xi = x01[r0:r0 + src, c0:c0 + src]
+    mi = m[r0:r0 + src, c0:c0 + src].astype(np.float32)
+    if src != crop:
+        xi = cv2.resize(xi, (crop, crop), interpolation=cv2.INTER_LINEAR)
+        mi = cv2.resize(mi, (crop, crop), interpolation=cv2.INTER_LINEAR)
+    k = int(rng.integers(0, 4))
+    xi, mi = np.rot90(xi, k), np.rot90(mi, k)
+    if rng.random() < 0.5:
+        xi, mi = xi[:, ::-1], mi[:, ::-1]
+    # Photometric: gamma, gain / offset (percentile jitter), blur, noise.
+    xi = np.clip(xi, 0.0, None) ** float(np.exp(rng.normal(0.0, 0.25)))
+    xi = xi * float(np.exp(rng.normal(0.0, 0.15))) + float(rng.normal(0.0, 0.06))
+    if rng.random() < 0.3:
+        xi = cv2.GaussianBlur(np.ascontiguousarray(xi, np.float32), (0, 0), float(rng.uniform(0.4, 1.0)))
+    if rng.random() < 0.5:
+        xi = xi + rng.normal(0.0, rng.uniform(0.005, 0.04), xi.shape)
+    return np.ascontiguousarray(xi, np.float32), np.ascontiguousarray(mi > 0.5, np.float32)
+
+
+def train_vessel_unet(images, masks, *, config: VesselUNetConfig | None = None,
+                      options: TrainOptions | None = None, log=None):
+    """Train a vessel UNet on labelled angiograms.
+
+    Parameters
+    ----------
+    images : sequence of (H, W) arrays
+        Angiograms (vessels dark).
+    masks : sequence of (H, W) bool arrays
+        Manual vessel masks, same shapes.
+    config : VesselUNetConfig, optional
+    options : TrainOptions, optional
+    log : callable ``(step, loss) -> None``, optional
+        Called every 50 steps.
+
+    Returns
+    -------
+    torch.nn.Module
+        The trained network in eval mode.
+    """
+    import torch
+
+    options = options or TrainOptions()
+    if len(images) != len(masks) or not len(images):
+        raise InputError(f"images/masks: need equally many (>= 1), got {len(images)} and {len(masks)}")
+    if options.crop_px % UNET_MULTIPLE:
+        raise InputError(f"TrainOptions.crop_px: must be a multiple of {UNET_MULTIPLE}, got {options.crop_px}")
+    rng = np.random.default_rng(options.seed)
+    torch.manual_seed(options.seed)
+    xs, ms = [], []
+    for i, (im, mk) in enumerate(zip(images, masks)):
+        mk = np.asarray(mk, bool)
+        if mk.shape != np.shape(im):
+            raise InputError(f"masks[{i}]: shape {mk.shape} differs from the image's {np.shape(im)}")
+        x = normalize_angiogram(im, dark_vessels=True)
+        xs.append(x)
+        ms.append(_resize(mk.astype(np.float32), x.shape) > 0.5)
+    model = build_vessel_unet(config)
+    opt = torch.optim.Adam(model.parameters(), lr=options.lr, weight_decay=options.weight_decay)
+    sched = torch.optim.lr_scheduler.LambdaLR(
+        opt, lambda s: 0.05 + 0.95 * 0.5 * (1.0 + np.cos(np.pi * min(s, options.steps) / options.steps)))
+    model.train()
+    running = None
+    for step in range(options.steps):
+        idx = rng.integers(0, len(xs), options.batch)
+        pairs = [_augment_crop(xs[j], ms[j], options.crop_px, rng, options.scale_range) for j in idx]
+        xb = torch.from_numpy(_net_input(np.stack([p[0] for p in pairs]))[:, None])
+        yb = torch.from_numpy(np.stack([p[1] for p in pairs])[:, None])
+        loss = dice_bce_loss(model(xb), yb)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        sched.step()
+        lv = float(loss.detach())
+        running = lv if running is None else 0.95 * running + 0.05 * lv
+        if log is not None and (step % 50 == 0 or step == options.steps - 1):
+            log(step, running)
+    model.eval()
+    return model
