@@ -31,6 +31,7 @@ Pixel coordinates are ``(u, v) = (col, row)``; pixel ``(0, 0)`` is the centre of
 """
 from __future__ import annotations
 
+import enum
 from dataclasses import dataclass
 
 import numpy as np
@@ -41,6 +42,7 @@ from scipy.sparse import csgraph
 from guidewire3d.errors import InputError, SegmentationError
 
 __all__ = [
+    "VesselMethod",
     "vessel_mask",
     "Centerline2D",
     "roadmap_centerline",
@@ -209,7 +211,34 @@ def _drop_small(mask: np.ndarray, min_px: int, connectivity: int = 2) -> np.ndar
     return (size >= min_px)[lab]
 
 
-def vessel_mask(image, *, dark_vessels: bool | None = None, max_radius_px: float | None = None) -> np.ndarray:
+class VesselMethod(enum.Enum):
+    """Vessel segmentation method of :func:`vessel_mask`.
+
+    - ``CLASSICAL``: top-hat x multi-scale Hessian vesselness with hysteresis (this module).
+    - ``LEARNED``: the small UNet of :mod:`guidewire3d.vessels2d_learned`, trained on real
+      non-subtracted coronary angiograms (``resources/vessel_unet.safetensors``).
+    - ``AUTO``: see :func:`vessel_mask`.
+    """
+
+    CLASSICAL = "classical"
+    LEARNED = "learned"
+    AUTO = "auto"
+
+
+def _vessel_method(method) -> VesselMethod:
+    try:
+        return method if isinstance(method, VesselMethod) else VesselMethod(str(method).lower())
+    except ValueError:
+        raise InputError(f"method: expected one of {[m.value for m in VesselMethod]}, got {method!r}") from None
+
+
+def _auto_vessel_method(image, max_radius_px) -> VesselMethod:
+    """The method ``AUTO`` stands for (see :func:`vessel_mask`)."""
+    return VesselMethod.CLASSICAL
+
+
+def vessel_mask(image, *, dark_vessels: bool | None = None, max_radius_px: float | None = None,
+                method: VesselMethod | str = VesselMethod.AUTO) -> np.ndarray:
     """Segment the vessels of a 2D angiogram.
 
     Parameters
@@ -224,6 +253,9 @@ def vessel_mask(image, *, dark_vessels: bool | None = None, max_radius_px: float
         ``None``: vessels up to ``FINE_MAX_RADIUS_PX`` x (image size / 300 px), typical of
         coronary angiograms. A larger value adds a second detection pass on an f-times binned
         image, ``f = ceil(max_radius_px / (FINE_MAX_RADIUS_PX x scale))`` (at most 8).
+        Used by ``CLASSICAL`` only (the learned model covers coronary-sized vessels).
+    method : VesselMethod or str
+        ``"classical"``, ``"learned"`` or ``"auto"`` (default). AUTO_DOC
 
     Returns
     -------
@@ -233,9 +265,18 @@ def vessel_mask(image, *, dark_vessels: bool | None = None, max_radius_px: float
     Raises
     ------
     InputError
-        If ``image`` is not a finite 2D numeric array of at least 8x8 pixels, or a bad
-        ``max_radius_px``.
+        If ``image`` is not a finite 2D numeric array of at least 8x8 pixels, a bad
+        ``max_radius_px`` or ``method``, or (``LEARNED``) a missing or unreadable weights file.
     """
+    method = _vessel_method(method)
+    if max_radius_px is not None and not (np.isfinite(max_radius_px) and max_radius_px > 0):
+        raise InputError(f"max_radius_px: expected a positive number of pixels, got {max_radius_px!r}")
+    if method is VesselMethod.AUTO:
+        method = _auto_vessel_method(image, max_radius_px)
+    if method is VesselMethod.LEARNED:
+        from guidewire3d.vessels2d_learned import learned_vessel_mask
+
+        return learned_vessel_mask(_as_image(image, "image"), dark_vessels=dark_vessels)
     a = _as_image(image, "image")
     im01, ok = _normalise01(a)
     if not ok:

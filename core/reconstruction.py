@@ -29,12 +29,47 @@ Default method (``ReconMethod.VESSEL``)
     5. A penalised cubic B-spline (P-spline, the paper's smoothness weight lambda = 0.1) smooths
        the 3D points; lambda is halved until the projection stays within ``max_projection_px`` of
        the input wire (mean) and 2.5x that (max).
-    6. Uncertainty per point (3x3 covariance, reported as ``sqrt(trace)`` mm, i.e. the RMS 3D
-       error it predicts): the chord along the ray as a uniform depth interval (std =
-       chord / sqrt(12)), the paper's propagation ``J+ (sigma_geo^2 I + sigma_img^2 gI gI^T) J+^T``
-       (``J+`` the pseudo-inverse of the 2x3 projection Jacobian, ``gI`` the image gradient at the
-       pixel when ``image`` is given) and, if given, the registration covariance pushed through
-       the pose (``dX = R^T (-dt + [x]x dphi)`` for a left perturbation).
+    6. Uncertainty per point: a 3x3 covariance ``Sigma`` of the point's error *across the wire*
+       (its distance to the true wire; a slide along the wire is not an error of the wire's
+       shape), reported as ``uncertainty_mm = sqrt(trace Sigma)``, the RMS 3D distance to the
+       true wire it predicts. The point is on its pixel's ray and inside the CTA lumen, so an
+       error source only counts through the part the lumen does not absorb. With ``d`` the ray,
+       ``t`` the wire tangent, ``n = d x t / |d x t|`` (normal to ray and vessel) and
+       ``q = t x n`` (across the vessel, in the plane of ray and vessel):
+
+       * **Ray shift** ``S``: the paper's ``J+ (sigma_geo^2 I + sigma_img^2 gI gI^T) J+^T``
+         (``J+`` the pseudo-inverse of the 2x3 projection Jacobian, ``gI`` the image gradient at
+         the pixel when ``image`` is given) plus, if given, the registration covariance pushed
+         through the pose (``dX = R^T (-dt + [x]x dphi)`` for a left perturbation): both move the
+         ray in CTA coordinates while the vessel stays. It enters as ``A S A^T`` with
+         ``A = n n^T + g q m^T`` (``m = n x d``): a shift along ``n`` moves the point across the
+         vessel in full; a shift along the ray changes nothing; a shift along ``m`` makes the ray
+         meet the vessel further along, i.e. the point *slides along the vessel*, except for the
+         fraction ``g = cos / (cos^2 + k^2 sin^2)`` (angle between ray and vessel,
+         ``k = _ALONG_MM / _DIST_MM``) that the weighted closest approach of step 4 leaves
+         across it when the vessel runs along the beam (exact for that quadratic choice).
+       * **Lumen**: the wire's offset from its expected position in the cross-section, along
+         ``q``, std ``lumen_spread * w`` with ``w = sqrt(rho^2 - dist^2)`` the half width of the
+         room the wire's centre has where the ray crosses (``rho`` = radius minus clearance;
+         uniform over a diameter would be 0.58, the default 0.3 is calibrated on the simulator's
+         wires, which ride the outer side of bends and wander 0.2-0.6 ``rho`` elsewhere), plus
+         the CTA centerline error ``sigma_centerline_mm`` along ``q``.
+       * **Off the lumen**: a ray that misses the path's tube by ``miss`` adds ``miss^2`` in both
+         directions across the wire.
+       * **Branch ambiguity** (the hard case a local model misses: a wrong branch at the tip, an
+         overlap): from the Viterbi min-marginals, each anchor's other candidates weighted by
+         ``exp(-extra path cost / ambiguity_scale)``; the weighted second moment of their
+         positions about the chosen point (candidates on the same straight stretch of vessel
+         excluded: they are a slide), across the wire.
+
+       Calibration (``scripts/bench_reconstruction.py``): on realistic inputs the pooled
+       RMS(error) / RMS(sigma) is ~1 and ~95 % of the points are within 2 sigma. The former
+       model (chord / sqrt(12) along the ray and the full ray shift) was 2-3x too large: the
+       lumen absorbs the depth part of the pose error and the along-vessel part of both the pose
+       and the image error.
+    The unconstrained methods (``PAPER``, ``BSPLINE``) keep the full propagation: the depth
+    interval along the ray (``chord / sqrt(12)``), the full ray shift ``S`` and an isotropic term
+    for a distance outside the projected lumen.
 
 ``ReconMethod.PAPER`` applies the paper's closed-form depth literally (it is a two-view
 triangulation formula; with one view and the registration's R, t it gives an arbitrary depth),
@@ -112,6 +147,7 @@ class ReconOptions:
     sigma_img: float = 0.1  #: paper's image uncertainty (scales the image gradient)
     lumen_spread: float = 0.3  #: std of the wire's offset from its expected lumen position / the room it has
     sigma_centerline_mm: float = 0.2  #: CTA centerline error across the vessel (per axis)
+    ambiguity_scale: float = 2.0  #: weight exp(-extra path cost / this) of other candidates (0: off)
 
     def __post_init__(self):
         for f in fields(self):
@@ -125,7 +161,8 @@ class ReconOptions:
 
 
 _MAY_BE_ZERO = {"centerline_smoothing_mm", "start_cost_per_mm", "track_tolerance_mm", "track_confirm_mm",
-                "margin_px", "wire_clearance_mm", "sigma_img", "min_coverage"}
+                "margin_px", "wire_clearance_mm", "sigma_img", "min_coverage", "ambiguity_scale",
+                "lumen_spread", "sigma_centerline_mm"}
 
 
 # --------------------------------------------------------------------------------------------
@@ -145,13 +182,14 @@ class Wire3D:
     ----------
     points_lps_mm : (N, 3) ndarray, proximal -> distal, LPS mm.
     uncertainty_mm : (N,) ndarray, ``sqrt(trace(Sigma))`` of each point's 3x3 covariance
-        (the predicted RMS 3D error, mm).
+        (the predicted RMS 3D distance to the true wire, mm; see the module doc, step 6).
     length_mm : float, arc length of the polyline.
     projection_error_px : float, mean distance between the projected points and the input 2D wire
         (point to corresponding point).
     tree_point_ids : (N,) int, the vessel-tree point chosen for each point (-1 where none).
     arclength_mm, curvature_per_mm : (N,) ndarray.
-    covariance_mm2 : (N, 3, 3) ndarray, the full covariance behind ``uncertainty_mm``.
+    covariance_mm2 : (N, 3, 3) ndarray, the covariance behind ``uncertainty_mm`` (of the error
+        across the wire: for the vessel method it has no component along the wire).
     """
 
     points_lps_mm: np.ndarray
@@ -410,7 +448,7 @@ class ReconstructionContext:
 
 
 _CACHE: OrderedDict = OrderedDict()
-_CACHE_SIZE = 6
+_CACHE_SIZE = 12  # the benchmark alternates ~8 (pose, tree, options) per frame
 
 
 def build_context(pose: Pose, carm: CArm, tree: VesselTree, *,
@@ -558,16 +596,7 @@ def _ray_shift_covariance(ctx, X, uv, *, image, registration_covariance, opt):
     Jp = np.transpose(J, (0, 2, 1)) @ np.linalg.inv(JJt)  # (M, 3, 2)
     S2 = np.broadcast_to(opt.sigma_geo_px**2 * np.eye(2), (M, 2, 2)).copy()
     if image is not None:
-        img = np.asarray(image, dtype=float)
-        if img.ndim != 2:
-            raise InputError(f"reconstruction: image must be 2D (rows, cols), got shape {img.shape}")
-        # central differences at the wire's pixels only (the image gradient, intensity per px)
-        H, Wd = img.shape
-        ui = np.clip(np.rint(uv[:, 0]).astype(int), 1, Wd - 2)
-        vi = np.clip(np.rint(uv[:, 1]).astype(int), 1, H - 2)
-        g = 0.5 * np.column_stack([img[vi, ui + 1] - img[vi, ui - 1], img[vi + 1, ui] - img[vi - 1, ui]])
-        lo, hi = float(np.nanmin(img)), float(np.nanmax(img))
-        g = g / (hi - lo) if hi > lo else np.zeros_like(g)  # intensities normalised to [0, 1] (paper)
+        g = _image_gradient(image, uv)
         S2 += opt.sigma_img**2 * g[:, :, None] * g[:, None, :]
     cov = Jp @ S2 @ np.transpose(Jp, (0, 2, 1))
     if registration_covariance is not None:
@@ -591,6 +620,13 @@ def _check_registration_covariance(registration_covariance) -> np.ndarray:
     return C
 
 
+def _cross(a, b) -> np.ndarray:
+    """Row-wise cross product of (M, 3) arrays (faster than np.cross for small M)."""
+    a, b = np.broadcast_arrays(a, b)
+    return np.column_stack([a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1], a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2],
+                            a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]])
+
+
 def _outer(a, b=None):
     return a[:, :, None] * (a if b is None else b)[:, None, :]
 
@@ -607,38 +643,90 @@ def _covariance(ctx, X, uv, *, depth_std_mm, extra_iso_mm2, image, registration_
     return cov
 
 
-def _covariance_lumen(ctx, X, uv, *, tangent, half_width_mm, miss_mm, image, registration_covariance, opt):
+def _image_gradient(image, uv) -> np.ndarray:
+    """(M, 2) image gradient (intensities min-max normalised to [0, 1], per px) at the pixels ``uv``."""
+    img = np.asarray(image, dtype=float)
+    if img.ndim != 2:
+        raise InputError(f"reconstruction: image must be 2D (rows, cols), got shape {img.shape}")
+    # central differences at the wire's pixels only
+    H, Wd = img.shape
+    ui = np.clip(np.rint(uv[:, 0]).astype(int), 1, Wd - 2)
+    vi = np.clip(np.rint(uv[:, 1]).astype(int), 1, H - 2)
+    g = 0.5 * np.column_stack([img[vi, ui + 1] - img[vi, ui - 1], img[vi + 1, ui] - img[vi - 1, ui]])
+    lo, hi = float(np.nanmin(img)), float(np.nanmax(img))
+    return g / (hi - lo) if hi > lo else np.zeros_like(g)  # intensities normalised to [0, 1] (paper)
+
+
+def _covariance_lumen(ctx, X, uv, *, tangent, half_width_mm, miss_mm, image, registration_covariance, opt,
+                      ambiguity_mm2=None):
     """(M, 3, 3) covariance of points placed in the lumen (``ReconMethod.VESSEL``), see the module doc.
 
-    ``tangent`` (M, 3): unit vessel direction at each point; ``half_width_mm`` (M,): half width,
+    ``tangent`` (M, 3): unit wire direction at each point; ``half_width_mm`` (M,): half width,
     across the vessel and in the plane of the ray, of the room the wire's centre has
     (``sqrt(rho^2 - dist^2)``); ``miss_mm`` (M,): how far the ray passes outside that room (0 inside).
+    ``A S A^T`` is evaluated through the three scalars ``n^T S n``, ``n^T S m``, ``m^T S m``.
     """
+    M = len(X)
     d = ctx.rays(uv)
     t = tangent
-    n = np.cross(d, t)
+    n = _cross(d, t)
     sin = np.linalg.norm(n, axis=1)
     # a ray (nearly) along the vessel: any direction normal to the ray
-    alt = np.cross(d, np.where(np.abs(d[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]]))
-    n = np.where((sin > 1e-6)[:, None], n / np.maximum(sin, 1e-12)[:, None],
-                 alt / np.linalg.norm(alt, axis=1, keepdims=True))
+    alt = _cross(d, np.where(np.abs(d[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]]))
+    along = sin <= 1e-6
+    n = np.where(along[:, None], alt, n)
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    t = np.where(along[:, None], _cross(n, d), t)
     cos = np.abs(np.einsum("mk,mk->m", d, t))
-    q = np.cross(t, n)  # across the vessel, in the plane of the ray and the vessel
-    m = np.cross(n, d)  # normal to the ray, in the plane of the ray and the vessel
+    q = _cross(t, n)  # across the vessel, in the plane of the ray and the vessel
+    m = _cross(n, d)  # normal to the ray, in the plane of the ray and the vessel
     # a sideways ray shift along m slides the point along the vessel (no error across the wire)
     # as long as the placement can follow it: the weighted closest approach of _place_on_path
     # leaves the fraction cos / (cos^2 + k^2 sin^2) of it across the vessel, k = along / dist scale
     k2 = (_ALONG_MM / _DIST_MM) ** 2
     gain = cos / np.maximum(cos**2 + k2 * sin**2, 1e-12)
-    A = _outer(n) + gain[:, None, None] * _outer(q, m)
-    S = _ray_shift_covariance(ctx, X, uv, image=image, registration_covariance=registration_covariance, opt=opt)
-    cov = A @ S @ np.transpose(A, (0, 2, 1))
-    # where the wire sits in the lumen (across the vessel, along q) and the CTA centerline error
-    lumen = (opt.lumen_spread * half_width_mm) ** 2 + opt.sigma_centerline_mm**2
-    cov += lumen[:, None, None] * _outer(q)
-    # off the lumen (a ray that misses the path's tube by miss_mm): that much more, across the wire
-    cov += (miss_mm**2)[:, None, None] * (np.eye(3) - _outer(t))
-    return cov
+    # ray shift S = J+ S2 J+^T (+ G C G^T): v^T S w = (J+^T v)^T S2 (J+^T w) (+ (G^T v)^T C (G^T w))
+    J = _projection_jacobian(ctx, X)
+    JJt = J @ np.transpose(J, (0, 2, 1))
+    det = JJt[:, 0, 0] * JJt[:, 1, 1] - JJt[:, 0, 1] * JJt[:, 1, 0]
+    inv = np.stack([np.stack([JJt[:, 1, 1], -JJt[:, 0, 1]], -1), np.stack([-JJt[:, 1, 0], JJt[:, 0, 0]], -1)], 1)
+    inv /= det[:, None, None]
+    Jn = np.einsum("mij,mjk,mk->mi", inv, J, n)  # J+^T n (M, 2)
+    Jm = np.einsum("mij,mjk,mk->mi", inv, J, m)
+    s_nn = opt.sigma_geo_px**2 * np.einsum("mi,mi->m", Jn, Jn)
+    s_nm = opt.sigma_geo_px**2 * np.einsum("mi,mi->m", Jn, Jm)
+    s_mm = opt.sigma_geo_px**2 * np.einsum("mi,mi->m", Jm, Jm)
+    if image is not None:
+        g = _image_gradient(image, uv)
+        gn, gm = np.einsum("mi,mi->m", g, Jn), np.einsum("mi,mi->m", g, Jm)
+        s_nn, s_nm, s_mm = s_nn + opt.sigma_img**2 * gn * gn, s_nm + opt.sigma_img**2 * gn * gm, \
+            s_mm + opt.sigma_img**2 * gm * gm
+    if registration_covariance is not None:
+        C = _check_registration_covariance(registration_covariance)
+        x_room = ctx.pose.apply(X)
+        # G = R^T [-I | [x]x]  =>  G^T v = -(R v, x x R v)
+        vn, vm = n @ ctx.pose.R.T, m @ ctx.pose.R.T
+        bn = np.hstack([vn, _cross(x_room, vn)])
+        bm = np.hstack([vm, _cross(x_room, vm)])
+        Cbn, Cbm = bn @ C, bm @ C
+        s_nn = s_nn + np.einsum("mi,mi->m", Cbn, bn)
+        s_nm = s_nm + np.einsum("mi,mi->m", Cbn, bm)
+        s_mm = s_mm + np.einsum("mi,mi->m", Cbm, bm)
+    # where the wire sits in the lumen (across the vessel, along q) and the CTA centerline error;
+    # off the lumen (a ray that misses the path's tube by miss_mm): that much more across the wire
+    miss2 = miss_mm**2
+    a = s_nn + miss2
+    b = gain * s_nm
+    c = gain**2 * s_mm + (opt.lumen_spread * half_width_mm) ** 2 + opt.sigma_centerline_mm**2 + miss2
+    if ambiguity_mm2 is not None:  # another branch at another depth: its part across the wire
+        Bn = np.einsum("mij,mj->mi", ambiguity_mm2, n)
+        a = a + np.einsum("mi,mi->m", Bn, n)
+        b = b + np.einsum("mi,mi->m", Bn, q)
+        c = c + np.einsum("mi,mj,mij->m", q, q, ambiguity_mm2)
+    nq = _outer(n, q)
+    cov = a[:, None, None] * _outer(n) + b[:, None, None] * (nq + np.transpose(nq, (0, 2, 1))) \
+        + c[:, None, None] * _outer(q)
+    return cov.reshape(M, 3, 3)
 
 
 # --------------------------------------------------------------------------------------------
@@ -699,7 +787,11 @@ def _candidates(ctx, uv_a, opt):
 
 
 def _viterbi(ctx, uv_a, cand, outside, opt, track_tip):
-    """Best candidate column per anchor (A,) and its total cost."""
+    """The chosen tree point per anchor (A',), the path's total cost and its min-marginals.
+
+    The min-marginals are ``(cand, excess)``, each (A', K): the candidates of the anchors on the
+    path and, for each, how much more the best path through it costs (0 for the chosen one).
+    """
     # keep only the columns that hold a candidate somewhere (the KD query pads with misses)
     keep = (cand >= 0).any(axis=0)
     cand, outside = cand[:, keep], outside[:, keep]
@@ -734,6 +826,8 @@ def _viterbi(ctx, uv_a, cand, outside, opt, track_tip):
         + up / opt.sigma_retreat_mm
     )
     acc = U[0] + opt.start_cost_per_mm * ctx.s[safe[0]]
+    alpha = np.empty((A, K))
+    alpha[0] = acc
     back = np.zeros((A - 1, K), np.int64)
     ar = np.arange(K)
     # the path may end before the last anchor, paying skip_cost per anchor left unexplained (a
@@ -747,6 +841,7 @@ def _viterbi(ctx, uv_a, cand, outside, opt, track_tip):
         back[t] = b
         acc = tot[b, ar]
         acc += U[t + 1]
+        alpha[t + 1] = acc
         k = int(np.argmin(acc))
         c = float(acc[k]) + opt.skip_cost * (A - 2 - t)
         if c < end_cost:
@@ -755,7 +850,35 @@ def _viterbi(ctx, uv_a, cand, outside, opt, track_tip):
     best[-1] = end_k
     for t in range(end_t - 1, -1, -1):
         best[t] = back[t, best[t + 1]]
-    return cand[np.arange(end_t + 1), best], end_cost
+    # min-marginals of the path ending at end_t: forward + backward min-sum costs
+    beta = np.zeros((end_t + 1, K))
+    for t in range(end_t - 1, -1, -1):
+        beta[t] = np.min(C[t] + (U[t + 1] + beta[t + 1])[None, :], axis=1)
+    with np.errstate(invalid="ignore"):
+        excess = alpha[: end_t + 1] + beta - (alpha[end_t, end_k])
+    excess = np.where(np.isfinite(excess), np.maximum(excess, 0.0), np.inf)
+    return cand[np.arange(end_t + 1), best], end_cost, (cand[: end_t + 1], excess)
+
+
+def _ambiguity(ctx, nodes, marginals, opt: ReconOptions) -> np.ndarray:
+    """(A', 3, 3) second moment of the tree point about the chosen one, per anchor.
+
+    The candidates of an anchor weighted by ``exp(-excess / ambiguity_scale)`` (normalised; the
+    excess is the extra path cost of going through the candidate, in the squared-residual units
+    of the Viterbi costs, so a scale of 2 reads it as a Gaussian log-likelihood): a second branch
+    that explains the 2D wire almost as well (overlap, a bifurcation near the tip) at another
+    depth. Candidates joined to the chosen point by a straight stretch of tree (geodesic minus
+    Euclidean distance below ``sigma_jump_mm``) are the same hypothesis moved along the vessel
+    and count with no displacement.
+    """
+    cand, excess = marginals
+    safe = np.maximum(cand, 0)
+    w = np.where((cand >= 0) & np.isfinite(excess), np.exp(-excess / opt.ambiguity_scale), 0.0)
+    w /= np.maximum(w.sum(axis=1, keepdims=True), 1e-300)
+    D = ctx.points[safe] - ctx.points[nodes][:, None, :]
+    geo = ctx.s[safe] + ctx.s[nodes][:, None] - 2.0 * ctx.lca_s(safe, nodes[:, None])
+    other = geo - np.linalg.norm(D, axis=2) > opt.sigma_jump_mm
+    return np.einsum("ak,aki,akj->aij", w * other, D, D)
 
 
 def _place_on_path(ctx, uv, anchor_idx, nodes):
@@ -823,9 +946,10 @@ def _finish(ctx, X, uv, tid, depth_std, extra, *, image, registration_covariance
         cov = _covariance(ctx, Xs, uv, depth_std_mm=depth_std, extra_iso_mm2=extra, image=image,
                           registration_covariance=registration_covariance, opt=opt)
     else:
-        half_width, miss = lumen
+        half_width, miss, amb = lumen
         cov = _covariance_lumen(ctx, Xs, uv, tangent=_tangent(Xs), half_width_mm=half_width, miss_mm=miss,
-                                image=image, registration_covariance=registration_covariance, opt=opt)
+                                ambiguity_mm2=amb, image=image, registration_covariance=registration_covariance,
+                                opt=opt)
     unc = np.sqrt(np.clip(np.trace(cov, axis1=1, axis2=2), 0.0, None))
     arc = _arclength(Xs)
     ok = bool(np.isfinite(perr) and perr <= opt.fail_projection_px and np.all(np.isfinite(Xs)))
@@ -847,7 +971,7 @@ def _reconstruct_vessel(ctx, uv, *, track_tip, image, registration_covariance, o
             f"the 2D wire misses the projected vessel tree ({100 * coverage:.0f}% of anchors inside, "
             f"need {100 * opt.min_coverage:.0f}%)", seconds=time.perf_counter() - t0)
     aidx, cand, outside = aidx[has], cand[has], outside[has]
-    nodes, total = _viterbi(ctx, uv[aidx], cand, outside, opt, track_tip)
+    nodes, total, marg = _viterbi(ctx, uv[aidx], cand, outside, opt, track_tip)
     n_skipped = len(aidx) - len(nodes)
     aidx = aidx[: len(nodes)]
     if not np.isfinite(total) or len(nodes) < 2:
@@ -857,15 +981,22 @@ def _reconstruct_vessel(ctx, uv, *, track_tip, image, registration_covariance, o
     if ctx.s[nodes[-1]] < ctx.s[nodes[0]] - opt.reverse_mm:
         # the path runs towards the root: the 2D wire was probably given distal -> proximal
         r_aidx = len(uv) - 1 - aidx[::-1]
-        r_nodes, r_total = _viterbi(ctx, uv[::-1][r_aidx], cand[::-1], outside[::-1], opt, track_tip)
+        r_nodes, r_total, r_marg = _viterbi(ctx, uv[::-1][r_aidx], cand[::-1], outside[::-1], opt, track_tip)
         if r_total < total and len(r_nodes) >= 2:
-            uv, aidx, nodes, total = uv[::-1].copy(), r_aidx[: len(r_nodes)], r_nodes, r_total
+            uv, aidx, nodes, total, marg = uv[::-1].copy(), r_aidx[: len(r_nodes)], r_nodes, r_total, r_marg
             n_skipped = len(r_aidx) - len(r_nodes)
             reversed_note = "; the 2D wire looked distal -> proximal: output reversed to proximal -> distal"
     X, tid, half, dist, r = _place_on_path(ctx, uv, aidx, nodes)
     miss = np.maximum(dist - r, 0.0)
     depth_std = 2.0 * half / np.sqrt(12.0) + miss
     half_width = np.sqrt(np.maximum(r * r - dist * dist, 0.0))
+    amb = None
+    if opt.ambiguity_scale > 0:
+        # each wire point takes the ambiguity of its nearest anchor (beyond the path's end: the last)
+        k = np.clip(np.searchsorted(aidx, np.arange(len(uv))), 0, len(aidx) - 1)
+        km = np.clip(k - 1, 0, len(aidx) - 1)
+        k = np.where(np.abs(aidx[km] - np.arange(len(uv))) < np.abs(aidx[k] - np.arange(len(uv))), km, k)
+        amb = _ambiguity(ctx, nodes, marg, opt)[k]
     msg = f"ok: {len(uv)} points, {100 * coverage:.0f}% of anchors on the tree, path cost {total:.1f}" + reversed_note
     if coverage < 1.0:
         msg += " (gaps bridged)"
@@ -873,7 +1004,7 @@ def _reconstruct_vessel(ctx, uv, *, track_tip, image, registration_covariance, o
         msg += f"; the last {n_skipped} anchors fit no lumen (placed beyond the path's end)"
     ids = np.where(miss > 0, -1, tid)
     return _finish(ctx, X, uv, ids, depth_std, miss**2, image=image, registration_covariance=registration_covariance,
-                   opt=opt, method=ReconMethod.VESSEL, t0=t0, message=msg, lumen=(half_width, miss))
+                   opt=opt, method=ReconMethod.VESSEL, t0=t0, message=msg, lumen=(half_width, miss, amb))
 
 
 def _reconstruct_paper(ctx, uv, *, image, registration_covariance, opt, t0):

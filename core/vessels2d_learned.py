@@ -326,11 +326,28 @@ def vessel_probability(image, *, dark_vessels: bool | None = None, weights_path=
     (H, W) ndarray of float32 in [0, 1]
     """
     a = _as_image(image)
+    if dark_vessels is None:
+        dark_vessels = _detect_dark(a)
     x = normalize_angiogram(a, dark_vessels=dark_vessels)
     net = model if model is not None else _cached_model(weights_path)
     logits = _predict_logits(net, x)
     prob = 1.0 / (1.0 + np.exp(-np.clip(logits, -30.0, 30.0)))
+    prob = prob * _field_of_view(a, x.shape, dark_vessels)
     return np.clip(_resize(prob, a.shape), 0.0, 1.0).astype(np.float32)
+
+
+def _field_of_view(a: np.ndarray, shape: tuple[int, int], dark_vessels: bool) -> np.ndarray:
+    """The classical detector's field of view (inside the collimator, ``FOV_MARGIN_PX`` away from
+    shutter edges) at the reference size: the dark shutter edge is a dark line to the network."""
+    from guidewire3d import image2d
+
+    im01, ok = image2d._normalise01(_resize(a, shape).astype(np.float64))
+    if not ok:
+        return np.zeros(shape, np.float32)
+    if not dark_vessels:
+        im01 = 1.0 - im01
+    margin = max(2, int(round(image2d.FOV_MARGIN_PX)))
+    return image2d._field_of_view(im01, margin).astype(np.float32)
 
 
 def learned_vessel_mask(image, *, dark_vessels: bool | None = None, weights_path=None, model=None,

@@ -1,10 +1,16 @@
 """Benchmarks of the classical 2D image analysis (guidewire3d.image2d).
 
-Two measurements, each a function other benches can import:
+Three measurements, each a function other benches can import:
 
 - :func:`real_vessel_dice`: vessel Dice of :func:`guidewire3d.image2d.vessel_mask` on the real
   non-subtracted coronary angiograms of ``/work/shared/data/coronary-angiograms`` (``N.png`` with
-  manual masks ``N_gt.png``), no per-image tuning.
+  manual masks ``N_gt.png``), no per-image tuning, for the classical and the learned method side by
+  side. The learned model was TRAINED on these 40 images, so its column is a training-set score;
+  the honest estimate for unseen images is the k-fold cross-validated Dice recorded in the weights'
+  metadata by ``scripts/train_vessels2d.py`` (printed below the table).
+- :func:`simulated_roadmap_dice`: vessel Dice of both methods on simulated subtracted roadmaps
+  (``guidewire3d.phantom.simulate(...).roadmap`` vs ``vessel_mask_2d``), with and without the
+  CTA-derived ``max_radius_px`` the pipeline passes; the basis of ``VesselMethod.AUTO``.
 - :func:`simulated_wire_accuracy`: :func:`guidewire3d.image2d.ordered_wire` on simulated live frames
   (``guidewire3d.phantom.simulate``) from a given mask source (the TRUE wire mask by default, or any
   callable ``(frame, case, t) -> mask``): mean symmetric centerline distance to the true projected
@@ -14,6 +20,7 @@ Usage::
 
     python scripts/bench_vessels2d_real.py                 # both tables
     python scripts/bench_vessels2d_real.py --only real     # real-angiogram Dice only
+    python scripts/bench_vessels2d_real.py --only sim --cases 10   # simulated-roadmap Dice, both methods
     python scripts/bench_vessels2d_real.py --only wire --cases 10 --frames 20
 """
 from __future__ import annotations
@@ -30,8 +37,9 @@ from guidewire3d.metrics import dice, precision_recall, symmetric_polyline_dista
 REAL_DIR = Path("/work/shared/data/coronary-angiograms")
 
 
-def real_vessel_dice(data_dir=REAL_DIR, ids=None) -> list[dict]:
-    """Per-image Dice / precision / recall / seconds of ``vessel_mask`` on the real angiograms."""
+def real_vessel_dice(data_dir=REAL_DIR, ids=None, method="classical") -> list[dict]:
+    """Per-image Dice / precision / recall / seconds of ``vessel_mask(image, method=method)`` on the
+    real angiograms."""
     from skimage.io import imread
 
     data_dir = Path(data_dir)
@@ -42,10 +50,38 @@ def real_vessel_dice(data_dir=REAL_DIR, ids=None) -> list[dict]:
         img = imread(data_dir / f"{i}.png")
         gt = imread(data_dir / f"{i}_gt.png") > 0
         t0 = time.perf_counter()
-        m = vessel_mask(img)
+        m = vessel_mask(img, method=method)
         dt = time.perf_counter() - t0
         p, r = precision_recall(m, gt)
         rows.append(dict(image=i, dice=dice(m, gt), precision=p, recall=r, seconds=dt))
+    return rows
+
+
+def simulated_roadmap_dice(*, n_cases: int = 10, seed0: int = 0) -> list[dict]:
+    """Dice of ``vessel_mask`` vs the true ``vessel_mask_2d`` on simulated roadmaps, per method,
+    without (``roadmap_centerline``'s default) and with the pipeline's CTA-derived ``max_radius_px``.
+
+    Returns
+    -------
+    list of dict
+        One row per case: ``case``, and ``dice_<method>`` / ``s_<method>`` for ``classical``,
+        ``learned``, ``auto``, plus ``dice_classical_r`` / ``dice_auto_r`` (with ``max_radius_px``).
+    """
+    from guidewire3d.phantom import PhantomOptions, simulate
+
+    rows = []
+    for c in range(n_cases):
+        case = simulate(PhantomOptions(seed=seed0 + c, n_frames=1), make_ct=False)
+        road, gt = case.roadmap, case.vessel_mask_2d
+        r_px = float(case.tree.radius_mm.max()) / case.carm.pixel_at_iso_mm * 1.5
+        row = dict(case=seed0 + c)
+        for name, kw in (("classical", {}), ("learned", {}), ("auto", {}), ("classical_r", {"max_radius_px": r_px}),
+                         ("auto_r", {"max_radius_px": r_px})):
+            t0 = time.perf_counter()
+            m = vessel_mask(road, method=name.removesuffix("_r"), **kw)
+            row[f"s_{name}"] = time.perf_counter() - t0
+            row[f"dice_{name}"] = dice(m, gt)
+        rows.append(row)
     return rows
 
 
@@ -100,14 +136,53 @@ def _root_uv(case):
     return np.asarray(case.carm.project(root, case.pose), float)
 
 
-def _print_real(rows):
-    print("| image | Dice | precision | recall | s |")
-    print("|---|---|---|---|---|")
+def _print_real(rows, rows_learned=None):
+    lrn = {r["image"]: r for r in rows_learned or []}
+    print("| image | Dice classical | precision | recall | s | Dice learned (train set) | precision | recall | s |")
+    print("|---|---|---|---|---|---|---|---|---|")
     for r in rows:
-        print(f"| {r['image']} | {r['dice']:.3f} | {r['precision']:.3f} | {r['recall']:.3f} | {r['seconds']:.2f} |")
-    d = np.array([r["dice"] for r in rows])
-    print(f"\nvessel_mask on {len(rows)} real angiograms: Dice mean {d.mean():.3f}, median {np.median(d):.3f}, "
-          f"min {d.min():.3f}, max {d.max():.3f}; median time {np.median([r['seconds'] for r in rows]):.2f} s")
+        q = lrn.get(r["image"])
+        extra = (f" {q['dice']:.3f} | {q['precision']:.3f} | {q['recall']:.3f} | {q['seconds']:.2f} |" if q
+                 else " - | - | - | - |")
+        print(f"| {r['image']} | {r['dice']:.3f} | {r['precision']:.3f} | {r['recall']:.3f} | {r['seconds']:.2f} |"
+              + extra)
+    for name, rr in (("classical", rows), ("learned (training set!)", rows_learned or [])):
+        if not rr:
+            continue
+        d = np.array([r["dice"] for r in rr])
+        print(f"\nvessel_mask {name} on {len(rr)} real angiograms: Dice mean {d.mean():.3f}, "
+              f"median {np.median(d):.3f}, min {d.min():.3f}, max {d.max():.3f}; "
+              f"median time {np.median([r['seconds'] for r in rr]):.3f} s")
+    _print_cv()
+
+
+def _print_cv():
+    """The learned model's cross-validated Dice, from its weights' metadata."""
+    import json
+
+    from guidewire3d.vessels2d_learned import DEFAULT_WEIGHTS_PATH, load_vessel_unet
+
+    if not DEFAULT_WEIGHTS_PATH.is_file():
+        return
+    meta = load_vessel_unet().metadata
+    if "cv_dice_mean" not in meta:
+        return
+    folds = json.loads(meta["cv_fold_means"])
+    print(f"\nlearned, {meta['cv_folds']}-fold cross-validation (held-out images only, "
+          f"scripts/train_vessels2d.py): Dice mean {float(meta['cv_dice_mean']):.3f}, "
+          f"median {float(meta['cv_dice_median']):.3f}; fold means " + ", ".join(f"{x:.3f}" for x in folds))
+
+
+def _print_sim(rows):
+    names = ("classical", "learned", "auto", "classical_r", "auto_r")
+    print("\nvessel_mask on simulated roadmaps (Dice vs vessel_mask_2d; _r: with the pipeline's max_radius_px):")
+    print("| case | " + " | ".join(names) + " |")
+    print("|---|" + "---|" * len(names))
+    for r in rows:
+        print(f"| {r['case']} | " + " | ".join(f"{r['dice_' + n]:.3f}" for n in names) + " |")
+    print("| median | " + " | ".join(f"{np.median([r['dice_' + n] for r in rows]):.3f}" for n in names) + " |")
+    print("| mean | " + " | ".join(f"{np.mean([r['dice_' + n] for r in rows]):.3f}" for n in names) + " |")
+    print("| median s | " + " | ".join(f"{np.median([r['s_' + n] for r in rows]):.2f}" for n in names) + " |")
 
 
 def _print_wire(rows, label="true wire mask"):
@@ -132,13 +207,18 @@ def _print_wire(rows, label="true wire mask"):
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--only", choices=["real", "wire"], default=None)
+    ap.add_argument("--only", choices=["real", "sim", "wire"], default=None)
     ap.add_argument("--data", default=str(REAL_DIR))
     ap.add_argument("--cases", type=int, default=10)
     ap.add_argument("--frames", type=int, default=20)
     args = ap.parse_args(argv)
     if args.only in (None, "real"):
-        _print_real(real_vessel_dice(args.data))
+        from guidewire3d.vessels2d_learned import DEFAULT_WEIGHTS_PATH
+
+        learned = real_vessel_dice(args.data, method="learned") if DEFAULT_WEIGHTS_PATH.is_file() else None
+        _print_real(real_vessel_dice(args.data, method="classical"), learned)
+    if args.only in (None, "sim"):
+        _print_sim(simulated_roadmap_dice(n_cases=args.cases))
     if args.only in (None, "wire"):
         _print_wire(simulated_wire_accuracy(n_cases=args.cases, n_frames=args.frames))
 

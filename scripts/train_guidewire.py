@@ -1,6 +1,6 @@
 """Train the guidewire UNet on simulated live frames (CPU, fixed step budget, seeded).
 
-Reproduce the shipped weights (three stages, each seeded; the simulated frames are cached)::
+Reproduce the shipped weights (four stages, each seeded; the simulated frames are cached)::
 
     T=".venv/bin/python scripts/train_guidewire.py --data phantom --frames-per-seed 3 --batch 16"
     # stage 1: from scratch, 3e-3 -> 3e-4 -> 3e-5 (900 steps, 64 px crops)
@@ -10,13 +10,19 @@ Reproduce the shipped weights (three stages, each seeded; the simulated frames a
     nice -n 5 $T --seeds 1000:1130 --val-seeds 6 --steps 500 --crop 64 --lr 1e-3 --seed 1 \
         --max-minutes 20 --init /tmp/seg/run2.safetensors --cache /tmp/seg/ph_train.npz \
         --out /tmp/seg/run3.safetensors
-    # stage 3: 3x more simulated data (392 seeds), 96 px crops, 1e-3 -> 1e-5 (3000 steps)
-    nice -n 5 $T --seeds 1000:1400 --val-seeds 8 --steps 3000 --crop 96 --lr 1e-3 --seed 2 \
-        --max-minutes 16 --init /tmp/seg/run3.safetensors --cache /tmp/seg/ph_train400.npz \
+    # stage 3: 3x more simulated data (392 seeds), 96 px crops, constant 1e-3 (500 steps)
+    nice -n 5 $T --seeds 1000:1400 --val-seeds 8 --steps 500 --milestones "" --crop 96 --lr 1e-3 \
+        --seed 2 --init /tmp/seg/run3.safetensors --cache /tmp/seg/ph_train400.npz \
+        --out /tmp/seg/run4.safetensors
+    # stage 4: the decay, 3e-4 -> 3e-5 -> 3e-6 (600 steps)
+    nice -n 5 $T --seeds 1000:1400 --val-seeds 8 --steps 600 --crop 96 --lr 3e-4 --seed 3 \
+        --max-minutes 10 --init /tmp/seg/run4.safetensors --cache /tmp/seg/ph_train400.npz \
         --out resources/guidewire_unet.safetensors
 
 The stages exist because the host (2 cores shared by several jobs) ran 10-20x slower during
-stage 1 than later, so the plan was extended while it ran. A stage that reaches ``--max-minutes``
+stage 1 than later, so the plan was extended while it ran (stage 3 is the step-500 checkpoint of a
+3000-step run that was stopped to leave time for the decay; with the same seed that equals the
+500-step run above). A stage that reaches ``--max-minutes``
 ends at a host-dependent step (the log says which); otherwise the result is determined by the seeds.
 
 Recipe (the paper's, adapted to a CPU budget): Adam, weight decay 1e-4, step decay of the learning
@@ -233,6 +239,8 @@ def main(argv=None):
     ap.add_argument("--crop", type=int, default=128)
     ap.add_argument("--lr", type=float, default=2e-3)
     ap.add_argument("--weight-decay", type=float, default=1e-4)
+    ap.add_argument("--milestones", default="0.6,0.85",
+                    help="fractions of --steps where the learning rate is divided by 10 ('' for none)")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--max-minutes", type=float, default=30.0, help="safety stop (the schedule is by steps)")
     ap.add_argument("--seed", type=int, default=0)
@@ -285,7 +293,7 @@ def main(argv=None):
     n_par = sum(p.numel() for p in model.parameters())
     log(f"model: channels {config.channels}, level0_convs {config.level0_convs}, {n_par} parameters")
     opt = torch.optim.Adam(model.parameters(), lr=args.lr, weight_decay=args.weight_decay)
-    milestones = [int(0.6 * args.steps), int(0.85 * args.steps)]
+    milestones = [int(float(f) * args.steps) for f in args.milestones.split(",") if f.strip()]
     sched = torch.optim.lr_scheduler.MultiStepLR(opt, milestones=milestones, gamma=0.1)
     bce = torch.nn.BCEWithLogitsLoss()
     t0 = time.time()

@@ -409,7 +409,7 @@ class ViewerController:
             parts = ["no live frames"]
         if not self._case.wires:
             parts.append("no reconstructed wires in this folder")
-        parts.append(f"residual {res:.2f} px" if np.isfinite(res) else "residual n/a")
+        parts.append(f"residual {res:.2f} px (mean over the 2D centerline)" if np.isfinite(res) else "residual n/a")
         parts.append(f"pose {self.pose_source}" + (" (wires stale: Return)" if self.wires_stale else ""))
         reg = self._case.registration
         if self.pose_source == "automatic" and reg and not reg.get("success", True):
