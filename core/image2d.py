@@ -232,8 +232,12 @@ def _vessel_method(method) -> VesselMethod:
         raise InputError(f"method: expected one of {[m.value for m in VesselMethod]}, got {method!r}") from None
 
 
-def _auto_vessel_method(image, max_radius_px) -> VesselMethod:
+def _auto_vessel_method(max_radius_px: float | None) -> VesselMethod:
     """The method ``AUTO`` stands for (see :func:`vessel_mask`)."""
+    from guidewire3d.vessels2d_learned import DEFAULT_WEIGHTS_PATH
+
+    if max_radius_px is None and DEFAULT_WEIGHTS_PATH.is_file():
+        return VesselMethod.LEARNED
     return VesselMethod.CLASSICAL
 
 
@@ -272,7 +276,7 @@ def vessel_mask(image, *, dark_vessels: bool | None = None, max_radius_px: float
     if max_radius_px is not None and not (np.isfinite(max_radius_px) and max_radius_px > 0):
         raise InputError(f"max_radius_px: expected a positive number of pixels, got {max_radius_px!r}")
     if method is VesselMethod.AUTO:
-        method = _auto_vessel_method(image, max_radius_px)
+        method = _auto_vessel_method(max_radius_px)
     if method is VesselMethod.LEARNED:
         from guidewire3d.vessels2d_learned import learned_vessel_mask
 

@@ -9,7 +9,12 @@ Two methods behind one interface (:class:`SegMethod`):
   with onnxruntime (the ONNX graph is exported at run time from the safetensors weights into a
   cache file) or with torch.
 - ``RIDGE``: a multi-scale Hessian ridge filter (Frangi-type vesselness for dark lines), thresholded
-  with hysteresis. No training, a fast fallback.
+  with hysteresis and trimmed to the wire's width (darkness >= 35 % of the nearby ridge peak). No
+  training, a fast fallback.
+
+The network always sees the frame with 16 px of reflected context around the processed box, so its
+zero padding never sits next to image content (the frames are darker at the detector edges, which
+zero padding would turn into a dark line).
 
 Input normalisation (:func:`normalize_frame`) is robust to the raw intensity scale: the frame is
 shifted by its median and divided by its 1-99 percentile spread, both computed on a sub-sampled

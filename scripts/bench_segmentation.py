@@ -84,7 +84,7 @@ def timed(fn, *a, **k):
 def run_methods(cases, backend, threads, *, quality=True):
     from guidewire3d.image2d import ordered_wire
     from guidewire3d.metrics import dice, precision_recall
-    from guidewire3d.segmentation import GuidewireSegmenter, guidewire_mask, unet_probability
+    from guidewire3d.segmentation import GuidewireSegmenter, unet_probability
 
     unet_probability(cases[0]["frames"][0], backend=backend, num_threads=threads)  # warm up / export
     rows = []

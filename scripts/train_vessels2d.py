@@ -14,7 +14,9 @@ Usage (the command that produced the shipped weights, ~25 min wall on 2 shared c
     nice .venv/bin/python scripts/train_vessels2d.py --workers 2
 
 Options: ``--folds 0`` skips cross-validation; ``--no-final`` skips the final model;
-``--out PATH`` writes the weights elsewhere.
+``--out PATH`` writes the weights elsewhere; ``--save-dir DIR`` also writes every fold's model;
+``--rescore DIR`` trains nothing and scores the models of DIR again (after a change of the
+inference post-processing), then writes the final one with the new scores.
 """
 from __future__ import annotations
 
@@ -49,33 +51,64 @@ def folds_of(n: int, k: int, seed: int) -> list[np.ndarray]:
 
 
 def _task(args):
-    """One training: ``(name, train_idx, test_idx, data_dir, seed)`` -> result dict (+ model state)."""
+    """One training: ``(name, train_idx, test_idx, data_dir, seed, steps, save_dir)`` -> dict with the
+    model state (scoring happens in the main process, see :func:`_score`)."""
     import torch
 
     torch.set_num_threads(1)
-    from guidewire3d.metrics import dice
-    from guidewire3d.vessels2d_learned import TrainOptions, VesselUNetConfig, learned_vessel_mask, train_vessel_unet
+    from guidewire3d.vessels2d_learned import TrainOptions, VesselUNetConfig, save_vessel_unet, train_vessel_unet
 
     name, train_idx, test_idx, data_dir, seed, steps, save_dir = args
-    RECIPE["steps"] = steps
     ids, images, masks = load_real(data_dir)
-    opts = TrainOptions(steps=RECIPE["steps"], batch=RECIPE["batch"], crop_px=RECIPE["crop_px"],
-                        lr=RECIPE["lr"], seed=seed)
+    opts = TrainOptions(steps=steps, batch=RECIPE["batch"], crop_px=RECIPE["crop_px"], lr=RECIPE["lr"], seed=seed)
     t0 = time.perf_counter()
     model = train_vessel_unet([images[i] for i in train_idx], [masks[i] for i in train_idx],
                               config=VesselUNetConfig(channels=RECIPE["channels"]), options=opts,
                               log=lambda s, loss: print(f"  [{name}] step {s} loss {loss:.4f}", flush=True))
     train_s = time.perf_counter() - t0
-    scores = {}
-    for i in test_idx:
-        scores[ids[i]] = float(dice(learned_vessel_mask(images[i], dark_vessels=True, model=model), masks[i]))
+    held = [ids[i] for i in test_idx]
     if save_dir:
-        from guidewire3d.vessels2d_learned import save_vessel_unet
-
         save_vessel_unet(model, Path(save_dir) / f"vessel_unet_{name}.safetensors",
-                         extra_metadata={"held_out_ids": [ids[i] for i in test_idx]})
+                         extra_metadata={"held_out_ids": held, "recipe": json.dumps(asdict(opts))})
     state = {k: v.detach().clone() for k, v in model.state_dict().items()}
-    return dict(name=name, train_s=train_s, scores=scores, options=asdict(opts), state=state)
+    return dict(name=name, train_s=train_s, held_out_ids=held, options=asdict(opts), state=state)
+
+
+def _load_results(folder: Path) -> list[dict]:
+    """Task results from the models a previous run wrote with ``--save-dir``."""
+    from guidewire3d.vessels2d_learned import load_vessel_unet
+
+    out = []
+    for f in sorted(folder.glob("vessel_unet_*.safetensors")):
+        m = load_vessel_unet(f)
+        name = f.stem.removeprefix("vessel_unet_")
+        if "recipe" in m.metadata:
+            opts = json.loads(m.metadata["recipe"])
+        else:  # files of a run before the recipe was recorded: the defaults and the task's seed
+            seed = 0 if name == "final" else 1 + int(name.removeprefix("fold"))
+            opts = dict(steps=RECIPE["steps"], batch=RECIPE["batch"], crop_px=RECIPE["crop_px"], lr=RECIPE["lr"],
+                        seed=seed)
+        out.append(dict(name=name, train_s=float("nan"), held_out_ids=json.loads(m.metadata["held_out_ids"]),
+                        options=opts, state=m.state_dict()))
+    return out
+
+
+def _model(state):
+    from guidewire3d.vessels2d_learned import VesselUNetConfig, build_vessel_unet
+
+    model = build_vessel_unet(VesselUNetConfig(channels=RECIPE["channels"]))
+    model.load_state_dict(state)
+    model.eval()
+    return model
+
+
+def _score(model, ids, images, masks, which) -> dict[int, float]:
+    """Dice of ``learned_vessel_mask`` (automatic polarity, as ``vessel_mask`` runs it) per image id."""
+    from guidewire3d.metrics import dice
+    from guidewire3d.vessels2d_learned import learned_vessel_mask
+
+    pos = {i: k for k, i in enumerate(ids)}
+    return {i: float(dice(learned_vessel_mask(images[pos[i]], model=model), masks[pos[i]])) for i in which}
 
 
 def main(argv=None):
@@ -87,30 +120,34 @@ def main(argv=None):
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--steps", type=int, default=RECIPE["steps"], help="optimiser steps per training")
     ap.add_argument("--save-dir", default=None, help="also write every fold's model here")
+    ap.add_argument("--rescore", default=None,
+                    help="no training: score the models a previous run wrote to this --save-dir")
     ap.add_argument("--out", default=None, help="weights path (default resources/vessel_unet.safetensors)")
     args = ap.parse_args(argv)
 
-    from guidewire3d.metrics import dice
-    from guidewire3d.vessels2d_learned import (DEFAULT_WEIGHTS_PATH, build_vessel_unet, VesselUNetConfig,
-                                               learned_vessel_mask, save_vessel_unet)
+    from guidewire3d.vessels2d_learned import DEFAULT_WEIGHTS_PATH, save_vessel_unet
 
-    RECIPE["steps"] = args.steps
     ids, images, masks = load_real(args.data)
     n = len(ids)
-    tasks = []
-    folds = folds_of(n, args.folds, args.seed) if args.folds > 1 else []
-    for f, test in enumerate(folds):
-        train = np.setdiff1d(np.arange(n), test)
-        tasks.append((f"fold{f}", train.tolist(), test.tolist(), args.data, args.seed + 1 + f, args.steps, args.save_dir))
-    if not args.no_final:
-        tasks.append(("final", list(range(n)), list(range(n)), args.data, args.seed, args.steps, args.save_dir))
-    t0 = time.perf_counter()
-    if args.workers > 1:
-        with mp.get_context("spawn").Pool(args.workers) as pool:
-            results = pool.map(_task, tasks, chunksize=1)
+    if args.rescore:
+        results = _load_results(Path(args.rescore))
+        print(f"re-scoring {len(results)} models from {args.rescore}")
     else:
-        results = [_task(t) for t in tasks]
-    print(f"\ntotal wall {time.perf_counter() - t0:.0f} s; recipe {RECIPE}")
+        tasks = []
+        folds = folds_of(n, args.folds, args.seed) if args.folds > 1 else []
+        for f, test in enumerate(folds):
+            train = np.setdiff1d(np.arange(n), test)
+            tasks.append((f"fold{f}", train.tolist(), test.tolist(), args.data, args.seed + 1 + f, args.steps,
+                          args.save_dir))
+        if not args.no_final:
+            tasks.append(("final", list(range(n)), list(range(n)), args.data, args.seed, args.steps, args.save_dir))
+        t0 = time.perf_counter()
+        if args.workers > 1:
+            with mp.get_context("spawn").Pool(args.workers) as pool:
+                results = pool.map(_task, tasks, chunksize=1)
+        else:
+            results = [_task(t) for t in tasks]
+        print(f"\ntotal wall {time.perf_counter() - t0:.0f} s; recipe {RECIPE}, steps {args.steps}")
 
     cv = [r for r in results if r["name"].startswith("fold")]
     summary = {}
@@ -118,12 +155,15 @@ def main(argv=None):
         print("\n| fold | held-out images | Dice mean | Dice min | train s |")
         print("|---|---|---|---|---|")
         all_scores = {}
+        fold_means = []
         for r in cv:
-            d = np.array(list(r["scores"].values()))
-            all_scores.update(r["scores"])
-            print(f"| {r['name'][4:]} | {' '.join(str(i) for i in r['scores'])} | {d.mean():.3f} | {d.min():.3f} "
+            sc = _score(_model(r["state"]), ids, images, masks, r["held_out_ids"])
+            all_scores.update(sc)
+            d = np.array(list(sc.values()))
+            fold_means.append(d.mean())
+            print(f"| {r['name'][4:]} | {' '.join(str(i) for i in sc)} | {d.mean():.3f} | {d.min():.3f} "
                   f"| {r['train_s']:.0f} |")
-        fold_means = np.array([np.mean(list(r["scores"].values())) for r in cv])
+        fold_means = np.array(fold_means)
         per_image = np.array(list(all_scores.values()))
         print(f"\n{len(cv)}-fold CV held-out Dice: mean of fold means {fold_means.mean():.3f} "
               f"(std {fold_means.std(ddof=1):.3f}); over the {len(per_image)} held-out images mean "
@@ -135,11 +175,8 @@ def main(argv=None):
     final = [r for r in results if r["name"] == "final"]
     if final:
         r = final[0]
-        model = build_vessel_unet(VesselUNetConfig(channels=RECIPE["channels"]))
-        model.load_state_dict(r["state"])
-        model.eval()
-        d = np.array([dice(learned_vessel_mask(im, dark_vessels=True, model=model), mk)
-                      for im, mk in zip(images, masks)])
+        model = _model(r["state"])
+        d = np.array(list(_score(model, ids, images, masks, ids).values()))
         print(f"\nfinal model (trained on all {n}): TRAINING-SET Dice mean {d.mean():.3f}, "
               f"median {np.median(d):.3f} (not a generalisation estimate; see the CV above)")
         meta = dict(training_data="coronary-angiograms (40 real non-subtracted, 300x300, manual masks)",

@@ -25,8 +25,10 @@ SEED_THIN, SEED_THICK = 7, 8
 N_FRAMES = 10  # the tip advances over the sequence; consecutive frames are ~20 px apart
 DICE_FRAMES = (0, 4, 9)
 TRACK_FRAMES = (0, 1, 2)
-UNET_MIN_DICE = 0.88          # per-frame mean on held-out frames (benchmark: see scripts/bench_segmentation.py)
-RIDGE_MIN_DICE = 0.75
+# per-frame mean Dice floors on these held-out frames, by wire diameter (mm); the 0.014" wire's truth
+# mask is 1-2 px wide, so its Dice is lower (full numbers: scripts/bench_segmentation.py)
+UNET_MIN_DICE = {0.36: 0.85, 0.89: 0.93}
+RIDGE_MIN_DICE = {0.36: 0.65, 0.89: 0.82}
 ROI_VS_FULL_MIN_DICE = 0.97
 BACKEND_MAX_ABS_DIFF = 1e-3
 
@@ -60,7 +62,7 @@ def test_shipped_weights_are_small_safetensors():
 def test_unet_dice_on_heldout_frames(dice_cases, diameter):
     frames, masks = dice_cases[diameter]
     scores = [dice(guidewire_mask(f, method="unet"), m) for f, m in zip(frames, masks)]
-    assert np.mean(scores) >= UNET_MIN_DICE, scores
+    assert np.mean(scores) >= UNET_MIN_DICE[diameter], scores
 
 
 @pytest.mark.parametrize("method", list(SegMethod))
@@ -69,7 +71,7 @@ def test_every_method_member_segments_the_wire(cases, method):
     by_member = guidewire_mask(frames[0], method=method)
     by_string = guidewire_mask(frames[0], method=method.value)
     assert np.array_equal(by_member, by_string)
-    floor = UNET_MIN_DICE if method is SegMethod.UNET else RIDGE_MIN_DICE
+    floor = (UNET_MIN_DICE if method is SegMethod.UNET else RIDGE_MIN_DICE)[0.89]
     assert dice(by_member, masks[0]) >= floor
 
 
@@ -77,7 +79,7 @@ def test_every_method_member_segments_the_wire(cases, method):
 def test_ridge_quality(dice_cases, diameter):
     frames, masks = dice_cases[diameter]
     scores = [dice(guidewire_mask(f, method=SegMethod.RIDGE), m) for f, m in zip(frames, masks)]
-    assert np.mean(scores) >= RIDGE_MIN_DICE, scores
+    assert np.mean(scores) >= RIDGE_MIN_DICE[diameter], scores
     # the ridge response separates wire from background
     p = ridge_probability(frames[0])
     assert np.median(p[masks[0]]) > 0.8
@@ -159,10 +161,11 @@ def test_loader_uses_no_pickle(monkeypatch, cases):
     monkeypatch.setattr(pickle, "loads", forbidden)
     model = load_unet()
     frames, masks = cases[0.89]
-    z = normalize_frame(frames[0])[None, None]
+    c = 16  # reflected context, as in guidewire_mask
+    z = np.pad(normalize_frame(frames[0]), c, mode="reflect")[None, None]
     with torch.inference_mode():
-        p = torch.sigmoid(model(torch.from_numpy(z)))[0, 0].numpy() > model.config.threshold
-    assert dice(p, masks[0]) >= UNET_MIN_DICE
+        p = torch.sigmoid(model(torch.from_numpy(z)))[0, 0, c:-c, c:-c].numpy() > model.config.threshold
+    assert dice(p, masks[0]) >= UNET_MIN_DICE[0.89]
 
 
 @pytest.mark.parametrize("backend", list(Backend))
