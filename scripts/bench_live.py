@@ -1,0 +1,75 @@
+"""Live-path speed: marginal time per frame after the one-off CTA and registration work.
+
+Per frame: guidewire segmentation, ordered 2D wire, 3D reconstruction (tracking) and the
+report entry. Measured over a long simulated sequence, per segmenter mode, and printed as a
+table of medians.
+
+    nice .venv/bin/python scripts/bench_live.py --frames 120 --seed 2024
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import time
+
+import numpy as np
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--frames", type=int, default=120)
+    ap.add_argument("--seed", type=int, default=2024)
+    ap.add_argument("--threads", type=int, default=2)
+    args = ap.parse_args()
+
+    from guidewire3d import bench, export, image2d, phantom, reconstruction, registration, vessels3d
+    from guidewire3d.segmentation import GuidewireSegmenter
+
+    case = phantom.simulate(phantom.PhantomOptions(seed=args.seed, n_frames=args.frames))
+    t0 = time.perf_counter()
+    ves = vessels3d.extract_vessels(case.volume)
+    t_cta = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    cl = image2d.roadmap_centerline(case.roadmap, max_radius_px=float(ves.tree.radius_mm.max()) / case.carm.pixel_at_iso_mm * 1.5)
+    reg = registration.register(ves.tree, cl.points_uv_px, case.carm, centerline_radius_px=cl.radius_px)
+    t_reg = time.perf_counter() - t0
+    root_uv = case.carm.project(ves.tree.points_lps_mm[ves.tree.root], reg.pose)
+
+    rows = []
+    for name, kw in (("UNet, ROI tracking (onnxruntime)", dict(method="unet")),
+                     ("UNet, full frame every frame", dict(method="unet", roi_margin_px=10_000)),
+                     ("Ridge, ROI tracking", dict(method="ridge"))):
+        seg = GuidewireSegmenter(num_threads=args.threads, **kw)
+        tracker = reconstruction.WireTracker(reg.pose, case.carm, ves.tree,
+                                             registration_covariance=reg.covariance_6x6)
+        seg.segment(case.frames[0])  # warm-up: session creation, first-call compilation
+        per = {"seg": [], "wire": [], "3d": [], "report": [], "total": []}
+        ok = 0
+        t_all = time.perf_counter()
+        for i, frame in enumerate(case.frames):
+            a = time.perf_counter()
+            mask = seg.segment(frame)
+            b = time.perf_counter()
+            ow = image2d.ordered_wire(mask, image=frame, proximal_hint_uv=root_uv)
+            c = time.perf_counter()
+            w3 = tracker.update(ow.points_uv_px, image=frame) if ow else reconstruction.Wire3D.failed(ow.message)
+            d = time.perf_counter()
+            export.frame_record(i, ow, w3, d - a)
+            e = time.perf_counter()
+            ok += bool(w3.success)
+            for key, dt in zip(per, (b - a, c - b, d - c, e - d, e - a)):
+                per[key].append(dt)
+        marginal = (time.perf_counter() - t_all) / len(case.frames)
+        med = {k: 1000 * float(np.median(v)) for k, v in per.items()}
+        rows.append([name, f"{med['seg']:.1f}", f"{med['wire']:.1f}", f"{med['3d']:.1f}", f"{med['report']:.2f}",
+                     f"{med['total']:.1f}", f"{1000 * marginal:.1f}", f"{1.0 / marginal:.1f}", f"{ok}/{len(case.frames)}"])
+    print(f"live path, {args.frames} frames 512x512, seed {args.seed}; one-off: CTA vessels {t_cta:.1f} s, "
+          f"roadmap + registration {t_reg * 1000:.0f} ms; machine: {bench.machine_line()}, "
+          f"load average {os.getloadavg()[0]:.1f}")
+    print(bench._table(["mode", "seg ms", "2D wire ms", "3D ms", "report ms", "median total ms",
+                        "marginal ms/frame", "FPS", "frames ok"], rows))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
