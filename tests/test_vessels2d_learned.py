@@ -133,6 +133,8 @@ def test_every_vessel_method(real_cases, small_case):
     assert dice(by_method[VesselMethod.LEARNED], gt) >= LEARNED_TRAIN_DICE_MIN
     # AUTO on a real frame without a vessel-size hint: the learned model.
     assert np.array_equal(by_method[VesselMethod.AUTO], by_method[VesselMethod.LEARNED])
+    # ... also when the stored pixels were read as float (integer-valued).
+    assert np.array_equal(vessel_mask(img.astype(np.float32)), by_method[VesselMethod.LEARNED])
     # Strings name the members.
     assert np.array_equal(vessel_mask(img, method="learned"), by_method[VesselMethod.LEARNED])
     # AUTO with a CTA-derived vessel size (the pipeline's roadmaps): classical.
@@ -141,6 +143,10 @@ def test_every_vessel_method(real_cases, small_case):
     auto_r = vessel_mask(road, max_radius_px=r_px)
     assert np.array_equal(auto_r, vessel_mask(road, max_radius_px=r_px, method=VesselMethod.CLASSICAL))
     assert dice(auto_r, small_case.vessel_mask_2d) >= SIM_CLASSICAL_DICE_MIN
+    # AUTO on a simulated (non-integer) roadmap without the hint, as roadmap_centerline calls it:
+    # classical (measured at least as good there as the learned model).
+    assert not np.array_equal(road, np.rint(road))
+    assert np.array_equal(vessel_mask(road), vessel_mask(road, method=VesselMethod.CLASSICAL))
 
 
 def test_bad_method_raises():
