@@ -23,7 +23,7 @@ def main() -> int:
     args = ap.parse_args()
 
     from guidewire3d import bench, export, image2d, phantom, reconstruction, registration, vessels3d
-    from guidewire3d.segmentation import GuidewireSegmenter
+    from guidewire3d.segmentation import GuidewireSegmenter, guidewire_mask
 
     case = phantom.simulate(phantom.PhantomOptions(seed=args.seed, n_frames=args.frames))
     t0 = time.perf_counter()
@@ -36,10 +36,12 @@ def main() -> int:
     root_uv = case.carm.project(ves.tree.points_lps_mm[ves.tree.root], reg.pose)
 
     rows = []
-    for name, kw in (("UNet, ROI tracking (onnxruntime)", dict(method="unet")),
-                     ("UNet, full frame every frame", dict(method="unet", roi_margin_px=10_000)),
-                     ("Ridge, ROI tracking", dict(method="ridge"))):
-        seg = GuidewireSegmenter(num_threads=args.threads, **kw)
+    for name, method, tracking in (("UNet, ROI tracking (onnxruntime)", "unet", True),
+                                   ("UNet, full frame every frame (onnxruntime)", "unet", False),
+                                   ("Ridge, ROI tracking", "ridge", True)):
+        seg = GuidewireSegmenter(method=method, num_threads=args.threads)
+        if not tracking:
+            seg.segment = lambda frame, _m=method: guidewire_mask(frame, method=_m)  # noqa: E731
         tracker = reconstruction.WireTracker(reg.pose, case.carm, ves.tree,
                                              registration_covariance=reg.covariance_6x6)
         seg.segment(case.frames[0])  # warm-up: session creation, first-call compilation
