@@ -12,6 +12,10 @@ import traceback
 from guidewire3d.errors import Guidewire3DError
 
 EXIT_BAD_INPUT = 2
+# the values of reconstruction.ReconMethod and segmentation.SegMethod (kept here so that --help
+# does not import torch; tests/test_cli.py checks they match)
+RECON_METHODS = ("vessel", "paper", "bspline")
+SEGMENTERS = ("unet", "ridge")
 
 
 def _parse_xyz(text: str) -> tuple[float, float, float]:
@@ -65,10 +69,13 @@ def _add_reconstruct_parser(sub) -> None:
     p.add_argument("--roadmap-frame", type=int, default=None, metavar="K",
                    help="frame of --roadmap to use (default: the most contrast-filled)")
     p.add_argument("--seed-lps", type=_parse_xyz, action="append", default=None, metavar="X,Y,Z",
-                   help="seed point in LPS mm inside the vessels (repeatable)")
+                   help="seed point in LPS mm inside the vessels (repeatable; write --seed-lps=X,Y,Z when X is negative)")
     p.add_argument("--series-uid", default=None, help="SeriesInstanceUID to read from the CTA folder")
-    p.add_argument("--method", default="vessel", help="3D reconstruction method: vessel (default) or paper")
-    p.add_argument("--segmenter", default="unet", help="guidewire segmentation: unet (default) or ridge")
+    p.add_argument("--method", default="vessel", choices=RECON_METHODS,
+                   help="3D reconstruction: vessel (default: depth from the CTA vessel tree), paper (the paper's "
+                        "closed-form depth, for comparison), bspline (baseline)")
+    p.add_argument("--segmenter", default="unet", choices=SEGMENTERS,
+                   help="guidewire segmentation: unet (default) or ridge (classical, no network)")
     p.add_argument("--force", action="store_true", help="reconstruct even if the registration failed")
     p.add_argument("--no-images", action="store_true", help="skip screenshot/overlay/metrics PNGs")
     _add_geometry_overrides(p)

@@ -54,12 +54,23 @@ def _say(msg: str, log=None) -> None:
         log(msg)
 
 
+VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".mpg", ".mpeg", ".wmv")
+
+
+def read_xa_input(path, *, overrides=None) -> io.XARun:
+    """An XA input: a DICOM file, or a PNG/TIFF folder or a video with a JSON geometry sidecar."""
+    p = Path(path)
+    if p.is_dir() or p.suffix.lower() in VIDEO_SUFFIXES:
+        return io.read_image_sequence(p)
+    return io.read_xa(p, overrides=overrides)
+
+
 def load_inputs(cta, roadmap, frames, *, series_uid=None, overrides=None, log=None):
     """Read and validate every input before anything is computed or written."""
     vol = io.read_volume(cta, series_uid=series_uid, log=log)
-    road = io.read_xa(roadmap, overrides=overrides)
+    road = read_xa_input(roadmap, overrides=overrides)
     same = Path(frames).resolve() == Path(roadmap).resolve()
-    live = road if same else io.read_xa(frames, overrides=overrides)
+    live = road if same else read_xa_input(frames, overrides=overrides)
     return vol, road, live
 
 

@@ -182,13 +182,20 @@ def build_dataset(args, seeds, log):
 # sampling and augmentation
 # --------------------------------------------------------------------------------------------------
 
-def sample_batch(rng, zs, ms, batch, crop, *, noise_max=0.05):
+def sample_batch(rng, zs, ms, batch, crop, *, noise_max=0.05, thin=None, thin_fraction=None):
+    """Random augmented crops; with ``thin`` (bool per frame) a ``thin_fraction`` of them from thin-wire frames."""
     from scipy.ndimage import gaussian_filter
 
     xb = np.empty((batch, 1, crop, crop), np.float32)
     yb = np.empty((batch, 1, crop, crop), np.float32)
+    thin_idx = None if thin is None or thin_fraction is None else np.flatnonzero(thin)
+    other_idx = None if thin_idx is None else np.flatnonzero(~np.asarray(thin))
     for b in range(batch):
-        k = rng.integers(len(zs))
+        if thin_idx is None:
+            k = rng.integers(len(zs))
+        else:
+            pool = thin_idx if rng.random() < thin_fraction else other_idx
+            k = pool[rng.integers(len(pool))]
         z, m = zs[k], ms[k]
         h, w = z.shape
         vv, uu = (None, None)
@@ -241,6 +248,9 @@ def main(argv=None):
     ap.add_argument("--weight-decay", type=float, default=1e-4)
     ap.add_argument("--milestones", default="0.6,0.85",
                     help="fractions of --steps where the learning rate is divided by 10 ('' for none)")
+    ap.add_argument("--thin-fraction", type=float, default=None,
+                    help="fraction of crops taken from 0.014\" (0.36 mm) wire frames (phantom data); "
+                         "default: uniform over frames (half of the seeds have the thin wire)")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--max-minutes", type=float, default=30.0, help="safety stop (the schedule is by steps)")
     ap.add_argument("--seed", type=int, default=0)
@@ -285,6 +295,16 @@ def main(argv=None):
             np.savez(args.cache, z=np.stack(zs), m=np.stack(ms), vz=np.stack(vz), vm=np.stack(vm))
     widths = [m.sum() for m in ms if m.any()]
     log(f"data: {len(zs)} train frames, {len(vz)} val frames, mean wire pixels {np.mean(widths):.0f}")
+    thin = vthin = None
+    if args.thin_fraction is not None:
+        # phantom_options alternates the wire over the seed index, frames are stored seed by seed
+        # (a cache in which degenerate frames were dropped would not have this length: refuse it)
+        n_tr, n_va = len(train_seeds) * args.frames_per_seed, len(val_seeds) * args.frames_per_seed
+        if args.data != "phantom" or len(zs) != n_tr or len(vz) != n_va:
+            raise SystemExit(f"--thin-fraction: needs phantom data with {n_tr}/{n_va} frames, got {len(zs)}/{len(vz)}")
+        thin = (np.arange(n_tr) // args.frames_per_seed) % 2 == 0
+        vthin = (np.arange(n_va) // args.frames_per_seed) % 2 == 0
+        log(f"data: {thin.sum()} thin-wire train frames ({vthin.sum()} val), sampled at {args.thin_fraction:.0%}")
 
     config = UNetConfig()
     model = load_unet(args.init) if args.init else build_unet(config)
@@ -300,7 +320,7 @@ def main(argv=None):
     run_loss = None
     step = 0
     for step in range(1, args.steps + 1):
-        xb, yb = sample_batch(rng, zs, ms, args.batch, args.crop)
+        xb, yb = sample_batch(rng, zs, ms, args.batch, args.crop, thin=thin, thin_fraction=args.thin_fraction)
         x = torch.from_numpy(xb).to(memory_format=torch.channels_last)
         y = torch.from_numpy(yb)
         logits = model(x)
@@ -343,6 +363,11 @@ def main(argv=None):
         if d > best[1]:
             best = (float(round(thr, 2)), d)
     log(f"validation Dice by threshold: {table}")
+    if vthin is not None:
+        for name, sel in (("thin", vthin), ("thick", ~vthin)):
+            sub = {f"{t:.2f}": round(float(np.mean([dice_np(p > t, m) for p, m, s_ in zip(probs, vm, sel)
+                                                     if s_ and m.any()])), 4) for t in np.arange(0.2, 0.81, 0.05)}
+            log(f"validation Dice by threshold, {name} wire ({int(sel.sum())} frames): {sub}")
     log(f"chosen threshold {best[0]} (val Dice {best[1]:.4f})")
     config = UNetConfig(channels=config.channels, level0_convs=config.level0_convs, threshold=best[0])
     meta = {"steps": step, "data": args.data, "seeds": args.seeds, "frames_per_seed": args.frames_per_seed,

@@ -1,0 +1,35 @@
+import subprocess
+import sys
+
+import pytest
+
+from guidewire3d import cli
+from guidewire3d.reconstruction import ReconMethod
+from guidewire3d.segmentation import SegMethod
+
+
+def test_cli_choices_match_the_enums():
+    assert set(cli.RECON_METHODS) == {m.value for m in ReconMethod}
+    assert set(cli.SEGMENTERS) == {m.value for m in SegMethod}
+
+
+def test_help_lists_every_subcommand():
+    out = subprocess.run([sys.executable, "-m", "guidewire3d.cli", "--help"], capture_output=True, text=True, check=True).stdout
+    for sub in ("demo", "phantom", "reconstruct", "view", "bench"):
+        assert sub in out
+
+
+def test_bad_choice_is_refused_before_any_work(tmp_path, capsys):
+    with pytest.raises(SystemExit) as e:
+        cli.main(["reconstruct", "--cta", "x", "--roadmap", "y", "--frames", "y", "--out", str(tmp_path / "o"),
+                  "--method", "bogus"])
+    assert e.value.code == 2
+    assert "invalid choice: 'bogus'" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()
+
+
+def test_verbose_shows_traceback(tmp_path, capsys):
+    rc = cli.main(["--verbose", "reconstruct", "--cta", str(tmp_path / "missing"), "--roadmap", "y", "--frames", "y",
+                   "--out", str(tmp_path / "o")])
+    err = capsys.readouterr().err
+    assert rc == 2 and "Traceback" in err and "no such file or directory" in err
