@@ -22,7 +22,7 @@ def main() -> int:
     ap.add_argument("--threads", type=int, default=2)
     args = ap.parse_args()
 
-    from guidewire3d import bench, export, image2d, phantom, reconstruction, registration, vessels3d
+    from guidewire3d import bench, export, image2d, phantom, pipeline, reconstruction, registration, vessels3d
     from guidewire3d.segmentation import GuidewireSegmenter, guidewire_mask
 
     case = phantom.simulate(phantom.PhantomOptions(seed=args.seed, n_frames=args.frames))
@@ -36,40 +36,33 @@ def main() -> int:
     root_uv = case.carm.project(ves.tree.points_lps_mm[ves.tree.root], reg.pose)
 
     rows = []
-    for name, method, tracking in (("UNet, ROI tracking (onnxruntime)", "unet", True),
-                                   ("UNet, full frame every frame (onnxruntime)", "unet", False),
-                                   ("Ridge, ROI tracking", "ridge", True)):
+    modes = (("UNet, ROI tracking, pipelined", "unet", True, True),
+             ("UNet, ROI tracking, sequential", "unet", True, False),
+             ("UNet, full frame, sequential", "unet", False, False),
+             ("Ridge, ROI tracking, pipelined", "ridge", True, True))
+    for name, method, tracking, pipelined in modes:
         seg = GuidewireSegmenter(method=method, num_threads=args.threads)
         if not tracking:
             seg.segment = lambda frame, _m=method: guidewire_mask(frame, method=_m)  # noqa: E731
         tracker = reconstruction.WireTracker(reg.pose, case.carm, ves.tree,
                                              registration_covariance=reg.covariance_6x6)
         seg.segment(case.frames[0])  # warm-up: session creation, first-call compilation
-        per = {"seg": [], "wire": [], "3d": [], "report": [], "total": []}
-        ok = 0
+        if tracking:
+            seg.reset()
+        lat, ok = [], 0
         t_all = time.perf_counter()
-        for i, frame in enumerate(case.frames):
-            a = time.perf_counter()
-            mask = seg.segment(frame)
-            b = time.perf_counter()
-            ow = image2d.ordered_wire(mask, image=frame, proximal_hint_uv=root_uv)
-            c = time.perf_counter()
-            w3 = tracker.update(ow.points_uv_px, image=frame) if ow else reconstruction.Wire3D.failed(ow.message)
-            d = time.perf_counter()
-            export.frame_record(i, ow, w3, d - a)
-            e = time.perf_counter()
+        for i, (ow, w3, seconds) in enumerate(pipeline.iter_live(case.frames, segmenter=seg, tracker=tracker,
+                                                                 proximal_hint_uv=root_uv, pipelined=pipelined)):
+            export.frame_record(i, ow, w3, seconds)  # the report entry is part of the live path
+            lat.append(seconds)
             ok += bool(w3.success)
-            for key, dt in zip(per, (b - a, c - b, d - c, e - d, e - a)):
-                per[key].append(dt)
         marginal = (time.perf_counter() - t_all) / len(case.frames)
-        med = {k: 1000 * float(np.median(v)) for k, v in per.items()}
-        rows.append([name, f"{med['seg']:.1f}", f"{med['wire']:.1f}", f"{med['3d']:.1f}", f"{med['report']:.2f}",
-                     f"{med['total']:.1f}", f"{1000 * marginal:.1f}", f"{1.0 / marginal:.1f}", f"{ok}/{len(case.frames)}"])
+        rows.append([name, f"{1000 * marginal:.1f}", f"{1.0 / marginal:.1f}", f"{1000 * float(np.median(lat)):.1f}",
+                     f"{ok}/{len(case.frames)}"])
     print(f"live path, {args.frames} frames 512x512, seed {args.seed}; one-off: CTA vessels {t_cta:.1f} s, "
           f"roadmap + registration {t_reg * 1000:.0f} ms; machine: {bench.machine_line()}, "
           f"load average {os.getloadavg()[0]:.1f}")
-    print(bench._table(["mode", "seg ms", "2D wire ms", "3D ms", "report ms", "median total ms",
-                        "marginal ms/frame", "FPS", "frames ok"], rows))
+    print(bench._table(["mode", "marginal ms/frame", "FPS", "median latency ms", "frames ok"], rows))
     return 0
 
 

@@ -172,3 +172,18 @@ def test_bad_input_corpus_cli(tmp_path, capsys, case, match):
 
     assert re.search(match, err[0]), err[0]
     assert not out.exists() or not any(out.iterdir())
+
+
+def test_xa_compressed_rle_round_trip(tmp_path):
+    from pydicom.uid import RLELossless
+
+    rng = np.random.default_rng(7)
+    carm = CArm(10, -5, 1100, 750, 0.3, (48, 40))
+    frames = rng.integers(0, 4000, size=(2, 48, 40))
+    p = io.write_xa(tmp_path / "run.dcm", frames, carm)
+    ds = pydicom.dcmread(p)
+    ds.compress(RLELossless)
+    ds.save_as(tmp_path / "rle.dcm")
+    assert pydicom.dcmread(tmp_path / "rle.dcm").file_meta.TransferSyntaxUID == RLELossless
+    run = io.read_xa(tmp_path / "rle.dcm")
+    assert np.array_equal(run.frames, frames.astype(np.float32))
