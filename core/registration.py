@@ -833,13 +833,25 @@ def _quality(m3, q, carm, pose):
 
 
 def score(tree, centerline_uv_px, carm: CArm, pose: Pose) -> float:
-    """Mean distance (px) of the 2D centerline points to the projected 3D centerline.
+    """Mean inlier residual (px) of ``pose``: the same figure as ``RegistrationResult.mean_residual_px``.
 
-    For live display while the user nudges the pose (about 1-2 ms for a few thousand points;
-    the resampled tree is cached per ``VesselTree``). Untruncated, so it keeps decreasing as
-    the pose approaches the truth.
+    Mean distance of the 2D centerline points that lie within ``INLIER_PX`` of the projected 3D
+    centerline to that projection (2D points without a 3D counterpart -- distractors, vessels
+    outside the CTA, spurs -- are not counted). At the pose returned by :func:`register` it
+    equals that result's ``mean_residual_px`` exactly (same resampled tree, same points). For
+    live display while the user nudges the pose (a few ms; the resampled tree is cached per
+    ``VesselTree``). Far from any fit it can be small with few inliers; use
+    :func:`residuals_px` for the untruncated per-point distances.
+
+    Returns
+    -------
+    float
+        px; ``inf`` when no 2D point is within ``INLIER_PX``.
     """
-    return float(residuals_px(tree, centerline_uv_px, carm, pose).mean())
+    if not isinstance(carm, CArm):
+        raise InputError(f"carm must be a CArm, got {type(carm).__name__}")
+    q = _check_2d(centerline_uv_px)
+    return float(_quality(_model_from_input(tree, carm), q, carm, pose)[0])
 
 
 # ============================================================================================

@@ -96,17 +96,10 @@ class VesselUNetConfig:
 # --------------------------------------------------------------------------------------------------
 
 def _as_image(image, name: str = "image") -> np.ndarray:
-    a = np.asarray(image)
-    if a.ndim != 2 or min(a.shape) < 8:
-        raise InputError(f"{name}: expected a 2D image of at least 8x8 pixels, got shape {a.shape}")
-    if a.dtype == bool:
-        a = a.astype(np.float32)
-    if not np.issubdtype(a.dtype, np.number):
-        raise InputError(f"{name}: expected a numeric array, got dtype {a.dtype}")
-    a = a.astype(np.float32, copy=False)
-    if not np.all(np.isfinite(a)):
-        raise InputError(f"{name}: image contains NaN or infinite values")
-    return a
+    """The checked 2D image as float32 (the checks are image2d's)."""
+    from guidewire3d.image2d import _as_image as checked
+
+    return checked(image, name).astype(np.float32)
 
 
 def _reference_shape(shape: tuple[int, int]) -> tuple[int, int]:
