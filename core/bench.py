@@ -101,7 +101,7 @@ def run_demo(*, out="guidewire3d-demo", seed: int | None = None) -> int:
     secs = np.array(result.frame_seconds)
     if len(secs):
         fps = len(secs) / max(result.timing.get("frames", 0.0), 1e-9)
-        print(f"live path (segmentation + ordered wire + 3D, pipelined): {fps:.1f} FPS over {len(secs)} frames, "
+        print(f"live path (segmentation + ordered wire + 3D): {fps:.1f} FPS over {len(secs)} frames, "
               f"median latency {np.median(secs) * 1000:.1f} ms, {os.cpu_count()} cores")
     print(f"total {time.perf_counter() - t_start:.1f} s")
     print(f"files: {Path(out).resolve()}  (report.json, centerline.vtp, vessels.stl, guidewire_NNNN.vtp/.stl, "
@@ -239,7 +239,7 @@ def run_bench(*, n_cases: int = 10, out="bench-results", first_seed: int = 100) 
     reg_line = (f"Registration: success (mTRE < 2 mm) {reg_ok}/{n_cases}, median mTRE {med(reg_mtre):.2f} mm, "
                 f"median {1000 * med(reg_t):.0f} ms; EPnP baseline (bifurcation landmarks) median mTRE "
                 f"{med(epnp_mtre):.2f} mm")
-    live_line = (f"Live path end to end (UNet tracking + ordered wire + 3D, pipelined): median over cases "
+    live_line = (f"Live path end to end (UNet tracking + ordered wire + 3D): median over cases "
                  f"{1000 * med(live):.1f} ms/frame = {1.0 / med(live):.1f} FPS (short 6-frame sequences; "
                  f"see scripts/bench_live.py for long ones)" if live else "")
     text = "\n".join([header, "", "Table I — guidewire segmentation", _table(h1, t1), "",

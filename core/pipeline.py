@@ -170,14 +170,16 @@ def run(volume: io.Volume, roadmap: io.XARun, frames: io.XARun, *, roadmap_frame
                           live[frame_ids], wires2d, wires3d, timing, frame_seconds, frame_ids)
 
 
-def iter_live(frames, *, segmenter, tracker, proximal_hint_uv=None, pipelined: bool = True):
+def iter_live(frames, *, segmenter, tracker, proximal_hint_uv=None, pipelined: bool = False):
     """The live path: yield ``(ordered_wire, wire3d, seconds)`` for each frame, in order.
 
     Per frame: guidewire mask (``segmenter.segment``), ordered 2D wire, 3D wire (``tracker.update``).
     With ``pipelined`` the mask of frame t+1 is computed in a worker thread while frame t's 2D
     and 3D wire are computed (the segmenter's ROI tracking depends only on its own previous
-    mask, so the order of results is unchanged), which bounds the throughput by the slower half
-    instead of the sum. ``seconds`` is each frame's latency, from its submission to its 3D wire.
+    mask, so the order of results is unchanged). On the 2-core reference machine this gave no
+    throughput gain (the 2D/3D half holds the GIL) and doubled the latency
+    (``scripts/bench_live.py``), so it is off by default. ``seconds`` is each frame's latency,
+    from its submission to its 3D wire.
     """
     from collections import deque
     from concurrent.futures import ThreadPoolExecutor

@@ -36,10 +36,10 @@ def main() -> int:
     root_uv = case.carm.project(ves.tree.points_lps_mm[ves.tree.root], reg.pose)
 
     rows = []
-    modes = (("UNet, ROI tracking, pipelined", "unet", True, True),
-             ("UNet, ROI tracking, sequential", "unet", True, False),
+    modes = (("UNet, ROI tracking (default)", "unet", True, False),
+             ("UNet, ROI tracking, pipelined", "unet", True, True),
              ("UNet, full frame, sequential", "unet", False, False),
-             ("Ridge, ROI tracking, pipelined", "ridge", True, True))
+             ("Ridge, ROI tracking", "ridge", True, False))
     for name, method, tracking, pipelined in modes:
         seg = GuidewireSegmenter(method=method, num_threads=args.threads)
         if not tracking:
