@@ -193,13 +193,18 @@ def _check_roi(roi_uv, shape) -> tuple[int, int, int, int]:
 def _remove_small(mask: np.ndarray, min_px: int = MIN_COMPONENT_PX) -> np.ndarray:
     import cv2
 
-    m8 = mask.astype(np.uint8)
-    n, lab, st, _ = cv2.connectedComponentsWithStats(m8, connectivity=8)
-    if n <= 1:
-        return mask.astype(bool)
+    mask = np.asarray(mask, bool)
+    rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
+    if len(rows) == 0:
+        return mask.copy()
+    # label only the bounding box of the mask (the live path's masks cover a few % of the frame)
+    box = (slice(rows[0], rows[-1] + 1), slice(cols[0], cols[-1] + 1))
+    n, lab, st, _ = cv2.connectedComponentsWithStats(mask[box].astype(np.uint8), connectivity=8)
     keep = np.zeros(n, bool)
     keep[1:] = st[1:, cv2.CC_STAT_AREA] >= min_px
-    return keep[lab]
+    out = np.zeros_like(mask)
+    out[box] = keep[lab]
+    return out
 
 
 # --------------------------------------------------------------------------------------------------
