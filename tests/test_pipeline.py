@@ -145,3 +145,16 @@ def test_png_sequence_with_sidecar_and_seed_point(small_case, small_case_dir, tm
             for f in rep["frames"] if f["success"]]
     assert len(errs) >= 3 and np.median(errs) < MEAN_3D_ERROR_MM
     assert not (out / "screenshot.png").exists()
+
+
+def test_viewer_shows_the_registration_residual_of_the_output(reconstructed):
+    """The viewer's inlier residual of the saved pose is the registration's own number."""
+    from guidewire3d.viewer.controller import ViewerController
+    from guidewire3d.viewer.data import load_outdir
+
+    rc, out, _ = reconstructed
+    rep = json.loads((out / "report.json").read_text())
+    ctl = ViewerController(load_outdir(out), persist=False)
+    assert ctl.inlier_residual_px() == pytest.approx(rep["registration"]["mean_residual_px"], abs=2e-3)
+    assert ctl.residual_px() >= ctl.inlier_residual_px()
+    assert "over inliers (as registered)" in ctl.info_text()

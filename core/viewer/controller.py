@@ -288,6 +288,21 @@ class ViewerController:
         self._residual_cache = (self.pose, val)
         return val
 
+    def inlier_residual_px(self) -> float:
+        """The registration's own residual of the current pose: mean over 2D points within 3 px
+        (``registration.score(..., inliers_only=True)``, equal to ``RegistrationResult.mean_residual_px``)."""
+        if self._case.tree is None or len(self._case.centerline_uv_px) == 0:
+            return float("nan")
+        cache = getattr(self, "_inlier_cache", None)
+        if cache is not None and cache[0] is self.pose:
+            return cache[1]
+        from guidewire3d import registration
+
+        val = float(registration.score(self._case.tree, self._case.centerline_uv_px, self._case.carm, self.pose,
+                                       inliers_only=True))
+        self._inlier_cache = (self.pose, val)
+        return val
+
     def refine(self):
         """Run the LM refinement from the current pose; on success adopt it and re-reconstruct.
 
@@ -409,7 +424,12 @@ class ViewerController:
             parts = ["no live frames"]
         if not self._case.wires:
             parts.append("no reconstructed wires in this folder")
-        parts.append(f"residual {res:.2f} px (mean over the 2D centerline)" if np.isfinite(res) else "residual n/a")
+        if np.isfinite(res):
+            inl = self.inlier_residual_px()
+            parts.append(f"residual {res:.2f} px over the whole 2D centerline"
+                         + (f", {inl:.2f} px over inliers (as registered)" if np.isfinite(inl) else ", no inliers"))
+        else:
+            parts.append("residual n/a")
         parts.append(f"pose {self.pose_source}" + (" (wires stale: Return)" if self.wires_stale else ""))
         reg = self._case.registration
         if self.pose_source == "automatic" and reg and not reg.get("success", True):
