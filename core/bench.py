@@ -137,6 +137,29 @@ def _heldout_error_px(points_lps_mm, truth, idx):
     return metrics.mean_closest_distance(uv, metrics.resample_polyline(ref, 0.25))
 
 
+def case_options(k: int, *, first_seed: int = 100):
+    """Phantom options of the bench's k-th case: distractors in odd cases, 0.014"/0.035" wires in pairs."""
+    from guidewire3d import phantom
+
+    return phantom.PhantomOptions(seed=first_seed + k, n_frames=6, distractors=bool(k % 2),
+                                  wire_diameter_mm=(0.36 if k % 4 < 2 else 0.89))
+
+
+def simulated_case_from_dicom(opts):
+    """Simulate a case, write it as DICOM and read it back as the pipeline would.
+
+    Returns ``(case, truth, volume, roadmap_run, frames_run)``.
+    """
+    from guidewire3d import phantom, pipeline
+
+    case = phantom.simulate(opts)
+    with tempfile.TemporaryDirectory() as td:
+        cdir = phantom.write_case(case, Path(td) / "case")
+        truth = phantom.load_truth(cdir)
+        vol, road, live = pipeline.load_inputs(cdir / "ct", cdir / "roadmap.dcm", cdir / "frames.dcm")
+    return case, truth, vol, road, live
+
+
 def run_bench(*, n_cases: int = 10, out="bench-results", first_seed: int = 100) -> int:
     """End-to-end benchmark over ``n_cases`` simulated cases (seeds ``first_seed`` ...)."""
     from tqdm import tqdm
@@ -150,14 +173,7 @@ def run_bench(*, n_cases: int = 10, out="bench-results", first_seed: int = 100) 
              for m in ("Proposed (vessel prior)", "B-spline", "EPnP", "Paper depth formula")}
     reg_mtre, reg_ok, reg_t, epnp_mtre = [], 0, [], []
     for k in tqdm(range(n_cases), desc="bench cases", file=sys.stderr):
-        seed = first_seed + k
-        opts = phantom.PhantomOptions(seed=seed, n_frames=6, distractors=bool(k % 2),
-                                      wire_diameter_mm=(0.36 if k % 4 < 2 else 0.89))
-        case = phantom.simulate(opts)
-        with tempfile.TemporaryDirectory() as td:
-            cdir = phantom.write_case(case, Path(td) / "case")
-            truth = phantom.load_truth(cdir)
-            vol, road, live = pipeline.load_inputs(cdir / "ct", cdir / "roadmap.dcm", cdir / "frames.dcm")
+        case, truth, vol, road, live = simulated_case_from_dicom(case_options(k, first_seed=first_seed))
         # Table I: segmentation on every live frame
         for m in seg:
             d, p, r, t = _seg_scores(live.frames, truth.wire_mask, m)

@@ -140,9 +140,7 @@ def run(cases, modes, levels, n_pert, rng, log, epnp=True):
 
 def load_e2e_cases(n, seed0, cache: Path | None, log):
     """The pipeline's own registration inputs for the ``guidewire3d bench`` cases (cached)."""
-    import tempfile
-
-    from guidewire3d import image2d, phantom, pipeline, vessels3d
+    from guidewire3d import image2d, pipeline, vessels3d
 
     cases = []
     for seed in range(seed0, seed0 + n):
@@ -150,14 +148,9 @@ def load_e2e_cases(n, seed0, cache: Path | None, log):
         if f is not None and f.exists():
             cases.append(pickle.loads(f.read_bytes()))
             continue
-        k = seed - 100  # as core/bench.py with first_seed=100
-        opts = phantom.PhantomOptions(seed=seed, n_frames=6, distractors=bool(k % 2),
-                                      wire_diameter_mm=(0.36 if k % 4 < 2 else 0.89))
-        case = phantom.simulate(opts)
-        with tempfile.TemporaryDirectory() as td:
-            cdir = phantom.write_case(case, Path(td) / "case")
-            truth = phantom.load_truth(cdir)
-            vol, road, _live = pipeline.load_inputs(cdir / "ct", cdir / "roadmap.dcm", cdir / "frames.dcm")
+        from guidewire3d.bench import case_options, simulated_case_from_dicom
+
+        case, truth, vol, road, _live = simulated_case_from_dicom(case_options(seed - 100, first_seed=100))
         tree = vessels3d.extract_vessels(vol).tree
         img = np.asarray(road.frames[pipeline.choose_roadmap_frame(road, None)])
         cl = image2d.roadmap_centerline(img, max_radius_px=float(tree.radius_mm.max()) / road.carm.pixel_at_iso_mm * 1.5)

@@ -40,7 +40,7 @@ import slicer
 import vtk
 from vtk.util.numpy_support import numpy_to_vtk, vtk_to_numpy
 
-from guidewire3d import io
+from guidewire3d import export, io
 from guidewire3d.errors import InputError, ReconstructionError, RegistrationError
 from guidewire3d.geometry import CArm, Pose
 from guidewire3d.reconstruction import ReconMethod, Wire3D
@@ -327,24 +327,6 @@ def polydata_lps_to_ras(poly_lps) -> vtk.vtkPolyData:
     return out
 
 
-def _polyline(points_ras_mm, point_arrays: dict | None = None) -> vtk.vtkPolyData:
-    p = np.ascontiguousarray(points_ras_mm, dtype=float)
-    pts = vtk.vtkPoints()
-    pts.SetData(numpy_to_vtk(p, deep=True))
-    lines = vtk.vtkCellArray()
-    lines.InsertNextCell(len(p))
-    for i in range(len(p)):
-        lines.InsertCellPoint(i)
-    poly = vtk.vtkPolyData()
-    poly.SetPoints(pts)
-    poly.SetLines(lines)
-    for name, values in (point_arrays or {}).items():
-        arr = numpy_to_vtk(np.ascontiguousarray(values, dtype=float), deep=True)
-        arr.SetName(name)
-        poly.GetPointData().AddArray(arr)
-    return poly
-
-
 def wire_tube_polydata(points_ras_mm, uncertainty_mm=None, *, radius_mm: float = WIRE_RADIUS_MM,
                        sides: int = 12) -> vtk.vtkPolyData:
     """A closed tube of ``radius_mm`` around the wire polyline ``(N, 3)`` (RAS mm).
@@ -358,15 +340,7 @@ def wire_tube_polydata(points_ras_mm, uncertainty_mm=None, *, radius_mm: float =
     arrays = {}
     if uncertainty_mm is not None:
         arrays["uncertainty_mm"] = np.asarray(uncertainty_mm, dtype=float)[keep]
-    line = _polyline(p[keep], arrays)
-    tube = vtk.vtkTubeFilter()
-    tube.SetInputData(line)
-    tube.SetRadius(float(radius_mm))
-    tube.SetNumberOfSides(int(sides))
-    tube.CappingOn()
-    tube.Update()
-    out = vtk.vtkPolyData()
-    out.DeepCopy(tube.GetOutput())
+    out = export.tube_polydata(export.polyline_polydata(p[keep], arrays), radius_mm, sides=int(sides))
     if uncertainty_mm is not None:
         out.GetPointData().SetActiveScalars("uncertainty_mm")
     return out
