@@ -697,11 +697,11 @@ class GuidewireSegmenter:
     """
 
     method: object = "unet"
-    roi_margin_px: int = 32
+    roi_margin_px: int = 24
     backend: str = "auto"
     num_threads: int | None = None
     strip_px: int = 32
-    context_px: int = 16
+    context_px: int = 8
     full_frame_every: int = 0
     _prev: np.ndarray | None = field(default=None, init=False, repr=False)
     _count: int = field(default=0, init=False, repr=False)
