@@ -3,7 +3,7 @@
 The classical :func:`guidewire3d.image2d.vessel_mask` (top-hat x Hessian vesselness) is tuned
 for clean subtracted roadmaps; on real coronary angiograms (catheter, ribs, diaphragm, low
 contrast of small branches) a UNet trained on manually labelled frames does better (5-fold
-cross-validated Dice 0.738 vs 0.694 on the 40 real images of ``shared/data/coronary-angiograms``).
+cross-validated Dice 0.756 vs 0.694 on the 40 real images of ``shared/data/coronary-angiograms``).
 This module holds that network, its input normalisation, training helpers (random crops with
 augmentation, Dice + BCE loss) and inference. ``vessel_mask(image, method="learned")`` calls
 :func:`learned_vessel_mask`.
@@ -18,12 +18,16 @@ augmentation, Dice + BCE loss) and inference. ``vessel_mask(image, method="learn
   transposed-conv up, skip connections, a 1x1 head giving logits.
 - Weights: ``resources/vessel_unet.safetensors`` (safetensors, never pickle), written by
   ``scripts/train_vessels2d.py`` (trained on the 40 real coronary angiograms; its metadata
-  records the recipe and the cross-validated Dice per image).
+  records the recipe, the probability threshold and the cross-validated Dice per image).
+  Reproduce: ``nice -n 10 .venv/bin/python scripts/train_vessels2d.py --workers 2``.
 - Inference (:func:`vessel_probability`, :func:`learned_vessel_mask`): the whole image at
-  once (reflect-padded to a multiple of 16), probability set to 0 outside the classical
+  once (reflect-padded to a multiple of 16), averaged over its four flips (test-time
+  augmentation, one batch of 4; deterministic), probability set to 0 outside the classical
   detector's field of view (the dark collimator edge looks like a vessel to the network),
-  probability >= ``THRESHOLD``, components below ``MIN_COMPONENT_PX`` dropped, resampled back
-  to the input size. ~40 ms for a 300x300 image on one CPU core pair.
+  probability >= the threshold recorded in the weights (picked on the training images;
+  ``THRESHOLD`` if none), components below ``MIN_COMPONENT_PX`` dropped, resampled back to
+  the input size. ~220 ms CPU for a 300x300 or 512x512 image on one torch thread (~70 ms
+  without the flips).
 
 torch is imported only inside functions.
 """
@@ -47,6 +51,9 @@ __all__ = [
     "load_vessel_unet",
     "vessel_probability",
     "learned_vessel_mask",
+    "model_threshold",
+    "model_tta",
+    "mask_from_probability",
     "TrainOptions",
     "train_vessel_unet",
     "dice_bce_loss",
@@ -59,7 +66,8 @@ REFERENCE_SIZE_PX = 300        # longer image side the network works at (the tra
 NORM_PERCENTILES = (1.0, 99.0)  # intensity range mapped to [0, 1]
 NORM_CLIP = (-0.25, 1.25)       # normalised values are clipped to this range
 UNET_MULTIPLE = 16              # 4 levels: 3 poolings -> multiple of 8; 16 leaves margin
-THRESHOLD = 0.5                 # vessel probability threshold
+THRESHOLD = 0.5                 # vessel probability threshold when the weights record none
+TTA = True                      # average the four flips at inference
 MIN_COMPONENT_PX = 20           # components smaller than this (at reference size) are dropped
 
 
@@ -292,19 +300,26 @@ def _net_input(x01: np.ndarray) -> np.ndarray:
     return (2.0 * (x01 - 0.5)).astype(np.float32)
 
 
-def _predict_logits(model, x01: np.ndarray) -> np.ndarray:
-    """Logits of the network on a normalised (h, w) image (reflect-padded to UNET_MULTIPLE)."""
+def _predict_probability(model, x01: np.ndarray, *, tta: bool) -> np.ndarray:
+    """Vessel probability of the network on a normalised (h, w) image (reflect-padded to
+    UNET_MULTIPLE); with ``tta`` the mean over the four flips (identity, left-right, up-down, both),
+    run as one batch."""
     import torch
 
     h, w = x01.shape
     ph, pw = (-h) % UNET_MULTIPLE, (-w) % UNET_MULTIPLE
     z = np.pad(_net_input(x01), ((ph // 2, ph - ph // 2), (pw // 2, pw - pw // 2)), mode="reflect")
+    flips = ((), (1,), (0,), (0, 1)) if tta else ((),)
+    batch = np.stack([np.flip(z, f) if f else z for f in flips])[:, None]
     with torch.inference_mode():
-        out = model(torch.from_numpy(np.ascontiguousarray(z))[None, None])[0, 0].numpy()
-    return out[ph // 2: ph // 2 + h, pw // 2: pw // 2 + w]
+        logits = model(torch.from_numpy(np.ascontiguousarray(batch, np.float32)))[:, 0].numpy()
+    prob = 1.0 / (1.0 + np.exp(-np.clip(logits, -30.0, 30.0)))
+    prob = np.mean([np.flip(p, f) if f else p for p, f in zip(prob, flips)], axis=0)
+    return prob[ph // 2: ph // 2 + h, pw // 2: pw // 2 + w].astype(np.float32)
 
 
-def vessel_probability(image, *, dark_vessels: bool | None = None, weights_path=None, model=None) -> np.ndarray:
+def vessel_probability(image, *, dark_vessels: bool | None = None, weights_path=None, model=None,
+                       tta: bool | None = None) -> np.ndarray:
     """Per-pixel vessel probability of an angiogram by the vessel UNet.
 
     Parameters
@@ -317,6 +332,9 @@ def vessel_probability(image, *, dark_vessels: bool | None = None, weights_path=
         Safetensors weights; default ``resources/vessel_unet.safetensors`` (loaded once, cached).
     model : torch.nn.Module, optional
         A network to use instead of loading one (training / cross-validation).
+    tta : bool or None
+        Test-time augmentation: average the probabilities of the four flipped copies;
+        deterministic. ``None`` (default): as recorded in the weights (:func:`model_tta`).
 
     Returns
     -------
@@ -327,10 +345,26 @@ def vessel_probability(image, *, dark_vessels: bool | None = None, weights_path=
         dark_vessels = _detect_dark(a)
     x = normalize_angiogram(a, dark_vessels=dark_vessels)
     net = model if model is not None else _cached_model(weights_path)
-    logits = _predict_logits(net, x)
-    prob = 1.0 / (1.0 + np.exp(-np.clip(logits, -30.0, 30.0)))
+    prob = _predict_probability(net, x, tta=model_tta(net) if tta is None else bool(tta))
     prob = prob * _field_of_view(a, x.shape, dark_vessels)
     return np.clip(_resize(prob, a.shape), 0.0, 1.0).astype(np.float32)
+
+
+def model_threshold(model) -> float:
+    """The probability threshold recorded in a model's metadata (picked on its training images by
+    ``scripts/train_vessels2d.py``), else ``THRESHOLD``."""
+    meta = getattr(model, "metadata", None) or {}
+    try:
+        t = float(meta["threshold"])
+    except (KeyError, ValueError, TypeError):
+        return THRESHOLD
+    return t if 0.0 < t < 1.0 else THRESHOLD
+
+
+def model_tta(model) -> bool:
+    """Whether a model's metadata asks for test-time flips (as it was scored), else ``TTA``."""
+    meta = getattr(model, "metadata", None) or {}
+    return meta["tta"] == "true" if meta.get("tta") in ("true", "false") else TTA
 
 
 def _field_of_view(a: np.ndarray, shape: tuple[int, int], dark_vessels: bool) -> np.ndarray:
@@ -348,11 +382,13 @@ def _field_of_view(a: np.ndarray, shape: tuple[int, int], dark_vessels: bool) ->
 
 
 def learned_vessel_mask(image, *, dark_vessels: bool | None = None, weights_path=None, model=None,
-                        threshold: float = THRESHOLD) -> np.ndarray:
+                        threshold: float | None = None, tta: bool | None = None) -> np.ndarray:
     """Vessel mask of an angiogram by the vessel UNet: probability >= ``threshold``, tiny components
     (below ``MIN_COMPONENT_PX`` at reference size) removed.
 
-    Parameters are those of :func:`vessel_probability`, plus ``threshold`` in (0, 1).
+    Parameters are those of :func:`vessel_probability`, plus ``threshold`` in (0, 1). ``None``
+    (default) for ``threshold`` / ``tta`` takes the values recorded in the weights' metadata
+    (:func:`model_threshold`, :func:`model_tta`; the rule the cross-validation scored).
 
     Returns
     -------
@@ -364,19 +400,43 @@ def learned_vessel_mask(image, *, dark_vessels: bool | None = None, weights_path
     InputError
         Bad image, weights file or threshold.
     """
-    from scipy import ndimage as ndi
-
-    if not (0.0 < float(threshold) < 1.0):
+    if threshold is not None and not (0.0 < float(threshold) < 1.0):
         raise InputError(f"threshold: expected a probability in (0, 1), got {threshold!r}")
     a = _as_image(image)
     lo, hi = (float(v) for v in np.percentile(a, [0.5, 99.5]))
     if hi - lo <= 1e-3 * max(abs(lo), abs(hi), 1e-12):
         return np.zeros(a.shape, bool)
-    m = vessel_probability(a, dark_vessels=dark_vessels, weights_path=weights_path, model=model) >= threshold
+    net = model if model is not None else _cached_model(weights_path)
+    if threshold is None:
+        threshold = model_threshold(net)
+    if tta is None:
+        tta = model_tta(net)
+    return mask_from_probability(vessel_probability(a, dark_vessels=dark_vessels, model=net, tta=tta),
+                                 threshold=float(threshold))
+
+
+def mask_from_probability(prob: np.ndarray, *, threshold: float) -> np.ndarray:
+    """The vessel mask of a probability map: ``prob >= threshold``, components smaller than
+    ``MIN_COMPONENT_PX`` (scaled from the reference size to the map's size) removed.
+
+    Parameters
+    ----------
+    prob : (H, W) ndarray of float
+        Output of :func:`vessel_probability`.
+    threshold : float
+        Probability threshold in (0, 1).
+
+    Returns
+    -------
+    (H, W) ndarray of bool
+    """
+    from scipy import ndimage as ndi
+
+    m = np.asarray(prob) >= threshold
     if m.any():
         lab, n = ndi.label(m, structure=np.ones((3, 3), bool))
         sizes = np.bincount(lab.ravel(), minlength=n + 1)
-        min_px = MIN_COMPONENT_PX * (max(a.shape) / REFERENCE_SIZE_PX) ** 2
+        min_px = MIN_COMPONENT_PX * (max(m.shape) / REFERENCE_SIZE_PX) ** 2
         keep = sizes >= min_px
         keep[0] = False
         m = keep[lab]
@@ -405,6 +465,8 @@ class TrainOptions:
         Adam's L2 weight decay.
     scale_range : (float, float)
         Random zoom factors (small scale changes).
+    rotate_deg : float
+        Random rotation in ``[-rotate_deg, rotate_deg]`` degrees (besides rot90 and flips).
     seed : int
         Seeds numpy and torch.
     """
@@ -415,6 +477,7 @@ class TrainOptions:
     lr: float = 3e-3
     weight_decay: float = 1e-5
     scale_range: tuple[float, float] = (0.85, 1.18)
+    rotate_deg: float = 0.0
     seed: int = 0
 
 
@@ -430,25 +493,26 @@ def dice_bce_loss(logits, target):
 
 
 def _augment_crop(x01: np.ndarray, m: np.ndarray, crop: int, rng: np.random.Generator,
-                  scale_range: tuple[float, float]) -> tuple[np.ndarray, np.ndarray]:
-    """One random crop of (normalised image, mask) with geometric and photometric augmentation."""
+                  scale_range: tuple[float, float], rotate_deg: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """One random crop of (normalised image, mask) with geometric and photometric augmentation.
+
+    Geometric: a random zoom in ``scale_range`` and rotation in ``[-rotate_deg, rotate_deg]`` about
+    a random centre (one affine resampling, reflected borders), then rot90 / flip. Photometric:
+    gamma, gain / offset, blur, noise (vessels stay darker than the background).
+    """
     import cv2
 
     zoom = float(np.exp(rng.uniform(np.log(scale_range[0]), np.log(scale_range[1]))))
-    src = int(round(crop / zoom))
+    angle = float(rng.uniform(-rotate_deg, rotate_deg)) if rotate_deg > 0 else 0.0
     h, w = x01.shape
-    pad = max(0, src - min(h, w)) // 2 + 1
-    if pad > 0:
-        x01 = np.pad(x01, pad, mode="reflect")
-        m = np.pad(m, pad, mode="reflect")
-        h, w = x01.shape
-    r0 = int(rng.integers(0, h - src + 1))
-    c0 = int(rng.integers(0, w - src + 1))
-    xi = x01[r0:r0 + src, c0:c0 + src]
-    mi = m[r0:r0 + src, c0:c0 + src].astype(np.float32)
-    if src != crop:
-        xi = cv2.resize(xi, (crop, crop), interpolation=cv2.INTER_LINEAR)
-        mi = cv2.resize(mi, (crop, crop), interpolation=cv2.INTER_LINEAR)
+    half = 0.5 * crop / zoom
+    cx = float(rng.uniform(half, w - half)) if w > 2 * half else 0.5 * w
+    cy = float(rng.uniform(half, h - half)) if h > 2 * half else 0.5 * h
+    mat = cv2.getRotationMatrix2D((cx, cy), angle, zoom)
+    mat[:, 2] += (0.5 * crop - cx, 0.5 * crop - cy)
+    warp = dict(dsize=(crop, crop), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT_101)
+    xi = cv2.warpAffine(np.ascontiguousarray(x01, np.float32), mat, **warp)
+    mi = cv2.warpAffine(np.ascontiguousarray(m, np.float32), mat, **warp)
     k = int(rng.integers(0, 4))
     xi, mi = np.rot90(xi, k), np.rot90(mi, k)
     if rng.random() < 0.5:
@@ -508,7 +572,8 @@ def train_vessel_unet(images, masks, *, config: VesselUNetConfig | None = None,
     running = None
     for step in range(options.steps):
         idx = rng.integers(0, len(xs), options.batch)
-        pairs = [_augment_crop(xs[j], ms[j], options.crop_px, rng, options.scale_range) for j in idx]
+        pairs = [_augment_crop(xs[j], ms[j], options.crop_px, rng, options.scale_range, options.rotate_deg)
+                 for j in idx]
         xb = torch.from_numpy(_net_input(np.stack([p[0] for p in pairs]))[:, None])
         yb = torch.from_numpy(np.stack([p[1] for p in pairs])[:, None])
         loss = dice_bce_loss(model(xb), yb)

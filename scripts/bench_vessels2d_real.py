@@ -171,6 +171,11 @@ def _print_cv():
     print(f"\nlearned, {meta['cv_folds']}-fold cross-validation (held-out images only, "
           f"scripts/train_vessels2d.py): Dice mean {float(meta['cv_dice_mean']):.3f}, "
           f"median {float(meta['cv_dice_median']):.3f}; fold means " + ", ".join(f"{x:.3f}" for x in folds))
+    if "cv_thresholds" in meta:
+        print(f"  test-time flips {meta.get('cv_tta')}; thresholds picked on each fold's training images "
+              f"{json.loads(meta['cv_thresholds'])} (fixed 0.5: Dice mean "
+              f"{float(meta['cv_dice_mean_fixed_threshold']):.3f}); "
+              f"shipped model threshold {meta.get('threshold')}, recipe {meta.get('recipe')}")
 
 
 def _print_sim(rows):
