@@ -102,7 +102,7 @@ from scipy.optimize import linear_sum_assignment
 from scipy.spatial import cKDTree
 
 from guidewire3d.errors import InputError
-from guidewire3d.geometry import CArm, Pose, nominal_pose, so3_log
+from guidewire3d.geometry import CArm, Pose, nominal_pose, so3_exp, so3_log
 from guidewire3d.vesseltree import VesselTree
 
 __all__ = [
@@ -332,19 +332,23 @@ def _smooth_curve_2d(points: np.ndarray, k: int = 16) -> tuple[np.ndarray, np.nd
     nbp = points[idx]
     c = nbp.mean(axis=1)
     d = nbp - c[:, None, :]
-    cov = np.einsum("nki,nkj->nij", d, d)
+    dx, dy = d[..., 0], d[..., 1]
+    cov = np.empty((n, 2, 2))
+    cov[:, 0, 0] = np.sum(dx * dx, axis=1)
+    cov[:, 0, 1] = cov[:, 1, 0] = np.sum(dx * dy, axis=1)
+    cov[:, 1, 1] = np.sum(dy * dy, axis=1)
     _, vec = np.linalg.eigh(cov)
     t = vec[:, :, -1]
     nn = np.column_stack([-t[:, 1], t[:, 0]])
-    sk = np.einsum("nki,ni->nk", d, t)
-    nk = np.einsum("nki,ni->nk", d, nn)
+    sk = dx * t[:, 0:1] + dy * t[:, 1:2]
+    nk = dx * nn[:, 0:1] + dy * nn[:, 1:2]
     V = np.stack([np.ones_like(sk), sk, sk * sk], axis=2)  # (n, k, 3)
-    A = np.einsum("nki,nkj->nij", V, V) + 1e-6 * np.eye(3)
-    rhs = np.einsum("nki,nk->ni", V, nk)
-    coef = np.linalg.solve(A, rhs[..., None])[..., 0]
+    A = V.transpose(0, 2, 1) @ V + 1e-6 * np.eye(3)
+    rhs = V.transpose(0, 2, 1) @ nk[..., None]
+    coef = np.linalg.solve(A, rhs)[..., 0]
     s0 = np.sum((points - c) * t, axis=1)
     n0 = coef[:, 0] + coef[:, 1] * s0 + coef[:, 2] * s0 * s0
-    fit_rms = np.sqrt(np.mean((np.einsum("nki,ni->nk", V, coef) - nk) ** 2, axis=1))
+    fit_rms = np.sqrt(np.mean(((V @ coef[..., None])[..., 0] - nk) ** 2, axis=1))
     smooth = c + s0[:, None] * t + n0[:, None] * nn
     tang = t + (coef[:, 1] + 2.0 * coef[:, 2] * s0)[:, None] * nn
     tang /= np.linalg.norm(tang, axis=1, keepdims=True)
@@ -358,7 +362,11 @@ def _smooth_curve_2d(points: np.ndarray, k: int = 16) -> tuple[np.ndarray, np.nd
 def _grid_subsample(points: np.ndarray, step: float) -> np.ndarray:
     """Indices of one point per ``step``-sized grid cell (first occurrence, original order)."""
     keys = np.floor(points / step).astype(np.int64)
-    _, first = np.unique(keys, axis=0, return_index=True)
+    keys -= keys.min(axis=0)
+    lin = keys[:, 0]
+    for d in range(1, keys.shape[1]):  # one integer key per cell (injective)
+        lin = lin * (int(keys[:, d].max()) + 1) + keys[:, d]
+    _, first = np.unique(lin, return_index=True)
     return np.sort(first)
 
 
@@ -472,7 +480,7 @@ def _model_2d(q: np.ndarray, radius_px, carm: CArm) -> _Model2D:
 class _Eval:
     pose: Pose
     energy: float
-    corr: tuple  # (j, i): nearest 2D sample of each 3D sample, nearest 3D sample of each 2D sample
+    corr: "_Corr"  # closest-point correspondences (and their pose-independent weights)
     g: np.ndarray | None = None  # (6,) gradient (theta units)
     H: np.ndarray | None = None  # (6, 6) Gauss-Newton Hessian with IRLS weights
     rnorm: float = 0.0  # weighted residual norm
@@ -481,8 +489,34 @@ class _Eval:
     H_info: np.ndarray | None = None  # (6, 6) information (theta units) for the covariance
     chi2: float = 0.0
     dof: int = 0
-    dist3_px: np.ndarray | None = None  # (N,) 3D -> 2D distance (px), inf outside the image
     dist2_px: np.ndarray | None = None  # (M,) 2D -> 3D distance (px)
+    gate_px: float = float("nan")  # settings of the evaluation (to redo it with the information)
+    delta: float = float("nan")
+
+
+@dataclass(frozen=True, eq=False)
+class _Corr:
+    """Closest-point correspondences and everything about them that does not depend on the pose.
+
+    Computed once per accepted LM pose; the trial steps reuse it (correspondences held fixed).
+    """
+
+    j: np.ndarray  # (N,) nearest 2D sample of each 3D sample
+    i: np.ndarray  # (M,) nearest (projected) 3D sample of each 2D sample
+    q1u: np.ndarray  # (N,) matched 2D point, u
+    q1v: np.ndarray
+    t1u: np.ndarray  # (N,) unit tangent of the matched 2D point
+    t1v: np.ndarray
+    isn1: np.ndarray  # (N,) 1 / sigma across the 2D tangent (px)
+    ist1: np.ndarray  # (N,) 1 / sigma along it
+    sn2sq: np.ndarray  # (M,) sigma^2 across the projected 3D tangent (px^2)
+    isn2: np.ndarray  # (M,)
+    tan_i: np.ndarray  # (M, 3) unit tangents (LPS) of the matched 3D samples
+
+
+def _rho(s: np.ndarray, inv_delta2: float) -> np.ndarray:
+    """:func:`pseudo_huber` without its derivative (hot loop)."""
+    return s / (1.0 + np.sqrt(1.0 + s * inv_delta2))
 
 
 class _Problem:
@@ -495,6 +529,7 @@ class _Problem:
         self.S = carm.source_room_mm
         self.f = carm.focal_px
         self.c = carm.principal_point_px
+        self.u_max, self.v_max = carm.cols - 0.5, carm.rows - 0.5
         self.px_mm_iso = carm.pixel_at_iso_mm
         self.slack_px = TANGENT_SLACK_PX
         # 3D point uncertainty in px at the isocentre (fixed: depth-dependent weights would bias
@@ -505,6 +540,16 @@ class _Problem:
         self.prior_pose = prior_pose
         self.prior_weight = float(prior_weight)
         self.anchor = None  # start of the current LM stage (weak stabiliser, see STABILISER)
+        self._last_corr = None  # (pose, _Corr) of the last recomputed correspondences (Pose is immutable)
+        # pose-independent 2D data, split into contiguous components
+        self.q2u = np.ascontiguousarray(m2.uv[:, 0])
+        self.q2v = np.ascontiguousarray(m2.uv[:, 1])
+        self.t2u = np.ascontiguousarray(m2.tangents[:, 0])
+        self.t2v = np.ascontiguousarray(m2.tangents[:, 1])
+        self.uv2 = np.ascontiguousarray(m2.uv)
+        self.sig2sq = m2.sigma_px**2
+        self.sig3sq = self.sig3_px**2
+        self.nn_hi = (m2.nn_map.shape[1] - 1, m2.nn_map.shape[0] - 1)
 
     def set_visibility(self, pose: Pose, gate_px: float) -> None:
         """Decide which 3D centerline samples are in the roadmap (have contrast, were extracted).
@@ -516,74 +561,99 @@ class _Problem:
         not pull the rest of the tree onto whatever 2D vessel lies nearby.
         """
         ev = self.evaluate(pose, gate_px, need_jac=False)
-        i = ev.corr[1]
+        i = ev.corr.i
         supported = np.zeros(len(self.m3.points))
         supported[i[ev.dist2_px <= gate_px]] = 1.0
         self.visible3 = (self.m3.neighbours @ supported) > 0
 
+    def _correspond(self, u, v, front) -> _Corr:
+        """Closest points at the current projection: O(1) raster lookup 3D -> 2D, KD-tree 2D -> 3D."""
+        m2, m3 = self.m2, self.m3
+        # 3D -> 2D: O(1) lookup in the nearest-index map of the rasterised 2D centerline
+        ju = np.clip(np.rint((u - m2.origin[0]) / m2.cell).astype(np.int64), 0, self.nn_hi[0])
+        jv = np.clip(np.rint((v - m2.origin[1]) / m2.cell).astype(np.int64), 0, self.nn_hi[1])
+        j = m2.nn_map[jv, ju]
+        # 2D -> 3D: KD-tree over the projected 3D centerline (points behind the source far away)
+        uvk = np.column_stack([u, v])
+        if not front.all():
+            uvk[~front] = 1e9
+        _, i = cKDTree(uvk, balanced_tree=False, compact_nodes=False).query(self.uv2)
+        sn1sq = self.sig2sq[j] + self.sig3sq
+        isn1 = 1.0 / np.sqrt(sn1sq)
+        ist1 = 1.0 / np.sqrt(sn1sq + self.slack_px**2)
+        sn2sq = self.sig2sq + self.sig3sq[i]
+        return _Corr(j=j, i=i, q1u=self.q2u[j], q1v=self.q2v[j], t1u=self.t2u[j], t1v=self.t2v[j], isn1=isn1,
+                     ist1=ist1, sn2sq=sn2sq, isn2=1.0 / np.sqrt(sn2sq), tan_i=m3.tangents[i])
+
     # --- one evaluation -----------------------------------------------------------------
     def evaluate(self, pose: Pose, gate_px: float, *, delta: float | None = None, need_jac: bool = True,
-                 corr: tuple | None = None) -> _Eval:
+                 corr: _Corr | None = None, need_info: bool = False) -> _Eval:
         """Energy at ``pose`` (and its IRLS normal equations with ``need_jac``).
 
         With ``corr`` the closest-point correspondences are held fixed (LM trial steps: the
         energy is then smooth and the gain ratio meaningful); otherwise they are recomputed.
+        ``need_info`` adds the information matrix of the covariance (``H_info``, ``chi2``, ``dof``).
         """
-        m3, m2 = self.m3, self.m2
+        m3 = self.m3
         delta = self.delta if delta is None else float(delta)
-        Y = m3.points @ pose.R.T + pose.t  # room frame
-        Xc = (Y - self.S) @ self.A.T
-        z = Xc[:, 2]
-        zs = np.maximum(z, 1e-6)
-        uv = self.f * Xc[:, :2] / zs[:, None] + self.c
+        inv_d2 = 1.0 / delta**2
+        g2 = float(gate_px) ** 2
+        R, t = pose.R, pose.t
+        AR = self.A @ R
+        b = self.A @ (t - self.S)
+        Xc = m3.points @ AR.T + b  # camera frame (origin at the source, z along the beam)
+        x, y, z = Xc[:, 0], Xc[:, 1], Xc[:, 2]
+        iz = 1.0 / np.maximum(z, 1e-6)
+        fiz = self.f * iz
+        u = fiz * x + self.c[0]
+        v = fiz * y + self.c[1]
         front = z > 1e-3
-        seen = front & self.carm.in_image(uv) & self.visible3
-        N, M = len(Y), len(m2.uv)
-
+        seen = front & (u >= -0.5) & (u <= self.u_max) & (v >= -0.5) & (v <= self.v_max) & self.visible3
+        N, M = len(u), len(self.q2u)
         if corr is None:
-            # 3D -> 2D: O(1) lookup in the nearest-index map of the rasterised 2D centerline
-            ij = np.rint((uv - m2.origin) / m2.cell).astype(np.int64)
-            ij[:, 0] = np.clip(ij[:, 0], 0, m2.nn_map.shape[1] - 1)
-            ij[:, 1] = np.clip(ij[:, 1], 0, m2.nn_map.shape[0] - 1)
-            j = m2.nn_map[ij[:, 1], ij[:, 0]]
-            # 2D -> 3D: KD-tree over the projected 3D centerline
-            uvk = np.where(front[:, None], uv, 1e9)
-            _, i = cKDTree(uvk).query(m2.uv)
-            corr = (j, i)
-        j, i = corr
+            # closest points depend on the pose only (not on gate, kernel or visibility): the LM
+            # run that follows set_visibility at the same pose reuses them
+            if self._last_corr is not None and self._last_corr[0] is pose:
+                corr = self._last_corr[1]
+            else:
+                corr = self._correspond(u, v, front)
+                self._last_corr = (pose, corr)
+        c = corr
+        i = c.i
 
         # ---- 3D -> 2D: projected 3D point vs nearest 2D point, across the 2D tangent ----
-        e1 = uv - m2.uv[j]
-        t2 = m2.tangents[j]
-        n2 = np.column_stack([-t2[:, 1], t2[:, 0]])
-        sig_n1 = np.sqrt(m2.sigma_px[j] ** 2 + self.sig3_px**2)
-        sig_t1 = np.sqrt(sig_n1**2 + self.slack_px**2)
-        r1 = np.column_stack([np.sum(t2 * e1, axis=1) / sig_t1, np.sum(n2 * e1, axis=1) / sig_n1])
-        s1 = np.sum(r1 * r1, axis=1)
-        G1 = (gate_px / sig_n1) ** 2
+        e1u, e1v = u - c.q1u, v - c.q1v
+        r1t = (c.t1u * e1u + c.t1v * e1v) * c.ist1
+        r1n = (c.t1u * e1v - c.t1v * e1u) * c.isn1
+        s1 = r1t * r1t + r1n * r1n
+        G1 = g2 * (c.isn1 * c.isn1)
         ok1 = seen & (s1 <= G1)
-        rho1, drho1 = pseudo_huber(np.minimum(s1, G1), delta)
         # unseen (outside the image, behind the source) and invisible points cost the gate
         # constant, like gated ones: candidates with different visibility compare fairly
-        E1 = float(np.sum(np.where(seen, rho1, pseudo_huber(G1, delta)[0])))
+        E1 = float(np.sum(_rho(np.where(seen, np.minimum(s1, G1), G1), inv_d2)))
 
         # ---- 2D -> 3D: reprojection of the matched 3D point, across its projected tangent ----
-        e2 = uv[i] - m2.uv
-        dudY_i = self._dudy(Xc[i], zs[i])
-        tp = np.einsum("mkc,mc->mk", dudY_i, m3.tangents[i] @ pose.R.T)  # projected tangent (px/mm)
-        tpn = np.linalg.norm(tp, axis=1)
-        a = np.where(tpn[:, None] > 1e-9, tp / np.maximum(tpn, 1e-12)[:, None], np.array([[1.0, 0.0]]))
-        ap = np.column_stack([-a[:, 1], a[:, 0]])
+        ui, vi = u[i], v[i]
+        e2u, e2v = ui - self.q2u, vi - self.q2v
+        xi, yi, izi, fizi = x[i], y[i], iz[i], fiz[i]
+        Tc = c.tan_i @ AR.T  # matched tangents in the camera frame
+        tpu = fizi * (Tc[:, 0] - xi * izi * Tc[:, 2])  # projected tangent (px/mm)
+        tpv = fizi * (Tc[:, 1] - yi * izi * Tc[:, 2])
+        tpn = np.sqrt(tpu * tpu + tpv * tpv)
+        okt = tpn > 1e-9
+        inv_tpn = np.where(okt, 1.0 / np.maximum(tpn, 1e-12), 0.0)
+        au = np.where(okt, tpu * inv_tpn, 1.0)
+        av = tpv * inv_tpn
         fore = np.minimum(tpn * self.px_mm_iso, 1.0)  # foreshortening of the 3D tangent, 0..1
-        sig_n2 = np.sqrt(m2.sigma_px**2 + self.sig3_px[i] ** 2)
-        sig_t2 = np.sqrt(sig_n2**2 + (self.slack_px * fore) ** 2)
-        r2 = np.column_stack([np.sum(a * e2, axis=1) / sig_t2, np.sum(ap * e2, axis=1) / sig_n2])
-        s2 = np.sum(r2 * r2, axis=1)
-        G2 = (gate_px / sig_n2) ** 2
-        ok2 = front[i] & (s2 <= G2)
-        rho2, drho2 = pseudo_huber(np.minimum(s2, G2), delta)
+        sf = self.slack_px * fore
+        ist2 = 1.0 / np.sqrt(c.sn2sq + sf * sf)
+        r2t = (au * e2u + av * e2v) * ist2
+        r2n = (au * e2v - av * e2u) * c.isn2
+        s2 = r2t * r2t + r2n * r2n
+        G2 = g2 * (c.isn2 * c.isn2)
+        sc2 = np.minimum(s2, G2)
         k2 = self.lam * N / M  # 2D -> 3D sum rescaled to the 3D sample count
-        E2 = k2 * float(rho2.sum())
+        E2 = k2 * float(np.sum(_rho(sc2, inv_d2)))
 
         energy = E1 + E2
         prior_r = None
@@ -594,50 +664,70 @@ class _Problem:
         if self.anchor is not None:
             stab_r = self._tangent_offset(pose, self.anchor)
             energy += STABILISER * float(stab_r @ stab_r)
-        if not need_jac:
-            d3 = np.where(front & self.carm.in_image(uv), np.linalg.norm(e1, axis=1), np.inf)
-            return _Eval(pose, float(energy), corr, n_in3=int(ok1.sum()), n_in2=int(ok2.sum()), dist3_px=d3,
-                         dist2_px=np.linalg.norm(e2, axis=1))
+        if not need_jac and not need_info:
+            return _Eval(pose, float(energy), corr, dist2_px=np.sqrt(e2u * e2u + e2v * e2v), gate_px=gate_px,
+                         delta=delta)
+        ok2 = front[i] & (s2 <= G2)
 
-        # ---- Jacobians (theta units): dr/dtheta = W du/dY [I, -hat(Y) / r_g] ----
-        W1 = np.stack([t2[ok1] / sig_t1[ok1, None], n2[ok1] / sig_n1[ok1, None]], axis=1)  # (n, 2, 2)
-        d1 = W1 @ self._dudy(Xc[ok1], zs[ok1])
-        J1 = np.concatenate([d1, np.cross(Y[ok1][:, None, :], d1) / m3.r_g], axis=2)
-        i2 = i[ok2]
-        W2 = np.stack([a[ok2] / sig_t2[ok2, None], ap[ok2] / sig_n2[ok2, None]], axis=1)
-        d2 = W2 @ dudY_i[ok2]
-        J2 = np.concatenate([d2, np.cross(Y[i2][:, None, :], d2) / m3.r_g], axis=2)
-
-        R1, R2 = r1[ok1], r2[ok2]
-        Jf = np.concatenate([J1.reshape(-1, 6), J2.reshape(-1, 6)])
-        rf = np.concatenate([R1.reshape(-1), R2.reshape(-1)])
-        wf = np.concatenate([np.repeat(2.0 * drho1[ok1], 2), np.repeat(2.0 * k2 * drho2[ok2], 2)])
-        Jw = Jf * wf[:, None]
-        H = Jw.T @ Jf
+        # ---- Jacobians (theta units): dr/dtheta = w du/dY [I, -hat(Y) / r_g] ----
+        # a residual row w . (uv - q) with w = (w0, w1) (px^-1) at camera point (x, y, z) has
+        # d/dY = (f/z) [w0, w1, -(w0 x + w1 y)/z] A  (A: room -> camera axes)
+        k1 = np.flatnonzero(ok1)
+        k2i = np.flatnonzero(ok2)
+        p2 = i[k2i]
+        n1, n2 = len(k1), len(k2i)
+        K = 2 * (n1 + n2)
+        W = np.empty((K, 2))
+        Wu, Wv = W[:, 0], W[:, 1]
+        t1u, t1v, is1t, is1n = c.t1u[k1], c.t1v[k1], c.ist1[k1], c.isn1[k1]
+        Wu[0:n1], Wv[0:n1] = t1u * is1t, t1v * is1t
+        Wu[n1:2 * n1], Wv[n1:2 * n1] = -t1v * is1n, t1u * is1n
+        a2u, a2v, is2t, is2n = au[k2i], av[k2i], ist2[k2i], c.isn2[k2i]
+        o = 2 * n1
+        Wu[o:o + n2], Wv[o:o + n2] = a2u * is2t, a2v * is2t
+        Wu[o + n2:], Wv[o + n2:] = -a2v * is2n, a2u * is2n
+        pts = np.concatenate([k1, k1, p2, p2])  # 3D sample of each row
+        rf = np.concatenate([r1t[k1], r1n[k1], r2t[k2i], r2n[k2i]])
+        fz, izr = fiz[pts], iz[pts]
+        Cc = np.empty((K, 3))
+        Cc[:, 0] = fz * Wu
+        Cc[:, 1] = fz * Wv
+        Cc[:, 2] = -(Wu * x[pts] + Wv * y[pts]) * izr * fz
+        D = Cc @ self.A  # (K, 3) d r / d Y (room frame)
+        Y = m3.points[pts] @ R.T + t  # room frame
+        J = np.empty((K, 6))
+        J[:, :3] = D
+        inv_rg = 1.0 / m3.r_g
+        J[:, 3] = (Y[:, 1] * D[:, 2] - Y[:, 2] * D[:, 1]) * inv_rg  # cross(Y, D) / r_g
+        J[:, 4] = (Y[:, 2] * D[:, 0] - Y[:, 0] * D[:, 2]) * inv_rg
+        J[:, 5] = (Y[:, 0] * D[:, 1] - Y[:, 1] * D[:, 0]) * inv_rg
+        # IRLS weights 2 rho'(s) = 1 / sqrt(1 + s / delta^2)
+        drho1 = 1.0 / np.sqrt(1.0 + s1[k1] * inv_d2)
+        drho2 = 1.0 / np.sqrt(1.0 + s2[k2i] * inv_d2)
+        wf = np.concatenate([drho1, drho1, k2 * drho2, k2 * drho2])
+        Jw = J * wf[:, None]
+        H = Jw.T @ J
         g = Jw.T @ rf
-        rnorm = float(np.sqrt(np.sum(wf * rf * rf)))
+        rnorm = float(np.sqrt(np.dot(wf * rf, rf)))
         if prior_r is not None:
             H = H + 2.0 * self.prior_weight * np.eye(6)
             g = g + 2.0 * self.prior_weight * prior_r
         if stab_r is not None:
             H = H + 2.0 * STABILISER * np.eye(6)
             g = g + 2.0 * STABILISER * stab_r
-        # information for the covariance: un-normalised sums, robust weights 2 rho' (= 1 at 0)
-        vf = np.concatenate([np.repeat(2.0 * drho1[ok1], 2), np.repeat(2.0 * self.lam * drho2[ok2], 2)])
-        H_info = (Jf * vf[:, None]).T @ Jf
-        chi2 = float(np.sum(vf * rf * rf))
-        dof = 2 * (len(R1) + len(R2)) - 6
-        return _Eval(pose, float(energy), corr, g, H, rnorm, int(ok1.sum()), int(ok2.sum()), H_info, chi2, dof)
+        H_info, chi2, dof = None, 0.0, 2 * (n1 + n2) - 6
+        if need_info:
+            # information for the covariance: un-normalised sums, robust weights 2 rho' (= 1 at 0)
+            vf = np.concatenate([drho1, drho1, self.lam * drho2, self.lam * drho2])
+            H_info = (J * vf[:, None]).T @ J
+            chi2 = float(np.dot(vf * rf, rf))
+        return _Eval(pose, float(energy), corr, g, H, rnorm, n1, n2, H_info, chi2, dof, gate_px=gate_px, delta=delta)
 
-    def _dudy(self, Xc: np.ndarray, zs: np.ndarray) -> np.ndarray:
-        """Projection Jacobian ``du/dY = (f/z) [[1, 0, -x/z], [0, 1, -y/z]] A``: (n, 2, 3)."""
-        fz = self.f / zs
-        Jc = np.zeros((len(zs), 2, 3))
-        Jc[:, 0, 0] = fz
-        Jc[:, 1, 1] = fz
-        Jc[:, 0, 2] = -fz * Xc[:, 0] / zs
-        Jc[:, 1, 2] = -fz * Xc[:, 1] / zs
-        return Jc @ self.A
+    def with_info(self, ev: _Eval) -> _Eval:
+        """``ev`` re-evaluated (same pose and correspondences) with the covariance information."""
+        if ev.H_info is not None:
+            return ev
+        return self.evaluate(ev.pose, ev.gate_px, delta=ev.delta, corr=ev.corr, need_info=True)
 
     def _tangent_offset(self, pose: Pose, ref: Pose) -> np.ndarray:
         """``log(pose ref^-1)`` in theta units, to first order (cheap; for priors)."""
@@ -718,7 +808,14 @@ def _levenberg_marquardt(prob: _Problem, pose: Pose, *, gate_px: float, max_iter
 # coarse global search
 # ============================================================================================
 def _global_search(m3: _Model3D, m2: _Model2D, carm: CArm, start: Pose, *, n_best: int) -> list[tuple[float, Pose]]:
-    """Rotation grid x exhaustive in-plane shift (FFT chamfer); returns the best ``n_best`` poses."""
+    """Rotation grid x exhaustive in-plane shift (FFT chamfer); returns the best ``n_best`` poses.
+
+    All rotations are projected, rasterised and correlated in one batch: the point images by
+    ``bincount``, the truncated distance transforms of the projected 3D points exactly by
+    stamping the (few) grid offsets closer than the truncation (:func:`_truncated_dt_batch`),
+    the chamfer costs of all shifts by one batched real FFT, pruned to the rows that hold
+    projected points (forward) and to the searched shifts (inverse).
+    """
     c0 = _search_cell_px(carm)
     H, W = int(np.ceil(carm.rows / c0)), int(np.ceil(carm.cols / c0))
     centre_room = start.apply(m3.centroid)
@@ -735,8 +832,7 @@ def _global_search(m3: _Model3D, m2: _Model2D, carm: CArm, start: Pose, *, n_bes
     q = cells(m2.all_uv)
     okq = (q[:, 0] >= 0) & (q[:, 0] < Wp) & (q[:, 1] >= 0) & (q[:, 1] < Hp)
     q = q[okq]
-    P2 = np.zeros((Hp, Wp), np.float32)
-    np.add.at(P2, (q[:, 1], q[:, 0]), 1.0)
+    P2 = np.bincount(q[:, 1] * Wp + q[:, 0], minlength=Hp * Wp).reshape(Hp, Wp).astype(np.float32)
     P2 /= max(P2.sum(), 1.0)
     occ2 = np.ones((Hp, Wp), np.uint8)
     occ2[q[:, 1], q[:, 0]] = 0
@@ -748,53 +844,111 @@ def _global_search(m3: _Model3D, m2: _Model2D, carm: CArm, start: Pose, *, n_bes
     F_D2 = sfft.rfft2(D2)
     F_P2 = sfft.rfft2(P2)
 
+    # 3D side, every rotation at once: R_k = exp(rv_k) about the centroid, composed with the start
     e_u, e_v, d = carm.axes
     rots = [(a, b, g) for a in SEARCH_ROT_OUTPLANE_DEG for b in SEARCH_ROT_OUTPLANE_DEG for g in SEARCH_ROT_INPLANE_DEG]
-    import cv2
+    K = len(rots)
+    rvs = [np.radians(ra) * e_u + np.radians(rb) * e_v + np.radians(rg) * d for ra, rb, rg in rots]
+    Rr = np.stack([so3_exp(rv) for rv in rvs])  # (K, 3, 3)
+    R_k = Rr @ start.R
+    t_k = Rr @ start.t + (centre_room - Rr @ centre_room)  # (K, 3)
+    A = carm.axes
+    Rc = A @ R_k
+    tc = (t_k - carm.source_room_mm) @ A.T
+    Xc = m3.coarse @ Rc.transpose(0, 2, 1) + tc[:, None, :]  # (K, Nc, 3) camera frame
+    z = Xc[..., 2]
+    front = z > 1e-12
+    with np.errstate(divide="ignore", invalid="ignore"):
+        uv = carm.focal_px * Xc[..., :2] / z[..., None] + carm.principal_point_px
+    cc = cells(np.where(front[..., None], uv, -1e6))
+    ok = front & (cc[..., 0] >= 0) & (cc[..., 0] < Wp) & (cc[..., 1] >= 0) & (cc[..., 1] < Hp)
+    kk = np.broadcast_to(np.arange(K)[:, None], ok.shape)[ok]
+    cell_ids, counts = np.unique((kk * Hp + cc[..., 1][ok]) * Wp + cc[..., 0][ok], return_counts=True)
+    n_k = np.maximum(np.bincount(kk, minlength=K), 1)  # points per rotation (P3 normalisation)
+    # only the band of rows holding projected points (+- the DT truncation) is non-zero in P3 and
+    # in tau - D3: the row FFTs are done on that band only (pruned FFT; the rest is zeros)
+    r = int(np.ceil(tau))
+    k_of, in_k = np.divmod(cell_ids, Hp * Wp)
+    rows = in_k // Wp
+    r0, r1 = (max(int(rows.min()) - r, 0), min(int(rows.max()) + r + 1, Hp)) if len(rows) else (0, 1)
+    nb = r1 - r0
+    band_ids = k_of * (nb * Wp) + in_k - r0 * Wp
+    P3 = np.zeros(K * nb * Wp, np.float32)
+    P3[band_ids] = counts / n_k[k_of]
+    P3 = P3.reshape(K, nb, Wp)
+    D3c = _truncated_dt_batch(band_ids, (K, nb, Wp), tau, complement=True)  # tau - min(EDT, tau)
 
-    costs = np.empty(len(rots))
-    shifts = np.zeros((len(rots), 2))
-    poses = []
-    batch = 16
-    for b0 in range(0, len(rots), batch):
-        chunk = rots[b0 : b0 + batch]
-        P3 = np.zeros((len(chunk), Hp, Wp), np.float32)
-        D3 = np.empty((len(chunk), Hp, Wp), np.float32)
-        for k, (ra, rb, rg) in enumerate(chunk):
-            rv = np.radians(ra) * e_u + np.radians(rb) * e_v + np.radians(rg) * d
-            pose_k = Pose.from_rotvec_about(rv, centre_room) @ start
-            poses.append(pose_k)
-            uv = carm.project(m3.coarse, pose_k)
-            cc = cells(uv[np.isfinite(uv).all(axis=1)])
-            ok = (cc[:, 0] >= 0) & (cc[:, 0] < Wp) & (cc[:, 1] >= 0) & (cc[:, 1] < Hp)
-            cc = cc[ok]
-            np.add.at(P3[k], (cc[:, 1], cc[:, 0]), 1.0)
-            P3[k] /= max(P3[k].sum(), 1.0)
-            occ3 = np.full((Hp, Wp), 255, np.uint8)
-            occ3[cc[:, 1], cc[:, 0]] = 0
-            D3[k] = np.minimum(cv2.distanceTransform(occ3, cv2.DIST_L2, cv2.DIST_MASK_PRECISE), tau)
-        F = np.conj(sfft.rfft2(P3, workers=2)) * F_D2[None] + np.conj(sfft.rfft2(D3, workers=2)) * F_P2[None]
-        C = sfft.irfft2(F, s=(Hp, Wp), workers=2)
-        # only shifts within +-m (circular indices)
-        C = np.concatenate([C[:, -m:], C[:, : m + 1]], axis=1)
-        C = np.concatenate([C[:, :, -m:], C[:, :, : m + 1]], axis=2)
-        flat = C.reshape(len(chunk), -1).argmin(axis=1)
-        for k in range(len(chunk)):
-            iy, ix = np.unravel_index(flat[k], C.shape[1:])
-            costs[b0 + k] = C[k, iy, ix]
-            shifts[b0 + k] = (ix - m, iy - m)
+    def rfft2_band(x):
+        Z = np.zeros((K, Hp, Wp // 2 + 1), np.complex64)
+        Z[:, r0:r1] = sfft.rfft(x, axis=2)
+        return sfft.fft(Z, axis=1, overwrite_x=True)
+
+    # C(s) = sum_x P3(x) D2(x + s) + D3(x) P2(x + s); its reversal C(-s) has the spectrum
+    # F[P3] conj(F[D2]) + F[D3] conj(F[P2]) (no conjugation of the large arrays), and
+    # F[D3] = tau Hp Wp delta_0 - F[tau - D3]
+    G = rfft2_band(P3)
+    G *= np.conj(F_D2)[None]
+    G3 = rfft2_band(D3c)
+    G3 *= np.conj(F_P2)[None]
+    G -= G3
+    del G3
+    G[:, 0, 0] += tau * Hp * Wp * F_P2[0, 0].real
+    # inverse, pruned to the shifts s within +-m: C(s) is the reversal at index -s (circular)
+    s_range = np.arange(-m, m + 1)
+    C = sfft.irfft(sfft.ifft(G, axis=1, overwrite_x=True)[:, (-s_range) % Hp], n=Wp, axis=2)[:, :, (-s_range) % Wp]
+    flat = C.reshape(K, -1).argmin(axis=1)
+    iy, ix = np.unravel_index(flat, C.shape[1:])
+    costs = C.reshape(K, -1)[np.arange(K), flat].astype(float)
+    shifts = np.column_stack([ix - m, iy - m]).astype(float)
     order = np.argsort(costs)
     out: list[tuple[float, Pose]] = []
     for k in order:
         du, dv = shifts[k] * c0
         t = (du * e_u + dv * e_v) * mm_per_px
-        cand = Pose(np.eye(3), t) @ poses[k]
+        cand = Pose(np.eye(3), t) @ Pose.from_rotvec_about(rvs[k], centre_room) @ start
         if any(_pose_close(cand, p, m3, mm=2.0 * c0 * mm_per_px) for _, p in out):
             continue
         out.append((float(costs[k]), cand))
         if len(out) >= n_best:
             break
     return out
+
+
+def _truncated_dt_batch(cell_ids: np.ndarray, shape: tuple, tau: float, *, complement: bool = False) -> np.ndarray:
+    """``min(EDT, tau)`` of a stack of sparse binary images (EDT: distance in cells to the nearest
+    occupied cell), or ``tau - min(EDT, tau)`` with ``complement``.
+
+    Exact: every grid offset closer than ``tau`` is stamped around the occupied cells, farthest
+    first, so each cell ends with its smallest distance. Cheap for sparse images and small ``tau``.
+
+    Parameters
+    ----------
+    cell_ids : (n,) ndarray of int
+        Flat indices of the occupied cells in an array of ``shape`` (unique).
+    shape : (K, H, W)
+    tau : float
+    complement : bool
+        Return ``tau - min(EDT, tau)`` (zero away from the occupied cells).
+
+    Returns
+    -------
+    (K, H, W) ndarray of float32
+    """
+    K, Hh, Ww = shape
+    r = int(np.ceil(tau))
+    He, We = Hh + 2 * r, Ww + 2 * r
+    ext = np.zeros((K, He, We), np.float32) if complement else np.full((K, He, We), tau, np.float32)
+    kk, rest = np.divmod(cell_ids, Hh * Ww)
+    yy, xx = np.divmod(rest, Ww)
+    base = (kk * He + yy + r) * We + xx + r
+    oy, ox = np.mgrid[-r : r + 1, -r : r + 1]
+    dist = np.sqrt(oy * oy + ox * ox).ravel()
+    offs = (oy * We + ox).ravel()
+    flat = ext.reshape(-1)
+    for dv in np.unique(dist[dist < tau])[::-1]:
+        sel = offs[dist == dv]
+        flat[(base[:, None] + sel[None, :]).ravel()] = (tau - dv) if complement else dv
+    return ext[:, r : r + Hh, r : r + Ww]
 
 
 def _pose_close(a: Pose, b: Pose, m3: _Model3D, *, mm: float) -> bool:
@@ -987,7 +1141,7 @@ def _finish(prob: _Problem, out: _LMOut, q, carm, iterations, t0) -> Registratio
     pose = out.pose
     mean_in, frac, med = _quality(prob.m3, q, carm, pose)
     cov = None
-    ev = out.ev
+    ev = prob.with_info(out.ev)
     if ev.H_info is not None and ev.dof > 0:
         try:
             sigma2 = ev.chi2 / ev.dof
@@ -1014,7 +1168,7 @@ def _finish(prob: _Problem, out: _LMOut, q, carm, iterations, t0) -> Registratio
     return RegistrationResult(
         pose=pose, projection_matrix=carm.projection_matrix(pose), success=bool(ok), message=msg,
         mean_residual_px=mean_in, inlier_fraction=frac, iterations=int(iterations),
-        seconds=time.perf_counter() - t0, covariance_6x6=cov, energy=ev.energy, pose_std_mm=pose_std,
+        seconds=time.perf_counter() - t0, covariance_6x6=cov, energy=out.ev.energy, pose_std_mm=pose_std,
     )
 
 
