@@ -10,8 +10,10 @@ Three stages, each a pure function on arrays, chained by :func:`extract_vessels`
    normals; a closed triangle mesh in LPS mm ready for VTP/STL export.
 3. :func:`centerline_from_mask` - the paper's distance-transform ridge centerline: Euclidean
    distance transform in mm, ridge points ``|grad D| < eps`` and ``lambda_min(H(D)) < -delta``,
-   connected through a 3D skeleton (scikit-image) analysed and pruned with skan; returns a
-   :class:`VesselTree` rooted at the widest endpoint (or the one nearest a seed).
+   connected through a 3D skeleton (scikit-image) analysed and pruned with skan; each point is then
+   centred on its lumen cross-section (sub-voxel, without the inward pull of a skeleton or a
+   smoothed ridge at curves) and smoothed without shrinkage; returns a :class:`VesselTree` rooted
+   at the widest endpoint (or the one nearest a seed).
 
 Volumes are indexed ``(z, y, x)``; ``spacing_mm`` and ``origin_lps_mm`` are ``(x, y, z)`` as in
 SimpleITK and :class:`guidewire3d.io.Volume`; ``direction`` columns are the x, y, z index axes in LPS.
@@ -100,7 +102,8 @@ class CenterlineOptions:
     spur_factor: float = 2.0  # terminal branches shorter than this x local radius are spurs
     min_ridge_support: float = 0.25  # short terminal branches with fewer ridge points are spurs
     step_mm: float = 0.5  # resampling step
-    smooth_mm: float = 1.0  # Gaussian smoothing along each branch (sigma, mm)
+    smooth_mm: float = 1.0  # local quadratic smoothing along each branch (Gaussian weights, sigma, mm)
+    centre_cross_sections: bool = True  # move points to the centroid of their lumen cross-section
 
 
 @dataclass(frozen=True, eq=False)
@@ -568,6 +571,119 @@ def _smooth_polyline(p: np.ndarray, sigma_pts: float, fix_ends: bool = True) -> 
     return q
 
 
+def _smooth_polyline_quadratic(p: np.ndarray, sigma: float, fix_ends: bool = True) -> np.ndarray:
+    """Gaussian-weighted local quadratic regression of a polyline against its arclength.
+
+    Each point is replaced by the value at ``s_i`` of the weighted least-squares quadratic
+    ``a + b (s - s_i) + c (s - s_i)**2`` fitted to the points within ``3 sigma`` of arclength
+    (weights ``exp(-(s - s_i)**2 / 2 sigma**2)``). Unlike a Gaussian average, which moves a curve of
+    curvature ``kappa`` toward its centre of curvature by about ``sigma**2 kappa / 2`` (and so
+    shrinks a tortuous vessel tree), the local quadratic reproduces any curve that is quadratic in
+    arclength exactly: smoothing without shrinkage. ``sigma`` is in the units of ``p``; the ends are
+    blended back to the input as in :func:`_smooth_polyline` so that nodes stay shared.
+    """
+    n = len(p)
+    if n < 4 or sigma <= 0:
+        return p.copy()
+    s = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(p, axis=0), axis=1))]
+    step = max(s[-1] / (n - 1), 1e-9)
+    W = int(np.ceil(3.0 * sigma / step * 1.8)) + 1  # skeleton steps are >= 0.55 x the mean
+    S = np.zeros((n, 5))
+    T = np.zeros((n, 3, 3))
+    for m in range(-min(W, n - 1), min(W, n - 1) + 1):
+        i = np.arange(max(0, -m), min(n, n - m))
+        j = i + m
+        d = s[j] - s[i]
+        w = np.exp(-0.5 * (d / sigma) ** 2) * (np.abs(d) <= 3.0 * sigma)
+        for k in range(5):
+            S[i, k] += w * d ** k
+        for k in range(3):
+            T[i, k] += (w * d ** k)[:, None] * p[j]
+    A = np.stack([S[:, 0:3], S[:, 1:4], S[:, 2:5]], axis=1)  # (n, 3, 3) normal matrix
+    # regularise the quadratic term where the window holds too few distinct points
+    A = A + np.eye(3)[None] * 1e-9 * (1.0 + S[:, [0]][:, :, None])
+    coef = np.linalg.solve(A, T)  # (n, 3 coeffs, 3 dims)
+    q = coef[:, 0, :]
+    if fix_ends:
+        w = np.minimum(s, s[-1] - s)
+        w = np.clip(w / (2.0 * sigma), 0, 1)[:, None]
+        q = w * q + (1 - w) * p
+    return q
+
+
+def _cross_section_centres(q_mm: np.ndarray, r_mm: np.ndarray, occ: np.ndarray, sp_zyx: np.ndarray, *,
+                           n_rays: int = 24, n_samples: int = 40,
+                           max_ecc: float = 1.6) -> tuple[np.ndarray, np.ndarray]:
+    """Centroids of the lumen cross-sections of a polyline (sub-voxel centring).
+
+    At each point the lumen boundary is traced along ``n_rays`` rays in the plane perpendicular
+    to the local tangent: the first crossing of the 0.5 level of the trilinearly interpolated mask
+    ``occ`` (the half-way surface between inside and outside voxel centres), located linearly
+    between samples. The centre is the area centroid of the star-shaped polygon of those crossings.
+    A Gaussian-smoothed distance-transform ridge (and a voxel skeleton) lies on the inside of
+    curves; the cross-section centroid of a tube is on its axis whatever the curvature.
+
+    Parameters
+    ----------
+    q_mm : (N, 3) float
+        Polyline, ``(z, y, x)`` mm from the array origin (ordered along the vessel).
+    r_mm : (N,) float
+        Approximate radius (the rays run out to ``2 r`` plus two finest voxels).
+    occ : (z, y, x) float32
+        The mask as 0/1.
+    sp_zyx : (3,) float
+        Voxel spacing, mm.
+
+    Returns
+    -------
+    centres_mm : (N, 3) float
+        The centroid where the cross-section is a closed, roughly round region (every ray crosses
+        the boundary and the longest is at most ``max_ecc`` x the median), else the input point
+        (bifurcations, vessel ends, neighbouring vessels).
+    ok : (N,) bool
+        Where the centroid was used.
+    """
+    n = len(q_mm)
+    if n < 3:
+        return q_mm.copy(), np.zeros(n, bool)
+    t = np.gradient(q_mm, axis=0)
+    t /= np.maximum(np.linalg.norm(t, axis=1, keepdims=True), 1e-12)
+    a = np.where(np.abs(t[:, [0]]) < 0.9, np.array([[1.0, 0, 0]]), np.array([[0, 1.0, 0]]))
+    u = np.cross(t, a)
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    v = np.cross(t, u)
+    th = np.arange(n_rays) * (2 * np.pi / n_rays)
+    e = np.cos(th)[None, :, None] * u[:, None, :] + np.sin(th)[None, :, None] * v[:, None, :]  # (N, K, 3)
+    h = float(sp_zyx.min())
+    rho_max = 2.0 * r_mm + 2.0 * h  # (N,)
+    frac = np.linspace(0.0, 1.0, n_samples)
+    rho = rho_max[:, None] * frac[None, :]  # (N, S)
+    xyz = q_mm[:, None, None, :] + rho[:, None, :, None] * e[:, :, None, :]  # (N, K, S, 3)
+    idx = (xyz / sp_zyx).reshape(-1, 3).T
+    val = ndi.map_coordinates(occ, idx, order=1, mode="constant", cval=0.0, prefilter=False)
+    val = val.reshape(n, n_rays, n_samples)
+    below = val < 0.5
+    first = np.argmax(below, axis=2)  # first sample below 0.5 (0 if none or the start is outside)
+    found = below.any(axis=2) & (first > 0)
+    k0 = np.maximum(first - 1, 0)
+    v0 = np.take_along_axis(val, k0[..., None], axis=2)[..., 0]
+    v1 = np.take_along_axis(val, first[..., None], axis=2)[..., 0]
+    w = np.clip((v0 - 0.5) / np.maximum(v0 - v1, 1e-6), 0.0, 1.0)
+    r_b = (k0 + w) * (rho_max[:, None] / (n_samples - 1))  # (N, K) boundary distance along each ray
+    med = np.median(r_b, axis=1)
+    ok = found.all(axis=1) & (r_b.max(axis=1) <= max_ecc * med) & (med > 0)
+    # area centroid of the polygon with vertices r_b e (2D coordinates in the (u, v) plane)
+    x, y = r_b * np.cos(th)[None], r_b * np.sin(th)[None]
+    x1, y1 = np.roll(x, -1, axis=1), np.roll(y, -1, axis=1)
+    cr = x * y1 - x1 * y
+    A = 0.5 * cr.sum(axis=1)
+    cx = ((x + x1) * cr).sum(axis=1) / np.maximum(6 * A, 1e-12)
+    cy = ((y + y1) * cr).sum(axis=1) / np.maximum(6 * A, 1e-12)
+    out = q_mm.copy()
+    out[ok] += cx[ok, None] * u[ok] + cy[ok, None] * v[ok]
+    return out, ok
+
+
 def _resample_by_arclength(p: np.ndarray, step: float) -> tuple[np.ndarray, np.ndarray]:
     """Resampled points and the (fractional) source index of each."""
     seg = np.linalg.norm(np.diff(p, axis=0), axis=1)
@@ -613,7 +729,16 @@ def centerline_from_mask(mask_zyx, *, spacing_mm, origin_lps_mm, direction=None,
        Loops are cut at their thinnest edge (maximum spanning tree on ``D``).
     3. Each skeleton voxel moves to the sub-voxel ridge of the smoothed ``D`` by one Newton step
        in the cross-section plane (the two most negative Hessian eigenvectors); branches are
-       smoothed (``smooth_mm``) and resampled every ``step_mm``.
+       smoothed (``smooth_mm``, Gaussian-weighted local quadratic regression against arclength,
+       which does not shrink curves) and resampled every ``step_mm``.
+    3b. With ``centre_cross_sections`` (default), every resampled point moves to the area centroid
+       of its lumen cross-section, perpendicular to the local tangent: the boundary is the 0.5
+       level of the trilinearly interpolated mask, traced along 24 rays; where the section is not a
+       closed round region (bifurcations, ends, touching vessels) the point stays. The branch is
+       smoothed again the same way. A voxel skeleton and the ridge of a smoothed ``D`` lie on the
+       inside of curves (by ``~sigma**2 kappa / 2``), and a Gaussian average of the points moves
+       them further in; on a tortuous tree that made the whole tree about 0.6 per mille too small,
+       which a single-view registration turns into a depth error (issue 6).
     4. Radius = the Euclidean distance transform evaluated exactly at the sub-voxel point (distance
        to the nearest background voxel centre, by a k-d tree of the boundary voxels) less the
        expected gap between the lumen surface and that voxel centre (``GAP_FACTOR * h**2 / r``),
@@ -841,18 +966,24 @@ def _branches_to_points(par, root, vox, pos, Ds, D_mm, mp, sp_zyx, sp_rel, h, op
     bnd = ~mp & ndi.binary_dilation(mp, structure=np.ones((3, 3, 3)))
     bg_tree = cKDTree(np.argwhere(bnd) * sp_zyx)
     h_mean = float(np.prod(sp_zyx) ** (1 / 3))
+    occ = mp.astype(np.float32)
     pts_all, rad_all, par_all = [], [], []
     end_index = {}  # skeleton voxel id of a run end -> output point index
     count = 0
     for ids, pb in br:
         ids = np.asarray(ids)
         p_mm = refined[ids] * sp_zyx
-        sig = opt.smooth_mm / max(np.mean(np.linalg.norm(np.diff(vox[ids] * sp_zyx, axis=0), axis=1)), 1e-6)
-        p_mm = _smooth_polyline(p_mm, sig)
+        p_mm = _smooth_polyline_quadratic(p_mm, opt.smooth_mm)
         if len(p_mm) >= 2 and np.linalg.norm(p_mm[-1] - p_mm[0]) > 0 or len(p_mm) > 2:
             q_mm, u = _resample_by_arclength(p_mm, opt.step_mm)
         else:
             q_mm, u = p_mm, np.arange(len(p_mm), dtype=float)
+        # sub-voxel centring: move each point to the centroid of its lumen cross-section, then
+        # smooth again without shrinkage (the centroids carry the boundary's voxel quantisation)
+        if opt.centre_cross_sections and len(q_mm) >= 3:
+            r0 = bg_tree.query(q_mm)[0]
+            c_mm, _ = _cross_section_centres(q_mm, r0, occ, sp_zyx)
+            q_mm = _smooth_polyline_quadratic(c_mm, opt.smooth_mm)
         q = q_mm / sp_zyx
         # keep points inside the mask: fall back to the voxel centre where smoothing left it
         ui = np.clip(np.round(u).astype(int), 0, len(ids) - 1)
