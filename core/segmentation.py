@@ -72,6 +72,11 @@ SATURATED_FRACTION = 0.5
 MIN_COMPONENT_PX = 12
 # The network downsamples 3 times: spatial sizes must be multiples of this.
 UNET_MULTIPLE = 8
+# ROI tracking: when the wire reaches a strip border, the strips are grown once by this factor
+# of the margin before falling back to full frame; strips covering more than this fraction of
+# the frame are not worth it (full frame is then as cheap).
+ROI_GROW_FACTOR = 3
+ROI_MAX_FRACTION = 0.6
 
 
 class SegMethod(enum.Enum):
@@ -677,8 +682,12 @@ class GuidewireSegmenter:
     The first frame (and any frame after the wire was lost) is segmented full-frame. Later frames
     are segmented only inside horizontal strips covering the previous mask dilated by
     ``roi_margin_px``; each strip gets ``context_px`` of surrounding image as network context.
-    If the result is empty, or touches a strip border that is not the frame border, the frame is
-    re-segmented full-frame. Every ``full_frame_every`` frames a full-frame pass is forced.
+    If the result touches a strip border that is not the frame border (the wire moved or advanced
+    beyond the strips), the strips are grown once around the previous and the new mask by
+    ``ROI_GROW_FACTOR`` x ``roi_margin_px`` and the frame is segmented again inside them; if that
+    still touches a border, or the result is empty, the frame is re-segmented full-frame. Every
+    ``full_frame_every`` frames a full-frame pass is forced. ``last_mode`` says which pass gave
+    the mask (``"roi"``, ``"roi-grown"``, ``"full"`` or ``"degenerate"``).
 
     Parameters
     ----------
@@ -705,6 +714,7 @@ class GuidewireSegmenter:
     full_frame_every: int = 0
     _prev: np.ndarray | None = field(default=None, init=False, repr=False)
     _count: int = field(default=0, init=False, repr=False)
+    _touch: np.ndarray | None = field(default=None, init=False, repr=False)
     last_mode: str = field(default="", init=False)
 
     def __post_init__(self):
@@ -721,12 +731,12 @@ class GuidewireSegmenter:
         self.last_mode = ""
 
     # --- strips -----------------------------------------------------------------------------------
-    def _strips(self, prev: np.ndarray) -> list[tuple[int, int, int, int]]:
+    def _strips(self, prev: np.ndarray, margin_px: int) -> list[tuple[int, int, int, int]]:
         import cv2
 
         h, w = prev.shape
         s = self.strip_px
-        r = int(self.roi_margin_px)
+        r = int(margin_px)
         k = cv2.getStructuringElement(cv2.MORPH_RECT, (2 * r + 1, 2 * r + 1))
         band = cv2.dilate(prev.astype(np.uint8), k) > 0 if r > 0 else prev
         nh, nw = -(-h // s), -(-w // s)
@@ -758,8 +768,27 @@ class GuidewireSegmenter:
         return _unet_mask_from_prob(prob, config.threshold)
 
     def _tracked(self, a: np.ndarray, prev: np.ndarray, stats):
-        boxes = self._strips(prev)
+        first = self._in_strips(a, prev, stats, self.roi_margin_px)
+        if first is True:                             # touched a strip border: grow once
+            grown = self._in_strips(a, prev, stats, ROI_GROW_FACTOR * self.roi_margin_px, seed_extra=self._touch)
+            if isinstance(grown, np.ndarray):
+                self.last_mode = "roi-grown"
+                return grown
+            return None
+        if isinstance(first, np.ndarray):
+            self.last_mode = "roi"
+            return first
+        return None
+
+    def _in_strips(self, a: np.ndarray, prev: np.ndarray, stats, margin_px: int, seed_extra=None):
+        """Mask inside the strips around ``prev`` (| ``seed_extra``): the mask, ``False`` when it is
+        empty, ``True`` when it touches an inner strip border (kept in ``self._touch``), ``None``
+        when there are no strips or they cover most of the frame (full frame is then cheaper)."""
+        seed = prev if seed_extra is None else (prev | seed_extra)
+        boxes = self._strips(seed, margin_px)
         if not boxes:
+            return None
+        if sum((v1 - v0) * (u1 - u0) for u0, v0, u1, v1 in boxes) > ROI_MAX_FRACTION * a.size:
             return None
         covered = np.zeros(a.shape, bool)
         for u0, v0, u1, v1 in boxes:
@@ -773,7 +802,7 @@ class GuidewireSegmenter:
             prob = _run_unet_boxes(a, stats, boxes, runner, context_px=self.context_px)
             mask = _unet_mask_from_prob(prob, config.threshold)
         if not mask.any():
-            return None
+            return False
         # the wire must not reach a strip border that is inside the frame
         inner = covered.copy()
         inner[1:, :] &= covered[:-1, :]
@@ -784,8 +813,8 @@ class GuidewireSegmenter:
         edge[0, :] = edge[-1, :] = False
         edge[:, 0] = edge[:, -1] = False
         if (mask & edge).any():
-            return None
-        self.last_mode = "roi"
+            self._touch = mask
+            return True
         return mask
 
     def segment(self, frame) -> np.ndarray:

@@ -167,9 +167,9 @@ def print_timing(rows, backend, threads):
         for want in ("full", "roi"):
             rs = _sel(rows, method=name, want=want)
             if want == "roi":
-                n_roi = sum(r["mode"] == "roi" for r in rs)
+                n_roi = sum(r["mode"].startswith("roi") for r in rs)
                 label = f"ROI tracking ({n_roi}/{len(rs)} ROI)"
-                sub = [r for r in rs if r["mode"] == "roi"] or rs
+                sub = [r for r in rs if r["mode"].startswith("roi")] or rs
             else:
                 label, sub = "full-frame", rs
             seg = np.median([r["seg_s"] for r in sub]) * 1e3

@@ -30,6 +30,7 @@ TRACK_FRAMES = (0, 1, 2)
 UNET_MIN_DICE = {0.36: 0.88, 0.89: 0.95}
 RIDGE_MIN_DICE = {0.36: 0.65, 0.89: 0.82}
 ROI_VS_FULL_MIN_DICE = 0.97
+GROW_SEED = 101  # a held-out seed (< 1000) whose tip advances beyond the ROI margin between frames
 BACKEND_MAX_ABS_DIFF = 1e-3
 
 
@@ -100,6 +101,21 @@ def test_roi_tracking_matches_full_frame(cases, method):
     seg.reset()
     seg.segment(frames[0])
     assert seg.last_mode == "full"
+
+
+def test_roi_tracking_grows_the_strips_when_the_wire_moved_beyond_them():
+    """In a sequence whose wire advances tens of px per frame (6 frames over the whole insertion),
+    the wire leaves the 24 px strips; the grown strips find it without a full-frame pass, and
+    every tracked mask equals the full-frame one."""
+    sim = simulate(PhantomOptions(seed=GROW_SEED, n_frames=6, wire_diameter_mm=0.36), make_ct=False)
+    seg = GuidewireSegmenter(method="unet", roi_margin_px=24)
+    modes = []
+    for f in sim.frames:
+        tracked = seg.segment(f)
+        modes.append(seg.last_mode)
+        assert dice(tracked, guidewire_mask(f)) >= ROI_VS_FULL_MIN_DICE
+    assert modes[0] == "full" and "full" not in modes[1:], modes
+    assert "roi-grown" in modes, modes
 
 
 def test_roi_restricts_the_mask(cases):
