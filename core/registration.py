@@ -65,7 +65,9 @@ The energy (paper, eq. 3)::
   the scale of the projection, i.e. the depth. Measured (issue 6): end-to-end
   (``guidewire3d bench`` inputs, seeds 100-129) 22/30 -> 25/30 successes; on
   ``scripts/bench_registration.py --quick`` image2d 91.7% -> 92.5%, single path 50.8% -> 60.8%,
-  projected truth 100% both, median mTRE lower in all three.
+  projected truth 100% both, median mTRE lower in all three (measured before the 2D and 3D
+  centerlines were centred, the --quick numbers on centerlines cached by an older image2d;
+  current numbers: README, "Accuracy and speed").
 * Optional smooth-motion prior (sequences): ``R(T) = ||(dt_mm, r_g dphi_rad)||^2`` with
   ``(dt, dphi) = log(T prior_pose^-1)`` and ``r_g`` the radius of gyration of the tree. A much
   weaker pull (``STABILISER``) toward each LM run's start keeps the directions the data cannot
