@@ -237,16 +237,22 @@ def _unet_class():
                 layers += cbr(c_out, c_out)
             super().__init__(*layers)
 
-    class GuidewireUNet(nn.Module):
-        """UNet: encoder-decoder with skip connections; input (B, 1, H, W) normalised, output logits."""
+    class UNet(nn.Module):
+        """UNet: encoder-decoder with skip connections; input (B, C, H, W) normalised, output logits.
 
-        def __init__(self, config: UNetConfig):
+        ``config.channels`` per level; ``config.in_channels`` (default 1) and
+        ``config.level0_convs`` (default 2) if the config has them. Shared by the guidewire UNet
+        (:class:`UNetConfig`) and the vessel UNet (``vessels2d_learned.VesselUNetConfig``).
+        """
+
+        def __init__(self, config):
             super().__init__()
             ch = tuple(int(c) for c in config.channels)
-            n0 = int(config.level0_convs)
+            n0 = int(getattr(config, "level0_convs", 2))
+            c_in = int(getattr(config, "in_channels", 1))
             self.config = config
             self.enc = nn.ModuleList(
-                [Block(1 if k == 0 else ch[k - 1], ch[k], n0 if k == 0 else 2) for k in range(len(ch))])
+                [Block(c_in if k == 0 else ch[k - 1], ch[k], n0 if k == 0 else 2) for k in range(len(ch))])
             self.up = nn.ModuleList(
                 [nn.ConvTranspose2d(ch[k + 1], ch[k], 2, stride=2) for k in range(len(ch) - 1)])
             self.dec = nn.ModuleList(
@@ -263,8 +269,8 @@ def _unet_class():
                 x = self.dec[k](torch.cat([self.up[k](x), skips[k]], 1))
             return self.head(x)
 
-    _UNET_CLASS = GuidewireUNet
-    return GuidewireUNet
+    _UNET_CLASS = UNet
+    return UNet
 
 
 def build_unet(config: UNetConfig | None = None):

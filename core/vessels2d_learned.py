@@ -171,53 +171,14 @@ def _detect_dark(a: np.ndarray) -> bool:
 # the network
 # --------------------------------------------------------------------------------------------------
 
-_UNET_CLASS = None
-
-
-def _unet_class():
-    """The torch module class (defined lazily so that importing this module does not import torch)."""
-    global _UNET_CLASS
-    if _UNET_CLASS is not None:
-        return _UNET_CLASS
-    import torch
-    from torch import nn
-
-    def block(i, o):
-        return nn.Sequential(nn.Conv2d(i, o, 3, padding=1, bias=False), nn.BatchNorm2d(o), nn.ReLU(inplace=True),
-                             nn.Conv2d(o, o, 3, padding=1, bias=False), nn.BatchNorm2d(o), nn.ReLU(inplace=True))
-
-    class VesselUNet(nn.Module):
-        """UNet; input (B, C, H, W) with H, W multiples of 2**(levels-1); output logits (B, 1, H, W)."""
-
-        def __init__(self, config: VesselUNetConfig):
-            super().__init__()
-            ch = tuple(int(c) for c in config.channels)
-            self.config = config
-            self.enc = nn.ModuleList([block(config.in_channels if k == 0 else ch[k - 1], ch[k])
-                                      for k in range(len(ch))])
-            self.up = nn.ModuleList([nn.ConvTranspose2d(ch[k + 1], ch[k], 2, stride=2) for k in range(len(ch) - 1)])
-            self.dec = nn.ModuleList([block(2 * ch[k], ch[k]) for k in range(len(ch) - 1)])
-            self.head = nn.Conv2d(ch[0], 1, 1)
-            self.pool = nn.MaxPool2d(2)
-
-        def forward(self, x):
-            skips = []
-            for k, enc in enumerate(self.enc):
-                x = enc(x if k == 0 else self.pool(x))
-                skips.append(x)
-            for k in reversed(range(len(self.dec))):
-                x = self.dec[k](torch.cat([self.up[k](x), skips[k]], 1))
-            return self.head(x)
-
-    _UNET_CLASS = VesselUNet
-    return VesselUNet
-
 
 def build_vessel_unet(config: VesselUNetConfig | None = None):
     """A freshly initialised (untrained) torch vessel UNet."""
     config = config or VesselUNetConfig()
     if len(config.channels) < 2 or min(config.channels) < 1 or config.in_channels < 1:
         raise InputError(f"VesselUNetConfig: need >= 2 levels of >= 1 channel, got {config}")
+    from guidewire3d.segmentation import _unet_class
+
     return _unet_class()(config)
 
 
