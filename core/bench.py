@@ -113,13 +113,16 @@ def run_demo(*, out="guidewire3d-demo", seed: int | None = None) -> int:
 # --------------------------------------------------------------------------------------
 # bench
 # --------------------------------------------------------------------------------------
-def _seg_scores(frames, truth_masks, method):
+def _seg_scores(frames, truth_masks, method, wire_radius_px=None):
+    """Per-frame Dice, precision, recall and seconds; ``method`` "unet-wire" is the UNet with the
+    wire model (``wire_model=True``, radius ``wire_radius_px``)."""
     from guidewire3d.segmentation import guidewire_mask
 
     d, p, r, t = [], [], [], []
+    model = method == "unet-wire"
     for f, m in zip(frames, truth_masks):
         t0 = time.perf_counter()
-        pred = guidewire_mask(f, method=method)
+        pred = guidewire_mask(f, method="unet" if model else method, wire_model=model, wire_radius_px=wire_radius_px)
         t.append(time.perf_counter() - t0)
         d.append(metrics.dice(pred, m))
         pr, rc = metrics.precision_recall(pred, m)
@@ -168,7 +171,9 @@ def run_bench(*, n_cases: int = 10, out="bench-results", first_seed: int = 100) 
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    seg = {m: {"dice": [], "prec": [], "rec": [], "t": [], "dice_014": []} for m in ("unet", "ridge")}
+    from guidewire3d.wiremask import projected_wire_radius_px
+
+    seg = {m: {"dice": [], "prec": [], "rec": [], "t": [], "dice_014": []} for m in ("unet", "unet-wire", "ridge")}
     rows2 = {m: {"perr": [], "ldev": [], "t": [], "err3d": [], "tip": [], "held": [], "ok": 0, "n": 0}
              for m in ("Proposed (vessel prior)", "B-spline", "EPnP", "Paper depth formula")}
     reg_mtre, reg_ok, reg_t, epnp_mtre = [], 0, [], []
@@ -176,7 +181,9 @@ def run_bench(*, n_cases: int = 10, out="bench-results", first_seed: int = 100) 
         case, truth, vol, road, live = simulated_case_from_dicom(case_options(k, first_seed=first_seed))
         # Table I: segmentation on every live frame
         for m in seg:
-            d, p, r, t = _seg_scores(live.frames, truth.wire_mask, m)
+            # unet-wire: the wire's radius from its diameter and the XA tags (as a user who knows the wire)
+            radius = projected_wire_radius_px(live.carm, truth.wire_diameter_mm) if m == "unet-wire" else None
+            d, p, r, t = _seg_scores(live.frames, truth.wire_mask, m, radius)
             seg[m]["dice"] += d
             seg[m]["prec"] += p
             seg[m]["rec"] += r
@@ -236,7 +243,8 @@ def run_bench(*, n_cases: int = 10, out="bench-results", first_seed: int = 100) 
     med = lambda v: float(np.nanmedian(v)) if len(v) else float("nan")  # noqa: E731
     h1 = ["Method", "Dice %", "Precision %", "Recall %", "FPS", "Dice % (0.014\")", "paper Dice/Prec/Rec/FPS"]
     t1 = []
-    for m, name in (("unet", "UNet (ours, full frame)"), ("ridge", "Ridge (ours)")):
+    for m, name in (("unet", "UNet (ours, full frame)"), ("unet-wire", "UNet + wire model (ours)"),
+                    ("ridge", "Ridge (ours)")):
         s = seg[m]
         paper = "93.13 / 91.87 / 94.52 / 63" if m == "unet" else "n/a"
         t1.append([name, _fmt(100 * np.mean(s["dice"])), _fmt(100 * np.mean(s["prec"])), _fmt(100 * np.mean(s["rec"])),

@@ -654,7 +654,34 @@ def _unet_mask_from_prob(prob: np.ndarray, threshold: float) -> np.ndarray:
     return _remove_small(m)
 
 
-def guidewire_mask(frame, *, method="unet", roi_uv=None, backend="auto") -> np.ndarray:
+def _check_radius(wire_radius_px) -> float | None:
+    if wire_radius_px is None:
+        return None
+    try:
+        r = float(wire_radius_px)
+    except (TypeError, ValueError):
+        r = float("nan")
+    if not np.isfinite(r) or r <= 0:
+        raise InputError(f"wire_radius_px: expected a finite radius > 0 px, got {wire_radius_px!r}")
+    return r
+
+
+def _wire_model_mask(frame: np.ndarray, mask: np.ndarray, wire_radius_px: float | None) -> np.ndarray:
+    """The wire model: the mask rendered from the ordered wire traced in ``mask`` (``mask`` itself
+    when no wire can be traced in it)."""
+    from guidewire3d.image2d import ordered_wire
+    from guidewire3d.wiremask import model_wire_mask
+
+    if not mask.any():
+        return mask
+    ow = ordered_wire(mask, image=frame)
+    if not ow:
+        return mask
+    return model_wire_mask(mask, ow.points_uv_px, radius_px=wire_radius_px).mask
+
+
+def guidewire_mask(frame, *, method="unet", roi_uv=None, backend="auto", wire_model: bool = False,
+                   wire_radius_px=None) -> np.ndarray:
     """Binary guidewire mask of one live frame.
 
     Parameters
@@ -666,6 +693,16 @@ def guidewire_mask(frame, *, method="unet", roi_uv=None, backend="auto") -> np.n
         Box in pixels (end-exclusive) to restrict the work to; the mask is False outside.
     backend : {"auto", "onnxruntime", "torch"}
         UNet inference backend.
+    wire_model : bool
+        Return the wire model instead of the pixel mask: the ordered sub-pixel wire traced in the
+        mask (:func:`guidewire3d.image2d.ordered_wire`) rendered back as a tube
+        (:func:`guidewire3d.wiremask.model_wire_mask`). Its edges follow the wire's sub-pixel
+        position, which a pixel classifier cannot place on a 1-2 px wide wire. The mask itself is
+        returned when no wire can be traced in it.
+    wire_radius_px : float, optional
+        With ``wire_model``: the wire's radius in the image, px, when it is known
+        (:func:`guidewire3d.wiremask.projected_wire_radius_px`, from the wire's diameter and the
+        C-arm tags); estimated from the mask's width if omitted.
 
     Returns
     -------
@@ -673,12 +710,22 @@ def guidewire_mask(frame, *, method="unet", roi_uv=None, backend="auto") -> np.n
     """
     a = _as_frame(frame)
     m = _method(method)
+    radius = _check_radius(wire_radius_px)
     roi = None if roi_uv is None else _check_roi(roi_uv, a.shape)
     if m is SegMethod.RIDGE:
-        return _ridge_mask(a, RIDGE_SIGMAS_PX, roi)
-    runner, config = _get_runner(backend)
-    prob = unet_probability(a, roi_uv=roi, backend=backend)
-    return _unet_mask_from_prob(prob, config.threshold)
+        mask = _ridge_mask(a, RIDGE_SIGMAS_PX, roi)
+    else:
+        runner, config = _get_runner(backend)
+        prob = unet_probability(a, roi_uv=roi, backend=backend)
+        mask = _unet_mask_from_prob(prob, config.threshold)
+    if wire_model:
+        mask = _wire_model_mask(a, mask, radius)
+        if roi is not None:
+            u0, v0, u1, v1 = roi
+            inside = np.zeros(mask.shape, bool)
+            inside[v0:v1, u0:u1] = True
+            mask &= inside
+    return mask
 
 
 @dataclass(kw_only=True)
@@ -709,6 +756,12 @@ class GuidewireSegmenter:
         Image context around each strip (UNet only).
     full_frame_every : int
         Force a full-frame pass every this many frames (0: never).
+    wire_model : bool
+        Return the rendered wire model instead of the pixel mask (see :func:`guidewire_mask`; the
+        tracking still follows the pixel mask). The live path traces the ordered wire in the pixel
+        mask, so it leaves this off.
+    wire_radius_px : float, optional
+        With ``wire_model``: the wire's known radius in px (see :func:`guidewire_mask`).
     """
 
     method: object = "unet"
@@ -718,6 +771,8 @@ class GuidewireSegmenter:
     strip_px: int = 32
     context_px: int = 8
     full_frame_every: int = 0
+    wire_model: bool = False
+    wire_radius_px: float | None = None
     _prev: np.ndarray | None = field(default=None, init=False, repr=False)
     _count: int = field(default=0, init=False, repr=False)
     _touch: np.ndarray | None = field(default=None, init=False, repr=False)
@@ -725,6 +780,7 @@ class GuidewireSegmenter:
 
     def __post_init__(self):
         self.method = _method(self.method)
+        self.wire_radius_px = _check_radius(self.wire_radius_px)
         if self.roi_margin_px < 0 or self.strip_px < 8 or self.strip_px % UNET_MULTIPLE:
             raise InputError(f"GuidewireSegmenter: roi_margin_px must be >= 0 and strip_px a multiple of "
                              f"{UNET_MULTIPLE}, got {self.roi_margin_px}, {self.strip_px}")
@@ -840,4 +896,6 @@ class GuidewireSegmenter:
             mask = self._full(a, (med, spread))
         self._prev = mask if mask.any() else None
         self._count += 1
+        if self.wire_model:
+            return _wire_model_mask(a, mask, self.wire_radius_px)
         return mask

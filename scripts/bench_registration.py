@@ -44,6 +44,19 @@ SUCCESS_MM = 2.0
 CACHE_VERSION = 2  # cached: simulator outputs (roadmap image, tree, geometry), not the 2D centerline
 
 
+def _source_tag() -> str:
+    """Short hash of the guidewire3d package's source: a cache written by other code is not reused
+    (the simulator and the CTA extraction depend on several modules, so all of them count)."""
+    import hashlib
+
+    import guidewire3d
+
+    h = hashlib.sha1()
+    for f in sorted(Path(guidewire3d.__file__).parent.glob("*.py")):
+        h.update(f.name.encode() + f.read_bytes())
+    return h.hexdigest()[:10]
+
+
 def _truth_centerline(tree, carm, pose, rng, *, noise_px=0.5, dropout=0.3, path_ids=None):
     """Projected true centerline (~1 px spacing) with noise; random branches dropped."""
     if path_ids is not None:
@@ -72,8 +85,9 @@ def load_cases(n, seed0, cache: Path | None, log, *, max_radius=True):
         roadmap_centerline = None
         source = f"projected truth + 0.5 px noise, 30% branch dropout (image2d not importable: {e!r})"
     cases = []
+    tag = _source_tag()
     for k in range(seed0, seed0 + n):
-        f = cache / f"case_v{CACHE_VERSION}_{k}.pkl" if cache else None
+        f = cache / f"case_v{CACHE_VERSION}_{tag}_{k}.pkl" if cache else None
         if f is not None and f.exists():
             cases.append(pickle.loads(f.read_bytes()))
             continue
@@ -152,8 +166,9 @@ def load_e2e_cases(n, seed0, cache: Path | None, log):
     from guidewire3d import image2d, pipeline, vessels3d
 
     cases = []
+    tag = _source_tag()
     for seed in range(seed0, seed0 + n):
-        f = cache / f"e2e_case_v{CACHE_VERSION}_{seed}.pkl" if cache else None
+        f = cache / f"e2e_case_v{CACHE_VERSION}_{tag}_{seed}.pkl" if cache else None
         if f is not None and f.exists():
             cases.append(pickle.loads(f.read_bytes()))
             continue

@@ -1,7 +1,10 @@
 """Benchmark the guidewire segmentation (UNet and ridge) on held-out simulated live frames.
 
 Prints, in the layout of the paper's Table I (method, Dice, precision, recall, FPS), the mask
-scores per method and per wire size / dose, then the ordered-wire accuracy (centerline distance and
+scores per method and per wire size / dose (methods: the UNet's pixel mask; ``UNet-wire``, the
+UNet followed by the wire model -- the ordered sub-pixel wire rendered as a tube whose radius is
+estimated from the UNet mask; ``UNet-wire d``, the same with the radius from the wire's diameter
+and the C-arm tags, as a user who knows the wire would run it; the ridge detector), then the ordered-wire accuracy (centerline distance and
 tip error against the simulator's true projection, visible points only) and the per-frame timing
 of each mode (full-frame vs ROI tracking, backend, threads).
 
@@ -12,7 +15,8 @@ tracking sees. Run::
 
     nice .venv/bin/python scripts/bench_segmentation.py --seeds 12 --frames 20
 
-(12 x 20 = 240 frames; the simulated frames are cached in /tmp). The torch-backend timing is
+(12 x 20 = 240 frames; the simulated frames are cached in /tmp, keyed on a hash of the simulator's
+package source, so a changed simulator is never benchmarked on stale frames). The torch-backend timing is
 measured in a separate process (``--timing-only --backend torch``) so the two runtimes do not share
 thread pools.
 """
@@ -28,6 +32,11 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 DOSES = (0.5, 1.0, 2.0)
+# the UNet followed by the wire model (wire_model=True): radius estimated from the UNet mask, or from
+# the wire's diameter and the C-arm tags
+UNET_WIRE = "UNet-wire"
+UNET_WIRE_D = "UNet-wire d"
+METHODS = ("UNet", UNET_WIRE, UNET_WIRE_D, "Ridge")
 DIAMETERS = (0.36, 0.89)
 
 
@@ -36,26 +45,46 @@ def case_options(seed):
                 catheter=seed % 3 != 2)
 
 
+def simulator_digest() -> str:
+    """Short hash of the guidewire3d package's source (the simulator and what it uses): frames cached
+    by other code are not reused (simulating all 240 frames takes ~15 s)."""
+    import hashlib
+
+    import guidewire3d
+
+    h = hashlib.sha1()
+    for f in sorted(Path(guidewire3d.__file__).parent.glob("*.py")):
+        h.update(f.name.encode() + f.read_bytes())
+    return h.hexdigest()[:10]
+
+
 def load_cases(n_seeds, n_frames, cache_dir):
+    """The held-out cases: frames, truth masks and projections, and the wire's radius in px at the
+    isocentre from its diameter and the C-arm tags (what a user knows: the wire's size and the DICOM
+    geometry). Cached per seed in ``cache_dir``, keyed on the package's source."""
     from guidewire3d.phantom import PhantomOptions, simulate
+    from guidewire3d.wiremask import projected_wire_radius_px
 
     cases = []
+    tag = simulator_digest()
     for seed in range(n_seeds):
         opts = case_options(seed)
-        f = Path(cache_dir) / f"seg_bench_s{seed}_t{n_frames}.npz"
+        f = Path(cache_dir) / f"seg_bench_s{seed}_t{n_frames}_{tag}.npz"
         if f.is_file():
             d = np.load(f, allow_pickle=False)
             uv = [d[f"uv{t}"] for t in range(n_frames)]
             vis = [d[f"vis{t}"] for t in range(n_frames)]
-            cases.append(dict(seed=seed, frames=d["frames"], masks=d["masks"], uv=uv, vis=vis, **opts))
+            cases.append(dict(seed=seed, frames=d["frames"], masks=d["masks"], uv=uv, vis=vis,
+                              radius_px=float(d["radius_px"]), **opts))
             continue
         sim = simulate(PhantomOptions(seed=seed, n_frames=n_frames, **opts), make_ct=False)
         uv = [np.asarray(u) for u in sim.wire_uv_px]
         vis = [np.asarray(v) for v in sim.wire_visible]
-        np.savez(f, frames=sim.frames, masks=sim.wire_mask, **{f"uv{t}": uv[t] for t in range(n_frames)},
-                 **{f"vis{t}": vis[t] for t in range(n_frames)})
+        radius = projected_wire_radius_px(sim.carm, opts["wire_diameter_mm"])
+        np.savez(f, frames=sim.frames, masks=sim.wire_mask, radius_px=radius,
+                 **{f"uv{t}": uv[t] for t in range(n_frames)}, **{f"vis{t}": vis[t] for t in range(n_frames)})
         cases.append(dict(seed=seed, frames=np.asarray(sim.frames), masks=np.asarray(sim.wire_mask), uv=uv,
-                          vis=vis, **opts))
+                          vis=vis, radius_px=radius, **opts))
     return cases
 
 
@@ -88,11 +117,14 @@ def run_methods(cases, backend, threads, *, quality=True):
 
     unet_probability(cases[0]["frames"][0], backend=backend, num_threads=threads)  # warm up / export
     rows = []
-    modes = [("UNet", "unet", "full"), ("UNet", "unet", "roi"), ("Ridge", "ridge", "full"), ("Ridge", "ridge", "roi")]
+    modes = [("UNet", "unet", "full"), ("UNet", "unet", "roi"), ("Ridge", "ridge", "full"), ("Ridge", "ridge", "roi"),
+             (UNET_WIRE, "unet", "full"), (UNET_WIRE_D, "unet", "full"), (UNET_WIRE_D, "unet", "roi")]
     for name, method, mode in modes:
         for c in cases:
             seg = GuidewireSegmenter(method=method, backend=backend, num_threads=threads,
-                                     full_frame_every=1 if mode == "full" else 0)
+                                     full_frame_every=1 if mode == "full" else 0,
+                                     wire_model=name in (UNET_WIRE, UNET_WIRE_D),
+                                     wire_radius_px=c["radius_px"] if name == UNET_WIRE_D else None)
             for t in range(len(c["frames"])):
                 frame = c["frames"][t]
                 mask, dt = timed(seg.segment, frame)
@@ -122,21 +154,23 @@ def _sel(rows, **kw):
 
 def print_tables(rows, backend, threads):
     print("\nTable I (layout of the paper): guidewire segmentation on held-out simulated frames")
-    print(f"{'Method':<8} {'subset':<16} {'frames':>6} {'Dice (%)':>9} {'Precision (%)':>14} {'Recall (%)':>11} "
+    print(f"{'Method':<12} {'subset':<16} {'frames':>6} {'Dice (%)':>9} {'Precision (%)':>14} {'Recall (%)':>11} "
           f"{'FPS':>6}  mode")
-    for name in ("UNet", "Ridge"):
+    for name in METHODS:
         for label, kw in [("all", {}), ('0.014" wire', dict(diameter=0.36)), ('0.035" wire', dict(diameter=0.89)),
                           *[(f"dose {d:g}", dict(dose=d)) for d in DOSES]]:
             rs = _sel(rows, method=name, want="full", **kw)
             if not rs:
                 continue
             fps = 1.0 / np.median([r["seg_s"] for r in rs])
-            print(f"{name:<8} {label:<16} {len(rs):>6} {100 * np.mean([r['dice'] for r in rs]):>9.2f} "
+            print(f"{name:<12} {label:<16} {len(rs):>6} {100 * np.mean([r['dice'] for r in rs]):>9.2f} "
                   f"{100 * np.mean([r['precision'] for r in rs]):>14.2f} {100 * np.mean([r['recall'] for r in rs]):>11.2f} "
                   f"{fps:>6.0f}  full-frame, {backend}, {threads} threads")
         rs = _sel(rows, method=name, want="roi")
+        if not rs:
+            continue
         fps = 1.0 / np.median([r["seg_s"] for r in rs])
-        print(f"{name:<8} {'all, tracking':<16} {len(rs):>6} {100 * np.mean([r['dice'] for r in rs]):>9.2f} "
+        print(f"{name:<12} {'all, tracking':<16} {len(rs):>6} {100 * np.mean([r['dice'] for r in rs]):>9.2f} "
               f"{100 * np.mean([r['precision'] for r in rs]):>14.2f} {100 * np.mean([r['recall'] for r in rs]):>11.2f} "
               f"{fps:>6.0f}  ROI tracking, {backend}, {threads} threads")
 
@@ -162,10 +196,12 @@ def print_timing(rows, backend, threads):
     load = ", ".join(f"{x:.1f}" for x in os.getloadavg())
     print(f"\nTiming per 512x512 frame (median ms), backend {backend}, {threads} threads "
           f"(host load average {load} on {os.cpu_count()} cores)")
-    print(f"{'Method':<8} {'mode':<22} {'frames':>6} {'segment ms':>11} {'ordered_wire ms':>16} {'total ms':>9} {'FPS':>6}")
-    for name in ("UNet", "Ridge"):
+    print(f"{'Method':<12} {'mode':<22} {'frames':>6} {'segment ms':>11} {'ordered_wire ms':>16} {'total ms':>9} {'FPS':>6}")
+    for name in METHODS:
         for want in ("full", "roi"):
             rs = _sel(rows, method=name, want=want)
+            if not rs:
+                continue
             if want == "roi":
                 n_roi = sum(r["mode"].startswith("roi") for r in rs)
                 label = f"ROI tracking ({n_roi}/{len(rs)} ROI)"
@@ -175,10 +211,10 @@ def print_timing(rows, backend, threads):
             seg = np.median([r["seg_s"] for r in sub]) * 1e3
             ow = np.median([r["ow_s"] for r in sub]) * 1e3
             tot = np.median([r["seg_s"] + r["ow_s"] for r in sub]) * 1e3
-            print(f"{name:<8} {label:<22} {len(sub):>6} {seg:>11.1f} {ow:>16.1f} {tot:>9.1f} {1e3 / tot:>6.0f}")
+            print(f"{name:<12} {label:<22} {len(sub):>6} {seg:>11.1f} {ow:>16.1f} {tot:>9.1f} {1e3 / tot:>6.0f}")
             if want == "roi" and len(rs) != len(sub):
                 allt = np.median([r["seg_s"] + r["ow_s"] for r in rs]) * 1e3
-                print(f"{'':<8} {'ROI tracking, all frames':<22} {len(rs):>6} {'':>11} {'':>16} {allt:>9.1f} {1e3 / allt:>6.0f}")
+                print(f"{'':<12} {'ROI tracking, all frames':<22} {len(rs):>6} {'':>11} {'':>16} {allt:>9.1f} {1e3 / allt:>6.0f}")
 
 
 def main(argv=None):
