@@ -234,13 +234,20 @@ def wire_width_profile_px(seg, points_uv_px) -> np.ndarray:
     s = np.asarray(seg)
     if s.ndim != 2:
         raise InputError(f"seg: expected a 2D mask or probability map, got shape {s.shape}")
-    p = _polyline(points_uv_px)
+    return _widths(s, _profile_samples(_polyline(points_uv_px)))
+
+
+def _profile_samples(p: np.ndarray) -> np.ndarray:
+    """(2, M, K) (row, col) sample coordinates of the cross-wire profiles."""
     q, n = _profile_points(p)
     offs = np.arange(-WIDTH_HALF_RANGE_PX, WIDTH_HALF_RANGE_PX + 1e-9, WIDTH_STEP_PX)
     pts = q[:, None, :] + offs[None, :, None] * n[:, None, :]
-    v = ndi.map_coordinates(s.astype(np.float32), [pts[..., 1].ravel(), pts[..., 0].ravel()], order=1,
-                            mode="constant", cval=0.0).reshape(pts.shape[:2])
-    return v.sum(axis=1) * WIDTH_STEP_PX
+    return np.stack([pts[..., 1], pts[..., 0]])
+
+
+def _widths(s: np.ndarray, samples: np.ndarray) -> np.ndarray:
+    v = ndi.map_coordinates(s.astype(np.float32), samples.reshape(2, -1), order=1, mode="constant", cval=0.0)
+    return v.reshape(samples.shape[1:]).sum(axis=1) * WIDTH_STEP_PX
 
 
 def _radius_bound_px(target_width_px: float) -> float:
@@ -248,11 +255,11 @@ def _radius_bound_px(target_width_px: float) -> float:
     return float(np.clip(0.5 * target_width_px + 1.0, RADIUS_RANGE_PX[0] + 2 * RADIUS_TOL_PX, RADIUS_RANGE_PX[1]))
 
 
-def _match_radius(cov: _Coverage, target_width_px: float, points: np.ndarray) -> float:
+def _match_radius(cov: _Coverage, target_width_px: float, samples: np.ndarray) -> float:
     lo, hi = RADIUS_RANGE_PX[0], _radius_bound_px(target_width_px)
     while hi - lo > RADIUS_TOL_PX:
         mid = 0.5 * (lo + hi)
-        if np.median(wire_width_profile_px(cov.render(mid), points)) < target_width_px:
+        if np.median(_widths(cov.render(mid), samples)) < target_width_px:
             lo = mid
         else:
             hi = mid
@@ -279,8 +286,9 @@ def wire_radius_px(seg, points_uv_px) -> float:
     p = _polyline(points_uv_px)
     if s.ndim != 2:
         raise InputError(f"seg: expected a 2D mask or probability map, got shape {s.shape}")
-    target = float(np.median(wire_width_profile_px(s, p)))
-    return _match_radius(_coverage(p, s.shape, _radius_bound_px(target)), target, p)
+    samples = _profile_samples(p)
+    target = float(np.median(_widths(s, samples)))
+    return _match_radius(_coverage(p, s.shape, _radius_bound_px(target)), target, samples)
 
 
 @dataclass(frozen=True, eq=False)
@@ -336,9 +344,10 @@ def model_wire_mask(seg, points_uv_px, *, width_seg=None, radius_px: float | Non
         raise InputError(f"width_seg: shape {ws.shape} differs from the mask's {m.shape}")
     p = _polyline(points_uv_px)
     if radius_px is None:
-        target = float(np.median(wire_width_profile_px(ws, p)))
+        samples = _profile_samples(p)
+        target = float(np.median(_widths(ws, samples)))
         cov = _coverage(p, m.shape, _radius_bound_px(target))
-        r = _match_radius(cov, target, p)
+        r = _match_radius(cov, target, samples)
     else:
         r = float(radius_px)
         if not np.isfinite(r) or r <= 0:
