@@ -666,6 +666,10 @@ def roadmap_centerline(image, *, mask=None, max_radius_px: float | None = None) 
 class OrderedWire:
     """Ordered 2D guidewire polyline (falsy when extraction failed).
 
+    It behaves as its ``(N, 2)`` point array where an array is expected (``np.asarray(wire)``,
+    ``wire[:, 0]``, ``len(wire)``, ``wire.shape``), so callers of the stable API
+    ``ordered_wire(mask) -> (N, 2) float`` can use it directly; a failure is empty and falsy.
+
     Attributes
     ----------
     points_uv_px : (N, 2) ndarray of float
@@ -687,6 +691,25 @@ class OrderedWire:
 
     def __bool__(self) -> bool:
         return bool(self.success)
+
+    # --- the (N, 2) array protocol -------------------------------------------------------------
+    def __array__(self, dtype=None, copy=None):
+        a = self.points_uv_px if dtype is None else self.points_uv_px.astype(dtype)
+        return a.copy() if copy else a
+
+    def __len__(self) -> int:
+        return len(self.points_uv_px)
+
+    def __getitem__(self, index):
+        return self.points_uv_px[index]
+
+    @property
+    def shape(self) -> tuple[int, ...]:
+        return self.points_uv_px.shape
+
+    @property
+    def dtype(self):
+        return self.points_uv_px.dtype
 
     @property
     def tip_uv_px(self) -> np.ndarray:

@@ -73,6 +73,21 @@ def test_ordered_wire_subpixel_accuracy_and_order(seed):
     assert ow.n_gaps_bridged == 0
 
 
+def test_ordered_wire_result_is_the_point_array_of_the_stable_api():
+    """``ordered_wire(mask) -> (N, 2) float (u, v)``: the result works wherever an array is expected;
+    a failure is empty and falsy."""
+    rng = np.random.default_rng(3)
+    truth = _random_curve(rng)
+    ow = ordered_wire(_rasterise(truth, (256, 256), 1.5), proximal_hint_uv=truth[0])
+    pts = np.asarray(ow)
+    assert pts.shape == ow.shape == (len(ow), 2) and pts.dtype == ow.dtype == np.float64
+    assert np.array_equal(pts, ow.points_uv_px)
+    assert np.array_equal(ow[:, 0], ow.points_uv_px[:, 0]) and np.array_equal(ow[-1], ow.tip_uv_px)
+    assert symmetric_polyline_distance(np.asarray(ow, dtype=np.float32), truth, step=0.25) <= SUBPIXEL_TOL
+    failed = ordered_wire(np.zeros((64, 64), bool))
+    assert not failed and len(failed) == 0 and np.asarray(failed).shape == (0, 2)
+
+
 def test_ordered_wire_order_from_hint_and_border():
     rng = np.random.default_rng(5)
     truth = _random_curve(rng)                 # starts on the left image border
