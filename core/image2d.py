@@ -273,7 +273,7 @@ def vessel_mask(image, *, dark_vessels: bool | None = None, max_radius_px: float
         processed DSA: classical 0.796 vs learned 0.791 without ``max_radius_px``); ``LEARNED``
         for integer-valued images (stored detector pixels: 8/16-bit PNG or DICOM data, also when
         read as float), where the learned model measured better on real non-subtracted coronary
-        angiograms (5-fold cross-validated Dice 0.770 vs 0.694), provided its weights file is
+        angiograms (5-fold cross-validated Dice 0.778 vs 0.694), provided its weights file is
         present. Measurements: ``scripts/bench_vessels2d_real.py``.
 
     Returns

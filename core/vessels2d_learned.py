@@ -3,7 +3,7 @@
 The classical :func:`guidewire3d.image2d.vessel_mask` (top-hat x Hessian vesselness) is tuned
 for clean subtracted roadmaps; on real coronary angiograms (catheter, ribs, diaphragm, low
 contrast of small branches) a UNet trained on manually labelled frames does better (5-fold
-cross-validated Dice 0.756 vs 0.694 on the 40 real images of ``shared/data/coronary-angiograms``).
+cross-validated Dice 0.778 vs 0.694 on the 40 real images of ``shared/data/coronary-angiograms``).
 This module holds that network, its input normalisation, training helpers (random crops with
 augmentation, Dice + BCE loss) and inference. ``vessel_mask(image, method="learned")`` calls
 :func:`learned_vessel_mask`.
@@ -19,15 +19,15 @@ augmentation, Dice + BCE loss) and inference. ``vessel_mask(image, method="learn
 - Weights: ``resources/vessel_unet.safetensors`` (safetensors, never pickle), written by
   ``scripts/train_vessels2d.py`` (trained on the 40 real coronary angiograms; its metadata
   records the recipe, the probability threshold and the cross-validated Dice per image).
-  Reproduce: ``nice -n 10 .venv/bin/python scripts/train_vessels2d.py --workers 2``.
+  Reproduce: ``nice -n 10 .venv/bin/python scripts/train_vessels2d.py --workers 2`` (4400 steps).
 - Inference (:func:`vessel_probability`, :func:`learned_vessel_mask`): the whole image at
-  once (reflect-padded to a multiple of 16), averaged over its four flips (test-time
-  augmentation, one batch of 4; deterministic), probability set to 0 outside the classical
+  once (reflect-padded to a multiple of 16), averaged over the eight flips / transposes
+  (test-time augmentation, two batches of 4; deterministic), probability set to 0 outside the classical
   detector's field of view (the dark collimator edge looks like a vessel to the network),
   probability >= the threshold recorded in the weights (picked on the training images;
   ``THRESHOLD`` if none), components below ``MIN_COMPONENT_PX`` dropped, resampled back to
-  the input size. ~220 ms CPU for a 300x300 or 512x512 image on one torch thread (~70 ms
-  without the flips).
+  the input size. ~350 ms CPU for a 300x300 or 512x512 image on one torch thread (~50 ms
+  without the test-time augmentation; once per roadmap).
 
 torch is imported only inside functions.
 """
@@ -67,7 +67,7 @@ NORM_PERCENTILES = (1.0, 99.0)  # intensity range mapped to [0, 1]
 NORM_CLIP = (-0.25, 1.25)       # normalised values are clipped to this range
 UNET_MULTIPLE = 16              # 4 levels: 3 poolings -> multiple of 8; 16 leaves margin
 THRESHOLD = 0.5                 # vessel probability threshold when the weights record none
-TTA = True                      # average the four flips at inference
+TTA = True                      # average the eight flips / transposes at inference
 MIN_COMPONENT_PX = 20           # components smaller than this (at reference size) are dropped
 
 
@@ -263,19 +263,26 @@ def _net_input(x01: np.ndarray) -> np.ndarray:
 
 def _predict_probability(model, x01: np.ndarray, *, tta: bool) -> np.ndarray:
     """Vessel probability of the network on a normalised (h, w) image (reflect-padded to
-    UNET_MULTIPLE); with ``tta`` the mean over the four flips (identity, left-right, up-down, both),
-    run as one batch."""
+    UNET_MULTIPLE); with ``tta`` the mean over the eight symmetries of the square (the four flips of
+    the image and of its transpose; the training augmentation has all of them), run as two
+    batches of four."""
     import torch
 
     h, w = x01.shape
     ph, pw = (-h) % UNET_MULTIPLE, (-w) % UNET_MULTIPLE
     z = np.pad(_net_input(x01), ((ph // 2, ph - ph // 2), (pw // 2, pw - pw // 2)), mode="reflect")
     flips = ((), (1,), (0,), (0, 1)) if tta else ((),)
-    batch = np.stack([np.flip(z, f) if f else z for f in flips])[:, None]
-    with torch.inference_mode():
-        logits = model(torch.from_numpy(np.ascontiguousarray(batch, np.float32)))[:, 0].numpy()
-    prob = 1.0 / (1.0 + np.exp(-np.clip(logits, -30.0, 30.0)))
-    prob = np.mean([np.flip(p, f) if f else p for p, f in zip(prob, flips)], axis=0)
+    acc = np.zeros(z.shape, np.float64)
+    for transpose in ((False, True) if tta else (False,)):
+        base = z.T if transpose else z
+        batch = np.stack([np.flip(base, f) if f else base for f in flips])[:, None]
+        with torch.inference_mode():
+            logits = model(torch.from_numpy(np.ascontiguousarray(batch, np.float32)))[:, 0].numpy()
+        prob = 1.0 / (1.0 + np.exp(-np.clip(logits, -30.0, 30.0)))
+        for p, f in zip(prob, flips):
+            p = np.flip(p, f) if f else p
+            acc += p.T if transpose else p
+    prob = acc / (len(flips) * (2 if tta else 1))
     return prob[ph // 2: ph // 2 + h, pw // 2: pw // 2 + w].astype(np.float32)
 
 
@@ -294,8 +301,8 @@ def vessel_probability(image, *, dark_vessels: bool | None = None, weights_path=
     model : torch.nn.Module, optional
         A network to use instead of loading one (training / cross-validation).
     tta : bool or None
-        Test-time augmentation: average the probabilities of the four flipped copies;
-        deterministic. ``None`` (default): as recorded in the weights (:func:`model_tta`).
+        Test-time augmentation: average the probabilities of the eight flipped / transposed
+        copies; deterministic. ``None`` (default): as recorded in the weights (:func:`model_tta`).
 
     Returns
     -------
