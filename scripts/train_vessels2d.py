@@ -150,7 +150,9 @@ def main(argv=None):
     ap.add_argument("--folds", type=int, default=5, help="cross-validation folds (0: none)")
     ap.add_argument("--no-final", action="store_true", help="skip the final model on all images")
     ap.add_argument("--workers", type=int, default=2)
-    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--seed", type=int, default=0, help="seed of the fold split (and of the trainings)")
+    ap.add_argument("--train-seed", type=int, default=None,
+                    help="seed of the trainings if not --seed (same folds, other initialisation / crops)")
     ap.add_argument("--steps", type=int, default=RECIPE["steps"], help="optimiser steps per training")
     ap.add_argument("--channels", default=",".join(str(c) for c in RECIPE["channels"]),
                     help="UNet channels per level, finest first (comma-separated)")
@@ -177,12 +179,13 @@ def main(argv=None):
     else:
         tasks = []
         folds = folds_of(n, args.folds, args.seed) if args.folds > 1 else []
+        tseed = args.seed if args.train_seed is None else args.train_seed
         for f, test in enumerate(folds):
             train = np.setdiff1d(np.arange(n), test)
-            tasks.append((f"fold{f}", train.tolist(), test.tolist(), args.data, args.seed + 1 + f, recipe,
+            tasks.append((f"fold{f}", train.tolist(), test.tolist(), args.data, tseed + 1 + f, recipe,
                           args.save_dir))
         if not args.no_final:
-            tasks.append(("final", list(range(n)), list(range(n)), args.data, args.seed, recipe, args.save_dir))
+            tasks.append(("final", list(range(n)), list(range(n)), args.data, tseed, recipe, args.save_dir))
         t0 = time.perf_counter()
         if args.workers > 1:
             with mp.get_context("spawn").Pool(args.workers) as pool:
