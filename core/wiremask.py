@@ -8,8 +8,8 @@ within ~0.1 px of the truth on the simulator's frames), so this module draws the
 - :func:`render_wire_mask`: the pixels of which at least ``COVER_FRACTION`` of the area lies
   within ``radius_px`` of the centre polyline and not beyond its ends (a tube cut flat at both
   ends; estimated on a ``SUBSAMPLE`` x ``SUBSAMPLE`` grid of points per pixel), plus every pixel
-  the centre line passes through (a wire always marks
-  the pixels it crosses). This is a partial-volume mask of the projected tube.
+  the centre line passes through (a wire always marks the pixels it crosses). This is a
+  partial-volume mask of the projected tube.
 - :func:`wire_radius_px`: the tube radius whose rendered mask has the same median width across
   the wire as a given (soft) segmentation, measured along the normals of the wire. The median
   ignores where the wire runs inside a catheter or crosses other dark structures.
@@ -64,6 +64,8 @@ def _polyline(points_uv_px, name: str = "points_uv_px") -> np.ndarray:
         raise InputError(f"{name}: expected an (N >= 2, 2) array of (u, v) px, got shape {p.shape}")
     if not np.isfinite(p).all():
         raise InputError(f"{name}: contains NaN or infinite values")
+    if not np.any(np.linalg.norm(np.diff(p, axis=0), axis=1) > 0):
+        raise InputError(f"{name}: all points coincide (a polyline of zero length)")
     return p
 
 

@@ -117,6 +117,8 @@ def test_bad_input_raises():
         render_wire_mask(uv[:1], 1.0, SHAPE)
     with pytest.raises(InputError, match="points_uv_px"):
         render_wire_mask(np.where(np.arange(len(uv))[:, None] == 3, np.nan, uv), 1.0, SHAPE)
+    with pytest.raises(InputError, match="zero length"):
+        render_wire_mask(np.repeat(uv[:1], 5, axis=0), 1.0, SHAPE)
     with pytest.raises(InputError, match="radius_px"):
         render_wire_mask(uv, 0.0, SHAPE)
     with pytest.raises(InputError, match="shape"):
