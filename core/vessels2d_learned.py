@@ -47,6 +47,7 @@ __all__ = [
     "VesselUNetConfig",
     "normalize_angiogram",
     "build_vessel_unet",
+    "build_vessel_ensemble",
     "save_vessel_unet",
     "load_vessel_unet",
     "vessel_probability",
@@ -182,14 +183,45 @@ def build_vessel_unet(config: VesselUNetConfig | None = None):
     return _unet_class()(config)
 
 
+_ENSEMBLE_CLASS = None
+
+
+def build_vessel_ensemble(members):
+    """An ensemble of vessel UNets of one architecture: its output is the logit of the members'
+    mean probability (so everything downstream treats it as one network). Saved and loaded like a
+    single network (:func:`save_vessel_unet`, :func:`load_vessel_unet`; metadata ``members``)."""
+    global _ENSEMBLE_CLASS
+    members = list(members)
+    if len(members) < 2 or any(m.config != members[0].config for m in members):
+        raise InputError(f"vessel UNet ensemble: need >= 2 members of one architecture, got {len(members)}")
+    if _ENSEMBLE_CLASS is None:
+        import torch
+        from torch import nn
+
+        class VesselUNetEnsemble(nn.Module):
+            def __init__(self, nets):
+                super().__init__()
+                self.members = nn.ModuleList(nets)
+                self.config = nets[0].config
+
+            def forward(self, x):
+                p = torch.stack([torch.sigmoid(m(x)) for m in self.members]).mean(dim=0)
+                return torch.logit(p, eps=1e-7)
+
+        _ENSEMBLE_CLASS = VesselUNetEnsemble
+    return _ENSEMBLE_CLASS(members)
+
+
 def save_vessel_unet(model, path, *, extra_metadata: dict | None = None) -> Path:
-    """Write the weights (float32, BatchNorm running statistics included) and config to safetensors."""
+    """Write the weights (float32, BatchNorm running statistics included) and config to safetensors
+    (an ensemble's members under ``members.<k>.``, their number in the metadata)."""
     from safetensors.torch import save_file
 
     state = {k: v.detach().to("cpu").float().contiguous().clone() for k, v in model.state_dict().items()
              if not k.endswith("num_batches_tracked")}
     meta = model.config.to_metadata()
     meta["format"] = FORMAT_TAG
+    meta["members"] = str(len(model.members)) if hasattr(model, "members") else "1"
     for k, v in (extra_metadata or {}).items():
         meta[str(k)] = v if isinstance(v, str) else json.dumps(v)
     path = Path(path)
@@ -209,8 +241,9 @@ def load_vessel_unet(path=None):
     Returns
     -------
     torch.nn.Module
-        The network; ``config`` is its :class:`VesselUNetConfig` and ``metadata`` the file's
-        metadata (training recipe, cross-validated Dice).
+        The network (or ensemble of networks, :func:`build_vessel_ensemble`); ``config`` is its
+        :class:`VesselUNetConfig` and ``metadata`` the file's metadata (training recipe,
+        cross-validated Dice).
 
     Raises
     ------
@@ -230,7 +263,15 @@ def load_vessel_unet(path=None):
         raise InputError(f"{path}: not a readable safetensors file ({err})") from None
     if meta.get("format") != FORMAT_TAG:
         raise InputError(f"{path}: not a vessel UNet file (format {meta.get('format')!r})")
-    model = build_vessel_unet(VesselUNetConfig.from_metadata(meta))
+    try:
+        n_members = int(meta.get("members", "1"))
+    except ValueError:
+        n_members = 0
+    if n_members < 1:
+        raise InputError(f"{path}: bad 'members' in the metadata ({meta.get('members')!r})")
+    config = VesselUNetConfig.from_metadata(meta)
+    model = (build_vessel_unet(config) if n_members == 1
+             else build_vessel_ensemble([build_vessel_unet(config) for _ in range(n_members)]))
     missing, unexpected = model.load_state_dict(tensors, strict=False)
     missing = [k for k in missing if not k.endswith("num_batches_tracked")]
     if missing or unexpected:

@@ -110,12 +110,31 @@ def _load_results(folder: Path) -> list[dict]:
 
 
 def _model(state, channels):
-    from guidewire3d.vessels2d_learned import VesselUNetConfig, build_vessel_unet
+    """The network of a task result; a list of states is an ensemble of them."""
+    from guidewire3d.vessels2d_learned import VesselUNetConfig, build_vessel_ensemble, build_vessel_unet
 
+    if isinstance(state, list):
+        return build_vessel_ensemble([_model(s, channels) for s in state])
     model = build_vessel_unet(VesselUNetConfig(channels=tuple(channels)))
     model.load_state_dict(state)
     model.eval()
     return model
+
+
+def _ensemble_results(a: list[dict], b: list[dict]) -> list[dict]:
+    """Pair the task results of two runs by name (same held-out images) into ensembles."""
+    by_name = {r["name"]: r for r in b}
+    out = []
+    for r in a:
+        o = by_name.get(r["name"])
+        if o is None:
+            continue
+        if sorted(o["held_out_ids"]) != sorted(r["held_out_ids"]) or o["channels"] != r["channels"]:
+            raise SystemExit(f"--ensemble-with: {r['name']} differs in held-out images or architecture")
+        states = (r["state"] if isinstance(r["state"], list) else [r["state"]]) + [o["state"]]
+        opts = r["options"] if isinstance(r["options"], list) else [r["options"]]
+        out.append(dict(r, state=states, options=opts + [o["options"]], train_s=r["train_s"] + o["train_s"]))
+    return out
 
 
 THRESHOLD_GRID = np.round(np.arange(0.30, 0.701, 0.05), 2)   # candidate probability thresholds
@@ -163,6 +182,9 @@ def main(argv=None):
     ap.add_argument("--save-dir", default=None, help="also write every fold's model here")
     ap.add_argument("--rescore", default=None,
                     help="no training: score the models a previous run wrote to this --save-dir")
+    ap.add_argument("--ensemble-with", action="append", default=[], metavar="DIR",
+                    help="with --rescore: average each model with the same-named model of this --save-dir "
+                         "(a run with the same folds and another --train-seed); repeatable")
     ap.add_argument("--no-tta", action="store_true", help="score without test-time flips")
     ap.add_argument("--out", default=None, help="weights path (default resources/vessel_unet.safetensors)")
     args = ap.parse_args(argv)
@@ -176,6 +198,9 @@ def main(argv=None):
     if args.rescore:
         results = _load_results(Path(args.rescore))
         print(f"re-scoring {len(results)} models from {args.rescore}")
+        for other in args.ensemble_with:
+            results = _ensemble_results(results, _load_results(Path(other)))
+            print(f"  ... as ensembles with the models of {other}")
     else:
         tasks = []
         folds = folds_of(n, args.folds, args.seed) if args.folds > 1 else []
@@ -242,7 +267,9 @@ def main(argv=None):
               f"TRAINING-SET Dice mean {d.mean():.3f}, median {np.median(d):.3f} (not a generalisation "
               "estimate; see the CV above)")
         meta = dict(training_data="coronary-angiograms (40 real non-subtracted, 300x300, manual masks)",
-                    recipe=json.dumps({**r["options"], "channels": list(r["channels"])}),
+                    recipe=json.dumps([{**o, "channels": list(r["channels"])} for o in r["options"]]
+                                      if isinstance(r["options"], list)
+                                      else {**r["options"], "channels": list(r["channels"])}),
                     threshold=f"{t:.2f}", tta=json.dumps(tta),
                     tta_transforms="flips of the image and of its transpose (8)" if tta else "none",
                     train_dice_mean=f"{d.mean():.4f}", trainer="scripts/train_vessels2d.py",

@@ -17,6 +17,7 @@ from guidewire3d.vessels2d_learned import (
     TTA,
     TrainOptions,
     VesselUNetConfig,
+    build_vessel_ensemble,
     build_vessel_unet,
     dice_bce_loss,
     learned_vessel_mask,
@@ -112,6 +113,24 @@ def test_save_load_round_trip_gives_identical_output(tmp_path):
     np.testing.assert_allclose(vessel_probability(img, dark_vessels=True, model=model),
                                vessel_probability(img, dark_vessels=True, model=back), atol=1e-6)
     assert json.loads(back.metadata["note"]) == [1, 2]
+
+
+def test_ensemble_is_the_mean_probability_of_its_members_and_round_trips(tmp_path):
+    import torch
+
+    torch.manual_seed(2)
+    members = [build_vessel_unet(VesselUNetConfig(channels=(4, 8))).eval() for _ in range(2)]
+    ens = build_vessel_ensemble(members).eval()
+    img = np.random.default_rng(3).random((40, 56)).astype(np.float32)
+    ref = np.mean([vessel_probability(img, dark_vessels=True, model=m, tta=False) for m in members], axis=0)
+    np.testing.assert_allclose(vessel_probability(img, dark_vessels=True, model=ens, tta=False), ref, atol=1e-5)
+    back = load_vessel_unet(save_vessel_unet(ens, tmp_path / "e.safetensors"))
+    assert back.metadata["members"] == "2"
+    np.testing.assert_allclose(vessel_probability(img, dark_vessels=True, model=back, tta=False), ref, atol=1e-5)
+    with pytest.raises(InputError, match="members"):
+        build_vessel_ensemble(members[:1])
+    with pytest.raises(InputError, match="members"):
+        build_vessel_ensemble([members[0], build_vessel_unet(VesselUNetConfig(channels=(4, 8, 16)))])
 
 
 # ---------------------------------------------------------------------------------------------
