@@ -237,6 +237,9 @@ def run_to_outdir(cta, roadmap, frames, out_dir, *, series_uid=None, overrides=N
         "frames": str(Path(frames).resolve()),
         "roadmap_frame": result.roadmap_frame_index,
         "series_uid": vol.series_uid,
+        "method": str(getattr(method, "value", method)),
+        "segmenter": str(getattr(segmenter, "value", segmenter)),
+        "forced": bool(force),
     }
     out_dir.parent.mkdir(parents=True, exist_ok=True)
     staging = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.staging-", dir=out_dir.parent))

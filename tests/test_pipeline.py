@@ -27,6 +27,8 @@ def test_reconstruct_writes_the_contract(reconstructed):
     rep = json.loads((out / "report.json").read_text())
     for key in ("projection_matrix", "registration", "frames", "timing", "pose", "carm", "inputs"):
         assert key in rep
+    # the options the result came from (defaults of `reconstruct`)
+    assert (rep["inputs"]["method"], rep["inputs"]["segmenter"], rep["inputs"]["forced"]) == ("vessel", "unet", False)
     for key in ("success", "mean_residual_px", "iterations", "seconds"):
         assert key in rep["registration"]
     assert np.asarray(rep["projection_matrix"]).shape == (3, 4)
