@@ -195,7 +195,7 @@ def test_learned_polarity_and_scale_invariance(real_cases):
 @needs_real
 def test_flip_tta_makes_the_probability_flip_equivariant(real_cases):
     img, _ = real_cases[REAL_IDS[2]]
-    for flip in (np.fliplr, np.flipud):
+    for flip in (np.fliplr, np.flipud, np.transpose):
         p = vessel_probability(img, dark_vessels=True, tta=True)
         np.testing.assert_allclose(vessel_probability(flip(img), dark_vessels=True, tta=True), flip(p),
                                    atol=TTA_EQUIVARIANCE_ATOL)
