@@ -113,6 +113,17 @@ def run_demo(*, out="guidewire3d-demo", seed: int | None = None) -> int:
 # --------------------------------------------------------------------------------------
 # bench
 # --------------------------------------------------------------------------------------
+def package_source_digest() -> str:
+    """Short hash of the guidewire3d package's source: benchmark caches keyed on it are never reused
+    by other code (the simulator and the CTA extraction depend on several modules)."""
+    import hashlib
+
+    h = hashlib.sha1()
+    for f in sorted(Path(__file__).resolve().parent.glob("*.py")):
+        h.update(f.name.encode() + f.read_bytes())
+    return h.hexdigest()[:10]
+
+
 def _seg_scores(frames, truth_masks, method, wire_radius_px=None):
     """Per-frame Dice, precision, recall and seconds; ``method`` "unet-wire" is the UNet with the
     wire model (``wire_model=True``, radius ``wire_radius_px``)."""

@@ -660,15 +660,9 @@ def _unet_mask_from_prob(prob: np.ndarray, threshold: float) -> np.ndarray:
 
 
 def _check_radius(wire_radius_px) -> float | None:
-    if wire_radius_px is None:
-        return None
-    try:
-        r = float(wire_radius_px)
-    except (TypeError, ValueError):
-        r = float("nan")
-    if not np.isfinite(r) or r <= 0:
-        raise InputError(f"wire_radius_px: expected a finite radius > 0 px, got {wire_radius_px!r}")
-    return r
+    from guidewire3d.wiremask import check_radius_px
+
+    return None if wire_radius_px is None else check_radius_px(wire_radius_px, "wire_radius_px")
 
 
 def _wire_model_mask(frame: np.ndarray, mask: np.ndarray, wire_radius_px: float | None) -> np.ndarray:

@@ -69,6 +69,17 @@ def _polyline(points_uv_px, name: str = "points_uv_px") -> np.ndarray:
     return p
 
 
+def check_radius_px(value, name: str = "radius_px") -> float:
+    """``value`` as a finite radius > 0 px, else an InputError naming ``name``."""
+    try:
+        r = float(value)
+    except (TypeError, ValueError):
+        r = float("nan")
+    if not np.isfinite(r) or r <= 0:
+        raise InputError(f"{name}: expected a finite radius > 0 px, got {value!r}")
+    return r
+
+
 def _shape(shape) -> tuple[int, int]:
     try:
         h, w = (int(x) for x in shape)
@@ -189,16 +200,8 @@ def render_wire_mask(points_uv_px, radius_px: float, shape) -> np.ndarray:
     """
     p = _polyline(points_uv_px)
     hw = _shape(shape)
-    r = float(radius_px)
-    if not np.isfinite(r) or r <= 0:
-        raise InputError(f"radius_px: expected a finite radius > 0, got {radius_px!r}")
+    r = check_radius_px(radius_px)
     return _coverage(p, hw, r, r).render(r)
-
-
-def _normals(p: np.ndarray) -> np.ndarray:
-    t = np.gradient(p, axis=0)
-    t /= np.maximum(np.linalg.norm(t, axis=1, keepdims=True), 1e-12)
-    return np.column_stack([-t[:, 1], t[:, 0]])
 
 
 def _profile_points(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -206,6 +209,8 @@ def _profile_points(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     q = _dense(p, WIDTH_SPACING_PX)
     if len(q) > 2 * WIDTH_END_SKIP + 3:
         q = q[WIDTH_END_SKIP:-WIDTH_END_SKIP]
+    from guidewire3d.image2d import _normals
+
     # normals from the finer polyline (smoother than the 2 px resampling)
     fine = _dense(p, 0.5)
     n_fine = _normals(ndi.gaussian_filter1d(fine, 2.0, axis=0, mode="nearest"))
@@ -351,9 +356,7 @@ def model_wire_mask(seg, points_uv_px, *, width_seg=None, radius_px: float | Non
         cov = _coverage(p, m.shape, _radius_bound_px(target))
         r = _match_radius(cov, target, samples)
     else:
-        r = float(radius_px)
-        if not np.isfinite(r) or r <= 0:
-            raise InputError(f"radius_px: expected a finite radius > 0, got {radius_px!r}")
+        r = check_radius_px(radius_px)
         cov = _coverage(p, m.shape, r, r)
     tube = cov.render(r)
     k = int(np.ceil(r)) + RESIDUAL_GAP_PX

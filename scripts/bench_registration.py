@@ -36,25 +36,13 @@ from pathlib import Path
 import numpy as np
 
 from guidewire3d import registration as reg
+from guidewire3d.bench import package_source_digest
 from guidewire3d.geometry import Pose
 from guidewire3d.metrics import mtre_mm, resample_polyline
 
 LEVELS = [(0.0, 0.0), (2.5, 5.0), (5.0, 10.0), (7.5, 15.0), (10.0, 20.0), (15.0, 30.0), (20.0, 40.0)]
 SUCCESS_MM = 2.0
 CACHE_VERSION = 2  # cached: simulator outputs (roadmap image, tree, geometry), not the 2D centerline
-
-
-def _source_tag() -> str:
-    """Short hash of the guidewire3d package's source: a cache written by other code is not reused
-    (the simulator and the CTA extraction depend on several modules, so all of them count)."""
-    import hashlib
-
-    import guidewire3d
-
-    h = hashlib.sha1()
-    for f in sorted(Path(guidewire3d.__file__).parent.glob("*.py")):
-        h.update(f.name.encode() + f.read_bytes())
-    return h.hexdigest()[:10]
 
 
 def _truth_centerline(tree, carm, pose, rng, *, noise_px=0.5, dropout=0.3, path_ids=None):
@@ -85,7 +73,7 @@ def load_cases(n, seed0, cache: Path | None, log, *, max_radius=True):
         roadmap_centerline = None
         source = f"projected truth + 0.5 px noise, 30% branch dropout (image2d not importable: {e!r})"
     cases = []
-    tag = _source_tag()
+    tag = package_source_digest()
     for k in range(seed0, seed0 + n):
         f = cache / f"case_v{CACHE_VERSION}_{tag}_{k}.pkl" if cache else None
         if f is not None and f.exists():
@@ -166,7 +154,7 @@ def load_e2e_cases(n, seed0, cache: Path | None, log):
     from guidewire3d import image2d, pipeline, vessels3d
 
     cases = []
-    tag = _source_tag()
+    tag = package_source_digest()
     for seed in range(seed0, seed0 + n):
         f = cache / f"e2e_case_v{CACHE_VERSION}_{tag}_{seed}.pkl" if cache else None
         if f is not None and f.exists():

@@ -30,6 +30,8 @@ from pathlib import Path
 
 import numpy as np
 
+from guidewire3d.bench import package_source_digest
+
 ROOT = Path(__file__).resolve().parents[1]
 DOSES = (0.5, 1.0, 2.0)
 # the UNet followed by the wire model (wire_model=True): radius estimated from the UNet mask, or from
@@ -45,19 +47,6 @@ def case_options(seed):
                 catheter=seed % 3 != 2)
 
 
-def simulator_digest() -> str:
-    """Short hash of the guidewire3d package's source (the simulator and what it uses): frames cached
-    by other code are not reused (simulating all 240 frames takes ~15 s)."""
-    import hashlib
-
-    import guidewire3d
-
-    h = hashlib.sha1()
-    for f in sorted(Path(guidewire3d.__file__).parent.glob("*.py")):
-        h.update(f.name.encode() + f.read_bytes())
-    return h.hexdigest()[:10]
-
-
 def load_cases(n_seeds, n_frames, cache_dir):
     """The held-out cases: frames, truth masks and projections, and the wire's radius in px at the
     isocentre from its diameter and the C-arm tags (what a user knows: the wire's size and the DICOM
@@ -66,7 +55,8 @@ def load_cases(n_seeds, n_frames, cache_dir):
     from guidewire3d.wiremask import projected_wire_radius_px
 
     cases = []
-    tag = simulator_digest()
+    tag = package_source_digest()
+    Path(cache_dir).mkdir(parents=True, exist_ok=True)
     for seed in range(n_seeds):
         opts = case_options(seed)
         f = Path(cache_dir) / f"seg_bench_s{seed}_t{n_frames}_{tag}.npz"
