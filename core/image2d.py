@@ -94,8 +94,24 @@ SATURATED_FRACTION = 0.5         # frame with this fraction of pixels at its max
 BLANK_REL_SPREAD = 1e-3           # image 1-99 % spread below this x its level: blank/saturated
 
 
-def _as_image(image, name: str) -> np.ndarray:
+def _grey(image) -> np.ndarray:
+    """The image as a 2D array: single-channel stacks ``(1, H, W)`` / ``(H, W, 1)`` squeezed,
+    colour ``(H, W, 3)`` / ``(H, W, 4)`` (an angiogram saved as RGB or RGBA) reduced to its
+    luminance (alpha ignored); anything else is returned unchanged for the caller's check."""
     a = np.asarray(image)
+    if a.ndim == 3 and a.shape[0] == 1:
+        return a[0]
+    if a.ndim == 3 and a.shape[2] == 1:
+        return a[..., 0]
+    if a.ndim == 3 and a.shape[2] in (3, 4) and np.issubdtype(a.dtype, np.number) and min(a.shape[:2]) >= 8:
+        from skimage.color import rgb2gray
+
+        return rgb2gray(a[..., :3])
+    return a
+
+
+def _as_image(image, name: str) -> np.ndarray:
+    a = _grey(image)
     if a.ndim != 2 or min(a.shape) < 8:
         raise InputError(f"{name}: expected a 2D image of at least 8x8 pixels, got shape {a.shape}")
     if a.dtype == bool:
@@ -256,6 +272,8 @@ def vessel_mask(image, *, dark_vessels: bool | None = None, max_radius_px: float
     ----------
     image : (H, W) array_like of numbers
         Subtracted DSA roadmap or a plain (non-subtracted) XA frame, any dtype and intensity scale.
+        A colour array ``(H, W, 3)`` / ``(H, W, 4)`` (an angiogram exported as RGB) is reduced to
+        its luminance.
     dark_vessels : bool or None
         ``True`` if contrast-filled vessels are darker than the background (X-ray convention),
         ``False`` if brighter; ``None`` detects the polarity (dark vs bright top-hat details).

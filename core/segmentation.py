@@ -130,9 +130,9 @@ class UNetConfig:
 # --------------------------------------------------------------------------------------------------
 
 def _as_frame(frame, name: str = "frame") -> np.ndarray:
-    a = np.asarray(frame)
-    if a.ndim == 3 and a.shape[0] == 1:
-        a = a[0]
+    from guidewire3d.image2d import _grey
+
+    a = _grey(frame)
     if a.ndim != 2 or min(a.shape) < 8:
         raise InputError(f"{name}: expected a 2D (H, W) image of at least 8x8 pixels, got shape {a.shape}")
     if not (np.issubdtype(a.dtype, np.number) or a.dtype == bool):
@@ -686,7 +686,8 @@ def guidewire_mask(frame, *, method="unet", roi_uv=None, backend="auto", wire_mo
     Parameters
     ----------
     frame : (H, W) array of any numeric dtype
-        Raw XA live frame (MONOCHROME2, the wire darker than the background).
+        Raw XA live frame (MONOCHROME2, the wire darker than the background). A colour array
+        ``(H, W, 3)`` / ``(H, W, 4)`` is reduced to its luminance.
     method : {"unet", "ridge"} or SegMethod
     roi_uv : (u0, v0, u1, v1), optional
         Box in pixels (end-exclusive) to restrict the work to; the mask is False outside.

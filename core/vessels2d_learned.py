@@ -66,7 +66,7 @@ FORMAT_TAG = "guidewire3d-vessel-unet-v1"
 REFERENCE_SIZE_PX = 300        # longer image side the network works at (the training images' size)
 NORM_PERCENTILES = (1.0, 99.0)  # intensity range mapped to [0, 1]
 NORM_CLIP = (-0.25, 1.25)       # normalised values are clipped to this range
-UNET_MULTIPLE = 16              # 4 levels: 3 poolings -> multiple of 8; 16 leaves margin
+UNET_MULTIPLE = 16              # input padded to this multiple: up to 5 levels (4 poolings)
 THRESHOLD = 0.5                 # vessel probability threshold when the weights record none
 TTA = True                      # average the eight flips / transposes at inference
 MIN_COMPONENT_PX = 20           # components smaller than this (at reference size) are dropped
@@ -178,6 +178,9 @@ def build_vessel_unet(config: VesselUNetConfig | None = None):
     config = config or VesselUNetConfig()
     if len(config.channels) < 2 or min(config.channels) < 1 or config.in_channels < 1:
         raise InputError(f"VesselUNetConfig: need >= 2 levels of >= 1 channel, got {config}")
+    if 2 ** (len(config.channels) - 1) > UNET_MULTIPLE:
+        raise InputError(f"VesselUNetConfig.channels: at most {UNET_MULTIPLE.bit_length()} levels "
+                         f"(inputs are padded to a multiple of {UNET_MULTIPLE}), got {len(config.channels)}")
     from guidewire3d.segmentation import _unet_class
 
     return _unet_class()(config)

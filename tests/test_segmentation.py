@@ -192,6 +192,15 @@ def test_backends_agree(cases, backend):
     assert np.abs(p - ref).max() <= BACKEND_MAX_ABS_DIFF
 
 
+def test_a_frame_saved_as_rgb_gives_the_grey_frames_mask(cases):
+    frames, _ = cases[0.36]
+    grey = frames[DICE_FRAMES[0]]
+    scaled = (255.0 * (grey - grey.min()) / np.ptp(grey)).astype(np.uint8)   # as an 8-bit export would
+    ref = guidewire_mask(scaled)
+    assert ref.any()
+    assert np.array_equal(guidewire_mask(np.repeat(scaled[..., None], 3, axis=2)), ref)
+
+
 def test_bad_input_raises(tmp_path):
     with pytest.raises(InputError, match="frame"):
         guidewire_mask(np.zeros((4, 5, 6)))

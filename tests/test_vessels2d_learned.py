@@ -101,11 +101,12 @@ def test_bad_weight_files_raise(tmp_path):
         load_vessel_unet(bad)
 
 
-def test_save_load_round_trip_gives_identical_output(tmp_path):
+@pytest.mark.parametrize("channels", [(4, 8), (2, 4, 4, 4, 4)])
+def test_save_load_round_trip_gives_identical_output(tmp_path, channels):
     import torch
 
     torch.manual_seed(0)
-    model = build_vessel_unet(VesselUNetConfig(channels=(4, 8)))
+    model = build_vessel_unet(VesselUNetConfig(channels=channels))
     model.eval()
     path = save_vessel_unet(model, tmp_path / "m.safetensors", extra_metadata={"note": [1, 2]})
     back = load_vessel_unet(path)
@@ -113,6 +114,11 @@ def test_save_load_round_trip_gives_identical_output(tmp_path):
     np.testing.assert_allclose(vessel_probability(img, dark_vessels=True, model=model),
                                vessel_probability(img, dark_vessels=True, model=back), atol=1e-6)
     assert json.loads(back.metadata["note"]) == [1, 2]
+
+
+def test_a_network_deeper_than_the_input_padding_allows_is_refused():
+    with pytest.raises(InputError, match="at most 5 levels"):
+        build_vessel_unet(VesselUNetConfig(channels=(2, 2, 2, 2, 2, 2)))
 
 
 def test_ensemble_is_the_mean_probability_of_its_members_and_round_trips(tmp_path):
@@ -177,6 +183,16 @@ def test_every_vessel_method(real_cases, small_case):
 def test_bad_method_raises():
     with pytest.raises(InputError, match="method"):
         vessel_mask(np.zeros((32, 32)), method="magic")
+
+
+@needs_real
+def test_an_angiogram_saved_as_rgb_or_rgba_gives_the_grey_images_mask(real_cases):
+    img, _ = real_cases[REAL_IDS[0]]
+    ref = vessel_mask(img)
+    rgb = np.repeat(img[..., None], 3, axis=2)
+    rgba = np.concatenate([rgb, np.full(img.shape + (1,), 255, img.dtype)], axis=2)
+    for colour in (rgb, rgba, img[None], img[..., None]):
+        assert np.array_equal(vessel_mask(colour), ref)
 
 
 @needs_real
