@@ -92,6 +92,12 @@ REFINE_STEP_PX = 0.25             # sampling step along the tangent (end extensi
 REFINE_SMOOTH_PX = 2.0            # Gaussian smoothing (arc length) of the pixel path before normals
 SATURATED_FRACTION = 0.5         # frame with this fraction of pixels at its maximum: saturated
 BLANK_REL_SPREAD = 1e-3           # image 1-99 % spread below this x its level: blank/saturated
+# Proximal end without a hint: a guiding catheter (a darker tube around the wire) marks it.
+CATHETER_SEARCH_PX = 30.0         # arc length from each wire end searched for the catheter
+CATHETER_NEAR_PX = (1.0, 4.0)     # band beyond the wire's half-width on each side: the catheter wall
+CATHETER_FAR_PX = (9.0, 14.0)     # background band beyond the wire's half-width on each side
+CATHETER_MIN_Z = 2.0              # catheter contrast (noise sigmas, weaker side) that marks an end
+CATHETER_MIN_GAP_Z = 1.5          # ... and by which it must exceed the other end's
 
 
 def _grey(image) -> np.ndarray:
@@ -1019,6 +1025,42 @@ def _refine(p_rc: np.ndarray, maskf: np.ndarray, darkness: np.ndarray | None, ha
     return p_rc + delta[:, None] * nrm
 
 
+def _catheter_contrast(img: np.ndarray, uv: np.ndarray, half_width_px: float) -> float:
+    """How strongly a darker tube (a guiding catheter) encloses the first ``CATHETER_SEARCH_PX``
+    of the ordered wire ``uv`` (from ``uv[0]``): on each side, the median of a background band
+    (``CATHETER_FAR_PX`` beyond the wire's half-width) minus that of the band next to the wire
+    (``CATHETER_NEAR_PX``), in units of the background's noise (1.4826 MAD); the weaker side
+    counts, so a tube (dark on both sides) scores and a neighbouring structure on one side does not."""
+    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(uv, axis=0), axis=1))])
+    rc = uv[s <= CATHETER_SEARCH_PX][:, ::-1]
+    if len(rc) < 3:
+        return 0.0
+    nrm = _normals(rc)
+
+    def band(lo_hi, sign):
+        w = sign * (half_width_px + np.arange(lo_hi[0], lo_hi[1] + 1e-9, PROFILE_STEP_PX))
+        pts = rc[:, None, :] + w[None, :, None] * nrm[:, None, :]
+        return ndi.map_coordinates(img, [pts[..., 0].ravel(), pts[..., 1].ravel()], order=1, mode="nearest",
+                                   output=np.float64)
+
+    far = {sign: band(CATHETER_FAR_PX, sign) for sign in (1, -1)}
+    both = np.concatenate(list(far.values()))
+    noise = 1.4826 * float(np.median(np.abs(both - np.median(both))))
+    if noise <= 0.0:
+        noise = max(1e-12, 1e-6 * float(np.ptp(both)))
+    return min(float(np.median(far[sign]) - np.median(band(CATHETER_NEAR_PX, sign))) / noise for sign in (1, -1))
+
+
+def _catheter_end(img: np.ndarray, uv: np.ndarray, half_width_px: float) -> int | None:
+    """0 or 1 (first or last point of ``uv``) if a guiding catheter clearly encloses that end of the
+    wire and not the other (``CATHETER_MIN_Z``, ``CATHETER_MIN_GAP_Z``), else None."""
+    z = (_catheter_contrast(img, uv, half_width_px), _catheter_contrast(img, uv[::-1], half_width_px))
+    k = int(np.argmax(z))
+    if z[k] >= CATHETER_MIN_Z and z[k] - z[1 - k] >= CATHETER_MIN_GAP_Z:
+        return k
+    return None
+
+
 def _extend_end(p_rc: np.ndarray, maskf: np.ndarray, at_end: bool, max_px: float) -> np.ndarray:
     """Extend one end along its tangent to where the mask's centre line leaves the mask, minus
     ``TIP_CAP_FRACTION`` x the local mask width (the end cap: 0 for a flat cut, 0.5 for a round
@@ -1066,8 +1108,9 @@ def ordered_wire(mask, *, image=None, proximal_hint_uv=None, max_gap_px: float =
         The live frame (wire darker than background); if given, the sub-pixel centring weights the
         mask by the local darkness of the image, and a blank or saturated image fails.
     proximal_hint_uv : (2,) array_like, optional
-        ``(u, v)`` near the proximal end (e.g. the projected vessel root). Without it the end that
-        is closer to the image border is proximal.
+        ``(u, v)`` near the proximal end (e.g. the projected vessel root). Without it, the end
+        enclosed by a guiding catheter (a darker tube around the wire, seen in ``image``; see
+        ``CATHETER_*``) is proximal if only one end is, else the end closer to the image border.
     max_gap_px : float
         Largest break in the mask that is bridged, px.
 
@@ -1089,7 +1132,7 @@ def ordered_wire(mask, *, image=None, proximal_hint_uv=None, max_gap_px: float =
     m_full = _as_mask(mask, "mask")
     img = None
     if image is not None:
-        img = np.asarray(image)
+        img = _grey(image)
         if img.shape != m_full.shape:
             raise InputError(f"image: shape {img.shape} differs from the mask's {m_full.shape}")
         if img.dtype == bool or not np.issubdtype(img.dtype, np.number):
@@ -1171,8 +1214,11 @@ def ordered_wire(mask, *, image=None, proximal_hint_uv=None, max_gap_px: float =
 
     # Proximal -> distal.
     h, w = m_full.shape
+    catheter = None if hint is not None or img is None else _catheter_end(img, uv, half_width)
     if hint is not None:
         flip = np.linalg.norm(uv[-1] - hint) < np.linalg.norm(uv[0] - hint)
+    elif catheter is not None:
+        flip = catheter == 1
     else:
         def border(q):
             return min(q[0], q[1], w - 1 - q[0], h - 1 - q[1])

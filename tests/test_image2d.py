@@ -100,6 +100,30 @@ def test_ordered_wire_order_from_hint_and_border():
         symmetric_polyline_distance(by_hint.points_uv_px, by_border.points_uv_px) < 0.05
 
 
+def test_ordered_wire_proximal_end_from_a_guiding_catheter():
+    rng = np.random.default_rng(5)
+    truth = _random_curve(rng)                 # starts on the left image border
+    shape = (256, 256)
+    wire = _rasterise(truth, shape, 1.5)
+    end_piece = truth[-161:]                   # the last 40 px (the curve is sampled every 0.25 px)
+    background = 1000.0 + rng.normal(0.0, 10.0, shape)
+    plain = background - 200.0 * wire
+
+    # A catheter (a tube 60 darker, 5 px radius) round the last 40 px: that end is proximal, although
+    # the other end touches the border.
+    with_catheter = plain - 60.0 * _rasterise(end_piece, shape, 5.0)
+    ow = ordered_wire(wire, image=with_catheter)
+    assert np.linalg.norm(ow.points_uv_px[0] - truth[-1]) <= TIP_TOL
+    # No catheter, or a dark structure along one side only: the border rule.
+    one_side = _rasterise(end_piece + np.array([0.0, 6.0]), shape, 3.0) & ~_rasterise(end_piece, shape, 2.5)
+    for image in (plain, plain - 60.0 * one_side, None):
+        ow = ordered_wire(wire, image=image)
+        assert np.linalg.norm(ow.points_uv_px[0] - truth[0]) <= TIP_TOL
+    # A hint overrides the catheter.
+    ow = ordered_wire(wire, image=with_catheter, proximal_hint_uv=truth[0])
+    assert np.linalg.norm(ow.points_uv_px[0] - truth[0]) <= TIP_TOL
+
+
 def test_ordered_wire_bridges_gaps_and_respects_max_gap():
     rng = np.random.default_rng(7)
     truth = _random_curve(rng)
