@@ -1214,15 +1214,16 @@ def ordered_wire(mask, *, image=None, proximal_hint_uv=None, max_gap_px: float =
 
     # Proximal -> distal.
     h, w = m_full.shape
-    catheter = None if hint is not None or img is None else _catheter_end(img, uv, half_width)
     if hint is not None:
         flip = np.linalg.norm(uv[-1] - hint) < np.linalg.norm(uv[0] - hint)
-    elif catheter is not None:
-        flip = catheter == 1
     else:
-        def border(q):
-            return min(q[0], q[1], w - 1 - q[0], h - 1 - q[1])
-        flip = border(uv[-1]) < border(uv[0])
+        catheter = None if img is None else _catheter_end(img, uv, half_width)
+        if catheter is not None:
+            flip = catheter == 1
+        else:
+            def border(q):
+                return min(q[0], q[1], w - 1 - q[0], h - 1 - q[1])
+            flip = border(uv[-1]) < border(uv[0])
     if flip:
         uv = uv[::-1].copy()
     length = float(np.linalg.norm(np.diff(uv, axis=0), axis=1).sum())
