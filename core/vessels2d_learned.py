@@ -479,10 +479,6 @@ class TrainOptions:
         Random zoom factors (small scale changes).
     rotate_deg : float
         Random rotation in ``[-rotate_deg, rotate_deg]`` degrees (besides rot90 and flips).
-    ema_decay : float
-        If > 0, the returned network is the exponential moving average of the weights (and of the
-        BatchNorm statistics) over the steps with this decay per step
-        (``torch.optim.swa_utils.AveragedModel``); 0 returns the last step's weights.
     seed : int
         Seeds numpy and torch.
     """
@@ -494,7 +490,6 @@ class TrainOptions:
     weight_decay: float = 1e-5
     scale_range: tuple[float, float] = (0.85, 1.18)
     rotate_deg: float = 0.0
-    ema_decay: float = 0.0
     seed: int = 0
 
 
@@ -569,8 +564,6 @@ def train_vessel_unet(images, masks, *, config: VesselUNetConfig | None = None,
     options = options or TrainOptions()
     if len(images) != len(masks) or not len(images):
         raise InputError(f"images/masks: need equally many (>= 1), got {len(images)} and {len(masks)}")
-    if not 0.0 <= options.ema_decay < 1.0:
-        raise InputError(f"TrainOptions.ema_decay: must be in [0, 1), got {options.ema_decay}")
     if options.crop_px % UNET_MULTIPLE:
         raise InputError(f"TrainOptions.crop_px: must be a multiple of {UNET_MULTIPLE}, got {options.crop_px}")
     rng = np.random.default_rng(options.seed)
@@ -587,11 +580,6 @@ def train_vessel_unet(images, masks, *, config: VesselUNetConfig | None = None,
     opt = torch.optim.Adam(model.parameters(), lr=options.lr, weight_decay=options.weight_decay)
     sched = torch.optim.lr_scheduler.LambdaLR(
         opt, lambda s: 0.05 + 0.95 * 0.5 * (1.0 + np.cos(np.pi * min(s, options.steps) / options.steps)))
-    ema = None
-    if options.ema_decay > 0:
-        from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
-
-        ema = AveragedModel(model, multi_avg_fn=get_ema_multi_avg_fn(options.ema_decay), use_buffers=True)
     model.train()
     running = None
     for step in range(options.steps):
@@ -605,13 +593,9 @@ def train_vessel_unet(images, masks, *, config: VesselUNetConfig | None = None,
         loss.backward()
         opt.step()
         sched.step()
-        if ema is not None:
-            ema.update_parameters(model)
         lv = float(loss.detach())
         running = lv if running is None else 0.95 * running + 0.05 * lv
         if log is not None and (step % 50 == 0 or step == options.steps - 1):
             log(step, running)
-    if ema is not None:
-        model.load_state_dict(ema.module.state_dict())
     model.eval()
     return model

@@ -44,7 +44,7 @@ REAL_DIR = Path("/work/shared/data/coronary-angiograms")
 # The shipped recipe (the defaults of the command line). History, 5-fold CV Dice: steps=650,
 # rotate_deg=0, fixed threshold 0.5, no test-time flips 0.738; steps=1100 0.756; steps=2200 0.770;
 # steps=4400 0.776 (four flips), 0.778 (eight flips / transposes, the shipped rule).
-RECIPE = dict(channels=(8, 16, 32, 64), steps=4400, batch=8, crop_px=128, lr=3e-3, rotate_deg=15.0, ema_decay=0.0)
+RECIPE = dict(channels=(8, 16, 32, 64), steps=4400, batch=8, crop_px=128, lr=3e-3, rotate_deg=15.0)
 
 
 def load_real(data_dir=REAL_DIR):
@@ -75,7 +75,7 @@ def _task(args):
     name, train_idx, test_idx, data_dir, seed, recipe, save_dir = args
     ids, images, masks = load_real(data_dir)
     opts = TrainOptions(steps=recipe["steps"], batch=recipe["batch"], crop_px=recipe["crop_px"], lr=recipe["lr"],
-                        rotate_deg=recipe["rotate_deg"], ema_decay=recipe.get("ema_decay", 0.0), seed=seed)
+                        rotate_deg=recipe["rotate_deg"], seed=seed)
     config = VesselUNetConfig(channels=tuple(recipe["channels"]))
     t0 = time.perf_counter()
     model = train_vessel_unet([images[i] for i in train_idx], [masks[i] for i in train_idx],
@@ -179,8 +179,6 @@ def main(argv=None):
     ap.add_argument("--crop", type=int, default=RECIPE["crop_px"], help="crop side, px (multiple of 16)")
     ap.add_argument("--lr", type=float, default=RECIPE["lr"], help="Adam's initial learning rate")
     ap.add_argument("--rotate-deg", type=float, default=RECIPE["rotate_deg"], help="random rotation range, deg")
-    ap.add_argument("--ema-decay", type=float, default=RECIPE["ema_decay"],
-                    help="keep an exponential moving average of the weights with this decay per step (0: off)")
     ap.add_argument("--save-dir", default=None, help="also write every fold's model here")
     ap.add_argument("--rescore", default=None,
                     help="no training: score the models a previous run wrote to this --save-dir")
@@ -196,7 +194,7 @@ def main(argv=None):
     ids, images, masks = load_real(args.data)
     n = len(ids)
     recipe = dict(channels=[int(c) for c in args.channels.split(",")], steps=args.steps, batch=args.batch,
-                  crop_px=args.crop, lr=args.lr, rotate_deg=args.rotate_deg, ema_decay=args.ema_decay)
+                  crop_px=args.crop, lr=args.lr, rotate_deg=args.rotate_deg)
     if args.rescore:
         results = _load_results(Path(args.rescore))
         print(f"re-scoring {len(results)} models from {args.rescore}")
