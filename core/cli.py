@@ -138,17 +138,29 @@ def _add_bench_parser(sub) -> None:
     p.set_defaults(func=run)
 
 
+def _add_segment_parser(sub) -> None:
+    from guidewire3d import batch2d
+
+    p = sub.add_parser("segment", help="2D analysis of angiograms / frames: vessel and guidewire masks, ordered wire",
+                       description="Segment the vessels and the guidewire of XA DICOM files or PNG/TIFF/JPEG "
+                                   "images (no C-arm geometry needed); writes <name>_vessels.png, "
+                                   "<name>_wire.png and segment.json (the ordered wire) into --out.")
+    batch2d.add_cli_options(p)
+    p.set_defaults(func=batch2d.cli_segment)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="guidewire3d",
         description="Real-time 3D guidewire reconstruction from a CTA and single-view DSA.",
     )
     parser.add_argument("--verbose", action="store_true", help="show tracebacks and debug messages")
-    sub = parser.add_subparsers(dest="command", metavar="{demo,phantom,reconstruct,view,bench}")
+    sub = parser.add_subparsers(dest="command", metavar="{demo,phantom,reconstruct,segment,view,bench}")
     sub.required = True
     _add_demo_parser(sub)
     _add_phantom_parser(sub)
     _add_reconstruct_parser(sub)
+    _add_segment_parser(sub)
     _add_view_parser(sub)
     _add_bench_parser(sub)
     return parser

@@ -279,9 +279,11 @@ def overlay_image(frame, *, centerline_uv_px=None, wire2d_uv_px=None, wire3d_uv_
 
 
 def write_png(path, rgb) -> Path:
+    """Write an (H, W, 3) RGB or (H, W) grey uint8 image as PNG (atomically)."""
     import cv2
 
-    ok, buf = cv2.imencode(".png", cv2.cvtColor(np.asarray(rgb, np.uint8), cv2.COLOR_RGB2BGR))
+    a = np.asarray(rgb, np.uint8)
+    ok, buf = cv2.imencode(".png", a if a.ndim == 2 else cv2.cvtColor(a, cv2.COLOR_RGB2BGR))
     if not ok:
         raise OSError(f"{path}: PNG encoding failed")
     from guidewire3d.io import atomic_write_bytes

@@ -69,6 +69,32 @@ def atomic_write_text(path, text: str) -> Path:
     return atomic_write_bytes(path, text.encode("utf-8"))
 
 
+def write_folder_atomically(out_dir, writer) -> Path:
+    """Call ``writer(staging)`` for a new temporary sibling folder of ``out_dir``, then rename it
+    to ``out_dir`` (replacing an existing ``out_dir``: the caller decides whether that is allowed).
+    On any error the staging folder is removed and ``out_dir`` is untouched."""
+    import shutil
+    import time
+
+    out_dir = Path(out_dir)
+    out_dir.parent.mkdir(parents=True, exist_ok=True)
+    staging = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.staging-", dir=out_dir.parent))
+    try:
+        writer(staging)
+        _chmod_default(staging, directory=True)
+        if out_dir.exists():
+            old = out_dir.with_name(f".{out_dir.name}.old-{int(time.time() * 1e6)}")
+            out_dir.rename(old)
+            staging.rename(out_dir)
+            shutil.rmtree(old, ignore_errors=True)
+        else:
+            staging.rename(out_dir)
+    except BaseException:
+        shutil.rmtree(staging, ignore_errors=True)
+        raise
+    return out_dir
+
+
 def atomic_write_via(path, writer) -> Path:
     """Call ``writer(tmp_path)`` for a temporary sibling of ``path``, then rename it into place.
 
@@ -446,11 +472,31 @@ def read_xa(path, *, overrides: dict | None = None) -> XARun:
     ``overrides`` maps ``primary_deg``, ``secondary_deg``, ``sid_mm``, ``sod_mm``,
     ``pixel_mm`` to values that replace (or supply missing) tags.
     """
+    path = Path(path)
+    ds, frames = _read_xa_pixels(path)
+    carm = _xa_carm(path, ds, {k: v for k, v in (overrides or {}).items() if v is not None})
+    ft = getattr(ds, "FrameTime", None)
+    return XARun(frames, carm, source=str(path), frame_time_ms=float(ft) if ft not in (None, "") else None)
+
+
+def read_xa_frames(path) -> tuple[np.ndarray, CArm | None]:
+    """The frames ``(T, rows, cols)`` float32 (MONOCHROME2) of an XA/RF DICOM file, and its C-arm
+    view if the geometry tags are all present and valid (else None): for 2D analysis, which does
+    not need the geometry."""
+    path = Path(path)
+    ds, frames = _read_xa_pixels(path)
+    try:
+        carm = _xa_carm(path, ds, {})
+    except (DicomError, GeometryError):
+        carm = None
+    return frames, carm
+
+
+def _read_xa_pixels(path: Path):
+    """(dataset, frames float32 (T, rows, cols), rescaled, MONOCHROME1 inverted) of an XA/RF file."""
     import pydicom
     from pydicom.errors import InvalidDicomError
 
-    path = Path(path)
-    overrides = {k: v for k, v in (overrides or {}).items() if v is not None}
     if not path.exists():
         raise InputError(f"{path}: no such file")
     if path.is_dir():
@@ -487,6 +533,11 @@ def read_xa(path, *, overrides: dict | None = None) -> XARun:
         frames = frames * slope + intercept
     if str(getattr(ds, "PhotometricInterpretation", "MONOCHROME2")).strip() == "MONOCHROME1":
         frames = frames.max() - frames
+    return ds, frames
+
+
+def _xa_carm(path: Path, ds, overrides: dict) -> CArm:
+    """The C-arm view of an XA dataset from its tags (``overrides`` replace or supply them)."""
     vals = {}
     for key, (kw, tag) in _XA_TAGS.items():
         if key in overrides:
@@ -500,11 +551,9 @@ def read_xa(path, *, overrides: dict | None = None) -> XARun:
         except (TypeError, ValueError, IndexError):
             raise DicomError(f"{path}: {kw} {tag} is not a number: {v!r}") from None
     try:
-        carm = CArm(shape=(int(ds.Rows), int(ds.Columns)), **vals)
+        return CArm(shape=(int(ds.Rows), int(ds.Columns)), **vals)
     except GeometryError as e:
         raise GeometryError(f"{path}: {e}") from None
-    ft = getattr(ds, "FrameTime", None)
-    return XARun(frames, carm, source=str(path), frame_time_ms=float(ft) if ft not in (None, "") else None)
 
 
 def write_xa(path, frames, carm: CArm, *, frame_time_ms: float = 66.7, patient_name: str = "Phantom^Guidewire3D",

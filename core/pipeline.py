@@ -6,9 +6,7 @@ files, runs, and writes the OUT_DIR described in the README ("Output folder").
 """
 from __future__ import annotations
 
-import shutil
 import sys
-import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -241,24 +239,14 @@ def run_to_outdir(cta, roadmap, frames, out_dir, *, series_uid=None, overrides=N
         "segmenter": str(getattr(segmenter, "value", segmenter)),
         "forced": bool(force),
     }
-    out_dir.parent.mkdir(parents=True, exist_ok=True)
-    staging = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.staging-", dir=out_dir.parent))
-    try:
+
+    def write(staging: Path) -> None:
         t0 = time.perf_counter()
         export.write_outdir(result, staging, inputs=inputs, images=images, truth=truth)
         result.timing["export"] = time.perf_counter() - t0
         export.write_report(result, staging, inputs=inputs, truth=truth)  # again, with export timing
-        io._chmod_default(staging, directory=True)
-        if out_dir.exists():
-            old = out_dir.with_name(f".{out_dir.name}.old-{int(time.time() * 1e6)}")
-            out_dir.rename(old)
-            staging.rename(out_dir)
-            shutil.rmtree(old, ignore_errors=True)
-        else:
-            staging.rename(out_dir)
-    except BaseException:
-        shutil.rmtree(staging, ignore_errors=True)
-        raise
+
+    io.write_folder_atomically(out_dir, write)
     return result
 
 
