@@ -374,8 +374,6 @@ def write_ct_series(vol: Volume, out_dir, *, patient_name: str = "Phantom^Guidew
     out_dir = Path(out_dir)
     if out_dir.exists() and any(out_dir.iterdir()):
         raise InputError(f"{out_dir}: output folder exists and is not empty")
-    out_dir.parent.mkdir(parents=True, exist_ok=True)
-    tmp_dir = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", dir=out_dir.parent))
     study_uid = study_uid or _new_uid()
     series_uid = series_uid or _new_uid()
     frame_uid = _new_uid()
@@ -405,7 +403,8 @@ def write_ct_series(vol: Volume, out_dir, *, patient_name: str = "Phantom^Guidew
         "0028|1054": "HU",
         "0008|0008": "ORIGINAL\\PRIMARY\\AXIAL",
     }
-    try:
+
+    def write(tmp_dir: Path) -> None:
         for k in range(arr.shape[0]):
             sl = img[:, :, k]
             for tag, value in common.items():
@@ -417,16 +416,8 @@ def write_ct_series(vol: Volume, out_dir, *, patient_name: str = "Phantom^Guidew
             sl.SetMetaData("0008|0018", _new_uid())
             writer.SetFileName(str(tmp_dir / f"CT{k + 1:04d}.dcm"))
             writer.Execute(sl)
-        if out_dir.exists():
-            out_dir.rmdir()
-        _chmod_default(tmp_dir, directory=True)
-        os.replace(tmp_dir, out_dir)
-    except BaseException:
-        import shutil
 
-        shutil.rmtree(tmp_dir, ignore_errors=True)
-        raise
-    return out_dir
+    return write_folder_atomically(out_dir, write)
 
 
 # --------------------------------------------------------------------------------------
