@@ -54,6 +54,7 @@ __all__ = [
     "DEFAULT_WEIGHTS_PATH",
     "normalize_frame",
     "frame_is_degenerate",
+    "collimator_field_of_view",
     "build_unet",
     "load_unet",
     "save_unet",
@@ -75,6 +76,13 @@ BLANK_REL_SPREAD = 1e-3
 SATURATED_FRACTION = 0.5
 # Connected components smaller than this (pixels) are dropped from a mask.
 MIN_COMPONENT_PX = 12
+# Collimator: where the smoothed frame is darker than this fraction of its median over at least
+# COLLIMATOR_MIN_AREA of the frame, the frame is collimated; the mask is cleared there and within
+# COLLIMATOR_MARGIN_PX (px at a 300-px image; scales with the size) of its edge, to which the
+# segmenters respond like to a wire (real frames; the simulator has no collimator).
+COLLIMATOR_DARK_FRACTION = 0.25
+COLLIMATOR_MIN_AREA = 0.01
+COLLIMATOR_MARGIN_PX = 5.0
 # The network downsamples 3 times: spatial sizes must be multiples of this.
 UNET_MULTIPLE = 8
 # ROI tracking: when the wire reaches a strip border, the strips are grown once by this factor
@@ -155,6 +163,31 @@ def _frame_stats(frame: np.ndarray) -> tuple[float, float, bool]:
         or np.mean(sub <= lo) > SATURATED_FRACTION
     )
     return float(p50), max(spread, 1e-6 * level, 1e-12), degenerate
+
+
+def collimator_field_of_view(frame) -> np.ndarray | None:
+    """Pixels inside the collimator and away from its edge, or None when the frame shows no
+    collimated (dark) area. See ``COLLIMATOR_*``; the image border is not an edge."""
+    a = _as_frame(frame)
+    return _collimator_fov(a, _frame_stats(a)[0])
+
+
+def _collimator_fov(a: np.ndarray, median: float) -> np.ndarray | None:
+    level = COLLIMATOR_DARK_FRACTION * median
+    if median <= 0 or np.mean(a[::STATS_STEP, ::STATS_STEP] < level) < COLLIMATOR_MIN_AREA:
+        return None
+    import cv2
+
+    k = 2 * max(2, int(round(COLLIMATOR_MARGIN_PX * max(a.shape) / 300.0))) + 1
+    smooth = cv2.blur(np.asarray(a, np.float32), (k, k), borderType=cv2.BORDER_REPLICATE)
+    inside = (smooth > level).astype(np.uint8)
+    inside = cv2.erode(inside, np.ones((k, k), np.uint8), borderType=cv2.BORDER_CONSTANT, borderValue=1)
+    return inside.astype(bool)
+
+
+def _clear_collimated(mask: np.ndarray, a: np.ndarray, median: float) -> np.ndarray:
+    fov = _collimator_fov(a, median)
+    return mask if fov is None else mask & fov
 
 
 def frame_is_degenerate(frame) -> bool:
@@ -718,6 +751,8 @@ def guidewire_mask(frame, *, method="unet", roi_uv=None, backend="auto", wire_mo
         runner, config = _get_runner(backend)
         prob = unet_probability(a, roi_uv=roi, backend=backend)
         mask = _unet_mask_from_prob(prob, config.threshold)
+    if mask.any():
+        mask = _clear_collimated(mask, a, _frame_stats(a)[0])
     if wire_model:
         mask = _wire_model_mask(a, mask, radius)
         if roi is not None:
@@ -894,6 +929,8 @@ class GuidewireSegmenter:
             mask = self._tracked(a, self._prev, (med, spread))
         if mask is None:
             mask = self._full(a, (med, spread))
+        if mask.any():
+            mask = _clear_collimated(mask, a, med)
         self._prev = mask if mask.any() else None
         self._count += 1
         if self.wire_model:

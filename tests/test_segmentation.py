@@ -12,6 +12,7 @@ from guidewire3d.segmentation import (
     Backend,
     GuidewireSegmenter,
     SegMethod,
+    collimator_field_of_view,
     frame_is_degenerate,
     guidewire_mask,
     load_unet,
@@ -32,6 +33,7 @@ RIDGE_MIN_DICE = {0.36: 0.65, 0.89: 0.82}
 ROI_VS_FULL_MIN_DICE = 0.97
 GROW_SEED = 101  # a held-out seed (< 1000) whose tip advances beyond the ROI margin between frames
 BACKEND_MAX_ABS_DIFF = 1e-3
+COLLIMATED_MIN_DICE = 0.85   # UNet mask vs the truth inside a synthetic collimator (0.89 mm wire)
 
 
 @pytest.fixture(scope="module")
@@ -190,6 +192,28 @@ def test_backends_agree(cases, backend):
     ref = unet_probability(frame, backend="torch")
     p = unet_probability(frame, backend=backend)
     assert np.abs(p - ref).max() <= BACKEND_MAX_ABS_DIFF
+
+
+def test_collimator_edge_is_not_a_wire(cases):
+    from scipy import ndimage as ndi
+
+    from guidewire3d.segmentation import _unet_mask_from_prob, load_unet
+
+    frames, masks = cases[0.89]
+    frame, truth = frames[DICE_FRAMES[0]], masks[DICE_FRAMES[0]]
+    assert collimator_field_of_view(frame) is None               # the simulator has no collimator
+    h, w = frame.shape
+    vv, uu = np.mgrid[:h, :w]
+    circle = np.hypot(uu - w / 2, vv - h / 2) < 0.47 * w            # a round collimator, corners dark
+    collimated = np.where(circle, frame, 0.03 * frame)
+    fov = collimator_field_of_view(collimated)
+    edge_band = circle & ~ndi.binary_erosion(circle, iterations=4)
+    # The network alone answers the collimator's edge; the mask does not.
+    raw = _unet_mask_from_prob(unet_probability(collimated), load_unet().config.threshold)
+    assert (raw & edge_band).any()
+    for mask in (guidewire_mask(collimated), GuidewireSegmenter().segment(collimated)):
+        assert not (mask & ~fov).any() and not (mask & edge_band).any()
+        assert dice(mask, truth & fov) >= COLLIMATED_MIN_DICE
 
 
 def test_a_frame_saved_as_rgb_gives_the_grey_frames_mask(cases):
