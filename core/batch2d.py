@@ -7,6 +7,8 @@ vessel mask (:func:`guidewire3d.image2d.vessel_mask`), the guidewire mask
 (:func:`guidewire3d.image2d.ordered_wire`, proximal -> distal) into a new folder:
 
 - ``<name>_vessels.png`` and ``<name>_wire.png``: masks, 0 / 255 (8-bit grey);
+- ``<name>_overlay.png``: the image with the vessel skeleton (green) and the ordered wire (yellow),
+  for a quick look;
 - ``segment.json``: the options and, per image, its source, frame, shape, the vessel-mask
   fraction and the ordered wire (``success``, ``message``, ``length_px``, ``points_uv_px``).
 
@@ -134,6 +136,21 @@ def analyse(image: InputImage, *, what: str = "both", segmenter: str = "unet", w
     return rec, masks
 
 
+def overlay(image: np.ndarray, record: dict, masks: dict[str, np.ndarray]) -> np.ndarray:
+    """RGB picture of one result: the vessel mask's skeleton (green), the ordered wire (yellow)."""
+    from skimage.morphology import skeletonize
+
+    from guidewire3d.export import overlay_image
+
+    skeleton_uv = None
+    if "vessels" in masks:
+        rows, cols = np.nonzero(skeletonize(masks["vessels"]))
+        skeleton_uv = np.column_stack([cols, rows]).astype(float)
+    wire = record.get("wire", {})
+    wire_uv = np.asarray(wire["points_uv_px"], float) if wire.get("success") else None
+    return overlay_image(image, centerline_uv_px=skeleton_uv, wire2d_uv_px=wire_uv, text=record["name"])
+
+
 def cli_segment(args) -> int:
     """``guidewire3d segment``: analyse the inputs, write the masks and ``segment.json``."""
     from tqdm import tqdm
@@ -166,9 +183,10 @@ def cli_segment(args) -> int:
     }
 
     def write(staging: Path) -> None:
-        for rec, masks in zip(records, all_masks):
+        for im, rec, masks in zip(images, records, all_masks):
             for kind, m in masks.items():
                 write_png(staging / f"{rec['name']}_{kind}.png", np.where(m, 255, 0).astype(np.uint8))
+            write_png(staging / f"{rec['name']}_overlay.png", overlay(im.image, rec, masks))
         io.atomic_write_text(staging / "segment.json", json.dumps(summary, indent=1))
 
     io.write_folder_atomically(out_dir, write)

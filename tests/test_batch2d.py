@@ -45,6 +45,16 @@ def test_segment_xa_frames_against_the_truth(small_case, small_case_dir, tmp_pat
         tips.append(np.linalg.norm(uv[-1] - truth[-1]))
         np.testing.assert_allclose(uv, np.asarray(ordered_wire(mask, image=frame)), atol=0.01)
     assert np.median(tips) <= TIP_MEDIAN_TOL_PX
+    # The overlay draws that wire in yellow.
+    from scipy.spatial import cKDTree
+    from skimage.io import imread
+
+    ov = imread(out / "frames_f0000_overlay.png")
+    yellow = (ov[..., 0] > 200) & (ov[..., 1] > 150) & (ov[..., 2] < 100)
+    wire_uv = np.asarray(summary["images"][0]["wire"]["points_uv_px"])
+    rows, cols = np.nonzero(yellow)
+    assert len(rows) >= 0.5 * len(wire_uv)
+    assert cKDTree(wire_uv).query(np.column_stack([cols, rows]))[0].max() <= 2.0
 
 
 def test_segment_wire_model_uses_the_dicom_geometry(small_case, small_case_dir, tmp_path):
@@ -74,6 +84,13 @@ def test_segment_a_real_angiogram_png(tmp_path):
     assert dice(mask, imread(REAL_DIR / "1_gt.png") > 0) >= REAL_DICE_MIN
     rec = json.loads((out / "segment.json").read_text())["images"][0]
     assert rec["frame"] is None and rec["vessel_fraction"] == pytest.approx(mask.mean(), abs=1e-6)
+    # The overlay marks the mask's skeleton in green (the name's text may cover a few pixels).
+    from skimage.morphology import skeletonize
+
+    ov = imread(out / "1_overlay.png")
+    green = (ov[..., 0] == 0) & (ov[..., 1] == 200) & (ov[..., 2] == 0)
+    skeleton = skeletonize(mask)
+    assert not (green & ~skeleton).any() and green.sum() >= 0.95 * skeleton.sum()
 
 
 def test_bad_inputs_exit_2_and_write_nothing(small_case_dir, tmp_path, capsys):
