@@ -706,7 +706,8 @@ def _wire_model_mask(frame: np.ndarray, mask: np.ndarray, wire_radius_px: float 
 
     if not mask.any():
         return mask
-    ow = ordered_wire(mask, image=frame)
+    # The rendering does not depend on the wire's direction: any hint skips the catheter look-up.
+    ow = ordered_wire(mask, image=frame, proximal_hint_uv=(0.0, 0.0))
     if not ow:
         return mask
     return model_wire_mask(mask, ow.points_uv_px, radius_px=wire_radius_px).mask
