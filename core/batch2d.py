@@ -60,16 +60,13 @@ def _read_dicom(path: Path) -> list[InputImage]:
 def _read_picture(path: Path) -> InputImage:
     from skimage.io import imread
 
-    from guidewire3d.image2d import _grey
+    from guidewire3d.image2d import _as_image
 
     try:
         im = imread(path)
     except Exception as e:  # noqa: BLE001
         raise InputError(f"{path}: unreadable image ({e.__class__.__name__}: {str(e)[:100]})") from None
-    im = _grey(im)
-    if im.ndim != 2 or min(im.shape) < 8:
-        raise InputError(f"{path}: expected a 2D image of at least 8x8 pixels, got shape {im.shape}")
-    return InputImage(path.stem, str(path), None, np.asarray(im))
+    return InputImage(path.stem, str(path), None, _as_image(im, str(path)))
 
 
 def read_inputs(paths) -> list[InputImage]:
@@ -158,9 +155,7 @@ def cli_segment(args) -> int:
     from guidewire3d import io
     from guidewire3d.export import write_png
 
-    out_dir = Path(args.out)
-    if out_dir.exists() and (not out_dir.is_dir() or any(out_dir.iterdir())):
-        raise InputError(f"{out_dir}: output folder exists and is not empty")
+    out_dir = io.require_empty_folder(args.out)
     if args.wire_diameter_mm is not None and not args.wire_model:
         raise InputError("--wire-diameter-mm: only used with --wire-model")
     images = read_inputs(args.inputs)

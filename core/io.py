@@ -14,7 +14,9 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import tempfile
+import time
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -69,13 +71,18 @@ def atomic_write_text(path, text: str) -> Path:
     return atomic_write_bytes(path, text.encode("utf-8"))
 
 
+def require_empty_folder(out_dir) -> Path:
+    """``out_dir`` as a Path; InputError if it exists and is not an empty folder."""
+    out_dir = Path(out_dir)
+    if out_dir.exists() and (not out_dir.is_dir() or any(out_dir.iterdir())):
+        raise InputError(f"{out_dir}: output folder exists and is not empty")
+    return out_dir
+
+
 def write_folder_atomically(out_dir, writer) -> Path:
     """Call ``writer(staging)`` for a new temporary sibling folder of ``out_dir``, then rename it
     to ``out_dir`` (replacing an existing ``out_dir``: the caller decides whether that is allowed).
     On any error the staging folder is removed and ``out_dir`` is untouched."""
-    import shutil
-    import time
-
     out_dir = Path(out_dir)
     out_dir.parent.mkdir(parents=True, exist_ok=True)
     staging = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.staging-", dir=out_dir.parent))
@@ -371,9 +378,7 @@ def write_ct_series(vol: Volume, out_dir, *, patient_name: str = "Phantom^Guidew
     The files go to a temporary folder that is renamed to ``out_dir`` when complete.
     """
     sitk = _sitk_quiet()
-    out_dir = Path(out_dir)
-    if out_dir.exists() and any(out_dir.iterdir()):
-        raise InputError(f"{out_dir}: output folder exists and is not empty")
+    out_dir = require_empty_folder(out_dir)
     study_uid = study_uid or _new_uid()
     series_uid = series_uid or _new_uid()
     frame_uid = _new_uid()

@@ -39,7 +39,6 @@ import hashlib
 import json
 import os
 import shutil
-import tempfile
 from dataclasses import asdict, dataclass, field, fields
 from enum import Enum
 from pathlib import Path
@@ -1250,12 +1249,9 @@ def write_case(case: PhantomCase, out_dir) -> Path:
     from guidewire3d import io
     from pydicom.uid import generate_uid
 
-    out_dir = Path(out_dir)
-    if out_dir.exists() and (not out_dir.is_dir() or any(out_dir.iterdir())):
-        raise InputError(f"{out_dir}: output folder exists and is not empty")
-    out_dir.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.tmp.", dir=out_dir.parent))
-    try:
+    out_dir = io.require_empty_folder(out_dir)
+
+    def write(tmp: Path) -> None:
         study = generate_uid()
         pid = f"GW3D-{case.options.seed}"
         if case.volume is not None:
@@ -1272,13 +1268,8 @@ def write_case(case: PhantomCase, out_dir) -> Path:
             masks["lumen_mask_zyx"] = case.lumen_mask_zyx
             masks["distractor_mask_zyx"] = case.distractor_mask_zyx
         np.savez_compressed(tmp / "truth_masks.npz", **{k: np.asarray(v, bool) for k, v in masks.items()})
-        if out_dir.exists():
-            out_dir.rmdir()
-        os.replace(tmp, out_dir)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
-    return out_dir
+
+    return io.write_folder_atomically(out_dir, write)
 
 
 def load_truth(case_dir) -> Truth:
@@ -1412,9 +1403,9 @@ def cli_main(args) -> int:
     import time
 
     t0 = time.perf_counter()
-    out = Path(args.out)
-    if out.exists() and (not out.is_dir() or any(out.iterdir())):
-        raise InputError(f"{out}: output folder exists and is not empty")
+    from guidewire3d import io
+
+    out = io.require_empty_folder(args.out)
     opts = PhantomOptions(
         seed=args.seed, n_frames=args.frames, wire_diameter_mm=args.wire_diameter, distractors=args.distractors,
         detector_px=args.detector, volume=args.volume, background=not args.no_background,

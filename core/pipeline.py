@@ -220,9 +220,8 @@ def run_to_outdir(cta, roadmap, frames, out_dir, *, series_uid=None, overrides=N
     from guidewire3d import export
 
     out_dir = Path(out_dir)
-    if out_dir.exists() and (not out_dir.is_dir() or any(out_dir.iterdir())):
-        if not (replace and (out_dir / "report.json").exists()):
-            raise InputError(f"{out_dir}: output folder exists and is not empty")
+    if not (replace and (out_dir / "report.json").exists()):
+        io.require_empty_folder(out_dir)
     t0 = time.perf_counter()
     vol, road, live = load_inputs(cta, roadmap, frames, series_uid=series_uid, overrides=overrides, log=log)
     t_load = time.perf_counter() - t0
