@@ -204,10 +204,38 @@ def test_single_path_partial_2d(case0):
     assert len(path) < 0.6 * len(projected)  # the 2D covers a fraction of the tree only
     init = _perturb(true, tree, 3.0, 5.0, seed=6)
     r = reg.register(tree, uv, carm, init_pose=init)
-    assert r.success, r.message
     path_mtre = mtre_mm(r.pose, true, tree.points_lps_mm[path])
     assert path_mtre < RECOVER_MM * 2, path_mtre
     assert _errors(r.pose, true, tree, carm)[2] < 1.0
+    # one path: recognised, and trusted only with the stricter pose uncertainty
+    assert r.single_path and "single vessel path" in r.message
+    assert r.mean_residual_px < reg.MAX_MEAN_RESIDUAL_PX
+    assert r.success == (r.pose_std_mm <= reg.MAX_POSE_STD_MM_SINGLE_PATH), r.message
+    assert r.to_dict()["single_path"] is True
+    full = reg.register(tree, _centerline(tree, carm, true), carm, init_pose=true, global_search=False)
+    assert full.success and not full.single_path, full.message
+
+
+def test_single_path_predicate_on_known_visibility(case0):
+    tree = case0[0]
+    m3 = reg._model_from_input(tree, CArm(0.0, 0.0, 1200.0, 800.0, 0.3, (512, 512)))
+    branches = tree.branches
+    leaf_branch = max((b for b in branches if b.is_leaf), key=lambda b: len(tree.path_to_root(b.point_ids[-1])))
+    on_path, b = [], leaf_branch.index
+    while b >= 0:  # the branches from that leaf to the root
+        on_path.append(b)
+        b = branches[b].parent
+    path_vis = np.isin(m3.branch, on_path)
+    assert reg._explains_single_path(m3, path_vis)
+    assert not reg._explains_single_path(m3, np.ones(len(m3.branch), bool))  # the whole tree
+    assert not reg._explains_single_path(m3, np.zeros(len(m3.branch), bool))  # nothing explained
+    # a short stub of one side branch (its first 3 samples) leaves it a path
+    side = next(b.index for b in branches if b.index not in on_path and b.parent in on_path)
+    stub = path_vis | (np.isin(np.arange(len(m3.branch)), np.flatnonzero(m3.branch == side)[:3]))
+    assert reg._explains_single_path(m3, stub)
+    # a point cloud has no topology: never a "single path"
+    cloud = reg._model_from_input(tree.points_lps_mm, CArm(0.0, 0.0, 1200.0, 800.0, 0.3, (512, 512)))
+    assert not reg._explains_single_path(cloud, np.ones(len(cloud.points), bool))
 
 
 def test_inputs_are_not_modified(case0):
