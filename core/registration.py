@@ -196,6 +196,10 @@ class RegistrationResult:
         The roadmap explains essentially one root-to-leaf vessel path of the tree (see
         ``SINGLE_PATH_FRACTION``): its depth along the beam rests on perspective alone, so
         ``success`` then needs ``pose_std_mm <= MAX_POSE_STD_MM_SINGLE_PATH``.
+    fits_2d : bool
+        The 2D centerline lies on the projected tree (the residual and inlier checks pass). With
+        ``success`` false this means the overlay fits but the roadmap leaves the pose uncertain
+        (:attr:`verdict` ``"uncertain"``): a refinement from a user's correction may be adopted.
     """
 
     pose: Pose
@@ -210,9 +214,15 @@ class RegistrationResult:
     energy: float = float("nan")
     pose_std_mm: float = float("nan")
     single_path: bool = False
+    fits_2d: bool = False
 
     def __bool__(self) -> bool:
         return bool(self.success)
+
+    @property
+    def verdict(self) -> str:
+        """``"ok"``, ``"uncertain"`` (the overlay fits, the pose is not determined) or ``"failed"``."""
+        return "ok" if self.success else "uncertain" if self.fits_2d else "failed"
 
     def to_dict(self) -> dict:
         """JSON-able record (plain lists and floats)."""
@@ -229,6 +239,7 @@ class RegistrationResult:
             "energy": _json_float(self.energy),
             "pose_std_mm": _json_float(self.pose_std_mm),
             "single_path": bool(self.single_path),
+            "fits_2d": bool(self.fits_2d),
         }
 
 
@@ -1172,7 +1183,8 @@ def _finish(prob: _Problem, out: _LMOut, q, carm, iterations, t0) -> Registratio
     pose_std = _pose_std_mm(cov, pose, prob.m3.points)
     single = _explains_single_path(prob.m3, prob.visible3)
     max_std = MAX_POSE_STD_MM_SINGLE_PATH if single else MAX_POSE_STD_MM
-    ok = (mean_in <= MAX_MEAN_RESIDUAL_PX) and (frac >= MIN_INLIER_FRACTION) and (pose_std <= max_std)
+    fits = (mean_in <= MAX_MEAN_RESIDUAL_PX) and (frac >= MIN_INLIER_FRACTION)
+    ok = fits and (pose_std <= max_std)
     why = []
     if mean_in > MAX_MEAN_RESIDUAL_PX:
         why.append(f"mean residual {mean_in:.2f} px > {MAX_MEAN_RESIDUAL_PX}")
@@ -1193,7 +1205,7 @@ def _finish(prob: _Problem, out: _LMOut, q, carm, iterations, t0) -> Registratio
         pose=pose, projection_matrix=carm.projection_matrix(pose), success=bool(ok), message=msg,
         mean_residual_px=mean_in, inlier_fraction=frac, iterations=int(iterations),
         seconds=time.perf_counter() - t0, covariance_6x6=cov, energy=out.ev.energy, pose_std_mm=pose_std,
-        single_path=single,
+        single_path=single, fits_2d=bool(fits),
     )
 
 
@@ -1338,7 +1350,7 @@ def register_epnp(tree_landmarks_lps_mm, landmarks_uv_px, carm: CArm) -> Registr
     return RegistrationResult(
         pose=pose, projection_matrix=carm.projection_matrix(pose), success=bool(ok),
         message=msg if ok else "untrustworthy: " + msg, mean_residual_px=mean, inlier_fraction=frac,
-        iterations=1, seconds=time.perf_counter() - t0, covariance_6x6=None,
+        iterations=1, seconds=time.perf_counter() - t0, covariance_6x6=None, fits_2d=bool(ok),
     )
 
 

@@ -641,3 +641,23 @@ def test_e2e_failed_registration_then_manual_correction_and_refine(e2e):
     assert _projection_offset_px(carm, reg.pose, e2e.pose, pts) < REFINE_CONTRACTION * offset
     errors = _curve_errors(out, case)
     assert len(errors) == n and float(np.mean(errors)) <= MEAN_ERROR_TOL_MM
+
+
+@pytest.mark.parametrize("verdict", ["uncertain", "failed"])
+def test_e2e_refine_adopts_an_uncertain_pose_and_not_a_failed_one(e2e, monkeypatch, verdict):
+    """Refine's result fits the roadmap but the data leave the pose open (as for one vessel path's depth):
+    the transform takes it and the summary says UNCERTAIN; a failed refine changes nothing."""
+    from guidewire3d import registration
+
+    core, out = e2e.core, e2e.out
+    moved = Pose.exp([1.0, -1.0, 0.5, *np.radians([0.5, 0.5, -0.5])]) @ e2e.pose
+    L.pose_to_transform_node(moved, out.transform)
+    monkeypatch.setattr(registration, "MAX_POSE_STD_MM" if verdict == "uncertain" else "MAX_MEAN_RESIDUAL_PX", 0.0)
+    summary = core.refine_parameters(e2e.p)
+    if verdict == "uncertain":
+        assert summary.startswith("Registration UNCERTAIN") and core.registration.verdict == "uncertain"
+        assert L.pose_from_transform_node(out.transform).allclose(core.registration.pose, atol_mm=1e-6, atol_rad=1e-9)
+        assert metrics.mtre_mm(core.registration.pose, e2e.pose, e2e.case.tree.points_lps_mm) < REGISTRATION_SANITY_MM
+    else:
+        assert summary.startswith("Refine failed")
+        assert L.pose_from_transform_node(out.transform).allclose(moved, atol_mm=1e-6, atol_rad=1e-9)

@@ -413,6 +413,28 @@ def test_nudge_then_refine_returns_to_the_automatic_pose(viewer, synth):
     assert rec["source"] == "manual"
 
 
+@pytest.mark.parametrize("verdict", ["uncertain", "failed"])
+def test_refine_adopts_an_uncertain_pose_and_keeps_the_pose_on_failure(viewer, synth, monkeypatch, verdict):
+    """A refinement the overlay fits but the roadmap leaves uncertain (e.g. one vessel path's depth) is
+    adopted with a warning; a failed one leaves the pose alone."""
+    from guidewire3d import registration
+
+    ctl, h = viewer
+    auto = ctl.case.automatic_pose
+    ctl.nudge(Axis.U, +1)
+    ctl.rotate(Axis.BEAM, +1)
+    moved = ctl.pose
+    # a limit no pose meets: every refinement becomes "uncertain" (pose) or "failed" (2D fit)
+    monkeypatch.setattr(registration, "MAX_POSE_STD_MM" if verdict == "uncertain" else "MAX_MEAN_RESIDUAL_PX", 0.0)
+    res = ctl.refine()
+    assert res.verdict == verdict and not res.success
+    if verdict == "uncertain":
+        assert mtre_mm(ctl.pose, auto, synth.tree.points_lps_mm) < TOL_REFINE_MTRE_MM
+        assert "check it" in ctl.status and not ctl.wires_stale
+    else:
+        assert ctl.pose.allclose(moved) and "refine failed" in ctl.status
+
+
 def test_reset_goes_back_to_automatic(viewer, synth, case_dir):
     ctl, h = viewer
     ctl.rotate(Axis.U, +2)

@@ -304,7 +304,8 @@ class ViewerController:
         return val
 
     def refine(self):
-        """Run the LM refinement from the current pose; on success adopt it and re-reconstruct.
+        """Run the LM refinement from the current pose; adopt it and re-reconstruct unless it failed
+        (a pose the overlay fits but the roadmap leaves uncertain is adopted with a warning).
 
         Returns
         -------
@@ -317,11 +318,15 @@ class ViewerController:
         t0 = time.perf_counter()
         res = registration.refine(self._case.tree, self._case.centerline_uv_px, self._case.carm, self.pose)
         dt = time.perf_counter() - t0
-        if res.success:
-            self._set_pose(res.pose, "manual", f"refined in {dt:.2f} s: {res.mean_residual_px:.2f} px")
-            self.apply()
-        else:
+        if res.verdict == "failed":
             self._say(f"refine failed: {res.message} (pose kept)")
+            return res
+        # "uncertain": the overlay fits best there, but the roadmap leaves the pose open (e.g. the
+        # depth of a single vessel path): adopt it and say so
+        self._set_pose(res.pose, "manual", f"refined in {dt:.2f} s: {res.mean_residual_px:.2f} px")
+        self.apply()
+        if not res.success:
+            self._say(f"{self.status}; refined, but the roadmap does not settle the pose, check it: {res.message}")
         return res
 
     def reset(self) -> Pose:

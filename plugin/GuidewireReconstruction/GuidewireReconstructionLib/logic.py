@@ -569,8 +569,9 @@ class GuidewireReconstructionCoreLogic:
         """Refine the registration from the pose in the transform node, then update it and the wires.
 
         Reads the (possibly user-edited) transform node, converts it back to ``T_iso_from_lps``,
-        runs ``registration.refine`` and, on success (or with ``force``), stores the refined pose in
-        the node and reconstructs every frame's wire again. Returns the ``RegistrationResult``.
+        runs ``registration.refine`` and, unless it failed (or with ``force``), stores the refined pose
+        in the node and reconstructs every frame's wire again; a pose the overlay fits but the roadmap
+        leaves uncertain (``verdict == "uncertain"``) is adopted. Returns the ``RegistrationResult``.
         """
         from guidewire3d import registration
 
@@ -584,8 +585,8 @@ class GuidewireReconstructionCoreLogic:
         if getattr(cl, "radius_px", None) is not None:
             kwargs["centerline_radius_px"] = cl.radius_px
         reg = registration.refine(res.tree, cl.points_uv_px, res.carm, start, **kwargs)
-        log.info("refine: %s (%s), residual %.2f px", "ok" if reg.success else "FAILED", reg.message, reg.mean_residual_px)
-        if not reg.success and not force:
+        log.info("refine: %s (%s), residual %.2f px", reg.verdict, reg.message, reg.mean_residual_px)
+        if reg.verdict == "failed" and not force:
             return reg
         self.outputs.transform = node
         self.registration = reg
@@ -662,7 +663,7 @@ class GuidewireReconstructionCoreLogic:
     def refine_parameters(self, p) -> str:
         """Run :meth:`refine` from ``p.registrationTransform``; returns a one-line summary."""
         reg = self.refine(transform_node=p.registrationTransform, force=bool(p.force))
-        if not reg.success and not p.force:
+        if reg.verdict == "failed" and not p.force:
             return f"Refine failed ({reg.message}); the transform and the wires were not changed."
         return self.summary()
 
@@ -680,7 +681,7 @@ class GuidewireReconstructionCoreLogic:
             return "No result yet."
         reg = self.registration
         ok = sum(1 for w in self.wires3d if w.success)
-        return (f"Registration {'ok' if reg.success else 'FAILED'} ({float(reg.mean_residual_px):.2f} px); "
+        return (f"Registration {reg.verdict if reg.success else reg.verdict.upper()} ({float(reg.mean_residual_px):.2f} px); "
                 f"{ok}/{len(self.wires3d)} frames reconstructed.")
 
     def set_transform_interaction(self, visible: bool, *, transform_node=None) -> None:
