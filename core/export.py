@@ -151,9 +151,12 @@ def _f(x, nd=4):
 def registration_record(reg, *, source: str = "automatic") -> dict:
     return {
         "success": bool(reg.success),
+        "verdict": reg.verdict,
         "message": str(reg.message),
         "mean_residual_px": _f(reg.mean_residual_px),
-        "inlier_fraction": _f(getattr(reg, "inlier_fraction", np.nan)),
+        "inlier_fraction": _f(reg.inlier_fraction),
+        "pose_std_mm": _f(reg.pose_std_mm),
+        "single_path": bool(reg.single_path),
         "iterations": int(reg.iterations),
         "seconds": _f(reg.seconds),
         "source": source,

@@ -29,8 +29,9 @@ def test_reconstruct_writes_the_contract(reconstructed):
         assert key in rep
     # the options the result came from (defaults of `reconstruct`)
     assert (rep["inputs"]["method"], rep["inputs"]["segmenter"], rep["inputs"]["forced"]) == ("vessel", "unet", False)
-    for key in ("success", "mean_residual_px", "iterations", "seconds"):
+    for key in ("success", "mean_residual_px", "iterations", "seconds", "pose_std_mm", "single_path"):
         assert key in rep["registration"]
+    assert rep["registration"]["verdict"] == "ok" and rep["registration"]["success"]
     assert np.asarray(rep["projection_matrix"]).shape == (3, 4)
     assert len(rep["frames"]) == len(truth.wire_lps_mm)
     for name in ("centerline.vtp", "vessels.stl", "vessels.vtp", "registration.json", "registration_inputs.npz",

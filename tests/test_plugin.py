@@ -26,6 +26,7 @@ from guidewire3d import io, metrics  # noqa: E402
 from guidewire3d.errors import InputError, RegistrationError  # noqa: E402
 from guidewire3d.geometry import CArm, Pose  # noqa: E402
 from guidewire3d.reconstruction import ReconMethod, Wire3D  # noqa: E402
+from guidewire3d.registration import RegistrationResult  # noqa: E402
 from guidewire3d.segmentation import SegMethod  # noqa: E402
 from guidewire3d.vesseltree import VesselTree  # noqa: E402
 
@@ -268,8 +269,9 @@ def _synthetic_result(rng):
     wires3d.insert(1, Wire3D.failed("2D wire not found"))
     wires2d.insert(1, None)
     cl_uv = carm.project(tree.points_lps_mm, pose)
-    reg = SimpleNamespace(pose=pose, success=True, message="converged", mean_residual_px=0.42, iterations=9,
-                          seconds=0.12)
+    reg = RegistrationResult(pose=pose, projection_matrix=carm.projection_matrix(pose), success=True,
+                             message="converged", mean_residual_px=0.42, inlier_fraction=1.0, iterations=9,
+                             seconds=0.12, fits_2d=True)
     return SimpleNamespace(
         volume=None, vessels=SimpleNamespace(surface=_tube_lps(tree), tree=tree), tree=tree,
         roadmap_image=None, roadmap_frame_index=0, centerline2d=SimpleNamespace(points_uv_px=cl_uv, radius_px=None),
@@ -656,6 +658,7 @@ def test_e2e_refine_adopts_an_uncertain_pose_and_not_a_failed_one(e2e, monkeypat
     summary = core.refine_parameters(e2e.p)
     if verdict == "uncertain":
         assert summary.startswith("Registration UNCERTAIN") and core.registration.verdict == "uncertain"
+        assert out.transform.GetAttribute("GuidewireReconstruction.Registration.Verdict") == "uncertain"
         assert L.pose_from_transform_node(out.transform).allclose(core.registration.pose, atol_mm=1e-6, atol_rad=1e-9)
         assert metrics.mtre_mm(core.registration.pose, e2e.pose, e2e.case.tree.points_lps_mm) < REGISTRATION_SANITY_MM
     else:

@@ -268,6 +268,26 @@ def test_a_failed_frame_hides_the_tube_and_says_why(case_dir, synth):
         h.plotter.close()
 
 
+@pytest.mark.parametrize(("verdict", "single_path", "says"), [
+    ("uncertain", True, "AUTOMATIC REGISTRATION UNCERTAIN: the overlay fits, the roadmap does not settle the pose "
+                        "(one vessel path: depth)"),
+    ("failed", False, "AUTOMATIC REGISTRATION FAILED: check the overlay"),
+])
+def test_a_registration_that_did_not_pass_says_which_check(case_dir, verdict, single_path, says):
+    for name in ("report.json", "registration.json"):
+        path = case_dir / name
+        if path.exists():
+            rec = json.loads(path.read_text())
+            rec["registration"].update(success=False, verdict=verdict, single_path=single_path)
+            path.write_text(json.dumps(rec))
+    ctl, h = open_viewer(case_dir, size_px=SIZE, off_screen=True)
+    try:
+        assert says in ctl.info_text()
+        assert ("UNCERTAIN" in ctl.info_text()) == (verdict == "uncertain")
+    finally:
+        h.plotter.close()
+
+
 def test_cta_slices_pass_through_the_vessels_in_lps(viewer, synth, tmp_path):
     from viewer_fixture import CTA_TISSUE_HU, CTA_VESSEL_HU
 

@@ -438,7 +438,11 @@ class ViewerController:
         parts.append(f"pose {self.pose_source}" + (" (wires stale: Return)" if self.wires_stale else ""))
         reg = self._case.registration
         if self.pose_source == "automatic" and reg and not reg.get("success", True):
-            parts.append("AUTOMATIC REGISTRATION FAILED: check the overlay, correct, refine (o)")
+            if reg.get("verdict") == "uncertain":
+                parts.append("AUTOMATIC REGISTRATION UNCERTAIN: the overlay fits, the roadmap does not settle "
+                             "the pose" + (" (one vessel path: depth)" if reg.get("single_path") else ""))
+            else:
+                parts.append("AUTOMATIC REGISTRATION FAILED: check the overlay, correct, refine (o)")
         parts.append(f"step {self._step.value} ({STEP_MM[self._step]:g} mm / {STEP_DEG[self._step]:g} deg)")
         parts.append("yellow: CTA centerline; magenta: 2D wire; green: 3D wire")
         if w is not None:

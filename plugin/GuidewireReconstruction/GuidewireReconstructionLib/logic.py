@@ -758,7 +758,7 @@ class GuidewireReconstructionCoreLogic:
         """The pose into the transform node; quality figures and ``Source`` (automatic | refined) as attributes."""
         reg, node = self.registration, self.outputs.transform
         pose_to_transform_node(reg.pose, node)
-        items = [("Success", str(bool(reg.success))), ("Message", str(reg.message)),
+        items = [("Success", str(bool(reg.success))), ("Verdict", reg.verdict), ("Message", str(reg.message)),
                  ("MeanResidualPx", f"{float(reg.mean_residual_px):.6g}"),
                  ("Iterations", str(int(reg.iterations))), ("Seconds", f"{float(reg.seconds):.6g}"), ("Source", source)]
         if getattr(reg, "inlier_fraction", None) is not None:
