@@ -151,7 +151,7 @@ def _f(x, nd=4):
 def registration_record(reg, *, source: str = "automatic") -> dict:
     return {
         "success": bool(reg.success),
-        "verdict": reg.verdict,
+        "verdict": reg.verdict.value,
         "message": str(reg.message),
         "mean_residual_px": _f(reg.mean_residual_px),
         "inlier_fraction": _f(reg.inlier_fraction),

@@ -99,6 +99,7 @@ from __future__ import annotations
 import time
 import weakref
 from dataclasses import dataclass
+from enum import Enum
 
 import numpy as np
 from scipy import fft as sfft
@@ -113,6 +114,7 @@ from guidewire3d.vesseltree import VesselTree
 
 __all__ = [
     "RegistrationResult",
+    "Verdict",
     "register",
     "refine",
     "score",
@@ -163,6 +165,14 @@ SEARCH_STARTS = 2  # LM starts taken from the search
 # ============================================================================================
 # results
 # ============================================================================================
+class Verdict(str, Enum):
+    """What a registration's quality checks say (:attr:`RegistrationResult.verdict`)."""
+
+    OK = "ok"  # the overlay fits and the pose is determined: ``success``
+    UNCERTAIN = "uncertain"  # the overlay fits, but the roadmap leaves the pose open (e.g. a single path's depth)
+    FAILED = "failed"  # the 2D centerline does not lie on the projected tree
+
+
 @dataclass(frozen=True, eq=False)
 class RegistrationResult:
     """Outcome of a registration (falsy when ``success`` is false).
@@ -199,7 +209,7 @@ class RegistrationResult:
     fits_2d : bool
         The 2D centerline lies on the projected tree (the residual and inlier checks pass). With
         ``success`` false this means the overlay fits but the roadmap leaves the pose uncertain
-        (:attr:`verdict` ``"uncertain"``): a refinement from a user's correction may be adopted.
+        (:attr:`verdict` ``Verdict.UNCERTAIN``): a refinement from a user's correction may be adopted.
     """
 
     pose: Pose
@@ -220,9 +230,9 @@ class RegistrationResult:
         return bool(self.success)
 
     @property
-    def verdict(self) -> str:
-        """``"ok"``, ``"uncertain"`` (the overlay fits, the pose is not determined) or ``"failed"``."""
-        return "ok" if self.success else "uncertain" if self.fits_2d else "failed"
+    def verdict(self) -> Verdict:
+        """OK, UNCERTAIN (the overlay fits, the pose is not determined) or FAILED."""
+        return Verdict.OK if self.success else Verdict.UNCERTAIN if self.fits_2d else Verdict.FAILED
 
     def to_dict(self) -> dict:
         """JSON-able record (plain lists and floats)."""

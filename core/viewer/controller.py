@@ -318,7 +318,7 @@ class ViewerController:
         t0 = time.perf_counter()
         res = registration.refine(self._case.tree, self._case.centerline_uv_px, self._case.carm, self.pose)
         dt = time.perf_counter() - t0
-        if res.verdict == "failed":
+        if res.verdict is registration.Verdict.FAILED:
             self._say(f"refine failed: {res.message} (pose kept)")
             return res
         # "uncertain": the overlay fits best there, but the roadmap leaves the pose open (e.g. the
@@ -438,7 +438,9 @@ class ViewerController:
         parts.append(f"pose {self.pose_source}" + (" (wires stale: Return)" if self.wires_stale else ""))
         reg = self._case.registration
         if self.pose_source == "automatic" and reg and not reg.get("success", True):
-            if reg.get("verdict") == "uncertain":
+            from guidewire3d.registration import Verdict
+
+            if reg.get("verdict") == Verdict.UNCERTAIN:
                 parts.append("AUTOMATIC REGISTRATION UNCERTAIN: the overlay fits, the roadmap does not settle "
                              "the pose" + (" (one vessel path: depth)" if reg.get("single_path") else ""))
             else:

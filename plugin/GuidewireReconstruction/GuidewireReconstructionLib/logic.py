@@ -571,7 +571,7 @@ class GuidewireReconstructionCoreLogic:
         Reads the (possibly user-edited) transform node, converts it back to ``T_iso_from_lps``,
         runs ``registration.refine`` and, unless it failed (or with ``force``), stores the refined pose
         in the node and reconstructs every frame's wire again; a pose the overlay fits but the roadmap
-        leaves uncertain (``verdict == "uncertain"``) is adopted. Returns the ``RegistrationResult``.
+        leaves uncertain (``Verdict.UNCERTAIN``) is adopted. Returns the ``RegistrationResult``.
         """
         from guidewire3d import registration
 
@@ -585,8 +585,8 @@ class GuidewireReconstructionCoreLogic:
         if getattr(cl, "radius_px", None) is not None:
             kwargs["centerline_radius_px"] = cl.radius_px
         reg = registration.refine(res.tree, cl.points_uv_px, res.carm, start, **kwargs)
-        log.info("refine: %s (%s), residual %.2f px", reg.verdict, reg.message, reg.mean_residual_px)
-        if reg.verdict == "failed" and not force:
+        log.info("refine: %s (%s), residual %.2f px", reg.verdict.value, reg.message, reg.mean_residual_px)
+        if reg.verdict is registration.Verdict.FAILED and not force:
             return reg
         self.outputs.transform = node
         self.registration = reg
@@ -662,8 +662,10 @@ class GuidewireReconstructionCoreLogic:
 
     def refine_parameters(self, p) -> str:
         """Run :meth:`refine` from ``p.registrationTransform``; returns a one-line summary."""
+        from guidewire3d.registration import Verdict
+
         reg = self.refine(transform_node=p.registrationTransform, force=bool(p.force))
-        if reg.verdict == "failed" and not p.force:
+        if reg.verdict is Verdict.FAILED and not p.force:
             return f"Refine failed ({reg.message}); the transform and the wires were not changed."
         return self.summary()
 
@@ -681,7 +683,7 @@ class GuidewireReconstructionCoreLogic:
             return "No result yet."
         reg = self.registration
         ok = sum(1 for w in self.wires3d if w.success)
-        return (f"Registration {reg.verdict if reg.success else reg.verdict.upper()} ({float(reg.mean_residual_px):.2f} px); "
+        return (f"Registration {reg.verdict.value if reg.success else reg.verdict.value.upper()} ({float(reg.mean_residual_px):.2f} px); "
                 f"{ok}/{len(self.wires3d)} frames reconstructed.")
 
     def set_transform_interaction(self, visible: bool, *, transform_node=None) -> None:
@@ -758,7 +760,7 @@ class GuidewireReconstructionCoreLogic:
         """The pose into the transform node; quality figures and ``Source`` (automatic | refined) as attributes."""
         reg, node = self.registration, self.outputs.transform
         pose_to_transform_node(reg.pose, node)
-        items = [("Success", str(bool(reg.success))), ("Verdict", reg.verdict), ("Message", str(reg.message)),
+        items = [("Success", str(bool(reg.success))), ("Verdict", reg.verdict.value), ("Message", str(reg.message)),
                  ("MeanResidualPx", f"{float(reg.mean_residual_px):.6g}"),
                  ("Iterations", str(int(reg.iterations))), ("Seconds", f"{float(reg.seconds):.6g}"), ("Source", source)]
         if getattr(reg, "inlier_fraction", None) is not None:
