@@ -87,7 +87,7 @@ def run_demo(*, out="guidewire3d-demo", seed: int | None = None) -> int:
     print()
     print(f"guidewire3d demo — seed {truth.seed}, {result.frames.shape[0]} live frames "
           f"{result.frames.shape[2]}x{result.frames.shape[1]}, wire {truth.wire_diameter_mm:.2f} mm")
-    print(f"registration: {'ok' if reg.success else 'FAILED'}; mTRE {ev['mtre_mm']:.2f} mm against the truth; "
+    print(f"registration: {reg.verdict.label}; mTRE {ev['mtre_mm']:.2f} mm against the truth; "
           f"residual {reg.mean_residual_px:.2f} px; {reg.iterations} iterations; {reg.seconds * 1000:.0f} ms")
     rows = []
     for rec, w, s in zip(ev["frames"], result.wires3d, result.frame_seconds):

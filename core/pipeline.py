@@ -132,7 +132,7 @@ def run(volume: io.Volume, roadmap: io.XARun, frames: io.XARun, *, roadmap_frame
     else:
         reg = registration.refine(tree, cl2d.points_uv_px, roadmap.carm, pose, centerline_radius_px=cl2d.radius_px)
     timing["registration"] = time.perf_counter() - t0
-    _say(f"registration: {'ok' if reg.success else 'FAILED'} ({reg.message}); "
+    _say(f"registration: {reg.verdict.label} ({reg.message}); "
          f"residual {reg.mean_residual_px:.2f} px, {reg.iterations} iterations", log)
 
     live = np.asarray(frames.frames)
@@ -266,10 +266,14 @@ def cli_reconstruct(args) -> int:
         progress=True, log=_stderr,
     )
     n_ok = sum(1 for w in result.wires3d if w.success)
-    print(f"wrote {args.out}: registration {'ok' if result.registration.success else 'FAILED'} "
+    print(f"wrote {args.out}: registration {result.registration.verdict.label} "
           f"({result.registration.mean_residual_px:.2f} px), {n_ok}/{len(result.wires3d)} frames reconstructed")
     if not result.reconstructed:
-        _stderr("guidewire3d: registration failed; frames were not reconstructed. Correct it with "
+        from guidewire3d.registration import Verdict
+
+        why = ("is uncertain (the overlay fits, the roadmap does not settle the pose)"
+               if result.registration.verdict is Verdict.UNCERTAIN else "failed")
+        _stderr(f"guidewire3d: registration {why}; frames were not reconstructed. Correct it with "
                 f"`guidewire3d view {args.out}` or rerun with --force.")
         return 1
     return 0

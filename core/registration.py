@@ -173,6 +173,11 @@ class Verdict(str, Enum):
     UNCERTAIN = "uncertain"  # the overlay fits, but the roadmap leaves the pose open (e.g. a single path's depth)
     FAILED = "failed"  # the 2D centerline does not lie on the projected tree
 
+    @property
+    def label(self) -> str:
+        """For status lines: ``ok``, ``UNCERTAIN``, ``FAILED``."""
+        return self.value if self is Verdict.OK else self.value.upper()
+
 
 @dataclass(frozen=True, eq=False)
 class RegistrationResult:

@@ -161,3 +161,26 @@ def test_viewer_shows_the_registration_residual_of_the_output(reconstructed):
     assert ctl.inlier_residual_px() == pytest.approx(rep["registration"]["mean_residual_px"], abs=2e-3)
     assert ctl.residual_px() >= ctl.inlier_residual_px()
     assert "over inliers (as registered)" in ctl.info_text()
+
+
+@pytest.mark.parametrize(("limit", "verdict", "says"), [
+    ("MAX_POSE_STD_MM", "uncertain", "registration is uncertain (the overlay fits, the roadmap does not settle the pose)"),
+    ("MAX_MEAN_RESIDUAL_PX", "failed", "registration failed"),
+])
+def test_reconstruct_stops_after_a_registration_that_did_not_pass(small_case_dir, tmp_path, monkeypatch, capsys,
+                                                                   limit, verdict, says):
+    """Exit status 1, the registration outputs written with their verdict, no wires; --force is named."""
+    from guidewire3d import registration
+
+    monkeypatch.setattr(registration, limit, 0.0)  # a limit no pose meets
+    out = tmp_path / "out"
+    rc = main(["reconstruct", "--cta", str(small_case_dir / "ct"), "--roadmap", str(small_case_dir / "roadmap.dcm"),
+               "--frames", str(small_case_dir / "frames.dcm"), "--out", str(out), "--no-images"])
+    cap = capsys.readouterr()
+    assert rc == 1
+    assert says in cap.err and "--force" in cap.err
+    assert f"registration {verdict.upper()}" in cap.out
+    rep = json.loads((out / "report.json").read_text())
+    assert rep["registration"]["verdict"] == verdict and not rep["registration"]["success"]
+    assert json.loads((out / "registration.json").read_text())["registration"]["verdict"] == verdict
+    assert rep["frames"] == [] and not list(out.glob("guidewire_*"))

@@ -683,7 +683,7 @@ class GuidewireReconstructionCoreLogic:
             return "No result yet."
         reg = self.registration
         ok = sum(1 for w in self.wires3d if w.success)
-        return (f"Registration {reg.verdict.value if reg.success else reg.verdict.value.upper()} ({float(reg.mean_residual_px):.2f} px); "
+        return (f"Registration {reg.verdict.label} ({float(reg.mean_residual_px):.2f} px); "
                 f"{ok}/{len(self.wires3d)} frames reconstructed.")
 
     def set_transform_interaction(self, visible: bool, *, transform_node=None) -> None:
