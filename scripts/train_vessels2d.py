@@ -46,7 +46,7 @@ REAL_DIR = Path("/work/shared/data/coronary-angiograms")
 # steps=4400 0.776 (four flips), 0.778 (eight flips / transposes, the shipped rule). Not better,
 # held-out Dice of the folds against the shipped recipe's (0.786 0.780 0.758 0.794 0.775): five levels
 # (channels 8..128) and 6600 steps, folds 0-3 0.791 0.776 0.750 0.796; an exponential moving average
-# of the weights (decay 0.999, commit 1331718), folds 0-1 0.782 0.750; 192 px crops of 4 (more context, the same
+# of the weights (decay 0.999, commit 1331718), folds 0-1 0.782 0.750; 192 px crops of 4 (more context, about the same
 # pixels per step), folds 0-3 0.790 0.778 0.755 0.792, and its average with the shipped fold models 0.789 0.780
 # 0.757 0.793. Post-processing on the shipped folds' probabilities, picked on the training folds: hysteresis
 # thresholds 0.779, a larger minimum component 0.777. More training images per fold: 10-fold CV (36 each,
