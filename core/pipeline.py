@@ -148,7 +148,7 @@ def run(volume: io.Volume, roadmap: io.XARun, frames: io.XARun, *, roadmap_frame
 
     seg = segmentation.GuidewireSegmenter(method=segmenter)
     tracker = reconstruction.WireTracker(reg.pose, frames.carm, tree, method=method,
-                                         registration_covariance=getattr(reg, "covariance_6x6", None))
+                                         registration_covariance=reg.covariance_6x6)
     root_uv = frames.carm.project(tree.points_lps_mm[tree.root], reg.pose)
     seg.segment(live[frame_ids[0]])  # warm-up (inference session, first-call compilation), not timed
     seg.reset()

@@ -612,7 +612,7 @@ class GuidewireReconstructionCoreLogic:
         if len(self.wires2d) != len(res.frames):
             self.wires2d = self._extract_2d_wires(reg.pose)
         tracker = reconstruction.WireTracker(reg.pose, res.frames_carm, res.tree, method=self.method.value,
-                                             registration_covariance=getattr(reg, "covariance_6x6", None))
+                                             registration_covariance=reg.covariance_6x6)
         wires = []
         for frame, w2 in zip(res.frames, self.wires2d):
             if w2:
@@ -762,9 +762,8 @@ class GuidewireReconstructionCoreLogic:
         pose_to_transform_node(reg.pose, node)
         items = [("Success", str(bool(reg.success))), ("Verdict", reg.verdict.value), ("Message", str(reg.message)),
                  ("MeanResidualPx", f"{float(reg.mean_residual_px):.6g}"),
+                 ("InlierFraction", f"{float(reg.inlier_fraction):.6g}"),
                  ("Iterations", str(int(reg.iterations))), ("Seconds", f"{float(reg.seconds):.6g}"), ("Source", source)]
-        if getattr(reg, "inlier_fraction", None) is not None:
-            items.append(("InlierFraction", f"{float(reg.inlier_fraction):.6g}"))
         for key, value in items:
             node.SetAttribute(f"GuidewireReconstruction.Registration.{key}", value)
 
