@@ -58,14 +58,23 @@ def _read_dicom(path: Path) -> list[InputImage]:
 
 
 def _read_picture(path: Path) -> InputImage:
-    from skimage.io import imread
-
     from guidewire3d.image2d import _as_image
 
-    try:
-        im = imread(path)
-    except Exception as e:  # noqa: BLE001
-        raise InputError(f"{path}: unreadable image ({e.__class__.__name__}: {str(e)[:100]})") from None
+    im = None
+    if path.suffix.lower() in (".tif", ".tiff"):
+        # OpenCV reads compressed TIFF (LZW, deflate: what cv2.imwrite writes) without imagecodecs
+        import cv2
+
+        im = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        if im is not None and im.ndim == 3:
+            im = cv2.cvtColor(im, cv2.COLOR_BGRA2RGBA if im.shape[2] == 4 else cv2.COLOR_BGR2RGB)
+    if im is None:
+        from skimage.io import imread
+
+        try:
+            im = imread(path)
+        except Exception as e:  # noqa: BLE001
+            raise InputError(f"{path}: unreadable image ({e.__class__.__name__}: {str(e)[:100]})") from None
     return InputImage(path.stem, str(path), None, _as_image(im, str(path)))
 
 
@@ -81,8 +90,14 @@ def read_inputs(paths) -> list[InputImage]:
     """
     images: list[InputImage] = []
     for p in map(Path, paths):
+        if p.is_symlink() and not p.exists():
+            raise InputError(f"{p}: dangling symbolic link (its target does not exist)")
         if not p.exists():
             raise InputError(f"{p}: no such file or folder")
+        if not p.is_dir() and not p.is_file():
+            raise InputError(f"{p}: not a regular file or a folder (a pipe, socket or device)")
+        if p.is_file() and p.stat().st_size == 0:
+            raise InputError(f"{p}: empty file (0 bytes)")
         if p.is_dir():
             files = sorted(f for f in p.iterdir() if f.is_file() and not f.name.startswith("."))
             files = [f for f in files if f.suffix.lower() in IMAGE_SUFFIXES or _is_dicom(f)]
@@ -184,7 +199,7 @@ def cli_segment(args) -> int:
             write_png(staging / f"{rec['name']}_overlay.png", overlay(im.image, rec, masks))
         io.atomic_write_text(staging / "segment.json", json.dumps(summary, indent=1))
 
-    io.write_folder_atomically(out_dir, write)
+    io.write_folder_atomically(out_dir, write)  # refuses an out_dir filled meanwhile
     n_wire = sum(1 for r in records if r.get("wire", {}).get("success"))
     wire_part = f"; ordered wire found in {n_wire}/{len(records)}" if args.what != "vessels" else ""
     print(f"wrote {out_dir}: {len(records)} image(s){wire_part}")

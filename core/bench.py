@@ -74,9 +74,11 @@ def _case_dir_for_seed(seed: int | None) -> Path:
 
 
 def run_demo(*, out="guidewire3d-demo", seed: int | None = None) -> int:
-    from guidewire3d import phantom, pipeline
+    from guidewire3d import io, phantom, pipeline
 
     t_start = time.perf_counter()
+    # the output folder is checked before anything is printed or generated (a previous demo's is replaced)
+    io.require_empty_folder(out, replace=(Path(out) / "report.json").is_file())
     case_dir = _case_dir_for_seed(seed)
     truth = phantom.load_truth(case_dir)
     print(f"phantom case: {case_dir}", file=sys.stderr)

@@ -18,6 +18,18 @@ RECON_METHODS = ("vessel", "paper", "bspline")
 SEGMENTERS = ("unet", "ridge")
 
 
+class _UsageError(Exception):
+    """A command-line usage error (argparse's), printed as one line like every other error."""
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse, with a usage error raised (one line, exit 2 from ``main``) instead of printing the
+    usage block and exiting."""
+
+    def error(self, message):
+        raise _UsageError(f"{message} (see '{self.prog} --help')")
+
+
 def _parse_xyz(text: str) -> tuple[float, float, float]:
     try:
         vals = tuple(float(v) for v in text.split(","))
@@ -150,7 +162,7 @@ def _add_segment_parser(sub) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="guidewire3d",
         description="Real-time 3D guidewire reconstruction from a CTA and single-view DSA.",
     )
@@ -166,19 +178,46 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _close_progress_bars() -> None:
+    """Close the tqdm bars an error interrupted, so that the error starts on a line of its own."""
+    std = sys.modules.get("tqdm.std")
+    for bar in list(getattr(getattr(std, "tqdm", None), "_instances", ())):
+        try:
+            bar.close()
+        except Exception:  # noqa: BLE001 - a bar that cannot be closed must not hide the error
+            pass
+
+
+def _error(msg: str) -> int:
+    _close_progress_bars()
+    sys.stdout.flush()
+    print(f"guidewire3d: error: {' '.join(str(msg).split())}", file=sys.stderr)
+    return EXIT_BAD_INPUT
+
+
 def main(argv=None) -> int:
+    """Run the command line; returns the exit status (2 for bad input, with one line on stderr)."""
     parser = build_parser()
-    args = parser.parse_args(argv)
+    try:
+        args = parser.parse_args(argv)
+    except _UsageError as e:
+        return _error(str(e))
     try:
         rc = args.func(args)
         return int(rc or 0)
     except Guidewire3DError as e:
         if args.verbose:
+            _close_progress_bars()
             traceback.print_exc()
-        msg = " ".join(str(e).split())
-        print(f"guidewire3d: error: {msg}", file=sys.stderr)
-        return EXIT_BAD_INPUT
+        return _error(str(e))
+    except OSError as e:  # an I/O failure the readers and writers did not name (a safety net)
+        if args.verbose:
+            _close_progress_bars()
+            traceback.print_exc()
+        where = f"{e.filename}: " if e.filename else ""
+        return _error(f"{where}{e.strerror or e}")
     except KeyboardInterrupt:
+        _close_progress_bars()
         print("guidewire3d: interrupted", file=sys.stderr)
         return 130
 

@@ -16,6 +16,11 @@ class DicomError(InputError):
     """A DICOM file is corrupt, incomplete or not of the expected modality."""
 
 
+class OutputError(InputError):
+    """The output folder cannot be written (a file in the way, no permission, a full disk), or
+    another run is writing it."""
+
+
 class GeometryError(Guidewire3DError):
     """An impossible C-arm geometry or pose."""
 

@@ -15,15 +15,18 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import socket
 import tempfile
 import time
 import warnings
+from collections.abc import Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from guidewire3d.errors import DicomError, GeometryError, InputError
+from guidewire3d.errors import DicomError, GeometryError, InputError, OutputError
 from guidewire3d.geometry import CArm
 
 __all__ = [
@@ -37,6 +40,10 @@ __all__ = [
     "read_image_sequence",
     "atomic_write_bytes",
     "atomic_write_text",
+    "require_empty_folder",
+    "staged_folder",
+    "write_folder_atomically",
+    "clean_stale_staging",
     "CT_IMAGE_STORAGE",
     "XA_IMAGE_STORAGE",
 ]
@@ -46,6 +53,8 @@ XA_IMAGE_STORAGE = "1.2.840.10008.5.1.4.1.1.12.1"
 RF_IMAGE_STORAGE = "1.2.840.10008.5.1.4.1.1.12.2"
 
 MAX_VOXELS_DEFAULT = 512 * 512 * 1200
+STAGING_OWNER = ".guidewire3d-owner.json"  # inside a staging folder: the pid of the run writing it
+STALE_HOURS = 1.0  # a staging folder without an owner record is stale after this long
 
 
 # --------------------------------------------------------------------------------------
@@ -71,35 +80,238 @@ def atomic_write_text(path, text: str) -> Path:
     return atomic_write_bytes(path, text.encode("utf-8"))
 
 
-def require_empty_folder(out_dir) -> Path:
-    """``out_dir`` as a Path; InputError if it exists and is not an empty folder."""
+def _owner_record() -> dict:
+    return {"pid": os.getpid(), "host": socket.gethostname(), "start": _process_start(os.getpid()),
+            "time": time.time()}
+
+
+def _process_start(pid: int) -> str | None:
+    """The start time of process ``pid`` in clock ticks since boot (Linux), to tell a reused pid."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return None
+    fields = stat[stat.rfind(")") + 2:].split()
+    return fields[19] if len(fields) > 19 and fields[0] != "Z" else "zombie"
+
+
+def _owner_alive(owner: dict) -> bool:
+    """Whether the process that wrote ``owner`` (a staging folder's owner record) still runs.
+
+    A record of another host counts as alive (its process cannot be checked from here)."""
+    if owner.get("host") != socket.gethostname():
+        return True
+    pid = owner.get("pid")
+    if not isinstance(pid, int) or pid <= 0:
+        return False
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        pass
+    start = _process_start(pid)
+    if start == "zombie":
+        return False
+    return start is None or owner.get("start") in (None, start)
+
+
+def _read_owner(folder: Path) -> dict | None:
+    try:
+        owner = json.loads((folder / STAGING_OWNER).read_text())
+    except (OSError, ValueError):
+        return None
+    return owner if isinstance(owner, dict) else None
+
+
+def _staging_path(out_abs: Path) -> Path:
+    return out_abs.with_name(f".{out_abs.name}.staging")
+
+
+def clean_stale_staging(out_dir) -> list[Path]:
+    """Remove what killed runs left beside ``out_dir``: staging folders (``.<name>.staging``, and
+    the ``.<name>.staging-XXXX`` of earlier versions) and replaced outputs (``.<name>.old-PID``).
+
+    A folder is stale when the process recorded in it is gone, or, without a record, when it is
+    older than ``STALE_HOURS``. Staging folders of other output names in the same parent are
+    removed only on a record of a dead process. Returns the folders removed.
+    """
+    out_abs = Path(os.path.abspath(out_dir))
+    parent = out_abs.parent
+    removed = []
+    try:
+        entries = list(parent.iterdir())
+    except OSError:
+        return removed
+    now = time.time()
+    for p in entries:
+        name = p.name
+        if not name.startswith(".") or p.is_symlink() or not p.is_dir():
+            continue
+        ours = name.startswith(f".{out_abs.name}.")
+        stale = False
+        if name.endswith(".staging"):
+            owner = _read_owner(p)
+            if owner is not None:
+                stale = not _owner_alive(owner)
+            elif ours:
+                try:
+                    stale = now - p.stat().st_mtime > STALE_HOURS * 3600
+                except OSError:
+                    continue
+        elif ours and ".staging-" in name:
+            try:
+                stale = now - p.stat().st_mtime > STALE_HOURS * 3600
+            except OSError:
+                continue
+        elif ours and ".old-" in name:
+            pid = name.rsplit("-", 1)[-1]
+            stale = pid.isdigit() and not _owner_alive({"pid": int(pid), "host": socket.gethostname()})
+        if stale:
+            shutil.rmtree(p, ignore_errors=True)
+            removed.append(p)
+    return removed
+
+
+def _busy_error(out_dir, owner: dict | None) -> OutputError:
+    who = f"pid {owner.get('pid')} on {owner.get('host')}" if owner else "a process that is starting"
+    return OutputError(f"{out_dir}: another guidewire3d run ({who}) is writing this output folder; "
+                       f"wait for it, or choose another --out")
+
+
+def _os_message(e: OSError) -> str:
+    where = f": {e.filename}" if e.filename else ""
+    return f"{e.strerror or e.__class__.__name__}{where}"
+
+
+def require_empty_folder(out_dir, *, replace: bool = False) -> Path:
+    """Check an output folder before any work; return ``out_dir`` as a Path.
+
+    ``out_dir`` must be absent or an empty folder (or any folder, with ``replace``), a folder must
+    be creatable where it goes (a probe is created and removed in the nearest existing parent),
+    and no other run may be writing it. Stale staging folders of killed runs are removed first
+    (:func:`clean_stale_staging`).
+
+    Raises
+    ------
+    OutputError
+        Any of these does not hold.
+    """
     out_dir = Path(out_dir)
-    if out_dir.exists() and (not out_dir.is_dir() or any(out_dir.iterdir())):
-        raise InputError(f"{out_dir}: output folder exists and is not empty")
+    out_abs = Path(os.path.abspath(out_dir))
+    if out_dir.is_symlink() and not out_dir.exists():
+        raise OutputError(f"{out_dir}: output folder is a dangling symbolic link")
+    if out_dir.exists():
+        if not out_dir.is_dir():
+            raise OutputError(f"{out_dir}: output folder exists and is not a folder")
+        if not replace and any(out_dir.iterdir()):
+            raise OutputError(f"{out_dir}: output folder exists and is not empty")
+    if len(out_abs.name.encode()) + len(".staging-probe-xxxxxxxx") + 1 > 255:
+        raise OutputError(f"{out_dir}: output folder name is too long")
+    anc = out_abs.parent
+    while not anc.exists() and anc != anc.parent:
+        anc = anc.parent
+    if not anc.is_dir():
+        raise OutputError(f"{out_dir}: cannot create the output folder, {anc} is a file, not a folder")
+    try:
+        Path(tempfile.mkdtemp(prefix=f".{out_abs.name}.probe-", dir=anc)).rmdir()
+    except OSError as e:
+        raise OutputError(f"{out_dir}: cannot create the output folder in {anc} ({e.strerror})") from None
+    if anc == out_abs.parent:
+        clean_stale_staging(out_abs)
+        staging = _staging_path(out_abs)
+        if staging.exists():
+            raise _busy_error(out_dir, _read_owner(staging))
     return out_dir
 
 
-def write_folder_atomically(out_dir, writer) -> Path:
-    """Call ``writer(staging)`` for a new temporary sibling folder of ``out_dir``, then rename it
-    to ``out_dir`` (replacing an existing ``out_dir``: the caller decides whether that is allowed).
-    On any error the staging folder is removed and ``out_dir`` is untouched."""
-    out_dir = Path(out_dir)
-    out_dir.parent.mkdir(parents=True, exist_ok=True)
-    staging = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.staging-", dir=out_dir.parent))
+@contextmanager
+def staged_folder(out_dir, *, replace: bool = False):
+    """Hold ``out_dir`` for one run: yield a new staging folder, rename it to ``out_dir`` when the
+    ``with`` block ends without error, remove it (and any parent folders it created) otherwise.
+
+    The staging folder ``.<name>.staging`` beside ``out_dir`` is also the lock: it is created
+    exclusively, with the owner's pid, so a second run into the same ``out_dir`` is refused while
+    the first one works, and the staging folder of a killed run is recognised and removed. At
+    the end ``out_dir`` must still be absent or empty, unless ``replace`` (then it is replaced).
+
+    Raises
+    ------
+    OutputError
+        Another run holds ``out_dir``, ``out_dir`` was filled meanwhile, or an OSError occurred
+        while creating, filling or renaming the staging folder.
+    """
+    out_abs = Path(os.path.abspath(out_dir))
+    created = []
+    for d in reversed([out_abs.parent, *out_abs.parent.parents]):
+        if not d.exists():
+            try:
+                d.mkdir()
+            except FileExistsError:
+                continue
+            except OSError as e:
+                _remove_created(created)
+                raise OutputError(f"{out_dir}: cannot create {d} ({e.strerror})") from None
+            created.append(d)
+    staging = _staging_path(out_abs)
+    clean_stale_staging(out_abs)
     try:
-        writer(staging)
-        _chmod_default(staging, directory=True)
-        if out_dir.exists():
-            old = out_dir.with_name(f".{out_dir.name}.old-{int(time.time() * 1e6)}")
-            out_dir.rename(old)
-            staging.rename(out_dir)
-            shutil.rmtree(old, ignore_errors=True)
-        else:
-            staging.rename(out_dir)
+        staging.mkdir()
+    except FileExistsError:
+        _remove_created(created)
+        raise _busy_error(out_dir, _read_owner(staging)) from None
+    except OSError as e:
+        _remove_created(created)
+        raise OutputError(f"{out_dir}: cannot create a staging folder beside it ({e.strerror})") from None
+    try:
+        try:
+            (staging / STAGING_OWNER).write_text(json.dumps(_owner_record()))
+        except OSError as e:
+            raise OutputError(f"{out_dir}: cannot write ({_os_message(e)})") from None
+        yield staging
+        try:
+            (staging / STAGING_OWNER).unlink()
+            if out_abs.is_dir() and any(out_abs.iterdir()):
+                if not replace:
+                    raise OutputError(f"{out_dir}: output folder was filled by something else during this run; "
+                                      "nothing was written")
+                old = out_abs.with_name(f".{out_abs.name}.old-{os.getpid()}")
+                out_abs.rename(old)
+                staging.rename(out_abs)
+                shutil.rmtree(old, ignore_errors=True)
+            else:
+                staging.rename(out_abs)  # onto an empty folder too (POSIX rename)
+        except OSError as e:
+            raise OutputError(f"{out_dir}: cannot move the finished output into place ({_os_message(e)})") from None
     except BaseException:
         shutil.rmtree(staging, ignore_errors=True)
+        _remove_created(created)
         raise
-    return out_dir
+
+
+def _remove_created(created: list[Path]) -> None:
+    for d in reversed(created):
+        try:
+            d.rmdir()
+        except OSError:
+            break
+
+
+def write_folder_atomically(out_dir, writer, *, replace: bool = False) -> Path:
+    """Call ``writer(staging)`` inside :func:`staged_folder`: ``out_dir`` appears complete or not
+    at all. An OSError of the writer (no space left, ...) becomes an ``OutputError`` naming
+    ``out_dir``, and nothing is left behind."""
+    with staged_folder(out_dir, replace=replace) as staging:
+        write_into(out_dir, staging, writer)
+    return Path(out_dir)
+
+
+def write_into(out_dir, staging: Path, writer) -> None:
+    """``writer(staging)``, with an OSError turned into an ``OutputError`` naming ``out_dir``."""
+    try:
+        writer(staging)
+    except OSError as e:
+        raise OutputError(f"{out_dir}: cannot write the output ({_os_message(e)})") from None
 
 
 def atomic_write_via(path, writer) -> Path:
@@ -234,22 +446,57 @@ def _dicom_series_in(folder: Path) -> dict[str, list[str]]:
     return out
 
 
-def _check_slice_geometry(files: list[str], folder: Path) -> None:
-    """Refuse gantry tilt and uneven slice spacing instead of misplacing slices."""
-    import pydicom
+def _quiet(fn):
+    """Run ``fn`` with warnings silenced: pydicom warns (on stderr) about each odd value it reads,
+    and the checks here turn those values into one error naming the file and the tag."""
+    import functools
 
-    ipps, iop = [], None
-    for f in files:
-        try:
-            ds = pydicom.dcmread(f, stop_before_pixels=True)
-        except Exception as e:  # noqa: BLE001
-            raise DicomError(f"{f}: unreadable DICOM header ({e.__class__.__name__})") from None
-        if "ImagePositionPatient" not in ds:
-            raise DicomError(f"{f}: missing ImagePositionPatient (0020,0032)")
-        if "ImageOrientationPatient" not in ds:
-            raise DicomError(f"{f}: missing ImageOrientationPatient (0020,0037)")
-        ipps.append([float(x) for x in ds.ImagePositionPatient])
-        iop = [float(x) for x in ds.ImageOrientationPatient]
+    @functools.wraps(fn)
+    def wrapper(*args, **kwargs):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            return fn(*args, **kwargs)
+
+    return wrapper
+
+
+def _floats(path, ds, kw: str, tag: str, n: int) -> np.ndarray:
+    """``n`` finite numbers of a multi-valued tag, or a DicomError naming the file and the tag."""
+    if kw not in ds or ds.data_element(kw).value in (None, ""):
+        raise DicomError(f"{path}: missing {kw} {tag}")
+    v = ds.data_element(kw).value
+    vals = list(v) if isinstance(v, Sequence) and not isinstance(v, (str, bytes)) else [v]
+    try:
+        a = np.array([float(x) for x in vals])
+    except (TypeError, ValueError):
+        raise DicomError(f"{path}: {kw} {tag} is not {n} numbers: {vals!r}") from None
+    if a.shape != (n,) or not np.all(np.isfinite(a)):
+        raise DicomError(f"{path}: {kw} {tag} must be {n} finite numbers, got {[str(x) for x in vals]}")
+    return a
+
+
+@_quiet
+def _check_slice_geometry(files: list[str], folder: Path) -> None:
+    """Check every slice of a CT series (complete, PixelSpacing, positions, same size) and refuse
+    gantry tilt and uneven slice spacing instead of misplacing slices."""
+    ipps, iop, size = [], None, None
+    for f in map(Path, files):
+        ds = _read_dicom_header(f, "a CT DICOM slice")
+        ipps.append(_floats(f, ds, "ImagePositionPatient", "(0020,0032)", 3))
+        iop_f = _floats(f, ds, "ImageOrientationPatient", "(0020,0037)", 6)
+        row, col = iop_f[:3], iop_f[3:]
+        if abs(np.linalg.norm(row) - 1) > 1e-2 or abs(np.linalg.norm(col) - 1) > 1e-2 or abs(row @ col) > 1e-2:
+            raise DicomError(f"{f}: ImageOrientationPatient (0020,0037) is not two orthogonal unit vectors: "
+                             f"{iop_f.tolist()}")
+        iop = iop if iop is not None else iop_f
+        ps = _floats(f, ds, "PixelSpacing", "(0028,0030)", 2)
+        if np.any(ps <= 0):
+            raise DicomError(f"{f}: PixelSpacing (0028,0030) must be two positive numbers (mm), got {ps.tolist()}")
+        if size is None:
+            size = (ds.Rows, ds.Columns, files[0])
+        elif (ds.Rows, ds.Columns) != size[:2]:
+            raise DicomError(f"{f}: Rows x Columns {ds.Rows} x {ds.Columns} differ from {size[0]} x {size[1]} "
+                             f"of {size[2]}")
     if len(files) < 2:
         raise DicomError(f"{folder}: a CT series needs at least 2 slices, found {len(files)}")
     row, col = np.array(iop[:3]), np.array(iop[3:])
@@ -276,26 +523,77 @@ def _check_slice_geometry(files: list[str], folder: Path) -> None:
         )
 
 
+@_quiet
+def _check_unlisted_files(folder: Path, series: dict[str, list[str]]) -> None:
+    """A DICOM CT file of ``folder`` that the series reader skipped (truncated, corrupt) is an
+    error naming it, instead of a slice silently missing from the volume. Other files (notes,
+    DICOMDIR, reports) are ignored."""
+    import pydicom
+
+    listed = {os.path.abspath(f) for fs in series.values() for f in fs}
+    for p in sorted(folder.iterdir()):
+        if p.name.startswith(".") or not p.is_file() or os.path.abspath(p) in listed or not _has_dicm(p):
+            continue
+        try:
+            _read_dicom_header(p, "a CT DICOM slice")
+            continue  # complete: the series reader had another reason (a non-image object)
+        except DicomError as e:
+            err = e
+        try:
+            ds = pydicom.dcmread(str(p), stop_before_pixels=True)
+        except Exception:  # noqa: BLE001
+            raise err from None
+        sop = str(getattr(getattr(ds, "file_meta", None), "MediaStorageSOPClassUID", "") or ds.get("SOPClassUID", ""))
+        if str(ds.get("Modality", "")).strip() == "CT" or sop.startswith(CT_IMAGE_STORAGE):
+            raise DicomError(f"{err} (a CT file left out of the series)") from None
+
+
+def _has_dicm(path: Path) -> bool:
+    try:
+        with open(path, "rb") as f:
+            return f.read(132)[128:132] == b"DICM"
+    except OSError:
+        return False
+
+
+@_quiet
 def read_volume(path, *, series_uid: str | None = None, max_voxels: int = MAX_VOXELS_DEFAULT, log=None) -> Volume:
     """Read a CTA: a DICOM series folder (or one of its files), or a NIfTI/NRRD/MHA file.
 
     If a folder holds several series, the CT series with the most slices is read (and ``log``
-    is told); ``series_uid`` chooses one explicitly.
+    is told); ``series_uid`` chooses one explicitly. Every file is checked first (complete,
+    geometry tags present and sane, finite voxels); a bad one is named in the error.
     """
     path = Path(path)
     sitk = _sitk_quiet()
+    if path.is_symlink() and not path.exists():
+        raise InputError(f"{path}: dangling symbolic link (its target {os.readlink(path)} does not exist)")
     if not path.exists():
         raise InputError(f"{path}: no such file or directory")
+    if not path.is_dir():
+        _require_file(path, "a CTA (a DICOM series folder, or a NIfTI, NRRD or MHA file)")
     if path.is_file() and not _looks_like_dicom(path):
         try:
+            info = sitk.ImageFileReader()
+            info.SetFileName(str(path))
+            info.ReadImageInformation()
+            n = int(np.prod(info.GetSize(), dtype=np.int64)) if info.GetDimension() == 3 else 0
+            if n > max_voxels:
+                raise InputError(f"{path}: volume of {info.GetSize()} voxels (header) exceeds the limit of "
+                                 f"{max_voxels} voxels; crop or downsample it first")
             img = sitk.ReadImage(str(path), sitk.sitkFloat32)
         except RuntimeError:
             raise InputError(f"{path}: not a readable volume (expected DICOM, NIfTI, NRRD or MHA)") from None
         vol = Volume.from_sitk(img, source=str(path))
         _check_size(vol, path, max_voxels)
+        _check_finite(vol, path)
+        bad = _nifti_nonfinite(path)
+        if bad:
+            raise InputError(f"{path}: {bad} voxels are NaN or infinite in the file")
         return vol
     folder = path if path.is_dir() else path.parent
     series = _dicom_series_in(folder)
+    _check_unlisted_files(folder, series)
     if not series:
         if path.is_dir() and not any(folder.iterdir()):
             raise InputError(f"{folder}: empty directory, expected a DICOM CT series")
@@ -320,7 +618,8 @@ def read_volume(path, *, series_uid: str | None = None, max_voxels: int = MAX_VO
         cands.sort(reverse=True)
         is_ct, _, uid, modality = cands[0]
         if not is_ct:
-            raise DicomError(f"{folder}: no CT series found (Modality is {modality or 'missing'}), expected a CTA")
+            raise DicomError(f"{path}: no CT series found (Modality (0008,0060) is {modality or 'missing'}), "
+                             "expected a CTA")
         if len(series) > 1 and log is not None:
             log(f"{folder}: {len(series)} series found, using the largest CT series {uid} ({len(series[uid])} slices)")
     files = series[uid]
@@ -334,7 +633,53 @@ def read_volume(path, *, series_uid: str | None = None, max_voxels: int = MAX_VO
         raise DicomError(f"{folder}: could not read the DICOM series ({str(e).strip().splitlines()[-1][:120]})") from None
     vol = Volume.from_sitk(img, source=str(folder), series_uid=uid)
     _check_size(vol, folder, max_voxels)
+    _check_finite(vol, folder)
     return vol
+
+
+def _nifti_nonfinite(path: Path) -> int:
+    """The number of NaN / infinite voxels stored in a float NIfTI-1/2 file (``.nii``, ``.nii.gz``).
+
+    ITK's NIfTI reader turns them into 0 without a word, so the stored values are read here.
+    0 for integer data and for other formats."""
+    import gzip
+
+    name = path.name.lower()
+    if not (name.endswith(".nii") or name.endswith(".nii.gz")):
+        return 0
+    try:
+        with (gzip.open if name.endswith(".gz") else open)(path, "rb") as f:
+            hdr = f.read(540)
+            for order in "<>":
+                size = int(np.frombuffer(hdr[:4], f"{order}i4")[0])
+                if size in (348, 540):
+                    break
+            else:
+                return 0
+            if size == 348:
+                datatype = int(np.frombuffer(hdr[70:72], f"{order}i2")[0])
+                offset = int(np.frombuffer(hdr[108:112], f"{order}f4")[0])
+            else:
+                datatype = int(np.frombuffer(hdr[12:14], f"{order}i2")[0])
+                offset = int(np.frombuffer(hdr[168:176], f"{order}i8")[0])
+            dtype = {16: f"{order}f4", 64: f"{order}f8"}.get(datatype)
+            if dtype is None:
+                return 0
+            f.seek(max(offset, size))
+            bad, chunk = 0, 1 << 24
+            while block := f.read(chunk):
+                n = len(block) // np.dtype(dtype).itemsize
+                bad += int(np.count_nonzero(~np.isfinite(np.frombuffer(block[:n * np.dtype(dtype).itemsize], dtype))))
+            return bad
+    except (OSError, EOFError, ValueError):
+        return 0  # unreadable: ITK's reader reports it
+
+
+def _check_finite(vol: Volume, path) -> None:
+    bad = ~np.isfinite(vol.array_zyx)
+    if bad.any():
+        z, y, x = np.argwhere(bad)[0]
+        raise InputError(f"{path}: {int(bad.sum())} voxels are NaN or infinite (the first at x,y,z = {x},{y},{z})")
 
 
 def _check_size(vol: Volume, path, max_voxels: int) -> None:
@@ -471,8 +816,11 @@ def read_xa(path, *, overrides: dict | None = None) -> XARun:
     path = Path(path)
     ds, frames = _read_xa_pixels(path)
     carm = _xa_carm(path, ds, {k: v for k, v in (overrides or {}).items() if v is not None})
-    ft = getattr(ds, "FrameTime", None)
-    return XARun(frames, carm, source=str(path), frame_time_ms=float(ft) if ft not in (None, "") else None)
+    try:
+        ft = float(ds.FrameTime) if ds.get("FrameTime") not in (None, "") else None
+    except (TypeError, ValueError):
+        ft = None  # the frame time is informative only
+    return XARun(frames, carm, source=str(path), frame_time_ms=ft)
 
 
 def read_xa_frames(path) -> tuple[np.ndarray, CArm | None]:
@@ -488,68 +836,229 @@ def read_xa_frames(path) -> tuple[np.ndarray, CArm | None]:
     return frames, carm
 
 
-def _read_xa_pixels(path: Path):
-    """(dataset, frames float32 (T, rows, cols), rescaled, MONOCHROME1 inverted) of an XA/RF file."""
-    import pydicom
-    from pydicom.errors import InvalidDicomError
-
+def _require_file(path: Path, what: str) -> None:
+    """``path`` must be a readable regular file that is not empty (else an InputError naming it)."""
+    if path.is_symlink() and not path.exists():
+        raise InputError(f"{path}: dangling symbolic link (its target {os.readlink(path)} does not exist)")
     if not path.exists():
         raise InputError(f"{path}: no such file")
     if path.is_dir():
-        raise InputError(f"{path}: is a directory, expected an XA DICOM file")
-    try:
-        ds = pydicom.dcmread(str(path))
-    except InvalidDicomError:
-        raise DicomError(f"{path}: not a DICOM file") from None
-    except Exception as e:  # noqa: BLE001
-        raise DicomError(f"{path}: unreadable DICOM ({e.__class__.__name__}: {str(e)[:100]})") from None
-    modality = str(getattr(ds, "Modality", "")).strip()
-    if modality not in ("XA", "RF"):
-        raise DicomError(f"{path}: Modality (0008,0060) is {modality or 'missing'!r}, expected XA or RF")
-    for tag in ("Rows", "Columns"):
-        if tag not in ds:
-            raise DicomError(f"{path}: missing {tag}")
-    if "PixelData" not in ds:
-        raise DicomError(f"{path}: missing PixelData (7FE0,0010)")
+        raise InputError(f"{path}: is a folder, expected {what}")
+    if not path.is_file():
+        raise InputError(f"{path}: not a regular file (a pipe, socket or device), expected {what}")
+    if path.stat().st_size == 0:
+        raise InputError(f"{path}: empty file (0 bytes), expected {what}")
+    if not os.access(path, os.R_OK):
+        raise InputError(f"{path}: permission denied (cannot read it)")
+
+
+@_quiet
+def _read_dicom_header(path: Path, what: str):
+    """The dataset of a DICOM file with its pixel data left on disk (read later by
+    ``pixel_array``), after checking that the file is complete: PixelData present, as long as
+    the header says, and (uncompressed) as long as Rows x Columns x frames need."""
+    import pydicom
+    from pydicom.errors import InvalidDicomError
+
+    _require_file(path, what)
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            arr = ds.pixel_array
+            ds = pydicom.dcmread(str(path), defer_size=1024)
+    except InvalidDicomError:
+        raise DicomError(f"{path}: not a DICOM file (no 'DICM' marker), expected {what}") from None
+    except OSError as e:
+        raise InputError(f"{path}: cannot read it ({e.strerror})") from None
     except Exception as e:  # noqa: BLE001
-        raise DicomError(f"{path}: PixelData cannot be decoded ({e.__class__.__name__}: {str(e)[:120]})") from None
-    arr = np.asarray(arr)
+        raise DicomError(f"{path}: unreadable DICOM header ({e.__class__.__name__}: {str(e)[:100]})") from None
+    if "PixelData" not in ds:
+        raise DicomError(f"{path}: truncated or not an image DICOM file: no PixelData (7FE0,0010)")
+    for tag, kw in (("(0028,0010)", "Rows"), ("(0028,0011)", "Columns")):
+        v = ds.get(kw)
+        if not isinstance(v, int) or v < 1:
+            raise DicomError(f"{path}: {kw} {tag} is {'missing' if v is None else repr(v)}, expected a positive number")
+    ts = getattr(getattr(ds, "file_meta", None), "TransferSyntaxUID", None)
+    raw = ds.get_item("PixelData")
+    size = path.stat().st_size
+    length = getattr(raw, "length", None)
+    if length is not None and length != 0xFFFFFFFF and not _ts_is(ts, "is_deflated", True) \
+            and raw.value_tell + length > size:
+        raise DicomError(f"{path}: truncated file: PixelData (7FE0,0010) declares {length} bytes, the file ends "
+                         f"{raw.value_tell + length - size} bytes short")
+    if not _ts_is(ts, "is_compressed", True):
+        n_frames = _number_of_frames(path, ds)
+        bits = int(ds.get("BitsAllocated", 16) or 16)
+        spp = int(ds.get("SamplesPerPixel", 1) or 1)
+        n_px = ds.Rows * ds.Columns * n_frames * spp
+        need = (n_px * bits + 7) // 8
+        have = length if length not in (None, 0xFFFFFFFF) else len(ds.PixelData)
+        if have < need:
+            raise DicomError(f"{path}: truncated: PixelData (7FE0,0010) has {have} bytes, Rows x Columns x "
+                             f"NumberOfFrames x SamplesPerPixel ({ds.Rows} x {ds.Columns} x {n_frames} x {spp}, "
+                             f"{bits}-bit) need {need}")
+    return ds
+
+
+def _ts_is(ts, prop: str, unknown: bool) -> bool:
+    """``ts.is_compressed`` / ``ts.is_deflated`` of a transfer syntax UID (``unknown`` for a UID
+    pydicom does not know; False without a UID: pydicom then assumes implicit VR little endian)."""
+    if ts is None:
+        return False
+    try:
+        return bool(getattr(ts, prop))
+    except ValueError:
+        return unknown
+
+
+def _number_of_frames(path: Path, ds) -> int:
+    v = ds.get("NumberOfFrames", 1)
+    try:
+        n = int(v if v not in (None, "") else 1)
+    except (TypeError, ValueError):
+        raise DicomError(f"{path}: NumberOfFrames (0028,0008) is not a number: {v!r}") from None
+    if n < 1:
+        raise DicomError(f"{path}: NumberOfFrames (0028,0008) is {n}, expected at least 1")
+    return n
+
+
+MAX_XA_PIXELS = 2**29  # frames x rows x cols of one XA file (2 GB as float32)
+
+
+@_quiet
+def _read_xa_pixels(path: Path):
+    """(dataset, frames float32 (T, rows, cols), rescaled, MONOCHROME1 inverted, colour reduced
+    to luminance) of an XA/RF file."""
+    ds = _read_dicom_header(path, "an XA DICOM file")
+    modality = str(getattr(ds, "Modality", "")).strip()
+    if modality not in ("XA", "RF"):
+        raise DicomError(f"{path}: Modality (0008,0060) is {modality or 'missing'!r}, expected XA or RF")
+    n_frames = _number_of_frames(path, ds)
+    if n_frames * ds.Rows * ds.Columns > MAX_XA_PIXELS:
+        raise DicomError(f"{path}: NumberOfFrames x Rows x Columns = {n_frames} x {ds.Rows} x {ds.Columns} exceeds "
+                         f"the limit of {MAX_XA_PIXELS} pixels")
+    spp = int(ds.get("SamplesPerPixel", 1) or 1)
+    photometric = str(ds.get("PhotometricInterpretation", "MONOCHROME2")).strip()
+    ts = getattr(getattr(ds, "file_meta", None), "TransferSyntaxUID", None)
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            arr = np.asarray(ds.pixel_array)
+            if photometric == "PALETTE COLOR":
+                from pydicom.pixels import apply_color_lut
+
+                arr, spp = apply_color_lut(arr, ds), 3
+    except Exception as e:  # noqa: BLE001
+        name = getattr(ts, "name", None) or str(ts)
+        raise DicomError(f"{path}: PixelData cannot be decoded (transfer syntax {name}; "
+                         f"{e.__class__.__name__}: {str(e)[:120]})") from None
+    if spp == 3 and arr.shape[-1] == 3:  # RGB (pydicom converts YBR): luminance, ITU-R BT.601
+        arr = arr[..., :3].astype(np.float32) @ np.array([0.299, 0.587, 0.114], np.float32)
+    elif spp != 1:
+        raise DicomError(f"{path}: SamplesPerPixel (0028,0002) is {spp}, expected 1 (grey) or 3 (colour)")
     if arr.ndim == 2:
         arr = arr[None]
-    if arr.ndim != 3:
-        raise DicomError(f"{path}: PixelData must be monochrome frames, got array shape {arr.shape}")
+    if arr.shape != (n_frames, ds.Rows, ds.Columns):
+        raise DicomError(f"{path}: PixelData decodes to shape {arr.shape}, expected NumberOfFrames x Rows x "
+                         f"Columns = ({n_frames}, {ds.Rows}, {ds.Columns})")
     frames = arr.astype(np.float32)
-    slope = float(getattr(ds, "RescaleSlope", 1.0) or 1.0)
-    intercept = float(getattr(ds, "RescaleIntercept", 0.0) or 0.0)
+    try:
+        slope = float(ds.get("RescaleSlope", 1.0) or 1.0)
+        intercept = float(ds.get("RescaleIntercept", 0.0) or 0.0)
+    except (TypeError, ValueError):
+        raise DicomError(f"{path}: RescaleSlope / RescaleIntercept (0028,1053 / 0028,1052) are not numbers") from None
     if slope != 1.0 or intercept != 0.0:
         frames = frames * slope + intercept
-    if str(getattr(ds, "PhotometricInterpretation", "MONOCHROME2")).strip() == "MONOCHROME1":
+    if not np.all(np.isfinite(frames)):
+        raise DicomError(f"{path}: PixelData (7FE0,0010) holds NaN or infinite values")
+    if photometric == "MONOCHROME1":
         frames = frames.max() - frames
     return ds, frames
 
 
+# where an enhanced (functional-group) XA keeps what a classic XA has at the top level
+_FUNCTIONAL_GROUPS = ("SharedFunctionalGroupsSequence", "PerFrameFunctionalGroupsSequence")
+
+
+def _find_element(ds, keywords, depth: int = 0):
+    """The first data element with one of ``keywords``: at the top level, else (enhanced
+    multi-frame objects) in the shared or first per-frame functional group."""
+    for kw in keywords:
+        if kw in ds and ds.data_element(kw).value not in (None, ""):
+            return ds.data_element(kw)
+    if depth > 3:
+        return None
+    seqs = _FUNCTIONAL_GROUPS if depth == 0 else [e.keyword for e in ds if e.VR == "SQ"]
+    for s in seqs:
+        items = ds.get(s) if s else None
+        if items:
+            found = _find_element(items[0], keywords, depth + 1)
+            if found is not None:
+                return found
+    return None
+
+
+_OVERRIDE_OPTIONS = {"sid_mm": "--sid", "sod_mm": "--sod", "pixel_mm": "--pixel", "primary_deg": "--primary",
+                     "secondary_deg": "--secondary"}
+
+
+def check_geometry_overrides(overrides: dict | None) -> dict:
+    """The given (not None) C-arm overrides as floats; GeometryError naming the command-line option
+    (``--sid`` ...) of a value that is not finite, not positive (distances, pixel) or out of range
+    (angles), or ``--sid`` not above ``--sod``."""
+    out = {}
+    for key, v in (overrides or {}).items():
+        if v is None:
+            continue
+        opt = _OVERRIDE_OPTIONS.get(key, key)
+        try:
+            v = float(v)
+        except (TypeError, ValueError):
+            raise GeometryError(f"{opt} {v!r}: expected a number") from None
+        if not np.isfinite(v):
+            raise GeometryError(f"{opt} {v}: expected a finite number")
+        if key in ("sid_mm", "sod_mm", "pixel_mm") and v <= 0:
+            raise GeometryError(f"{opt} {v:g}: must be positive")
+        limit = {"primary_deg": 180, "secondary_deg": 90}.get(key)
+        if limit is not None and abs(v) > limit:
+            raise GeometryError(f"{opt} {v:g}: out of range (|angle| <= {limit} degrees)")
+        out[key] = v
+    if "sid_mm" in out and "sod_mm" in out and out["sid_mm"] <= out["sod_mm"]:
+        raise GeometryError(f"--sid {out['sid_mm']:g} must exceed --sod {out['sod_mm']:g} (source to detector "
+                            "is longer than source to isocentre)")
+    return out
+
+
+@_quiet
 def _xa_carm(path: Path, ds, overrides: dict) -> CArm:
     """The C-arm view of an XA dataset from its tags (``overrides`` replace or supply them)."""
-    vals = {}
+    overrides = check_geometry_overrides(overrides)
+    vals, origin = {}, {}
     for key, (kw, tag) in _XA_TAGS.items():
         if key in overrides:
-            vals[key] = float(overrides[key])
+            vals[key] = overrides[key]
+            origin[key] = f"{_OVERRIDE_OPTIONS[key]} {overrides[key]:g}"
             continue
-        if kw not in ds or ds.data_element(kw).value in (None, ""):
-            raise DicomError(f"{path}: missing {kw} {tag} (supply it with --{key.split('_')[0]})")
-        v = ds.data_element(kw).value
+        el = _find_element(ds, (kw, "DistanceSourceToIsocenter") if key == "sod_mm" else (kw,))
+        if el is None:
+            raise DicomError(f"{path}: missing {kw} {tag} (supply it with {_OVERRIDE_OPTIONS[key]})")
+        v = el.value
         try:
             vals[key] = float(v[0] if key == "pixel_mm" and hasattr(v, "__len__") and not isinstance(v, str) else v)
         except (TypeError, ValueError, IndexError):
             raise DicomError(f"{path}: {kw} {tag} is not a number: {v!r}") from None
+        if not np.isfinite(vals[key]):
+            raise DicomError(f"{path}: {kw} {tag} is not finite: {vals[key]}")
+        origin[key] = f"{el.keyword} {vals[key]:g} from the file"
     try:
         return CArm(shape=(int(ds.Rows), int(ds.Columns)), **vals)
     except GeometryError as e:
-        raise GeometryError(f"{path}: {e}") from None
+        note = ""
+        if overrides:  # say which of the values involved came from the command line
+            words = {"sid_mm": "DistanceSourceToDetector", "sod_mm": "DistanceSourceToPatient",
+                     "pixel_mm": "ImagerPixelSpacing", "primary_deg": "primary", "secondary_deg": "secondary"}
+            keys = [k for k, w in words.items() if w in str(e)] or list(words)
+            note = " (" + ", ".join(origin[k] for k in keys) + ")"
+        raise GeometryError(f"{path}: {e}{note}") from None
 
 
 def write_xa(path, frames, carm: CArm, *, frame_time_ms: float = 66.7, patient_name: str = "Phantom^Guidewire3D",
@@ -616,31 +1125,43 @@ def read_image_sequence(path) -> XARun:
     """Read a folder of PNG/TIFF frames (sorted by name) or a video, with a JSON geometry sidecar.
 
     The sidecar is ``geometry.json`` inside the folder, or ``<video>.json`` beside a video, with
-    the keys of ``CArm.to_dict`` (``shape`` may be omitted: it is taken from the frames).
+    the keys of ``CArm.to_dict`` (``shape`` may be omitted: it is taken from the frames). The
+    sidecar is checked before the frames are read.
     """
     import cv2
 
     path = Path(path)
+    if path.is_symlink() and not path.exists():
+        raise InputError(f"{path}: dangling symbolic link (its target {os.readlink(path)} does not exist)")
     if path.is_dir():
         sidecar = path / "geometry.json"
         files = sorted(p for p in path.iterdir() if p.suffix.lower() in (".png", ".tif", ".tiff", ".jpg", ".jpeg"))
         if not files:
             raise InputError(f"{path}: no PNG/TIFF/JPEG frames found")
+    elif path.exists():
+        _require_file(path, "a video")
+        sidecar = path.with_suffix(path.suffix + ".json")
+        if not sidecar.exists():
+            sidecar = path.with_suffix(".json")
+    else:
+        raise InputError(f"{path}: no such file or directory")
+    geo = _read_sidecar(sidecar)
+    if path.is_dir():
         frames = []
         for f in files:
             im = cv2.imread(str(f), cv2.IMREAD_UNCHANGED)
             if im is None:
                 raise InputError(f"{f}: unreadable image")
             if im.ndim == 3:
-                im = cv2.cvtColor(im, cv2.COLOR_BGR2GRAY)
+                im = cv2.cvtColor(im, cv2.COLOR_BGRA2GRAY if im.shape[2] == 4 else cv2.COLOR_BGR2GRAY)
             frames.append(im.astype(np.float32))
-        if len({fr.shape for fr in frames}) != 1:
-            raise InputError(f"{path}: frames have different sizes")
+        shapes = {fr.shape for fr in frames}
+        if len(shapes) != 1:
+            odd = next(f for f, fr in zip(files, frames) if fr.shape != frames[0].shape)
+            raise InputError(f"{odd}: frame size {frames[files.index(odd)].shape} differs from {frames[0].shape} "
+                             f"of {files[0].name}")
         frames = np.stack(frames)
-    elif path.is_file():
-        sidecar = path.with_suffix(path.suffix + ".json")
-        if not sidecar.exists():
-            sidecar = path.with_suffix(".json")
+    else:
         cap = cv2.VideoCapture(str(path))
         frames = []
         while True:
@@ -652,18 +1173,32 @@ def read_image_sequence(path) -> XARun:
         if not frames:
             raise InputError(f"{path}: not a readable video")
         frames = np.stack(frames)
-    else:
-        raise InputError(f"{path}: no such file or directory")
-    if not sidecar.exists():
-        raise InputError(f"{sidecar}: geometry sidecar missing (JSON with primary_deg, secondary_deg, sid_mm, sod_mm, pixel_mm)")
-    try:
-        geo = json.loads(sidecar.read_text())
-    except json.JSONDecodeError as e:
-        raise InputError(f"{sidecar}: invalid JSON ({e.msg} at line {e.lineno})") from None
-    geo = dict(geo)
     geo.setdefault("shape", list(frames.shape[1:]))
     try:
         carm = CArm.from_dict(geo)
     except GeometryError as e:
         raise GeometryError(f"{sidecar}: {e}") from None
+    except (TypeError, ValueError) as e:
+        raise GeometryError(f"{sidecar}: invalid geometry ({e})") from None
+    if tuple(carm.shape) != tuple(frames.shape[1:]):
+        raise GeometryError(f"{sidecar}: shape {list(carm.shape)} does not match the frames' "
+                            f"{list(frames.shape[1:])} of {path}")
     return XARun(frames, carm, source=str(path))
+
+
+def _read_sidecar(sidecar: Path) -> dict:
+    """The JSON object of a geometry sidecar, or an InputError naming it."""
+    if not sidecar.exists():
+        raise InputError(f"{sidecar}: geometry sidecar missing (JSON with primary_deg, secondary_deg, sid_mm, sod_mm, "
+                         "pixel_mm)")
+    _require_file(sidecar, "a JSON geometry sidecar")
+    try:
+        geo = json.loads(sidecar.read_text())
+    except json.JSONDecodeError as e:
+        raise InputError(f"{sidecar}: invalid JSON ({e.msg} at line {e.lineno})") from None
+    except UnicodeDecodeError:
+        raise InputError(f"{sidecar}: not a text file (invalid UTF-8), expected JSON") from None
+    if not isinstance(geo, dict):
+        raise InputError(f"{sidecar}: expected a JSON object with primary_deg, secondary_deg, sid_mm, sod_mm, "
+                         f"pixel_mm, got a {type(geo).__name__}")
+    return dict(geo)

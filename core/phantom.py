@@ -1399,18 +1399,28 @@ def add_cli_options(p) -> None:
     p.add_argument("--no-ct", action="store_true", help="skip the CT series (2D data and truth only)")
 
 
+_CLI_OPTION_OF_FIELD = {"seed": "--seed", "n_frames": "--frames", "wire_diameter_mm": "--wire-diameter",
+                        "detector_px": "--detector", "volume": "--volume", "motion_mm": "--motion", "dose": "--dose"}
+
+
 def cli_main(args) -> int:
     import time
 
     t0 = time.perf_counter()
     from guidewire3d import io
 
+    try:
+        opts = PhantomOptions(
+            seed=args.seed, n_frames=args.frames, wire_diameter_mm=args.wire_diameter, distractors=args.distractors,
+            detector_px=args.detector, volume=args.volume, background=not args.no_background,
+            catheter=not args.no_catheter, motion_mm=args.motion, dose=args.dose,
+        )
+    except InputError as e:  # name the command-line option, not the dataclass field
+        msg = str(e)
+        for name, opt in _CLI_OPTION_OF_FIELD.items():
+            msg = msg.replace(f"PhantomOptions.{name}:", f"{opt}:")
+        raise InputError(msg) from None
     out = io.require_empty_folder(args.out)
-    opts = PhantomOptions(
-        seed=args.seed, n_frames=args.frames, wire_diameter_mm=args.wire_diameter, distractors=args.distractors,
-        detector_px=args.detector, volume=args.volume, background=not args.no_background,
-        catheter=not args.no_catheter, motion_mm=args.motion, dose=args.dose,
-    )
     case = simulate(opts, make_ct=not getattr(args, "no_ct", False), progress=True)
     write_case(case, out)
     c, h = case.carm, case.heldout_carm
