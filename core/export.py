@@ -157,13 +157,16 @@ def registration_record(reg, *, source: str = "automatic") -> dict:
         "inlier_fraction": _f(reg.inlier_fraction),
         "pose_std_mm": _f(reg.pose_std_mm),
         "single_path": bool(reg.single_path),
+        "covariance_6x6": (np.asarray(reg.covariance_6x6, float).tolist()
+                           if reg.covariance_6x6 is not None and np.all(np.isfinite(reg.covariance_6x6)) else None),
         "iterations": int(reg.iterations),
         "seconds": _f(reg.seconds),
         "source": source,
     }
 
 
-def frame_record(index: int, wire2d, wire3d, seconds: float) -> dict:
+def frame_record(index: int, wire2d, wire3d, seconds: float, frame_result=None) -> dict:
+    """A frame's entry of ``report.json`` (``frame_result``: its ``live.FrameResult``, for the verdict)."""
     pts = np.asarray(wire3d.points_lps_mm, float).reshape(-1, 3) if wire3d.success else np.zeros((0, 3))
     unc = np.asarray(wire3d.uncertainty_mm, float) if wire3d.success else np.zeros(0)
     uv = np.asarray(getattr(wire2d, "points_uv_px", np.zeros((0, 2))), float).reshape(-1, 2) if wire2d else np.zeros((0, 2))
@@ -176,7 +179,11 @@ def frame_record(index: int, wire2d, wire3d, seconds: float) -> dict:
         "length_mm": _f(wire3d.length_mm) if wire3d.success else None,
         "projection_error_px": _f(wire3d.projection_error_px) if wire3d.success else None,
         "seconds": _f(seconds, 6),
-        "wire_uv_px": np.round(uv, 3).tolist(),
+        "wire_uv_px": uv.tolist(),  # full precision: the viewer and the plugin reconstruct from it again
+        "verdict": frame_result.verdict.value if frame_result is not None else ("ok" if wire3d.success else "failed"),
+        "verdict_message": frame_result.message if frame_result is not None else str(wire3d.message),
+        "orientation": (frame_result.orientation.to_dict()
+                        if frame_result is not None and frame_result.orientation is not None else None),
     }
 
 
@@ -191,8 +198,9 @@ def report_dict(result, *, inputs: dict, truth_metrics: dict | None = None, sour
         "projection_matrix": np.asarray(reg.projection_matrix).tolist(),
         "registration": registration_record(reg, source=source),
         "frames": [
-            frame_record(idx, w2, w3, s)
-            for idx, w2, w3, s in zip(result.frame_indices, result.wires2d, result.wires3d, result.frame_seconds)
+            frame_record(idx, w2, w3, s, fr)
+            for idx, w2, w3, s, fr in zip(result.frame_indices, result.wires2d, result.wires3d, result.frame_seconds,
+                                          result.frame_results or [None] * len(result.wires3d))
         ],
         "timing": {k: _f(v, 4) for k, v in result.timing.items()},
         "vessels": {

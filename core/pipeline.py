@@ -38,6 +38,7 @@ class PipelineResult:
     frame_seconds: list = field(default_factory=list)  # per live frame: segmentation + 2D wire + 3D
     frame_indices: list = field(default_factory=list)  # index of each live frame in the frames run
     reconstructed: bool = True  # False when a failed registration stopped the frames
+    frame_results: list = field(default_factory=list)  # live.FrameResult per live frame (verdict, orientation)
 
     @property
     def pose(self) -> Pose:
@@ -174,7 +175,8 @@ def run(volume: io.Volume, roadmap: io.XARun, frames: io.XARun, *, roadmap_frame
     force : bool
         Reconstruct even when the registration reports failure.
     """
-    from guidewire3d import image2d, reconstruction, registration, segmentation, vessels3d
+    from guidewire3d import image2d, registration, vessels3d
+    from guidewire3d import live as live_engine
 
     timing: dict[str, float] = {}
     t0 = time.perf_counter()
@@ -210,71 +212,25 @@ def run(volume: io.Volume, roadmap: io.XARun, frames: io.XARun, *, roadmap_frame
         return PipelineResult(volume, vessels, road_img, k, cl2d, roadmap.carm, frames.carm, reg,
                               live[frame_ids], wires2d, wires3d, timing, [], frame_ids, reconstructed=False)
 
-    seg = segmentation.GuidewireSegmenter(method=segmenter)
-    tracker = reconstruction.WireTracker(reg.pose, frames.carm, tree, method=method,
-                                         registration_covariance=reg.covariance_6x6)
-    root_uv = frames.carm.project(tree.points_lps_mm[tree.root], reg.pose)
-    seg.segment(live[frame_ids[0]])  # warm-up (inference session, first-call compilation), not timed
-    seg.reset()
-    frame_seconds = []
+    session = live_engine.Session(tree, frames.carm, reg.pose, registration_covariance=reg.covariance_6x6,
+                                  segmenter=segmenter, method=method)
+    session.warm_up(live[frame_ids[0]])  # inference session, first-call compilation: not timed
+    frame_seconds, frame_results = [], []
     t_frames = time.perf_counter()
-    stream = iter_live(live[frame_ids], segmenter=seg, tracker=tracker, proximal_hint_uv=root_uv)
+    stream = session.run(live[frame_ids])
     if progress:
         from tqdm import tqdm
 
         stream = tqdm(stream, total=len(frame_ids), desc="frames", unit="frame", file=sys.stderr, leave=False)
-    for ow, w3, seconds in stream:
-        wires2d.append(ow)
-        wires3d.append(w3)
-        frame_seconds.append(seconds)
+    for fr in stream:
+        frame_results.append(fr)
+        wires2d.append(fr.wire2d)
+        wires3d.append(fr.wire3d)
+        frame_seconds.append(fr.seconds)
     timing["frames"] = time.perf_counter() - t_frames
     return PipelineResult(volume, vessels, road_img, k, cl2d, roadmap.carm, frames.carm, reg,
-                          live[frame_ids], wires2d, wires3d, timing, frame_seconds, frame_ids)
-
-
-def iter_live(frames, *, segmenter, tracker, proximal_hint_uv=None, pipelined: bool = False):
-    """The live path: yield ``(ordered_wire, wire3d, seconds)`` for each frame, in order.
-
-    Per frame: guidewire mask (``segmenter.segment``), ordered 2D wire, 3D wire (``tracker.update``).
-    With ``pipelined`` the mask of frame t+1 is computed in a worker thread while frame t's 2D
-    and 3D wire are computed (the segmenter's ROI tracking depends only on its own previous
-    mask, so the order of results is unchanged). On the 2-core reference machine this gave no
-    throughput gain (the 2D/3D half holds the GIL) and doubled the latency
-    (``scripts/bench_live.py``), so it is off by default. ``seconds`` is each frame's latency,
-    from its submission to its 3D wire.
-    """
-    from collections import deque
-    from concurrent.futures import ThreadPoolExecutor
-
-    from guidewire3d import image2d
-    from guidewire3d.reconstruction import Wire3D
-
-    def finish(frame, mask, t0):
-        ow = image2d.ordered_wire(mask, image=frame, proximal_hint_uv=proximal_hint_uv)
-        w3 = tracker.update(ow.points_uv_px, image=frame) if ow else Wire3D.failed(f"2D wire not found: {ow.message}")
-        return ow, w3, time.perf_counter() - t0
-
-    if not pipelined:
-        for frame in frames:
-            t0 = time.perf_counter()
-            yield finish(frame, segmenter.segment(frame), t0)
-        return
-    it = iter(frames)
-    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="gw3d-seg") as pool:
-        pending: deque = deque()
-
-        def submit():
-            frame = next(it, None)
-            if frame is not None:
-                pending.append((frame, time.perf_counter(), pool.submit(segmenter.segment, frame)))
-
-        submit()
-        submit()
-        while pending:
-            frame, t0, fut = pending.popleft()
-            mask = fut.result()
-            submit()
-            yield finish(frame, mask, t0)
+                          live[frame_ids], wires2d, wires3d, timing, frame_seconds, frame_ids,
+                          frame_results=frame_results)
 
 
 def run_to_outdir(cta, roadmap, frames, out_dir, *, series_uid=None, overrides=None, roadmap_frame=None,

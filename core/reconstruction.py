@@ -85,7 +85,7 @@ from __future__ import annotations
 import enum
 import time
 from collections import OrderedDict
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field, fields, replace
 
 import numpy as np
 from scipy.interpolate import BSpline
@@ -194,6 +194,11 @@ class Wire3D:
     arclength_mm, curvature_per_mm : (N,) ndarray.
     covariance_mm2 : (N, 3, 3) ndarray, the covariance behind ``uncertainty_mm`` (of the error
         across the wire: for the vessel method it has no component along the wire).
+    reversed_input : bool, the vessel method reversed the given 2D order (its path through the
+        tree ran towards the root, and the reversed one explained the wire better).
+    tree_rise_mm : float, vessel method: arclength from the tree's root gained from the first to
+        the last tree point of the path (positive: the output runs away from the root, as a wire
+        advanced from the root does); NaN for the other methods.
     """
 
     points_lps_mm: np.ndarray
@@ -208,6 +213,8 @@ class Wire3D:
     seconds: float = 0.0
     method: str = ReconMethod.VESSEL.value
     covariance_mm2: np.ndarray = field(default_factory=lambda: np.zeros((0, 3, 3)))
+    reversed_input: bool = False
+    tree_rise_mm: float = float("nan")
 
     def __post_init__(self):
         object.__setattr__(self, "points_lps_mm", _ro(np.reshape(self.points_lps_mm, (-1, 3))))
@@ -245,6 +252,8 @@ class Wire3D:
             "arclength_mm": np.round(self.arclength_mm, 4).tolist(),
             "curvature_per_mm": np.round(self.curvature_per_mm, 5).tolist(),
             "seconds": f(self.seconds),
+            "reversed_input": bool(self.reversed_input),
+            "tree_rise_mm": f(self.tree_rise_mm),
         }
 
 
@@ -983,14 +992,15 @@ def _reconstruct_vessel(ctx, uv, *, track_tip, image, registration_covariance, o
     aidx, cand, outside = aidx[has], cand[has], outside[has]
     nodes, total, marg = _viterbi(ctx, uv[aidx], cand, outside, opt, track_tip)
     n_skipped = len(aidx) - len(nodes)
-    aidx = aidx[: len(nodes)]
+    aidx_all, aidx = aidx, aidx[: len(nodes)]
     if not np.isfinite(total) or len(nodes) < 2:
         return Wire3D.failed("no connected path through the vessel tree explains the 2D wire",
                              seconds=time.perf_counter() - t0)
     reversed_note = ""
     if ctx.s[nodes[-1]] < ctx.s[nodes[0]] - opt.reverse_mm:
-        # the path runs towards the root: the 2D wire was probably given distal -> proximal
-        r_aidx = len(uv) - 1 - aidx[::-1]
+        # the path runs towards the root: the 2D wire was probably given distal -> proximal. The
+        # retry runs over every anchor with a candidate (the forward path may have ended early)
+        r_aidx = len(uv) - 1 - aidx_all[::-1]
         r_nodes, r_total, r_marg = _viterbi(ctx, uv[::-1][r_aidx], cand[::-1], outside[::-1], opt, track_tip)
         if r_total < total and len(r_nodes) >= 2:
             uv, aidx, nodes, total, marg = uv[::-1].copy(), r_aidx[: len(r_nodes)], r_nodes, r_total, r_marg
@@ -1013,8 +1023,9 @@ def _reconstruct_vessel(ctx, uv, *, track_tip, image, registration_covariance, o
     if n_skipped:
         msg += f"; the last {n_skipped} anchors fit no lumen (placed beyond the path's end)"
     ids = np.where(miss > 0, -1, tid)
-    return _finish(ctx, X, uv, ids, depth_std, miss**2, image=image, registration_covariance=registration_covariance,
-                   opt=opt, method=ReconMethod.VESSEL, t0=t0, message=msg, lumen=(half_width, miss, amb))
+    w = _finish(ctx, X, uv, ids, depth_std, miss**2, image=image, registration_covariance=registration_covariance,
+                opt=opt, method=ReconMethod.VESSEL, t0=t0, message=msg, lumen=(half_width, miss, amb))
+    return replace(w, reversed_input=bool(reversed_note), tree_rise_mm=float(ctx.s[nodes[-1]] - ctx.s[nodes[0]]))
 
 
 def _reconstruct_paper(ctx, uv, *, image, registration_covariance, opt, t0):

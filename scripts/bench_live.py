@@ -22,7 +22,7 @@ def main() -> int:
     ap.add_argument("--threads", type=int, default=2)
     args = ap.parse_args()
 
-    from guidewire3d import bench, export, image2d, phantom, pipeline, reconstruction, registration, vessels3d
+    from guidewire3d import bench, export, image2d, live, phantom, registration, vessels3d
     from guidewire3d.segmentation import GuidewireSegmenter, guidewire_mask
 
     case = phantom.simulate(phantom.PhantomOptions(seed=args.seed, n_frames=args.frames))
@@ -33,29 +33,24 @@ def main() -> int:
     cl = image2d.roadmap_centerline(case.roadmap, max_radius_px=float(ves.tree.radius_mm.max()) / case.carm.pixel_at_iso_mm * 1.5)
     reg = registration.register(ves.tree, cl.points_uv_px, case.carm, centerline_radius_px=cl.radius_px)
     t_reg = time.perf_counter() - t0
-    root_uv = case.carm.project(ves.tree.points_lps_mm[ves.tree.root], reg.pose)
 
     rows = []
-    modes = (("UNet, ROI tracking (default)", "unet", True, False),
-             ("UNet, ROI tracking, pipelined", "unet", True, True),
-             ("UNet, full frame, sequential", "unet", False, False),
-             ("Ridge, ROI tracking", "ridge", True, False))
-    for name, method, tracking, pipelined in modes:
+    modes = (("UNet, ROI tracking (default)", "unet", True),
+             ("UNet, full frame", "unet", False),
+             ("Ridge, ROI tracking", "ridge", True))
+    for name, method, tracking in modes:
         seg = GuidewireSegmenter(method=method, num_threads=args.threads)
         if not tracking:
             seg.segment = lambda frame, _m=method: guidewire_mask(frame, method=_m)  # noqa: E731
-        tracker = reconstruction.WireTracker(reg.pose, case.carm, ves.tree,
-                                             registration_covariance=reg.covariance_6x6)
-        seg.segment(case.frames[0])  # warm-up: session creation, first-call compilation
-        if tracking:
-            seg.reset()
+        session = live.Session(ves.tree, case.carm, reg.pose, registration_covariance=reg.covariance_6x6,
+                               segmenter=seg)
+        session.warm_up(case.frames[0])  # session creation, first-call compilation
         lat, ok = [], 0
         t_all = time.perf_counter()
-        for i, (ow, w3, seconds) in enumerate(pipeline.iter_live(case.frames, segmenter=seg, tracker=tracker,
-                                                                 proximal_hint_uv=root_uv, pipelined=pipelined)):
-            export.frame_record(i, ow, w3, seconds)  # the report entry is part of the live path
-            lat.append(seconds)
-            ok += bool(w3.success)
+        for fr in session.run(case.frames):
+            export.frame_record(fr.index, fr.wire2d, fr.wire3d, fr.seconds, fr)  # the report entry is part of the live path
+            lat.append(fr.seconds)
+            ok += bool(fr)
         marginal = (time.perf_counter() - t_all) / len(case.frames)
         rows.append([name, f"{1000 * marginal:.1f}", f"{1.0 / marginal:.1f}", f"{1000 * float(np.median(lat)):.1f}",
                      f"{ok}/{len(case.frames)}"])

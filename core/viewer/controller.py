@@ -67,6 +67,10 @@ class ViewerController:
         self._status = ""
         self._original_wires = case.wires
         self._wires_pose = case.automatic_pose  # report.json wires come from the automatic registration
+        # the pose covariance enters the wires' uncertainty; it belongs to one pose (the automatic
+        # registration's, then each refinement's) and is dropped for a hand-nudged pose
+        self._covariance_pose = case.automatic_pose
+        self._covariance = _covariance_from(case.registration)
         self._images_u8 = display_images_uint8(case.images) if case.images is not None else None
         self._roadmap_u8 = (display_images_uint8(case.roadmap_image[None])[0]
                             if case.roadmap_image is not None else None)
@@ -323,6 +327,7 @@ class ViewerController:
             return res
         # "uncertain": the overlay fits best there, but the roadmap leaves the pose open (e.g. the
         # depth of a single vessel path): adopt it and say so
+        self._covariance_pose, self._covariance = res.pose, res.covariance_6x6
         self._set_pose(res.pose, "manual", f"refined in {dt:.2f} s: {res.mean_residual_px:.2f} px")
         self.apply()
         if not res.success:
@@ -338,40 +343,40 @@ class ViewerController:
             self.set_frame(self._frame)
         return self.pose
 
-    def apply(self) -> int:
-        """Re-run ``reconstruction.reconstruct_wire`` on every frame with the current pose.
+    def apply(self, *, force: bool = False) -> int:
+        """Reconstruct every frame's wire again with the current pose, through ``live.Session`` (the
+        engine ``reconstruct`` runs), from each frame's 2D wire and image.
 
-        Returns the number of frames reconstructed (0 when the reconstruction module is unavailable,
-        the wires are current, or there is no vessel tree).
+        Returns the number of frames reconstructed (0 when the wires are current, unless ``force``,
+        or there is no vessel tree).
         """
-        if not self.wires_stale:
+        if not self.wires_stale and not force:
             self._say("wires already use this pose")
             return 0
         if self._case.tree is None:
             self._say("no vessel tree: wires not reconstructed")
             return 0
-        try:
-            from guidewire3d import reconstruction
-        except ImportError:
-            self._say("reconstruction module unavailable: wires keep the previous pose")
-            return 0
+        from guidewire3d import live
+
         t0 = time.perf_counter()
         new = []
         n_ok = 0
-        previous = None
+        cov = self._covariance if np.allclose(self._covariance_pose.matrix, self.pose.matrix) else None
+        session = live.Session(self._case.tree, self._case.frames_carm, self.pose, registration_covariance=cov)
+        images = self._case.images
         for w in self._case.wires:
             if len(w.wire_uv_px) < 2:
                 new.append(w)
                 continue
-            r = reconstruction.reconstruct_wire(w.wire_uv_px, self.pose, self._case.frames_carm, self._case.tree,
-                                                previous=previous)
+            image = images[w.index] if images is not None and w.index < len(images) else None
+            fr = session.process_wire(w.wire_uv_px, image=image, index=w.index)
+            r = fr.wire3d
             ok = bool(r.success)
             n_ok += ok
-            previous = r if ok else None
             pts = np.asarray(r.points_lps_mm, float).reshape(-1, 3)
             unc = np.asarray(r.uncertainty_mm, float).reshape(-1)
-            new.append(WireFrame(w.index, ok, str(r.message), pts, unc, w.wire_uv_px,
-                                 float(r.projection_error_px), float(r.length_mm)))
+            new.append(WireFrame(w.index, ok, str(fr.message), pts, unc, w.wire_uv_px,
+                                 float(r.projection_error_px), float(r.length_mm), verdict=fr.verdict.value))
         self._case = self._case.with_wires(new)
         self._wires_pose = self.pose
         self.set_frame(self._frame)
@@ -525,3 +530,13 @@ class ViewerController:
             raise InputError(f"{path}: PNG encoding failed")
         atomic_write_bytes(path, buf.tobytes())
         return path
+
+
+def _covariance_from(registration: dict):
+    """The ``covariance_6x6`` of a registration record, or None."""
+    c = (registration or {}).get("covariance_6x6")
+    try:
+        c = np.asarray(c, float)
+    except (TypeError, ValueError):
+        return None
+    return c if c.shape == (6, 6) and np.all(np.isfinite(c)) else None

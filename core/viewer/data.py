@@ -53,6 +53,9 @@ class WireFrame:
         The detected 2D wire in pixel ``(u, v)``.
     projection_error_px : float
     length_mm : float
+    verdict : str
+        ``ok``, ``uncertain`` (``message`` says what is not settled, e.g. which end is the tip) or
+        ``failed``.
     """
 
     index: int
@@ -63,6 +66,7 @@ class WireFrame:
     wire_uv_px: np.ndarray
     projection_error_px: float = float("nan")
     length_mm: float = float("nan")
+    verdict: str = "ok"
 
 
 @dataclass(frozen=True, eq=False)
@@ -177,10 +181,12 @@ def _wire_from(rec: dict, k: int, path: Path) -> WireFrame:
             unc = _ro(np.zeros(len(pts)), what=what)
         else:
             raise InputError(f"{what}: uncertainty_mm has {len(unc)} values for {len(pts)} points")
+    success = bool(rec.get("success", len(pts) > 1))
     return WireFrame(
         index=int(rec.get("index", k)),
-        success=bool(rec.get("success", len(pts) > 1)),
-        message=str(rec.get("message", "")),
+        success=success,
+        message=str(rec.get("verdict_message") or rec.get("message", "")),
+        verdict=str(rec.get("verdict") or ("ok" if success else "failed")),
         points_lps_mm=pts,
         uncertainty_mm=unc,
         wire_uv_px=uv,

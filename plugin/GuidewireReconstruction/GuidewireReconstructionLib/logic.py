@@ -483,6 +483,7 @@ class GuidewireReconstructionCoreLogic:
         self.wires2d: list = []  # ordered 2D wire per live frame (image2d.OrderedWire)
         self.registration = None  # the registration currently shown (after refine: the refined one)
         self.wires3d: list = []
+        self.frame_results: list = []  # live.FrameResult per live frame (verdict: ok / uncertain / failed)
         self.outputs = OutputNodes()
 
     # --- inputs -------------------------------------------------------------------------
@@ -555,6 +556,7 @@ class GuidewireReconstructionCoreLogic:
         self.registration = result.registration
         self.wires2d = list(result.wires2d)
         self.wires3d = list(result.wires3d)
+        self.frame_results = list(getattr(result, "frame_results", []) or [])
         if len(self.wires3d) != len(result.frames):  # the pipeline stopped before the frames
             self.wires3d = [Wire3D.failed("not reconstructed: the registration failed (adjust the transform, then "
                                           "Refine)")] * len(result.frames)
@@ -602,35 +604,26 @@ class GuidewireReconstructionCoreLogic:
         registration, no ``force``), they are extracted now, as the pipeline does. Returns the new
         ``Wire3D`` list.
         """
-        from guidewire3d import reconstruction
+        from guidewire3d import live
 
         if self.result is None:
             raise ReconstructionError("update_wires: run Apply (process) first")
         if method is not None:
             self.method = WireMethod(method)
         res, reg = self.result, self.registration
+        session = live.Session(res.tree, res.frames_carm, reg.pose, registration_covariance=reg.covariance_6x6,
+                               method=self.method.value, segmenter=self.segmenter.value)
         if len(self.wires2d) != len(res.frames):
-            self.wires2d = self._extract_2d_wires(reg.pose)
-        tracker = reconstruction.WireTracker(reg.pose, res.frames_carm, res.tree, method=self.method.value,
-                                             registration_covariance=reg.covariance_6x6)
-        wires = []
-        for frame, w2 in zip(res.frames, self.wires2d):
-            if w2:
-                wires.append(tracker.update(w2.points_uv_px, image=frame))
-            else:
-                wires.append(reconstruction.Wire3D.failed(f"2D wire not found: {getattr(w2, 'message', '')}"))
+            # the run stopped before the frames: segment and order them now, as the pipeline does
+            self.frame_results = list(session.run(res.frames))
+            self.wires2d = [fr.wire2d for fr in self.frame_results]
+        else:
+            self.frame_results = [session.process_wire(w2, image=frame, index=k)
+                                  for k, (frame, w2) in enumerate(zip(res.frames, self.wires2d))]
+        wires = [fr.wire3d for fr in self.frame_results]
         self.wires3d = wires
         self._write_wire_outputs()
         return wires
-
-    def _extract_2d_wires(self, pose: Pose) -> list:
-        """Segment each live frame and order its wire (proximal end: the projected vessel-tree root)."""
-        from guidewire3d import image2d, segmentation
-
-        res = self.result
-        seg = segmentation.GuidewireSegmenter(method=self.segmenter.value)
-        root_uv = res.frames_carm.project(res.tree.points_lps_mm[res.tree.root], pose)
-        return [image2d.ordered_wire(seg.segment(f), image=f, proximal_hint_uv=root_uv) for f in res.frames]
 
     # --- the module's parameter node ---------------------------------------------------------
     def process_parameters(self, p) -> str:
@@ -818,7 +811,8 @@ class GuidewireReconstructionCoreLogic:
             ("max_uncertainty_mm", "float", [_stat(w, np.max) for w in ws]),
             ("frame_seconds", "float", [float(s) for s in secs[: len(ws)]]),  # pipeline: 2D + 3D per frame
             ("reconstruction_seconds", "float", [float(w.seconds) for w in ws]),  # 3D step of the shown wire
-            ("message", "str", [str(w.message) for w in ws]),
+            ("verdict", "str", [_frame_verdict(self.frame_results, i, w) for i, w in enumerate(ws)]),
+            ("message", "str", [_frame_message(self.frame_results, i, w) for i, w in enumerate(ws)]),
         ])
 
     def _browser_for(self, sequence_node):
@@ -915,6 +909,16 @@ class GuidewireReconstructionCoreLogic:
                 raise InputError(f"{path}: writing {node.GetName()} failed")
             written.append(path)
         return written
+
+
+def _frame_verdict(frame_results, i: int, wire3d) -> str:
+    if i < len(frame_results):
+        return frame_results[i].verdict.value
+    return "ok" if wire3d.success else "failed"
+
+
+def _frame_message(frame_results, i: int, wire3d) -> str:
+    return str(frame_results[i].message) if i < len(frame_results) else str(wire3d.message)
 
 
 def _safe_name(name: str) -> str:
