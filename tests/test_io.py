@@ -5,7 +5,6 @@ import pydicom
 import pytest
 
 from guidewire3d import io
-from guidewire3d.cli import main
 from guidewire3d.errors import DicomError, GeometryError, InputError
 from guidewire3d.geometry import CArm
 
@@ -124,54 +123,7 @@ def test_image_sequence_with_sidecar(tmp_path):
         io.read_image_sequence(d)
 
 
-# --- the bad-input corpus: one line, exit 2, nothing written ---------------------------------
-def _corpus(tmp_path):
-    rng = np.random.default_rng(6)
-    ct = io.write_ct_series(_volume(rng, shape=(5, 8, 8)), tmp_path / "ct")
-    carm = CArm(0, 0, 1100, 750, 0.3, (16, 16))
-    xa = io.write_xa(tmp_path / "xa.dcm", np.zeros((2, 16, 16)), carm)
-    truncated = tmp_path / "truncated.dcm"
-    truncated.write_bytes(xa.read_bytes()[:400])
-    notdicom = tmp_path / "notes.dcm"
-    notdicom.write_text("hello, this is not DICOM\n")
-    nosid = tmp_path / "nosid.dcm"
-    ds = pydicom.dcmread(xa)
-    del ds.DistanceSourceToDetector
-    ds.save_as(nosid)
-    empty = tmp_path / "empty"
-    empty.mkdir()
-    ct_file = sorted(ct.glob("*.dcm"))[0]
-    return dict(ct=ct, xa=xa, truncated=truncated, notdicom=notdicom, nosid=nosid, empty=empty, ct_file=ct_file)
-
-
-@pytest.mark.parametrize(
-    "case, match",
-    [
-        ("truncated", "truncated.dcm"),
-        ("notdicom", "notes.dcm: not a DICOM file"),
-        ("nosid", "DistanceSourceToDetector"),
-        ("ct_as_xa", "Modality .* expected XA"),
-        ("empty_cta", "empty directory"),
-    ],
-)
-def test_bad_input_corpus_cli(tmp_path, capsys, case, match):
-    c = _corpus(tmp_path)
-    cta, roadmap = c["ct"], c["xa"]
-    if case in ("truncated", "notdicom", "nosid"):
-        roadmap = c[case]
-    elif case == "ct_as_xa":
-        roadmap = c["ct_file"]
-    elif case == "empty_cta":
-        cta = c["empty"]
-    out = tmp_path / "out"
-    rc = main(["reconstruct", "--cta", str(cta), "--roadmap", str(roadmap), "--frames", str(roadmap), "--out", str(out)])
-    err = capsys.readouterr().err.strip().splitlines()
-    assert rc == 2
-    assert len(err) == 1 and err[0].startswith("guidewire3d: error:")
-    import re
-
-    assert re.search(match, err[0]), err[0]
-    assert not out.exists() or not any(out.iterdir())
+# the bad-input corpus (one line, exit 2, nothing written) is tests/test_bad_inputs.py
 
 
 def test_xa_compressed_rle_round_trip(tmp_path):
