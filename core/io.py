@@ -184,13 +184,13 @@ def _os_message(e: OSError) -> str:
     return f"{e.strerror or e.__class__.__name__}{where}"
 
 
-def require_empty_folder(out_dir, *, replace: bool = False) -> Path:
+def require_empty_folder(out_dir, *, replace: bool = False, min_free_mb: float = 0.0) -> Path:
     """Check an output folder before any work; return ``out_dir`` as a Path.
 
     ``out_dir`` must be absent or an empty folder (or any folder, with ``replace``), a folder must
     be creatable where it goes (a probe is created and removed in the nearest existing parent),
-    and no other run may be writing it. Stale staging folders of killed runs are removed first
-    (:func:`clean_stale_staging`).
+    with at least ``min_free_mb`` MB free on its disk, and no other run may be writing it. Stale
+    staging folders of killed runs are removed first (:func:`clean_stale_staging`).
 
     Raises
     ------
@@ -217,6 +217,11 @@ def require_empty_folder(out_dir, *, replace: bool = False) -> Path:
         Path(tempfile.mkdtemp(prefix=f".{out_abs.name}.probe-", dir=anc)).rmdir()
     except OSError as e:
         raise OutputError(f"{out_dir}: cannot create the output folder in {anc} ({e.strerror})") from None
+    if min_free_mb > 0:
+        free_mb = shutil.disk_usage(anc).free / 2**20
+        if free_mb < min_free_mb:
+            raise OutputError(f"{out_dir}: only {free_mb:.0f} MB free on the disk of {anc}, "
+                              f"{min_free_mb:g} MB needed")
     if anc == out_abs.parent:
         clean_stale_staging(out_abs)
         staging = _staging_path(out_abs)

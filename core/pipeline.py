@@ -233,6 +233,9 @@ def run(volume: io.Volume, roadmap: io.XARun, frames: io.XARun, *, roadmap_frame
                           frame_results=frame_results)
 
 
+MIN_FREE_MB = 32  # refuse to start with less free space where --out goes (4 frames take 3 MB, images 5 MB more)
+
+
 def run_to_outdir(cta, roadmap, frames, out_dir, *, series_uid=None, overrides=None, roadmap_frame=None,
                   seeds_lps_mm=None, method="vessel", segmenter="unet", force=False, images=True,
                   progress=True, replace=False, truth=None, log=None) -> PipelineResult:
@@ -248,7 +251,7 @@ def run_to_outdir(cta, roadmap, frames, out_dir, *, series_uid=None, overrides=N
 
     out_dir = Path(out_dir)
     replace = bool(replace and (out_dir / "report.json").is_file())
-    io.require_empty_folder(out_dir, replace=replace)
+    io.require_empty_folder(out_dir, replace=replace, min_free_mb=MIN_FREE_MB)
     t0 = time.perf_counter()
     vol, road, live = load_inputs(cta, roadmap, frames, series_uid=series_uid, overrides=overrides, log=log)
     roadmap_frame = choose_roadmap_frame(road, roadmap_frame)

@@ -919,6 +919,20 @@ def test_full_disk_while_writing_is_one_line_and_leaves_nothing(small_case_dir, 
     assert not (tmp_path / "deep").exists()  # the parent it created is gone too
 
 
+def test_nearly_full_disk_is_refused_before_the_work(small_case_dir, tmp_path, monkeypatch, capsys):
+    import shutil
+
+    from guidewire3d import pipeline
+
+    usage = shutil.disk_usage(tmp_path)
+    monkeypatch.setattr(io.shutil, "disk_usage", lambda p: usage._replace(free=5 << 20))
+    monkeypatch.setattr(pipeline, "load_inputs", lambda *a, **k: pytest.fail("inputs read before the disk check"))
+    out = tmp_path / "out"
+    rc = main(["reconstruct", "--cta", str(small_case_dir / "ct"), "--roadmap", str(small_case_dir / "roadmap.dcm"),
+               "--frames", str(small_case_dir / "frames.dcm"), "--out", str(out)])
+    assert_refused(rc, capsys.readouterr().err, out, [str(out), "only 5 MB free", f"{pipeline.MIN_FREE_MB} MB needed"])
+
+
 def test_error_after_a_progress_bar_starts_on_its_own_line(small_case_dir, tmp_path, monkeypatch, capsys):
     """A late error (here: no vessels near the seed, found in the vessel stage) closes the bar first."""
     from tqdm import tqdm
