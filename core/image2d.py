@@ -26,7 +26,9 @@ Three stages of the paper's pipeline live here (DESIGN.md, "The flow of data"):
   through the crossing and spurs are left; double Dijkstra for junction-free pieces), bridging of
   pieces whose ends are close and whose directions agree, sub-pixel centring across the normal
   (mask centroid, weighted by the frame's darkness when given), extension of both ends to the
-  mask's end caps, proximal -> distal ordering and resampling at ~1 px.
+  mask's end caps, proximal -> distal ordering and resampling at ~1 px. With the frame, a presence
+  test (:mod:`guidewire3d.wirepresence`) fails a curve that is not a guidewire (a vessel, a branch
+  of a vessel tree, the collimator's edge: a frame without a wire).
 - :func:`wire_graph_spectrum` builds the paper's gradient-weighted path graph and its Laplacian
   eigenbasis, and projects the wire's discrete curvature onto it.
 
@@ -43,6 +45,7 @@ from scipy import sparse
 from scipy.sparse import csgraph
 
 from guidewire3d.errors import InputError, SegmentationError
+from guidewire3d.wirepresence import WirePresence, presence_of_curve
 
 __all__ = [
     "VesselMethod",
@@ -705,6 +708,11 @@ class OrderedWire:
         Polyline length, px.
     n_gaps_bridged : int
         Number of breaks in the mask that were bridged.
+    presence : WirePresence or None
+        The presence test of the traced curve (:func:`guidewire3d.wirepresence.wire_presence`;
+        None when it did not run: no image, ``check_presence=False``, or no curve was traced).
+        When it says the curve is not a guidewire, the result is falsy and ``message`` starts
+        with ``"no guidewire in the frame: "``.
     """
 
     points_uv_px: np.ndarray
@@ -712,6 +720,7 @@ class OrderedWire:
     message: str
     length_px: float = 0.0
     n_gaps_bridged: int = 0
+    presence: WirePresence | None = None
 
     def __bool__(self) -> bool:
         return bool(self.success)
@@ -1091,7 +1100,8 @@ def _extend_end(p_rc: np.ndarray, maskf: np.ndarray, at_end: bool, max_px: float
     return np.vstack([p_rc, new]) if at_end else np.vstack([new, p_rc])
 
 
-def ordered_wire(mask, *, image=None, proximal_hint_uv=None, max_gap_px: float = 15.0) -> OrderedWire:
+def ordered_wire(mask, *, image=None, proximal_hint_uv=None, max_gap_px: float = 15.0,
+                 check_presence: bool = True) -> OrderedWire:
     """Ordered sub-pixel guidewire centerline from a guidewire mask.
 
     Zhang-Suen thinning of the mask, an 8-connected pixel graph, the longest path of each skeleton
@@ -1113,12 +1123,19 @@ def ordered_wire(mask, *, image=None, proximal_hint_uv=None, max_gap_px: float =
         ``CATHETER_*``) is proximal if only one end is, else the end closer to the image border.
     max_gap_px : float
         Largest break in the mask that is bridged, px.
+    check_presence : bool
+        With ``image``: test whether the traced curve is a guidewire at all
+        (:func:`guidewire3d.wirepresence.wire_presence`: its width across the curve, the mask
+        branching around it, a one-sided edge), and fail with ``"no guidewire in the frame: <why>"``
+        if not (a frame without a wire: the segmenter's answer is a vessel, a branch of the tree or
+        the collimator's edge). ``False`` skips the test (callers that trace a curve in any case).
 
     Returns
     -------
     OrderedWire
-        Falsy (``success=False`` and a reason) for an empty or blob-like mask, a blank image or no
-        path longer than ``MIN_WIRE_LENGTH_PX``; never a fabricated wire.
+        Falsy (``success=False`` and a reason) for an empty or blob-like mask, a blank image, no
+        path longer than ``MIN_WIRE_LENGTH_PX`` or (with ``image``) a curve that is not a
+        guidewire; never a fabricated wire. ``presence`` holds the presence test's evidence.
 
     Raises
     ------
@@ -1212,6 +1229,17 @@ def ordered_wire(mask, *, image=None, proximal_hint_uv=None, max_gap_px: float =
         uv = uv[max(runs, key=len)]                      # the longest stretch inside the image
     uv = resample_polyline(uv, 1.0)
 
+    # Is the curve a guidewire at all (a frame without a wire: a vessel, a tree, an edge)?
+    presence = None
+    if img is not None and check_presence:
+        sr, sc = np.nonzero(skel)
+        skel_uv = np.column_stack([sc + o_c, sr + o_r])     # with the mask's extension beyond the border
+        presence = presence_of_curve(img, uv, skel_uv)
+        if not presence:
+            why = presence.reason.removeprefix("no guidewire: ")
+            return OrderedWire(points_uv_px=np.zeros((0, 2)), success=False,
+                               message=f"no guidewire in the frame: {why}", presence=presence)
+
     # Proximal -> distal.
     h, w = m_full.shape
     if hint is not None:
@@ -1228,7 +1256,7 @@ def ordered_wire(mask, *, image=None, proximal_hint_uv=None, max_gap_px: float =
         uv = uv[::-1].copy()
     length = float(np.linalg.norm(np.diff(uv, axis=0), axis=1).sum())
     return OrderedWire(points_uv_px=uv, success=True, message="ok", length_px=length,
-                       n_gaps_bridged=int(n_bridges))
+                       n_gaps_bridged=int(n_bridges), presence=presence)
 
 
 # --------------------------------------------------------------------------------------------
