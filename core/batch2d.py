@@ -10,7 +10,9 @@ vessel mask (:func:`guidewire3d.image2d.vessel_mask`), the guidewire mask
 - ``<name>_overlay.png``: the image with the vessel skeleton (green) and the ordered wire (yellow),
   for a quick look;
 - ``segment.json``: the options and, per image, its source, frame, shape, the vessel-mask
-  fraction and the ordered wire (``success``, ``message``, ``length_px``, ``points_uv_px``).
+  fraction and the ordered wire (``success``, ``message``, ``length_px``, ``points_uv_px``, and
+  ``presence``: the evidence of :func:`guidewire3d.wirepresence.wire_presence`; a frame without a
+  wire has ``success: false`` and ``message`` "no guidewire in the frame: <why>").
 
 ``<name>`` is the file's stem, with ``_fNNNN`` for the frames of a multi-frame file. Every input
 is read and checked before anything is computed, and the folder appears only when complete.
@@ -144,6 +146,8 @@ def analyse(image: InputImage, *, what: str = "both", segmenter: str = "unet", w
             "message": ow.message,
             "length_px": round(float(ow.length_px), 3) if ow else 0.0,
             "points_uv_px": np.round(np.asarray(ow), 3).tolist() if ow else [],
+            # issue #20: is the traced curve a guidewire (False: "no guidewire in the frame: <why>")
+            "presence": ow.presence.as_dict() if ow.presence is not None else None,
         }
     return rec, masks
 
@@ -201,7 +205,9 @@ def cli_segment(args) -> int:
 
     io.write_folder_atomically(out_dir, write)  # refuses an out_dir filled meanwhile
     n_wire = sum(1 for r in records if r.get("wire", {}).get("success"))
-    wire_part = f"; ordered wire found in {n_wire}/{len(records)}" if args.what != "vessels" else ""
+    n_absent = sum(1 for r in records if (r.get("wire", {}).get("presence") or {}).get("present") is False)
+    wire_part = (f"; ordered wire found in {n_wire}/{len(records)}" + (f" (no guidewire in {n_absent})" if n_absent else "")
+                 if args.what != "vessels" else "")
     print(f"wrote {out_dir}: {len(records)} image(s){wire_part}")
     return 0
 
