@@ -1,4 +1,4 @@
-"""Command line: ``guidewire3d {demo,phantom,reconstruct,view,bench}``.
+"""Command line: ``guidewire3d {demo,phantom,reconstruct,segment,view,live,bench}``.
 
 Bad input prints one line (``guidewire3d: error: ...``) and exits with status 2; ``--verbose``
 shows the traceback instead.
@@ -126,6 +126,8 @@ def _add_view_parser(sub) -> None:
     p.add_argument("--screenshot", metavar="PATH", help="render offscreen to PATH and exit")
     p.add_argument("--frame", type=int, default=0, metavar="K", help="frame to show (default 0)")
     p.add_argument("--size", default="1200x800", metavar="WxH", help="window/screenshot size")
+    p.add_argument("--live", metavar="HOST:PORT", help="follow a `guidewire3d live` server (e.g. 127.0.0.1:18944): "
+                   "the wire tube shows its newest wire (in OUT_DIR's scene when given)")
 
     def run(args):
         from guidewire3d.viewer import app
@@ -150,6 +152,26 @@ def _add_bench_parser(sub) -> None:
     p.set_defaults(func=run)
 
 
+def _add_live_parser(sub) -> None:
+    p = sub.add_parser("live", help="stream: live frames in, the 3D wire out over OpenIGTLink (3D Slicer, robots)",
+                       description="Set up once (--from OUT, or --cta/--roadmap), then reconstruct the newest live "
+                                   "frame (OpenIGTLink IMAGE, --video, --watch or --replay) and send Guidewire "
+                                   "(POLYDATA), GuidewireUncertainty and GuidewireStatus (STRING), GuidewireTip "
+                                   "(TRANSFORM) to every OpenIGTLink client. Ctrl-C stops and prints a summary.")
+
+    def run(args):
+        from guidewire3d import stream
+
+        return stream.cli_live(args)
+
+    # the options live in stream.add_cli_options, which imports nothing heavy
+    from guidewire3d.stream import add_cli_options
+
+    add_cli_options(p)
+    _add_geometry_overrides(p)
+    p.set_defaults(func=run)
+
+
 def _add_segment_parser(sub) -> None:
     from guidewire3d import batch2d
 
@@ -167,13 +189,14 @@ def build_parser() -> argparse.ArgumentParser:
         description="Real-time 3D guidewire reconstruction from a CTA and single-view DSA.",
     )
     parser.add_argument("--verbose", action="store_true", help="show tracebacks and debug messages")
-    sub = parser.add_subparsers(dest="command", metavar="{demo,phantom,reconstruct,segment,view,bench}")
+    sub = parser.add_subparsers(dest="command", metavar="{demo,phantom,reconstruct,segment,view,live,bench}")
     sub.required = True
     _add_demo_parser(sub)
     _add_phantom_parser(sub)
     _add_reconstruct_parser(sub)
     _add_segment_parser(sub)
     _add_view_parser(sub)
+    _add_live_parser(sub)
     _add_bench_parser(sub)
     return parser
 

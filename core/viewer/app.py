@@ -11,7 +11,8 @@ from pathlib import Path
 
 from guidewire3d.errors import Guidewire3DError, InputError
 
-__all__ = ["parse_size", "open_viewer", "render_outdir_screenshot", "run_interactive", "cli_main", "KEYS"]
+__all__ = ["parse_size", "open_viewer", "render_outdir_screenshot", "run_interactive", "cli_main", "KEYS",
+           "LiveFollower", "run_live"]
 
 DEFAULT_SIZE = (1200, 800)
 PLAY_INTERVAL_MS = 50
@@ -250,6 +251,128 @@ def run_interactive(out_dir, *, size_px=DEFAULT_SIZE, frame: int = 0) -> int:
     return 0
 
 
+class LiveFollower:
+    """Follows a ``guidewire3d live`` server: its newest ``Guidewire`` replaces the wire tube.
+
+    ``poll()`` (no window needed) reads what ``client`` (a ``stream.IGTLClient``) received, updates
+    the wire in place (``scene.update_wire``, with the ``GuidewireUncertainty`` of the same frame)
+    and the status line; it returns True when the wire changed.
+    """
+
+    def __init__(self, wire_handles, client, *, status_text=None):
+        self.wire, self.client, self.status_text = wire_handles, client, status_text
+        self.status: dict = {}
+        self.n_updates = 0
+        self.points_lps_mm = None
+        self._wire_msg = self._unc_msg = None
+
+    def poll(self) -> bool:
+        import numpy as np
+
+        from guidewire3d import stream
+        from guidewire3d.viewer import scene as sc
+
+        changed = False
+        for m in self.client.messages():  # in order: a frame's status comes before its wire
+            if m.device_name == stream.DEVICE_STATUS:
+                self.status = stream.status_of(m)
+                if self.status_text is not None:
+                    s = self.status
+                    sc.set_text(self.status_text, f"live frame {s.get('frame')}: {s.get('verdict')} "
+                                                  f"{s.get('message', '')[:70]} ({s.get('dropped', 0)} dropped)")
+            elif m.device_name == stream.DEVICE_WIRE:
+                self._wire_msg, changed = m, True
+            elif m.device_name == stream.DEVICE_UNCERTAINTY:
+                self._unc_msg, changed = m, True
+        if not changed or self._wire_msg is None:
+            return False
+        pts = np.asarray(self._wire_msg.points, float).reshape(-1, 3)
+        if str(self.status.get("space", "LPS")).upper() == "RAS":
+            pts = pts * np.array([-1.0, -1.0, 1.0])
+        unc = np.zeros(len(pts))
+        u = self._unc_msg
+        if u is not None and u.timestamp == self._wire_msg.timestamp:
+            vals = np.array(u.string.split(), float)
+            unc = vals if len(vals) == len(pts) else unc
+        sc.update_wire(self.wire, pts, unc)
+        self.points_lps_mm = pts
+        self.n_updates += 1
+        return True
+
+
+def run_live(address, *, out_dir=None, size_px=DEFAULT_SIZE, screenshot=None, wait_s: float = 30.0) -> int:
+    """``view --live HOST:PORT``: the viewer (on ``out_dir``'s scene, or the wire alone) follows a live
+    server. With ``screenshot``: wait for the first wire (up to ``wait_s``), write the PNG, exit."""
+    import sys
+    import time
+
+    from guidewire3d import stream
+    from guidewire3d.viewer import scene as sc
+
+    host, port = stream.parse_host_port(address)
+    off = screenshot is not None
+    if not off:
+        if sys.platform.startswith("linux") and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
+            raise InputError("view --live: no display (DISPLAY is not set); use --screenshot PATH, or run under xvfb-run")
+        if os.environ.get("VTK_DEFAULT_OPENGL_WINDOW") == "vtkEGLRenderWindow":
+            del os.environ["VTK_DEFAULT_OPENGL_WINDOW"]
+    else:
+        _prepare_offscreen_env()
+    try:
+        client = stream.IGTLClient(host, port, keep=64, connect_timeout_s=wait_s)
+    except ConnectionError as e:
+        raise InputError(f"--live {address}: {e}") from None
+    try:
+        if out_dir is not None:
+            ctl, handles = open_viewer(out_dir, size_px=size_px, off_screen=off, persist=False)
+            pl, wire, text = handles.plotter, handles.wire, handles.status_text
+        else:
+            import numpy as np
+
+            ctl, handles = None, None
+            pl = sc.new_plotter(size_px=size_px, off_screen=off, two_views=False, title=f"guidewire3d live {address}")
+            wire = sc.add_wire(pl, np.zeros((0, 3)), np.zeros(0))
+            text = sc.add_text(pl.renderer, f"waiting for {address}", top=False, font_size=11)
+        follower = LiveFollower(wire, client, status_text=text)
+        first = [out_dir is not None]  # without a scene the camera goes to the first wire
+
+        def tick(*_):
+            if follower.poll():
+                if not first[0]:
+                    pl.reset_camera()
+                    first[0] = True
+                pl.render()
+
+        if off:
+            end = time.monotonic() + wait_s
+            while follower.n_updates == 0 and time.monotonic() < end:
+                time.sleep(0.02)
+                follower.poll()
+            if follower.n_updates == 0:
+                raise InputError(f"--live {address}: no Guidewire message within {wait_s:g} s")
+            tick()
+            if not first[0]:
+                pl.reset_camera()
+            pl.render()
+            path = Path(screenshot)
+            path.parent.mkdir(parents=True, exist_ok=True)
+            pl.screenshot(str(path))
+            pl.close()
+            print(f"screenshot written to {path} (live frame {follower.status.get('frame')})")
+            return 0
+        if ctl is not None:
+            app = _App(ctl, handles)
+            app.bind()
+        pl.show(auto_close=False, interactive_update=True)
+        pl.iren.add_observer("TimerEvent", tick)
+        pl.iren.create_timer(PLAY_INTERVAL_MS, repeating=True)
+        pl.iren.start()
+        pl.close()
+        return 0
+    finally:
+        client.close()
+
+
 def _run_pipeline(args) -> Path:
     from guidewire3d import pipeline
 
@@ -270,6 +393,11 @@ def cli_main(args) -> int:
     frame = int(getattr(args, "frame", 0) or 0)
     if frame < 0:
         raise InputError(f"--frame: must be >= 0, got {frame}")
+    if getattr(args, "live", None):
+        out = Path(args.out_dir) if getattr(args, "out_dir", None) else None
+        if out is not None and not (out / "report.json").is_file():
+            raise InputError(f"{out}: no report.json (not a guidewire3d output folder)")
+        return run_live(args.live, out_dir=out, size_px=size, screenshot=getattr(args, "screenshot", None))
     if any(getattr(args, n, None) for n in ("cta", "roadmap", "frames")):
         out_dir = _run_pipeline(args)
     elif getattr(args, "out_dir", None):
