@@ -57,9 +57,11 @@ MAX_WIDE_FRACTION = 0.6           # wide over this fraction of the length: not a
 BAND_PX = 3.0                     # mask skeleton within this of the curve belongs to the curve
 OTHER_PIECE_MIN_PX = 15.0         # shorter skeleton pieces are noise
 MIN_OTHER_PIECES = 3
-MAX_OTHER_RATIO = 1.0             # other pieces' length / the curve's length, unless the curve is a clean line
+MAX_OTHER_RATIO = 1.25            # other pieces' length / the curve's length, unless the curve is a clean line
 CLEAN_LINE_FRACTION = 0.75        # a wire-width line along this fraction of the curve: a clean line
-STRONG_OTHER_RATIO = 2.0          # ... which is rejected only above this ratio
+STRONG_OTHER_RATIO = 2.0          # ... which is rejected only above this ratio, or with side branches:
+MIN_BRANCHES = 3                  # pieces that touch the curve's band (within BRANCH_TOUCH_PX of it)
+BRANCH_TOUCH_PX = 3.0
 WEAK_MIN_OTHER_PIECES = 2
 WEAK_OTHER_RATIO = 0.4
 WEAK_WIDE_FRACTION = 0.3
@@ -86,6 +88,8 @@ class WirePresence:
         Fraction of the curve's length darker than the background on one side only.
     n_other_pieces : int
         Curvilinear pieces of the mask (skeleton pieces longer than ``OTHER_PIECE_MIN_PX``) away from the curve.
+    n_branches : int
+        How many of them touch the curve (side branches of it).
     other_length_ratio : float
         Their total length / the curve's length.
     length_px : float
@@ -99,6 +103,7 @@ class WirePresence:
     line_fraction: float = 0.0
     edge_fraction: float = 0.0
     n_other_pieces: int = 0
+    n_branches: int = 0
     other_length_ratio: float = 0.0
     length_px: float = 0.0
 
@@ -113,6 +118,7 @@ class WirePresence:
                 "line_fraction": round(float(self.line_fraction), 3),
                 "edge_fraction": round(float(self.edge_fraction), 3),
                 "n_other_pieces": int(self.n_other_pieces),
+                "n_branches": int(self.n_branches),
                 "other_length_ratio": round(float(self.other_length_ratio), 3),
                 "length_px": round(float(self.length_px), 2)}
 
@@ -204,21 +210,27 @@ def _line_at_centre(half_px: float, prof: np.ndarray, blocks: np.ndarray, counts
     return (narrow >= LINE_MIN_RATIO * np.maximum(best, 1e-300)) & (narrow >= LINE_MIN_Z * noise_b)
 
 
-def _other_pieces(skel_uv: np.ndarray, uv: np.ndarray, scale: float) -> np.ndarray:
-    """Lengths (px) of the pieces of the skeleton (pixels ``(u, v)``) farther than ``BAND_PX`` from the curve."""
+def _other_pieces(skel_uv: np.ndarray, uv: np.ndarray, scale: float) -> tuple[np.ndarray, np.ndarray]:
+    """Pieces of the skeleton (pixels ``(u, v)``) farther than ``BAND_PX`` from the curve: their
+    lengths (px) and whether each touches the curve's band (a side branch of it)."""
     from scipy.spatial import cKDTree
 
     if len(skel_uv) == 0:
-        return np.zeros(0)
-    d, _ = cKDTree(uv).query(skel_uv, distance_upper_bound=BAND_PX * max(scale, 1.0) + 1e-6)
-    far = skel_uv[~np.isfinite(d)].astype(np.int64)
+        return np.zeros(0), np.zeros(0, bool)
+    band = BAND_PX * max(scale, 1.0)
+    d, _ = cKDTree(uv).query(skel_uv, distance_upper_bound=band + BRANCH_TOUCH_PX + 1e-6)
+    far_m = d > band
+    far = skel_uv[far_m].astype(np.int64)
     if len(far) == 0:
-        return np.zeros(0)
+        return np.zeros(0), np.zeros(0, bool)
     cc, rr = far[:, 0] - far[:, 0].min(), far[:, 1] - far[:, 1].min()
     sub = np.zeros((rr.max() + 1, cc.max() + 1), bool)
     sub[rr, cc] = True
     lab, n = ndi.label(sub, structure=np.ones((3, 3), bool))
-    return np.bincount(lab[rr, cc], minlength=n + 1)[1:].astype(float)
+    ids = lab[rr, cc]
+    touch = np.zeros(n + 1, bool)
+    touch[ids[np.isfinite(d[far_m])]] = True
+    return np.bincount(ids, minlength=n + 1)[1:].astype(float), touch[1:]
 
 
 def wire_presence(mask, points_uv_px, image, *, skeleton=None) -> WirePresence:
@@ -280,21 +292,23 @@ def presence_of_curve(image: np.ndarray, points_uv_px, skeleton_uv_px: np.ndarra
     edge_frac = float(w[edge].sum())
     width_px = float(np.median(width))
 
-    pieces = _other_pieces(np.asarray(skeleton_uv_px).reshape(-1, 2), uv, scale)
-    pieces = pieces[pieces >= OTHER_PIECE_MIN_PX * scale]
+    pieces, touch = _other_pieces(np.asarray(skeleton_uv_px).reshape(-1, 2), uv, scale)
+    long_ = pieces >= OTHER_PIECE_MIN_PX * scale
+    pieces, n_branches = pieces[long_], int(np.count_nonzero(touch[long_]))
     n_other, ratio = int(len(pieces)), float(pieces.sum() / max(length, 1.0))
 
     ev = dict(width_px=width_px, wide_fraction=wide_frac, line_fraction=line_frac, edge_fraction=edge_frac,
-              n_other_pieces=n_other, other_length_ratio=ratio, length_px=length)
+              n_other_pieces=n_other, n_branches=n_branches, other_length_ratio=ratio, length_px=length)
     tree = f"{n_other} other curvilinear pieces in the mask, {ratio:.1f} x the curve's length"
-    if wide_frac >= MAX_WIDE_FRACTION:
+    if edge_frac >= MAX_EDGE_FRACTION:
+        why = (f"the traced curve is an edge, not a line (darker than the background on one side only "
+               f"over {100 * edge_frac:.0f}% of its length: a collimator or field edge)")
+    elif wide_frac >= MAX_WIDE_FRACTION:
         why = (f"the traced curve is {width_px:.1f} px wide over {100 * wide_frac:.0f}% of its length "
                f"(a wire is <= {max_w:.1f} px here)")
-    elif edge_frac >= MAX_EDGE_FRACTION:
-        why = f"the traced curve is an edge (dark on one side only over {100 * edge_frac:.0f}% of its length)"
-    elif n_other >= MIN_OTHER_PIECES and (ratio >= STRONG_OTHER_RATIO
-                                          or (ratio >= MAX_OTHER_RATIO and line_frac < CLEAN_LINE_FRACTION)):
-        why = f"the traced curve is one branch of a tree ({tree})"
+    elif n_other >= MIN_OTHER_PIECES and (ratio >= STRONG_OTHER_RATIO or (ratio >= MAX_OTHER_RATIO and (
+            line_frac < CLEAN_LINE_FRACTION or n_branches >= MIN_BRANCHES))):
+        why = f"the traced curve is one branch of a tree ({tree}, {n_branches} of them branching off it)"
     elif n_other >= WEAK_MIN_OTHER_PIECES and ratio >= WEAK_OTHER_RATIO and wide_frac >= WEAK_WIDE_FRACTION:
         why = (f"the traced curve is {width_px:.1f} px wide over {100 * wide_frac:.0f}% of its length "
                f"and one branch of a tree ({tree})")
