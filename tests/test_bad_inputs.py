@@ -506,54 +506,25 @@ def seed_lps_outside_the_vessels(t):
     return t.recon(f"--seed-lps={xyz}"), [f"--seed-lps={xyz}", "not inside a vessel"]
 
 
-@kind
-def roadmap_frame_too_large(t):
-    return t.recon("--roadmap-frame", "99"), ["--roadmap-frame 99", "out of range"]
-
-
-@kind
-def roadmap_frame_negative(t):
-    return t.recon("--roadmap-frame", "-1"), ["--roadmap-frame -1", "out of range"]
-
-
-@kind
-def sid_negative(t):
-    return t.recon("--sid", "-5"), ["--sid -5", "positive"]
-
-
-@kind
-def sod_nan(t):
-    return t.recon("--sod", "nan"), ["--sod nan", "finite"]
-
-
-@kind
-def sid_not_above_sod_options(t):
-    return t.recon("--sid", "600", "--sod", "700"), ["--sid 600", "--sod 700"]
-
-
-@kind
-def sid_option_below_the_files_sod(t):
-    return t.recon("--sid", "600"), ["roadmap.dcm", "--sid 600", "DistanceSourceToPatient"]
-
-
-@kind
-def primary_out_of_range(t):
-    return t.recon("--primary", "200"), ["--primary 200", "out of range"]
-
-
-@kind
-def method_unknown(t):
-    return t.recon("--method", "bogus"), ["--method", "bogus"]
+# reconstruct options with a bad value: kind -> (the options, the words the error names)
+BAD_OPTIONS = {
+    "roadmap_frame_too_large": (["--roadmap-frame", "99"], ["--roadmap-frame 99", "out of range"]),
+    "roadmap_frame_negative": (["--roadmap-frame", "-1"], ["--roadmap-frame -1", "out of range"]),
+    "sid_negative": (["--sid", "-5"], ["--sid -5", "positive"]),
+    "sod_nan": (["--sod", "nan"], ["--sod nan", "finite"]),
+    "sid_not_above_sod_options": (["--sid", "600", "--sod", "700"], ["--sid 600", "--sod 700"]),
+    "sid_option_below_the_files_sod": (["--sid", "600"], ["roadmap.dcm", "--sid 600", "DistanceSourceToPatient"]),
+    "primary_out_of_range": (["--primary", "200"], ["--primary 200", "out of range"]),
+    "method_unknown": (["--method", "bogus"], ["--method", "bogus"]),
+    "option_unknown": (["--frobnicate"], ["--frobnicate"]),
+}
+for _name, (_options, _words) in BAD_OPTIONS.items():
+    KINDS[_name] = lambda t, options=_options, words=_words: (t.recon(*options), words)
 
 
 @kind
 def required_option_missing(t):
     return ["reconstruct", "--roadmap", "r.dcm", "--frames", "r.dcm", "--out", str(t.out)], ["--cta", "required"]
-
-
-@kind
-def option_unknown(t):
-    return t.recon("--frobnicate"), ["--frobnicate"]
 
 
 # --- the output folder ----------------------------------------------------------------------------
