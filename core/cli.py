@@ -202,13 +202,17 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _close_progress_bars() -> None:
-    """Close the tqdm bars an error interrupted, so that the error starts on a line of its own."""
+    """Close the tqdm bars an error interrupted, so that the error starts on a line of its own
+    (a terminal's line is cleared by the bar; a log file gets a line break after the bar)."""
     std = sys.modules.get("tqdm.std")
-    for bar in list(getattr(getattr(std, "tqdm", None), "_instances", ())):
+    bars = list(getattr(getattr(std, "tqdm", None), "_instances", ()))
+    for bar in bars:
         try:
             bar.close()
         except Exception:  # noqa: BLE001 - a bar that cannot be closed must not hide the error
             pass
+    if bars and not sys.stderr.isatty():
+        sys.stderr.write("\n")
 
 
 def _error(msg: str) -> int:
