@@ -6,8 +6,13 @@ curve is a contrast-filled artery, a branch of the vessel tree, a catheter or th
 edge. :func:`wire_presence` decides, from the frame, the mask and the traced curve, whether the
 curve is a guidewire, with a few physical properties of a wire and thresholds set with margin
 (issue #20). It rejects only on strong evidence, so a real wire in a noisy frame, partly over
-contrast-filled vessels or inside a guiding catheter is kept:
+contrast-filled vessels or inside a guiding catheter is kept. The tests, in the order they are
+applied (the first that fires gives the reason):
 
+- **Edges.** A wire is darker than the background on both sides; a collimator blade or the rim
+  of a round field is dark on one side only. The curve is rejected when ``MAX_EDGE_FRACTION`` of
+  its length has a dip on one side only (the shallower side less than ``EDGE_RATIO`` of the
+  deeper one).
 - **Width.** A guidewire is 0.36-0.89 mm thick, a few pixels. The frame is sampled across the
   curve (profiles along its normals, averaged over ``BLOCK_PX`` of arc length against noise) and
   the width of the dark structure at half its depth is measured in each block. A block is *wide*
@@ -16,15 +21,13 @@ contrast-filled vessels or inside a guiding catheter is kept:
   the scale-normalised second derivative at wire scales, ``LINE_SIGMAS_PX``, is at least
   ``LINE_MIN_RATIO`` of the best one at any scale and ``LINE_MIN_Z`` noise sigmas). The curve is
   rejected when ``MAX_WIDE_FRACTION`` of its length is wide.
-- **Branching.** A wire is one curve; a vessel tree branches. The mask's skeleton away from the
-  curve (farther than ``BAND_PX``) is cut into pieces; the curve is rejected when at least
-  ``MIN_OTHER_PIECES`` pieces longer than ``OTHER_PIECE_MIN_PX`` add up to ``MAX_OTHER_RATIO`` x
-  the curve's length (the curve explains less than half of the mask), or, more strictly, when a
-  smaller such network (``WEAK_*``) comes with wide stretches (``WEAK_WIDE_FRACTION``).
-- **Edges.** A wire is darker than the background on both sides; a collimator blade or the rim
-  of a round field is dark on one side only. The curve is rejected when ``MAX_EDGE_FRACTION`` of
-  its length has a dip on one side only (the shallower side less than ``EDGE_RATIO`` of the
-  deeper one).
+- **Branching.** A wire is one curve; a vessel tree branches, and a segmenter answers it in many
+  pieces. The mask's skeleton farther than ``BAND_PX`` from the curve is cut into pieces (those
+  shorter than ``OTHER_PIECE_MIN_PX`` are noise; those within ``BRANCH_TOUCH_PX`` of the band
+  are side branches of the curve). The curve is rejected when at least ``MIN_OTHER_PIECES``
+  pieces add up to ``STRONG_OTHER_RATIO`` x the curve's length, or to ``MAX_OTHER_RATIO`` x when
+  the curve is not a clean wire-width line (``CLEAN_LINE_FRACTION``) or has ``MIN_BRANCHES`` side
+  branches; or when a smaller such network (``WEAK_*``) comes with wide stretches.
 
 Lengths are in pixels of a 512-pixel frame (``REFERENCE_SIZE_PX``) and scale with the frame's
 size, as a detector's field of view is about the same at any matrix size. Pixel coordinates are
@@ -156,9 +159,10 @@ def _profiles(img: np.ndarray, uv: np.ndarray, half_px: float, scale: float):
     (n, K) and per-block (B, K) profiles, and the number of profiles in each block."""
     block = max(int(round(BLOCK_PX * scale)), 4)
     stride = max(1, block // PROFILES_PER_BLOCK)
-    rc = uv[::stride, ::-1]
+    at = np.arange(0, len(uv), stride)
+    rc = uv[at, ::-1]
     k = max(int(round(NORMAL_SPAN_PX * scale)), 1)
-    t = uv[np.minimum(np.arange(0, len(uv), stride) + k, len(uv) - 1), ::-1] - uv[np.maximum(np.arange(0, len(uv), stride) - k, 0), ::-1]
+    t = uv[np.minimum(at + k, len(uv) - 1), ::-1] - uv[np.maximum(at - k, 0), ::-1]     # tangent (row, col)
     t /= np.maximum(np.hypot(t[:, 0], t[:, 1]), 1e-12)[:, None]
     nrm = np.column_stack([-t[:, 1], t[:, 0]])
     offs = _offsets(half_px)
@@ -288,7 +292,7 @@ def presence_of_curve(image: np.ndarray, points_uv_px, skeleton_uv_px: np.ndarra
     wide_frac = float(w[wide].sum())
     line_frac = float(w[line].sum())
     deep, shallow = np.maximum(dip_l, dip_r), np.minimum(dip_l, dip_r)
-    edge = shallow <= EDGE_RATIO * np.maximum(deep, 0.0)
+    edge = (deep > 0) & (shallow <= EDGE_RATIO * deep)
     edge_frac = float(w[edge].sum())
     width_px = float(np.median(width))
 

@@ -120,7 +120,8 @@ def run_methods(cases, backend, threads, *, quality=True):
                 mask, dt = timed(seg.segment, frame)
                 ow, dt_ow = timed(ordered_wire, mask, image=frame)
                 r = dict(method=name, mode=seg.last_mode if mode == "roi" else "full", want=mode, seed=c["seed"], t=t,
-                         diameter=c["wire_diameter_mm"], dose=c["dose"], seg_s=dt, ow_s=dt_ow)
+                         diameter=c["wire_diameter_mm"], dose=c["dose"], seg_s=dt, ow_s=dt_ow,
+                         no_wire=ow.presence is not None and not ow.presence)
                 if quality:
                     truth = c["masks"][t]
                     p, rc = precision_recall(mask, truth)
@@ -134,7 +135,7 @@ def run_methods(cases, backend, threads, *, quality=True):
                 ok, dist, tip = wire_errors(c["masks"][t], c["frames"][t], c["uv"][t], c["vis"][t])
                 rows.append(dict(method="truth mask", mode="full", want="full", seed=c["seed"], t=t,
                                  diameter=c["wire_diameter_mm"], dose=c["dose"], seg_s=np.nan, ow_s=np.nan,
-                                 dice=1.0, precision=1.0, recall=1.0, ok=ok, dist=dist, tip=tip))
+                                 dice=1.0, precision=1.0, recall=1.0, ok=ok, dist=dist, tip=tip, no_wire=False))
     return rows
 
 
@@ -178,6 +179,13 @@ def print_tables(rows, backend, threads):
             print(f"{lab:<11} {label:<14} {len(rs):>6} {len(ok) / max(len(rs), 1):>8.1%} "
                   f"{np.mean(dist) if len(dist) else np.nan:>19.3f} {np.median(dist) if len(dist) else np.nan:>21.3f} "
                   f"{np.median(tip) if len(tip) else np.nan:>14.2f} {np.percentile(tip, 90) if len(tip) else np.nan:>11.2f}")
+    # issue #20: every frame here holds a wire, so the presence test (ordered_wire with the frame)
+    # must keep them all; scripts/bench_wire_presence.py measures the frames without a wire
+    print("\nPresence test (ordered_wire with the frame): frames whose wire was kept (every frame holds one)")
+    for name, want in (("UNet", "full"), ("UNet", "roi"), ("Ridge", "full"), ("truth mask", "full")):
+        rs = _sel(rows, method=name, want=want)
+        kept = sum(not r["no_wire"] for r in rs)
+        print(f"{name + (' (ROI)' if want == 'roi' else ''):<11} kept {kept}/{len(rs)}")
 
 
 def print_timing(rows, backend, threads):
