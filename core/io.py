@@ -877,7 +877,9 @@ def _read_dicom_header(path: Path, what: str):
     except Exception as e:  # noqa: BLE001
         raise DicomError(f"{path}: unreadable DICOM header ({e.__class__.__name__}: {str(e)[:100]})") from None
     if "PixelData" not in ds:
-        raise DicomError(f"{path}: truncated or not an image DICOM file: no PixelData (7FE0,0010)")
+        ts = getattr(getattr(ds, "file_meta", None), "TransferSyntaxUID", None)
+        raise DicomError(f"{path}: truncated or not an image DICOM file: no PixelData (7FE0,0010) "
+                         f"(or its transfer syntax {getattr(ts, 'name', None) or ts} does not match its encoding)")
     for tag, kw in (("(0028,0010)", "Rows"), ("(0028,0011)", "Columns")):
         v = ds.get(kw)
         if not isinstance(v, int) or v < 1:
