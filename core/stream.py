@@ -46,7 +46,7 @@ from guidewire3d.errors import InputError
 __all__ = ["DEFAULT_PORT", "DEVICE_WIRE", "DEVICE_UNCERTAINTY", "DEVICE_TIP", "DEVICE_STATUS", "Space", "Frame",
            "LatestFrame", "PolyDataMessage", "IGTLServer", "IGTLClient", "LiveSetup", "LiveRunner", "LiveSummary",
            "ReplaySource", "VideoSource", "FolderSource", "check_frame", "frame_messages", "tip_matrix",
-           "setup_from_outdir", "setup_from_inputs", "parse_host_port", "cli_live"]
+           "setup_from_outdir", "setup_from_inputs", "parse_host_port", "warm_up", "cli_live"]
 
 log = logging.getLogger(__name__)
 
@@ -305,7 +305,8 @@ class _Closed(Exception):
 def _recv_exact(sock, n: int, stop: threading.Event, *, idle_ok: bool) -> bytes | None:
     """``n`` bytes, or None when ``idle_ok`` and nothing arrived within one poll period."""
     buf = bytearray()
-    last = time.monotonic()
+    waited = 0.0  # time spent waiting for data, counted in poll periods (a thread that was not
+    # scheduled, e.g. while another one held the GIL, has not waited for the peer)
     while len(buf) < n:
         if stop.is_set():
             raise _Closed("stopping")
@@ -314,7 +315,8 @@ def _recv_exact(sock, n: int, stop: threading.Event, *, idle_ok: bool) -> bytes 
         except socket.timeout:
             if idle_ok and not buf:
                 return None
-            if time.monotonic() - last > BODY_TIMEOUT_S:
+            waited += POLL_S
+            if waited > BODY_TIMEOUT_S:
                 raise _Closed(f"a message stalled for {BODY_TIMEOUT_S:g} s") from None
             continue
         except OSError as e:
@@ -322,7 +324,7 @@ def _recv_exact(sock, n: int, stop: threading.Event, *, idle_ok: bool) -> bytes 
         if not chunk:
             raise _Closed("closed by the peer")
         buf += chunk
-        last = time.monotonic()
+        waited = 0.0
     return bytes(buf)
 
 
@@ -601,11 +603,12 @@ class IGTLClient:
             sock = self._sock
             if sock is None:
                 raise ConnectionError(f"not connected to {self.host}:{self.port}")
-            sock.settimeout(None)
             try:
+                sock.settimeout(None)
                 sock.sendall(data)
-            finally:
                 sock.settimeout(POLL_S)
+            except OSError as e:  # the connection ended meanwhile
+                raise ConnectionError(f"{self.host}:{self.port}: {e.strerror or e}") from None
 
     def messages(self) -> list:
         """The messages received since the last call (oldest first)."""
@@ -928,6 +931,13 @@ def setup_from_inputs(cta, roadmap, *, roadmap_frame=None, seeds_lps_mm=None, se
                      f"{cta} + {roadmap} frame {k}: {tree.n_points} centerline points", reg.verdict)
 
 
+def warm_up(session) -> None:
+    """Load the network and run it once before the first live frame (a constant frame would not
+    reach the network: the segmenter skips it), so the first frame does not pay for it."""
+    rng = np.random.default_rng(0)
+    session.warm_up(rng.normal(1000.0, 50.0, session.carm.shape).astype(np.float32))
+
+
 # --------------------------------------------------------------------------------------
 # the processing loop
 # --------------------------------------------------------------------------------------
@@ -1189,7 +1199,7 @@ def cli_live(args) -> int:
     source, carm = _make_source(args, setup)
     session = live.Session(setup.tree, carm, setup.pose, registration_covariance=setup.covariance,
                            segmenter=args.segmenter)
-    session.warm_up(np.zeros(carm.shape, np.float32))
+    warm_up(session)
     mailbox = LatestFrame()
 
     def on_message(msg):

@@ -58,7 +58,7 @@ def setup(live_out):
 def serving(setup, **runner_kw):
     """A live server on a free port with its processing loop in a thread."""
     session = live.Session(setup.tree, setup.frames_carm, setup.pose, registration_covariance=setup.covariance)
-    session.warm_up(np.zeros(setup.frames_carm.shape, np.float32))
+    stream.warm_up(session)
     mailbox = stream.LatestFrame()
 
     def on_message(msg):
