@@ -43,7 +43,8 @@ import numpy as np
 
 from guidewire3d.errors import InputError
 
-__all__ = ["DEFAULT_PORT", "DEVICE_WIRE", "DEVICE_UNCERTAINTY", "DEVICE_TIP", "DEVICE_STATUS", "Space", "Frame",
+__all__ = ["DEFAULT_PORT", "DEVICE_WIRE", "DEVICE_UNCERTAINTY", "DEVICE_TIP", "DEVICE_STATUS", "DEVICE_POINTS",
+           "Space", "Frame",
            "LatestFrame", "PolyDataMessage", "IGTLServer", "IGTLClient", "LiveSetup", "LiveRunner", "LiveSummary",
            "ReplaySource", "VideoSource", "FolderSource", "check_frame", "frame_messages", "tip_matrix",
            "setup_from_outdir", "setup_from_inputs", "parse_host_port", "warm_up", "cli_live"]
@@ -56,6 +57,7 @@ DEVICE_WIRE = "Guidewire"
 DEVICE_UNCERTAINTY = "GuidewireUncertainty"
 DEVICE_TIP = "GuidewireTip"
 DEVICE_STATUS = "GuidewireStatus"
+DEVICE_POINTS = "GuidewirePoints"  # POINT, only with ``points=True`` (``--points``)
 #: the tip direction is the chord over the wire's last TIP_DIRECTION_MM
 TIP_DIRECTION_MM = 2.0
 #: a message body larger than this closes the connection (a 1024^2 float64 frame is 8 MB)
@@ -245,7 +247,7 @@ def _to_space(points, space: Space) -> np.ndarray:
     return p @ _LPS_TO_RAS if space is Space.RAS else p.copy()
 
 
-def frame_messages(result, *, space: Space = Space.LPS, stats: dict | None = None) -> list:
+def frame_messages(result, *, space: Space = Space.LPS, stats: dict | None = None, points: bool = False) -> list:
     """The pyigtl messages of one processed frame, each stamped with the frame's time stamp.
 
     Parameters
@@ -254,12 +256,15 @@ def frame_messages(result, *, space: Space = Space.LPS, stats: dict | None = Non
     space : Space
     stats : dict, optional
         Counters added to the status JSON (frames in, processed, dropped, failed).
+    points : bool
+        Also send the wire as a POINT message (``GuidewirePoints``, each point's diameter twice its
+        1-sigma uncertainty), for consumers that cannot read POLYDATA (ros2_igtl_bridge).
 
     Returns
     -------
     list of pyigtl messages
         ``GuidewireStatus`` first; then, when there is a 3D wire, ``Guidewire``,
-        ``GuidewireUncertainty``, ``GuidewireTip``.
+        ``GuidewireUncertainty``, ``GuidewireTip`` (and ``GuidewirePoints``).
     """
     pyigtl = _pyigtl()
     ts = float(result.timestamp) if np.isfinite(result.timestamp) else time.time()
@@ -287,6 +292,9 @@ def frame_messages(result, *, space: Space = Space.LPS, stats: dict | None = Non
         f = np.diag([-1.0, -1.0, 1.0, 1.0])
         m = f @ m @ f
     out.append(pyigtl.TransformMessage(m, device_name=DEVICE_TIP, timestamp=ts))
+    if points:
+        out.append(pyigtl.PointMessage(_to_space(pts, space), diameters=[2.0 * float(u) for u in unc],
+                                       device_name=DEVICE_POINTS, timestamp=ts))
     return out
 
 
@@ -999,16 +1007,19 @@ class LiveRunner:
         A source with a ``done`` event: the run stops once it is done and the mailbox is empty.
     on_result : callable, optional
         Called with each ``live.FrameResult`` (after its messages are offered).
+    points : bool
+        Also send ``GuidewirePoints`` (see :func:`frame_messages`).
     """
 
     def __init__(self, session, server, mailbox: LatestFrame, *, space: Space = Space.LPS, max_frames=None,
-                 duration_s=None, source=None, on_result=None):
+                 duration_s=None, source=None, on_result=None, points: bool = False):
         self.session, self.server, self.mailbox = session, server, mailbox
         self.space = Space(space)
         self.max_frames = None if max_frames is None else int(max_frames)
         self.duration_s = None if duration_s is None else float(duration_s)
         self.source = source
         self.on_result = on_result
+        self.points = bool(points)
         self.summary = LiveSummary()
         self._lat_proc: deque = deque(maxlen=KEEP_LATENCIES)
         self._lat_sent: deque = deque(maxlen=KEEP_LATENCIES)
@@ -1045,7 +1056,8 @@ class LiveRunner:
         s.ok += result.verdict is Verdict.OK
         s.uncertain += result.verdict is Verdict.UNCERTAIN
         s.failed += result.verdict is Verdict.FAILED
-        msgs = frame_messages(result, space=self.space, stats=dict(self.stats(), source=frame.source))
+        msgs = frame_messages(result, space=self.space, stats=dict(self.stats(), source=frame.source),
+                              points=self.points)
         payload = pack(msgs)
         ts = frame.timestamp
         self._lat_proc.append(time.time() - ts)
@@ -1119,6 +1131,8 @@ def add_cli_options(p) -> None:
     o.add_argument("--port", type=int, default=DEFAULT_PORT, help=f"TCP port (default {DEFAULT_PORT})")
     o.add_argument("--space", default="lps", choices=[m.value for m in Space],
                    help="coordinates of the wire and tip messages: lps (default) or ras (for 3D Slicer)")
+    o.add_argument("--points", action="store_true", help="also send the wire as a POINT message (GuidewirePoints), for "
+                   "consumers without POLYDATA such as ros2_igtl_bridge")
     o.add_argument("--segmenter", default="unet", choices=("unet", "ridge"))
     b = p.add_argument_group("bounds (default: run until Ctrl-C)")
     b.add_argument("--max-frames", type=int, default=None, metavar="N", help="stop after N processed frames")
@@ -1223,7 +1237,7 @@ def cli_live(args) -> int:
         if source is not None:
             source.start(mailbox, stop)
         runner = LiveRunner(session, server, mailbox, space=Space(args.space), max_frames=args.max_frames,
-                            duration_s=args.duration, source=source)
+                            duration_s=args.duration, source=source, points=args.points)
         summary = runner.run(stop)
     finally:
         stop.set()

@@ -176,6 +176,14 @@ def test_ras_space_flips_points_and_tip():
     assert np.isclose(np.linalg.det(ras[stream.DEVICE_TIP].matrix[:3, :3]), 1.0)
     for m in ras.values():
         assert m.timestamp == 1234.5
+    # --points: the same wire as a POINT message, diameter twice the 1-sigma uncertainty
+    [pm] = [m for m in stream.frame_messages(fr, space=stream.Space.RAS, points=True)
+            if m.device_name == stream.DEVICE_POINTS]
+    packed = pm.pack()
+    back = pyigtl.PointMessage()
+    back.unpack(pyigtl.MessageBase.parse_header(packed[:58]), packed[58:])
+    np.testing.assert_allclose(back.positions, pts * [-1, -1, 1], atol=1e-5)
+    np.testing.assert_allclose(back.diameters, 1.0, atol=1e-6)
     # a frame without a wire sends its status only
     failed = live.FrameResult(8, OrderedWire(points_uv_px=np.zeros((0, 2)), success=False, message="no"),
                               reconstruction.Wire3D.failed("no wire"), Verdict.FAILED, "no wire", None, 0.0, 99.0)
