@@ -20,6 +20,7 @@ import numpy as np
 import pytest
 
 from guidewire3d import io, live, pipeline, stream
+from guidewire3d.errors import InputError
 from guidewire3d.registration import Verdict
 
 pyigtl = pytest.importorskip("pyigtl")
@@ -322,6 +323,49 @@ def test_folder_source_delivers_the_newest_new_file(tmp_path):
     finally:
         stop.set()
         assert src.done.wait(5)
+
+
+def test_video_source_paces_a_file_at_its_frame_rate(tmp_path):
+    cv2 = pytest.importorskip("cv2")
+    path = tmp_path / "run.avi"
+    fps, n = 25.0, 6
+    w = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), fps, (40, 30), False)
+    if not w.isOpened():
+        pytest.skip("no MJPG writer in this OpenCV build")
+    for k in range(n):
+        w.write(np.full((30, 40), 30 * k + 20, np.uint8))
+    w.release()
+    box, stop = stream.LatestFrame(), threading.Event()
+    src = stream.VideoSource(path, carm=None)
+    assert src.fps == pytest.approx(fps)
+    got = []
+    src.start(box, stop)
+    try:
+        end = time.monotonic() + 10
+        while time.monotonic() < end and not (src.done.is_set() and box.n_in == len(got) + box.n_dropped):
+            f = box.take(0.2)
+            if f is not None:
+                got.append(f)
+    finally:
+        stop.set()
+        assert src.done.wait(5)
+    assert box.n_in == n and len(got) + box.n_dropped == n
+    levels = [float(np.median(f.image)) for f in got]
+    assert levels == sorted(levels) and abs(levels[-1] - (30 * (n - 1) + 20)) <= 3  # in order, the last one last
+    stamps = [f.timestamp for f in got]
+    assert all(b - a >= 0.5 / fps for a, b in zip(stamps, stamps[1:]))  # paced, not as fast as it decodes
+    with pytest.raises(InputError, match="cannot open"):
+        stream.VideoSource(tmp_path / "missing.avi", carm=None)
+
+
+def test_setup_from_the_inputs_is_the_one_reconstruct_made(setup, small_case_dir):
+    """``live --cta --roadmap`` runs the same stages as ``reconstruct``: the same tree and pose."""
+    d = small_case_dir
+    fresh = stream.setup_from_inputs(d / "ct", d / "roadmap.dcm")
+    np.testing.assert_allclose(fresh.tree.points_lps_mm, setup.tree.points_lps_mm, atol=1e-9)
+    np.testing.assert_allclose(fresh.pose.matrix, setup.pose.matrix, atol=1e-9)
+    np.testing.assert_allclose(fresh.covariance, setup.covariance, rtol=1e-6, atol=1e-12)
+    assert fresh.frames_carm.to_dict() == setup.frames_carm.to_dict()
 
 
 # --------------------------------------------------------------------------------------
