@@ -320,7 +320,7 @@ def _recv_exact(sock, n: int, stop: threading.Event, *, idle_ok: bool) -> bytes 
             raise _Closed("stopping")
         try:
             chunk = sock.recv(min(n - len(buf), 1 << 20))
-        except socket.timeout:
+        except (socket.timeout, BlockingIOError):
             if idle_ok and not buf:
                 return None
             waited += POLL_S
@@ -334,6 +334,22 @@ def _recv_exact(sock, n: int, stop: threading.Event, *, idle_ok: bool) -> bytes 
         buf += chunk
         waited = 0.0
     return bytes(buf)
+
+
+def _send_all(sock, data: bytes, stop: threading.Event) -> None:
+    """``sock.sendall`` that keeps the socket's poll timeout (a reader thread shares the socket, and
+    changing its timeout while the reader is in ``recv`` makes that ``recv`` fail with EAGAIN)."""
+    view = memoryview(data)
+    while view:
+        if stop.is_set():
+            raise _Closed("stopping")
+        try:
+            n = sock.send(view)
+        except (socket.timeout, BlockingIOError):
+            continue
+        except OSError as e:
+            raise _Closed(str(e)) from None
+        view = view[n:]
 
 
 def read_message(sock, stop: threading.Event, types: dict):
@@ -422,16 +438,13 @@ class _Connection:
                 if item is None:
                     continue
                 payload, on_sent = item
-                self.sock.settimeout(None)
-                try:
-                    self.sock.sendall(payload)
-                finally:
-                    self.sock.settimeout(POLL_S)
+                _send_all(self.sock, payload, self.stop)
                 self.n_sent += 1
                 if on_sent is not None:
                     on_sent(time.time())
-        except OSError as e:
-            log.info("client %s: send failed (%s)", self.peer, e)
+        except _Closed as e:
+            if not self.stop.is_set():
+                log.info("client %s: send failed (%s)", self.peer, e)
         finally:
             self._end()
 
@@ -612,11 +625,9 @@ class IGTLClient:
             if sock is None:
                 raise ConnectionError(f"not connected to {self.host}:{self.port}")
             try:
-                sock.settimeout(None)
-                sock.sendall(data)
-                sock.settimeout(POLL_S)
-            except OSError as e:  # the connection ended meanwhile
-                raise ConnectionError(f"{self.host}:{self.port}: {e.strerror or e}") from None
+                _send_all(sock, data, self._stop)
+            except _Closed as e:  # the connection ended meanwhile
+                raise ConnectionError(f"{self.host}:{self.port}: {e}") from None
 
     def messages(self) -> list:
         """The messages received since the last call (oldest first)."""
