@@ -239,6 +239,41 @@ def test_a_client_disconnect_and_reconnect_keeps_the_server_running(setup, frame
     assert runner.summary.processed == 3
 
 
+def test_a_busy_server_keeps_its_clients():
+    """Frames in and results out on the same connection while the processing holds the GIL: the
+    client stays connected (sends must not change the socket timeout under the reader's recv)."""
+    box, stop = stream.LatestFrame(), threading.Event()
+    server = stream.IGTLServer(HOST, 0, on_message=lambda m: box.put(stream.Frame(m.image, m.timestamp)))
+
+    def busy_loop():
+        k = 0
+        while not stop.is_set():
+            if box.take(0.05) is None:
+                continue
+            x = 0
+            for i in range(1_000_000):  # pure Python: holds the GIL as parts of the 2D and 3D steps do
+                x += i
+            server.broadcast(stream.pack([pyigtl.StringMessage(f"result {k}", device_name="Result")]))
+            k += 1
+
+    worker = threading.Thread(target=busy_loop, daemon=True)
+    worker.start()
+    try:
+        with stream.IGTLClient(HOST, server.port) as client:
+            frame = np.zeros((1, 512, 512), np.uint16)
+            end = time.monotonic() + 4.0
+            while time.monotonic() < end:
+                client.send(pyigtl.ImageMessage(frame, device_name="Image", timestamp=time.time()))
+                time.sleep(1 / 30)
+            assert client.wait_for(lambda m: m.device_name == "Result", timeout_s=5) is not None
+            assert client.n_connects == 1 and server.n_connections == 1
+    finally:
+        stop.set()
+        worker.join(5)
+        server.close()
+    assert box.n_in >= 30
+
+
 def test_frames_faster_than_processing_are_dropped_and_counted(setup, frames):
     n = 12
     with serving(setup) as (server, runner, _), stream.IGTLClient(HOST, server.port) as client:
