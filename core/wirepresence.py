@@ -52,6 +52,7 @@ NORMAL_SPAN_PX = 2.0              # the curve's normal from the points +- this f
 CENTRE_PX = 1.5                   # the darkest point within +- this of the curve is the line's centre
 OUTER_FRACTION = 0.6              # background: the profile beyond this fraction of its half-span
 MAX_WIRE_WIDTH_PX = 8.5           # half-depth width above this: wider than a wire (0.89 mm wire <= ~7)
+MIN_WIRE_WIDTH_LIMIT_PX = 6.0     # ... but at least this in small frames (blur widens a line by ~2 px at any size)
 LINE_SIGMAS_PX = (0.7, 1.0, 1.4)  # wire scales of the line detector
 WIDE_SIGMAS_PX = (2.0, 2.8, 4.0, 5.6)
 LINE_MIN_RATIO = 0.5              # wire-scale response / best response for a line at the centre
@@ -287,7 +288,7 @@ def presence_of_curve(image: np.ndarray, points_uv_px, skeleton_uv_px: np.ndarra
     width, dip_l, dip_r = _half_width(offs, blocks, scale)
     line = _line_at_centre(half_px, prof, blocks, counts, scale)
     w = counts / counts.sum()                                   # blocks weighted by their arc length
-    max_w = MAX_WIRE_WIDTH_PX * scale
+    max_w = max(MAX_WIRE_WIDTH_PX * scale, MIN_WIRE_WIDTH_LIMIT_PX)
     wide = (width > max_w) & ~line
     wide_frac = float(w[wide].sum())
     line_frac = float(w[line].sum())
