@@ -5,6 +5,12 @@ report entry. Measured over a long simulated sequence, per segmenter mode, and p
 table of medians.
 
     nice .venv/bin/python scripts/bench_live.py --frames 120 --seed 2024
+
+``--igtl`` measures ``guidewire3d live`` instead (``bench_igtl``): source time stamp -> messages
+received by a client, over OpenIGTLink on 127.0.0.1, at 15 and 30 fps input, then a bounded soak
+at 30 fps with client reconnects and the server's RSS sampled:
+
+    nice -n 5 .venv/bin/python scripts/bench_live.py --igtl --rate-seconds 40 --soak-seconds 300
 """
 from __future__ import annotations
 
@@ -20,7 +26,13 @@ def main() -> int:
     ap.add_argument("--frames", type=int, default=120)
     ap.add_argument("--seed", type=int, default=2024)
     ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--igtl", action="store_true", help="measure `guidewire3d live` over OpenIGTLink (bench_igtl)")
+    ap.add_argument("--rate-seconds", type=float, default=40.0, help="--igtl: seconds per input rate (15, 30 fps)")
+    ap.add_argument("--soak-seconds", type=float, default=300.0, help="--igtl: soak at 30 fps (0: none)")
+    ap.add_argument("--reconnect-seconds", type=float, default=30.0, help="--igtl soak: the client reconnects this often")
     args = ap.parse_args()
+    if args.igtl:
+        return bench_igtl(args)
 
     from guidewire3d import bench, export, image2d, live, phantom, registration, vessels3d
     from guidewire3d.segmentation import GuidewireSegmenter, guidewire_mask
@@ -58,6 +70,219 @@ def main() -> int:
           f"roadmap + registration {t_reg * 1000:.0f} ms; machine: {bench.machine_line()}, "
           f"load average {os.getloadavg()[0]:.1f}")
     print(bench._table(["mode", "marginal ms/frame", "FPS", "median latency ms", "frames ok"], rows))
+    return 0
+
+
+# --------------------------------------------------------------------------------------------
+# --igtl: guidewire3d live, end to end over OpenIGTLink
+# --------------------------------------------------------------------------------------------
+def _rss_mb(pid: int) -> float:
+    try:
+        for line in open(f"/proc/{pid}/status"):
+            if line.startswith("VmRSS:"):
+                return float(line.split()[1]) / 1024.0
+    except OSError:
+        pass
+    return float("nan")
+
+
+def _igtl_run(out_dir, frames, *, fps: float, seconds: float, reconnect_s: float | None = None,
+              rss_every_s: float = 5.0) -> dict:
+    """Start `guidewire3d live --from OUT` in a process, send ``frames`` (cycled) as OpenIGTLink
+    IMAGE messages at ``fps`` for ``seconds``, receive its messages; stop it with SIGINT."""
+    import signal
+    import subprocess
+    import sys
+    import threading
+
+    import pyigtl
+
+    from guidewire3d import stream
+
+    cmd = [sys.executable, "-m", "guidewire3d.cli", "live", "--from", str(out_dir), "--port", "0",
+           "--duration", str(seconds + 120)]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+    lines: list[str] = []
+    port_ready = threading.Event()
+
+    def read_stdout():
+        for line in proc.stdout:
+            lines.append(line.rstrip())
+            if "listening on" in line:
+                port_ready.set()
+
+    threading.Thread(target=read_stdout, daemon=True).start()
+    try:
+        if not port_ready.wait(300):
+            raise RuntimeError(f"the live server did not start: {lines}")
+        port = int([ln for ln in lines if "listening on" in ln][0].split("listening on ")[1].split()[0].rsplit(":", 1)[1])
+        client = stream.IGTLClient("127.0.0.1", port, keep=1 << 14)
+        lat_wire, t_wire, statuses, rss = [], [], [], []
+        n_sent, n_reconnects = 0, 0
+        period = 1.0 / fps
+        t_start = time.monotonic()
+        t_next, t_rss, t_reconnect = t_start, t_start, t_start + (reconnect_s or 1e18)
+
+        def drain():
+            for m in client.messages():
+                if m.device_name == stream.DEVICE_WIRE:
+                    lat_wire.append(m.received_at - m.timestamp)
+                    t_wire.append(m.received_at)
+                elif m.device_name == stream.DEVICE_STATUS:
+                    st = stream.status_of(m)
+                    statuses.append({k: st.get(k) for k in ("frames_in", "processed", "dropped", "failed",
+                                                            "processing_ms")})
+
+        while time.monotonic() - t_start < seconds:
+            now = time.monotonic()
+            if now >= t_rss:
+                rss.append((now - t_start, _rss_mb(proc.pid)))
+                t_rss += rss_every_s
+            if now >= t_reconnect:  # a client that goes away and comes back
+                drain()
+                client.close()
+                client = stream.IGTLClient("127.0.0.1", port, keep=1 << 14)
+                n_reconnects += 1
+                t_reconnect += reconnect_s
+            time.sleep(max(0.0, t_next - time.monotonic()))
+            t_next += period
+            frame = frames[n_sent % len(frames)]
+            msg = pyigtl.ImageMessage(frame[None], device_name="Image", timestamp=time.time())  # the grab time
+            try:
+                client.send(msg)
+                n_sent += 1
+            except ConnectionError:
+                pass
+            drain()
+        time.sleep(1.0)
+        drain()
+        client.close()
+        rss.append((time.monotonic() - t_start, _rss_mb(proc.pid)))
+        proc.send_signal(signal.SIGINT)
+        proc.wait(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    summary = next((ln for ln in lines if "frames in" in ln), "")
+    last = statuses[-1] if statuses else {}
+    lat = np.asarray(lat_wire) * 1000.0
+    engine = np.asarray([st["processing_ms"] for st in statuses if st.get("processing_ms") is not None], float)
+    thirds = np.array_split(lat, 3) if len(lat) >= 3 else [lat, lat, lat]
+    return {"fps": fps, "seconds": seconds, "sent": n_sent, "wires": len(lat), "statuses": len(statuses),
+            "frames_in": last.get("frames_in"), "processed": last.get("processed"), "dropped": last.get("dropped"),
+            "failed": last.get("failed"), "p50": float(np.percentile(lat, 50)) if len(lat) else float("nan"),
+            "p99": float(np.percentile(lat, 99)) if len(lat) else float("nan"),
+            "p50_first_third": float(np.median(thirds[0])) if len(lat) else float("nan"),
+            "p50_last_third": float(np.median(thirds[-1])) if len(lat) else float("nan"),
+            "engine_p50": float(np.median(engine)) if len(engine) else float("nan"),
+            "rss": rss, "reconnects": n_reconnects, "server_summary": summary}
+
+
+class _Precomputed:
+    """A stand-in engine that answers every frame with one precomputed result at once: what is
+    left of the latency is the streaming (receive, mailbox, messages, send)."""
+
+    def __init__(self, session, frame):
+        self.carm = session.carm
+        self.result = session.process(frame)
+
+    def process(self, frame, *, index=0, timestamp=float("nan")):
+        from dataclasses import replace
+
+        return replace(self.result, index=index, timestamp=timestamp)
+
+
+def _igtl_transport_only(out_dir, frames, *, fps: float, seconds: float) -> dict:
+    """The server in this process with the engine replaced by ``_Precomputed``; a client sends
+    ``frames`` at ``fps`` and receives the messages."""
+    import threading
+
+    import pyigtl
+
+    from guidewire3d import live, stream
+
+    st = stream.setup_from_outdir(out_dir)
+    session = live.Session(st.tree, st.frames_carm, st.pose, registration_covariance=st.covariance)
+    engine = _Precomputed(session, frames[0].astype(np.float32))
+    box = stream.LatestFrame()
+    server = stream.IGTLServer("127.0.0.1", 0, on_message=lambda m: box.put(stream.Frame(m.image, m.timestamp)))
+    runner = stream.LiveRunner(engine, server, box, duration_s=seconds + 30)
+    stop = threading.Event()
+    worker = threading.Thread(target=runner.run, args=(stop,), daemon=True)
+    worker.start()
+    lat = []
+    try:
+        with stream.IGTLClient("127.0.0.1", server.port, keep=1 << 14) as client:
+            t_next = t0 = time.monotonic()
+            k = 0
+            while time.monotonic() - t0 < seconds:
+                time.sleep(max(0.0, t_next - time.monotonic()))
+                t_next += 1.0 / fps
+                client.send(pyigtl.ImageMessage(frames[k % len(frames)][None], device_name="Image",
+                                                timestamp=time.time()))
+                k += 1
+                lat += [m.received_at - m.timestamp for m in client.messages() if m.device_name == stream.DEVICE_WIRE]
+            time.sleep(0.5)
+            lat += [m.received_at - m.timestamp for m in client.messages() if m.device_name == stream.DEVICE_WIRE]
+    finally:
+        stop.set()
+        worker.join(10)
+        server.close()
+    lat = np.asarray(lat) * 1000.0
+    s = runner.summary
+    return {"sent": k, "processed": s.processed, "dropped": s.dropped, "p50": float(np.median(lat)),
+            "p99": float(np.percentile(lat, 99))}
+
+
+def bench_igtl(args) -> int:
+    """``--igtl``: ``guidewire3d live --from OUT`` in its own process, fed over OpenIGTLink."""
+    import tempfile
+    from pathlib import Path
+
+    from guidewire3d import bench, io, phantom, pipeline
+
+    tmp = Path(tempfile.mkdtemp(prefix="bench-live-igtl-"))
+    case = phantom.simulate(phantom.PhantomOptions(seed=args.seed, n_frames=args.frames))
+    d = phantom.write_case(case, tmp / "case")
+    t0 = time.perf_counter()
+    pipeline.run_to_outdir(d / "ct", d / "roadmap.dcm", d / "frames.dcm", tmp / "out", images=False, progress=False)
+    t_setup = time.perf_counter() - t0
+    frames = io.read_xa(d / "frames.dcm").frames
+    if np.all(frames == np.round(frames)) and frames.min() >= 0 and frames.max() < 65536:
+        frames = frames.astype(np.uint16)  # as a frame grabber sends them (the DICOM's stored values)
+    print(f"live over OpenIGTLink, {args.frames}-frame sequence {frames.shape[1]}x{frames.shape[2]} {frames.dtype} "
+          f"(cycled), seed {args.seed}; reconstruct --out for the setup {t_setup:.0f} s; machine: "
+          f"{bench.machine_line()}; load average before {' / '.join(f'{x:.1f}' for x in os.getloadavg())}", flush=True)
+    rows = []
+    runs = [(15.0, args.rate_seconds, None), (30.0, args.rate_seconds, None)]
+    if args.soak_seconds > 0:
+        runs.append((30.0, args.soak_seconds, args.reconnect_seconds))
+    for fps, seconds, reconnect in runs:
+        load0 = os.getloadavg()[0]
+        r = _igtl_run(tmp / "out", frames, fps=fps, seconds=seconds, reconnect_s=reconnect)
+        load1 = os.getloadavg()[0]
+        rss = [m for _, m in r["rss"]]
+        rss_first = rss[min(1, len(rss) - 1)] if rss else float("nan")  # after the network's first frames
+        name = f"{fps:g} fps, {seconds:g} s" + (f", soak (reconnect every {reconnect:g} s: {r['reconnects']})"
+                                                if reconnect else "")
+        rows.append([name, str(r["sent"]), f"{r['processed']}", f"{r['dropped']}", f"{r['failed']}",
+                     f"{r['p50']:.1f}", f"{r['p99']:.1f}", f"{r['engine_p50']:.1f}",
+                     f"{r['p50_first_third']:.1f} -> {r['p50_last_third']:.1f}",
+                     f"{rss_first:.0f} -> {rss[-1]:.0f}" if rss else "n/a", f"{load0:.1f} / {load1:.1f}"])
+        print(f"  {name}: server: {r['server_summary']}", flush=True)
+        print(f"  {name}: server RSS MB every 5 s: {' '.join(f'{m:.0f}' for m in rss)}", flush=True)
+    for fps in (15.0, 30.0):
+        load0 = os.getloadavg()[0]
+        r = _igtl_transport_only(tmp / "out", frames, fps=fps, seconds=min(args.rate_seconds, 20.0))
+        rows.append([f"{fps:g} fps, streaming only (engine answers at once)", str(r["sent"]), str(r["processed"]),
+                     str(r["dropped"]), "0", f"{r['p50']:.1f}", f"{r['p99']:.1f}", "0", "", "",
+                     f"{load0:.1f} / {os.getloadavg()[0]:.1f}"])
+    print(bench._table(["input", "frames sent", "processed", "dropped", "failed", "latency p50 ms", "p99 ms",
+                        "engine p50 ms", "p50 first -> last third", "server RSS MB start -> end",
+                        "load avg start / end"], rows))
+    print("latency: the frame's OpenIGTLink time stamp (set when it is sent) -> its Guidewire POLYDATA received "
+          "by the client, same host")
     return 0
 
 
