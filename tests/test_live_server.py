@@ -192,6 +192,31 @@ def test_ras_space_flips_points_and_tip():
     assert only.device_name == stream.DEVICE_STATUS and stream.status_of(only)["verdict"] == "failed"
 
 
+def test_guidewire_polydata_bytes_follow_the_openigtlink_spec():
+    """What Slicer's OpenIGTLinkIF unpacks (igtl_polydata): read here with struct alone, not pyigtl."""
+    import struct
+
+    from guidewire3d.image2d import OrderedWire
+
+    pts = np.array([[1.5, -2.0, 3.25], [2.0, -2.5, 4.0], [2.5, -2.0, 5.5]])
+    fr = live.FrameResult(0, OrderedWire(points_uv_px=np.zeros((3, 2)), success=True, message="ok"),
+                          _wire3d(pts, [0.1, 0.2, 0.3]), Verdict.OK, "ok", None, 0.0, 1700000000.25)
+    [wire] = [m for m in stream.frame_messages(fr) if m.device_name == stream.DEVICE_WIRE]
+    raw = wire.pack()
+    version, mtype, device, sec, frac, size, crc = struct.unpack(">H12s20sIIQQ", raw[:58])
+    body = raw[58:]
+    assert (version, mtype.rstrip(b"\0"), device.rstrip(b"\0")) == (1, b"POLYDATA", b"Guidewire")
+    assert sec == 1700000000 and abs(frac / 2**32 - 0.25) < 1e-6 and size == len(body)
+    assert crc == pyigtl.messages.CRC64(body)  # CRC-64/ECMA-182, as OpenIGTLink checks it
+    head = struct.unpack(">10I", body[:40])
+    n = len(pts)
+    assert head == (n, 0, 0, 1, 4 * (n + 1), 0, 0, 0, 0, 0)  # points; one line cell; no attributes
+    xyz = np.frombuffer(body[40:40 + 12 * n], ">f4").reshape(n, 3)
+    np.testing.assert_allclose(xyz, pts, atol=1e-6)
+    cell = np.frombuffer(body[40 + 12 * n:], ">u4")
+    np.testing.assert_array_equal(cell, [n, 0, 1, 2])
+
+
 # --------------------------------------------------------------------------------------
 # bad frames, bad clients, disconnects
 # --------------------------------------------------------------------------------------
