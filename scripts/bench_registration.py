@@ -42,6 +42,14 @@ from guidewire3d.metrics import mtre_mm, resample_polyline
 
 LEVELS = [(0.0, 0.0), (2.5, 5.0), (5.0, 10.0), (7.5, 15.0), (10.0, 20.0), (15.0, 30.0), (20.0, 40.0)]
 SUCCESS_MM = 2.0
+# the verdict before issue 20 (for the before/after rows): pose 1-sigma <= 2 mm, 1 mm for a single path
+LEGACY_MAX_POSE_STD_MM, LEGACY_MAX_POSE_STD_MM_SINGLE_PATH = 2.0, 1.0
+
+
+def legacy_ok(r) -> bool:
+    """The verdict's OK as it was before issue 20, from the same result."""
+    lim = LEGACY_MAX_POSE_STD_MM_SINGLE_PATH if r.single_path else LEGACY_MAX_POSE_STD_MM
+    return bool(r.fits_2d and r.pose_std_mm <= lim)
 CACHE_VERSION = 2  # cached: simulator outputs (roadmap image, tree, geometry), not the 2D centerline
 
 
@@ -137,7 +145,7 @@ def run(cases, modes, levels, n_pert, rng, log, epnp=True):
                 start_pose = init if init is not None else reg.nominal_pose(tree.centroid_lps_mm)
                 row = dict(case=c["seed"], mode=mode, level=lv, init_mtre=mtre_mm(start_pose, true, P),
                            mtre=mtre_mm(r.pose, true, P), mtre_path=mtre_mm(r.pose, true, path_P),
-                           flagged=bool(r.success), wall=wall, cpu=cpu, it=r.iterations,
+                           flagged=bool(r.success), flagged_before=legacy_ok(r), wall=wall, cpu=cpu, it=r.iterations,
                            res=r.mean_residual_px, inl=r.inlier_fraction, std=r.pose_std_mm)
                 if epnp and mode != "path":
                     i3, i2 = reg.match_bifurcations(tree, bp, carm, start_pose)
@@ -215,6 +223,154 @@ def e2e_table(cases, out):
         f"{1e3 * np.median([t for *_, t in rows]):.0f} ms")
 
 
+# ------------------------------------------------------------------------------------------------
+# --verdict: false refusals / false acceptances of RegistrationResult.verdict on end-to-end inputs
+# ------------------------------------------------------------------------------------------------
+VERDICT_VARIANTS = ("full", "path", "partial", "view2", "view2-path")
+
+
+def _inputs_digest() -> str:
+    """Hash of the package source except registration.py: the verdict cases (simulator, CTA
+    extraction, 2D centerline) do not depend on the registration, so they are cached across its edits."""
+    import hashlib
+
+    import guidewire3d
+
+    h = hashlib.sha1()
+    for f in sorted(Path(guidewire3d.__file__).resolve().parent.glob("*.py")):
+        if f.name != "registration.py":
+            h.update(f.name.encode() + f.read_bytes())
+    return h.hexdigest()[:10]
+
+
+def _render_roadmap(carm, pose, chains, rng):
+    """A subtracted DSA roadmap of the given lumen chains, exposed as the simulator does."""
+    from guidewire3d import phantom
+
+    L = phantom.render_tube_line_integral(carm, pose, chains, supersample=2)
+    n0 = 300.0 * (carm.pixel_mm / 0.2) ** 2
+    return phantom._expose(rng, rng.uniform(0.1, 0.22) * L, b0=rng.uniform(3000, 12000), n0=4 * n0,
+                           psf_px=phantom._psf_sigma_px(rng, carm), gain_field=phantom._gain_field(carm.shape), gain=1.0)
+
+
+def _branch_chains(tree, branches):
+    """Render chains (points, radii) of whole branches of the true tree."""
+    P, R = tree.points_lps_mm, tree.radius_mm
+    return [(P[tree.branches[b].point_ids], R[tree.branches[b].point_ids]) for b in branches
+            if len(tree.branches[b].point_ids) >= 2]
+
+
+def load_verdict_cases(seeds, cache: Path | None, log):
+    """Per seed, the inputs ``reconstruct`` sees, in five variants of the roadmap.
+
+    The 3D tree is always the CTA-extracted one (``vessels3d``, as the pipeline), the 2D centerline
+    ``image2d.roadmap_centerline`` of a simulated roadmap (``max_radius_px`` as the pipeline), the
+    start the DICOM one (``init_pose=None``). Roadmaps: ``full`` the simulator's (every vessel);
+    ``path`` only the catheterised root-to-leaf path (a selective injection: a single-path roadmap);
+    ``partial`` the path and 1-3 other branches; ``view2`` / ``view2-path`` the full tree / the path
+    seen from the case's second C-arm view (other angles, SID, SOD). Distractors (bone, blobs) in
+    the CT of odd seeds. No DICOM round trip (the e2e mode has one).
+    """
+    from guidewire3d import image2d, vessels3d
+    from guidewire3d.phantom import PhantomOptions, simulate
+
+    tag = _inputs_digest()
+    out, stale = [], []
+    for seed in seeds:
+        # cached under the seed alone (preparing a seed takes ~20 s); the digest of the package
+        # source that prepared it is kept and a stale one reported
+        f = cache / f"verdict_case_v{CACHE_VERSION}_{seed}.pkl" if cache else None
+        if f is not None and f.exists():
+            got, recs = pickle.loads(f.read_bytes())
+            if got != tag:
+                stale.append(seed)
+            out.extend(recs)
+            continue
+        t0 = time.perf_counter()
+        case = simulate(PhantomOptions(seed=seed, n_frames=1, distractors=bool(seed % 2)), make_ct=True)
+        vol = case.volume
+        mask = vessels3d.segment_vessels(vol)
+        tree = vessels3d.centerline_from_mask(mask, spacing_mm=vol.spacing_mm, origin_lps_mm=vol.origin_lps_mm,
+                                              direction=vol.direction)
+        true_tree = case.tree
+        rng = np.random.default_rng(50_000 + seed)
+        path_ids = np.asarray(case.wire_path_point_ids)
+        path_chain = [(true_tree.points_lps_mm[path_ids], true_tree.radius_mm[path_ids])]
+        on_path = set(np.unique(true_tree.point_branch[path_ids]).tolist())
+        others = [b.index for b in true_tree.branches if b.index not in on_path]
+        extra = list(rng.choice(others, size=min(len(others), int(rng.integers(1, 4))), replace=False)) if others else []
+        views = {"full": (case.carm, np.asarray(case.roadmap)),
+                 "path": (case.carm, _render_roadmap(case.carm, case.pose, path_chain, rng)),
+                 "partial": (case.carm, _render_roadmap(case.carm, case.pose,
+                                                        path_chain + _branch_chains(true_tree, extra), rng)),
+                 "view2": (case.heldout_carm, _render_roadmap(case.heldout_carm, case.pose,
+                                                              _branch_chains(true_tree, range(len(true_tree.branches))), rng)),
+                 "view2-path": (case.heldout_carm, _render_roadmap(case.heldout_carm, case.pose, path_chain, rng))}
+        recs = []
+        r_px = None
+        for name, (carm, img) in views.items():
+            r_px = float(tree.radius_mm.max()) / carm.pixel_at_iso_mm * 1.5
+            cl = image2d.roadmap_centerline(img, max_radius_px=r_px)
+            recs.append(dict(seed=seed, variant=name, tree=tree, carm=carm, true_pose=case.pose,
+                             true_pts=true_tree.points_lps_mm, path_pts=true_tree.points_lps_mm[path_ids],
+                             uv=np.asarray(cl.points_uv_px, float), radius=np.asarray(cl.radius_px, float)))
+        if f is not None:
+            f.write_bytes(pickle.dumps((tag, recs)))
+        log(f"  verdict case {seed} prepared in {time.perf_counter() - t0:.1f} s")
+        out.extend(recs)
+    if stale:
+        log(f"  note: {len(stale)} cached verdict cases were prepared by another package source (not registration.py)")
+    return out
+
+
+def run_verdict(cases, log):
+    """Register every verdict case from the DICOM start; the verdict before issue 20 is computed
+    from the same result (``legacy_ok``), so one run gives both rows."""
+    rows = []
+    for k, c in enumerate(cases):
+        t0, c0 = time.perf_counter(), time.process_time()
+        r = reg.register(c["tree"], c["uv"], c["carm"], centerline_radius_px=c["radius"])
+        wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+        d = r.pose.apply(c["true_pts"]) - c["true_pose"].apply(c["true_pts"])
+        rows.append(dict(seed=c["seed"], variant=c["variant"], mtre=mtre_mm(r.pose, c["true_pose"], c["true_pts"]),
+                         depth=float(np.mean(d @ c["carm"].beam_direction)), verdict=r.verdict.value,
+                         ok=bool(r.success), ok_before=legacy_ok(r), fits=bool(r.fits_2d), single=bool(r.single_path),
+                         std=r.pose_std_mm, limit=r.max_pose_std_mm, explained=r.explained_fraction,
+                         res=r.mean_residual_px, inl=r.inlier_fraction, wall=wall, cpu=cpu))
+        if (k + 1) % 50 == 0:
+            log(f"  {k + 1}/{len(cases)} registrations")
+    return rows
+
+
+def verdict_table(rows, out, seeds):
+    """False refusals (right: mTRE <= SUCCESS_MM, not OK) and false acceptances (wrong, OK), before / after."""
+    out(f"\n### Verdict vs truth: {len(rows)} registrations from the DICOM start (seeds {seeds}), "
+        f"right = mTRE <= {SUCCESS_MM} mm")
+    out("| roadmap | n | right | false refusals before | after | false acceptances before | after | "
+        "largest mTRE flagged OK before / after (mm) |")
+    out("|---|---|---|---|---|---|---|---|")
+
+    def line(name, R):
+        m = np.array([r["mtre"] for r in R])
+        right = m <= SUCCESS_MM
+        b, a = np.array([r["ok_before"] for r in R]), np.array([r["ok"] for r in R])
+        worst = [f"{m[x].max():.1f}" if x.any() else "-" for x in (b, a)]
+        out(f"| {name} | {len(R)} | {right.sum()} | {np.sum(right & ~b)} | {np.sum(right & ~a)} | {np.sum(~right & b)} "
+            f"| {np.sum(~right & a)} | {worst[0]} / {worst[1]} |")
+
+    for v in VERDICT_VARIANTS:
+        R = [r for r in rows if r["variant"] == v]
+        if R:
+            line(v, R)
+    line("**all**", rows)
+    m = np.array([r["mtre"] for r in rows])
+    for lim in (2.5, 3.0):
+        out(f"flagged OK with mTRE > {lim} mm: before {sum(r['ok_before'] and r['mtre'] > lim for r in rows)}, "
+            f"after {sum(r['ok'] and r['mtre'] > lim for r in rows)}")
+    out(f"time per registration (incl. global search): median CPU {1e3 * np.median([r['cpu'] for r in rows]):.0f} ms, "
+        f"median wall {1e3 * np.median([r['wall'] for r in rows]):.0f} ms; median mTRE {np.median(m):.2f} mm")
+
+
 def _pct(x):
     return f"{100.0 * np.mean(x):5.1f}%" if len(x) else "   - "
 
@@ -245,6 +401,9 @@ def table(rows, mode, levels, out):
     fl = np.array([r["flagged"] for r in R])
     out(f"quality flag vs truth (all starts): flagged-ok & good {np.sum(fl & ok)}, flagged-ok & bad {np.sum(fl & ~ok)}, "
         f"flagged-fail & good {np.sum(~fl & ok)}, flagged-fail & bad {np.sum(~fl & ~ok)}")
+    fb = np.array([r["flagged_before"] for r in R])
+    out(f"  the same with the verdict before issue 20: flagged-ok & good {np.sum(fb & ok)}, flagged-ok & bad "
+        f"{np.sum(fb & ~ok)}, flagged-fail & good {np.sum(~fb & ok)}, flagged-fail & bad {np.sum(~fb & ~ok)}")
     ratio = np.array([r["mtre"] / r["std"] for r in R if np.isfinite(r["std"]) and r["std"] > 0])
     if len(ratio):
         out(f"mTRE / covariance 1-sigma (pose_std_mm): median {np.median(ratio):.1f} (1 would be a calibrated covariance)")
@@ -269,6 +428,8 @@ def main(argv=None):
                         "benchmark did; the pipeline passes it, so wide simulated trunks were partly missed)")
     p.add_argument("--e2e", action="store_true",
                    help="per-case diagnosis on the end-to-end inputs of `guidewire3d bench` (seeds from 100)")
+    p.add_argument("--verdict", action="store_true",
+                   help="false refusals / false acceptances of the verdict on end-to-end inputs, 5 roadmaps per seed")
     a = p.parse_args(argv)
     for kv in a.set:
         name, value = kv.split("=", 1)
@@ -288,6 +449,16 @@ def main(argv=None):
     def log(s):
         print(s, file=sys.stderr, flush=True)
 
+    if a.verdict:
+        seeds = range(a.seed0, a.seed0 + a.cases)
+        cases = load_verdict_cases(seeds, cache, log)
+        rows = run_verdict(cases, log)
+        if a.save:
+            Path(a.save).write_bytes(pickle.dumps(rows))
+        if a.set:
+            print(f"overrides: {a.set}")
+        verdict_table(rows, print, f"{seeds.start}..{seeds.stop - 1}")
+        return 0
     if a.e2e:
         seed0 = a.seed0 if a.seed0 >= 100 else 100
         cases = load_e2e_cases(a.cases, seed0, cache, log)
