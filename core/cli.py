@@ -89,6 +89,8 @@ def _add_reconstruct_parser(sub) -> None:
     p.add_argument("--segmenter", default="unet", choices=SEGMENTERS,
                    help="guidewire segmentation: unet (default) or ridge (classical, no network)")
     p.add_argument("--force", action="store_true", help="reconstruct even if the registration failed")
+    p.add_argument("--track-motion", action="store_true",
+                   help="follow breathing / heartbeat: update the pose in each frame from its wire (see README, Motion)")
     p.add_argument("--no-images", action="store_true", help="skip screenshot/overlay/metrics PNGs")
     _add_geometry_overrides(p)
 

@@ -170,7 +170,7 @@ def frame_record(index: int, wire2d, wire3d, seconds: float, frame_result=None) 
     pts = np.asarray(wire3d.points_lps_mm, float).reshape(-1, 3) if wire3d.success else np.zeros((0, 3))
     unc = np.asarray(wire3d.uncertainty_mm, float) if wire3d.success else np.zeros(0)
     uv = np.asarray(getattr(wire2d, "points_uv_px", np.zeros((0, 2))), float).reshape(-1, 2) if wire2d else np.zeros((0, 2))
-    return {
+    rec = {
         "index": int(index),
         "success": bool(wire3d.success),
         "message": str(wire3d.message),
@@ -185,6 +185,10 @@ def frame_record(index: int, wire2d, wire3d, seconds: float, frame_result=None) 
         "orientation": (frame_result.orientation.to_dict()
                         if frame_result is not None and frame_result.orientation is not None else None),
     }
+    if frame_result is not None and frame_result.motion is not None:
+        # --track-motion: the frame's own pose (the wire was reconstructed in it)
+        rec["motion"] = frame_result.to_dict()["motion"]
+    return rec
 
 
 def report_dict(result, *, inputs: dict, truth_metrics: dict | None = None, source: str = "automatic") -> dict:

@@ -159,6 +159,8 @@ class FrameResult:
     orientation: Orientation | None = None
     seconds: float = 0.0
     timestamp: float = field(default=float("nan"))  # the source frame's time stamp, when it has one
+    pose: Pose | None = None  # the pose the frame was reconstructed in
+    motion: object = None  # registration.RegistrationResult of the frame's pose update (track_motion), or None
 
     def __bool__(self) -> bool:
         return bool(self.wire3d)
@@ -172,6 +174,12 @@ class FrameResult:
     def to_dict(self) -> dict:
         d = {"index": int(self.index), "verdict": self.verdict.value, "verdict_message": self.message,
              "orientation": self.orientation.to_dict() if self.orientation is not None else None}
+        if self.motion is not None:
+            m = self.motion
+            d["motion"] = {"pose": self.pose.matrix.tolist() if self.pose is not None else None,
+                           "verdict": m.verdict.value, "message": m.message,
+                           "residual_px": _finite_or_none(m.mean_residual_px),
+                           "inlier_fraction": _finite_or_none(m.inlier_fraction)}
         return d
 
 
@@ -194,10 +202,15 @@ class Session:
         object with ``segment(frame) -> mask`` and ``reset()``.
     method : str or reconstruction.ReconMethod
         3D reconstruction method (default ``"vessel"``).
+    track_motion : bool
+        Follow breathing and heartbeat: each frame's 2D wire updates the pose
+        (``motion.MotionTracker``, with the roadmap pose as its prior) before the frame is
+        reconstructed in it. Off by default: with a static patient it only adds noise.
     """
 
     def __init__(self, tree: VesselTree, carm: CArm, pose: Pose, *, registration_covariance=None,
-                 segmenter="unet", method="vessel", options=None):
+                 segmenter="unet", method="vessel", options=None, track_motion: bool = False,
+                 motion_options=None):
         from guidewire3d import reconstruction
 
         self.tree, self.carm = tree, carm
@@ -208,11 +221,23 @@ class Session:
         else:
             self.segmenter_method, self._segmenter = getattr(segmenter, "value", segmenter), None
         self._reconstruction = reconstruction
+        self.track_motion = bool(track_motion)
+        self.motion_options = motion_options
         self.set_pose(pose, registration_covariance=registration_covariance)
 
     # --- state --------------------------------------------------------------------------------
     def set_pose(self, pose: Pose, *, registration_covariance=None) -> None:
-        """Use ``pose`` from the next frame on (the temporal prior of the wire is kept)."""
+        """Use ``pose`` (a new registration or a user's correction) from the next frame on: it is
+        also the centre of the motion prior. The wire's temporal prior is kept."""
+        self.motion_tracker = None
+        if self.track_motion:
+            from guidewire3d.motion import MotionTracker
+
+            self.motion_tracker = MotionTracker(self.tree, self.carm, pose, covariance=registration_covariance,
+                                                options=self.motion_options)
+        self._use_pose(pose, registration_covariance)
+
+    def _use_pose(self, pose: Pose, registration_covariance) -> None:
         previous = getattr(self, "tracker", None)
         self.pose = pose
         self.registration_covariance = registration_covariance
@@ -237,6 +262,8 @@ class Session:
         if self._segmenter is not None:
             self._segmenter.reset()
         self.tracker.previous = None
+        if self.motion_tracker is not None:
+            self.motion_tracker.reset()
 
     def warm_up(self, frame) -> None:
         """Load the network and run it once (first-call costs), without touching the tracking state."""
@@ -277,7 +304,7 @@ class Session:
         self.tracker.failed_frames.append(index)
         w3 = self._reconstruction.Wire3D.failed(message, seconds=time.perf_counter() - t0, method=self.method)
         return FrameResult(index, wire2d if wire2d is not None else _no_wire(message), w3, Verdict.FAILED,
-                           message, None, time.perf_counter() - t0, timestamp)
+                           message, None, time.perf_counter() - t0, timestamp, self.pose)
 
     def _finish(self, index, wire2d, image, t0, timestamp) -> FrameResult:
         from guidewire3d.registration import Verdict
@@ -288,6 +315,11 @@ class Session:
         uv = np.asarray(wire2d, float).reshape(-1, 2)
         if len(uv) < 2:
             return self._failed(index, wire2d, "2D wire not found: fewer than 2 points", t0, timestamp)
+        motion = None
+        if self.motion_tracker is not None:
+            motion = self.motion_tracker.update(uv)
+            if not self.pose.allclose(motion.pose, atol_mm=1e-6, atol_rad=1e-9):
+                self._use_pose(motion.pose, self.registration_covariance)
         try:
             w3 = self.tracker.update(uv, image=image)
         except Guidewire3DError as e:
@@ -299,17 +331,26 @@ class Session:
         self.n_frames += 1
         if not w3:
             return FrameResult(index, wire2d, w3, Verdict.FAILED, w3.message, None, time.perf_counter() - t0,
-                               timestamp)
+                               timestamp, self.pose, motion)
         ori = orientation_of(w3, uv, root_uv_px=self.root_uv_px) if self.method == "vessel" else None
         verdict, message = Verdict.OK, w3.message
         if ori is not None and (ori.conflict or not ori.determined):
             verdict, message = Verdict.UNCERTAIN, ori.explain()
-        return FrameResult(index, wire2d, w3, verdict, message, ori, time.perf_counter() - t0, timestamp)
+        if motion is not None and not motion.success:
+            message = f"motion: {motion.message}" + (f"; {message}" if verdict is not Verdict.OK else "")
+            verdict = Verdict.UNCERTAIN
+        return FrameResult(index, wire2d, w3, verdict, message, ori, time.perf_counter() - t0, timestamp,
+                           self.pose, motion)
 
     def run(self, frames, *, start_index: int = 0):
         """Yield a :class:`FrameResult` for each frame of an iterable, in order."""
         for k, frame in enumerate(frames):
             yield self.process(frame, index=start_index + k)
+
+
+def _finite_or_none(x):
+    x = float(x)
+    return round(x, 5) if np.isfinite(x) else None
 
 
 def _no_wire(message: str):

@@ -30,8 +30,11 @@ The true pose ``T_iso_from_lps`` relates to the registration's start
 ``nominal_pose(tree.centroid_lps_mm)`` by ``pose @ nominal.inverse() = Pose(R, delta)``: a
 rotation about the isocentre of at most 5 degrees and an isocentre offset ``|delta| <= 20 mm``.
 With ``motion_mm > 0`` frame ``t`` is seen with ``pose @ Pose(I, motion_lps_mm[t])`` (the anatomy
-shifted by ``motion_lps_mm[t]``, stored per frame in ``truth.json``); by default there is no motion
-and every frame uses ``pose``.
+shifted by ``motion_lps_mm[t]``, stored per frame in ``truth.json``). Physiological motion
+(``breathing_mm``, ``cardiac_mm``; ``_physiological_motion``) adds a breathing rotation about the
+tree's centroid and a cardiac contraction of the wire and catheter; the true pose of frame ``t`` is
+``frame_pose(t)`` (also in ``truth.json``). The 3D truth stays in CTA coordinates. By default there is
+no motion and every frame uses ``pose``.
 """
 from __future__ import annotations
 
@@ -106,6 +109,13 @@ class PhantomOptions:
     catheter: bool = True
     motion_mm: float = 0.0
     dose: float = 1.0  # relative fluoroscopy dose (lower = noisier)
+    # physiological motion (see ``_physiological_motion``): breathing, peak-to-peak mostly
+    # cranio-caudal translation (mm) with a small rotation, and a cardiac contraction of the tree
+    breathing_mm: float = 0.0
+    breathing_period_s: float = 4.0
+    cardiac_mm: float = 0.0
+    heart_rate_bpm: float = 75.0
+    frame_rate_fps: float = 15.0
 
     def __post_init__(self):
         def bad(name, msg):
@@ -136,6 +146,16 @@ class PhantomOptions:
             bad("motion_mm", f"expected 0..10 mm, got {self.motion_mm!r}")
         if not (np.isfinite(self.dose) and 0.01 <= float(self.dose) <= 100.0):
             bad("dose", f"expected 0.01..100, got {self.dose!r}")
+        for name, lo, hi, unit in (("breathing_mm", 0.0, 25.0, "mm"), ("breathing_period_s", 1.0, 20.0, "s"),
+                                   ("cardiac_mm", 0.0, 6.0, "mm"), ("heart_rate_bpm", 30.0, 200.0, "bpm"),
+                                   ("frame_rate_fps", 1.0, 60.0, "fps")):
+            v = getattr(self, name)
+            try:
+                ok = np.isfinite(float(v)) and lo <= float(v) <= hi
+            except (TypeError, ValueError):
+                ok = False
+            if not ok:
+                bad(name, f"expected {lo:g}..{hi:g} {unit}, got {v!r}")
 
     def to_dict(self) -> dict:
         d = asdict(self)
@@ -175,6 +195,11 @@ class PhantomCase:
     heldout_wire_uv_px: tuple[np.ndarray, ...]
     wire_path_point_ids: np.ndarray  # tree point ids, root -> leaf
     motion_lps_mm: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # (T, 3) anatomy shift
+    # breathing rotation (T, 3) rotation vectors about ``motion_centre_lps_mm`` (applied before
+    # the shift); cardiac contraction (T,): the tree scaled by (1 - cardiac_scale[t]) about the centre
+    motion_rotvec_rad: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    motion_centre_lps_mm: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    cardiac_scale: np.ndarray = field(default_factory=lambda: np.zeros(0))
     catheter_lps_mm: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # (n, 3) catheter axis
     catheter_radii_mm: tuple[float, float] = (0.0, 0.0)  # (outer, inner); zeros without catheter
 
@@ -188,9 +213,56 @@ class PhantomCase:
 
     def frame_pose(self, t: int) -> Pose:
         """Pose used to render frame ``t`` (``pose`` unless there is breathing motion)."""
-        if len(self.motion_lps_mm) == 0:
-            return self.pose
-        return self.pose @ Pose(np.eye(3), self.motion_lps_mm[t])
+        return _frame_pose(self.pose, self.motion_lps_mm, self.motion_rotvec_rad, self.motion_centre_lps_mm, t)
+
+
+def _frame_pose(pose: Pose, shift, rotvec, centre, t: int) -> Pose:
+    """``pose @ M_t``: the anatomy rotated about ``centre`` by ``rotvec[t]``, then shifted by ``shift[t]``."""
+    if len(shift) == 0:
+        return pose
+    m = Pose(np.eye(3), shift[t])
+    if len(rotvec) and np.any(rotvec[t] != 0):
+        m = m @ Pose.from_rotvec_about(rotvec[t], centre)
+    return pose @ m
+
+
+def _physiological_motion(options: "PhantomOptions", rng, tree: "VesselTree", n_frames: int):
+    """Per-frame breathing (shift (T, 3) mm, rotation (T, 3) rad about the tree centroid) and
+    cardiac contraction (T,) of the simulator.
+
+    Breathing: ``s(t) = (1 - cos(2 pi t / (fps P) + phi)) / 2`` (0 at end-expiration), a shift of
+    ``breathing_mm * s(t)`` mostly cranio-caudal (LPS +z is superior; a little antero-posterior and
+    left-right) and a rotation of ``0.1 deg per mm`` of it about the left-right axis. Cardiac: the
+    tree contracts about its centroid by ``cardiac_mm * h(t)`` at its radius of gyration, ``h`` the
+    same raised cosine at the heart rate. Both with a random phase.
+    """
+    T = n_frames
+    t = np.arange(T) / float(options.frame_rate_fps)
+    centre = tree.points_lps_mm.mean(axis=0)
+    shift, rot, scale = np.zeros((T, 3)), np.zeros((T, 3)), np.zeros(T)
+    if options.breathing_mm > 0:
+        phase = rng.uniform(0, 2 * np.pi)
+        s = 0.5 * (1.0 - np.cos(2 * np.pi * t / float(options.breathing_period_s) + phase))
+        dirn = _unit(np.array([rng.uniform(-0.15, 0.15), rng.uniform(-0.3, 0.3), 1.0]))
+        shift = np.outer(s, dirn) * float(options.breathing_mm)
+        rot[:, 0] = np.radians(BREATHING_DEG_PER_MM) * float(options.breathing_mm) * s
+    if options.cardiac_mm > 0:
+        phase = rng.uniform(0, 2 * np.pi)
+        h = 0.5 * (1.0 - np.cos(2 * np.pi * t * float(options.heart_rate_bpm) / 60.0 + phase))
+        rg = float(np.sqrt(np.mean(np.sum((tree.points_lps_mm - centre) ** 2, axis=1))))
+        scale = float(options.cardiac_mm) / max(rg, 1.0) * h
+    return shift, rot, centre, scale
+
+
+#: rotation of the anatomy per mm of breathing shift (about the left-right axis)
+BREATHING_DEG_PER_MM = 0.1
+
+
+def _contract(points, centre, scale: float) -> np.ndarray:
+    """Cardiac contraction of points about ``centre`` (identity at ``scale == 0``)."""
+    if scale == 0:
+        return points
+    return centre + (np.asarray(points) - centre) * (1.0 - scale)
 
 
 @dataclass(frozen=True, eq=False)
@@ -214,10 +286,20 @@ class Truth:
     vessel_mask_2d: np.ndarray | None  # (H, W) bool
     wire_path_point_ids: np.ndarray | None = None
     motion_lps_mm: np.ndarray | None = None  # (T, 3)
+    motion_rotvec_rad: np.ndarray | None = None  # (T, 3)
+    motion_centre_lps_mm: np.ndarray | None = None  # (3,)
+    cardiac_scale: np.ndarray | None = None  # (T,)
 
     @property
     def n_frames(self) -> int:
         return len(self.wire_lps_mm)
+
+    def frame_pose(self, t: int) -> Pose:
+        """The true pose of frame ``t`` (``pose`` unless the patient moves)."""
+        shift = self.motion_lps_mm if self.motion_lps_mm is not None else np.zeros((0, 3))
+        rot = self.motion_rotvec_rad if self.motion_rotvec_rad is not None else np.zeros((0, 3))
+        centre = self.motion_centre_lps_mm if self.motion_centre_lps_mm is not None else np.zeros(3)
+        return _frame_pose(self.pose, shift, rot, centre, t)
 
 
 # ======================================================================================
@@ -1088,6 +1170,10 @@ def simulate(options: PhantomOptions = PhantomOptions(), *, make_ct: bool = True
         phase = rw.uniform(0, 2 * np.pi)
         dirn = _unit(np.array([rw.uniform(-0.2, 0.2), rw.uniform(-0.4, 0.4), 1.0]))
         motion = np.outer(np.sin(2 * np.pi * np.arange(T) / period + phase), dirn) * float(options.motion_mm)
+    motion_rot, motion_centre, cardiac = np.zeros((T, 3)), tree.points_lps_mm.mean(axis=0), np.zeros(T)
+    if options.breathing_mm > 0 or options.cardiac_mm > 0:
+        shift, motion_rot, motion_centre, cardiac = _physiological_motion(options, rw, tree, T)
+        motion = motion + shift
     bar.update()
 
     # ---- CT --------------------------------------------------------------------------
@@ -1139,14 +1225,18 @@ def simulate(options: PhantomOptions = PhantomOptions(), *, make_ct: bool = True
     uv_main, uv_held, visible = [], [], []
     n_pts = [len(w) for w in wires]
     wire_segs = _mitre_chains([(wires[-1], np.full(len(wires[-1]), wire_r))])
-    static = not options.motion_mm
+    static = not (options.motion_mm or options.breathing_mm or options.cardiac_mm)
     views = [(carm, bg_main, psf_main, frames), (held, bg_held, psf_held, held_frames)]
     fine_acc = [np.zeros((shape[0] * ss_wire, shape[1] * ss_wire), np.float32) for _ in views]
     done = [0, 0]  # segments already accumulated (static anatomy: frames only add segments)
     cath_att = [None, None]
     for t in range(T):
-        pose_t = pose if static else pose @ Pose(np.eye(3), motion[t])
-        w = wires[t]
+        pose_t = pose if static else _frame_pose(pose, motion, motion_rot, motion_centre, t)
+        w = _contract(wires[t], motion_centre, float(cardiac[t]))
+        if cardiac[t] != 0:
+            wire_segs = _mitre_chains([(_contract(wires[-1], motion_centre, float(cardiac[t])),
+                                        np.full(len(wires[-1]), wire_r))])
+        cath_t = _contract(catheter, motion_centre, float(cardiac[t])) if len(catheter) else catheter
         for iv, (view, bg, psf, out) in enumerate(views):
             if not static:
                 fine_acc[iv][:] = 0
@@ -1159,8 +1249,8 @@ def simulate(options: PhantomOptions = PhantomOptions(), *, make_ct: bool = True
             att = mu_wire * Lw + bg
             if len(catheter):
                 if cath_att[iv] is None or not static:
-                    Lo = render_tube_line_integral(view, pose_t, [(catheter, np.full(len(catheter), cath_outer))])
-                    Li = render_tube_line_integral(view, pose_t, [(catheter, np.full(len(catheter), cath_inner))])
+                    Lo = render_tube_line_integral(view, pose_t, [(cath_t, np.full(len(catheter), cath_outer))])
+                    Li = render_tube_line_integral(view, pose_t, [(cath_t, np.full(len(catheter), cath_inner))])
                     cath_att[iv] = mu_cath * np.maximum(Lo - Li, 0)
                 att = att + cath_att[iv]
             gain = 1.0 + rx.normal(0, 0.015)
@@ -1197,6 +1287,9 @@ def simulate(options: PhantomOptions = PhantomOptions(), *, make_ct: bool = True
         heldout_wire_uv_px=tuple(uv_held),
         wire_path_point_ids=np.asarray(path_ids, dtype=np.int64),
         motion_lps_mm=motion,
+        motion_rotvec_rad=motion_rot,
+        motion_centre_lps_mm=motion_centre,
+        cardiac_scale=cardiac,
         catheter_lps_mm=catheter,
         catheter_radii_mm=(float(cath_outer), float(cath_inner)) if len(catheter) else (0.0, 0.0),
     )
@@ -1220,6 +1313,9 @@ def truth_dict(case: PhantomCase) -> dict:
             "visible": [bool(v) for v in case.wire_visible[t]],
             "heldout_uv_px": _round(case.heldout_wire_uv_px[t], 4),
             "motion_lps_mm": _round(case.motion_lps_mm[t]) if len(case.motion_lps_mm) else [0.0, 0.0, 0.0],
+            "motion_rotvec_rad": _round(case.motion_rotvec_rad[t], 8) if len(case.motion_rotvec_rad) else [0.0] * 3,
+            "cardiac_scale": float(case.cardiac_scale[t]) if len(case.cardiac_scale) else 0.0,
+            "pose": case.frame_pose(t).to_dict(),
         })
     return {
         "format": "guidewire3d-phantom-truth",
@@ -1234,6 +1330,7 @@ def truth_dict(case: PhantomCase) -> dict:
         "wire_diameter_mm": float(case.wire_diameter_mm),
         "frames": frames,
         "wire_path_point_ids": [int(i) for i in case.wire_path_point_ids],
+        "motion_centre_lps_mm": _round(case.motion_centre_lps_mm),
         "catheter": {"points_lps_mm": _round(case.catheter_lps_mm), "outer_radius_mm": case.catheter_radii_mm[0],
                      "inner_radius_mm": case.catheter_radii_mm[1]},
     }
@@ -1306,6 +1403,9 @@ def load_truth(case_dir) -> Truth:
             vessel_mask_2d=None,
             wire_path_point_ids=np.asarray(d.get("wire_path_point_ids", []), np.int64),
             motion_lps_mm=np.asarray([f.get("motion_lps_mm", [0.0, 0.0, 0.0]) for f in frames], float).reshape(-1, 3),
+            motion_rotvec_rad=np.asarray([f.get("motion_rotvec_rad", [0.0] * 3) for f in frames], float).reshape(-1, 3),
+            motion_centre_lps_mm=np.asarray(d.get("motion_centre_lps_mm", [0.0] * 3), float).reshape(3),
+            cardiac_scale=np.asarray([f.get("cardiac_scale", 0.0) for f in frames], float).reshape(-1),
         )
     except KeyError as e:
         raise InputError(f"{path}: corrupt truth file (missing field {e.args[0]!r})") from None

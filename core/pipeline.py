@@ -161,7 +161,7 @@ def check_seeds(volume: io.Volume, seeds_lps_mm, *, option: str = "--seed-lps") 
 
 def run(volume: io.Volume, roadmap: io.XARun, frames: io.XARun, *, roadmap_frame: int | None = None,
         seeds_lps_mm=None, method: str = "vessel", segmenter: str = "unet", force: bool = False,
-        progress: bool = False, pose: Pose | None = None, log=None) -> PipelineResult:
+        progress: bool = False, pose: Pose | None = None, track_motion: bool = False, log=None) -> PipelineResult:
     """Run the whole chain on in-memory inputs.
 
     Parameters
@@ -174,6 +174,9 @@ def run(volume: io.Volume, roadmap: io.XARun, frames: io.XARun, *, roadmap_frame
         A pose to use instead of registering (e.g. a user-corrected one); it is refined by LM only.
     force : bool
         Reconstruct even when the registration reports failure.
+    track_motion : bool
+        Update the pose in every live frame from its wire (``motion.MotionTracker``, the
+        registration as its prior) and reconstruct the frame in it.
     """
     from guidewire3d import image2d, registration, vessels3d
     from guidewire3d import live as live_engine
@@ -213,7 +216,7 @@ def run(volume: io.Volume, roadmap: io.XARun, frames: io.XARun, *, roadmap_frame
                               live[frame_ids], wires2d, wires3d, timing, [], frame_ids, reconstructed=False)
 
     session = live_engine.Session(tree, frames.carm, reg.pose, registration_covariance=reg.covariance_6x6,
-                                  segmenter=segmenter, method=method)
+                                  segmenter=segmenter, method=method, track_motion=track_motion)
     session.warm_up(live[frame_ids[0]])  # inference session, first-call compilation: not timed
     frame_seconds, frame_results = [], []
     t_frames = time.perf_counter()
@@ -238,7 +241,7 @@ MIN_FREE_MB = 32  # refuse to start with less free space where --out goes (4 fra
 
 def run_to_outdir(cta, roadmap, frames, out_dir, *, series_uid=None, overrides=None, roadmap_frame=None,
                   seeds_lps_mm=None, method="vessel", segmenter="unet", force=False, images=True,
-                  progress=True, replace=False, truth=None, log=None) -> PipelineResult:
+                  progress=True, replace=False, truth=None, track_motion=False, log=None) -> PipelineResult:
     """Read the files, run, and write the output folder atomically (a staging folder renamed at the end).
 
     Everything that can be checked is checked before the heavy work: the output location
@@ -259,7 +262,7 @@ def run_to_outdir(cta, roadmap, frames, out_dir, *, series_uid=None, overrides=N
     t_load = time.perf_counter() - t0
     with io.staged_folder(out_dir, replace=replace) as staging:
         result = run(vol, road, live, roadmap_frame=roadmap_frame, seeds_lps_mm=seeds_lps_mm, method=method,
-                     segmenter=segmenter, force=force, progress=progress, log=log)
+                     segmenter=segmenter, force=force, progress=progress, track_motion=track_motion, log=log)
         result.timing["load_inputs"] = t_load
         inputs = {
             "cta": str(Path(cta).resolve()),
@@ -270,6 +273,7 @@ def run_to_outdir(cta, roadmap, frames, out_dir, *, series_uid=None, overrides=N
             "method": str(getattr(method, "value", method)),
             "segmenter": str(getattr(segmenter, "value", segmenter)),
             "forced": bool(force),
+            "track_motion": bool(track_motion),
         }
 
         def write(staging: Path) -> None:
@@ -296,11 +300,13 @@ def cli_reconstruct(args) -> int:
         args.cta, args.roadmap, args.frames, args.out, series_uid=args.series_uid,
         overrides=geometry_overrides(args), roadmap_frame=args.roadmap_frame, seeds_lps_mm=args.seed_lps,
         method=args.method, segmenter=args.segmenter, force=args.force, images=not args.no_images,
-        progress=True, log=_stderr,
+        progress=True, track_motion=args.track_motion, log=_stderr,
     )
     n_ok = sum(1 for w in result.wires3d if w.success)
+    n_unsure = sum(1 for fr in result.frame_results if fr.verdict.value == "uncertain")
+    unsure = f" ({n_unsure} UNCERTAIN: see verdict_message in report.json)" if n_unsure else ""
     print(f"wrote {args.out}: registration {result.registration.verdict.label} "
-          f"({result.registration.mean_residual_px:.2f} px), {n_ok}/{len(result.wires3d)} frames reconstructed")
+          f"({result.registration.mean_residual_px:.2f} px), {n_ok}/{len(result.wires3d)} frames reconstructed{unsure}")
     if not result.reconstructed:
         from guidewire3d.registration import Verdict
 
