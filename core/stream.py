@@ -16,8 +16,8 @@ One process, three parts joined by a one-slot mailbox:
 
 The messages are pyigtl's (``pyigtl.MessageBase.pack`` / ``parse_header`` / ``unpack``). The
 transport is ours: pyigtl 0.3.4's ``OpenIGTLinkServer`` serves one client at a time (a second one
-waits until the first goes), spins a core after its client disconnects, and keeps a shared queue
-of 100 messages that the next client receives stale. Here each client has a reader thread and a
+waits until the first goes), spins (half a core here) after its client disconnects, and keeps a
+shared queue of 100 messages that the next client receives stale. Here each client has a reader thread and a
 writer thread with a one-slot outbox (a slow client misses bundles, counted; it never slows the
 loop or the other clients). pyigtl cannot receive POLYDATA (its unpack is unfinished), so
 :class:`PolyDataMessage` completes it for our own clients (the viewer, the tests, the benchmark).
