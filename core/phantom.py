@@ -53,6 +53,7 @@ from guidewire3d.errors import GeometryError, InputError
 from guidewire3d.geometry import CArm, Pose, so3_exp
 from guidewire3d.io import Volume
 from guidewire3d.vesseltree import VesselTree
+from guidewire3d.assets import resource_path
 
 __all__ = [
     "VolumeSize",
@@ -84,8 +85,7 @@ WIRE_STEP_MM = 0.25
 #: growth step of the centerline (spacing of the truth tree points)
 TREE_STEP_MM = 0.5
 
-_RESOURCES = Path(__file__).resolve().parent.parent / "resources"
-_DEFAULT_JSON = _RESOURCES / "phantom_default.json"
+_DEFAULT_JSON = resource_path("phantom_default.json")
 
 
 class VolumeSize(str, Enum):

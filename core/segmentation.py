@@ -46,6 +46,7 @@ from pathlib import Path
 import numpy as np
 
 from guidewire3d.errors import InputError
+from guidewire3d.assets import resource_path
 
 __all__ = [
     "SegMethod",
@@ -65,7 +66,7 @@ __all__ = [
     "GuidewireSegmenter",
 ]
 
-DEFAULT_WEIGHTS_PATH = Path(__file__).resolve().parent.parent / "resources" / "guidewire_unet.safetensors"
+DEFAULT_WEIGHTS_PATH = resource_path("guidewire_unet.safetensors")
 
 # Normalisation: statistics on every STATS_STEP-th pixel of the full frame.
 STATS_STEP = 4

@@ -41,6 +41,7 @@ from pathlib import Path
 import numpy as np
 
 from guidewire3d.errors import InputError
+from guidewire3d.assets import resource_path
 
 __all__ = [
     "DEFAULT_WEIGHTS_PATH",
@@ -60,7 +61,7 @@ __all__ = [
     "dice_bce_loss",
 ]
 
-DEFAULT_WEIGHTS_PATH = Path(__file__).resolve().parent.parent / "resources" / "vessel_unet.safetensors"
+DEFAULT_WEIGHTS_PATH = resource_path("vessel_unet.safetensors")
 FORMAT_TAG = "guidewire3d-vessel-unet-v1"
 
 REFERENCE_SIZE_PX = 300        # longer image side the network works at (the training images' size)
