@@ -210,7 +210,7 @@ def test_single_path_partial_2d(case0):
     # one path: recognised, and trusted only within the limit for the fraction of the tree it explains
     assert r.single_path and "single vessel path" in r.message
     assert r.mean_residual_px < reg.MAX_MEAN_RESIDUAL_PX
-    assert r.max_pose_std_mm == reg.pose_std_limit_mm(r.explained_fraction)
+    assert r.max_pose_std_mm == reg.pose_std_limit_mm(r.explained_fraction, True)
     assert r.success == (r.pose_std_mm <= r.max_pose_std_mm), r.message
     assert r.fits_2d and r.verdict is (reg.Verdict.OK if r.success else reg.Verdict.UNCERTAIN)
     assert r.to_dict()["single_path"] is True
@@ -219,33 +219,36 @@ def test_single_path_partial_2d(case0):
 
 
 def test_pose_std_limit_shrinks_with_the_explained_fraction():
-    full = reg.MAX_POSE_STD_MM
+    full, single = reg.MAX_POSE_STD_MM, reg.MAX_POSE_STD_MM_SINGLE_PATH
     f0 = reg.FULL_LIMIT_EXPLAINED_FRACTION
     assert reg.pose_std_limit_mm(1.0) == reg.pose_std_limit_mm(f0) == full
-    assert reg.pose_std_limit_mm(f0 / 2) == pytest.approx(full / 2)
+    assert reg.pose_std_limit_mm(1.0, True) == reg.pose_std_limit_mm(f0, True) == single
+    assert reg.pose_std_limit_mm(f0 / 4) == reg.pose_std_limit_mm(f0 / 4, True) == pytest.approx(full / 4)
     assert reg.pose_std_limit_mm(0.0) == reg.pose_std_limit_mm(float("nan")) == 0.0
     f = np.linspace(0.0, 1.0, 41)
-    assert np.all(np.diff([reg.pose_std_limit_mm(x) for x in f]) >= 0)
+    for sp in (False, True):
+        lim = np.array([reg.pose_std_limit_mm(x, sp) for x in f])
+        assert np.all(np.diff(lim) >= 0) and np.all(lim <= (single if sp else full))  # never looser than before
 
 
-def test_single_path_refused_by_the_binary_limit_is_ok_and_right(case0):
-    """Issue 20: the longest root-to-leaf path of case 0 (38% of the tree) is registered to 0.2 mm from
-    starts 8 mm deep or shallow with pose 1-sigma 1.6 mm. The former single-path limit (1 mm) refused it."""
+def test_single_path_explaining_much_of_the_tree_keeps_the_single_path_limit(case0):
+    """The longest root-to-leaf path of case 0 (38% of the tree), from starts 8 mm deep or shallow:
+    registered to 0.2 mm, limit 1 mm (not shrunk: more than 30% explained)."""
     tree, carm, true = case0
     leaf = int(tree.leaves[np.argmax(tree.arclength_from_root_mm[tree.leaves])])
     path = tree.path_to_root(leaf)
     uv = _centerline(tree, carm, true, np.random.default_rng(4), noise_px=0.3, ids=path)
     for depth_mm in (-8.0, 8.0):
         r = reg.register(tree, uv, carm, init_pose=Pose(np.eye(3), depth_mm * carm.beam_direction) @ true)
-        assert r.single_path and r.pose_std_mm > 1.0, r.message  # refused before issue 20
-        assert reg.FULL_LIMIT_EXPLAINED_FRACTION <= r.explained_fraction < 0.6
-        assert r.verdict is reg.Verdict.OK, r.message
+        assert r.single_path and reg.FULL_LIMIT_EXPLAINED_FRACTION <= r.explained_fraction < 0.6, r.message
+        assert r.max_pose_std_mm == reg.MAX_POSE_STD_MM_SINGLE_PATH
+        assert r.success == (r.pose_std_mm <= r.max_pose_std_mm)
         assert mtre_mm(r.pose, true, tree.points_lps_mm) < 0.5
 
 
 def test_short_path_registered_wrong_is_not_ok():
     """Half of the longest path of case 1 (28% of the tree): the overlay fits, the pose is 8.7 mm off
-    along the beam, pose 1-sigma 2.3 mm above the limit for that fraction (1.9 mm): UNCERTAIN."""
+    along the beam, pose 1-sigma 2.3 mm above the limit: UNCERTAIN."""
     tree, carm, true = _case(1)
     leaf = int(tree.leaves[np.argmax(tree.arclength_from_root_mm[tree.leaves])])
     path = tree.path_to_root(leaf)
@@ -254,7 +257,7 @@ def test_short_path_registered_wrong_is_not_ok():
     r = reg.register(tree, uv, carm, init_pose=true)
     assert mtre_mm(r.pose, true, tree.points_lps_mm) > 4.0
     assert r.fits_2d and r.explained_fraction < reg.FULL_LIMIT_EXPLAINED_FRACTION
-    assert r.max_pose_std_mm < reg.MAX_POSE_STD_MM
+    assert r.max_pose_std_mm == reg.pose_std_limit_mm(r.explained_fraction, True) <= reg.MAX_POSE_STD_MM_SINGLE_PATH
     assert r.verdict is reg.Verdict.UNCERTAIN and not r, r.message
 
 
