@@ -276,6 +276,9 @@ def frame_messages(result, *, space: Space = Space.LPS, stats: dict | None = Non
               "length_mm": round(float(result.wire3d.length_mm), 3) if has_wire else None,
               "tip_confidence": ori.confidence if ori is not None else None,
               "processing_ms": round(1000.0 * float(result.seconds), 2)}
+    motion = getattr(result, "motion", None)
+    if motion is not None:  # live --track-motion: the frame's own pose update
+        status["motion"] = {"verdict": motion.verdict.value, "message": str(motion.message)}
     if stats:
         status.update(stats)
     out = [pyigtl.StringMessage(json.dumps(status), device_name=DEVICE_STATUS, timestamp=ts)]
@@ -1145,6 +1148,8 @@ def add_cli_options(p) -> None:
     o.add_argument("--points", action="store_true", help="also send the wire as a POINT message (GuidewirePoints), for "
                    "consumers without POLYDATA such as ros2_igtl_bridge")
     o.add_argument("--segmenter", default="unet", choices=("unet", "ridge"))
+    o.add_argument("--track-motion", action="store_true", help="follow breathing and heartbeat: each frame's wire "
+                   "updates the pose before it is reconstructed (as reconstruct --track-motion)")
     b = p.add_argument_group("bounds (default: run until Ctrl-C)")
     b.add_argument("--max-frames", type=int, default=None, metavar="N", help="stop after N processed frames")
     b.add_argument("--duration", type=float, default=None, metavar="S", help="stop after S seconds")
@@ -1223,7 +1228,7 @@ def cli_live(args) -> int:
                                   overrides=geometry_overrides(args), force=args.force, log=say)
     source, carm = _make_source(args, setup)
     session = live.Session(setup.tree, carm, setup.pose, registration_covariance=setup.covariance,
-                           segmenter=args.segmenter)
+                           segmenter=args.segmenter, track_motion=args.track_motion)
     warm_up(session)
     mailbox = LatestFrame()
 

@@ -55,9 +55,10 @@ def setup(live_out):
 
 
 @contextlib.contextmanager
-def serving(setup, **runner_kw):
+def serving(setup, *, track_motion=False, **runner_kw):
     """A live server on a free port with its processing loop in a thread."""
-    session = live.Session(setup.tree, setup.frames_carm, setup.pose, registration_covariance=setup.covariance)
+    session = live.Session(setup.tree, setup.frames_carm, setup.pose, registration_covariance=setup.covariance,
+                           track_motion=track_motion)
     stream.warm_up(session)
     mailbox = stream.LatestFrame()
 
@@ -155,6 +156,24 @@ def test_streamed_wires_match_reconstruct(setup, live_out, frames):
     assert (s.frames_in, s.processed, s.dropped) == (len(frames), len(frames), 0)
     assert s.ok + s.uncertain == sum(r["success"] for r in recs)
     assert len(s.latency_sent_s) == len(frames) and all(0 < x < WAIT_S for x in s.latency_sent_s)
+
+
+def test_track_motion_streams_the_engines_motion_tracked_wires(setup, frames):
+    """``live --track-motion``: the wires of ``live.Session(track_motion=True)`` on the same frames."""
+    ref = list(live.Session(setup.tree, setup.frames_carm, setup.pose, registration_covariance=setup.covariance,
+                            track_motion=True).run(frames))
+    assert any(fr.motion is not None for fr in ref)  # the pose was updated from the frames
+    with serving(setup, track_motion=True) as (server, runner, _), stream.IGTLClient(HOST, server.port) as client:
+        for k, (frame, fr) in enumerate(zip(frames, ref)):
+            client.send(image_message(frame, 7000.0 + k))
+            msg, st = next_status(client)
+            assert st["verdict"] == fr.verdict.value and ("motion" in st) == (fr.motion is not None)
+            if fr.motion is not None:
+                assert st["motion"]["verdict"] == fr.motion.verdict.value
+            got = bundle_after(client, msg)
+            if fr:
+                np.testing.assert_allclose(got[stream.DEVICE_WIRE].points, fr.wire3d.points_lps_mm, atol=FLOAT32_MM)
+    assert runner.summary.dropped == 0
 
 
 def test_ras_space_flips_points_and_tip():
