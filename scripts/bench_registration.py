@@ -16,6 +16,13 @@ bifurcations matched with ``match_bifurcations`` at the same start) is in the sa
     nice .venv/bin/python scripts/bench_registration.py --cases 6 --quick     # smoke run
     nice .venv/bin/python scripts/bench_registration.py --e2e --cases 30       # end-to-end diagnosis
     nice .venv/bin/python scripts/bench_registration.py --cases 30 --seed0 30  # a second, unseen set
+    nice .venv/bin/python scripts/bench_registration.py --verdict --cases 60             # verdict, seeds 0-59
+    nice .venv/bin/python scripts/bench_registration.py --verdict --cases 100 --seed0 100  # held out
+
+``--verdict`` counts false refusals (mTRE <= 2 mm, verdict not OK) and false acceptances (mTRE > 2 mm,
+OK) before and after issue 20 (``legacy_ok``: the former limits, from the same results) on
+end-to-end inputs, five roadmaps per seed (see ``load_verdict_cases``; preparing a seed takes
+~20 s, cached under ``--cache``).
 
 ``--e2e`` uses the inputs of ``guidewire3d bench`` (seeds 100.., same ``PhantomOptions``, DICOM
 round trip): the CTA-derived tree (``vessels3d.extract_vessels``) and the image2d centerline of the
