@@ -170,7 +170,6 @@ SEARCH_SHIFT_MM = 40.0
 SEARCH_CELL_PX = 8.0  # nominal coarse grid for a 512-px image (scaled with the image)
 SEARCH_TRUNC_CELLS = 3.0
 SEARCH_STARTS = 2  # LM starts taken from the search
-SECOND_OPINION_SHIFT_MM = 5.0
 
 
 # ============================================================================================
