@@ -42,6 +42,8 @@ MIN_CC_IN_PLANE = 0.3
 #: a frame without a fitted predecessor is solved from the roadmap pose and from this many
 #: cranio-caudal shifts (the best local minima of the search)
 ACQUIRE_STARTS = 3
+#: the curve is thinned to at most this many evenly spaced points (cost per frame)
+MAX_CURVE_POINTS = 128
 #: Gauss-Newton stops when a step moves less than this (mm, rad): 0.01 mm is 0.05 px at the isocentre
 STEP_TOL_MM = 0.01
 STEP_TOL_RAD = 1e-5
@@ -226,6 +228,8 @@ class MotionTracker:
         opt = self.options
         c = np.asarray(curve_uv_px, float).reshape(-1, 2) if curve_uv_px is not None else np.zeros((0, 2))
         c = c[np.all(np.isfinite(c), axis=1)]
+        if len(c) > MAX_CURVE_POINTS:  # a 1-px ordered wire has hundreds: evenly spaced ones suffice
+            c = c[np.linspace(0, len(c) - 1, MAX_CURVE_POINTS).round().astype(int)]
         prev = self.delta.copy()
         if len(c) < 3:
             pose = self.pose_of(prev)
