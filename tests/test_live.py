@@ -87,12 +87,10 @@ def test_cli_viewer_and_plugin_give_identical_wires(cli_run, tmp_path):
 def _cut_below(tree, path_ids, cut_mm: float):
     """The subtree below the wire path's point ``cut_mm`` from the root (a CTA that misses the
     proximal vessels: the wire's proximal part runs beyond the segmented tree)."""
-    s = tree.arclength_from_root_mm
-    node = path_ids[np.searchsorted(s[path_ids], cut_mm)]
-    keep = np.zeros(tree.n_points, bool)
-    for i in tree.order:  # root first
-        keep[i] = i == node or (tree.parent[i] >= 0 and keep[tree.parent[i]])
-    return tree.subtree(keep)
+    sys.path.insert(0, str(SCRIPTS))
+    from bench_orientation import cut_below
+
+    return cut_below(tree, path_ids, cut_mm)
 
 
 @pytest.mark.parametrize("seed", [1, 18])
