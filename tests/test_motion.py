@@ -125,3 +125,23 @@ def test_real_liver_catheter_is_followed_through_breathing():
     assert max(depth) < 5.0
     assert all(r.verdict in (Verdict.OK, Verdict.UNCERTAIN, Verdict.FAILED) for r in res)
     assert sum(r.verdict is Verdict.OK for r in res) >= 0.9 * len(res)
+
+
+def test_reconstruct_track_motion_writes_each_frames_pose(small_case_dir, tmp_path):
+    import json
+
+    from guidewire3d.cli import main
+
+    d, out = small_case_dir, tmp_path / "out"
+    rc = main(["reconstruct", "--cta", str(d / "ct"), "--roadmap", str(d / "roadmap.dcm"), "--frames",
+               str(d / "frames.dcm"), "--out", str(out), "--track-motion", "--no-images", "--force"])
+    assert rc == 0
+    rep = json.loads((out / "report.json").read_text())
+    assert rep["inputs"]["track_motion"] is True
+    tracked = [f for f in rep["frames"] if f.get("motion")]
+    assert tracked, [f["verdict_message"] for f in rep["frames"]]
+    truth = load_truth(d)
+    for f in tracked:
+        # the case does not move: the tracked pose stays at the registered one
+        pose = Pose.from_matrix(f["motion"]["pose"])
+        assert mtre_mm(pose, Pose.from_matrix(rep["pose"]), truth.tree.points_lps_mm) < 1.0
