@@ -145,3 +145,17 @@ def test_reconstruct_track_motion_writes_each_frames_pose(small_case_dir, tmp_pa
         # the case does not move: the tracked pose stays at the registered one
         pose = Pose.from_matrix(f["motion"]["pose"])
         assert mtre_mm(pose, Pose.from_matrix(rep["pose"]), truth.tree.points_lps_mm) < 1.0
+    # the viewer shows each tracked frame in its own pose, and applies a correction the same way
+    from guidewire3d.viewer.controller import ViewerController
+    from guidewire3d.viewer.data import load_outdir
+
+    ctrl = ViewerController(load_outdir(out), persist=False)
+    k = next(i for i, w in enumerate(ctrl._case.wires) if w.pose is not None)
+    ctrl.set_frame(k)
+    rec = next(f for f in tracked if f["index"] == ctrl._case.wires[k].index)
+    assert ctrl.shown_pose.allclose(Pose.from_matrix(rec["motion"]["pose"]), atol_mm=1e-6)
+    ctrl.toggle_roadmap()  # the roadmap is shown in the registration's pose
+    assert ctrl.shown_pose is ctrl.pose
+    ctrl.toggle_roadmap()
+    assert ctrl.apply(force=True) == len(ctrl._case.wires)
+    assert any(w.pose is not None for w in ctrl._case.wires)

@@ -166,9 +166,21 @@ class ViewerController:
             if w is not None:
                 sc.update_wire(self._scene.wire, w.points_lps_mm, w.uncertainty_mm)
             self._refresh_image()
-            self._refresh_overlay_wire()
-            self._refresh_text()
+            if self.wire is not None and self.wire.pose is not None:
+                self._refresh_pose()  # a tracked run: the C-arm and overlays follow the frame's pose
+            else:
+                self._refresh_overlay_wire()
+                self._refresh_text()
         return k
+
+    @property
+    def shown_pose(self) -> Pose:
+        """The pose the scene shows: the current frame's tracked pose (a ``--track-motion`` run,
+        wires current, live frame shown), else :attr:`pose`."""
+        w = self.wire
+        if w is not None and w.pose is not None and not self._show_roadmap and not self.wires_stale:
+            return w.pose
+        return self.pose
 
     def _refresh_image(self) -> None:
         if self._scene is None:
@@ -362,7 +374,10 @@ class ViewerController:
         new = []
         n_ok = 0
         cov = self._covariance if np.allclose(self._covariance_pose.matrix, self.pose.matrix) else None
-        session = live.Session(self._case.tree, self._case.frames_carm, self.pose, registration_covariance=cov)
+        # a run that tracked motion is applied the same way (each frame in its own pose)
+        tracked = any(w.pose is not None for w in self._case.wires)
+        session = live.Session(self._case.tree, self._case.frames_carm, self.pose, registration_covariance=cov,
+                               track_motion=tracked)
         images = self._case.images
         for w in self._case.wires:
             if len(w.wire_uv_px) < 2:
@@ -376,7 +391,8 @@ class ViewerController:
             pts = np.asarray(r.points_lps_mm, float).reshape(-1, 3)
             unc = np.asarray(r.uncertainty_mm, float).reshape(-1)
             new.append(WireFrame(w.index, ok, str(fr.message), pts, unc, w.wire_uv_px,
-                                 float(r.projection_error_px), float(r.length_mm), verdict=fr.verdict.value))
+                                 float(r.projection_error_px), float(r.length_mm), verdict=fr.verdict.value,
+                                 pose=fr.pose if fr.motion is not None else None))
         self._case = self._case.with_wires(new)
         self._wires_pose = self.pose
         self.set_frame(self._frame)
@@ -403,10 +419,11 @@ class ViewerController:
             return
         from guidewire3d.viewer import scene as sc
 
-        sc.update_carm(self._scene.carm, self.view_carm, self.pose)
+        pose = self.shown_pose
+        sc.update_carm(self._scene.carm, self.view_carm, pose)
         if self._scene.overlay is not None and self._case.tree is not None:
             sc.update_overlay(self._scene.overlay,
-                              centerline_uv_px=self.view_carm.project(self._case.tree.points_lps_mm, self.pose))
+                              centerline_uv_px=self.view_carm.project(self._case.tree.points_lps_mm, pose))
         self._refresh_overlay_wire()
         self._refresh_text()
 
@@ -419,7 +436,8 @@ class ViewerController:
         if w is None or self._show_roadmap:
             sc.update_overlay(self._scene.overlay, wire_uv_px=np.zeros((0, 2)), wire_proj_uv_px=np.zeros((0, 2)))
             return
-        proj = self._case.frames_carm.project(w.points_lps_mm, self.pose) if len(w.points_lps_mm) else np.zeros((0, 2))
+        proj = (self._case.frames_carm.project(w.points_lps_mm, self.shown_pose) if len(w.points_lps_mm)
+                else np.zeros((0, 2)))
         sc.update_overlay(self._scene.overlay, wire_uv_px=w.wire_uv_px, wire_proj_uv_px=proj)
 
     def info_text(self) -> str:

@@ -56,6 +56,8 @@ class WireFrame:
     verdict : str
         ``ok``, ``uncertain`` (``message`` says what is not settled, e.g. which end is the tip) or
         ``failed``.
+    pose : Pose or None
+        The frame's own pose when the run tracked motion (``--track-motion``), else None.
     """
 
     index: int
@@ -67,6 +69,7 @@ class WireFrame:
     projection_error_px: float = float("nan")
     length_mm: float = float("nan")
     verdict: str = "ok"
+    pose: Pose | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -182,11 +185,16 @@ def _wire_from(rec: dict, k: int, path: Path) -> WireFrame:
         else:
             raise InputError(f"{what}: uncertainty_mm has {len(unc)} values for {len(pts)} points")
     success = bool(rec.get("success", len(pts) > 1))
+    frame_pose = None
+    motion = rec.get("motion")
+    if isinstance(motion, dict) and motion.get("pose") is not None:
+        frame_pose = _pose_from(motion["pose"], what=f"{what}.motion.pose")
     return WireFrame(
         index=int(rec.get("index", k)),
         success=success,
         message=str(rec.get("verdict_message") or rec.get("message", "")),
         verdict=str(rec.get("verdict") or ("ok" if success else "failed")),
+        pose=frame_pose,
         points_lps_mm=pts,
         uncertainty_mm=unc,
         wire_uv_px=uv,
