@@ -306,8 +306,25 @@ def write_png(path, rgb) -> Path:
     return atomic_write_bytes(path, buf.tobytes())
 
 
+def tracked_motion_mm(result) -> np.ndarray | None:
+    """(T, 3) shift of the tree's centroid under each frame's tracked pose against the registration,
+    in the C-arm's (u, v, depth) axes, mm; None when the run did not track motion."""
+    frs = list(getattr(result, "frame_results", []) or [])
+    if not frs or all(fr.motion is None for fr in frs):
+        return None
+    c = result.tree.points_lps_mm.mean(axis=0)
+    base = result.registration.pose.apply(c[None])[0]
+    axes = result.frames_carm.axes
+    out = np.full((len(frs), 3), np.nan)
+    for k, fr in enumerate(frs):
+        if fr.pose is not None:
+            out[k] = axes @ (fr.pose.apply(c[None])[0] - base)
+    return out
+
+
 def metrics_figure(result, path) -> Path:
-    """Per-frame projection error, length and mean uncertainty, as a PNG."""
+    """Per-frame projection error, length and mean uncertainty (and the tracked motion, when the
+    run tracked it), as a PNG."""
     import matplotlib
 
     matplotlib.use("Agg", force=False)
@@ -318,12 +335,21 @@ def metrics_figure(result, path) -> Path:
     perr = np.array([w.projection_error_px if w.success else np.nan for w in result.wires3d], float)
     length = np.array([w.length_mm if w.success else np.nan for w in result.wires3d], float)
     unc = np.array([float(np.mean(w.uncertainty_mm)) if w.success and len(w.uncertainty_mm) else np.nan for w in result.wires3d])
-    fig, axes = plt.subplots(3, 1, figsize=(6, 6), sharex=True)
+    motion = tracked_motion_mm(result)
+    rows = 3 + (motion is not None)
+    fig, axes = plt.subplots(rows, 1, figsize=(6, 2 * rows), sharex=True)
     for ax, y, lab in zip(axes, (perr, length, unc), ("projection error (px)", "wire length (mm)", "mean uncertainty (mm)")):
         ax.plot(idx, y, "o-", ms=3)
         if (~ok).any():
             ax.plot(idx[~ok], np.zeros((~ok).sum()), "rx", label="not reconstructed")
         ax.set_ylabel(lab, fontsize=8)
+        ax.grid(alpha=0.3)
+    if motion is not None:  # --track-motion: how the tracked pose moved the tree's centroid
+        ax = axes[3]
+        for k, (lab, col) in enumerate((("image u", "C0"), ("image v", "C1"), ("depth", "C2"))):
+            ax.plot(idx, motion[:, k], "o-", ms=2, color=col, label=lab)
+        ax.set_ylabel("tracked motion (mm)", fontsize=8)
+        ax.legend(fontsize=7, ncol=3)
         ax.grid(alpha=0.3)
     axes[-1].set_xlabel("frame")
     fig.suptitle("guidewire3d per-frame metrics", fontsize=10)
