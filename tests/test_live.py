@@ -40,7 +40,7 @@ def cli_run(small_case_dir, tmp_path_factory):
 
 def test_cli_viewer_and_plugin_give_identical_wires(cli_run, tmp_path):
     pytest.importorskip("pyvista")
-    slicer = pytest.importorskip("slicer")  # noqa: F841
+    pytest.importorskip("slicer")
     from guidewire3d.viewer.controller import ViewerController
     from guidewire3d.viewer.data import load_outdir
 
@@ -103,7 +103,7 @@ def test_tip_at_the_wrong_end_is_never_reported_ok(seed):
         fr = session.process(frame)
         if not fr:
             continue
-        true_tip, true_prox = case.wire_lps_mm[t][-1], case.wire_lps_mm[t][0]
+        true_tip = case.wire_lps_mm[t][-1]
         tip, first = fr.wire3d.points_lps_mm[-1], fr.wire3d.points_lps_mm[0]
         wrong_end = np.linalg.norm(first - true_tip) < np.linalg.norm(tip - true_tip)
         if wrong_end:
