@@ -223,6 +223,8 @@ class Session:
         self._reconstruction = reconstruction
         self.track_motion = bool(track_motion)
         self.motion_options = motion_options
+        self.n_frames = 0
+        self.tracker = None
         self.set_pose(pose, registration_covariance=registration_covariance)
 
     # --- state --------------------------------------------------------------------------------
@@ -238,7 +240,7 @@ class Session:
         self._use_pose(pose, registration_covariance)
 
     def _use_pose(self, pose: Pose, registration_covariance) -> None:
-        previous = getattr(self, "tracker", None)
+        previous = self.tracker
         self.pose = pose
         self.registration_covariance = registration_covariance
         self.tracker = self._reconstruction.WireTracker(pose, self.carm, self.tree, method=self.method,
@@ -247,7 +249,6 @@ class Session:
         if previous is not None:
             self.tracker.previous = previous.previous
         self.root_uv_px = self.carm.project(self.tree.points_lps_mm[self.tree.root], pose)
-        self.n_frames = getattr(self, "n_frames", 0)
 
     @property
     def segmenter(self):

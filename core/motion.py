@@ -97,21 +97,14 @@ class MotionOptions:
             raise InputError(f"MotionOptions.iterations: expected >= 1, got {self.iterations!r}")
 
 
-def _densify(tree: VesselTree, step_mm: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Tree samples (K, 3) at most ``step_mm`` apart along each edge, their radii (K,) and for each
-    a neighbour along the tree (K,) that gives the local tangent (the parent; the root's first child)."""
-    p, r, par = tree.points_lps_mm, tree.radius_mm, tree.parent
-    pts, rad, nbr = [p], [r], [par.copy()]
-    kids = tree.children[tree.root]
-    nbr[0][tree.root] = kids[0] if kids else tree.root
-    for i in np.flatnonzero(par >= 0):
-        m = int(np.ceil(np.linalg.norm(p[i] - p[par[i]]) / step_mm)) - 1
-        if m > 0:
-            f = np.arange(1, m + 1) / (m + 1)
-            pts.append(p[i] + f[:, None] * (p[par[i]] - p[i]))
-            rad.append(r[i] + f * (r[par[i]] - r[i]))
-            nbr.append(np.full(m, par[i]))
-    return np.vstack(pts), np.concatenate(rad), np.concatenate(nbr)
+def _samples(tree: VesselTree, step_mm: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Tree samples (K, 3) at most ``step_mm`` apart, their radii (K,) and for each a neighbour
+    along the tree (K,) that gives the local tangent (its parent; the root's first child)."""
+    dense, _ = tree.densified(step_mm)
+    nbr = dense.parent.copy()
+    kids = dense.children[dense.root]
+    nbr[dense.root] = kids[0] if kids else dense.root
+    return dense.points_lps_mm, dense.radius_mm, nbr
 
 
 class MotionTracker:
@@ -135,7 +128,7 @@ class MotionTracker:
                  options: MotionOptions | None = None):
         self.tree, self.carm, self.initial_pose = tree, carm, initial_pose
         self.options = opt = options or MotionOptions()
-        pts, self._radius_mm, self._nbr = _densify(tree, opt.sample_mm)
+        pts, self._radius_mm, self._nbr = _samples(tree, opt.sample_mm)
         # tree samples in the camera frame of the initial pose: x_cam = Rc x + tc (z: depth)
         Rc, tc = carm.extrinsics(initial_pose)
         self._Rc_room = carm.axes  # camera axes in the room frame (rows)

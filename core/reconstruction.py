@@ -82,6 +82,7 @@ nearest projected centerline point, without connectivity.
 """
 from __future__ import annotations
 
+import copy
 import enum
 import time
 from collections import OrderedDict
@@ -260,37 +261,6 @@ class Wire3D:
 # --------------------------------------------------------------------------------------------
 # per-pose context
 # --------------------------------------------------------------------------------------------
-def _densify(tree: VesselTree, step_mm) -> tuple[VesselTree, np.ndarray]:
-    """Insert points on edges longer than ``step_mm`` (scalar or per point, taken at the child).
-
-    Original points keep their indices. Returns ``(dense tree, original id of each dense point)``.
-    """
-    n = tree.n_points
-    e = tree.edges
-    L = tree.edge_length_mm
-    step = np.broadcast_to(np.asarray(step_mm, dtype=float), (n,))[e[:, 1]]
-    k = np.maximum(np.ceil(L / step).astype(np.int64) - 1, 0)
-    n_new = int(k.sum())
-    if n_new == 0:
-        return tree, np.arange(n, dtype=np.int64)
-    P, R = tree.points_lps_mm, tree.radius_mm
-    edge_of = np.repeat(np.arange(len(e)), k)
-    first = np.r_[0, np.cumsum(k)[:-1]]
-    local = np.arange(n_new) - np.repeat(first, k) + 1  # 1..k_e
-    frac = local / (np.repeat(k, k) + 1.0)
-    pa, ch = e[edge_of, 0], e[edge_of, 1]
-    new_pts = P[pa] + frac[:, None] * (P[ch] - P[pa])
-    new_rad = R[pa] + frac * (R[ch] - R[pa])
-    new_ids = n + np.arange(n_new)
-    new_par = np.where(local == 1, pa, new_ids - 1)
-    parent = tree.parent.copy()
-    last = new_ids[np.r_[first[k > 0] + k[k > 0] - 1]]
-    parent[e[k > 0, 1]] = last
-    orig = np.r_[np.arange(n), np.where(frac < 0.5, pa, ch)]
-    dense = VesselTree(np.vstack([P, new_pts]), np.r_[R, new_rad], np.r_[parent, new_par])
-    return dense, orig.astype(np.int64)
-
-
 def _smooth_tree(tree: VesselTree, sigma_mm: float) -> VesselTree:
     """The tree with its points and radii smoothed along the tree (Gaussian-like, ``sigma_mm``).
 
@@ -334,29 +304,19 @@ class ReconstructionContext:
         self.options = opt = options or ReconOptions()
         # candidate spacing: ~densify_px in the image, coarser in wide vessels (0.4 radius)
         step_mm = np.maximum(max(opt.densify_px * carm.pixel_at_iso_mm, 0.05), opt.densify_radius * tree.radius_mm)
-        dense, self.orig_id = _densify(_smooth_tree(tree, opt.centerline_smoothing_mm), step_mm)
+        dense, self.orig_id = _smooth_tree(tree, opt.centerline_smoothing_mm).densified(step_mm)
         self.dense = dense
         self.points = dense.points_lps_mm
         self.radius = dense.radius_mm
         self.s = dense.arclength_from_root_mm
-        uv, z = carm.project(self.points, pose, return_depth=True)
-        if np.any(z <= 0):
-            raise ReconstructionError("reconstruction: part of the vessel tree lies behind the X-ray source")
-        self.uv, self.depth = uv, z
         self.focal = carm.focal_px
-        self.r_px = self.radius * self.focal / z
         # Viterbi candidates: a thinned subset (one per step_mm of arclength, plus every node)
         step_d = np.maximum(max(opt.densify_px * carm.pixel_at_iso_mm, 0.05), opt.densify_radius * self.radius)
         par = dense.parent
         q = np.floor(self.s / step_d)
         qp = np.floor(self.s[np.maximum(par, 0)] / step_d)
         self.cand_ids = np.flatnonzero((par < 0) | (q != qp) | (dense.degree != 2))
-        self.kd2 = cKDTree(uv[self.cand_ids])
-        self.r_px_max = float(self.r_px.max())
-        Rc, tc = carm.extrinsics(pose)
-        self.Rc, self.tc = Rc, tc
-        self.source = -Rc.T @ tc
-        self.px_mm = float(np.median(z)) / self.focal  # mm per px at the tree's depth
+        self._project(pose)
         # --- branch tables: O(1) lowest common ancestor of two points ---------------------
         br = dense.branches
         B = len(br)
@@ -398,6 +358,29 @@ class ReconstructionContext:
                            if opt.chord_clearance else self.radius)
         self.outer_offset = self._outer_bend_offset(opt) if opt.outer_bend_prior else np.zeros_like(self.points)
         self._scratch = -np.ones(dense.n_points, np.int64)
+
+    def _project(self, pose: Pose) -> None:
+        """The attributes that depend on the pose: the tree in the image and the source."""
+        self.pose = pose
+        uv, z = self.carm.project(self.points, pose, return_depth=True)
+        if np.any(z <= 0):
+            raise ReconstructionError("reconstruction: part of the vessel tree lies behind the X-ray source")
+        self.uv, self.depth = uv, z
+        self.r_px = self.radius * self.focal / z
+        self.kd2 = cKDTree(uv[self.cand_ids])
+        self.r_px_max = float(self.r_px.max())
+        Rc, tc = self.carm.extrinsics(pose)
+        self.Rc, self.tc = Rc, tc
+        self.source = -Rc.T @ tc
+        self.px_mm = float(np.median(z)) / self.focal  # mm per px at the tree's depth
+
+    def with_pose(self, pose: Pose) -> "ReconstructionContext":
+        """The same tree tables (smoothing, densification, branches, bend offsets: none depends on
+        the pose) seen at another pose; what a moving patient changes per frame."""
+        ctx = copy.copy(self)
+        ctx._project(pose)
+        ctx._scratch = -np.ones(len(self.points), np.int64)
+        return ctx
 
     def _outer_bend_offset(self, opt: ReconOptions) -> np.ndarray:
         """(N, 3) expected wire offset from the centerline: towards the outer side of bends.
@@ -476,7 +459,10 @@ def build_context(pose: Pose, carm: CArm, tree: VesselTree, *,
     if hit is not None and hit.pose is pose and hit.carm is carm and hit.tree is tree:
         _CACHE.move_to_end(key)
         return hit
-    ctx = ReconstructionContext(pose, carm, tree, options=options)
+    # a context of the same tree and view at another pose (a tracked patient) lends its tree tables
+    base = next((c for c in reversed(_CACHE.values()) if c.carm is carm and c.tree is tree and c.options == options),
+                None)
+    ctx = base.with_pose(pose) if base is not None else ReconstructionContext(pose, carm, tree, options=options)
     _CACHE[key] = ctx
     while len(_CACHE) > _CACHE_SIZE:
         _CACHE.popitem(last=False)

@@ -237,6 +237,37 @@ class VesselTree:
         new_par = np.where(par >= 0, new_index[np.maximum(par, 0)], -1)
         return VesselTree(self.points_lps_mm[keep_mask], self.radius_mm[keep_mask], new_par)
 
+    def densified(self, step_mm) -> tuple["VesselTree", np.ndarray]:
+        """Insert points on edges longer than ``step_mm`` (scalar or per point, taken at the child).
+
+        Original points keep their indices. Returns ``(dense tree, original id of each dense point)``.
+        """
+        tree = self
+        n = tree.n_points
+        e = tree.edges
+        L = tree.edge_length_mm
+        step = np.broadcast_to(np.asarray(step_mm, dtype=float), (n,))[e[:, 1]]
+        k = np.maximum(np.ceil(L / step).astype(np.int64) - 1, 0)
+        n_new = int(k.sum())
+        if n_new == 0:
+            return tree, np.arange(n, dtype=np.int64)
+        P, R = tree.points_lps_mm, tree.radius_mm
+        edge_of = np.repeat(np.arange(len(e)), k)
+        first = np.r_[0, np.cumsum(k)[:-1]]
+        local = np.arange(n_new) - np.repeat(first, k) + 1  # 1..k_e
+        frac = local / (np.repeat(k, k) + 1.0)
+        pa, ch = e[edge_of, 0], e[edge_of, 1]
+        new_pts = P[pa] + frac[:, None] * (P[ch] - P[pa])
+        new_rad = R[pa] + frac * (R[ch] - R[pa])
+        new_ids = n + np.arange(n_new)
+        new_par = np.where(local == 1, pa, new_ids - 1)
+        parent = tree.parent.copy()
+        last = new_ids[np.r_[first[k > 0] + k[k > 0] - 1]]
+        parent[e[k > 0, 1]] = last
+        orig = np.r_[np.arange(n), np.where(frac < 0.5, pa, ch)]
+        dense = VesselTree(np.vstack([P, new_pts]), np.r_[R, new_rad], np.r_[parent, new_par])
+        return dense, orig.astype(np.int64)
+
     def transformed(self, pose) -> "VesselTree":
         """The same tree moved by a rigid ``Pose``."""
         return VesselTree(pose.apply(self.points_lps_mm), self.radius_mm, self.parent)
