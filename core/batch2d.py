@@ -26,7 +26,14 @@ from pathlib import Path
 
 import numpy as np
 
+from guidewire3d import io
 from guidewire3d.errors import InputError
+from guidewire3d.export import overlay_image, write_png
+from guidewire3d.image2d import ordered_wire, vessel_mask
+from guidewire3d.imaging import as_image
+from guidewire3d.methods import SegMethod, choices
+from guidewire3d.segmentation import guidewire_mask
+from guidewire3d.wiremask import projected_wire_radius_px
 
 IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".jpg", ".jpeg")
 WHAT_CHOICES = ("both", "vessels", "wire")
@@ -51,8 +58,6 @@ def _is_dicom(path: Path) -> bool:
 
 
 def _read_dicom(path: Path) -> list[InputImage]:
-    from guidewire3d import io
-
     frames, carm = io.read_xa_frames(path)
     if len(frames) == 1:
         return [InputImage(path.stem, str(path), None, frames[0], carm)]
@@ -60,8 +65,6 @@ def _read_dicom(path: Path) -> list[InputImage]:
 
 
 def _read_picture(path: Path) -> InputImage:
-    from guidewire3d.image2d import _as_image
-
     im = None
     if path.suffix.lower() in (".tif", ".tiff"):
         # OpenCV reads compressed TIFF (LZW, deflate: what cv2.imwrite writes) without imagecodecs
@@ -77,7 +80,7 @@ def _read_picture(path: Path) -> InputImage:
             im = imread(path)
         except Exception as e:  # noqa: BLE001
             raise InputError(f"{path}: unreadable image ({e.__class__.__name__}: {str(e)[:100]})") from None
-    return InputImage(path.stem, str(path), None, _as_image(im, str(path)))
+    return InputImage(path.stem, str(path), None, as_image(im, str(path)))
 
 
 def read_inputs(paths) -> list[InputImage]:
@@ -124,9 +127,6 @@ def read_inputs(paths) -> list[InputImage]:
 def analyse(image: InputImage, *, what: str = "both", segmenter: str = "unet", wire_model: bool = False,
             wire_diameter_mm: float | None = None) -> tuple[dict, dict[str, np.ndarray]]:
     """The record (for ``segment.json``) and the masks (``{"vessels": ..., "wire": ...}``) of one image."""
-    from guidewire3d.image2d import ordered_wire, vessel_mask
-    from guidewire3d.segmentation import guidewire_mask
-
     rec = {"name": image.name, "source": image.source, "frame": image.frame, "shape": list(image.image.shape)}
     masks = {}
     if what in ("both", "vessels"):
@@ -135,8 +135,6 @@ def analyse(image: InputImage, *, what: str = "both", segmenter: str = "unet", w
     if what in ("both", "wire"):
         radius = None
         if wire_diameter_mm is not None:
-            from guidewire3d.wiremask import projected_wire_radius_px
-
             radius = projected_wire_radius_px(image.carm, wire_diameter_mm)
         m = guidewire_mask(image.image, method=segmenter, wire_model=wire_model, wire_radius_px=radius)
         masks["wire"] = m
@@ -156,8 +154,6 @@ def overlay(image: np.ndarray, record: dict, masks: dict[str, np.ndarray]) -> np
     """RGB picture of one result: the vessel mask's skeleton (green), the ordered wire (yellow)."""
     from skimage.morphology import skeletonize
 
-    from guidewire3d.export import overlay_image
-
     skeleton_uv = None
     if "vessels" in masks:
         rows, cols = np.nonzero(skeletonize(masks["vessels"]))
@@ -170,9 +166,6 @@ def overlay(image: np.ndarray, record: dict, masks: dict[str, np.ndarray]) -> np
 def cli_segment(args) -> int:
     """``guidewire3d segment``: analyse the inputs, write the masks and ``segment.json``."""
     from tqdm import tqdm
-
-    from guidewire3d import io
-    from guidewire3d.export import write_png
 
     out_dir = io.require_empty_folder(args.out)
     if args.wire_diameter_mm is not None and not args.wire_model:
@@ -218,7 +211,7 @@ def add_cli_options(p) -> None:
     p.add_argument("--out", required=True, help="output folder (created; must be empty or absent)")
     p.add_argument("--what", default="both", choices=WHAT_CHOICES,
                    help="vessel masks, guidewire masks with the ordered wire, or both (default)")
-    p.add_argument("--segmenter", default="unet", choices=("unet", "ridge"),
+    p.add_argument("--segmenter", default=SegMethod.UNET.value, choices=choices(SegMethod),
                    help="guidewire segmentation: unet (default) or ridge (classical)")
     p.add_argument("--wire-model", action="store_true",
                    help="render the guidewire mask from the traced wire (sharper edges on thin wires)")

@@ -17,7 +17,10 @@ from pathlib import Path
 
 import numpy as np
 
-from guidewire3d import metrics
+from guidewire3d import io, metrics, phantom, pipeline, reconstruction, registration
+from guidewire3d.io import atomic_write_text
+from guidewire3d.segmentation import guidewire_mask
+from guidewire3d.wiremask import projected_wire_radius_px
 
 PAPER_TABLE1 = {"UNet": (93.13, 91.87, 94.52, 63.0)}
 PAPER_TABLE2 = {
@@ -62,8 +65,6 @@ def _markdown(headers, rows) -> str:
 # demo
 # --------------------------------------------------------------------------------------
 def _case_dir_for_seed(seed: int | None) -> Path:
-    from guidewire3d import phantom
-
     if seed is None:
         return phantom.default_case_dir(progress=True)
     cache = phantom._cache_root() / f"demo-seed{seed}-v{phantom.CACHE_VERSION}"
@@ -77,9 +78,7 @@ def _case_dir_for_seed(seed: int | None) -> Path:
 DEMO_WARM_FRAMES = 2
 
 
-def run_demo(*, out="guidewire3d-demo", seed: int | None = None) -> int:
-    from guidewire3d import io, phantom, pipeline
-
+def run_demo(*, out="guidewire3d-demo", seed: int | None = None, screenshot=None) -> int:
     t_start = time.perf_counter()
     # the output folder is checked before anything is printed or generated (a previous demo's is replaced)
     io.require_empty_folder(out, replace=(Path(out) / "report.json").is_file())
@@ -87,7 +86,8 @@ def run_demo(*, out="guidewire3d-demo", seed: int | None = None) -> int:
     truth = phantom.load_truth(case_dir)
     print(f"phantom case: {case_dir}", file=sys.stderr)
     result = pipeline.run_to_outdir(case_dir / "ct", case_dir / "roadmap.dcm", case_dir / "frames.dcm", out,
-                                    replace=True, truth=truth, progress=True, log=lambda m: print(m, file=sys.stderr))
+                                    replace=True, truth=truth, progress=True, log=lambda m: print(m, file=sys.stderr),
+                                    screenshot=screenshot)
     ev = metrics.evaluate_against_truth(result, truth)
     reg = result.registration
     print()
@@ -138,8 +138,6 @@ def package_source_digest() -> str:
 def _seg_scores(frames, truth_masks, method, wire_radius_px=None):
     """Per-frame Dice, precision, recall and seconds; ``method`` "unet-wire" is the UNet with the
     wire model (``wire_model=True``, radius ``wire_radius_px``)."""
-    from guidewire3d.segmentation import guidewire_mask
-
     d, p, r, t = [], [], [], []
     model = method == "unet-wire"
     for f, m in zip(frames, truth_masks):
@@ -164,8 +162,6 @@ def _heldout_error_px(points_lps_mm, truth, idx):
 
 def case_options(k: int, *, first_seed: int = 100):
     """Phantom options of the bench's k-th case: distractors in odd cases, 0.014"/0.035" wires in pairs."""
-    from guidewire3d import phantom
-
     return phantom.PhantomOptions(seed=first_seed + k, n_frames=6, distractors=bool(k % 2),
                                   wire_diameter_mm=(0.36 if k % 4 < 2 else 0.89))
 
@@ -175,8 +171,6 @@ def simulated_case_from_dicom(opts):
 
     Returns ``(case, truth, volume, roadmap_run, frames_run)``.
     """
-    from guidewire3d import phantom, pipeline
-
     case = phantom.simulate(opts)
     with tempfile.TemporaryDirectory() as td:
         cdir = phantom.write_case(case, Path(td) / "case")
@@ -189,12 +183,8 @@ def run_bench(*, n_cases: int = 10, out="bench-results", first_seed: int = 100) 
     """End-to-end benchmark over ``n_cases`` simulated cases (seeds ``first_seed`` ...)."""
     from tqdm import tqdm
 
-    from guidewire3d import phantom, pipeline, reconstruction, registration
-
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    from guidewire3d.wiremask import projected_wire_radius_px
-
     seg = {m: {"dice": [], "prec": [], "rec": [], "t": [], "dice_014": []} for m in ("unet", "unet-wire", "ridge")}
     rows2 = {m: {"perr": [], "ldev": [], "t": [], "err3d": [], "tip": [], "held": [], "ok": 0, "n": 0}
              for m in ("Proposed (vessel prior)", "B-spline", "EPnP", "Paper depth formula")}
@@ -294,8 +284,6 @@ def run_bench(*, n_cases: int = 10, out="bench-results", first_seed: int = 100) 
     print(text)
     md = "\n".join([f"_{header}_", "", "**Table I — guidewire segmentation**", "", _markdown(h1, t1), "",
                     "**Table II — 3D reconstruction**", "", _markdown(h2, t2), "", reg_line + "  ", live_line])
-    from guidewire3d.io import atomic_write_text
-
     atomic_write_text(out / "bench.md", md + "\n")
     for name, h, t in (("table1.csv", h1, t1), ("table2.csv", h2, t2)):
         buf = _io.StringIO()

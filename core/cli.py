@@ -10,12 +10,12 @@ import sys
 import traceback
 
 from guidewire3d.errors import Guidewire3DError
+from guidewire3d.methods import ReconMethod, SegMethod, choices
 
 EXIT_BAD_INPUT = 2
-# the values of reconstruction.ReconMethod and segmentation.SegMethod (kept here so that --help
-# does not import torch; tests/test_cli.py checks they match)
-RECON_METHODS = ("vessel", "paper", "bspline")
-SEGMENTERS = ("unet", "ridge")
+# the choices of --method and --segmenter (guidewire3d.methods imports nothing heavy)
+RECON_METHODS = choices(ReconMethod)
+SEGMENTERS = choices(SegMethod)
 
 
 class _UsageError(Exception):
@@ -49,14 +49,56 @@ def _add_geometry_overrides(p: argparse.ArgumentParser) -> None:
     g.add_argument("--secondary", type=float, metavar="DEG", help="PositionerSecondaryAngle (0018,1511), CRA +")
 
 
-def geometry_overrides(args) -> dict:
-    return {
-        "sid_mm": getattr(args, "sid", None),
-        "sod_mm": getattr(args, "sod", None),
-        "pixel_mm": getattr(args, "pixel", None),
-        "primary_deg": getattr(args, "primary", None),
-        "secondary_deg": getattr(args, "secondary", None),
-    }
+# --- handlers of reconstruct, demo and bench -----------------------------------------------
+# The stages are imported when a command runs, so that `--help` and the other commands start fast.
+def _stderr(msg: str) -> None:
+    print(msg, file=sys.stderr)
+
+
+def _viewer_screenshot(out_dir, path):
+    """``screenshot.png`` of an output folder, rendered offscreen by the viewer's own scene code."""
+    from guidewire3d.viewer.app import render_outdir_screenshot
+
+    return render_outdir_screenshot(out_dir, path)
+
+
+def _run_reconstruct(args) -> int:
+    from guidewire3d import pipeline
+    from guidewire3d.registration import Verdict
+
+    result = pipeline.run_to_outdir(
+        args.cta, args.roadmap, args.frames, args.out, series_uid=args.series_uid,
+        overrides=pipeline.geometry_overrides(args), roadmap_frame=args.roadmap_frame, seeds_lps_mm=args.seed_lps,
+        method=args.method, segmenter=args.segmenter, force=args.force, images=not args.no_images,
+        progress=True, track_motion=args.track_motion, log=_stderr, screenshot=_viewer_screenshot,
+    )
+    n_ok = sum(1 for w in result.wires3d if w.success)
+    n_unsure = sum(1 for fr in result.frame_results if fr.verdict.value == "uncertain")
+    unsure = f" ({n_unsure} UNCERTAIN: see verdict_message in report.json)" if n_unsure else ""
+    print(f"wrote {args.out}: registration {result.registration.verdict.label} "
+          f"({result.registration.mean_residual_px:.2f} px), {n_ok}/{len(result.wires3d)} frames reconstructed{unsure}")
+    if not result.reconstructed:
+        why = ("is uncertain (the overlay fits, the roadmap does not settle the pose)"
+               if result.registration.verdict is Verdict.UNCERTAIN else "failed")
+        _stderr(f"guidewire3d: registration {why}; frames were not reconstructed. Correct it with "
+                f"`guidewire3d view {args.out}` or rerun with --force.")
+        return 1
+    return 0
+
+
+def _run_demo(args) -> int:
+    from guidewire3d import bench
+    from guidewire3d.errors import InputError
+
+    if args.seed is not None and args.seed < 0:
+        raise InputError(f"--seed {args.seed}: expected a non-negative integer")
+    return bench.run_demo(out=args.out, seed=args.seed, screenshot=_viewer_screenshot)
+
+
+def _run_bench(args) -> int:
+    from guidewire3d import bench
+
+    return bench.run_bench(n_cases=args.cases, out=args.out)
 
 
 # --- subcommands ----------------------------------------------------------------------
@@ -94,12 +136,7 @@ def _add_reconstruct_parser(sub) -> None:
     p.add_argument("--no-images", action="store_true", help="skip screenshot/overlay/metrics PNGs")
     _add_geometry_overrides(p)
 
-    def run(args):
-        from guidewire3d import pipeline
-
-        return pipeline.cli_reconstruct(args)
-
-    p.set_defaults(func=run)
+    p.set_defaults(func=_run_reconstruct)
 
 
 def _add_demo_parser(sub) -> None:
@@ -109,12 +146,7 @@ def _add_demo_parser(sub) -> None:
     p.add_argument("--out", default="guidewire3d-demo", help="output folder (default: ./guidewire3d-demo)")
     p.add_argument("--seed", type=int, default=None, help="phantom seed (default: the fixed demo seed)")
 
-    def run(args):
-        from guidewire3d import pipeline
-
-        return pipeline.cli_demo(args)
-
-    p.set_defaults(func=run)
+    p.set_defaults(func=_run_demo)
 
 
 def _add_view_parser(sub) -> None:
@@ -146,12 +178,7 @@ def _add_bench_parser(sub) -> None:
     p.add_argument("--cases", type=int, default=10, help="number of simulated cases (default 10)")
     p.add_argument("--out", default="bench-results", help="folder for CSV/Markdown tables")
 
-    def run(args):
-        from guidewire3d import pipeline
-
-        return pipeline.cli_bench(args)
-
-    p.set_defaults(func=run)
+    p.set_defaults(func=_run_bench)
 
 
 def _add_live_parser(sub) -> None:

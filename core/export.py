@@ -10,7 +10,8 @@ from pathlib import Path
 
 import numpy as np
 
-from guidewire3d.io import atomic_write_text, atomic_write_via
+from guidewire3d.io import atomic_write_bytes, atomic_write_text, atomic_write_via
+from guidewire3d.metrics import evaluate_against_truth
 
 __all__ = [
     "polyline_polydata",
@@ -67,6 +68,11 @@ def wire_polydata(wire):
     poly = polyline_polydata(pts, {"uncertainty_mm": np.asarray(wire.uncertainty_mm, float), "arclength_mm": arc})
     poly.GetPointData().SetActiveScalars("uncertainty_mm")
     return poly
+
+
+#: Radius (mm) of the guidewire tube everywhere it is drawn or exported (the STL, the viewer, the
+#: Slicer module): a 0.035 inch wire is 0.89 mm across, and 0.5 mm keeps a 0.014 inch one visible.
+WIRE_TUBE_RADIUS_MM = 0.5
 
 
 def tube_polydata(line_poly, radius_mm: float, *, sides: int = 12):
@@ -219,8 +225,6 @@ def report_dict(result, *, inputs: dict, truth_metrics: dict | None = None, sour
 
 
 def write_report(result, out_dir, *, inputs: dict, truth=None) -> Path:
-    from guidewire3d.metrics import evaluate_against_truth
-
     tm = evaluate_against_truth(result, truth) if truth is not None else None
     return atomic_write_text(Path(out_dir) / "report.json", json.dumps(report_dict(result, inputs=inputs, truth_metrics=tm), indent=1))
 
@@ -249,8 +253,6 @@ def write_registration_inputs(out_dir, tree, centerline2d) -> Path:
         centerline_uv_px=np.asarray(centerline2d.points_uv_px, float),
         centerline_radius_px=np.asarray(centerline2d.radius_px, float),
     )
-    from guidewire3d.io import atomic_write_bytes
-
     return atomic_write_bytes(Path(out_dir) / "registration_inputs.npz", buf.getvalue())
 
 
@@ -301,8 +303,6 @@ def write_png(path, rgb) -> Path:
     ok, buf = cv2.imencode(".png", a if a.ndim == 2 else cv2.cvtColor(a, cv2.COLOR_RGB2BGR))
     if not ok:
         raise OSError(f"{path}: PNG encoding failed")
-    from guidewire3d.io import atomic_write_bytes
-
     return atomic_write_bytes(path, buf.tobytes())
 
 
@@ -363,7 +363,7 @@ def metrics_figure(result, path) -> Path:
 # --------------------------------------------------------------------------------------
 # the whole folder
 # --------------------------------------------------------------------------------------
-def write_outdir(result, out_dir, *, inputs: dict, images: bool = True, truth=None) -> Path:
+def write_outdir(result, out_dir, *, inputs: dict, images: bool = True, truth=None, screenshot=None) -> Path:
     """Write every file of the output folder (see the README, "Output folder")."""
     out_dir = Path(out_dir)
     tree = result.tree
@@ -374,13 +374,12 @@ def write_outdir(result, out_dir, *, inputs: dict, images: bool = True, truth=No
     write_registration(out_dir, pose=reg.pose, automatic_pose=reg.pose, carm=result.carm,
                        reg_record=registration_record(reg))
     write_registration_inputs(out_dir, tree, result.centerline2d)
-    tube_r = 0.5
     for idx, w3 in zip(result.frame_indices, result.wires3d):
         if not w3.success:
             continue
         line = wire_polydata(w3)
         write_polydata(line, out_dir / f"guidewire_{idx:04d}.vtp")
-        write_polydata(tube_polydata(line, tube_r), out_dir / f"guidewire_{idx:04d}.stl")
+        write_polydata(tube_polydata(line, WIRE_TUBE_RADIUS_MM), out_dir / f"guidewire_{idx:04d}.stl")
     write_report(result, out_dir, inputs=inputs, truth=truth)
     if images:
         cl_uv = result.carm.project(tree.points_lps_mm, reg.pose)
@@ -393,12 +392,6 @@ def write_outdir(result, out_dir, *, inputs: dict, images: bool = True, truth=No
             write_png(out_dir / f"overlay_{idx:04d}.png", rgb)
         if result.wires3d:
             metrics_figure(result, out_dir / "metrics.png")
-        render_screenshot(out_dir, out_dir / "screenshot.png")
+        if screenshot is not None:
+            screenshot(out_dir, out_dir / "screenshot.png")
     return out_dir
-
-
-def render_screenshot(out_dir, path, *, frame: int | None = None, size=(1200, 800)) -> Path:
-    """Offscreen 3D screenshot of an output folder, through the viewer's own scene code."""
-    from guidewire3d.viewer.app import render_outdir_screenshot
-
-    return render_outdir_screenshot(out_dir, path, frame=frame, size=size)

@@ -45,6 +45,21 @@ from scipy import sparse
 from scipy.sparse import csgraph
 
 from guidewire3d.errors import InputError, SegmentationError
+from guidewire3d.imaging import (
+    BLANK_REL_SPREAD,
+    FOV_MARGIN_PX,
+    REFERENCE_SIZE_PX,
+    WIDE_RADIUS_PX,
+    as_image,
+    as_mask,
+    dark_vessels_auto,
+    field_of_view,
+    grey,
+    normalise01,
+    polyline_normals,
+)
+from guidewire3d.metrics import resample_polyline
+from guidewire3d.vessels2d_learned import DEFAULT_WEIGHTS_PATH, learned_vessel_mask
 from guidewire3d.wirepresence import WirePresence, presence_of_curve
 
 __all__ = [
@@ -61,7 +76,6 @@ __all__ = [
 
 # --------------------------------------------------------------------------------------------
 # Vessel mask parameters (lengths in px for a REFERENCE_SIZE_PX image; they scale with the size).
-REFERENCE_SIZE_PX = 300.0
 BACKGROUND_RADIUS_PX = 8.0        # top-hat disk radius (must exceed the widest vessel's radius)
 TOPHAT_SMOOTH_PX = 0.7            # Gaussian smoothing of the top-hat (noise)
 VESSELNESS_SIGMAS_PX = (1.0, 4.0)  # smallest, largest Hessian scale
@@ -72,12 +86,7 @@ MIN_COMPONENT_FRACTION = 0.001    # components smaller than this fraction of the
 MIN_COMPONENT_OF_LARGEST = 0.1    # ... and those smaller than this fraction of the largest (the tree)
 FINE_MAX_RADIUS_PX = 6.0          # widest vessel radius the single-resolution pass covers
 MAX_COARSE_FACTOR = 8             # largest binning of the coarse pass (see max_radius_px)
-WIDTH_COMPLETION = True           # grow detections to full width (FWHM of a wide top-hat)
-WIDE_RADIUS_PX = 12.0             # its top-hat radius; also the search distance
 HALF_MAX = 0.5                    # fraction of the local vessel contrast at the vessel edge
-FOV_DARK_FRACTION = 0.25          # smoothed intensity below this x median = outside the collimator
-BORDER_PX = 2                     # image border band ignored (edge artefacts)
-FOV_MARGIN_PX = 5.0               # erosion of the field of view (edge responses)
 # Ordered-wire parameters.
 MIN_WIRE_LENGTH_PX = 10.0         # a shorter longest path is "no wire"
 MAX_MASK_FRACTION = 0.25          # a mask covering more of the image is not a wire
@@ -94,7 +103,6 @@ PROFILE_STEP_PX = 0.5            # sampling step across the normal (centring)
 REFINE_STEP_PX = 0.25             # sampling step along the tangent (end extension)
 REFINE_SMOOTH_PX = 2.0            # Gaussian smoothing (arc length) of the pixel path before normals
 SATURATED_FRACTION = 0.5         # frame with this fraction of pixels at its maximum: saturated
-BLANK_REL_SPREAD = 1e-3           # image 1-99 % spread below this x its level: blank/saturated
 # Proximal end without a hint: a guiding catheter (a darker tube around the wire) marks it.
 CATHETER_SEARCH_PX = 30.0         # arc length from each wire end searched for the catheter
 CATHETER_NEAR_PX = (1.0, 4.0)     # band beyond the wire's half-width on each side: the catheter wall
@@ -103,97 +111,9 @@ CATHETER_MIN_Z = 2.0              # catheter contrast (noise sigmas, weaker side
 CATHETER_MIN_GAP_Z = 1.5          # ... and by which it must exceed the other end's
 
 
-def _grey(image) -> np.ndarray:
-    """The image as a 2D array: single-channel stacks ``(1, H, W)`` / ``(H, W, 1)`` squeezed,
-    colour ``(H, W, 3)`` / ``(H, W, 4)`` (an angiogram saved as RGB or RGBA) reduced to its
-    luminance (alpha ignored); anything else is returned unchanged for the caller's check."""
-    a = np.asarray(image)
-    if a.ndim == 3 and a.shape[0] == 1:
-        return a[0]
-    if a.ndim == 3 and a.shape[2] == 1:
-        return a[..., 0]
-    if a.ndim == 3 and a.shape[2] in (3, 4) and np.issubdtype(a.dtype, np.number) and min(a.shape[:2]) >= 8:
-        from skimage.color import rgb2gray
-
-        return rgb2gray(a[..., :3])
-    return a
-
-
-def _as_image(image, name: str) -> np.ndarray:
-    a = _grey(image)
-    if a.ndim != 2 or min(a.shape) < 8:
-        raise InputError(f"{name}: expected a 2D image of at least 8x8 pixels, got shape {a.shape}")
-    if a.dtype == bool:
-        a = a.astype(np.float32)
-    if not np.issubdtype(a.dtype, np.number):
-        raise InputError(f"{name}: expected a numeric array, got dtype {a.dtype}")
-    a = a.astype(np.float64, copy=False)
-    if not np.all(np.isfinite(a)):
-        raise InputError(f"{name}: image contains NaN or infinite values")
-    return a
-
-
-def _as_mask(mask, name: str) -> np.ndarray:
-    m = np.asarray(mask)
-    if m.ndim != 2:
-        raise InputError(f"{name}: expected a 2D mask, got shape {m.shape}")
-    if m.dtype == bool:
-        return m
-    if not np.issubdtype(m.dtype, np.number):
-        raise InputError(f"{name}: expected a boolean or numeric mask, got dtype {m.dtype}")
-    if np.issubdtype(m.dtype, np.floating):
-        if not np.all(np.isfinite(m)):
-            raise InputError(f"{name}: mask contains NaN or infinite values")
-        return m > 0.5
-    return m != 0
-
-
 # --------------------------------------------------------------------------------------------
 # Vessels
 # --------------------------------------------------------------------------------------------
-
-def _normalise01(a: np.ndarray) -> tuple[np.ndarray, bool]:
-    """Robust [0, 1] normalisation; second value False if the image is flat.
-
-    Non-negative images are divided by their 99.5 percentile (zero stays zero, so that ``-log`` is
-    the attenuation); images with negative values are stretched between the 0.5 and 99.5 percentiles.
-    """
-    sub = a[:: max(1, a.shape[0] // 256), :: max(1, a.shape[1] // 256)]
-    lo, hi = (float(x) for x in np.percentile(sub, [0.5, 99.5]))
-    level = max(abs(lo), abs(hi), 1e-12)
-    if hi - lo <= BLANK_REL_SPREAD * level:
-        return np.zeros_like(a), False
-    if lo >= 0.0:
-        # Non-negative intensities (raw X-ray): keep zero as zero so that log(I) is attenuation.
-        return np.clip(a / hi, 0.0, 1.0), True
-    return np.clip((a - lo) / (hi - lo), 0.0, 1.0), True
-
-
-def _dark_vessels_auto(im01: np.ndarray, scale: float) -> bool:
-    """Polarity: compare the strongest dark and bright line-sized details (black vs white top-hat
-    with a disk wider than the vessels, on a subsampled copy)."""
-    from skimage.morphology import disk
-
-    k = max(1, int(round(2.0 * scale)))
-    small = ndi.uniform_filter(im01, size=k)[::k, ::k]
-    fp = disk(max(2, int(round(WIDE_RADIUS_PX * scale / k))))
-    dark = ndi.grey_closing(small, footprint=fp) - small
-    bright = small - ndi.grey_opening(small, footprint=fp)
-    return float(np.percentile(dark, 99.5)) >= float(np.percentile(bright, 99.5))
-
-
-def _field_of_view(im01: np.ndarray, margin_px: int) -> np.ndarray:
-    """Pixels inside the collimator, away from the image border and dark shutter edges."""
-    sm = ndi.uniform_filter(im01, size=2 * margin_px + 1)
-    med = float(np.median(sm))
-    fov = sm > FOV_DARK_FRACTION * med if med > 0 else np.ones_like(sm, bool)
-    # Erode away from the shutter edges only; the image border itself loses BORDER_PX.
-    fov = ndi.binary_erosion(fov, iterations=margin_px, border_value=1)
-    b = BORDER_PX
-    fov[:b] = fov[-b:] = False
-    fov[:, :b] = fov[:, -b:] = False
-    return fov
-
 
 def _vessel_feature(a: np.ndarray, dark_vessels, scale: float | None = None):
     """Top-hat x vesselness feature in [0, ~1], the field-of-view mask, the attenuation image and
@@ -201,16 +121,16 @@ def _vessel_feature(a: np.ndarray, dark_vessels, scale: float | None = None):
     from skimage.filters import sato
     from skimage.morphology import disk
 
-    im01, ok = _normalise01(a)
+    im01, ok = normalise01(a)
     if not ok:
         return None, None, None, None
     if scale is None:
         scale = max(a.shape) / REFERENCE_SIZE_PX
     if dark_vessels is None:
-        dark_vessels = _dark_vessels_auto(im01, scale)
+        dark_vessels = dark_vessels_auto(im01, scale)
     if not dark_vessels:
         im01 = 1.0 - im01
-    fov = _field_of_view(im01, max(2, int(round(FOV_MARGIN_PX * scale))))
+    fov = field_of_view(im01, max(2, int(round(FOV_MARGIN_PX * scale))))
     if fov.sum() < 64:
         return None, None, None, None
     att = -np.log(im01 + 1.0 / 255.0)                  # vessels bright in attenuation
@@ -262,8 +182,6 @@ def _vessel_method(method) -> VesselMethod:
 
 def _auto_vessel_method(image, max_radius_px: float | None) -> VesselMethod:
     """The method ``AUTO`` stands for (see :func:`vessel_mask`)."""
-    from guidewire3d.vessels2d_learned import DEFAULT_WEIGHTS_PATH
-
     if max_radius_px is not None or not DEFAULT_WEIGHTS_PATH.is_file():
         return VesselMethod.CLASSICAL
     a = np.asarray(image)
@@ -320,16 +238,14 @@ def vessel_mask(image, *, dark_vessels: bool | None = None, max_radius_px: float
     if method is VesselMethod.AUTO:
         method = _auto_vessel_method(image, max_radius_px)
     if method is VesselMethod.LEARNED:
-        from guidewire3d.vessels2d_learned import learned_vessel_mask
-
-        return learned_vessel_mask(_as_image(image, "image"), dark_vessels=dark_vessels)
-    a = _as_image(image, "image")
-    im01, ok = _normalise01(a)
+        return learned_vessel_mask(as_image(image, "image"), dark_vessels=dark_vessels)
+    a = as_image(image, "image")
+    im01, ok = normalise01(a)
     if not ok:
         return np.zeros(a.shape, bool)
     scale = max(a.shape) / REFERENCE_SIZE_PX
     if dark_vessels is None:
-        dark_vessels = _dark_vessels_auto(im01, scale)
+        dark_vessels = dark_vessels_auto(im01, scale)
     m, fov, att = _detect(a, bool(dark_vessels), scale)
     if m is None:
         return np.zeros(a.shape, bool)
@@ -349,7 +265,7 @@ def vessel_mask(image, *, dark_vessels: bool | None = None, max_radius_px: float
             up[:h, :w] = np.repeat(np.repeat(mc, f, axis=0), f, axis=1)
             m = m | (up & fov)
     m = _filter_components(m)
-    if WIDTH_COMPLETION and m.any():
+    if m.any():                                  # grow the detections to full width (FWHM)
         m = _complete_width(m, th_l, fov, scale)
     return m
 
@@ -482,7 +398,6 @@ def _prune_spurs(skel: np.ndarray, radius: np.ndarray, *, min_spur_px: float, n_
 
 
 # Sub-pixel centring of the roadmap centerline (see _centre_across).
-CENTRE_SUBPIXEL = True            # roadmap_centerline centres its points across the vessel
 CENTRE_SMOOTH_PX = 0.7            # Gaussian smoothing of the attenuation image (noise)
 CENTRE_STEP_PX = 0.25             # profile sampling step across the vessel
 CENTRE_MARGIN_PX = 4.0            # profile reaches this far beyond the local mask radius
@@ -493,7 +408,7 @@ CENTRE_MAX_HALF_WIDTH = 2.0       # a half-width above this x radius + 2 px: mer
 def _attenuation(a: np.ndarray, mask: np.ndarray) -> np.ndarray:
     """Smoothed attenuation ``-log(I)`` with the vessels bright, polarity from the mask (vessel
     pixels darker or brighter than their surroundings)."""
-    im01, ok = _normalise01(a)
+    im01, ok = normalise01(a)
     if not ok:
         return np.zeros_like(a)
     ring = ndi.binary_dilation(mask, iterations=3) & ~mask
@@ -584,8 +499,7 @@ class Centerline2D:
     ----------
     points_uv_px : (M, 2) ndarray of float
         Centerline points ``(u, v) = (col, row)``, one per skeleton pixel (after spur removal),
-        moved across the vessel to the centre of its intensity profile (sub-pixel; see
-        ``CENTRE_SUBPIXEL``). Points where the profile is not one isolated vessel (junctions,
+        moved across the vessel to the centre of its intensity profile (sub-pixel). Points where the profile is not one isolated vessel (junctions,
         touching vessels) stay at their skeleton pixel centre.
     radius_px : (M,) ndarray of float
         Local vessel radius (Euclidean distance transform of the mask at the skeleton pixel), px.
@@ -643,11 +557,11 @@ def roadmap_centerline(image, *, mask=None, max_radius_px: float | None = None) 
     """
     from skimage.morphology import skeletonize
 
-    a = _as_image(image, "image")
+    a = as_image(image, "image")
     if mask is None:
         m = vessel_mask(a, max_radius_px=max_radius_px)
     else:
-        m = _as_mask(mask, "mask")
+        m = as_mask(mask, "mask")
         if m.shape != a.shape:
             raise InputError(f"mask: shape {m.shape} differs from the image's {a.shape}")
         m = m.copy()
@@ -673,8 +587,7 @@ def roadmap_centerline(image, *, mask=None, max_radius_px: float | None = None) 
         branch = np.zeros((0, 2))
     pts = np.column_stack([cc, rr]).astype(float)
     rad = radius[rr, cc].astype(float)
-    if CENTRE_SUBPIXEL:
-        pts = _centre_across(_attenuation(a, m), pts, rad)
+    pts = _centre_across(_attenuation(a, m), pts, rad)
     return Centerline2D(
         points_uv_px=pts,
         radius_px=rad,
@@ -999,8 +912,6 @@ def _bridge(paths, max_gap_px: float):
 
 def _smooth_polyline(p: np.ndarray, sigma_px: float) -> np.ndarray:
     """Resample at 1 px and Gaussian-smooth along the arc length (ends kept in place)."""
-    from guidewire3d.metrics import resample_polyline
-
     q = resample_polyline(p, 1.0)
     if len(q) < 5 or sigma_px <= 0:
         return q
@@ -1009,16 +920,10 @@ def _smooth_polyline(p: np.ndarray, sigma_px: float) -> np.ndarray:
     return s
 
 
-def _normals(p: np.ndarray) -> np.ndarray:
-    t = np.gradient(p, axis=0)
-    t /= np.maximum(np.linalg.norm(t, axis=1, keepdims=True), 1e-12)
-    return np.column_stack([-t[:, 1], t[:, 0]])
-
-
 def _refine(p_rc: np.ndarray, maskf: np.ndarray, darkness: np.ndarray | None, half_px: float) -> np.ndarray:
     """Move each point of an ordered (row, col) polyline to the weighted centroid of the mask
     (times the image darkness, if given) sampled along its normal."""
-    nrm = _normals(p_rc)
+    nrm = polyline_normals(p_rc)
     offs = np.arange(-half_px, half_px + 1e-9, PROFILE_STEP_PX)
     samp = p_rc[:, None, :] + offs[None, :, None] * nrm[:, None, :]          # (N, K, 2)
     w = ndi.map_coordinates(maskf, [samp[..., 0].ravel(), samp[..., 1].ravel()], order=1,
@@ -1044,7 +949,7 @@ def _catheter_contrast(img: np.ndarray, uv: np.ndarray, half_width_px: float) ->
     rc = uv[s <= CATHETER_SEARCH_PX][:, ::-1]
     if len(rc) < 3:
         return 0.0
-    nrm = _normals(rc)
+    nrm = polyline_normals(rc)
 
     def band(lo_hi, sign):
         w = sign * (half_width_px + np.arange(lo_hi[0], lo_hi[1] + 1e-9, PROFILE_STEP_PX))
@@ -1144,12 +1049,10 @@ def ordered_wire(mask, *, image=None, proximal_hint_uv=None, max_gap_px: float =
     """
     from skimage.morphology import skeletonize
 
-    from guidewire3d.metrics import resample_polyline
-
-    m_full = _as_mask(mask, "mask")
+    m_full = as_mask(mask, "mask")
     img = None
     if image is not None:
-        img = _grey(image)
+        img = grey(image)
         if img.shape != m_full.shape:
             raise InputError(f"image: shape {img.shape} differs from the mask's {m_full.shape}")
         if img.dtype == bool or not np.issubdtype(img.dtype, np.number):
@@ -1347,8 +1250,8 @@ def wire_graph_spectrum(points_uv_px, image, *, sigma_g: float = 0.85) -> WireSp
         raise InputError(f"points_uv_px: expected finite (N, 2) points with N >= 2, got shape {p.shape}")
     if not (np.isfinite(sigma_g) and sigma_g > 0):
         raise InputError(f"sigma_g: expected a positive number, got {sigma_g}")
-    a = _as_image(image, "image")
-    im01, _ = _normalise01(a)
+    a = as_image(image, "image")
+    im01, _ = normalise01(a)
     gv = ndi.gaussian_filter(im01, 1.0, order=(1, 0))
     gu = ndi.gaussian_filter(im01, 1.0, order=(0, 1))
     coords = [p[:, 1], p[:, 0]]

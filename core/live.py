@@ -26,8 +26,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from guidewire3d import image2d, reconstruction, segmentation
 from guidewire3d.errors import Guidewire3DError
 from guidewire3d.geometry import CArm, Pose
+from guidewire3d.image2d import OrderedWire
+from guidewire3d.motion import MotionTracker
+from guidewire3d.registration import Verdict
 from guidewire3d.vesseltree import VesselTree
 
 __all__ = ["Orientation", "FrameResult", "Session", "orientation_of"]
@@ -211,8 +215,6 @@ class Session:
     def __init__(self, tree: VesselTree, carm: CArm, pose: Pose, *, registration_covariance=None,
                  segmenter="unet", method="vessel", options=None, track_motion: bool = False,
                  motion_options=None):
-        from guidewire3d import reconstruction
-
         self.tree, self.carm = tree, carm
         self.method = getattr(method, "value", method)
         self.options = options
@@ -233,8 +235,6 @@ class Session:
         also the centre of the motion prior. The wire's temporal prior is kept."""
         self.motion_tracker = None
         if self.track_motion:
-            from guidewire3d.motion import MotionTracker
-
             self.motion_tracker = MotionTracker(self.tree, self.carm, pose, covariance=registration_covariance,
                                                 options=self.motion_options)
         self._use_pose(pose, registration_covariance)
@@ -253,8 +253,6 @@ class Session:
     @property
     def segmenter(self):
         if self._segmenter is None:
-            from guidewire3d import segmentation
-
             self._segmenter = segmentation.GuidewireSegmenter(method=self.segmenter_method)
         return self._segmenter
 
@@ -274,8 +272,6 @@ class Session:
     # --- frames -------------------------------------------------------------------------------
     def process(self, frame, *, index: int | None = None, timestamp: float = float("nan")) -> FrameResult:
         """Segment, order and reconstruct one frame; never raises on a frame (a bad one is failed)."""
-        from guidewire3d import image2d
-
         t0 = time.perf_counter()
         index = self.n_frames if index is None else int(index)
         try:
@@ -298,8 +294,6 @@ class Session:
         return self._finish(index, wire2d, None if image is None else np.asarray(image), t0, timestamp)
 
     def _failed(self, index, wire2d, message, t0, timestamp) -> FrameResult:
-        from guidewire3d.registration import Verdict
-
         self.n_frames += 1
         self.tracker.n_frames += 1
         self.tracker.failed_frames.append(index)
@@ -308,8 +302,6 @@ class Session:
                            message, None, time.perf_counter() - t0, timestamp, self.pose)
 
     def _finish(self, index, wire2d, image, t0, timestamp) -> FrameResult:
-        from guidewire3d.registration import Verdict
-
         has_flag = hasattr(wire2d, "success")
         if has_flag and not wire2d:
             return self._failed(index, wire2d, f"2D wire not found: {wire2d.message}", t0, timestamp)
@@ -355,6 +347,4 @@ def _finite_or_none(x):
 
 
 def _no_wire(message: str):
-    from guidewire3d.image2d import OrderedWire
-
     return OrderedWire(points_uv_px=np.zeros((0, 2)), success=False, message=message)

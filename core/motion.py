@@ -31,6 +31,7 @@ from scipy.spatial import cKDTree
 
 from guidewire3d.errors import InputError
 from guidewire3d.geometry import CArm, Pose, hat, so3_exp
+from guidewire3d.registration import RegistrationResult
 from guidewire3d.vesseltree import VesselTree
 
 __all__ = ["MotionOptions", "MotionTracker", "track_poses", "curve_to_tree_distance_px"]
@@ -215,8 +216,6 @@ class MotionTracker:
 
         An empty or unusable curve keeps the previous frame's pose (verdict FAILED, with why).
         """
-        from guidewire3d.registration import RegistrationResult
-
         t0 = time.perf_counter()
         opt = self.options
         c = np.asarray(curve_uv_px, float).reshape(-1, 2) if curve_uv_px is not None else np.zeros((0, 2))

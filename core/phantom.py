@@ -49,11 +49,12 @@ from pathlib import Path
 import numpy as np
 from scipy import ndimage
 
+from guidewire3d import io
+from guidewire3d.assets import resource_path
 from guidewire3d.errors import GeometryError, InputError
 from guidewire3d.geometry import CArm, Pose, so3_exp
 from guidewire3d.io import Volume
 from guidewire3d.vesseltree import VesselTree
-from guidewire3d.assets import resource_path
 
 __all__ = [
     "VolumeSize",
@@ -1343,7 +1344,6 @@ def write_case(case: PhantomCase, out_dir) -> Path:
     Everything goes into a temporary sibling folder that is renamed to ``out_dir`` at the end, so
     a reader never sees a half-written case. ``out_dir`` must be absent or empty.
     """
-    from guidewire3d import io
     from pydicom.uid import generate_uid
 
     out_dir = io.require_empty_folder(out_dir)
@@ -1507,8 +1507,6 @@ def cli_main(args) -> int:
     import time
 
     t0 = time.perf_counter()
-    from guidewire3d import io
-
     try:
         opts = PhantomOptions(
             seed=args.seed, n_frames=args.frames, wire_diameter_mm=args.wire_diameter, distractors=args.distractors,

@@ -13,9 +13,11 @@ from pathlib import Path
 
 import numpy as np
 
-from guidewire3d import io
+from guidewire3d import export, image2d, io, registration, vessels3d
+from guidewire3d import live as live_engine
 from guidewire3d.errors import InputError
 from guidewire3d.geometry import CArm, Pose
+from guidewire3d.vessels3d import VesselOptions
 
 __all__ = ["PipelineResult", "run", "run_to_outdir", "load_inputs", "choose_roadmap_frame", "check_roadmap_frame",
            "check_seeds"]
@@ -132,8 +134,6 @@ def check_seeds(volume: io.Volume, seeds_lps_mm, *, option: str = "--seed-lps") 
     """InputError naming ``option`` if a seed point lies outside the CTA, or has no contrast-filled
     voxel (``VesselOptions.lumen_min_hu``) within ``VesselOptions.seed_radius_mm``: cheap checks,
     done before the vessel stage."""
-    from guidewire3d.vessels3d import VesselOptions
-
     if seeds_lps_mm is None:
         return
     opt = VesselOptions()
@@ -178,9 +178,6 @@ def run(volume: io.Volume, roadmap: io.XARun, frames: io.XARun, *, roadmap_frame
         Update the pose in every live frame from its wire (``motion.MotionTracker``, the
         registration as its prior) and reconstruct the frame in it.
     """
-    from guidewire3d import image2d, registration, vessels3d
-    from guidewire3d import live as live_engine
-
     timing: dict[str, float] = {}
     t0 = time.perf_counter()
     vessels = vessels3d.extract_vessels(volume, seeds_lps_mm=seeds_lps_mm, progress=progress)
@@ -236,22 +233,34 @@ def run(volume: io.Volume, roadmap: io.XARun, frames: io.XARun, *, roadmap_frame
                           frame_results=frame_results)
 
 
+def geometry_overrides(args) -> dict:
+    """The C-arm overrides of a parsed command line (``--sid --sod --pixel --primary --secondary``;
+    absent or ``None``: the DICOM tags' values), as :func:`load_inputs` takes them."""
+    return {
+        "sid_mm": getattr(args, "sid", None),
+        "sod_mm": getattr(args, "sod", None),
+        "pixel_mm": getattr(args, "pixel", None),
+        "primary_deg": getattr(args, "primary", None),
+        "secondary_deg": getattr(args, "secondary", None),
+    }
+
+
 MIN_FREE_MB = 32  # refuse to start with less free space where --out goes (4 frames take 3 MB, images 5 MB more)
 
 
 def run_to_outdir(cta, roadmap, frames, out_dir, *, series_uid=None, overrides=None, roadmap_frame=None,
                   seeds_lps_mm=None, method="vessel", segmenter="unet", force=False, images=True,
-                  progress=True, replace=False, truth=None, track_motion=False, log=None) -> PipelineResult:
+                  progress=True, replace=False, truth=None, track_motion=False, log=None,
+                  screenshot=None) -> PipelineResult:
     """Read the files, run, and write the output folder atomically (a staging folder renamed at the end).
 
     Everything that can be checked is checked before the heavy work: the output location
     (writable, empty, not being written by another run), every input file, the roadmap frame and
     the seed points. ``replace`` lets a previous output (a folder with ``report.json``) be replaced.
     While the run works its staging folder holds ``out_dir`` (``io.staged_folder``): a second run
-    into the same folder is refused.
+    into the same folder is refused. ``screenshot(out_dir, png_path)``, when given (the front ends
+    pass the viewer's offscreen renderer), writes ``screenshot.png`` with the other images.
     """
-    from guidewire3d import export
-
     out_dir = Path(out_dir)
     replace = bool(replace and (out_dir / "report.json").is_file())
     io.require_empty_folder(out_dir, replace=replace, min_free_mb=MIN_FREE_MB)
@@ -278,56 +287,10 @@ def run_to_outdir(cta, roadmap, frames, out_dir, *, series_uid=None, overrides=N
 
         def write(staging: Path) -> None:
             t0 = time.perf_counter()
-            export.write_outdir(result, staging, inputs=inputs, images=images, truth=truth)
+            export.write_outdir(result, staging, inputs=inputs, images=images, truth=truth,
+                                screenshot=screenshot)
             result.timing["export"] = time.perf_counter() - t0
             export.write_report(result, staging, inputs=inputs, truth=truth)  # again, with export timing
 
         io.write_into(out_dir, staging, write)
     return result
-
-
-# --------------------------------------------------------------------------------------
-# CLI entry points
-# --------------------------------------------------------------------------------------
-def _stderr(msg: str) -> None:
-    print(msg, file=sys.stderr)
-
-
-def cli_reconstruct(args) -> int:
-    from guidewire3d.cli import geometry_overrides
-
-    result = run_to_outdir(
-        args.cta, args.roadmap, args.frames, args.out, series_uid=args.series_uid,
-        overrides=geometry_overrides(args), roadmap_frame=args.roadmap_frame, seeds_lps_mm=args.seed_lps,
-        method=args.method, segmenter=args.segmenter, force=args.force, images=not args.no_images,
-        progress=True, track_motion=args.track_motion, log=_stderr,
-    )
-    n_ok = sum(1 for w in result.wires3d if w.success)
-    n_unsure = sum(1 for fr in result.frame_results if fr.verdict.value == "uncertain")
-    unsure = f" ({n_unsure} UNCERTAIN: see verdict_message in report.json)" if n_unsure else ""
-    print(f"wrote {args.out}: registration {result.registration.verdict.label} "
-          f"({result.registration.mean_residual_px:.2f} px), {n_ok}/{len(result.wires3d)} frames reconstructed{unsure}")
-    if not result.reconstructed:
-        from guidewire3d.registration import Verdict
-
-        why = ("is uncertain (the overlay fits, the roadmap does not settle the pose)"
-               if result.registration.verdict is Verdict.UNCERTAIN else "failed")
-        _stderr(f"guidewire3d: registration {why}; frames were not reconstructed. Correct it with "
-                f"`guidewire3d view {args.out}` or rerun with --force.")
-        return 1
-    return 0
-
-
-def cli_demo(args) -> int:
-    from guidewire3d import bench
-
-    if args.seed is not None and args.seed < 0:
-        raise InputError(f"--seed {args.seed}: expected a non-negative integer")
-
-    return bench.run_demo(out=args.out, seed=args.seed)
-
-
-def cli_bench(args) -> int:
-    from guidewire3d import bench
-
-    return bench.run_bench(n_cases=args.cases, out=args.out)

@@ -83,7 +83,6 @@ nearest projected centerline point, without connectivity.
 from __future__ import annotations
 
 import copy
-import enum
 import time
 from collections import OrderedDict
 from dataclasses import dataclass, field, fields, replace
@@ -95,6 +94,7 @@ from scipy.spatial import cKDTree
 
 from guidewire3d.errors import InputError, ReconstructionError
 from guidewire3d.geometry import CArm, Pose
+from guidewire3d.methods import ReconMethod
 from guidewire3d.vesseltree import VesselTree
 
 __all__ = [
@@ -109,19 +109,12 @@ __all__ = [
 ]
 
 
-class ReconMethod(enum.Enum):
-    """How depth is recovered."""
-
-    VESSEL = "vessel"  #: vessel-tree Viterbi + ray/lumen intersection (default)
-    PAPER = "paper"  #: the paper's closed-form depth, applied literally (degenerate in one view)
-    BSPLINE = "bspline"  #: 2D B-spline lifted by the nearest centerline depth (no connectivity)
 
 
 @dataclass(frozen=True)
 class ReconOptions:
     """Tuning of the reconstruction (defaults are the ones benchmarked)."""
 
-    centerline_smoothing_mm: float = 0.0  #: smooth the tree's centerline and radii at this scale (0: off)
     densify_px: float = 3.0  #: target projected spacing of the (densified) tree points
     densify_radius: float = 0.4  #: ... but at least this fraction of the vessel radius
     dp_step_px: float = 5.0  #: spacing of the Viterbi anchors along the 2D wire
@@ -165,7 +158,7 @@ class ReconOptions:
             raise InputError(f"ReconOptions.candidates must be a positive integer, got {self.candidates!r}")
 
 
-_MAY_BE_ZERO = {"centerline_smoothing_mm", "start_cost_per_mm", "track_tolerance_mm", "track_confirm_mm",
+_MAY_BE_ZERO = {"start_cost_per_mm", "track_tolerance_mm", "track_confirm_mm",
                 "margin_px", "wire_clearance_mm", "sigma_img", "min_coverage", "ambiguity_scale",
                 "lumen_spread", "sigma_centerline_mm"}
 
@@ -261,34 +254,6 @@ class Wire3D:
 # --------------------------------------------------------------------------------------------
 # per-pose context
 # --------------------------------------------------------------------------------------------
-def _smooth_tree(tree: VesselTree, sigma_mm: float) -> VesselTree:
-    """The tree with its points and radii smoothed along the tree (Gaussian-like, ``sigma_mm``).
-
-    Repeated averaging of each point with its tree neighbours (root and leaves fixed); a CTA
-    centerline carries voxel-scale wiggles that would otherwise become wire length.
-    """
-    if sigma_mm <= 0:
-        return tree
-    e = tree.edges
-    h = float(np.median(tree.edge_length_mm))
-    k = int(np.clip(np.round(1.5 * (sigma_mm / max(h, 1e-6)) ** 2), 0, 200))
-    if k == 0:
-        return tree
-    deg = tree.degree.astype(float)
-    fixed = (deg <= 1) | (tree.parent < 0)
-    P = tree.points_lps_mm.copy()
-    R = tree.radius_mm.copy()
-    for _ in range(k):
-        accP, accR = P.copy(), R.copy()
-        np.add.at(accP, e[:, 0], P[e[:, 1]])
-        np.add.at(accP, e[:, 1], P[e[:, 0]])
-        np.add.at(accR, e[:, 0], R[e[:, 1]])
-        np.add.at(accR, e[:, 1], R[e[:, 0]])
-        P = np.where(fixed[:, None], P, accP / (1.0 + deg)[:, None])
-        R = np.where(fixed, R, accR / (1.0 + deg))
-    return VesselTree(P, R, tree.parent)
-
-
 class ReconstructionContext:
     """Everything that depends only on (tree, C-arm, pose), computed once.
 
@@ -304,7 +269,7 @@ class ReconstructionContext:
         self.options = opt = options or ReconOptions()
         # candidate spacing: ~densify_px in the image, coarser in wide vessels (0.4 radius)
         step_mm = np.maximum(max(opt.densify_px * carm.pixel_at_iso_mm, 0.05), opt.densify_radius * tree.radius_mm)
-        dense, self.orig_id = _smooth_tree(tree, opt.centerline_smoothing_mm).densified(step_mm)
+        dense, self.orig_id = tree.densified(step_mm)
         self.dense = dense
         self.points = dense.points_lps_mm
         self.radius = dense.radius_mm

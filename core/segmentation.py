@@ -42,13 +42,23 @@ import threading
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Protocol
 
 import numpy as np
 
-from guidewire3d.errors import InputError
 from guidewire3d.assets import resource_path
+from guidewire3d.errors import InputError
+from guidewire3d.image2d import ordered_wire
+from guidewire3d.imaging import grey
+from guidewire3d.methods import SegMethod
+from guidewire3d.unet import unet_class
+from guidewire3d.wiremask import check_radius_px, model_wire_mask
 
 __all__ = [
+    "SEGMENTERS",
+    "Segmenter",
+    "UNetSegmenter",
+    "RidgeSegmenter",
     "SegMethod",
     "Backend",
     "UNetConfig",
@@ -91,13 +101,7 @@ UNET_MULTIPLE = 8
 # the frame are not worth it (full frame is then as cheap).
 ROI_GROW_FACTOR = 3
 ROI_MAX_FRACTION = 0.6
-
-
-class SegMethod(enum.Enum):
-    """Guidewire segmentation method."""
-
-    UNET = "unet"
-    RIDGE = "ridge"
+UNET_CONTEXT_PX = 16               # image context around a one-off box (guidewire_mask, unet_probability)
 
 
 class Backend(enum.Enum):
@@ -139,9 +143,7 @@ class UNetConfig:
 # --------------------------------------------------------------------------------------------------
 
 def _as_frame(frame, name: str = "frame") -> np.ndarray:
-    from guidewire3d.image2d import _grey
-
-    a = _grey(frame)
+    a = grey(frame)
     if a.ndim != 2 or min(a.shape) < 8:
         raise InputError(f"{name}: expected a 2D (H, W) image of at least 8x8 pixels, got shape {a.shape}")
     if not (np.issubdtype(a.dtype, np.number) or a.dtype == bool):
@@ -255,70 +257,13 @@ def _remove_small(mask: np.ndarray, min_px: int = MIN_COMPONENT_PX) -> np.ndarra
 # the network
 # --------------------------------------------------------------------------------------------------
 
-_UNET_CLASS = None
-
-
-def _unet_class():
-    """The torch module class (defined lazily so that importing this module does not import torch)."""
-    global _UNET_CLASS
-    if _UNET_CLASS is not None:
-        return _UNET_CLASS
-    import torch
-    from torch import nn
-
-    def cbr(i, o):
-        return [nn.Conv2d(i, o, 3, padding=1, bias=False), nn.BatchNorm2d(o), nn.ReLU(inplace=True)]
-
-    class Block(nn.Sequential):
-        def __init__(self, c_in, c_out, n_convs):
-            layers = cbr(c_in, c_out)
-            for _ in range(n_convs - 1):
-                layers += cbr(c_out, c_out)
-            super().__init__(*layers)
-
-    class UNet(nn.Module):
-        """UNet: encoder-decoder with skip connections; input (B, C, H, W) normalised, output logits.
-
-        ``config.channels`` per level; ``config.in_channels`` (default 1) and
-        ``config.level0_convs`` (default 2) if the config has them. Shared by the guidewire UNet
-        (:class:`UNetConfig`) and the vessel UNet (``vessels2d_learned.VesselUNetConfig``).
-        """
-
-        def __init__(self, config):
-            super().__init__()
-            ch = tuple(int(c) for c in config.channels)
-            n0 = int(getattr(config, "level0_convs", 2))
-            c_in = int(getattr(config, "in_channels", 1))
-            self.config = config
-            self.enc = nn.ModuleList(
-                [Block(c_in if k == 0 else ch[k - 1], ch[k], n0 if k == 0 else 2) for k in range(len(ch))])
-            self.up = nn.ModuleList(
-                [nn.ConvTranspose2d(ch[k + 1], ch[k], 2, stride=2) for k in range(len(ch) - 1)])
-            self.dec = nn.ModuleList(
-                [Block(2 * ch[k], ch[k], n0 if k == 0 else 2) for k in range(len(ch) - 1)])
-            self.head = nn.Conv2d(ch[0], 1, 1)
-            self.pool = nn.MaxPool2d(2)
-
-        def forward(self, x):
-            skips = []
-            for k, block in enumerate(self.enc):
-                x = block(x if k == 0 else self.pool(x))
-                skips.append(x)
-            for k in reversed(range(len(self.dec))):
-                x = self.dec[k](torch.cat([self.up[k](x), skips[k]], 1))
-            return self.head(x)
-
-    _UNET_CLASS = UNet
-    return UNet
-
-
 def build_unet(config: UNetConfig | None = None):
     """A freshly initialised (untrained) torch UNet of the given architecture."""
     if config is None:
         config = UNetConfig()
     if len(config.channels) < 2 or config.level0_convs < 1:
         raise InputError(f"UNetConfig: need >= 2 levels and >= 1 level-0 conv, got {config}")
-    return _unet_class()(config)
+    return unet_class()(config)
 
 
 def save_unet(model, path, *, config: UNetConfig | None = None, extra_metadata: dict | None = None) -> Path:
@@ -532,7 +477,7 @@ def normalize_frame_stack(crops: np.ndarray, stats) -> np.ndarray:
 
 
 def unet_probability(frame, *, roi_uv=None, backend="auto", weights_path=None,
-                     num_threads: int | None = None, context_px: int = 16) -> np.ndarray:
+                     num_threads: int | None = None, context_px: int = UNET_CONTEXT_PX) -> np.ndarray:
     """Per-pixel wire probability from the UNet.
 
     Parameters
@@ -674,6 +619,50 @@ def _ridge_mask(frame_a: np.ndarray, sigmas_px, roi) -> np.ndarray:
 
 
 # --------------------------------------------------------------------------------------------------
+# the segmenters, keyed by SegMethod
+# --------------------------------------------------------------------------------------------------
+
+class Segmenter(Protocol):
+    """A guidewire pixel classifier: what :func:`guidewire_mask` and :class:`GuidewireSegmenter`
+    run for a :class:`SegMethod` (:data:`SEGMENTERS`)."""
+
+    def mask(self, frame: np.ndarray, stats: tuple[float, float], boxes, *, backend: Backend,
+             num_threads: int | None, context_px: int) -> np.ndarray:
+        """The (H, W) bool wire mask of a raw, non-degenerate frame inside ``boxes``
+        (``(u0, v0, u1, v1)`` px, end-exclusive; ``None``: the whole frame), False outside.
+        ``stats`` is the frame's ``(median, spread)`` (:func:`normalize_frame`)."""
+        ...
+
+
+class UNetSegmenter:
+    """The shipped UNet (onnxruntime or torch); boxes of equal size are batched."""
+
+    def mask(self, frame, stats, boxes, *, backend, num_threads, context_px):
+        runner, config = _get_runner(backend, None, num_threads)
+        boxes = [(0, 0, frame.shape[1], frame.shape[0])] if boxes is None else boxes
+        prob = _run_unet_boxes(frame, stats, boxes, runner, context_px=context_px)
+        return _unet_mask_from_prob(prob, config.threshold)
+
+
+class RidgeSegmenter:
+    """The classical multi-scale Hessian ridge detector (no network), on the boxes' bounding box."""
+
+    def mask(self, frame, stats, boxes, *, backend, num_threads, context_px):
+        if boxes is None:
+            return _ridge_mask(frame, RIDGE_SIGMAS_PX, None)
+        covered = np.zeros(frame.shape, bool)
+        for u0, v0, u1, v1 in boxes:
+            covered[v0:v1, u0:u1] = True
+        vv, uu = np.nonzero(covered.any(axis=1))[0], np.nonzero(covered.any(axis=0))[0]
+        bbox = (int(uu[0]), int(vv[0]), int(uu[-1]) + 1, int(vv[-1]) + 1)
+        return _ridge_mask(frame, RIDGE_SIGMAS_PX, bbox) & covered
+
+
+#: The segmenter of each :class:`SegMethod` (a test checks that every member has one).
+SEGMENTERS: dict[SegMethod, Segmenter] = {SegMethod.UNET: UNetSegmenter(), SegMethod.RIDGE: RidgeSegmenter()}
+
+
+# --------------------------------------------------------------------------------------------------
 # public entry points
 # --------------------------------------------------------------------------------------------------
 
@@ -686,6 +675,13 @@ def _method(method) -> SegMethod:
         raise InputError(f"method: expected one of {[m.value for m in SegMethod]}, got {method!r}") from None
 
 
+def _backend(backend) -> Backend:
+    try:
+        return Backend(backend.value if isinstance(backend, Backend) else str(backend).lower())
+    except ValueError:
+        raise InputError(f"backend: expected one of {[b.value for b in Backend]}, got {backend!r}") from None
+
+
 def _unet_mask_from_prob(prob: np.ndarray, threshold: float) -> np.ndarray:
     m = prob > threshold
     if not m.any():
@@ -694,17 +690,12 @@ def _unet_mask_from_prob(prob: np.ndarray, threshold: float) -> np.ndarray:
 
 
 def _check_radius(wire_radius_px) -> float | None:
-    from guidewire3d.wiremask import check_radius_px
-
     return None if wire_radius_px is None else check_radius_px(wire_radius_px, "wire_radius_px")
 
 
 def _wire_model_mask(frame: np.ndarray, mask: np.ndarray, wire_radius_px: float | None) -> np.ndarray:
     """The wire model: the mask rendered from the ordered wire traced in ``mask`` (``mask`` itself
     when no wire can be traced in it)."""
-    from guidewire3d.image2d import ordered_wire
-    from guidewire3d.wiremask import model_wire_mask
-
     if not mask.any():
         return mask
     # The rendering does not depend on the wire's direction: any hint skips the catheter look-up.
@@ -747,14 +738,13 @@ def guidewire_mask(frame, *, method="unet", roi_uv=None, backend="auto", wire_mo
     m = _method(method)
     radius = _check_radius(wire_radius_px)
     roi = None if roi_uv is None else _check_roi(roi_uv, a.shape)
-    if m is SegMethod.RIDGE:
-        mask = _ridge_mask(a, RIDGE_SIGMAS_PX, roi)
-    else:
-        runner, config = _get_runner(backend)
-        prob = unet_probability(a, roi_uv=roi, backend=backend)
-        mask = _unet_mask_from_prob(prob, config.threshold)
+    med, spread, degenerate = _frame_stats(a)
+    if degenerate:
+        return np.zeros(a.shape, bool)
+    mask = SEGMENTERS[m].mask(a, (med, spread), None if roi is None else [roi], backend=_backend(backend),
+                              num_threads=None, context_px=UNET_CONTEXT_PX)
     if mask.any():
-        mask = _clear_collimated(mask, a, _frame_stats(a)[0])
+        mask = _clear_collimated(mask, a, med)
     if wire_model:
         mask = _wire_model_mask(a, mask, radius)
         if roi is not None:
@@ -821,7 +811,7 @@ class GuidewireSegmenter:
         if self.roi_margin_px < 0 or self.strip_px < 8 or self.strip_px % UNET_MULTIPLE:
             raise InputError(f"GuidewireSegmenter: roi_margin_px must be >= 0 and strip_px a multiple of "
                              f"{UNET_MULTIPLE}, got {self.roi_margin_px}, {self.strip_px}")
-        self.backend = Backend(self.backend.value if isinstance(self.backend, Backend) else str(self.backend).lower())
+        self.backend = _backend(self.backend)
 
     def reset(self) -> None:
         """Forget the previous wire: the next frame is segmented full-frame."""
@@ -860,11 +850,8 @@ class GuidewireSegmenter:
 
     def _full(self, a: np.ndarray, stats) -> np.ndarray:
         self.last_mode = "full"
-        if self.method is SegMethod.RIDGE:
-            return _ridge_mask(a, RIDGE_SIGMAS_PX, None)
-        runner, config = _get_runner(self.backend, None, self.num_threads)
-        prob = _run_unet_boxes(a, stats, [(0, 0, a.shape[1], a.shape[0])], runner, context_px=self.context_px)
-        return _unet_mask_from_prob(prob, config.threshold)
+        return SEGMENTERS[self.method].mask(a, stats, None, backend=self.backend, num_threads=self.num_threads,
+                                            context_px=self.context_px)
 
     def _tracked(self, a: np.ndarray, prev: np.ndarray, stats):
         first = self._in_strips(a, prev, stats, self.roi_margin_px)
@@ -892,14 +879,8 @@ class GuidewireSegmenter:
         covered = np.zeros(a.shape, bool)
         for u0, v0, u1, v1 in boxes:
             covered[v0:v1, u0:u1] = True
-        if self.method is SegMethod.RIDGE:
-            vv, uu = np.nonzero(covered.any(axis=1))[0], np.nonzero(covered.any(axis=0))[0]
-            bbox = (int(uu[0]), int(vv[0]), int(uu[-1]) + 1, int(vv[-1]) + 1)
-            mask = _ridge_mask(a, RIDGE_SIGMAS_PX, bbox) & covered
-        else:
-            runner, config = _get_runner(self.backend, None, self.num_threads)
-            prob = _run_unet_boxes(a, stats, boxes, runner, context_px=self.context_px)
-            mask = _unet_mask_from_prob(prob, config.threshold)
+        mask = SEGMENTERS[self.method].mask(a, stats, boxes, backend=self.backend, num_threads=self.num_threads,
+                                            context_px=self.context_px)
         if not mask.any():
             return False
         # the wire must not reach a strip border that is inside the frame

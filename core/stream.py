@@ -41,7 +41,21 @@ from pathlib import Path
 
 import numpy as np
 
-from guidewire3d.errors import InputError
+from guidewire3d import (
+    image2d,
+    io,
+    live,
+    pipeline,
+    reconstruction,
+    registration,
+    vessels3d,
+)
+from guidewire3d.errors import GeometryError, InputError
+from guidewire3d.geometry import CArm
+from guidewire3d.image2d import OrderedWire
+from guidewire3d.outdir import load_outdir
+from guidewire3d.pipeline import geometry_overrides
+from guidewire3d.registration import Verdict
 
 __all__ = ["DEFAULT_PORT", "DEVICE_WIRE", "DEVICE_UNCERTAINTY", "DEVICE_TIP", "DEVICE_STATUS", "DEVICE_POINTS",
            "Space", "Frame",
@@ -903,9 +917,6 @@ def setup_from_outdir(out_dir, *, force: bool = False) -> LiveSetup:
         Not an output folder, no ``registration_inputs.npz``, or an automatic registration that
         failed its checks (unless ``force``).
     """
-    from guidewire3d.registration import Verdict
-    from guidewire3d.viewer.data import load_outdir
-
     case = load_outdir(out_dir, load_images=False)
     if case.tree is None:
         raise InputError(f"{Path(out_dir) / 'registration_inputs.npz'}: missing (the vessel tree); "
@@ -930,8 +941,6 @@ def setup_from_outdir(out_dir, *, force: bool = False) -> LiveSetup:
 def setup_from_inputs(cta, roadmap, *, roadmap_frame=None, seeds_lps_mm=None, series_uid=None, overrides=None,
                       force: bool = False, log=None) -> LiveSetup:
     """CTA vessels -> roadmap centerline -> registration, as ``reconstruct`` does it."""
-    from guidewire3d import image2d, io, pipeline, registration, vessels3d
-
     overrides = io.check_geometry_overrides(overrides)
     road = pipeline.read_xa_input(roadmap, overrides=overrides)
     vol = io.read_volume(cta, series_uid=series_uid, log=log)
@@ -1047,18 +1056,12 @@ class LiveRunner:
     @staticmethod
     def _bad_frame(index, frame: Frame, message: str):
         """The FAILED result of a frame that never reached the engine (wrong size, NaN, unreadable)."""
-        from guidewire3d import live, reconstruction
-        from guidewire3d.image2d import OrderedWire
-        from guidewire3d.registration import Verdict
-
         msg = f"bad frame: {message}"
         return live.FrameResult(index, OrderedWire(points_uv_px=np.zeros((0, 2)), success=False, message=msg),
                                 reconstruction.Wire3D.failed(msg), Verdict.FAILED, msg, None, 0.0, frame.timestamp)
 
     def process(self, frame: Frame):
         """Process one frame and publish its messages; returns the ``live.FrameResult``."""
-        from guidewire3d.registration import Verdict
-
         index = self.summary.processed
         img, why = check_frame(frame.image, self.session.carm.shape) if not frame.error else (None, frame.error)
         if img is None:
@@ -1156,10 +1159,6 @@ def add_cli_options(p) -> None:
 
 
 def _geometry(path, shape):
-    from guidewire3d import io
-    from guidewire3d.errors import GeometryError
-    from guidewire3d.geometry import CArm
-
     geo = io._read_sidecar(Path(path))
     geo.setdefault("shape", list(shape))
     try:
@@ -1172,8 +1171,6 @@ def _geometry(path, shape):
 
 def _make_source(args, setup: LiveSetup):
     """(source or None for OpenIGTLink, the live frames' CArm)."""
-    from guidewire3d import io
-
     carm = _geometry(args.geometry, setup.frames_carm.shape) if args.geometry else setup.frames_carm
     if args.replay:
         run = io.read_xa(args.replay)
@@ -1213,8 +1210,6 @@ def cli_live(args) -> int:
     import signal
     import sys
 
-    from guidewire3d import live
-
     _check_args(args)
 
     def say(m):
@@ -1222,8 +1217,6 @@ def cli_live(args) -> int:
     if args.from_out:
         setup = setup_from_outdir(args.from_out, force=args.force)
     else:
-        from guidewire3d.cli import geometry_overrides
-
         setup = setup_from_inputs(args.cta, args.roadmap, roadmap_frame=args.roadmap_frame, series_uid=args.series_uid,
                                   overrides=geometry_overrides(args), force=args.force, log=say)
     source, carm = _make_source(args, setup)

@@ -40,8 +40,10 @@ from pathlib import Path
 
 import numpy as np
 
-from guidewire3d.errors import InputError
+from guidewire3d import imaging
 from guidewire3d.assets import resource_path
+from guidewire3d.errors import InputError
+from guidewire3d.unet import unet_class
 
 __all__ = [
     "DEFAULT_WEIGHTS_PATH",
@@ -107,9 +109,7 @@ class VesselUNetConfig:
 
 def _as_image(image, name: str = "image") -> np.ndarray:
     """The checked 2D image as float32 (the checks are image2d's)."""
-    from guidewire3d.image2d import _as_image as checked
-
-    return checked(image, name).astype(np.float32)
+    return imaging.as_image(image, name).astype(np.float32)
 
 
 def _reference_shape(shape: tuple[int, int]) -> tuple[int, int]:
@@ -161,12 +161,10 @@ def normalize_angiogram(image, *, dark_vessels: bool | None = None) -> np.ndarra
 
 
 def _detect_dark(a: np.ndarray) -> bool:
-    from guidewire3d import image2d
-
-    im01, ok = image2d._normalise01(a.astype(np.float64))
+    im01, ok = imaging.normalise01(a.astype(np.float64))
     if not ok:
         return True
-    return bool(image2d._dark_vessels_auto(im01, max(a.shape) / image2d.REFERENCE_SIZE_PX))
+    return bool(imaging.dark_vessels_auto(im01, max(a.shape) / imaging.REFERENCE_SIZE_PX))
 
 
 # --------------------------------------------------------------------------------------------------
@@ -182,9 +180,7 @@ def build_vessel_unet(config: VesselUNetConfig | None = None):
     if 2 ** (len(config.channels) - 1) > UNET_MULTIPLE:
         raise InputError(f"VesselUNetConfig.channels: at most {UNET_MULTIPLE.bit_length()} levels "
                          f"(inputs are padded to a multiple of {UNET_MULTIPLE}), got {len(config.channels)}")
-    from guidewire3d.segmentation import _unet_class
-
-    return _unet_class()(config)
+    return unet_class()(config)
 
 
 _ENSEMBLE_CLASS = None
@@ -383,15 +379,13 @@ def model_tta(model) -> bool:
 def _field_of_view(a: np.ndarray, shape: tuple[int, int], dark_vessels: bool) -> np.ndarray:
     """The classical detector's field of view (inside the collimator, ``FOV_MARGIN_PX`` away from
     shutter edges) at the reference size: the dark shutter edge is a dark line to the network."""
-    from guidewire3d import image2d
-
-    im01, ok = image2d._normalise01(_resize(a, shape).astype(np.float64))
+    im01, ok = imaging.normalise01(_resize(a, shape).astype(np.float64))
     if not ok:
         return np.zeros(shape, np.float32)
     if not dark_vessels:
         im01 = 1.0 - im01
-    margin = max(2, int(round(image2d.FOV_MARGIN_PX)))
-    return image2d._field_of_view(im01, margin).astype(np.float32)
+    margin = max(2, int(round(imaging.FOV_MARGIN_PX)))
+    return imaging.field_of_view(im01, margin).astype(np.float32)
 
 
 def learned_vessel_mask(image, *, dark_vessels: bool | None = None, weights_path=None, model=None,

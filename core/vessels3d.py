@@ -26,7 +26,11 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import ndimage as ndi
 from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import breadth_first_order, connected_components, minimum_spanning_tree
+from scipy.sparse.csgraph import (
+    breadth_first_order,
+    connected_components,
+    minimum_spanning_tree,
+)
 
 from guidewire3d import io
 from guidewire3d.errors import InputError, SegmentationError

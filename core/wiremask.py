@@ -34,6 +34,8 @@ import numpy as np
 from scipy import ndimage as ndi
 
 from guidewire3d.errors import InputError
+from guidewire3d.imaging import polyline_normals
+from guidewire3d.metrics import resample_polyline
 
 __all__ = [
     "COVER_FRACTION",
@@ -91,8 +93,6 @@ def _shape(shape) -> tuple[int, int]:
 
 
 def _dense(p: np.ndarray, step_px: float) -> np.ndarray:
-    from guidewire3d.metrics import resample_polyline
-
     return resample_polyline(p, step_px)
 
 
@@ -209,11 +209,9 @@ def _profile_points(p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     q = _dense(p, WIDTH_SPACING_PX)
     if len(q) > 2 * WIDTH_END_SKIP + 3:
         q = q[WIDTH_END_SKIP:-WIDTH_END_SKIP]
-    from guidewire3d.image2d import _normals
-
     # normals from the finer polyline (smoother than the 2 px resampling)
     fine = _dense(p, 0.5)
-    n_fine = _normals(ndi.gaussian_filter1d(fine, 2.0, axis=0, mode="nearest"))
+    n_fine = polyline_normals(ndi.gaussian_filter1d(fine, 2.0, axis=0, mode="nearest"))
     from scipy.spatial import cKDTree
 
     idx = cKDTree(fine).query(q)[1]

@@ -41,6 +41,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage as ndi
 
+from guidewire3d.errors import InputError
+
 __all__ = ["WirePresence", "wire_presence", "presence_of_curve"]
 
 REFERENCE_SIZE_PX = 512.0         # lengths below are for a frame of this size; they scale with it
@@ -257,8 +259,6 @@ def wire_presence(mask, points_uv_px, image, *, skeleton=None) -> WirePresence:
     WirePresence
         Truthy when the curve is a guidewire; otherwise ``reason`` says why not.
     """
-    from guidewire3d.errors import InputError
-
     m = np.asarray(mask)
     img = np.asarray(image)
     if m.ndim != 2 or img.shape != m.shape:

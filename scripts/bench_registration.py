@@ -428,7 +428,7 @@ def main(argv=None):
     p.add_argument("--quick", action="store_true", help="levels 0, 5/10 and 10/20 only")
     p.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
                    help="override a registration (or, prefixed 'image2d.', an image2d) module constant "
-                        "(experiments), e.g. --set SEARCH_STARTS=2 --set image2d.CENTRE_SUBPIXEL=0")
+                        "(experiments), e.g. --set SEARCH_STARTS=2 --set image2d.HALF_MAX=0.4")
     p.add_argument("--save", default="", help="write the per-registration rows to this pickle")
     p.add_argument("--no-max-radius", action="store_true",
                    help="image2d mode: call roadmap_centerline without max_radius_px (before 2026-11-22 the "

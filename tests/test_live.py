@@ -42,7 +42,7 @@ def test_cli_viewer_and_plugin_give_identical_wires(cli_run, tmp_path):
     pytest.importorskip("pyvista")
     pytest.importorskip("slicer")
     from guidewire3d.viewer.controller import ViewerController
-    from guidewire3d.viewer.data import load_outdir
+    from guidewire3d.outdir import load_outdir
 
     result, out, report = cli_run
     cli_wires = result.wires3d

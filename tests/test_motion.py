@@ -147,7 +147,7 @@ def test_reconstruct_track_motion_writes_each_frames_pose(small_case_dir, tmp_pa
         assert mtre_mm(pose, Pose.from_matrix(rep["pose"]), truth.tree.points_lps_mm) < 1.0
     # the viewer shows each tracked frame in its own pose, and applies a correction the same way
     from guidewire3d.viewer.controller import ViewerController
-    from guidewire3d.viewer.data import load_outdir
+    from guidewire3d.outdir import load_outdir
 
     ctrl = ViewerController(load_outdir(out), persist=False)
     k = next(i for i, w in enumerate(ctrl._case.wires) if w.pose is not None)

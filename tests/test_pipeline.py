@@ -153,7 +153,7 @@ def test_png_sequence_with_sidecar_and_seed_point(small_case, small_case_dir, tm
 def test_viewer_shows_the_registration_residual_of_the_output(reconstructed):
     """The viewer's inlier residual of the saved pose is the registration's own number."""
     from guidewire3d.viewer.controller import ViewerController
-    from guidewire3d.viewer.data import load_outdir
+    from guidewire3d.outdir import load_outdir
 
     rc, out, _ = reconstructed
     rep = json.loads((out / "report.json").read_text())

@@ -240,3 +240,29 @@ def test_bad_input_raises(tmp_path):
     bad.write_bytes(b"not a safetensors file")
     with pytest.raises(InputError, match="safetensors"):
         load_unet(bad)
+
+
+def test_every_segmentation_method_has_a_segmenter_and_a_cli_choice():
+    from guidewire3d import batch2d, cli
+    from guidewire3d.segmentation import SEGMENTERS
+
+    assert set(SEGMENTERS) == set(SegMethod)
+    assert cli.SEGMENTERS == tuple(m.value for m in SegMethod)
+    parser = cli._Parser(prog="segment")
+    batch2d.add_cli_options(parser)
+    seg = next(a for a in parser._actions if a.dest == "segmenter")
+    assert tuple(seg.choices) == cli.SEGMENTERS
+
+
+@pytest.mark.parametrize("method", list(SegMethod))
+def test_the_registry_gives_the_same_mask_as_guidewire_mask(cases, method):
+    """A segmenter's full-frame mask is guidewire_mask's (no collimator in the simulated frame)."""
+    from guidewire3d.segmentation import SEGMENTERS, UNET_CONTEXT_PX, Backend, _frame_stats
+
+    frames = cases[0.89][0]
+    a = np.asarray(frames[0])
+    med, spread, _ = _frame_stats(a)
+    m = SEGMENTERS[method].mask(a, (med, spread), None, backend=Backend.AUTO, num_threads=None,
+                                context_px=UNET_CONTEXT_PX)
+    assert m.shape == a.shape and m.dtype == bool and m.any()
+    assert np.array_equal(m, guidewire_mask(frames[0], method=method))

@@ -25,7 +25,7 @@ pv = pytest.importorskip("pyvista")
 from guidewire3d.viewer import scene as sc  # noqa: E402
 from guidewire3d.viewer.app import open_viewer, parse_size  # noqa: E402
 from guidewire3d.viewer.controller import STEP_DEG, STEP_MM, Axis, ExportKind, Step, ViewerController  # noqa: E402
-from guidewire3d.viewer.data import display_images_uint8, load_outdir  # noqa: E402
+from guidewire3d.outdir import display_images_uint8, load_outdir  # noqa: E402
 
 SIZE = (480, 320)
 TOL_POINT_MM = 1e-6
@@ -562,9 +562,6 @@ def test_cli_runs_the_pipeline_first_with_inputs(synth, tmp_path, monkeypatch, c
     assert cv2.imread(str(shot)).shape == (300, 400, 3)
     assert cli.main(["view", "--cta", "ct_dir", "--screenshot", str(shot)]) == 2
     assert "--roadmap, --frames missing" in capsys.readouterr().err
-    monkeypatch.delattr(pipeline, "run_to_outdir")
-    assert cli.main(["view", str(tmp_path / "o2"), "--cta", "c", "--roadmap", "r", "--frames", "f"]) == 2
-    assert "run_to_outdir is not available" in capsys.readouterr().err
 
 
 # --------------------------------------------------------------------------------------

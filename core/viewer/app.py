@@ -9,7 +9,11 @@ import os
 import tempfile
 from pathlib import Path
 
+from guidewire3d import pipeline, stream
 from guidewire3d.errors import Guidewire3DError, InputError
+from guidewire3d.outdir import load_outdir
+from guidewire3d.viewer import scene as sc
+from guidewire3d.viewer.controller import Axis, ExportKind, ViewerController
 
 __all__ = ["parse_size", "open_viewer", "render_outdir_screenshot", "run_interactive", "cli_main", "KEYS",
            "LiveFollower", "run_live"]
@@ -46,10 +50,6 @@ def open_viewer(out_dir, *, size_px=DEFAULT_SIZE, off_screen: bool = False, fram
     """
     import pyvista as pv
 
-    from guidewire3d.viewer import scene as sc
-    from guidewire3d.viewer.controller import ViewerController
-    from guidewire3d.viewer.data import load_outdir
-
     if off_screen:
         _prepare_offscreen_env()
     case = load_outdir(out_dir)
@@ -82,8 +82,6 @@ def render_outdir_screenshot(out_dir, path, *, frame: int | None = None, size=DE
 
 # key -> (description, controller action); actions take the controller
 def _keys():
-    from guidewire3d.viewer.controller import Axis, ExportKind
-
     return {
         "n": ("next frame", lambda c: c.next_frame()),
         "N": ("previous frame", lambda c: c.previous_frame()),
@@ -156,8 +154,6 @@ class _App:
                 rep.SetValue(self.ctl.frame_index)
 
     def bind(self):
-        from guidewire3d.viewer import scene as sc
-
         for key, (_, action) in _keys().items():
             self.pl.add_key_event(key, self.safe(action))
         self.pl.add_key_event("7", lambda: (sc.beams_eye_camera(self.h.renderer_3d, self.ctl.view_carm,
@@ -197,8 +193,6 @@ class _App:
             cam.SetClippingRange(900.0, 1100.0)
 
     def _add_pose_slider(self, title, axis_name, a, b, half_range):
-        from guidewire3d.viewer.controller import Axis
-
         state = {"last": 0.0}
         self._slider_states[axis_name] = state
 
@@ -218,8 +212,6 @@ class _App:
             interaction_event="always", fmt="%.1f", style="modern", title_height=0.018)
 
     def _overview(self):
-        from guidewire3d.viewer import scene as sc
-
         b = self.h.vessels_actor.GetBounds() if self.h.vessels_actor is not None else self.h.wire.actor.GetBounds()
         sc.overview_camera(self.h.renderer_3d, self.ctl.case.frames_carm, self.ctl.pose, b)
 
@@ -269,9 +261,6 @@ class LiveFollower:
     def poll(self) -> bool:
         import numpy as np
 
-        from guidewire3d import stream
-        from guidewire3d.viewer import scene as sc
-
         changed = False
         for m in self.client.messages():  # in order: a frame's status comes before its wire
             if m.device_name == stream.DEVICE_STATUS:
@@ -305,9 +294,6 @@ def run_live(address, *, out_dir=None, size_px=DEFAULT_SIZE, screenshot=None, wa
     server. With ``screenshot``: wait for the first wire (up to ``wait_s``), write the PNG, exit."""
     import sys
     import time
-
-    from guidewire3d import stream
-    from guidewire3d.viewer import scene as sc
 
     host, port = stream.parse_host_port(address)
     off = screenshot is not None
@@ -374,16 +360,11 @@ def run_live(address, *, out_dir=None, size_px=DEFAULT_SIZE, screenshot=None, wa
 
 
 def _run_pipeline(args) -> Path:
-    from guidewire3d import pipeline
-
-    run_to_outdir = getattr(pipeline, "run_to_outdir", None)
-    if run_to_outdir is None:
-        raise Guidewire3DError("view --cta/--roadmap/--frames: guidewire3d.pipeline.run_to_outdir is not available yet")
     missing = [f"--{n}" for n in ("cta", "roadmap", "frames") if not getattr(args, n, None)]
     if missing:
         raise InputError(f"view: {', '.join(missing)} missing (give all of --cta, --roadmap, --frames, or an OUT_DIR)")
     out = Path(args.out_dir) if args.out_dir else Path(tempfile.mkdtemp(prefix="guidewire3d-view-"))
-    run_to_outdir(args.cta, args.roadmap, args.frames, out)
+    pipeline.run_to_outdir(args.cta, args.roadmap, args.frames, out, screenshot=render_outdir_screenshot)
     return out
 
 

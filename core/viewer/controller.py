@@ -12,9 +12,21 @@ from pathlib import Path
 
 import numpy as np
 
+from guidewire3d import export as ex
+from guidewire3d import live, registration
 from guidewire3d.errors import InputError
 from guidewire3d.geometry import Pose
-from guidewire3d.viewer.data import ViewerCase, WireFrame, display_images_uint8, load_cta, save_registration
+from guidewire3d.io import atomic_write_bytes
+from guidewire3d.outdir import (
+    ViewerCase,
+    WireFrame,
+    display_images_uint8,
+    load_cta,
+    save_registration,
+)
+from guidewire3d.registration import Verdict
+from guidewire3d.viewer import scene as sc
+from guidewire3d.viewer.scene import WIRE_RADIUS_MM
 
 __all__ = ["Axis", "Step", "ExportKind", "ViewerController", "STEP_MM", "STEP_DEG"]
 
@@ -160,8 +172,6 @@ class ViewerController:
         k = int(np.clip(int(k), 0, n - 1))
         self._frame = k
         if self._scene is not None:
-            from guidewire3d.viewer import scene as sc
-
             w = self.wire
             if w is not None:
                 sc.update_wire(self._scene.wire, w.points_lps_mm, w.uncertainty_mm)
@@ -185,8 +195,6 @@ class ViewerController:
     def _refresh_image(self) -> None:
         if self._scene is None:
             return
-        from guidewire3d.viewer import scene as sc
-
         if self._show_roadmap and self._roadmap_u8 is not None:
             sc.set_frame_image(self._scene, self._roadmap_u8)
             return
@@ -228,8 +236,6 @@ class ViewerController:
         if self._scene is None:
             raise InputError("CTA slices need a scene (the controller was built without one)")
         if self._cta_actor is None:
-            from guidewire3d.viewer import scene as sc
-
             vol = load_cta(self._case)
             pl = self._scene.plotter
             if len(pl.renderers) > 1:
@@ -262,8 +268,6 @@ class ViewerController:
 
     def nudge(self, axis: Axis, steps: float = 1.0, *, mm: float | None = None) -> Pose:
         """Translate the vessels along a detector axis by ``steps`` of the current step (or ``mm``)."""
-        from guidewire3d import registration
-
         axis = Axis(axis)
         amount = float(mm) if mm is not None else float(steps) * STEP_MM[self._step]
         t = np.zeros(3)
@@ -275,8 +279,6 @@ class ViewerController:
 
     def rotate(self, axis: Axis, steps: float = 1.0, *, deg: float | None = None) -> Pose:
         """Rotate the vessels about a detector axis through the vessel centroid."""
-        from guidewire3d import registration
-
         axis = Axis(axis)
         amount = float(deg) if deg is not None else float(steps) * STEP_DEG[self._step]
         r = np.zeros(3)
@@ -296,10 +298,6 @@ class ViewerController:
             return float("nan")
         if self._residual_cache is not None and self._residual_cache[0] is self.pose:
             return self._residual_cache[1]
-        try:
-            from guidewire3d import registration
-        except ImportError:
-            return float("nan")
         val = float(registration.score(self._case.tree, self._case.centerline_uv_px, self._case.carm, self.pose))
         self._residual_cache = (self.pose, val)
         return val
@@ -312,8 +310,6 @@ class ViewerController:
         cache = getattr(self, "_inlier_cache", None)
         if cache is not None and cache[0] is self.pose:
             return cache[1]
-        from guidewire3d import registration
-
         val = float(registration.score(self._case.tree, self._case.centerline_uv_px, self._case.carm, self.pose,
                                        inliers_only=True))
         self._inlier_cache = (self.pose, val)
@@ -328,8 +324,6 @@ class ViewerController:
         RegistrationResult
             As returned by ``registration.refine`` (its ``success``/``message`` say how it went).
         """
-        from guidewire3d import registration
-
         self._require_registration_inputs("refine")
         t0 = time.perf_counter()
         res = registration.refine(self._case.tree, self._case.centerline_uv_px, self._case.carm, self.pose)
@@ -368,8 +362,6 @@ class ViewerController:
         if self._case.tree is None:
             self._say("no vessel tree: wires not reconstructed")
             return 0
-        from guidewire3d import live
-
         t0 = time.perf_counter()
         new = []
         n_ok = 0
@@ -417,8 +409,6 @@ class ViewerController:
     def _refresh_pose(self) -> None:
         if self._scene is None:
             return
-        from guidewire3d.viewer import scene as sc
-
         pose = self.shown_pose
         sc.update_carm(self._scene.carm, self.view_carm, pose)
         if self._scene.overlay is not None and self._case.tree is not None:
@@ -430,8 +420,6 @@ class ViewerController:
     def _refresh_overlay_wire(self) -> None:
         if self._scene is None or self._scene.overlay is None:
             return
-        from guidewire3d.viewer import scene as sc
-
         w = self.wire
         if w is None or self._show_roadmap:
             sc.update_overlay(self._scene.overlay, wire_uv_px=np.zeros((0, 2)), wire_proj_uv_px=np.zeros((0, 2)))
@@ -461,8 +449,6 @@ class ViewerController:
         parts.append(f"pose {self.pose_source}" + (" (wires stale: Return)" if self.wires_stale else ""))
         reg = self._case.registration
         if self.pose_source == "automatic" and reg and not reg.get("success", True):
-            from guidewire3d.registration import Verdict
-
             if reg.get("verdict") == Verdict.UNCERTAIN:
                 parts.append("AUTOMATIC REGISTRATION UNCERTAIN: the overlay fits, the roadmap does not settle "
                              "the pose" + (" (one vessel path: depth)" if reg.get("single_path") else ""))
@@ -482,8 +468,6 @@ class ViewerController:
     def _refresh_text(self) -> None:
         if self._scene is None:
             return
-        from guidewire3d.viewer import scene as sc
-
         sc.set_text(self._scene.info_text, self.info_text())
         sc.set_text(self._scene.status_text, self._status)
 
@@ -493,9 +477,6 @@ class ViewerController:
 
         Returns the written paths; the status line says where they went.
         """
-        from guidewire3d import export as ex
-        from guidewire3d.viewer.scene import WIRE_RADIUS_MM
-
         kind = ExportKind(kind)
         out = Path(directory) if directory is not None else self._export_dir
         written: list[Path] = []
@@ -521,8 +502,6 @@ class ViewerController:
         """Render the current view to a PNG (at ``size_px=(w, h)`` if given) and return its path."""
         if self._scene is None:
             raise InputError("screenshot needs a scene (the controller was built without one)")
-        from guidewire3d.viewer import scene as sc
-
         path = Path(path) if path is not None else self._export_dir / f"screenshot_frame{self._frame:04d}.png"
         path.parent.mkdir(parents=True, exist_ok=True)
         pl = self._scene.plotter
@@ -540,7 +519,6 @@ class ViewerController:
             if self._scene.renderer_2d is not None:
                 sc.fit_2d_camera(self._scene.renderer_2d, self._case.frames_carm.shape)
             pl.render()
-        from guidewire3d.io import atomic_write_bytes
         import cv2
 
         ok, buf = cv2.imencode(".png", np.ascontiguousarray(np.asarray(img)[..., :3][..., ::-1]))

@@ -13,6 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from guidewire3d.export import WIRE_TUBE_RADIUS_MM
 from guidewire3d.geometry import CArm, Pose
 
 __all__ = [
@@ -45,7 +46,7 @@ __all__ = [
     "UNCERTAINTY_CLIM_MM",
 ]
 
-WIRE_RADIUS_MM = 0.8
+WIRE_RADIUS_MM = WIRE_TUBE_RADIUS_MM  # one value for every front end (export.WIRE_TUBE_RADIUS_MM)
 UNCERTAINTY_CLIM_MM = (0.0, 2.0)
 UNCERTAINTY_CMAP = "plasma"
 RADIUS_CMAP = "viridis"

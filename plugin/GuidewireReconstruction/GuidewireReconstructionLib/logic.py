@@ -72,8 +72,8 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
-#: Radius (mm) of the displayed guidewire tube: a 0.035 inch wire is 0.89 mm across.
-WIRE_RADIUS_MM = 0.45
+#: Radius (mm) of the displayed guidewire tube: the package's one value.
+WIRE_RADIUS_MM = export.WIRE_TUBE_RADIUS_MM
 #: Node attribute holding the C-arm geometry (JSON of ``CArm.to_dict``) of an XA sequence node.
 CARM_ATTRIBUTE = "GuidewireReconstruction.CArm"
 #: Node attribute naming the role of each output node (``vessels``, ``wire``, ...).

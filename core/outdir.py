@@ -1,4 +1,6 @@
-"""Load a reconstruct OUT_DIR (see the OUT_DIR contract) into plain data for the viewer.
+"""Read a reconstruct OUT_DIR (see the OUT_DIR contract in the README) back into plain data: the
+reader of what :mod:`guidewire3d.export` writes, used by the viewer, the Slicer module and
+``guidewire3d live --from OUT``.
 
 Nothing here draws or imports pyvista; ``load_outdir`` returns frozen dataclasses of numpy arrays.
 """
@@ -10,8 +12,10 @@ from pathlib import Path
 
 import numpy as np
 
+from guidewire3d import io
 from guidewire3d.errors import InputError
 from guidewire3d.geometry import CArm, Pose
+from guidewire3d.io import atomic_write_text
 from guidewire3d.vesseltree import VesselTree
 
 __all__ = [
@@ -222,8 +226,6 @@ def load_outdir(out_dir, *, load_images: bool = True) -> ViewerCase:
     InputError
         If the folder or ``report.json`` is missing or malformed.
     """
-    from guidewire3d import io
-
     out = Path(out_dir)
     if not out.is_dir():
         raise InputError(f"{out}: no such output folder")
@@ -332,8 +334,6 @@ def save_registration(out_dir, pose: Pose, *, source: str, carm: CArm, automatic
     Path
         The written file.
     """
-    from guidewire3d.io import atomic_write_text
-
     if source not in ("automatic", "manual"):
         raise InputError(f"registration source must be 'automatic' or 'manual', got {source!r}")
     path = Path(out_dir) / "registration.json"
@@ -383,8 +383,6 @@ def load_cta(case: ViewerCase):
     InputError
         If the path is not recorded or does not exist any more.
     """
-    from guidewire3d import io
-
     path = case.inputs.get("cta")
     if not path:
         raise InputError(f"{case.out_dir / 'report.json'}: inputs.cta is not recorded")
