@@ -57,7 +57,7 @@ from guidewire3d.outdir import load_outdir
 from guidewire3d.pipeline import geometry_overrides
 from guidewire3d.registration import Verdict
 
-__all__ = ["DEFAULT_PORT", "DEVICE_WIRE", "DEVICE_UNCERTAINTY", "DEVICE_TIP", "DEVICE_STATUS", "DEVICE_POINTS",
+__all__ = ["LiveWire", "WireFollower", "DEFAULT_PORT", "DEVICE_WIRE", "DEVICE_UNCERTAINTY", "DEVICE_TIP", "DEVICE_STATUS", "DEVICE_POINTS",
            "Space", "Frame",
            "LatestFrame", "PolyDataMessage", "IGTLServer", "IGTLClient", "LiveSetup", "LiveRunner", "LiveSummary",
            "ReplaySource", "VideoSource", "FolderSource", "check_frame", "frame_messages", "tip_matrix",
@@ -690,6 +690,57 @@ class IGTLClient:
 def status_of(message) -> dict:
     """The JSON of a ``GuidewireStatus`` message."""
     return json.loads(message.string)
+
+
+@dataclass(frozen=True)
+class LiveWire:
+    """One frame's wire as a ``guidewire3d live`` server sent it, back in LPS mm."""
+
+    points_lps_mm: np.ndarray  #: (N, 3)
+    uncertainty_mm: np.ndarray  #: (N,) per-point 1-sigma; zeros when the frame's uncertainty did not arrive
+    status: dict  #: the frame's ``GuidewireStatus`` (frame, verdict, message, dropped, space, ...)
+    timestamp: float  #: the source frame's timestamp (s)
+
+
+class WireFollower:
+    """Follows a ``guidewire3d live`` server through an :class:`IGTLClient`: what every display of
+    the live wire (the viewer's ``view --live``, the Slicer module) reads, with no drawing here.
+
+    ``poll()`` consumes the received messages in order (a frame's status comes before its wire) and
+    returns the newest :class:`LiveWire` when a new wire arrived (``None`` otherwise); ``status``
+    always holds the newest ``GuidewireStatus`` (a frame without a wire updates only that). Points
+    sent in RAS (``live --space ras``) are converted back to LPS.
+    """
+
+    def __init__(self, client):
+        self.client = client
+        self.status: dict = {}
+        self.n_updates = 0
+        self.wire: LiveWire | None = None
+        self._wire_msg = self._unc_msg = None
+
+    def poll(self) -> LiveWire | None:
+        changed = False
+        for m in self.client.messages():
+            if m.device_name == DEVICE_STATUS:
+                self.status = status_of(m)
+            elif m.device_name == DEVICE_WIRE:
+                self._wire_msg, changed = m, True
+            elif m.device_name == DEVICE_UNCERTAINTY:
+                self._unc_msg, changed = m, True
+        if not changed or self._wire_msg is None:
+            return None
+        pts = np.asarray(self._wire_msg.points, float).reshape(-1, 3)
+        if str(self.status.get("space", Space.LPS.value)).upper() == Space.RAS.value.upper():
+            pts = pts * np.array([-1.0, -1.0, 1.0])
+        unc = np.zeros(len(pts))
+        u = self._unc_msg
+        if u is not None and u.timestamp == self._wire_msg.timestamp:
+            vals = np.array(u.string.split(), float)
+            unc = vals if len(vals) == len(pts) else unc
+        self.wire = LiveWire(pts, unc, dict(self.status), float(self._wire_msg.timestamp))
+        self.n_updates += 1
+        return self.wire
 
 
 def parse_host_port(text: str, *, option: str = "--live") -> tuple[str, int]:

@@ -664,3 +664,61 @@ def test_e2e_refine_adopts_an_uncertain_pose_and_not_a_failed_one(e2e, monkeypat
     else:
         assert summary.startswith("Refine failed")
         assert L.pose_from_transform_node(out.transform).allclose(moved, atol_mm=1e-6, atol_rad=1e-9)
+
+
+def test_the_module_follows_a_live_server(hs):
+    """connect_live + poll_live: the newest streamed wire becomes the live model node, in RAS, with its
+    uncertainty; a frame sent in RAS (``live --space ras``) lands in the same place as one in LPS."""
+    import threading
+    import time
+    from dataclasses import replace
+
+    from guidewire3d import live, reconstruction, stream
+    from guidewire3d.image2d import OrderedWire
+    from guidewire3d.registration import Verdict
+
+    rng = np.random.default_rng(3)
+    pts = np.cumsum(rng.normal(0.0, 1.0, (30, 3)), axis=0) + np.array([10.0, -20.0, 30.0])
+    unc = np.linspace(0.2, 1.4, len(pts))
+    n = len(pts)
+    w3 = replace(reconstruction.Wire3D.failed("-"), points_lps_mm=pts, uncertainty_mm=unc, length_mm=1.0, success=True,
+                 message="ok", tree_point_ids=np.zeros(n, np.int64), arclength_mm=np.zeros(n),
+                 curvature_per_mm=np.zeros(n))
+    logic = L.GuidewireReconstructionCoreLogic(hs.scene)
+    with pytest.raises(InputError, match="live server 127.0.0.1:1"):
+        logic.connect_live("127.0.0.1:1", wait_s=0.5)
+    for space in (stream.Space.LPS, stream.Space.RAS):
+        fr = live.FrameResult(5, OrderedWire(points_uv_px=np.zeros((2, 2)), success=True, message="ok"), w3,
+                              Verdict.OK, "ok", None, 0.01, time.time())
+        payload = stream.pack(stream.frame_messages(fr, space=space))
+        with stream.IGTLServer("127.0.0.1", 0) as server:
+            logic.connect_live(f"127.0.0.1:{server.port}", wait_s=10)
+            done = threading.Event()
+
+            def send():
+                end = time.monotonic() + 30
+                while not done.is_set() and time.monotonic() < end:
+                    server.broadcast(payload)
+                    time.sleep(0.05)
+
+            t = threading.Thread(target=send, daemon=True)
+            t.start()
+            try:
+                end = time.monotonic() + 30
+                while not logic.poll_live() and time.monotonic() < end:
+                    time.sleep(0.02)
+            finally:
+                done.set()
+                t.join(5)
+            logic.disconnect_live()
+        node = logic.outputs.live_wire_model
+        assert node is not None and node.GetAttribute("GuidewireReconstruction.Frame") == "5"
+        assert "live frame 5: ok" in logic.live_status or logic.live_status == "disconnected"
+        poly = node.GetPolyData()
+        b = np.array(poly.GetBounds()).reshape(3, 2)
+        ras = L.lps_to_ras(pts)
+        assert np.all(b[:, 0] <= ras.min(axis=0) + FLOAT32_MM) and np.all(ras.max(axis=0) <= b[:, 1] + FLOAT32_MM)
+        assert np.all(b[:, 0] >= ras.min(axis=0) - 1.0) and np.all(b[:, 1] <= ras.max(axis=0) + 1.0)  # a tube, not a flip
+        u = vtk_to_numpy(poly.GetPointData().GetArray("uncertainty_mm"))
+        assert u.min() >= unc.min() - 1e-3 and u.max() <= unc.max() + 1e-3
+    assert sum(1 for nd in logic.outputs.all_nodes() if nd is node) == 1  # one live node, updated in place

@@ -252,40 +252,31 @@ class LiveFollower:
     """
 
     def __init__(self, wire_handles, client, *, status_text=None):
-        self.wire, self.client, self.status_text = wire_handles, client, status_text
-        self.status: dict = {}
-        self.n_updates = 0
-        self.points_lps_mm = None
-        self._wire_msg = self._unc_msg = None
+        self.wire, self.status_text = wire_handles, status_text
+        self.follower = stream.WireFollower(client)
+
+    @property
+    def status(self) -> dict:
+        return self.follower.status
+
+    @property
+    def n_updates(self) -> int:
+        return self.follower.n_updates
+
+    @property
+    def points_lps_mm(self):
+        return None if self.follower.wire is None else self.follower.wire.points_lps_mm
 
     def poll(self) -> bool:
-        import numpy as np
-
-        changed = False
-        for m in self.client.messages():  # in order: a frame's status comes before its wire
-            if m.device_name == stream.DEVICE_STATUS:
-                self.status = stream.status_of(m)
-                if self.status_text is not None:
-                    s = self.status
-                    sc.set_text(self.status_text, f"live frame {s.get('frame')}: {s.get('verdict')} "
-                                                  f"{s.get('message', '')[:70]} ({s.get('dropped', 0)} dropped)")
-            elif m.device_name == stream.DEVICE_WIRE:
-                self._wire_msg, changed = m, True
-            elif m.device_name == stream.DEVICE_UNCERTAINTY:
-                self._unc_msg, changed = m, True
-        if not changed or self._wire_msg is None:
+        before = dict(self.follower.status)
+        got = self.follower.poll()
+        s = self.follower.status
+        if self.status_text is not None and s and s != before:
+            sc.set_text(self.status_text, f"live frame {s.get('frame')}: {s.get('verdict')} "
+                                          f"{s.get('message', '')[:70]} ({s.get('dropped', 0)} dropped)")
+        if got is None:
             return False
-        pts = np.asarray(self._wire_msg.points, float).reshape(-1, 3)
-        if str(self.status.get("space", "LPS")).upper() == "RAS":
-            pts = pts * np.array([-1.0, -1.0, 1.0])
-        unc = np.zeros(len(pts))
-        u = self._unc_msg
-        if u is not None and u.timestamp == self._wire_msg.timestamp:
-            vals = np.array(u.string.split(), float)
-            unc = vals if len(vals) == len(pts) else unc
-        sc.update_wire(self.wire, pts, unc)
-        self.points_lps_mm = pts
-        self.n_updates += 1
+        sc.update_wire(self.wire, got.points_lps_mm, got.uncertainty_mm)
         return True
 
 

@@ -15,6 +15,7 @@ import slicer
 import vtk
 
 try:  # provided only by the Slicer application (Qt)
+    import ctk  # noqa: F401
     import qt  # noqa: F401
     from slicer.ScriptedLoadableModule import (
         ScriptedLoadableModule,
@@ -200,9 +201,53 @@ if SLICER_APP:
             self.ui.refineButton.connect("clicked(bool)", self.onRefineButton)
             self.ui.adjustButton.connect("toggled(bool)", self.onAdjustToggled)
             self.ui.saveButton.connect("clicked(bool)", self.onSaveButton)
+            self._setupLive()
             self.initializeParameterNode()
 
+        def _setupLive(self) -> None:
+            """The "Live" section: follow a `guidewire3d live` server (HOST:PORT); a timer polls it."""
+            box = ctk.ctkCollapsibleButton()
+            box.text = _("Live")
+            box.collapsed = True
+            form = qt.QFormLayout(box)
+            self.liveAddress = qt.QLineEdit("127.0.0.1:18944")
+            self.liveAddress.toolTip = _("HOST:PORT of a running `guidewire3d live` server")
+            form.addRow(_("Server:"), self.liveAddress)
+            self.liveButton = qt.QPushButton(_("Connect"))
+            self.liveButton.checkable = True
+            self.liveButton.connect("toggled(bool)", self.onLiveToggled)
+            form.addRow(self.liveButton)
+            self.liveLabel = qt.QLabel(_("not connected"))
+            self.liveLabel.wordWrap = True
+            form.addRow(self.liveLabel)
+            self.layout.addWidget(box)
+            self.liveTimer = qt.QTimer()
+            self.liveTimer.setInterval(50)
+            self.liveTimer.connect("timeout()", self.onLiveTick)
+
+        def onLiveToggled(self, on: bool) -> None:
+            self.liveTimer.stop()
+            if not on:
+                self.logic.core.disconnect_live()
+                self.liveButton.text = _("Connect")
+                self.liveLabel.text = _("not connected")
+                return
+            with slicer.util.tryWithErrorDisplay(_("Cannot connect to the live server."), waitCursor=True):
+                self.logic.core.connect_live(self.liveAddress.text)
+                self.liveButton.text = _("Disconnect")
+                self.liveLabel.text = self.logic.core.live_status
+                self.liveTimer.start()
+                return
+            self.liveButton.checked = False
+
+        def onLiveTick(self) -> None:
+            self.logic.core.poll_live()
+            self.liveLabel.text = self.logic.core.live_status
+
         def cleanup(self) -> None:
+            self.liveTimer.stop()
+            if self.logic is not None and self.logic._core is not None:
+                self.logic._core.disconnect_live()
             self.removeObservers()
 
         def enter(self) -> None:

@@ -40,7 +40,7 @@ import slicer
 import vtk
 from vtk.util.numpy_support import numpy_to_vtk, vtk_to_numpy
 
-from guidewire3d import export, io
+from guidewire3d import export, io, stream
 from guidewire3d.errors import InputError, ReconstructionError, RegistrationError
 from guidewire3d.geometry import CArm, Pose
 from guidewire3d.reconstruction import ReconMethod, Wire3D
@@ -448,11 +448,12 @@ class OutputNodes:
     wire_models: list = field(default_factory=list)  # vtkMRMLModelNode (tube) per live frame
     wire_curves: list = field(default_factory=list)  # vtkMRMLMarkupsCurveNode per live frame
     wire_sequence: object = None  # vtkMRMLSequenceNode: the tube per frame, synchronised with the frames' browser
+    live_wire_model: object = None  # vtkMRMLModelNode: the newest wire of a connected live server (connect_live)
     frame_indices: list = field(default_factory=list)  # index in the frames run of each wire node
 
     def all_nodes(self) -> list:
         singles = [self.transform, self.table, self.vessel_model, self.carm_model, self.roadmap_points_model,
-                   self.wire_sequence]
+                   self.wire_sequence, self.live_wire_model]
         return [n for n in singles + self.centerline_curves + self.wire_models + self.wire_curves if n is not None]
 
 
@@ -485,6 +486,55 @@ class GuidewireReconstructionCoreLogic:
         self.wires3d: list = []
         self.frame_results: list = []  # live.FrameResult per live frame (verdict: ok / uncertain / failed)
         self.outputs = OutputNodes()
+        self.live = None  # stream.WireFollower of a connected `guidewire3d live` server (connect_live)
+        self.live_status = ""
+
+    # --- live ---------------------------------------------------------------------------
+    def connect_live(self, address: str = f"127.0.0.1:{stream.DEFAULT_PORT}", *, wait_s: float = 10.0):
+        """Follow a ``guidewire3d live`` server (``HOST:PORT``): :meth:`poll_live` then shows its newest
+        wire as the model node ``GW live guidewire`` (RAS, uncertainty as point scalars). The widget
+        polls on a timer; without one, call :meth:`poll_live` yourself.
+
+        This reads the server through the package's own client (no OpenIGTLinkIF needed); with
+        OpenIGTLinkIF installed, a connector node shows the same ``Guidewire`` POLYDATA directly.
+        """
+        self.disconnect_live()
+        host, port = stream.parse_host_port(address, option="live server")
+        try:
+            client = stream.IGTLClient(host, port, keep=64, connect_timeout_s=wait_s)
+        except ConnectionError as e:
+            raise InputError(f"live server {address}: {e}") from None
+        self.live = stream.WireFollower(client)
+        self.live_status = f"connected to {host}:{port}, waiting for a wire"
+        return self.live
+
+    def poll_live(self) -> bool:
+        """Show what the live server sent since the last call; True when the wire changed."""
+        if self.live is None:
+            return False
+        got = self.live.poll()
+        s = self.live.status
+        if s:
+            self.live_status = (f"live frame {s.get('frame')}: {s.get('verdict')} {s.get('message', '')[:80]}"
+                                f" ({s.get('dropped', 0)} dropped)")
+        if got is None:
+            return False
+        o = self.outputs
+        poly = (wire_tube_polydata(lps_to_ras(got.points_lps_mm), got.uncertainty_mm)
+                if len(got.points_lps_mm) >= 2 else vtk.vtkPolyData())
+        o.live_wire_model = self._model(o.live_wire_model, "GW live guidewire", "live_wire", poly, color=(1.0, 0.6, 0.1))
+        dn = o.live_wire_model.GetDisplayNode()
+        dn.SetActiveScalarName("uncertainty_mm")
+        dn.SetScalarVisibility(True)
+        o.live_wire_model.SetAttribute("GuidewireReconstruction.Frame", str(got.status.get("frame", "")))
+        o.live_wire_model.SetAttribute("GuidewireReconstruction.Verdict", str(got.status.get("verdict", "")))
+        return True
+
+    def disconnect_live(self) -> None:
+        if self.live is not None:
+            self.live.client.close()
+            self.live = None
+            self.live_status = "disconnected"
 
     # --- inputs -------------------------------------------------------------------------
     def load_xa(self, path, *, name: str | None = None):
