@@ -17,7 +17,11 @@ from guidewire3d import export, image2d, io, registration, vessels3d
 from guidewire3d import live as live_engine
 from guidewire3d.errors import InputError
 from guidewire3d.geometry import CArm, Pose
-from guidewire3d.vessels3d import VesselOptions
+from guidewire3d.image2d import Centerline2D, OrderedWire
+from guidewire3d.live import FrameResult
+from guidewire3d.reconstruction import Wire3D
+from guidewire3d.registration import RegistrationResult
+from guidewire3d.vessels3d import CTAVessels, VesselOptions
 
 __all__ = ["PipelineResult", "run", "run_to_outdir", "load_inputs", "choose_roadmap_frame", "check_roadmap_frame",
            "check_seeds"]
@@ -25,22 +29,30 @@ __all__ = ["PipelineResult", "run", "run_to_outdir", "load_inputs", "choose_road
 
 @dataclass(frozen=True, eq=False)
 class PipelineResult:
-    volume: io.Volume
-    vessels: object  # vessels3d.CTAVessels
-    roadmap_image: np.ndarray
-    roadmap_frame_index: int
-    centerline2d: object  # image2d.Centerline2D
-    carm: CArm
-    frames_carm: CArm
-    registration: object  # registration.RegistrationResult
-    frames: np.ndarray
-    wires2d: list
-    wires3d: list
-    timing: dict = field(default_factory=dict)
-    frame_seconds: list = field(default_factory=list)  # per live frame: segmentation + 2D wire + 3D
-    frame_indices: list = field(default_factory=list)  # index of each live frame in the frames run
-    reconstructed: bool = True  # False when a failed registration stopped the frames
-    frame_results: list = field(default_factory=list)  # live.FrameResult per live frame (verdict, orientation)
+    """Everything one run of the chain produced (:func:`run`), what :mod:`guidewire3d.export` writes.
+
+    Frame-indexed lists (``wires2d``, ``wires3d``, ``frame_seconds``, ``frame_indices``,
+    ``frame_results``) are aligned: entry ``k`` is the live frame ``frame_indices[k]`` of the frames
+    run. When the registration was not trusted and not forced, ``reconstructed`` is False and the
+    lists are empty.
+    """
+
+    volume: io.Volume  #: the CTA as read (LPS, mm)
+    vessels: CTAVessels  #: its vessel mask, surface and centerline tree
+    roadmap_image: np.ndarray  #: (H, W) the roadmap frame registered to
+    roadmap_frame_index: int  #: its index in the roadmap run
+    centerline2d: Centerline2D  #: the roadmap's 2D centerline
+    carm: CArm  #: the roadmap's C-arm geometry
+    frames_carm: CArm  #: the live frames' C-arm geometry
+    registration: RegistrationResult  #: the pose, its covariance and verdict
+    frames: np.ndarray  #: (K, H, W) the live frames processed
+    wires2d: list[OrderedWire | None]  #: ordered 2D wire per frame (None when the frame failed early)
+    wires3d: list[Wire3D]  #: 3D wire per frame (``success`` False when not reconstructed)
+    timing: dict[str, float] = field(default_factory=dict)  #: seconds per stage
+    frame_seconds: list[float] = field(default_factory=list)  #: per frame: segmentation + 2D wire + 3D
+    frame_indices: list[int] = field(default_factory=list)  #: index of each frame in the frames run
+    reconstructed: bool = True  #: False when a failed registration stopped the frames
+    frame_results: list[FrameResult] = field(default_factory=list)  #: per frame: verdict, orientation, motion
 
     @property
     def pose(self) -> Pose:
