@@ -455,7 +455,8 @@ SEGMENTER = SegMethod.RIDGE  # independent of trained weights; see the report fo
 def _parameters(**kw):
     """What the module's parameter node holds (the wrapper's attributes), as a plain object."""
     p = dict(ctaVolume=None, roadmapPath=Path("."), framesPath=Path("."), roadmapSequence=None, framesSequence=None,
-             seeds=None, roadmapFrame=-1, method="vessel", segmenter="unet", force=False, registrationTransform=None,
+             seeds=None, roadmapFrame=-1, method="vessel", segmenter="unet", force=False, trackMotion=False,
+             registrationTransform=None,
              metricsTable=None, vesselModel=None)
     p.update(kw)
     return SimpleNamespace(**p)
@@ -722,3 +723,43 @@ def test_the_module_follows_a_live_server(hs):
         u = vtk_to_numpy(poly.GetPointData().GetArray("uncertainty_mm"))
         assert u.min() >= unc.min() - 1e-3 and u.max() <= unc.max() + 1e-3
     assert sum(1 for nd in logic.outputs.all_nodes() if nd is node) == 1  # one live node, updated in place
+
+
+def test_tracked_frames_move_the_carm_with_the_frame_browser(hs):
+    """A result whose frames were tracked (track_motion): a pose sequence synchronised with the frames'
+    browser, whose proxy the C-arm follows; each frame's transform holds that frame's pose."""
+    from guidewire3d import live
+    from guidewire3d.geometry import so3_exp
+    from guidewire3d.registration import Verdict
+
+    rng = np.random.default_rng(8)
+    res = _synthetic_result(rng)
+    base = res.registration.pose
+    poses = [Pose(so3_exp(np.array([0.0, 0.0, 0.01 * k])) @ base.R, base.t + np.array([0.0, 0.0, 3.0 * k]))
+             for k in range(4)]
+    res.frame_results = [live.FrameResult(i, w2, w3, Verdict.OK, "ok", pose=pz, motion=res.registration)
+                         for i, (w2, w3, pz) in enumerate(zip(res.wires2d, res.wires3d, poses))]
+    res.frame_indices = [0, 1, 2, 3]
+    run = io.XARun(frames=np.zeros((4, *res.carm.shape), np.float32), carm=res.carm, source="synthetic")
+    seq = L.xa_to_sequence_node(run, name="frames", scene=hs.scene)
+    core = L.GuidewireReconstructionCoreLogic(hs.scene, app_logic=hs.app_logic)
+    out = core.show_result(res, frames_sequence=seq, track_motion=True)
+    assert out.motion_sequence is not None and out.motion_sequence.GetNumberOfDataNodes() == 4
+    browser = core._browser_for(seq)
+    assert browser.IsSynchronizedSequenceNodeID(out.motion_sequence.GetID(), False)
+    proxy = browser.GetProxyNode(out.motion_sequence)
+    assert out.carm_model.GetParentTransformNode() is proxy
+    for t in range(4):
+        browser.SetSelectedItemNumber(t)
+        core.update_proxies(browser)
+        np.testing.assert_allclose(L.pose_from_transform_node(proxy).matrix, poses[t].matrix, atol=1e-6)
+    # the same result without tracking: the C-arm stays under the registration transform
+    res.frame_results = [replace_motion(fr) for fr in res.frame_results]
+    out = core.show_result(res, frames_sequence=seq, track_motion=False)
+    assert out.carm_model.GetParentTransformNode() is out.transform
+
+
+def replace_motion(fr):
+    from dataclasses import replace
+
+    return replace(fr, motion=None)

@@ -168,6 +168,7 @@ if SLICER_APP:
         method: Annotated[str, Choice(list(METHOD_CHOICES))] = "vessel"
         segmenter: Annotated[str, Choice(list(SEGMENTER_CHOICES))] = "unet"
         force: bool = False
+        trackMotion: bool = False
         registrationTransform: vtkMRMLLinearTransformNode
         metricsTable: vtkMRMLTableNode
         vesselModel: vtkMRMLModelNode

@@ -449,11 +449,12 @@ class OutputNodes:
     wire_curves: list = field(default_factory=list)  # vtkMRMLMarkupsCurveNode per live frame
     wire_sequence: object = None  # vtkMRMLSequenceNode: the tube per frame, synchronised with the frames' browser
     live_wire_model: object = None  # vtkMRMLModelNode: the newest wire of a connected live server (connect_live)
+    motion_sequence: object = None  # vtkMRMLSequenceNode: each frame's tracked pose (track_motion), synchronised
     frame_indices: list = field(default_factory=list)  # index in the frames run of each wire node
 
     def all_nodes(self) -> list:
         singles = [self.transform, self.table, self.vessel_model, self.carm_model, self.roadmap_points_model,
-                   self.wire_sequence, self.live_wire_model]
+                   self.wire_sequence, self.live_wire_model, self.motion_sequence]
         return [n for n in singles + self.centerline_curves + self.wire_models + self.wire_curves if n is not None]
 
 
@@ -485,6 +486,7 @@ class GuidewireReconstructionCoreLogic:
         self.registration = None  # the registration currently shown (after refine: the refined one)
         self.wires3d: list = []
         self.frame_results: list = []  # live.FrameResult per live frame (verdict: ok / uncertain / failed)
+        self.track_motion = False  # the frames' poses follow breathing (process(track_motion=True))
         self.outputs = OutputNodes()
         self.live = None  # stream.WireFollower of a connected `guidewire3d live` server (connect_live)
         self.live_status = ""
@@ -555,7 +557,8 @@ class GuidewireReconstructionCoreLogic:
     # --- the whole chain -------------------------------------------------------------------
     def process(self, *, cta_volume_node, roadmap, frames=None, seeds_node=None, roadmap_frame: int | None = None,
                 method: WireMethod | str = WireMethod.VESSEL, segmenter: Segmenter | str = Segmenter.UNET,
-                force: bool = False, outputs: OutputNodes | None = None, pose: Pose | None = None) -> OutputNodes:
+                force: bool = False, outputs: OutputNodes | None = None, pose: Pose | None = None,
+                track_motion: bool = False) -> OutputNodes:
         """Run the pipeline and write (or update) the output nodes.
 
         Parameters
@@ -572,6 +575,9 @@ class GuidewireReconstructionCoreLogic:
             Existing output nodes to update; missing ones are created.
         pose : Pose, optional
             Start from this pose (refined only) instead of registering from the nominal one.
+        track_motion : bool
+            Follow breathing: each frame's pose is updated from its wire (``reconstruct
+            --track-motion``); with a frames sequence the C-arm then follows the frame browser.
         """
         from guidewire3d import pipeline
 
@@ -586,20 +592,24 @@ class GuidewireReconstructionCoreLogic:
             roadmap_frame = None
         t0 = time.perf_counter()
         result = pipeline.run(vol, road, live, roadmap_frame=roadmap_frame, seeds_lps_mm=seeds, method=method.value,
-                              segmenter=segmenter.value, force=force, progress=False, pose=pose, log=log.info)
+                              segmenter=segmenter.value, force=force, progress=False, pose=pose, log=log.info,
+                              track_motion=bool(track_motion))
         log.info("guidewire3d pipeline: %.1f s", time.perf_counter() - t0)
         is_seq = hasattr(live_node, "IsA") and live_node.IsA("vtkMRMLSequenceNode")
         return self.show_result(result, method=method, segmenter=segmenter, outputs=outputs,
-                                frames_sequence=live_node if is_seq else None)
+                                frames_sequence=live_node if is_seq else None, track_motion=track_motion)
 
     def show_result(self, result, *, method: WireMethod | str = WireMethod.VESSEL,
                     segmenter: Segmenter | str = Segmenter.UNET, outputs: OutputNodes | None = None,
-                    frames_sequence=None) -> OutputNodes:
+                    frames_sequence=None, track_motion: bool = False) -> OutputNodes:
         """Write (or update) the output nodes from a ``pipeline.PipelineResult`` and keep it for :meth:`refine`.
 
-        ``frames_sequence`` (the live frames' sequence node) gets a synchronised wire sequence.
+        ``frames_sequence`` (the live frames' sequence node) gets a synchronised wire sequence, and,
+        when the frames were tracked (``track_motion``), a synchronised sequence of each frame's pose
+        that the C-arm and the roadmap centerline follow.
         """
         self.result = result
+        self.track_motion = bool(track_motion)
         self.method = WireMethod(method)
         self.segmenter = Segmenter(segmenter)
         self.frames_sequence = frames_sequence
@@ -662,7 +672,8 @@ class GuidewireReconstructionCoreLogic:
             self.method = WireMethod(method)
         res, reg = self.result, self.registration
         session = live.Session(res.tree, res.frames_carm, reg.pose, registration_covariance=reg.covariance_6x6,
-                               method=self.method.value, segmenter=self.segmenter.value)
+                               method=self.method.value, segmenter=self.segmenter.value,
+                               track_motion=self.track_motion)
         if len(self.wires2d) != len(res.frames):
             # the run stopped before the frames: segment and order them now, as the pipeline does
             self.frame_results = list(session.run(res.frames))
@@ -697,7 +708,8 @@ class GuidewireReconstructionCoreLogic:
                                  "table": p.metricsTable or o.table, "vessel_model": p.vesselModel or o.vessel_model})
         out = self.process(cta_volume_node=p.ctaVolume, roadmap=roadmap, frames=frames, seeds_node=p.seeds,
                            roadmap_frame=int(p.roadmapFrame), method=p.method, segmenter=p.segmenter,
-                           force=bool(p.force), outputs=outputs)
+                           force=bool(p.force), outputs=outputs,
+                           track_motion=bool(getattr(p, "trackMotion", False)))
         p.registrationTransform = out.transform
         p.metricsTable = out.table
         p.vesselModel = out.vessel_model
@@ -839,6 +851,7 @@ class GuidewireReconstructionCoreLogic:
             self.scene.RemoveNode(extra)
         o.wire_models, o.wire_curves, o.frame_indices = models, curves, frame_ids
         browsed = self._write_wire_sequence()
+        self._write_motion_sequence()
         # with a browsable sequence its proxy shows the wire of the current frame; else show the last wire
         for i, (model, curve) in enumerate(zip(models, curves)):
             model.GetDisplayNode().SetVisibility(not browsed and i == last_ok)
@@ -922,6 +935,45 @@ class GuidewireReconstructionCoreLogic:
             d.SetActiveScalarName("uncertainty_mm")
             d.SetScalarVisibility(True)
             d.SetVisibility(True)
+        return True
+
+    def _write_motion_sequence(self) -> bool:
+        """Each frame's tracked pose as a transform synchronised with the frames' browser; the C-arm
+        and the roadmap centerline move under its proxy, so browsing the frames shows the tracked
+        motion (as the viewer does). Without tracked frames (or a browsable sequence) they stay under
+        the registration transform and no sequence is written."""
+        o, src = self.outputs, self.frames_sequence
+        poses = {k: fr.pose for k, fr in zip(o.frame_indices, self.frame_results)
+                 if getattr(fr, "motion", None) is not None and getattr(fr, "pose", None) is not None}
+        browser = (self._browser_for(src) if src is not None and self.scene.GetNodeByID(src.GetID()) is src
+                   else None)
+        if not poses or browser is None:
+            for node in (o.carm_model, o.roadmap_points_model):
+                if node is not None and o.transform is not None:
+                    node.SetAndObserveTransformNodeID(o.transform.GetID())
+            return False
+        if o.motion_sequence is None or self.scene.GetNodeByID(o.motion_sequence.GetID()) is None:
+            o.motion_sequence = self._new("vtkMRMLSequenceNode", "GW tracked pose (sequence)", "motion_sequence")
+        seq = o.motion_sequence
+        seq.RemoveAllDataNodes()
+        seq.SetIndexName(src.GetIndexName())
+        seq.SetIndexUnit(src.GetIndexUnit())
+        seq.SetIndexType(src.GetIndexType())
+        for t in range(src.GetNumberOfDataNodes()):
+            item = slicer.vtkMRMLLinearTransformNode()
+            item.SetName(f"GW tracked pose frame {t:04d}")
+            pose_to_transform_node(poses.get(t, self.registration.pose), item)  # untracked frames: the registration
+            seq.SetDataNodeAtValue(item, src.GetNthIndexValue(t))
+        if not browser.IsSynchronizedSequenceNodeID(seq.GetID(), True):
+            browser.AddSynchronizedSequenceNode(seq)
+            browser.SetSaveChanges(seq, False)
+        self.update_proxies(browser)
+        proxy = browser.GetProxyNode(seq)
+        if proxy is not None:
+            proxy.SetAttribute(ROLE_ATTRIBUTE, "motion_proxy")
+            for node in (o.carm_model, o.roadmap_points_model):
+                if node is not None:
+                    node.SetAndObserveTransformNodeID(proxy.GetID())
         return True
 
     # --- saving -------------------------------------------------------------------------
