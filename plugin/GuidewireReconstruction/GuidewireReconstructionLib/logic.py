@@ -892,40 +892,56 @@ class GuidewireReconstructionCoreLogic:
         if logic is not None:
             logic.UpdateProxyNodesFromSequences(browser)
 
+    def _frames_browser(self):
+        """The browser of the frames' sequence node, or None (frames not from a live sequence node)."""
+        src = self.frames_sequence
+        if src is None or self.scene.GetNodeByID(src.GetID()) is not src:
+            return None
+        return self._browser_for(src)
+
+    def _synchronised_sequence(self, node, name: str, role: str, item_for_frame, browser):
+        """(Re)fill the sequence ``node`` (created as ``name`` if missing) with one data node per frame
+        of the frames' sequence, ``item_for_frame(t)``, synchronise it with ``browser`` and return
+        ``(node, proxy)``."""
+        src = self.frames_sequence
+        if node is None or self.scene.GetNodeByID(node.GetID()) is None:
+            node = self._new("vtkMRMLSequenceNode", name, role)
+        node.RemoveAllDataNodes()
+        node.SetIndexName(src.GetIndexName())
+        node.SetIndexUnit(src.GetIndexUnit())
+        node.SetIndexType(src.GetIndexType())
+        for t in range(src.GetNumberOfDataNodes()):
+            node.SetDataNodeAtValue(item_for_frame(t), src.GetNthIndexValue(t))
+        if not browser.IsSynchronizedSequenceNodeID(node.GetID(), True):
+            browser.AddSynchronizedSequenceNode(node)
+            browser.SetSaveChanges(node, False)
+        self.update_proxies(browser)
+        return node, browser.GetProxyNode(node)
+
     def _write_wire_sequence(self) -> bool:
         """The wire tube of every frame of the frames' sequence, synchronised with its browser.
 
         Frames without a reconstructed wire get an empty model. Returns False (and writes nothing)
         when the frames did not come from a browsable sequence node.
         """
-        o, src = self.outputs, self.frames_sequence
-        if src is None or self.scene.GetNodeByID(src.GetID()) is not src:
-            return False
-        browser = self._browser_for(src)
+        o = self.outputs
+        browser = self._frames_browser()
         if browser is None:
             return False
-        if o.wire_sequence is None or self.scene.GetNodeByID(o.wire_sequence.GetID()) is None:
-            o.wire_sequence = self._new("vtkMRMLSequenceNode", "GW guidewire (sequence)", "wire_sequence")
-        seq = o.wire_sequence
-        seq.RemoveAllDataNodes()
-        seq.SetIndexName(src.GetIndexName())
-        seq.SetIndexUnit(src.GetIndexUnit())
-        seq.SetIndexType(src.GetIndexType())
         by_frame = dict(zip(o.frame_indices, o.wire_models))
-        for t in range(src.GetNumberOfDataNodes()):
+
+        def item(t):
             poly = vtk.vtkPolyData()
             model = by_frame.get(t)
             if model is not None and model.GetPolyData() is not None:
                 poly.DeepCopy(model.GetPolyData())
-            item = slicer.vtkMRMLModelNode()
-            item.SetName(f"GW guidewire frame {t:04d}")
-            item.SetAndObservePolyData(poly)
-            seq.SetDataNodeAtValue(item, src.GetNthIndexValue(t))
-        if not browser.IsSynchronizedSequenceNodeID(seq.GetID(), True):
-            browser.AddSynchronizedSequenceNode(seq)
-            browser.SetSaveChanges(seq, False)
-        self.update_proxies(browser)
-        proxy = browser.GetProxyNode(seq)
+            node = slicer.vtkMRMLModelNode()
+            node.SetName(f"GW guidewire frame {t:04d}")
+            node.SetAndObservePolyData(poly)
+            return node
+
+        o.wire_sequence, proxy = self._synchronised_sequence(o.wire_sequence, "GW guidewire (sequence)",
+                                                             "wire_sequence", item, browser)
         if proxy is not None:
             proxy.SetAttribute(ROLE_ATTRIBUTE, "wire_proxy")
             if proxy.GetDisplayNode() is None:
@@ -942,33 +958,24 @@ class GuidewireReconstructionCoreLogic:
         and the roadmap centerline move under its proxy, so browsing the frames shows the tracked
         motion (as the viewer does). Without tracked frames (or a browsable sequence) they stay under
         the registration transform and no sequence is written."""
-        o, src = self.outputs, self.frames_sequence
+        o = self.outputs
         poses = {k: fr.pose for k, fr in zip(o.frame_indices, self.frame_results)
                  if getattr(fr, "motion", None) is not None and getattr(fr, "pose", None) is not None}
-        browser = (self._browser_for(src) if src is not None and self.scene.GetNodeByID(src.GetID()) is src
-                   else None)
+        browser = self._frames_browser()
         if not poses or browser is None:
             for node in (o.carm_model, o.roadmap_points_model):
                 if node is not None and o.transform is not None:
                     node.SetAndObserveTransformNodeID(o.transform.GetID())
             return False
-        if o.motion_sequence is None or self.scene.GetNodeByID(o.motion_sequence.GetID()) is None:
-            o.motion_sequence = self._new("vtkMRMLSequenceNode", "GW tracked pose (sequence)", "motion_sequence")
-        seq = o.motion_sequence
-        seq.RemoveAllDataNodes()
-        seq.SetIndexName(src.GetIndexName())
-        seq.SetIndexUnit(src.GetIndexUnit())
-        seq.SetIndexType(src.GetIndexType())
-        for t in range(src.GetNumberOfDataNodes()):
-            item = slicer.vtkMRMLLinearTransformNode()
-            item.SetName(f"GW tracked pose frame {t:04d}")
-            pose_to_transform_node(poses.get(t, self.registration.pose), item)  # untracked frames: the registration
-            seq.SetDataNodeAtValue(item, src.GetNthIndexValue(t))
-        if not browser.IsSynchronizedSequenceNodeID(seq.GetID(), True):
-            browser.AddSynchronizedSequenceNode(seq)
-            browser.SetSaveChanges(seq, False)
-        self.update_proxies(browser)
-        proxy = browser.GetProxyNode(seq)
+
+        def item(t):
+            node = slicer.vtkMRMLLinearTransformNode()
+            node.SetName(f"GW tracked pose frame {t:04d}")
+            pose_to_transform_node(poses.get(t, self.registration.pose), node)  # untracked frames: the registration
+            return node
+
+        o.motion_sequence, proxy = self._synchronised_sequence(o.motion_sequence, "GW tracked pose (sequence)",
+                                                               "motion_sequence", item, browser)
         if proxy is not None:
             proxy.SetAttribute(ROLE_ATTRIBUTE, "motion_proxy")
             for node in (o.carm_model, o.roadmap_points_model):
