@@ -288,6 +288,7 @@ class RegistrationResult:
             "fits_2d": bool(self.fits_2d),
             "explained_fraction": _json_float(self.explained_fraction),
             "max_pose_std_mm": _json_float(self.max_pose_std_mm),
+            "jackknife_std_mm": _json_float(self.jackknife_std_mm),
         }
 
 
