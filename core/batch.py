@@ -484,7 +484,7 @@ def _client(workers: int | None, scheduler: str | None, log):
     # (the statistical profiler, which samples the task's stack every 10 ms, is off: nobody reads it here)
     with dask.config.set({"distributed.worker.profile.enabled": False}):
         cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, host="127.0.0.1",
-                               dashboard_address=None, memory_limit=0, silence_logs=40)
+                               dashboard_address=None, memory_limit=0, silence_logs=50)
     if log is not None:
         log(f"local Dask cluster: {n} worker process{'es' if n > 1 else ''} at {cluster.scheduler_address}")
     return Client(cluster), cluster
