@@ -19,7 +19,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from guidewire3d.errors import Guidewire3DError, InputError
+from guidewire3d.errors import Guidewire3DError, InputError, OutputError
 
 __all__ = ["StudySpec", "read_manifest", "group_dicom_tree", "load_studies", "run_study", "run_batch",
            "write_summary", "read_summary", "SUMMARY_COLUMNS", "MANIFEST_COLUMNS"]
@@ -520,9 +520,6 @@ def run_batch(studies, out_dir, *, workers: int | None = None, scheduler: str | 
     out_dir = Path(os.path.abspath(out_dir))
     if out_dir.exists() and not out_dir.is_dir():
         raise InputError(f"{out_dir}: output folder exists and is not a folder")
-    out_dir.mkdir(parents=True, exist_ok=True)
-    if not os.access(out_dir, os.W_OK):
-        raise InputError(f"{out_dir}: output folder is not writable")
     summary_path = out_dir / SUMMARY_NAME
     previous = read_summary(summary_path)
     rows: dict[str, dict] = {}
@@ -542,17 +539,25 @@ def run_batch(studies, out_dir, *, workers: int | None = None, scheduler: str | 
     def ordered():
         return [rows[s.study] for s in studies if s.study in rows]
 
-    write_summary(summary_path, ordered())
-    if todo:
-        io.clean_stale_staging(out_dir / todo[0].study)  # staging folders of killed runs, before any task
-        client, cluster = _client(workers, scheduler, log)
+    # the cluster first: a scheduler that cannot be reached is refused before anything is written
+    client, cluster = _client(workers, scheduler, log) if todo else (None, None)
+    try:
         try:
+            out_dir.mkdir(parents=True, exist_ok=True)
+        except OSError as e:
+            raise OutputError(f"{out_dir}: cannot create the output folder ({e.strerror})") from None
+        if not os.access(out_dir, os.W_OK):
+            raise OutputError(f"{out_dir}: output folder is not writable")
+        write_summary(summary_path, ordered())
+        if todo:
+            io.clean_stale_staging(out_dir / todo[0].study)  # staging folders of killed runs, before any task
             _run_on(client, todo, out_dir, rows, retries=retries, images=images, progress=progress,
                     on_row=lambda: write_summary(summary_path, ordered()))
-        finally:
+    finally:
+        if client is not None:
             client.close()
-            if cluster is not None:
-                cluster.close()
+        if cluster is not None:
+            cluster.close()
     final = ordered()
     write_summary(summary_path, final)
     return final

@@ -324,6 +324,13 @@ def cli_listen(args) -> int:
             say(f"SIGUSR1: queued {', '.join(queued) if queued else 'nothing (no complete study pending)'}")
 
         signal.signal(signal.SIGUSR1, on_usr1)
+    def stop_signal(signum, frame):
+        raise KeyboardInterrupt
+
+    # Ctrl-C, and SIGTERM from a service manager, stop cleanly (also when started in the background,
+    # where a shell leaves SIGINT ignored)
+    signal.signal(signal.SIGINT, stop_signal)
+    signal.signal(signal.SIGTERM, stop_signal)
     say(f"pid {os.getpid()}: Ctrl-C stops" + ("; kill -USR1 reconstructs the complete studies now"
                                              if hasattr(signal, "SIGUSR1") else ""))
     try:
@@ -339,8 +346,14 @@ def cli_listen(args) -> int:
             for t in rx._threads:
                 t.join()
         except KeyboardInterrupt:
-            say(f"abandoned the reconstruction of {rx.busy_with}")
-            return 130
+            study = rx.busy_with
+            if study:  # its staging folder goes (the next run would remove it anyway: its owner is dead)
+                import shutil
+
+                shutil.rmtree(rx.out_dir / f".{study}.staging", ignore_errors=True)
+            say(f"abandoned the reconstruction of {study}")
+            sys.stderr.flush()
+            os._exit(130)  # the reconstruction thread cannot be stopped; the process ends without it
     left = rx.pending()
     say("stopped" + (f"; not reconstructed: {', '.join(left)} (they stay in the store; the next `listen` on it "
                      "reconstructs them)" if left else ""))
