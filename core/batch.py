@@ -398,12 +398,11 @@ def run_study(spec: StudySpec, out_root, *, images: bool = True, replace: bool =
     """
     from guidewire3d import pipeline
 
+    row = {"study": spec.study, "worker": _worker_name()}
+    if spec.error:  # not run
+        return {**row, "status": FAILED, "error": _one_line(spec.error), "seconds": 0.0, "worker": ""}
     t0 = time.perf_counter()
     _reset_peak_rss()
-    row = {"study": spec.study, "worker": _worker_name()}
-    if spec.error:
-        return {**row, "status": FAILED, "error": _one_line(spec.error), "seconds": 0.0,
-                "peak_rss_mb": round(_peak_rss_mb(), 1)}
     out = Path(out_root) / spec.study
     try:
         result = pipeline.run_to_outdir(spec.cta, spec.roadmap, spec.frames, out, series_uid=spec.series_uid,
@@ -617,6 +616,9 @@ def cli_batch(args) -> int:
         print(msg, file=sys.stderr)
 
     studies = load_studies(args.manifest)
+    if Path(args.manifest).is_dir():
+        say(f"{args.manifest}: {len(studies)} studies ({sum(s.error is None for s in studies)} with a CT series "
+            "and XA runs)")
     rows = run_batch(studies, args.out, workers=args.workers, scheduler=args.scheduler, retries=args.retries,
                      images=not args.no_images, progress=True, log=say)
     print(f"wrote {Path(args.out) / SUMMARY_NAME}: {len(rows)} studies ({_counts(rows)})")

@@ -19,7 +19,7 @@ import sys
 import tempfile
 import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 from guidewire3d.errors import InputError
@@ -43,7 +43,7 @@ class _StudyState:
     reconstructed_at: int = -1         # ``instances`` when the last reconstruction started
     queued: bool = False
     waiting_reported: str = ""         # the last "not complete" message logged
-    rows: list = field(default_factory=list)
+    checked_at: int = -1               # ``instances`` when it was last found not complete
 
 
 class StudyReceiver:
@@ -227,7 +227,7 @@ class StudyReceiver:
         with self._lock:
             cands = [(s, st) for s, st in self._studies.items() if studies is None or s in studies]
             cands = [(s, st) for s, st in cands if not st.queued and st.instances != st.reconstructed_at
-                     and (force or now - st.last_arrival >= self.quiet_s)]
+                     and (force or (now - st.last_arrival >= self.quiet_s and st.instances != st.checked_at))]
         for s, st in cands:
             try:
                 (spec,) = batch.group_dicom_tree(self.store_dir / s)
@@ -236,6 +236,7 @@ class StudyReceiver:
             else:
                 err = spec.error
             if err:
+                st.checked_at = st.instances  # looked at again when more arrive (or on demand)
                 if st.waiting_reported != err:
                     self._say(f"study {s} is not complete yet: {err}")
                     st.waiting_reported = err

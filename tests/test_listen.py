@@ -87,3 +87,22 @@ def test_bad_options_are_refused(tmp_path):
         StudyReceiver(tmp_path / "file", tmp_path / "o")
     with pytest.raises(batch.InputError, match="--quiet-seconds"):
         StudyReceiver(tmp_path / "s", tmp_path / "o", quiet_s=-1)
+
+
+@pytest.mark.parametrize("uids", [("1.2.3", "1.2.4", ""), ("../../etc", "1.2.4", "1.2.5"), ("1.2", "1." + "2" * 70, "1.3")])
+def test_instance_without_valid_uids_is_refused(tmp_path, uids):
+    from types import SimpleNamespace
+
+    from guidewire3d.dicomnet import STATUS_CANNOT_UNDERSTAND
+
+    import warnings
+
+    ds = pydicom.Dataset()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # pydicom warns about the invalid UIDs as they are set
+        ds.StudyInstanceUID, ds.SeriesInstanceUID, ds.SOPInstanceUID = uids
+    logs = []
+    rx = StudyReceiver(tmp_path / "store", tmp_path / "out", port=0, log=logs.append)  # not started: the handler alone
+    assert rx._on_store(SimpleNamespace(dataset=ds)) == STATUS_CANNOT_UNDERSTAND
+    assert list((tmp_path / "store").iterdir()) == [] and rx.pending() == []
+    assert len(logs) == 1 and "is not a DICOM UID" in logs[0]
