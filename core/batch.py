@@ -34,7 +34,8 @@ REPORT_NAME = "report.json"
 
 # the statuses of a study in summary.csv
 DONE = "done"                       # output written, frames reconstructed
-NOT_RECONSTRUCTED = "not_reconstructed"  # output written, registration failed/uncertain: frames not reconstructed (reconstruct's exit 1)
+# output written, but the registration failed or is uncertain: frames not reconstructed (reconstruct's exit 1)
+NOT_RECONSTRUCTED = "not_reconstructed"
 FAILED = "failed"                   # no output: the error column says why
 SKIPPED = "skipped"                 # the output existed before this run (values read from its report.json)
 STATUSES = (DONE, NOT_RECONSTRUCTED, FAILED, SKIPPED)
@@ -515,7 +516,7 @@ def run_batch(studies, out_dir, *, workers: int | None = None, scheduler: str | 
     if workers is not None and int(workers) < 1:
         raise InputError(f"--workers {workers}: expected at least 1")
     if retries < 0:
-        raise InputError(f"retries {retries}: expected at least 0")
+        raise InputError(f"--retries {retries}: expected at least 0")
     out_dir = Path(os.path.abspath(out_dir))
     if out_dir.exists() and not out_dir.is_dir():
         raise InputError(f"{out_dir}: output folder exists and is not a folder")
@@ -599,7 +600,8 @@ def add_cli_options(p) -> None:
                    help="a CSV with the columns study,cta,roadmap,frames (optional: series_uid, roadmap_frame, "
                         "method, segmenter, force, track_motion), or a DICOM folder tree (one study per "
                         "StudyInstanceUID; see README, 'batch')")
-    p.add_argument("--out", required=True, help="output folder: DIR/<study>/ per study and DIR/summary.csv")
+    p.add_argument("--out", required=True, metavar="DIR",
+                   help="output folder: DIR/<study>/ per study and DIR/summary.csv")
     g = p.add_mutually_exclusive_group()
     g.add_argument("--workers", type=int, default=None, metavar="N",
                    help="worker processes of a local Dask cluster on 127.0.0.1 (default 1)")

@@ -261,7 +261,8 @@ class StudyReceiver:
             try:
                 row = batch.run_study(spec, self.out_dir, images=self.images, replace=True)
             except Exception as e:  # noqa: BLE001 - one study's crash must not stop the receiver
-                row = {"study": study, "status": batch.FAILED, "error": " ".join(f"{e.__class__.__name__}: {e}".split())}
+                row = {"study": study, "status": batch.FAILED,
+                       "error": " ".join(f"{e.__class__.__name__}: {e}".split())}
             with self._lock:
                 st = self._studies[study]
                 st.reconstructed_at = n
@@ -300,7 +301,8 @@ def add_cli_options(p) -> None:
                    "(DIR/<StudyInstanceUID>/<SeriesInstanceUID>/<SOPInstanceUID>.dcm)")
     p.add_argument("--out", default=None, metavar="OUT",
                    help="where reconstructions go (OUT/<study>/, OUT/summary.csv; default: STORE/../<store>-out)")
-    p.add_argument("--ae-title", default=DEFAULT_AE_TITLE, help=f"this receiver's AE title (default {DEFAULT_AE_TITLE})")
+    p.add_argument("--ae-title", default=DEFAULT_AE_TITLE,
+                   help=f"this receiver's AE title (default {DEFAULT_AE_TITLE})")
     p.add_argument("--quiet-seconds", type=float, default=DEFAULT_QUIET_S, metavar="S",
                    help=f"a study is complete when nothing new arrived for S seconds (default {DEFAULT_QUIET_S:g})")
     p.add_argument("--on-demand", action="store_true",

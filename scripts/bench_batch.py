@@ -92,8 +92,8 @@ def main(argv=None) -> int:
             shutil.rmtree(root, ignore_errors=True)
 
     print()
-    print(f"| workers | studies | wall s (median) | studies per hour | s per study (median) | "
-          f"peak RSS per worker MB (median / max) | not done |")
+    print("| workers | studies | wall s (median) | studies per hour | s per study (median) | "
+          "peak RSS per worker MB (median / max) | not done |")
     print("|---|---|---|---|---|---|---|")
     for n, (walls, secs, peaks, statuses) in results.items():
         wall = statistics.median(walls)

@@ -89,7 +89,8 @@ def test_bad_options_are_refused(tmp_path):
         StudyReceiver(tmp_path / "s", tmp_path / "o", quiet_s=-1)
 
 
-@pytest.mark.parametrize("uids", [("1.2.3", "1.2.4", ""), ("../../etc", "1.2.4", "1.2.5"), ("1.2", "1." + "2" * 70, "1.3")])
+@pytest.mark.parametrize("uids", [("1.2.3", "1.2.4", ""), ("../../etc", "1.2.4", "1.2.5"),
+                                  ("1.2", "1." + "2" * 70, "1.3")])
 def test_instance_without_valid_uids_is_refused(tmp_path, uids):
     from types import SimpleNamespace
 
