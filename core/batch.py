@@ -403,6 +403,7 @@ def run_study(spec: StudySpec, out_root, *, images: bool = True, replace: bool =
     if spec.error:  # not run
         return {**row, "status": FAILED, "error": _one_line(spec.error), "seconds": 0.0, "worker": ""}
     t0 = time.perf_counter()
+    row["started"] = time.time()  # not in summary.csv: for scripts/bench_batch.py (a worker's first study)
     _reset_peak_rss()
     out = Path(out_root) / spec.study
     try:
