@@ -226,9 +226,9 @@ class StudyReceiver:
         queued = []
         with self._lock:
             cands = [(s, st) for s, st in self._studies.items() if studies is None or s in studies]
-            cands = [(s, st) for s, st in cands if not st.queued and st.instances != st.reconstructed_at
+            cands = [(s, st, st.instances) for s, st in cands if not st.queued and st.instances != st.reconstructed_at
                      and (force or (now - st.last_arrival >= self.quiet_s and st.instances != st.checked_at))]
-        for s, st in cands:
+        for s, st, n in cands:  # n: the instances on disk before the folder is read (more may arrive meanwhile)
             try:
                 (spec,) = batch.group_dicom_tree(self.store_dir / s)
             except (InputError, ValueError) as e:  # nothing readable yet, or more than one study inside
@@ -236,14 +236,13 @@ class StudyReceiver:
             else:
                 err = spec.error
             if err:
-                st.checked_at = st.instances  # looked at again when more arrive (or on demand)
+                st.checked_at = n  # looked at again when more arrive (or on demand)
                 if st.waiting_reported != err:
                     self._say(f"study {s} is not complete yet: {err}")
                     st.waiting_reported = err
                 continue
             with self._lock:
                 st.queued = True
-                n = st.instances
             self._jobs.put((s, spec, n))
             queued.append(s)
         return queued
