@@ -469,6 +469,21 @@ def write_summary(path, rows) -> Path:
 # --------------------------------------------------------------------------------------
 # the batch
 # --------------------------------------------------------------------------------------
+def writable_folder(path, what: str) -> Path:
+    """Create folder ``path`` if needed and check that it can be written; an OutputError naming it
+    (and ``what`` it is for) otherwise."""
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise OutputError(f"{path}: {what} exists and is not a folder")
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise OutputError(f"{path}: cannot create the {what} ({e.strerror})") from None
+    if not os.access(path, os.W_OK):
+        raise OutputError(f"{path}: {what} is not writable")
+    return path
+
+
 def _client(workers: int | None, scheduler: str | None, log):
     """A ``dask.distributed.Client`` and the local cluster it owns (None with ``scheduler``)."""
     import dask
@@ -543,12 +558,7 @@ def run_batch(studies, out_dir, *, workers: int | None = None, scheduler: str | 
     # the cluster first: a scheduler that cannot be reached is refused before anything is written
     client, cluster = _client(workers, scheduler, log) if todo else (None, None)
     try:
-        try:
-            out_dir.mkdir(parents=True, exist_ok=True)
-        except OSError as e:
-            raise OutputError(f"{out_dir}: cannot create the output folder ({e.strerror})") from None
-        if not os.access(out_dir, os.W_OK):
-            raise OutputError(f"{out_dir}: output folder is not writable")
+        writable_folder(out_dir, "output folder")
         write_summary(summary_path, ordered())
         if todo:
             io.clean_stale_staging(out_dir / todo[0].study)  # staging folders of killed runs, before any task

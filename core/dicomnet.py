@@ -77,15 +77,10 @@ class StudyReceiver:
             raise InputError(f"--ae-title {ae_title!r}: expected 1-16 ASCII characters without '\\'")
         self.store_dir = Path(os.path.abspath(store_dir))
         self.out_dir = Path(os.path.abspath(out_dir))
-        for opt, d in (("--store", self.store_dir), ("--out", self.out_dir)):
-            if d.exists() and not d.is_dir():
-                raise InputError(f"{opt} {d}: exists and is not a folder")
-            try:
-                d.mkdir(parents=True, exist_ok=True)
-            except OSError as e:
-                raise InputError(f"{opt} {d}: cannot create the folder ({e.strerror})") from None
-            if not os.access(d, os.W_OK):
-                raise InputError(f"{opt} {d}: not writable")
+        from guidewire3d.batch import writable_folder
+
+        writable_folder(self.store_dir, "--store folder")
+        writable_folder(self.out_dir, "--out folder")
         self.host, self._port, self.ae_title = host, int(port), title
         self.quiet_s, self.auto, self.images = float(quiet_s), bool(auto), bool(images)
         self._log = log

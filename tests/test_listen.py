@@ -83,7 +83,7 @@ def test_bad_options_are_refused(tmp_path):
     with pytest.raises(batch.InputError, match="--ae-title"):
         StudyReceiver(tmp_path / "s", tmp_path / "o", ae_title="A" * 17)
     (tmp_path / "file").write_text("")
-    with pytest.raises(batch.InputError, match="--store .*file: exists and is not a folder"):
+    with pytest.raises(batch.InputError, match="file: --store folder exists and is not a folder"):
         StudyReceiver(tmp_path / "file", tmp_path / "o")
     with pytest.raises(batch.InputError, match="--quiet-seconds"):
         StudyReceiver(tmp_path / "s", tmp_path / "o", quiet_s=-1)
