@@ -1,4 +1,4 @@
-"""Command line: ``guidewire3d {demo,phantom,reconstruct,segment,view,live,bench}``.
+"""Command line: ``guidewire3d {demo,phantom,reconstruct,segment,view,live,bench,batch,listen}``.
 
 Bad input prints one line (``guidewire3d: error: ...``) and exits with status 2; ``--verbose``
 shows the traceback instead.
@@ -212,13 +212,38 @@ def _add_segment_parser(sub) -> None:
     p.set_defaults(func=batch2d.cli_segment)
 
 
+# --- batch and listen (issue 24): many studies on Dask, studies received over DICOM -------------
+def _add_batch_parser(sub) -> None:
+    from guidewire3d import batch
+
+    p = sub.add_parser("batch", help="reconstruct many studies (a CSV manifest or a DICOM tree) on a Dask cluster",
+                       description="Run reconstruct on every study of MANIFEST, one Dask task per study (a local "
+                                   "cluster of --workers processes, or --scheduler), into DIR/<study>/ as "
+                                   "reconstruct writes it, and DIR/summary.csv. Failed studies are retried, then "
+                                   "recorded; finished studies are skipped on a rerun. Exit 1 if a study failed.")
+    batch.add_cli_options(p)
+    p.set_defaults(func=batch.cli_batch)
+
+
+def _add_listen_parser(sub) -> None:
+    from guidewire3d import dicomnet
+
+    p = sub.add_parser("listen", help="DICOM C-STORE receiver: file incoming studies and reconstruct each one",
+                       description="A DICOM storage SCP (pynetdicom) that files incoming instances under "
+                                   "STORE/<study>/<series>/ and reconstructs a study into OUT/<study>/ once it has "
+                                   "a CT series and XA runs and nothing new arrived for --quiet-seconds (or on "
+                                   "SIGUSR1). Ctrl-C stops.")
+    dicomnet.add_cli_options(p)
+    p.set_defaults(func=dicomnet.cli_listen)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(
         prog="guidewire3d",
         description="Real-time 3D guidewire reconstruction from a CTA and single-view DSA.",
     )
     parser.add_argument("--verbose", action="store_true", help="show tracebacks and debug messages")
-    sub = parser.add_subparsers(dest="command", metavar="{demo,phantom,reconstruct,segment,view,live,bench}")
+    sub = parser.add_subparsers(dest="command", metavar="{demo,phantom,reconstruct,segment,view,live,bench,batch,listen}")
     sub.required = True
     _add_demo_parser(sub)
     _add_phantom_parser(sub)
@@ -227,6 +252,8 @@ def build_parser() -> argparse.ArgumentParser:
     _add_view_parser(sub)
     _add_live_parser(sub)
     _add_bench_parser(sub)
+    _add_batch_parser(sub)
+    _add_listen_parser(sub)
     return parser
 
 

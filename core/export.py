@@ -284,8 +284,9 @@ def overlay_image(frame, *, centerline_uv_px=None, wire2d_uv_px=None, wire3d_uv_
 
     if centerline_uv_px is not None:
         uv = np.asarray(centerline_uv_px, float).reshape(-1, 2)
-        ok = np.isfinite(uv).all(1) & (uv[:, 0] >= 0) & (uv[:, 0] < W) & (uv[:, 1] >= 0) & (uv[:, 1] < H)
-        iu = np.rint(uv[ok]).astype(int)
+        uv = uv[np.isfinite(uv).all(1)]
+        iu = np.rint(uv).astype(int)  # bounds on the rounded pixel: u in [W - 0.5, W) rounds to W
+        iu = iu[(iu[:, 0] >= 0) & (iu[:, 0] < W) & (iu[:, 1] >= 0) & (iu[:, 1] < H)]
         rgb[iu[:, 1], iu[:, 0]] = (0, 200, 0)
     if wire2d_uv_px is not None:
         _poly(wire2d_uv_px, (255, 220, 0), 1)

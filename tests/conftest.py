@@ -28,3 +28,17 @@ def distractor_case():
     from guidewire3d.phantom import PhantomOptions, simulate
 
     return simulate(PhantomOptions(seed=5, n_frames=2, distractors=True))
+
+
+# seeds of the tiny studies of tests/test_batch.py and tests/test_listen.py (registration ok on each)
+TINY_SEEDS = (11, 12, 13, 14)
+
+
+@pytest.fixture(scope="session")
+def tiny_studies(tmp_path_factory):
+    """Four tiny simulated studies (2 live frames each), written with ``write_case``: {name: case folder}."""
+    from guidewire3d.phantom import PhantomOptions, simulate, write_case
+
+    root = tmp_path_factory.mktemp("tiny_studies")
+    return {f"s{seed}": write_case(simulate(PhantomOptions(seed=seed, n_frames=2)), root / f"s{seed}")
+            for seed in TINY_SEEDS}

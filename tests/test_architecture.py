@@ -20,7 +20,7 @@ LAYERS: dict[str, tuple[str, ...]] = {
                "registration", "reconstruction", "motion"),
     "engine": ("live",),
     "simulation": ("phantom",),
-    "application": ("pipeline", "export", "outdir", "stream", "bench", "batch2d"),
+    "application": ("pipeline", "export", "outdir", "stream", "bench", "batch2d", "batch", "dicomnet"),
     "front ends": ("cli", "viewer", "viewer.app", "viewer.controller", "viewer.scene"),
 }
 FRONT_ENDS = set(LAYERS["front ends"])

@@ -15,7 +15,7 @@ def test_cli_choices_match_the_enums():
 
 def test_help_lists_every_subcommand():
     out = subprocess.run([sys.executable, "-m", "guidewire3d.cli", "--help"], capture_output=True, text=True, check=True).stdout
-    for sub in ("demo", "phantom", "reconstruct", "segment", "view", "bench"):
+    for sub in ("demo", "phantom", "reconstruct", "segment", "view", "bench", "batch", "listen"):
         assert sub in out
 
 
