@@ -382,10 +382,13 @@ class BiplaneSession:
     registration_covariance : (6, 6) ndarray, optional
     segmenter, method, options
         As :class:`guidewire3d.live.Session` (``method`` is the single-view fallback's).
+    threads : int
+        2: the two planes' 2D analyses (segmentation, ordered wire) run in two threads (the
+        network and most of the image code release the GIL); 1: one after the other.
     """
 
     def __init__(self, tree, carms, pose: Pose, *, registration_covariance=None, segmenter="unet",
-                 method="vessel", options=None, two_view_options=None):
+                 method="vessel", options=None, two_view_options=None, threads: int = 2):
         from guidewire3d import live
         from guidewire3d.triangulation import TwoViewContext
 
@@ -397,6 +400,24 @@ class BiplaneSession:
         self.context = TwoViewContext(tree, self.carms, pose, registration_covariance=registration_covariance,
                                       options=two_view_options)
         self.n_pairs = 0
+        if int(threads) not in (1, 2):
+            raise InputError(f"BiplaneSession: threads must be 1 or 2, got {threads!r}")
+        self._pool = None
+        if int(threads) == 2:
+            from concurrent.futures import ThreadPoolExecutor
+
+            self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="guidewire3d-plane-b")
+
+    def close(self) -> None:
+        """Stop the plane-B worker thread (also done when the session is garbage-collected)."""
+        if self._pool is not None:
+            self._pool.shutdown(wait=True)
+            self._pool = None
+
+    def __del__(self):
+        pool = getattr(self, "_pool", None)
+        if pool is not None:
+            pool.shutdown(wait=False)
 
     def warm_up(self, frame_a, frame_b) -> None:
         for s, f in zip(self.sessions, (frame_a, frame_b)):
@@ -426,7 +447,11 @@ class BiplaneSession:
         t0 = time.perf_counter()
         index = self.n_pairs if index is None else int(index)
         index_b = index if index_b is None else int(index_b)
-        got = [self._wire2d(k, f) for k, f in enumerate((frame_a, frame_b))]
+        if self._pool is not None:  # plane B in the worker thread, plane A here
+            fut = self._pool.submit(self._wire2d, 1, frame_b)
+            got = [self._wire2d(0, frame_a), fut.result()]
+        else:
+            got = [self._wire2d(k, f) for k, f in enumerate((frame_a, frame_b))]
         return self.process_wires(got[0][0], got[1][0], images=(got[0][1], got[1][1]), index=index, index_b=index_b,
                                   errors=(got[0][2], got[1][2]), t0=t0)
 

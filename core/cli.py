@@ -75,8 +75,11 @@ def _add_reconstruct_parser(sub) -> None:
                        description="CTA vessels -> 2D analysis -> registration -> 3D wire per frame; writes "
                                    "report.json, VTP/STL, screenshots into --out.")
     p.add_argument("--cta", required=True, help="CTA DICOM series folder, or NIfTI/NRRD/MHA file")
-    p.add_argument("--roadmap", required=True, help="XA DICOM with the contrast roadmap")
-    p.add_argument("--frames", required=True, help="XA DICOM with the live frames (may be the roadmap file)")
+    p.add_argument("--roadmap", required=True, action="append",
+                   help="XA DICOM with the contrast roadmap; give it twice for a biplane (plane A, then plane B)")
+    p.add_argument("--frames", required=True, action="append",
+                   help="XA DICOM with the live frames (may be the roadmap file); twice for a biplane, in the order "
+                        "of --roadmap (pairs matched by FrameTime, else by index)")
     p.add_argument("--out", required=True, help="output folder (created; must be empty or absent)")
     p.add_argument("--roadmap-frame", type=int, default=None, metavar="K",
                    help="frame of --roadmap to use (default: the most contrast-filled)")
@@ -95,6 +98,16 @@ def _add_reconstruct_parser(sub) -> None:
     _add_geometry_overrides(p)
 
     def run(args):
+        # --- biplane (issue 23): two --roadmap and two --frames; one of each is the single view ---
+        n_road, n_frames = len(args.roadmap), len(args.frames)
+        if n_road == 2 and n_frames == 2:
+            from guidewire3d import biplane
+
+            return biplane.cli_reconstruct(args)
+        if n_road != 1 or n_frames != 1:
+            raise _UsageError(f"--roadmap and --frames: give one of each (one view) or two of each (biplane: plane A, "
+                              f"then plane B), got {n_road} and {n_frames} (see 'guidewire3d reconstruct --help')")
+        args.roadmap, args.frames = args.roadmap[0], args.frames[0]
         from guidewire3d import pipeline
 
         return pipeline.cli_reconstruct(args)
@@ -234,6 +247,8 @@ def main(argv=None) -> int:
     try:
         rc = args.func(args)
         return int(rc or 0)
+    except _UsageError as e:
+        return _error(str(e))
     except Guidewire3DError as e:
         if args.verbose:
             _close_progress_bars()
