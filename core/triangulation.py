@@ -49,12 +49,14 @@ class TwoViewOptions:
     step_px: float = 3.0  #: spacing of the master plane's samples (each plane is the master in turn)
     dense_px: float = 1.0  #: spacing of the other plane's wire for the crossings (linear in between)
     touch_px: float = 0.7  #: B's wire within this of an epipolar line without crossing it is a candidate
-    max_candidates: int = 4  #: per A point, the most plausible (vessel prior) are kept
+    max_candidates: int = 8  #: per A point, the most plausible (vessel prior) are kept
     sigma_lumen_mm: float = 0.5  #: unary: distance outside the CTA lumen
-    step_slack: float = 2.0  #: pairwise: a 3D step up to this times the expected one is free
-    sigma_step_mm: float = 0.5  #: pairwise: cost per this much beyond it
+    centerline_weight: float = 1.0  #: unary: (distance to the centerline / radius)^2 inside it, times this
+    step_tolerance_mm: float = 0.2  #: pairwise: a 3D step may disagree with its projections by this much freely
+    sigma_step_mm: float = 0.3  #: pairwise: cost per this much beyond it
     back_px: float = 1.0  #: pairwise: B's arclength may move back this much (noise)
-    skip_cost: float = 12.0  #: an A point left unmatched
+    skip_cost: float = 8.0  #: a master sample left unmatched (the other pass may match it)
+    outlier_mm: float = 0.5  #: a match this far (and 4 robust sigmas) from the smooth curve is dropped
     min_matched: float = 0.5  #: fraction of plane A's wire that must be matched
     min_points: int = 5
     smoothing_lambda: float = 0.05  #: P-spline smoothness weight (as ``ReconOptions.smoothing_lambda``)
@@ -63,8 +65,8 @@ class TwoViewOptions:
     max_reprojection_px: float = 3.0  #: a result whose mean reprojection error in a plane exceeds this fails
 
     def __post_init__(self):
-        for name in ("step_px", "dense_px", "touch_px", "sigma_lumen_mm", "step_slack", "sigma_step_mm",
-                     "skip_cost", "min_matched", "smoothing_lambda", "knot_px", "sigma_2d_px", "max_reprojection_px"):
+        for name in ("step_px", "dense_px", "touch_px", "sigma_lumen_mm", "step_tolerance_mm", "sigma_step_mm",
+                     "skip_cost", "outlier_mm", "min_matched", "smoothing_lambda", "knot_px", "sigma_2d_px", "max_reprojection_px"):
             v = getattr(self, name)
             if not (np.isfinite(v) and v > 0):
                 raise InputError(f"TwoViewOptions.{name} must be a finite positive number, got {v!r}")
@@ -146,6 +148,10 @@ class TwoViewContext:
             tc = A @ (pose.t - c.source_room_mm)
             self.cams.append((Rc, tc, c.focal_px, c.principal_point_px))
         self.pixel_at_iso_mm = float(np.mean([c.pixel_at_iso_mm for c in self.carms]))
+        # a 3D step of length L projects to lengths whose squares sum to at least L^2 sin^2(angle
+        # between the beams): the bound of the pairwise term
+        cos_sep = abs(float(self.carms[0].beam_direction @ self.carms[1].beam_direction))
+        self.spread = 1.0 / max(np.sqrt(1.0 - cos_sep**2), 0.2)
 
     def project(self, k: int, X) -> np.ndarray:
         Rc, tc, f, c = self.cams[k]
@@ -166,6 +172,15 @@ class TwoViewContext:
     def outside_lumen_mm(self, X) -> np.ndarray:
         d, i = self.kd.query(X)
         return np.maximum(d - self.dense_rad[i], 0.0)
+
+    def vessel_cost(self, X) -> np.ndarray:
+        """The vessel prior's unary cost of points ``X``: outside the lumen (``sigma_lumen_mm``), and,
+        weakly, off the centerline relative to the radius (``centerline_weight``): it breaks the
+        ties between matches that are all inside the lumen."""
+        opt = self.options
+        d, i = self.kd.query(X)
+        r = np.maximum(self.dense_rad[i], 0.3)
+        return (np.maximum(d - r, 0.0) / opt.sigma_lumen_mm) ** 2 + opt.centerline_weight * np.minimum(d / r, 1.0) ** 2
 
 
 def _candidates(F: np.ndarray, a: np.ndarray, b: np.ndarray, opt: TwoViewOptions):
@@ -207,7 +222,8 @@ def _interp(b: np.ndarray, j: np.ndarray) -> np.ndarray:
 _INF = 1e18
 
 
-def _viterbi(n: int, ia, jb, X, unary, step_mm: float, direction: int, opt: TwoViewOptions):
+def _viterbi(n: int, ia, jb, X, unary, step_mm: float, direction: int, opt: TwoViewOptions, *,
+             px_other_mm: float, spread: float):
     """One candidate (or a skip) per master sample, minimising unary + pairwise costs.
 
     Returns ``(chosen, cost)``: the candidate index per sample (-1: skipped) and the path's cost."""
@@ -228,26 +244,31 @@ def _viterbi(n: int, ia, jb, X, unary, step_mm: float, direction: int, opt: TwoV
     T = np.zeros((max(n - 1, 0), K + 1, K + 1))
     if n > 1:
         dX = np.linalg.norm(Xp[:-1, :, None, :] - Xp[1:, None, :, :], axis=3)
-        excess = np.maximum(dX - opt.step_slack * step_mm, 0.0) / opt.sigma_step_mm
         dj = (jp[1:, None, :] - jp[:-1, :, None]) * direction * opt.dense_px
+        # a 3D step and its two projections must agree: the step along the other plane's wire
+        # cannot exceed the 3D step (a jump to another part of that wire does), and the 3D step
+        # cannot exceed what both projections allow (steps in mm at the isocentre)
+        m_mm, o_mm = step_mm, np.abs(dj) * px_other_mm
+        over = np.maximum(dX - np.sqrt(m_mm**2 + o_mm**2) * spread - opt.step_tolerance_mm, 0.0)
+        jump = np.maximum(o_mm - dX - opt.step_tolerance_mm, 0.0)
         with np.errstate(invalid="ignore"):
-            pen = np.where(dj < -opt.back_px, _INF, excess**2)
+            pen = np.where(dj < -opt.back_px, _INF, (over**2 + jump**2) / opt.sigma_step_mm**2)
         T[:, 1:, 1:] = np.where(np.isfinite(pen), pen, _INF)
-    cost = U[0].copy()
-    back = np.zeros((n, K + 1), int)
-    cols = np.arange(K + 1)
+    # forward pass (min-plus), then the argmins recomputed along the chosen path only
+    costs = np.empty((n, K + 1))
+    cost = costs[0] = U[0]
     for i in range(1, n):
-        tot = cost[:, None] + T[i - 1]
-        b = np.argmin(tot, axis=0)
-        back[i] = b
-        cost = tot[b, cols] + U[i]
-    s = int(np.argmin(cost))
+        cost = (cost[:, None] + T[i - 1]).min(axis=0) + U[i]
+        costs[i] = cost
+    s = int(cost.argmin())
     best = float(cost[s])
     chosen = -np.ones(n, int)
-    for i in range(n - 1, -1, -1):
+    for i in range(n - 1, 0, -1):
         if s > 0:
             chosen[i] = idx[i, s - 1]
-        s = back[i, s]
+        s = int((costs[i - 1] + T[i - 1][:, s]).argmin())
+    if s > 0:
+        chosen[0] = idx[0, s - 1]
     return chosen, best
 
 
@@ -286,6 +307,19 @@ def _polyline_distance_px(uv: np.ndarray, curve: np.ndarray) -> np.ndarray:
     return cKDTree(dense).query(uv)[0]
 
 
+def _direction(ia: np.ndarray, jb: np.ndarray) -> int:
+    """+1 / -1 when the samples with a single candidate walk the other wire clearly forwards /
+    backwards (rank correlation above ``0.8``), else 0 (try both)."""
+    counts = np.bincount(ia)
+    single = counts[ia] == 1
+    if single.sum() < 8:
+        return 0
+    x, y = ia[single], jb[single]
+    rx, ry = np.argsort(np.argsort(x)), np.argsort(np.argsort(y))
+    r = float(np.corrcoef(rx, ry)[0, 1])
+    return 1 if r > 0.8 else -1 if r < -0.8 else 0
+
+
 def _one_way(ctx: TwoViewContext, master: int, m_uv, o_uv, direction_hint=None):
     """Match the master plane's samples to the other plane's wire; returns per match the master
     and other arclengths (px), the 3D point, the conditioning ``|sin|``; and the Viterbi's
@@ -299,11 +333,15 @@ def _one_way(ctx: TwoViewContext, master: int, m_uv, o_uv, direction_hint=None):
         return None
     uo = _interp(o, jb)
     X = triangulate_points(m[ia], uo, *ctx.P) if master == 0 else triangulate_points(uo, m[ia], *ctx.P)
-    unary = (ctx.outside_lumen_mm(X) / opt.sigma_lumen_mm) ** 2
-    step_mm = opt.step_px * ctx.pixel_at_iso_mm
+    unary = ctx.vessel_cost(X)
+    step_mm = opt.step_px * ctx.carms[master].pixel_at_iso_mm
+    px_other_mm = ctx.carms[1 - master].pixel_at_iso_mm
     best = None
-    for direction in ((1, -1) if direction_hint is None else (direction_hint,)):
-        chosen, cost = _viterbi(len(m), ia, jb, X, unary, step_mm, direction, opt)
+    if direction_hint is None:
+        direction_hint = _direction(ia, jb)
+    for direction in ((1, -1) if direction_hint == 0 else (direction_hint,)):
+        chosen, cost = _viterbi(len(m), ia, jb, X, unary, step_mm, direction, opt, px_other_mm=px_other_mm,
+                                spread=ctx.spread)
         if best is None or cost < best[1]:
             best = (chosen, cost, direction)
     chosen, cost, direction = best
@@ -375,9 +413,18 @@ def triangulate_wire(wire_a_uv_px, wire_b_uv_px, ctx: TwoViewContext) -> TwoView
     keep = np.r_[True, np.diff(key) > 1e-6]
     key, X, sin = key[keep], X[keep], sin[keep]
     w = np.clip(sin, 0.05, 1.0) ** 2
+    n_outliers = 0
     if len(key) >= 5 and key[-1] - key[0] > 4 * opt.knot_px:
         lam = opt.smoothing_lambda
         Xs = _weighted_pspline(key, X, w, lam, opt.knot_px)
+        # one robust pass: matches far from the smooth curve (a wrong crossing that the Viterbi's
+        # skip did not catch) are dropped and the curve fitted again
+        r = np.linalg.norm(X - Xs, axis=1)
+        out = r > max(opt.outlier_mm, 4.0 * 1.4826 * float(np.median(r)))
+        n_outliers = int(out.sum())
+        if 0 < n_outliers <= 0.3 * len(key) and len(key) - n_outliers >= 5:
+            key, X, w = key[~out], X[~out], w[~out]
+            Xs = _weighted_pspline(key, X, w, lam, opt.knot_px)
     else:
         Xs = X.copy()
     # resample the output along the 3D arclength (~ step_px at the isocentre)
