@@ -206,6 +206,19 @@ def test_cli_biplane_end_to_end(bcase_dir, tmp_path, capsys):
             assert e["mean_error_mm"] < 1.0
     assert sum(fr["biplane"]["views"] == "AB" for fr in rep["frames"]) >= 2
     assert (out / "guidewire_0000.vtp").is_file()
+    # the viewer shows plane B's detector beside plane A's, where plane B's geometry puts it
+    from guidewire3d.viewer.app import open_viewer
+
+    ctl, handles = open_viewer(out, size_px=(320, 240), off_screen=True, persist=False)
+    try:
+        actors = handles.plotter.renderers[0].actors
+        assert "detector" in actors and "detector_b" in actors
+        corners = truth.heldout_carm.detector_corners_lps_mm(pose)
+        lo, hi = np.asarray(actors["detector_b"].GetBounds()).reshape(3, 2).T
+        np.testing.assert_allclose(lo, corners.min(axis=0), atol=1e-3)
+        np.testing.assert_allclose(hi, corners.max(axis=0), atol=1e-3)
+    finally:
+        handles.plotter.close()
 
 
 def test_cli_mismatched_frame_counts_exit_2(bcase_dir, tmp_path, capsys):

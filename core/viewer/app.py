@@ -63,6 +63,13 @@ def open_viewer(out_dir, *, size_px=DEFAULT_SIZE, off_screen: bool = False, fram
         roadmap_centerline_uv_px=case.centerline_uv_px,
     )
     ctl = ViewerController(case, handles, persist=persist)
+    # biplane output (issue 23): plane B's C-arm and live frame beside plane A's in the 3D view
+    from guidewire3d.viewer.biplane_scene import add_plane_b, plane_b_of_outdir
+
+    plane_b = plane_b_of_outdir(out_dir)
+    if plane_b is not None:
+        w = case.wires[frame] if case.wires and 0 <= frame < len(case.wires) else None
+        add_plane_b(pl, plane_b, case.pose, frame=w.index if w is not None else frame)
     if frame:
         if case.n_frames and not 0 <= frame < case.n_frames:
             raise InputError(f"--frame: {frame} is out of range (the case has {case.n_frames} frames)")
