@@ -427,6 +427,14 @@ class BiplaneSession:
         for s in self.sessions:
             s.reset()
 
+    def _single_view(self, k: int, uv) -> object:
+        """Plane k's single-view reconstruction of ``uv`` (no tracking state is changed)."""
+        from guidewire3d.reconstruction import reconstruct_wire
+
+        s = self.sessions[k]
+        return reconstruct_wire(uv, s.pose, s.carm, self.tree, method="vessel",
+                                registration_covariance=s.registration_covariance, options=s.options)
+
     def _wire2d(self, k: int, frame):
         """Plane k's ordered 2D wire (or an error message)."""
         from guidewire3d import image2d
@@ -461,7 +469,7 @@ class BiplaneSession:
         a falsy wire when a plane's wire was not found)."""
         from guidewire3d.live import FrameResult, _no_wire, orientation_of
         from guidewire3d.registration import Verdict
-        from guidewire3d.triangulation import triangulate_wire
+        from guidewire3d.triangulation import extend_distal, triangulate_wire
 
         t0 = time.perf_counter() if t0 is None else t0
         index = self.n_pairs if index is None else int(index)
@@ -483,6 +491,7 @@ class BiplaneSession:
             uv = [np.asarray(w, float).reshape(-1, 2) for w in wires]
             tv = triangulate_wire(uv[0], uv[1], self.context)
             if tv:
+                tv = extend_distal(tv, uv[0], uv[1], self.context, self._single_view)
                 w3 = tv.wire3d
                 s_a = self.sessions[0]
                 ori = orientation_of(w3, uv[0], root_uv_px=s_a.root_uv_px)

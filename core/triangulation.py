@@ -39,7 +39,7 @@ from guidewire3d.errors import InputError
 from guidewire3d.geometry import CArm, Pose
 
 __all__ = ["TwoViewOptions", "TwoViewWire", "TwoViewContext", "fundamental_matrix", "triangulate_points",
-           "triangulate_wire"]
+           "triangulate_wire", "extend_distal"]
 
 
 @dataclass(frozen=True)
@@ -49,13 +49,14 @@ class TwoViewOptions:
     step_px: float = 3.0  #: spacing of the master plane's samples (each plane is the master in turn)
     dense_px: float = 1.0  #: spacing of the other plane's wire for the crossings (linear in between)
     touch_px: float = 0.7  #: B's wire within this of an epipolar line without crossing it is a candidate
-    max_candidates: int = 8  #: per A point, the most plausible (vessel prior) are kept
+    max_candidates: int = 6  #: per A point, the most plausible (vessel prior) are kept
     sigma_lumen_mm: float = 0.5  #: unary: distance outside the CTA lumen
     centerline_weight: float = 1.0  #: unary: (distance to the centerline / radius)^2 inside it, times this
     step_tolerance_mm: float = 0.2  #: pairwise: a 3D step may disagree with its projections by this much freely
     sigma_step_mm: float = 0.3  #: pairwise: cost per this much beyond it
     back_px: float = 1.0  #: pairwise: B's arclength may move back this much (noise)
     skip_cost: float = 8.0  #: a master sample left unmatched (the other pass may match it)
+    max_gap: int = 4  #: at most this many consecutive master samples unmatched inside a chain
     outlier_mm: float = 0.5  #: a match this far (and 4 robust sigmas) from the smooth curve is dropped
     min_matched: float = 0.5  #: fraction of plane A's wire that must be matched
     min_points: int = 5
@@ -63,10 +64,11 @@ class TwoViewOptions:
     knot_px: float = 6.0  #: knot spacing along the merged position (arclength in A + in B, px)
     sigma_2d_px: float = 0.5  #: 2D wire error across the wire (px)
     max_reprojection_px: float = 3.0  #: a result whose mean reprojection error in a plane exceeds this fails
+    extend_min_px: float = 8.0  #: a plane's 2D wire this far beyond the two-view tip is appended (extend_distal)
 
     def __post_init__(self):
         for name in ("step_px", "dense_px", "touch_px", "sigma_lumen_mm", "step_tolerance_mm", "sigma_step_mm",
-                     "skip_cost", "outlier_mm", "min_matched", "smoothing_lambda", "knot_px", "sigma_2d_px", "max_reprojection_px"):
+                     "skip_cost", "outlier_mm", "min_matched", "smoothing_lambda", "knot_px", "sigma_2d_px", "max_reprojection_px", "extend_min_px"):
             v = getattr(self, name)
             if not (np.isfinite(v) and v > 0):
                 raise InputError(f"TwoViewOptions.{name} must be a finite positive number, got {v!r}")
@@ -81,6 +83,8 @@ class TwoViewWire:
     projection_error_px: tuple[float, float]  # mean distance of the projected 3D wire to plane A's / B's 2D wire
     matched_fraction: float  # of plane A's wire samples
     b_reversed: bool  # plane B's 2D order ran the other way (distal -> proximal relative to A)
+    distal_gap_px: tuple[float, float] = (float("nan"), float("nan"))  # each plane's 2D wire beyond the two-view tip
+    single_view_distal_mm: float = 0.0  # length of the distal part appended from one plane (extend_distal)
 
     def __bool__(self) -> bool:
         return bool(self.wire3d)
@@ -224,10 +228,15 @@ _INF = 1e18
 
 def _viterbi(n: int, ia, jb, X, unary, step_mm: float, direction: int, opt: TwoViewOptions, *,
              px_other_mm: float, spread: float):
-    """One candidate (or a skip) per master sample, minimising unary + pairwise costs.
+    """One candidate per master sample on one chain, minimising unary + pairwise costs.
 
-    Returns ``(chosen, cost)``: the candidate index per sample (-1: skipped) and the path's cost."""
-    K = int(opt.max_candidates)
+    The chain may start late and end early (``skip_cost`` per master sample left out) and jump
+    over up to ``max_gap`` samples inside (the same cost each): a gap keeps the continuity with
+    the last matched sample (its pairwise term spans the gap), so a wrong stretch cannot hide
+    behind one.
+
+    Returns ``(chosen, cost)``: the candidate index per sample (-1: left out) and the chain's cost."""
+    K, G = int(opt.max_candidates), int(opt.max_gap)
     order = np.lexsort((unary, ia))
     ia_s = ia[order]
     starts = np.searchsorted(ia_s, np.arange(n + 1))
@@ -238,37 +247,44 @@ def _viterbi(n: int, ia, jb, X, unary, step_mm: float, direction: int, opt: TwoV
     has = idx >= 0
     Xp = np.where(has[..., None], X[np.maximum(idx, 0)], np.nan)
     jp = np.where(has, jb[np.maximum(idx, 0)], np.nan)
-    U = np.full((n, K + 1), _INF)
-    U[:, 0] = opt.skip_cost
-    U[:, 1:] = np.where(has, unary[np.maximum(idx, 0)], _INF)
-    T = np.zeros((max(n - 1, 0), K + 1, K + 1))
-    if n > 1:
-        dX = np.linalg.norm(Xp[:-1, :, None, :] - Xp[1:, None, :, :], axis=3)
-        dj = (jp[1:, None, :] - jp[:-1, :, None]) * direction * opt.dense_px
+    U = np.where(has, unary[np.maximum(idx, 0)], _INF)
+    # Tin[i, g - 1] (K, K): pairwise cost from sample i - g to sample i (a gap of g - 1 samples)
+    Tin = np.full((n, G, K, K), _INF)
+    for g in range(1, min(G, n - 1) + 1):
+        dX = np.linalg.norm(Xp[:-g, :, None, :] - Xp[g:, None, :, :], axis=3)
+        dj = (jp[g:, None, :] - jp[:-g, :, None]) * direction * opt.dense_px
         # a 3D step and its two projections must agree: the step along the other plane's wire
         # cannot exceed the 3D step (a jump to another part of that wire does), and the 3D step
         # cannot exceed what both projections allow (steps in mm at the isocentre)
-        m_mm, o_mm = step_mm, np.abs(dj) * px_other_mm
+        m_mm, o_mm = g * step_mm, np.abs(dj) * px_other_mm
         over = np.maximum(dX - np.sqrt(m_mm**2 + o_mm**2) * spread - opt.step_tolerance_mm, 0.0)
         jump = np.maximum(o_mm - dX - opt.step_tolerance_mm, 0.0)
         with np.errstate(invalid="ignore"):
             pen = np.where(dj < -opt.back_px, _INF, (over**2 + jump**2) / opt.sigma_step_mm**2)
-        T[:, 1:, 1:] = np.where(np.isfinite(pen), pen, _INF)
-    # forward pass (min-plus), then the argmins recomputed along the chosen path only
-    costs = np.empty((n, K + 1))
-    cost = costs[0] = U[0]
+        Tin[g:, g - 1] = np.where(np.isfinite(pen), pen + (g - 1) * opt.skip_cost, _INF)
+    # forward pass: cost of the best chain ending at (i, k); a chain may start at i (i samples
+    # left out). costs of sample i are row i + G (G rows of INF before: no predecessor)
+    cp = np.full((n + G, K), _INF)
+    skip = float(opt.skip_cost)
+    cp[G] = U[0]
     for i in range(1, n):
-        cost = (cost[:, None] + T[i - 1]).min(axis=0) + U[i]
-        costs[i] = cost
-    s = int(cost.argmin())
-    best = float(cost[s])
+        tot = cp[i:i + G][::-1, :, None] + Tin[i]  # (G, K, K): from (i - g, j) to (i, k)
+        cp[i + G] = np.minimum(tot.min(axis=(0, 1)), i * skip) + U[i]
+    costs = cp[G:]
+    end = costs + (n - 1 - np.arange(n))[:, None] * skip
+    i, k = np.unravel_index(int(end.argmin()), end.shape)
+    best = float(end[i, k])
     chosen = -np.ones(n, int)
-    for i in range(n - 1, 0, -1):
-        if s > 0:
-            chosen[i] = idx[i, s - 1]
-        s = int((costs[i - 1] + T[i - 1][:, s]).argmin())
-    if s > 0:
-        chosen[0] = idx[0, s - 1]
+    while True:
+        chosen[i] = idx[i, k]
+        if i == 0:
+            break
+        tot = cp[i:i + G][::-1] + Tin[i][:, :, k]  # (G, K)
+        m = float(tot.min())
+        if i * skip <= m:  # the chain starts here
+            break
+        gi, k = np.unravel_index(int(tot.argmin()), tot.shape)
+        i = int(i - 1 - gi)
     return chosen, best
 
 
@@ -405,13 +421,14 @@ def triangulate_wire(wire_a_uv_px, wire_b_uv_px, ctx: TwoViewContext) -> TwoView
         X.append(rb["X"])
         sin.append(rb["sin"])
     s_a, s_b, X, sin = (np.concatenate(v) for v in (s_a, s_b, X, sin))
-    L_b = ra["L_other"]
-    key = s_a + (s_b if direction > 0 else L_b - s_b)
+    L_a, L_b = ra["L_master"], ra["L_other"]
+    s_b = s_b if direction > 0 else L_b - s_b  # B's arclength in A's direction
+    key = s_a + s_b
     order = np.argsort(key, kind="stable")
-    key, X, sin = key[order], X[order], sin[order]
+    key, X, sin, s_a, s_b = key[order], X[order], sin[order], s_a[order], s_b[order]
     # drop exact duplicates of the key (a spline needs increasing x)
     keep = np.r_[True, np.diff(key) > 1e-6]
-    key, X, sin = key[keep], X[keep], sin[keep]
+    key, X, sin, s_a, s_b = key[keep], X[keep], sin[keep], s_a[keep], s_b[keep]
     w = np.clip(sin, 0.05, 1.0) ** 2
     n_outliers = 0
     if len(key) >= 5 and key[-1] - key[0] > 4 * opt.knot_px:
@@ -423,7 +440,7 @@ def triangulate_wire(wire_a_uv_px, wire_b_uv_px, ctx: TwoViewContext) -> TwoView
         out = r > max(opt.outlier_mm, 4.0 * 1.4826 * float(np.median(r)))
         n_outliers = int(out.sum())
         if 0 < n_outliers <= 0.3 * len(key) and len(key) - n_outliers >= 5:
-            key, X, w = key[~out], X[~out], w[~out]
+            key, X, w, s_a, s_b = key[~out], X[~out], w[~out], s_a[~out], s_b[~out]
             Xs = _weighted_pspline(key, X, w, lam, opt.knot_px)
     else:
         Xs = X.copy()
@@ -470,7 +487,70 @@ def triangulate_wire(wire_a_uv_px, wire_b_uv_px, ctx: TwoViewContext) -> TwoView
         msg = f"two views: projection error {max(perr):.2f} px exceeds {opt.max_reprojection_px} px"
     w3 = Wire3D(Xs, unc, float(arc[-1]), float(np.mean(perr)), ok, msg, tree_ids, arc, _curvature(Xs),
                 time.perf_counter() - t0, "biplane", cov, False, rise)
-    return TwoViewWire(w3, perr, frac, direction < 0)
+    gaps = (float(L_a - s_a.max()), float(L_b - s_b.max()))
+    return TwoViewWire(w3, perr, frac, direction < 0, gaps)
+
+
+def extend_distal(tv: TwoViewWire, wire_a_uv_px, wire_b_uv_px, ctx: TwoViewContext, single_view) -> TwoViewWire:
+    """The two-view wire continued beyond its tip where only one plane shows the wire's distal part
+    (it leaves the other plane's field of view, or the other plane's 2D wire stops short).
+
+    ``single_view(k, uv)`` is plane k's single-view reconstruction (vessel prior) of its 2D wire
+    ``uv`` in plane A's order; its points beyond the two-view tip (along plane k's 2D wire) are
+    appended, moved along plane k's rays so that they join the two-view tip (their projection in
+    plane k does not change), with their own uncertainty. The message says so. Returns ``tv``
+    unchanged when no plane shows more than ``extend_min_px`` beyond the tip."""
+    from guidewire3d.reconstruction import Wire3D
+
+    opt = ctx.options
+    if not tv or not np.all(np.isfinite(tv.distal_gap_px)):
+        return tv
+    k = int(np.argmax(tv.distal_gap_px))
+    if tv.distal_gap_px[k] < opt.extend_min_px:
+        return tv
+    uv = np.asarray(wire_a_uv_px if k == 0 else wire_b_uv_px, float).reshape(-1, 2)
+    if k == 1 and tv.b_reversed:
+        uv = uv[::-1]
+    w = single_view(k, uv)
+    plane = "AB"[k]
+    W = tv.wire3d
+    if not w:
+        return _with_message(tv, f"{W.message}; the distal {tv.distal_gap_px[k]:.0f} px that only plane {plane} shows "
+                                 f"are left out (its single-view reconstruction failed: {w.message})")
+    dense, s = _resample(uv, 0.5)
+    s_last = float(s[-1]) - tv.distal_gap_px[k]
+    proj = ctx.project(k, w.points_lps_mm)
+    d, j = cKDTree(dense).query(proj)
+    s_w = s[j]
+    beyond = np.flatnonzero((s_w > s_last + 1.0) & (d < 2.0))
+    if len(beyond) < 2:
+        return tv
+    beyond = beyond[np.argsort(s_w[beyond], kind="stable")]
+    src = ctx.pose.inverse().apply(ctx.carms[k].source_room_mm[None])[0]
+    tip = W.points_lps_mm[-1]
+    junction = w.points_lps_mm[int(np.argmin(np.abs(s_w - s_last)))]
+    ray = (tip - src) / np.linalg.norm(tip - src)
+    ext = w.points_lps_mm[beyond] + float((tip - junction) @ ray) * ray
+    X = np.vstack([W.points_lps_mm, ext])
+    unc = np.r_[W.uncertainty_mm, np.asarray(w.uncertainty_mm)[beyond]]
+    cov = np.concatenate([W.covariance_mm2, np.asarray(w.covariance_mm2)[beyond]]) \
+        if len(w.covariance_mm2) == len(w.points_lps_mm) else np.zeros((0, 3, 3))
+    arc = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(X, axis=0), axis=1))]
+    ids = np.r_[W.tree_point_ids, np.asarray(w.tree_point_ids)[beyond]]
+    ext_mm = float(arc[-1] - W.arclength_mm[-1])
+    rise = float(ctx.s_root[ids[-1]] - ctx.s_root[ids[0]]) if ids[-1] >= 0 and ids[0] >= 0 else W.tree_rise_mm
+    msg = (f"{W.message}; the distal {ext_mm:.1f} mm from plane {plane} alone (plane {'BA'[k]} does not show it: "
+           "its depth is the vessel prior's)")
+    perr = list(tv.projection_error_px)
+    w3 = Wire3D(X, unc, float(arc[-1]), W.projection_error_px, W.success, msg, ids, arc, _curvature(X),
+                W.seconds + w.seconds, "biplane", cov, False, rise)
+    return TwoViewWire(w3, tuple(perr), tv.matched_fraction, tv.b_reversed, tv.distal_gap_px, ext_mm)
+
+
+def _with_message(tv: TwoViewWire, message: str) -> TwoViewWire:
+    from dataclasses import replace
+
+    return replace(tv, wire3d=replace(tv.wire3d, message=message))
 
 
 def _curvature(X) -> np.ndarray:
