@@ -31,8 +31,6 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.interpolate import BSpline
-from scipy.linalg import solveh_banded
 from scipy.spatial import cKDTree
 
 from guidewire3d.errors import InputError
@@ -289,33 +287,12 @@ def _viterbi(n: int, ia, jb, X, unary, step_mm: float, direction: int, opt: TwoV
 
 
 def _weighted_pspline(x, Y, w, lam: float, knot: float) -> np.ndarray:
-    """Penalised cubic B-spline fit of ``Y (M, D)`` over increasing ``x (M,)`` with weights ``w``;
-    returns the fitted values at ``x``. ``sum w |Y - f|^2 / sum w + lam mean |D2 coef|^2``."""
-    x0, x1 = float(x[0]), float(x[-1])
-    nint = max(int(round((x1 - x0) / knot)), 1)
-    t = np.r_[[x0] * 3, np.linspace(x0, x1, nint + 1), [x1] * 3]
-    Bm = BSpline.design_matrix(np.clip(x, x0, x1), t, 3)
-    nb = Bm.shape[1]
-    wn = w / w.sum()
-    Bw = Bm.multiply(wn[:, None]).tocsr()
-    BtB = (Bm.T @ Bw).tocsr()
-    pen = lam / max(nb - 2, 1)
-    ab = np.zeros((4, nb))
-    for k in range(4):
-        ab[3 - k, k:] = BtB.diagonal(k)
-    p0 = np.full(nb, 6.0)
-    p0[[0, -1]] = 1.0
-    if nb > 2:
-        p0[[1, -2]] = 5.0
-    p1 = np.full(nb - 1, -4.0)
-    p1[[0, -1]] = -2.0
-    if nb >= 3:
-        ab[3] += pen * p0
-        ab[2, 1:] += pen * p1
-        ab[1, 2:] += pen
-    ab[3] += 1e-12
-    coef = solveh_banded(ab, np.asarray(Bw.T @ Y))
-    return Bm @ coef
+    """The single-view reconstruction's P-spline (``reconstruction._pspline``) with weights ``w``:
+    the fitted values of ``Y (M, D)`` at ``x (M,)``."""
+    from guidewire3d.reconstruction import _pspline
+
+    spl, Bm = _pspline(x, Y, lam, knot, weights=w)
+    return Bm @ spl.c
 
 
 def _polyline_distance_px(uv: np.ndarray, curve: np.ndarray) -> np.ndarray:
