@@ -73,7 +73,9 @@ def _add_phantom_parser(sub) -> None:
 def _add_reconstruct_parser(sub) -> None:
     p = sub.add_parser("reconstruct", help="run the whole chain on a CTA and XA files",
                        description="CTA vessels -> 2D analysis -> registration -> 3D wire per frame; writes "
-                                   "report.json, VTP/STL, screenshots into --out.")
+                                   "report.json, VTP/STL, screenshots into --out. Biplane: give --roadmap and --frames "
+                                   "twice (plane A, then plane B; each with its own positioner tags): one registration "
+                                   "explains both roadmaps and each frame pair's wire is triangulated (README, Biplane).")
     p.add_argument("--cta", required=True, help="CTA DICOM series folder, or NIfTI/NRRD/MHA file")
     p.add_argument("--roadmap", required=True, action="append",
                    help="XA DICOM with the contrast roadmap; give it twice for a biplane (plane A, then plane B)")
