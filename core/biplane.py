@@ -46,7 +46,8 @@ MIN_SEPARATION_DEG = 15.0
 DEPTH_SCAN_MM = 45.0
 DEPTH_STEP_MM = 1.5
 DEPTH_TRUNC_PX = 24.0  # chamfer truncation (px) of the depth scan
-JOINT_STARTS = 3  # LM starts (wide gate) from the best depth-scanned candidates
+JOINT_STARTS = 3  # LM starts (wide gate) from the best candidates of the joint coarse search
+SEARCH_WEIGHT_3D = 0.1  # joint search: weight of the 3D -> 2D chamfer half (it favours poses that crowd the tree onto a partial roadmap)
 
 
 # ============================================================================================
@@ -192,6 +193,45 @@ def _depth_scan(m3, q_other: np.ndarray, carm_other: CArm, cand: Pose, beam: np.
     return float(costs[k]), Pose(np.eye(3), offsets[k] * beam) @ cand
 
 
+def _joint_search(m3, m2s, carms, start: Pose, *, n_best: int) -> list[Pose]:
+    """The coarse search of both planes at once: for every rotation of plane A's grid, the chamfer
+    cost maps of both planes (``registration._search_cost_maps``, the same rotations) are summed
+    over a 3D grid of translations (plane A's in-plane shifts x depths along A's beam, each
+    translation read in plane B's map where it lands); the best ``n_best`` distinct poses."""
+    from guidewire3d import registration as R
+
+    rotvecs = R.search_rotvecs(carms[0])
+    maps = [R._search_cost_maps(m3, m2, c, start, rotvecs, weight_3d=SEARCH_WEIGHT_3D) for m2, c in zip(m2s, carms)]
+    (Ca, _, centre, mmpx_a, c0a, ma), (Cb, _, _, mmpx_b, c0b, mb) = maps
+    step_a = mmpx_a * c0a  # mm per cell of plane A's map
+    e_ua, e_va, d_a = carms[0].axes
+    e_ub, e_vb, _ = carms[1].axes
+    g = np.arange(-ma, ma + 1)
+    # translations: (a, b) plane A's cells, c depth along A's beam in the same step
+    A_, B_, D_ = np.meshgrid(g, g, g, indexing="ij")
+    t = (A_[..., None] * e_ua + B_[..., None] * e_va + D_[..., None] * d_a).reshape(-1, 3) * step_a
+    ia_x, ia_y = (A_.ravel() + ma), (B_.ravel() + ma)
+    ib_x = np.rint(t @ e_ub / (mmpx_b * c0b)).astype(int) + mb
+    ib_y = np.rint(t @ e_vb / (mmpx_b * c0b)).astype(int) + mb
+    inb = (ib_x >= 0) & (ib_x <= 2 * mb) & (ib_y >= 0) & (ib_y <= 2 * mb)
+    t, ia_x, ia_y, ib_x, ib_y = t[inb], ia_x[inb], ia_y[inb], ib_x[inb], ib_y[inb]
+    best = []
+    for k in range(len(rotvecs)):
+        cost = Ca[k, ia_y, ia_x] + Cb[k, ib_y, ib_x]
+        j = int(np.argmin(cost))
+        best.append((float(cost[j]), k, t[j]))
+    best.sort(key=lambda x: x[0])
+    out: list[Pose] = []
+    for _, k, tk in best:
+        cand = Pose(np.eye(3), tk) @ Pose.from_rotvec_about(rotvecs[k], centre) @ start
+        if any(R._pose_close(cand, p, m3, mm=2.0 * step_a) for p in out):
+            continue
+        out.append(cand)
+        if len(out) >= n_best:
+            break
+    return out
+
+
 def register_biplane(tree, centerlines_uv_px, carms, *, centerline_radius_px=(None, None), init_pose: Pose | None = None,
                      global_search: bool = True, max_iterations: int = 100) -> BiplaneRegistration:
     """Register the CTA vessel centerline to two roadmaps at once (one pose, both planes).
@@ -243,18 +283,7 @@ def register_biplane(tree, centerlines_uv_px, carms, *, centerline_radius_px=(No
 
     iterations = 0
     if global_search:
-        scored = []
-        for k in range(2):
-            other = 1 - k
-            for _, cand in R._global_search(m3, m2s[k], carms[k], start, n_best=R.SEARCH_STARTS):
-                scored.append(_depth_scan(m3, qs[other], carms[other], cand, carms[k].beam_direction))
-        scored.sort(key=lambda x: x[0])
-        cands = []
-        for _, p in scored:
-            if not any(R._pose_close(p, c, m3, mm=2.0) for c in cands):
-                cands.append(p)
-            if len(cands) >= JOINT_STARTS:
-                break
+        cands = _joint_search(m3, m2s, carms, start, n_best=JOINT_STARTS)
         gate_a = max(R.GATE_WIDE_PX, 3.0 * max(R._search_cell_px(c) for c in carms))
     else:
         cands = [start]
