@@ -410,7 +410,8 @@ class BiplaneSession:
         ``T_iso_from_lps`` (shared by both planes).
     registration_covariance : (6, 6) ndarray, optional
     segmenter, method, options
-        As :class:`guidewire3d.live.Session` (``method`` is the single-view fallback's).
+        As :class:`guidewire3d.live.Session` (``method`` is the single-view fallback's); ``segmenter``
+        may also be a pair of segmenter objects, one per plane.
     threads : int
         2: the two planes' 2D analyses (segmentation, ordered wire) run in two threads (the
         network and most of the image code release the GIL); 1: one after the other.
@@ -424,8 +425,13 @@ class BiplaneSession:
         if len(carms) != 2:
             raise InputError("BiplaneSession: expected two C-arms (plane A, plane B)")
         self.tree, self.carms, self.pose = tree, tuple(carms), pose
+        segs = tuple(segmenter) if isinstance(segmenter, (tuple, list)) else (segmenter, segmenter)
+        if len(segs) != 2 or (segs[0] is segs[1] and hasattr(segs[0], "segment")):
+            raise InputError("BiplaneSession: segmenter must be a name or one segmenter object per plane (each keeps "
+                             "its own ROI tracking)")
         self.sessions = tuple(live.Session(tree, c, pose, registration_covariance=registration_covariance,
-                                           segmenter=segmenter, method=method, options=options) for c in self.carms)
+                                           segmenter=sg, method=method, options=options)
+                              for c, sg in zip(self.carms, segs))
         self.context = TwoViewContext(tree, self.carms, pose, registration_covariance=registration_covariance,
                                       options=two_view_options)
         self.n_pairs = 0

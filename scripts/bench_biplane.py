@@ -23,7 +23,7 @@ ridge segmentation, ordered wire): monoplane ``live.Session`` on plane A's frame
 Frames (pairs) per second: 1 / the median wall time of a frame (pair), after the first two of each
 case (warm-up), on this machine (print the load with it).
 
-    nice .venv/bin/python scripts/bench_biplane.py --cases 30 --frames 6
+    nice .venv/bin/python scripts/bench_biplane.py --cases 30 --frames 4 --results biplane.pkl
 """
 from __future__ import annotations
 
@@ -53,6 +53,18 @@ def _tree_of(case, use_cta: bool):
     from guidewire3d import vessels3d
 
     return vessels3d.extract_vessels(case.volume).tree
+
+
+_SEGMENTERS = {}
+
+
+def _segmenters(method: str):
+    """Three segmenters (monoplane, biplane plane A, plane B), made once."""
+    if method not in _SEGMENTERS:
+        from guidewire3d.segmentation import GuidewireSegmenter
+
+        _SEGMENTERS[method] = tuple(GuidewireSegmenter(method=method) for _ in range(3))
+    return _SEGMENTERS[method]
 
 
 def run_case(seed: int, args, log) -> dict:
@@ -85,11 +97,14 @@ def run_case(seed: int, args, log) -> dict:
     for t in range(args.frames):
         vis = np.asarray(case.wire_visible[t], bool)
         truth.append(np.asarray(case.wire_lps_mm[t])[vis])
+    segs = _segmenters(args.segmenter)  # loaded once for all cases (a new one exports the network again)
+    for sg in segs:
+        sg.reset()
     mono = live.Session(tree, carms[0], poses["mono"].pose, registration_covariance=poses["mono"].covariance_6x6,
-                        segmenter=args.segmenter)
+                        segmenter=segs[0])
     mono.warm_up(case.frames[0])
     bi = biplane.BiplaneSession(tree, carms, poses["bi"].pose, registration_covariance=poses["bi"].covariance_6x6,
-                                segmenter=args.segmenter, threads=args.threads)
+                                segmenter=segs[1:], threads=args.threads)
     bi.warm_up(case.frames[0], case.heldout_frames[0])
     recs = {"mono": [], "bi": []}
     for t in range(args.frames):
@@ -177,12 +192,32 @@ def main(argv=None) -> int:
     ap.add_argument("--threads", type=int, default=2, choices=(1, 2),
                     help="biplane: the two planes' 2D analyses in 1 or 2 threads")
     ap.add_argument("--cta", action="store_true", help="register to the CTA-extracted tree (slower)")
+    ap.add_argument("--results", type=Path, default=None, metavar="FILE",
+                    help="keep each case's results in FILE (pickle) as it completes; a rerun with the same "
+                         "options takes the cases already there and runs the others")
     args = ap.parse_args(argv)
 
     def log(m):
         print(m, file=sys.stderr, flush=True)
 
-    results = [run_case(seed, args, log) for seed in range(args.seed0, args.seed0 + args.cases)]
+    import pickle
+
+    key = (args.frames, args.segmenter, args.threads, bool(args.cta))
+    done = {}
+    if args.results is not None and args.results.is_file():
+        saved_key, done = pickle.loads(args.results.read_bytes())
+        if saved_key != key:
+            log(f"{args.results}: made with other options {saved_key}, not reused")
+            done = {}
+    results = []
+    for seed in range(args.seed0, args.seed0 + args.cases):
+        if seed not in done:
+            done[seed] = run_case(seed, args, log)
+            if args.results is not None:
+                tmp = args.results.with_suffix(".tmp")
+                tmp.write_bytes(pickle.dumps((key, done)))
+                tmp.replace(args.results)
+        results.append(done[seed])
     table(results, args)
     return 0
 
