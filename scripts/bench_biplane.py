@@ -24,6 +24,7 @@ Frames (pairs) per second: 1 / the median wall time of a frame (pair), after the
 case (warm-up), on this machine (print the load with it).
 
     nice .venv/bin/python scripts/bench_biplane.py --cases 30 --frames 4 --results biplane.pkl
+    .venv/bin/python scripts/bench_biplane.py --timing 100 --frames 12 [--segmenter ridge]   # speed alone
 """
 from __future__ import annotations
 
@@ -183,6 +184,47 @@ def table(results, args, out=print) -> None:
             f"within 2 sigma {100 * np.mean(e <= 2 * s):.0f} %")
 
 
+def timing(seed: int, n_frames: int, segmenter: str, out=print) -> None:
+    """Steady-state speed alone (no registration): the true pose, one process; wall and CPU time
+    (``time.process_time``, both threads) per monoplane frame and per biplane pair, medians after
+    the first two."""
+    import os
+
+    case = simulate(PhantomOptions(seed=seed, n_frames=n_frames, biplane=True), make_ct=False)
+    carms = (case.carm, case.heldout_carm)
+    segs = _segmenters(segmenter)
+    rows = []
+    mono = live.Session(case.tree, carms[0], case.pose, segmenter=segs[0])
+    mono.warm_up(case.frames[0])
+    w, c = [], []
+    for t in range(n_frames):
+        w0, c0 = time.perf_counter(), time.process_time()
+        mono.process(case.frames[t])
+        w.append(time.perf_counter() - w0)
+        c.append(time.process_time() - c0)
+    rows.append(("monoplane frame", w, c))
+    for threads in (2, 1):
+        for sg in segs:
+            sg.reset()
+        bi = biplane.BiplaneSession(case.tree, carms, case.pose, segmenter=segs[1:], threads=threads)
+        bi.warm_up(case.frames[0], case.heldout_frames[0])
+        w, c = [], []
+        for t in range(n_frames):
+            w0, c0 = time.perf_counter(), time.process_time()
+            bi.process(case.frames[t], case.heldout_frames[t])
+            w.append(time.perf_counter() - w0)
+            c.append(time.process_time() - c0)
+        bi.close()
+        rows.append((f"biplane pair, {threads} thread(s)", w, c))
+    out(f"\nspeed: seed {seed}, {n_frames} frames, segmenter {segmenter}; load average "
+        f"{', '.join(f'{x:.2f}' for x in os.getloadavg())}")
+    out("| path | wall ms (median) | CPU ms (median) | per second (wall) |")
+    out("|---|---|---|---|")
+    for name, w, c in rows:
+        mw, mc = 1e3 * np.median(w[2:]), 1e3 * np.median(c[2:])
+        out(f"| {name} | {mw:.1f} | {mc:.1f} | {1e3 / mw:.1f} |")
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--cases", type=int, default=30)
@@ -195,7 +237,12 @@ def main(argv=None) -> int:
     ap.add_argument("--results", type=Path, default=None, metavar="FILE",
                     help="keep each case's results in FILE (pickle) as it completes; a rerun with the same "
                          "options takes the cases already there and runs the others")
+    ap.add_argument("--timing", type=int, default=None, metavar="SEED",
+                    help="only the speed table: one case, --frames frames, the true pose")
     args = ap.parse_args(argv)
+    if args.timing is not None:
+        timing(args.timing, max(args.frames, 4), args.segmenter)
+        return 0
 
     def log(m):
         print(m, file=sys.stderr, flush=True)
