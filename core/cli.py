@@ -66,6 +66,14 @@ def _run_reconstruct(args) -> int:
     from guidewire3d import pipeline
     from guidewire3d.registration import Verdict
 
+    # biplane (issue 23): two --roadmap and two --frames (plane A, then plane B); one of each is one view
+    n_road, n_frames = len(args.roadmap), len(args.frames)
+    if n_road == 2 and n_frames == 2:
+        return _run_reconstruct_biplane(args)
+    if n_road != 1 or n_frames != 1:
+        raise _UsageError(f"--roadmap and --frames: give one of each (one view) or two of each (biplane: plane A, "
+                          f"then plane B), got {n_road} and {n_frames} (see 'guidewire3d reconstruct --help')")
+    args.roadmap, args.frames = args.roadmap[0], args.frames[0]
     result = pipeline.run_to_outdir(
         args.cta, args.roadmap, args.frames, args.out, series_uid=args.series_uid,
         overrides=pipeline.geometry_overrides(args), roadmap_frame=args.roadmap_frame, seeds_lps_mm=args.seed_lps,
@@ -82,6 +90,40 @@ def _run_reconstruct(args) -> int:
                if result.registration.verdict is Verdict.UNCERTAIN else "failed")
         _stderr(f"guidewire3d: registration {why}; frames were not reconstructed. Correct it with "
                 f"`guidewire3d view {args.out}` or rerun with --force.")
+        return 1
+    return 0
+
+
+def _run_reconstruct_biplane(args) -> int:
+    """``guidewire3d reconstruct`` with two ``--roadmap`` and two ``--frames`` (plane A, plane B)."""
+    from guidewire3d import biplane, pipeline
+    from guidewire3d.errors import InputError
+    from guidewire3d.registration import Verdict
+
+    given = [f"--{k.replace('_mm', '').replace('_deg', '')}" for k, v in pipeline.geometry_overrides(args).items()
+             if v is not None]
+    if given:
+        raise InputError(f"{', '.join(given)}: the C-arm overrides describe one view; with two --roadmap each plane's "
+                         "own positioner tags are required")
+    if getattr(args, "track_motion", False):
+        raise InputError("--track-motion: not available with two planes yet (biplane runs use the joint roadmap pose)")
+    result = biplane.run_to_outdir(args.cta, args.roadmap, args.frames, args.out, series_uid=args.series_uid,
+                           roadmap_frame=args.roadmap_frame, seeds_lps_mm=args.seed_lps, method=args.method,
+                           segmenter=args.segmenter, force=args.force, images=not args.no_images, progress=True,
+                           log=_stderr, screenshot=_viewer_screenshot)
+    reg = result.registration.result
+    n_ok = sum(1 for p in result.pairs if p)
+    n_two = sum(1 for p in result.pairs if p.views == "AB")
+    n_unsure = sum(1 for p in result.pairs if p.result.verdict.value == "uncertain")
+    unsure = f" ({n_unsure} UNCERTAIN: see verdict_message in report.json)" if n_unsure else ""
+    res = ", ".join(f"{v.plane} {v.mean_residual_px:.2f} px" for v in result.registration.views)
+    print(f"wrote {args.out}: biplane registration {reg.verdict.label} ({res}), {n_ok}/{len(result.pairs)} frame pairs "
+          f"reconstructed, {n_two} from both planes{unsure}")
+    if not result.plane_a.reconstructed:
+        why = ("is uncertain (the overlays fit, the roadmaps do not settle the pose)"
+               if reg.verdict is Verdict.UNCERTAIN else "failed")
+        print(f"guidewire3d: biplane registration {why}; frames were not reconstructed. Rerun with --force to "
+              "reconstruct anyway.", file=sys.stderr)
         return 1
     return 0
 
@@ -115,10 +157,15 @@ def _add_phantom_parser(sub) -> None:
 def _add_reconstruct_parser(sub) -> None:
     p = sub.add_parser("reconstruct", help="run the whole chain on a CTA and XA files",
                        description="CTA vessels -> 2D analysis -> registration -> 3D wire per frame; writes "
-                                   "report.json, VTP/STL, screenshots into --out.")
+                                   "report.json, VTP/STL, screenshots into --out. Biplane: give --roadmap and --frames "
+                                   "twice (plane A, then plane B; each with its own positioner tags): one registration "
+                                   "explains both roadmaps and each frame pair's wire is triangulated (README, Biplane).")
     p.add_argument("--cta", required=True, help="CTA DICOM series folder, or NIfTI/NRRD/MHA file")
-    p.add_argument("--roadmap", required=True, help="XA DICOM with the contrast roadmap")
-    p.add_argument("--frames", required=True, help="XA DICOM with the live frames (may be the roadmap file)")
+    p.add_argument("--roadmap", required=True, action="append",
+                   help="XA DICOM with the contrast roadmap; give it twice for a biplane (plane A, then plane B)")
+    p.add_argument("--frames", required=True, action="append",
+                   help="XA DICOM with the live frames (may be the roadmap file); twice for a biplane, in the order "
+                        "of --roadmap (pairs matched by FrameTime, else by index)")
     p.add_argument("--out", required=True, help="output folder (created; must be empty or absent)")
     p.add_argument("--roadmap-frame", type=int, default=None, metavar="K",
                    help="frame of --roadmap to use (default: the most contrast-filled)")
@@ -288,6 +335,8 @@ def main(argv=None) -> int:
     try:
         rc = args.func(args)
         return int(rc or 0)
+    except _UsageError as e:
+        return _error(str(e))
     except Guidewire3DError as e:
         if args.verbose:
             _close_progress_bars()

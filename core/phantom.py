@@ -117,6 +117,10 @@ class PhantomOptions:
     cardiac_mm: float = 0.0
     heart_rate_bpm: float = 75.0
     frame_rate_fps: float = 15.0
+    # biplane (issue 23): the second view (the held-out one) also gets a roadmap, and its angles
+    # (primary LAO+, secondary CRA+) can be set; None with ``biplane``: 90 deg from the main view
+    biplane: bool = False
+    plane_b_angles_deg: tuple[float, float] | None = None
 
     def __post_init__(self):
         def bad(name, msg):
@@ -157,10 +161,27 @@ class PhantomOptions:
                 ok = False
             if not ok:
                 bad(name, f"expected {lo:g}..{hi:g} {unit}, got {v!r}")
+        if self.plane_b_angles_deg is not None:
+            try:
+                ang = tuple(float(a) for a in self.plane_b_angles_deg)
+            except (TypeError, ValueError):
+                ang = ()
+            if len(ang) != 2 or not np.all(np.isfinite(ang)) or not (-180 <= ang[0] <= 180 and -90 < ang[1] < 90):
+                bad("plane_b_angles_deg", f"expected (primary -180..180, secondary -90..90) deg, got "
+                                          f"{self.plane_b_angles_deg!r}")
+            object.__setattr__(self, "plane_b_angles_deg", ang)
+            if not self.biplane:
+                bad("plane_b_angles_deg", "needs biplane=True")
 
     def to_dict(self) -> dict:
         d = asdict(self)
         d["volume"] = VolumeSize(self.volume).value
+        # the biplane fields only when used: monoplane cases keep their former options (and cache keys)
+        if not self.biplane:
+            d.pop("biplane")
+            d.pop("plane_b_angles_deg")
+        elif self.plane_b_angles_deg is not None:
+            d["plane_b_angles_deg"] = list(self.plane_b_angles_deg)
         return d
 
     @classmethod
@@ -203,6 +224,7 @@ class PhantomCase:
     cardiac_scale: np.ndarray = field(default_factory=lambda: np.zeros(0))
     catheter_lps_mm: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # (n, 3) catheter axis
     catheter_radii_mm: tuple[float, float] = (0.0, 0.0)  # (outer, inner); zeros without catheter
+    heldout_roadmap: np.ndarray | None = None  # (H, W) float32: plane B's roadmap (biplane cases only)
 
     @property
     def projection_matrix(self) -> np.ndarray:
@@ -1129,6 +1151,8 @@ def simulate(options: PhantomOptions = PhantomOptions(), *, make_ct: bool = True
     # ---- geometry --------------------------------------------------------------------
     pose = _sample_pose(rngs["pose"], tree.centroid_lps_mm)
     carm, held = _sample_views(rngs["pose"], tree, pose, int(options.detector_px))
+    if options.biplane:
+        held = biplane_plane_b(carm, held, options.plane_b_angles_deg)
 
     # ---- wire ------------------------------------------------------------------------
     stage("guidewire")
@@ -1263,6 +1287,12 @@ def simulate(options: PhantomOptions = PhantomOptions(), *, make_ct: bool = True
                 wire_mask[t] = _wire_mask(fine_acc[iv], ss_wire, [uv], shape)
             else:
                 uv_held.append(uv)
+    held_roadmap = None
+    if options.biplane:  # after every other draw, so that plane A and the truth stay as without it
+        L_held = render_tube_line_integral(held, pose, tree_chains, supersample=2)
+        held_roadmap = _expose(rx, mu_contrast * L_held, b0=b0, n0=4 * n0, psf_px=psf_held, gain_field=gain_field,
+                               gain=1.0)
+        held_roadmap.setflags(write=False)
     bar.update()
     bar.close()
     for arr in (roadmap, vessel_mask, frames, held_frames, wire_mask, *uv_main, *uv_held, *visible):
@@ -1293,7 +1323,23 @@ def simulate(options: PhantomOptions = PhantomOptions(), *, make_ct: bool = True
         cardiac_scale=cardiac,
         catheter_lps_mm=catheter,
         catheter_radii_mm=(float(cath_outer), float(cath_inner)) if len(catheter) else (0.0, 0.0),
+        heldout_roadmap=held_roadmap,
     )
+
+
+#: default separation of a biplane's plane B from plane A (LAO/RAO), deg
+BIPLANE_DEFAULT_SEPARATION_DEG = 90.0
+
+
+def biplane_plane_b(plane_a: CArm, drawn: CArm, angles_deg=None) -> CArm:
+    """Plane B of a biplane case: the drawn second view's SID and SOD, plane A's pixel size, at
+    ``angles_deg`` (primary, secondary) or, by default, 90 deg from plane A in LAO/RAO (towards the
+    lateral side nearer to it) at 0 deg CRA/CAU, as a frontal + lateral biplane is used."""
+    if angles_deg is None:
+        pa = float(plane_a.primary_deg)
+        pb = pa - BIPLANE_DEFAULT_SEPARATION_DEG if pa >= 0 else pa + BIPLANE_DEFAULT_SEPARATION_DEG
+        angles_deg = (pb, 0.0)
+    return CArm(float(angles_deg[0]), float(angles_deg[1]), drawn.sid_mm, drawn.sod_mm, plane_a.pixel_mm, plane_a.shape)
 
 
 # ======================================================================================
@@ -1359,6 +1405,11 @@ def write_case(case: PhantomCase, out_dir) -> Path:
                     description="guidewire3d phantom live frames")
         io.write_xa(tmp / "heldout.dcm", case.heldout_frames, case.heldout_carm, patient_id=pid, study_uid=study,
                     description="guidewire3d phantom held-out view")
+        if case.heldout_roadmap is not None:  # biplane: plane B (the held-out view) with its own roadmap
+            io.write_xa(tmp / "roadmap_b.dcm", case.heldout_roadmap[None], case.heldout_carm, patient_id=pid,
+                        study_uid=study, description="guidewire3d phantom plane B roadmap (subtracted contrast)")
+            io.write_xa(tmp / "frames_b.dcm", case.heldout_frames, case.heldout_carm, patient_id=pid,
+                        study_uid=study, description="guidewire3d phantom plane B live frames")
         (tmp / "truth.json").write_text(json.dumps(truth_dict(case)))
         masks = {"wire_mask": case.wire_mask, "vessel_mask_2d": case.vessel_mask_2d}
         if case.lumen_mask_zyx is not None:
@@ -1497,10 +1548,17 @@ def add_cli_options(p) -> None:
     p.add_argument("--dose", type=float, default=1.0, metavar="X",
                    help="relative fluoroscopy dose; lower is noisier (default 1)")
     p.add_argument("--no-ct", action="store_true", help="skip the CT series (2D data and truth only)")
+    p.add_argument("--biplane", action="store_true",
+                   help="biplane: also write plane B (the second view, same isocentre) as roadmap_b.dcm and "
+                        "frames_b.dcm, each with its own positioner tags (plane A: roadmap.dcm, frames.dcm)")
+    p.add_argument("--plane-b-angles-deg", type=float, nargs=2, default=None, metavar=("LAO_RAO", "CRAN_CAUD"),
+                   help="plane B's PositionerPrimaryAngle (LAO +) and PositionerSecondaryAngle (CRA +) in degrees "
+                        "(with --biplane; default: 90 deg from plane A in LAO/RAO, 0 CRA/CAU)")
 
 
 _CLI_OPTION_OF_FIELD = {"seed": "--seed", "n_frames": "--frames", "wire_diameter_mm": "--wire-diameter",
-                        "detector_px": "--detector", "volume": "--volume", "motion_mm": "--motion", "dose": "--dose"}
+                        "detector_px": "--detector", "volume": "--volume", "motion_mm": "--motion", "dose": "--dose",
+                        "plane_b_angles_deg": "--plane-b-angles-deg"}
 
 
 def cli_main(args) -> int:
@@ -1512,12 +1570,16 @@ def cli_main(args) -> int:
             seed=args.seed, n_frames=args.frames, wire_diameter_mm=args.wire_diameter, distractors=args.distractors,
             detector_px=args.detector, volume=args.volume, background=not args.no_background,
             catheter=not args.no_catheter, motion_mm=args.motion, dose=args.dose,
+            **({"biplane": True, "plane_b_angles_deg": getattr(args, "plane_b_angles_deg", None)}
+               if getattr(args, "biplane", False) else {}),
         )
     except InputError as e:  # name the command-line option, not the dataclass field
         msg = str(e)
         for name, opt in _CLI_OPTION_OF_FIELD.items():
             msg = msg.replace(f"PhantomOptions.{name}:", f"{opt}:")
         raise InputError(msg) from None
+    if getattr(args, "plane_b_angles_deg", None) is not None and not getattr(args, "biplane", False):
+        raise InputError("--plane-b-angles-deg: needs --biplane")
     out = io.require_empty_folder(args.out)
     case = simulate(opts, make_ct=not getattr(args, "no_ct", False), progress=True)
     write_case(case, out)
@@ -1535,7 +1597,9 @@ def cli_main(args) -> int:
     lines += [
         f"  main view: {c.primary_deg:+.1f} / {c.secondary_deg:+.1f} deg, SID {c.sid_mm:.0f}, SOD {c.sod_mm:.0f}, "
         f"pixel {c.pixel_mm:.3f} mm, {c.cols}x{c.rows}",
-        f"  held-out view: {h.primary_deg:+.1f} / {h.secondary_deg:+.1f} deg",
+        (f"  plane B (roadmap_b.dcm, frames_b.dcm): {h.primary_deg:+.1f} / {h.secondary_deg:+.1f} deg, "
+         f"SID {h.sid_mm:.0f}, SOD {h.sod_mm:.0f}" if opts.biplane else
+         f"  held-out view: {h.primary_deg:+.1f} / {h.secondary_deg:+.1f} deg"),
         f"  wire: {case.wire_diameter_mm:.2f} mm, {len(case.frames)} frames, "
         f"{len(case.wire_lps_mm[0])}-{len(case.wire_lps_mm[-1])} points, {100 * vis:.0f}% visible",
     ]

@@ -441,18 +441,24 @@ def _arclength(p) -> np.ndarray:
     return np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(p, axis=0), axis=1))]
 
 
-def _pspline(x, Y, lam: float, knot: float):
+def _pspline(x, Y, lam: float, knot: float, *, weights=None):
     """Penalised cubic B-spline fit of ``Y (M, D)`` over ``x (M,)``: ``(BSpline, design matrix)``.
 
     Objective: ``mean_m |Y_m - f(x_m)|^2 + lam * mean_k |second difference of coefficients_k|^2``
-    (Eilers & Marx P-spline), solved as a banded (bandwidth 3) symmetric system.
+    (Eilers & Marx P-spline), solved as a banded (bandwidth 3) symmetric system. With ``weights``
+    (M,) the mean over m is the weighted one.
     """
     x0, x1 = float(x[0]), float(x[-1])
     nint = max(int(round((x1 - x0) / knot)), 1)
     t = np.r_[[x0] * 3, np.linspace(x0, x1, nint + 1), [x1] * 3]
     Bm = BSpline.design_matrix(np.clip(x, x0, x1), t, 3)
     nb = Bm.shape[1]
-    BtB = (Bm.T @ Bm).tocsr() / len(x)
+    if weights is None:
+        Bw = Bm / len(x)
+    else:
+        w = np.asarray(weights, float)
+        Bw = Bm.multiply((w / w.sum())[:, None]).tocsr()
+    BtB = (Bm.T @ Bw).tocsr()
     w = lam / max(nb - 2, 1)
     ab = np.zeros((4, nb))  # upper banded form: ab[3 + i - j, j] = A[i, j]
     for k in range(4):
@@ -469,7 +475,7 @@ def _pspline(x, Y, lam: float, knot: float):
         ab[2, 1:] += w * p1
         ab[1, 2:] += w * 1.0
     ab[3] += 1e-12
-    coef = solveh_banded(ab, np.asarray(Bm.T @ Y) / len(x))
+    coef = solveh_banded(ab, np.asarray(Bw.T @ Y))
     return BSpline(t, coef, 3, extrapolate=True), Bm
 
 

@@ -895,6 +895,42 @@ def _global_search(m3: _Model3D, m2: _Model2D, carm: CArm, start: Pose, *, n_bes
     the chamfer costs of all shifts by one batched real FFT, pruned to the rows that hold
     projected points (forward) and to the searched shifts (inverse).
     """
+    C, rvs, centre_room, mm_per_px, c0, m = _search_cost_maps(m3, m2, carm, start)
+    K = len(rvs)
+    e_u, e_v, _ = carm.axes
+    flat = C.reshape(K, -1).argmin(axis=1)
+    iy, ix = np.unravel_index(flat, C.shape[1:])
+    costs = C.reshape(K, -1)[np.arange(K), flat].astype(float)
+    shifts = np.column_stack([ix - m, iy - m]).astype(float)
+    order = np.argsort(costs)
+    out: list[tuple[float, Pose]] = []
+    for k in order:
+        du, dv = shifts[k] * c0
+        t = (du * e_u + dv * e_v) * mm_per_px
+        cand = Pose(np.eye(3), t) @ Pose.from_rotvec_about(rvs[k], centre_room) @ start
+        if any(_pose_close(cand, p, m3, mm=2.0 * c0 * mm_per_px) for _, p in out):
+            continue
+        out.append((float(costs[k]), cand))
+        if len(out) >= n_best:
+            break
+    return out
+
+
+def search_rotvecs(carm: CArm) -> list[np.ndarray]:
+    """The rotation grid of the coarse search (rotation vectors, rad), about ``carm``'s axes."""
+    e_u, e_v, d = carm.axes
+    rots = [(a, b, g) for a in SEARCH_ROT_OUTPLANE_DEG for b in SEARCH_ROT_OUTPLANE_DEG for g in SEARCH_ROT_INPLANE_DEG]
+    return [np.radians(ra) * e_u + np.radians(rb) * e_v + np.radians(rg) * d for ra, rb, rg in rots]
+
+
+def _search_cost_maps(m3: _Model3D, m2: _Model2D, carm: CArm, start: Pose, rotvecs=None, *, weight_3d: float = 1.0):
+    """The chamfer cost of every searched in-plane shift for every rotation of the grid (or of
+    ``rotvecs``, rotation vectors about the tree centroid at ``start``).
+
+    Returns ``(C, rotvecs, centre_room, mm_per_px, cell_px, m)``: ``C[k, iy, ix]`` is the cost of
+    rotation ``k`` shifted by ``(ix - m, iy - m)`` cells of ``cell_px`` along ``(e_u, e_v)``
+    (``mm_per_px`` mm per px at the tree centroid). ``weight_3d`` weighs the 3D -> 2D half of the
+    symmetric chamfer (the projected tree's points against the 2D centerline's distance map)."""
     c0 = _search_cell_px(carm)
     H, W = int(np.ceil(carm.rows / c0)), int(np.ceil(carm.cols / c0))
     centre_room = start.apply(m3.centroid)
@@ -924,10 +960,8 @@ def _global_search(m3: _Model3D, m2: _Model2D, carm: CArm, start: Pose, *, n_bes
     F_P2 = sfft.rfft2(P2)
 
     # 3D side, every rotation at once: R_k = exp(rv_k) about the centroid, composed with the start
-    e_u, e_v, d = carm.axes
-    rots = [(a, b, g) for a in SEARCH_ROT_OUTPLANE_DEG for b in SEARCH_ROT_OUTPLANE_DEG for g in SEARCH_ROT_INPLANE_DEG]
-    K = len(rots)
-    rvs = [np.radians(ra) * e_u + np.radians(rb) * e_v + np.radians(rg) * d for ra, rb, rg in rots]
+    rvs = search_rotvecs(carm) if rotvecs is None else list(rotvecs)
+    K = len(rvs)
     Rr = np.stack([so3_exp(rv) for rv in rvs])  # (K, 3, 3)
     R_k = Rr @ start.R
     t_k = Rr @ start.t + (centre_room - Rr @ centre_room)  # (K, 3)
@@ -966,7 +1000,7 @@ def _global_search(m3: _Model3D, m2: _Model2D, carm: CArm, start: Pose, *, n_bes
     # F[P3] conj(F[D2]) + F[D3] conj(F[P2]) (no conjugation of the large arrays), and
     # F[D3] = tau Hp Wp delta_0 - F[tau - D3]
     G = rfft2_band(P3)
-    G *= np.conj(F_D2)[None]
+    G *= np.conj(F_D2)[None] * np.float32(weight_3d)
     G3 = rfft2_band(D3c)
     G3 *= np.conj(F_P2)[None]
     G -= G3
@@ -975,22 +1009,7 @@ def _global_search(m3: _Model3D, m2: _Model2D, carm: CArm, start: Pose, *, n_bes
     # inverse, pruned to the shifts s within +-m: C(s) is the reversal at index -s (circular)
     s_range = np.arange(-m, m + 1)
     C = sfft.irfft(sfft.ifft(G, axis=1, overwrite_x=True)[:, (-s_range) % Hp], n=Wp, axis=2)[:, :, (-s_range) % Wp]
-    flat = C.reshape(K, -1).argmin(axis=1)
-    iy, ix = np.unravel_index(flat, C.shape[1:])
-    costs = C.reshape(K, -1)[np.arange(K), flat].astype(float)
-    shifts = np.column_stack([ix - m, iy - m]).astype(float)
-    order = np.argsort(costs)
-    out: list[tuple[float, Pose]] = []
-    for k in order:
-        du, dv = shifts[k] * c0
-        t = (du * e_u + dv * e_v) * mm_per_px
-        cand = Pose(np.eye(3), t) @ Pose.from_rotvec_about(rvs[k], centre_room) @ start
-        if any(_pose_close(cand, p, m3, mm=2.0 * c0 * mm_per_px) for _, p in out):
-            continue
-        out.append((float(costs[k]), cand))
-        if len(out) >= n_best:
-            break
-    return out
+    return C, rvs, centre_room, mm_per_px, c0, m
 
 
 def _truncated_dt_batch(cell_ids: np.ndarray, shape: tuple, tau: float, *, complement: bool = False) -> np.ndarray:

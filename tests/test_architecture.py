@@ -17,11 +17,11 @@ CORE = Path(__file__).resolve().parents[1] / "core"
 LAYERS: dict[str, tuple[str, ...]] = {
     "base": ("guidewire3d", "errors", "geometry", "vesseltree", "io", "metrics", "assets", "imaging", "unet", "methods"),
     "stages": ("vessels3d", "wirepresence", "wiremask", "vessels2d_learned", "image2d", "segmentation",
-               "registration", "reconstruction", "motion"),
+               "registration", "reconstruction", "motion", "triangulation"),
     "engine": ("live",),
     "simulation": ("phantom",),
-    "application": ("pipeline", "export", "outdir", "stream", "bench", "batch2d", "batch", "dicomnet"),
-    "front ends": ("cli", "viewer", "viewer.app", "viewer.controller", "viewer.scene"),
+    "application": ("pipeline", "export", "outdir", "stream", "bench", "batch2d", "batch", "dicomnet", "biplane"),
+    "front ends": ("cli", "viewer", "viewer.app", "viewer.controller", "viewer.scene", "viewer.biplane_scene"),
 }
 FRONT_ENDS = set(LAYERS["front ends"])
 # The command line imports a command's modules when the command runs, so that `--help` and every

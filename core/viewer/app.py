@@ -13,6 +13,7 @@ from guidewire3d import pipeline, stream
 from guidewire3d.errors import Guidewire3DError, InputError
 from guidewire3d.outdir import load_outdir
 from guidewire3d.viewer import scene as sc
+from guidewire3d.viewer.biplane_scene import add_plane_b, plane_b_of_outdir
 from guidewire3d.viewer.controller import Axis, ExportKind, ViewerController
 
 __all__ = ["parse_size", "open_viewer", "render_outdir_screenshot", "run_interactive", "cli_main", "KEYS",
@@ -63,6 +64,11 @@ def open_viewer(out_dir, *, size_px=DEFAULT_SIZE, off_screen: bool = False, fram
         roadmap_centerline_uv_px=case.centerline_uv_px,
     )
     ctl = ViewerController(case, handles, persist=persist)
+    # biplane output (issue 23): plane B's C-arm and live frame beside plane A's in the 3D view
+    plane_b = plane_b_of_outdir(out_dir)
+    if plane_b is not None:
+        w = case.wires[frame] if case.wires and 0 <= frame < len(case.wires) else None
+        add_plane_b(pl, plane_b, case.pose, frame=w.index if w is not None else frame)
     if frame:
         if case.n_frames and not 0 <= frame < case.n_frames:
             raise InputError(f"--frame: {frame} is out of range (the case has {case.n_frames} frames)")
