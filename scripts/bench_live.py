@@ -133,7 +133,7 @@ def main() -> int:
             lat.append(fr.seconds)
             ok += bool(fr)
             for s in STAGES:
-                if s in fr.stage_seconds:
+                if s in getattr(fr, "stage_seconds", {}):  # (older versions of the package: none)
                     stages[s].append(fr.stage_seconds[s])
             results.append(fr)
         marginal = (time.perf_counter() - t_all) / len(case.frames)
