@@ -32,7 +32,11 @@ def _compile():
             return _COMPILED
         import numba
 
-        jit = numba.njit(cache=True, nogil=True, fastmath=False)
+        def jit(f):
+            try:  # cached on disk beside the module, or in the user's cache folder
+                return numba.njit(cache=True, nogil=True)(f)
+            except RuntimeError:  # no writable cache location: compiled in memory, once per process
+                return numba.njit(cache=False, nogil=True)(f)
 
         @jit
         def viterbi_forward(acc0, U, C, skip_cost):
@@ -186,5 +190,5 @@ def warm_up() -> None:
         C = np.zeros((2, 2, 2))
         viterbi_forward(U[0], U, C, 1.0)
         viterbi_backward(C, U, 2)
-        for dt in (np.float64, np.float32, np.uint8, np.uint16):  # the live path's masks and frames
+        for dt in _DIRECT:  # the masks and every frame dtype the live path samples without a copy
             sample_bilinear(np.zeros((3, 3), dt), [0.5], [0.5], mode="nearest")
