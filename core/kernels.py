@@ -22,6 +22,7 @@ __all__ = ["viterbi_forward", "viterbi_backward", "sample_bilinear", "warm_up"]
 _LOCK = threading.Lock()
 #: image dtypes sampled as they are (one compiled specialisation each); others are converted to float64
 _DIRECT = tuple(np.dtype(t) for t in (np.float64, np.float32, np.uint8, np.uint16, np.int16, np.int32, np.int64))
+_WARM = (np.float64, np.float32, np.uint8, np.uint16)
 _COMPILED: dict = {}
 
 
@@ -190,5 +191,5 @@ def warm_up() -> None:
         C = np.zeros((2, 2, 2))
         viterbi_forward(U[0], U, C, 1.0)
         viterbi_backward(C, U, 2)
-        for dt in _DIRECT:  # the masks and every frame dtype the live path samples without a copy
+        for dt in _WARM:  # the masks and the usual frame dtypes (others compile on first use)
             sample_bilinear(np.zeros((3, 3), dt), [0.5], [0.5], mode="nearest")
