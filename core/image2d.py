@@ -44,6 +44,7 @@ from scipy import ndimage as ndi
 from scipy import sparse
 from scipy.sparse import csgraph
 
+from guidewire3d import kernels
 from guidewire3d.errors import InputError, SegmentationError
 from guidewire3d.imaging import (
     BLANK_REL_SPREAD,
@@ -920,23 +921,36 @@ def _smooth_polyline(p: np.ndarray, sigma_px: float) -> np.ndarray:
     return s
 
 
-def _refine(p_rc: np.ndarray, maskf: np.ndarray, darkness: np.ndarray | None, half_px: float) -> np.ndarray:
+def _refine(p_rc: np.ndarray, maskf: np.ndarray, image: np.ndarray | None, half_px: float) -> np.ndarray:
     """Move each point of an ordered (row, col) polyline to the weighted centroid of the mask
-    (times the image darkness, if given) sampled along its normal."""
+    (times the image darkness ``-image``, if given) sampled along its normal. ``maskf`` and
+    ``image`` may be of any real dtype (a 0/1 uint8 mask, the frame's own dtype): the samples are
+    float64."""
     nrm = polyline_normals(p_rc)
     offs = np.arange(-half_px, half_px + 1e-9, PROFILE_STEP_PX)
     samp = p_rc[:, None, :] + offs[None, :, None] * nrm[:, None, :]          # (N, K, 2)
-    w = ndi.map_coordinates(maskf, [samp[..., 0].ravel(), samp[..., 1].ravel()], order=1,
-                            mode="constant", cval=0.0).reshape(samp.shape[:2])
-    if darkness is not None:
-        dk = ndi.map_coordinates(darkness, [samp[..., 0].ravel(), samp[..., 1].ravel()], order=1,
-                                 mode="nearest").reshape(samp.shape[:2])
+    w = kernels.sample_bilinear(maskf, samp[..., 0], samp[..., 1], mode="constant")
+    if image is not None:
+        dk = -kernels.sample_bilinear(image, samp[..., 0], samp[..., 1], mode="nearest")
         w = w * np.clip(dk - dk.min(axis=1, keepdims=True), 0, None)
     sw = w.sum(axis=1)
     ok = sw > 1e-6
     delta = np.zeros(len(p_rc))
     delta[ok] = (w[ok] * offs[None, :]).sum(axis=1) / sw[ok]
     return p_rc + delta[:, None] * nrm
+
+
+def _pad_edge(a: np.ndarray, ext) -> np.ndarray:
+    """``np.pad(a, ext, mode="edge")`` of a 2D array (OpenCV's border replication where it takes the dtype)."""
+    import cv2
+
+    (top, bottom), (left, right) = ext
+    if a.dtype == bool:
+        return _pad_edge(a.view(np.uint8), ext).view(bool)
+    if a.dtype in (np.uint8, np.uint16, np.int16, np.float32, np.float64) and min(a.shape) > 0:
+        return cv2.copyMakeBorder(np.ascontiguousarray(a), int(top), int(bottom), int(left), int(right),
+                                  cv2.BORDER_REPLICATE)
+    return np.pad(a, ext, mode="edge")
 
 
 def _catheter_contrast(img: np.ndarray, uv: np.ndarray, half_width_px: float) -> float:
@@ -954,8 +968,7 @@ def _catheter_contrast(img: np.ndarray, uv: np.ndarray, half_width_px: float) ->
     def band(lo_hi, sign):
         w = sign * (half_width_px + np.arange(lo_hi[0], lo_hi[1] + 1e-9, PROFILE_STEP_PX))
         pts = rc[:, None, :] + w[None, :, None] * nrm[:, None, :]
-        return ndi.map_coordinates(img, [pts[..., 0].ravel(), pts[..., 1].ravel()], order=1, mode="nearest",
-                                   output=np.float64)
+        return kernels.sample_bilinear(img, pts[..., 0].ravel(), pts[..., 1].ravel(), mode="nearest")
 
     far = {sign: band(CATHETER_FAR_PX, sign) for sign in (1, -1)}
     both = np.concatenate(list(far.values()))
@@ -990,14 +1003,14 @@ def _extend_end(p_rc: np.ndarray, maskf: np.ndarray, at_end: bool, max_px: float
     e = p_rc[-1] if at_end else p_rc[0]
     steps = np.arange(0.0, max_px + 1e-9, REFINE_STEP_PX)
     line = e[None, :] + steps[:, None] * t[None, :]
-    val = ndi.map_coordinates(maskf, [line[:, 0], line[:, 1]], order=1, mode="constant", cval=0.0)
+    val = kernels.sample_bilinear(maskf, line[:, 0], line[:, 1], mode="constant")
     outside = np.nonzero(val < 0.5)[0]
     reach = steps[outside[0]] - REFINE_STEP_PX / 2 if len(outside) else steps[-1]
     # Half-width across the end: mask sampled along the normal at the end point.
     nrm = np.array([-t[1], t[0]])
     offs = np.arange(-max_px, max_px + 1e-9, REFINE_STEP_PX)
     across = e[None, :] + offs[:, None] * nrm[None, :]
-    width = ndi.map_coordinates(maskf, [across[:, 0], across[:, 1]], order=1, mode="constant").sum() * REFINE_STEP_PX
+    width = kernels.sample_bilinear(maskf, across[:, 0], across[:, 1], mode="constant").sum() * REFINE_STEP_PX
     ext = reach - TIP_CAP_FRACTION * width
     if ext <= 0.25:
         return p_rc
@@ -1090,7 +1103,7 @@ def ordered_wire(mask, *, image=None, proximal_hint_uv=None, max_gap_px: float =
     # that the skeleton does not fork at the cut; points outside the image are dropped at the end.
     H, W = m_full.shape
     ext = ((pad if r0 == 0 else 0, pad if r1 == H else 0), (pad if c0 == 0 else 0, pad if c1 == W else 0))
-    m = np.pad(m_full[r0:r1, c0:c1], ext, mode="edge") if any(map(any, ext)) else m_full[r0:r1, c0:c1]
+    m = _pad_edge(m_full[r0:r1, c0:c1], ext) if any(map(any, ext)) else m_full[r0:r1, c0:c1]
     o_r, o_c = r0 - ext[0][0], c0 - ext[1][0]           # ROI (0, 0) in image pixels
     m = np.array(m, dtype=bool, copy=True)              # skeletonize needs a writable array
 
@@ -1110,13 +1123,13 @@ def ordered_wire(mask, *, image=None, proximal_hint_uv=None, max_gap_px: float =
         return _failed(f"mask is blob-like (area / length = {comp_area / raw_len:.1f} px): not a guidewire")
 
     # Sub-pixel centring.
-    maskf = m.astype(np.float64)
+    maskf = m.view(np.uint8)                            # 0/1, sampled as float64
     half = float(np.clip(np.ceil(half_width + 2.0), 2.0, 8.0))
     darkness = None
     if img is not None:
-        darkness = -img[r0:r1, c0:c1].astype(np.float64)    # wire darker: larger darkness
+        darkness = img[r0:r1, c0:c1]                    # the wire darker: _refine weighs by -image
         if any(map(any, ext)):
-            darkness = np.pad(darkness, ext, mode="edge")
+            darkness = _pad_edge(darkness, ext)
     p = _smooth_polyline(path_rc, REFINE_SMOOTH_PX)
     p = _refine(p, maskf, darkness, half)
     p = _smooth_polyline(p, 1.0)

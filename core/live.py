@@ -26,7 +26,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from guidewire3d import image2d, reconstruction, segmentation
+from guidewire3d import image2d, kernels, reconstruction, segmentation
 from guidewire3d.errors import Guidewire3DError
 from guidewire3d.geometry import CArm, Pose
 from guidewire3d.image2d import OrderedWire
@@ -165,6 +165,9 @@ class FrameResult:
     timestamp: float = field(default=float("nan"))  # the source frame's time stamp, when it has one
     pose: Pose | None = None  # the pose the frame was reconstructed in
     motion: object = None  # registration.RegistrationResult of the frame's pose update (track_motion), or None
+    #: seconds per stage of this frame: "segmentation", "ordered_wire", "motion", "reconstruction"
+    #: (those that ran)
+    stage_seconds: dict = field(default_factory=dict)
 
     def __bool__(self) -> bool:
         return bool(self.wire3d)
@@ -265,7 +268,9 @@ class Session:
             self.motion_tracker.reset()
 
     def warm_up(self, frame) -> None:
-        """Load the network and run it once (first-call costs), without touching the tracking state."""
+        """Load the network and run it once, and compile the kernels (first-call costs), without
+        touching the tracking state."""
+        kernels.warm_up()
         self.segmenter.segment(np.asarray(frame))
         self.segmenter.reset()
 
@@ -274,17 +279,21 @@ class Session:
         """Segment, order and reconstruct one frame; never raises on a frame (a bad one is failed)."""
         t0 = time.perf_counter()
         index = self.n_frames if index is None else int(index)
+        stages = {}
         try:
             img = np.asarray(frame)
             mask = self.segmenter.segment(img)
+            t1 = time.perf_counter()
+            stages["segmentation"] = t1 - t0
             wire2d = image2d.ordered_wire(mask, image=img, proximal_hint_uv=self.root_uv_px)
+            stages["ordered_wire"] = time.perf_counter() - t1
         except Guidewire3DError as e:
             return self._failed(index, None, f"bad frame: {e}", t0, timestamp)
         except Exception as e:  # noqa: BLE001 - a live session reports a broken frame and goes on
             log.exception("frame %d: 2D analysis raised", index)
             return self._failed(index, None, f"internal error in the 2D analysis: {e.__class__.__name__}: {e}",
                                 t0, timestamp)
-        return self._finish(index, wire2d, img, t0, timestamp)
+        return self._finish(index, wire2d, img, t0, timestamp, stages)
 
     def process_wire(self, wire2d, *, image=None, index: int | None = None,
                      timestamp: float = float("nan")) -> FrameResult:
@@ -293,28 +302,34 @@ class Session:
         index = self.n_frames if index is None else int(index)
         return self._finish(index, wire2d, None if image is None else np.asarray(image), t0, timestamp)
 
-    def _failed(self, index, wire2d, message, t0, timestamp) -> FrameResult:
+    def _failed(self, index, wire2d, message, t0, timestamp, stages=None) -> FrameResult:
         self.n_frames += 1
         self.tracker.n_frames += 1
         self.tracker.failed_frames.append(index)
         w3 = self._reconstruction.Wire3D.failed(message, seconds=time.perf_counter() - t0, method=self.method)
         return FrameResult(index, wire2d if wire2d is not None else _no_wire(message), w3, Verdict.FAILED,
-                           message, None, time.perf_counter() - t0, timestamp, self.pose)
+                           message, None, time.perf_counter() - t0, timestamp, self.pose,
+                           stage_seconds=dict(stages or {}))
 
-    def _finish(self, index, wire2d, image, t0, timestamp) -> FrameResult:
+    def _finish(self, index, wire2d, image, t0, timestamp, stages=None) -> FrameResult:
+        stages = {} if stages is None else stages
         has_flag = hasattr(wire2d, "success")
         if has_flag and not wire2d:
-            return self._failed(index, wire2d, f"2D wire not found: {wire2d.message}", t0, timestamp)
+            return self._failed(index, wire2d, f"2D wire not found: {wire2d.message}", t0, timestamp, stages)
         uv = np.asarray(wire2d, float).reshape(-1, 2)
         if len(uv) < 2:
-            return self._failed(index, wire2d, "2D wire not found: fewer than 2 points", t0, timestamp)
+            return self._failed(index, wire2d, "2D wire not found: fewer than 2 points", t0, timestamp, stages)
         motion = None
         if self.motion_tracker is not None:
+            t1 = time.perf_counter()
             motion = self.motion_tracker.update(uv)
             if not self.pose.allclose(motion.pose, atol_mm=1e-6, atol_rad=1e-9):
                 self._use_pose(motion.pose, self.registration_covariance)
+            stages["motion"] = time.perf_counter() - t1
         try:
+            t1 = time.perf_counter()
             w3 = self.tracker.update(uv, image=image)
+            stages["reconstruction"] = time.perf_counter() - t1
         except Guidewire3DError as e:
             return self._failed(index, wire2d, f"3D reconstruction refused the frame: {e}", t0, timestamp)
         except Exception as e:  # noqa: BLE001 - reported in the frame's record; the session goes on
@@ -324,7 +339,7 @@ class Session:
         self.n_frames += 1
         if not w3:
             return FrameResult(index, wire2d, w3, Verdict.FAILED, w3.message, None, time.perf_counter() - t0,
-                               timestamp, self.pose, motion)
+                               timestamp, self.pose, motion, stages)
         ori = orientation_of(w3, uv, root_uv_px=self.root_uv_px) if self.method == "vessel" else None
         verdict, message = Verdict.OK, w3.message
         if ori is not None and (ori.conflict or not ori.determined):
@@ -333,7 +348,7 @@ class Session:
             message = f"motion: {motion.message}" + (f"; {message}" if verdict is not Verdict.OK else "")
             verdict = Verdict.UNCERTAIN
         return FrameResult(index, wire2d, w3, verdict, message, ori, time.perf_counter() - t0, timestamp,
-                           self.pose, motion)
+                           self.pose, motion, stages)
 
     def run(self, frames, *, start_index: int = 0):
         """Yield a :class:`FrameResult` for each frame of an iterable, in order."""

@@ -92,6 +92,7 @@ from scipy.interpolate import BSpline
 from scipy.linalg import solveh_banded
 from scipy.spatial import cKDTree
 
+from guidewire3d import kernels
 from guidewire3d.errors import InputError, ReconstructionError
 from guidewire3d.geometry import CArm, Pose
 from guidewire3d.methods import ReconMethod
@@ -453,16 +454,28 @@ def _pspline(x, Y, lam: float, knot: float, *, weights=None):
     t = np.r_[[x0] * 3, np.linspace(x0, x1, nint + 1), [x1] * 3]
     Bm = BSpline.design_matrix(np.clip(x, x0, x1), t, 3)
     nb = Bm.shape[1]
-    if weights is None:
-        Bw = Bm / len(x)
-    else:
-        w = np.asarray(weights, float)
-        Bw = Bm.multiply((w / w.sum())[:, None]).tocsr()
-    BtB = (Bm.T @ Bw).tocsr()
-    w = lam / max(nb - 2, 1)
+    M = len(x)
+    # the data weights, summing to 1 (uniform 1/M without weights)
+    wn = np.full(M, 1.0 / M) if weights is None else np.asarray(weights, float) / float(np.sum(weights))
     ab = np.zeros((4, nb))  # upper banded form: ab[3 + i - j, j] = A[i, j]
-    for k in range(4):
-        ab[3 - k, k:] = BtB.diagonal(k)
+    rows4 = Bm.nnz == 4 * M and np.all(np.diff(Bm.indptr) == 4)
+    if rows4:
+        D, J = Bm.data.reshape(M, 4), Bm.indices.reshape(M, 4)
+        rows4 = bool(np.all(np.diff(J, axis=1) == 1))
+    if rows4:
+        # B^T W B straight into the banded form (each row of B holds 4 consecutive basis functions)
+        for a in range(4):
+            for b in range(a, 4):
+                ab[3 - (b - a)] += np.bincount(J[:, b], weights=wn * D[:, a] * D[:, b], minlength=nb)[:nb]
+        BtY = np.column_stack([np.bincount(J.ravel(), weights=(wn[:, None] * D * Y[:, [d]]).ravel(), minlength=nb)[:nb]
+                               for d in range(Y.shape[1])])
+    else:
+        Bw = Bm.multiply(wn[:, None]).tocsr()
+        BtB = (Bm.T @ Bw).tocsr()
+        for k in range(4):
+            ab[3 - k, k:] = BtB.diagonal(k)
+        BtY = np.asarray(Bw.T @ Y)
+    w = lam / max(nb - 2, 1)
     # D^T D of the second-difference operator, by diagonals
     p0 = np.full(nb, 6.0)
     p0[[0, -1]] = 1.0
@@ -475,7 +488,7 @@ def _pspline(x, Y, lam: float, knot: float, *, weights=None):
         ab[2, 1:] += w * p1
         ab[1, 2:] += w * 1.0
     ab[3] += 1e-12
-    coef = solveh_banded(ab, np.asarray(Bw.T @ Y))
+    coef = solveh_banded(ab, BtY)
     return BSpline(t, coef, 3, extrapolate=True), Bm
 
 
@@ -615,15 +628,24 @@ def _covariance(ctx, X, uv, *, depth_std_mm, extra_iso_mm2, image, registration_
 
 def _image_gradient(image, uv) -> np.ndarray:
     """(M, 2) image gradient (intensities min-max normalised to [0, 1], per px) at the pixels ``uv``."""
-    img = np.asarray(image, dtype=float)
+    img = np.asarray(image)
+    if img.dtype.kind not in "fiub":
+        img = img.astype(float)
     if img.ndim != 2:
         raise InputError(f"reconstruction: image must be 2D (rows, cols), got shape {img.shape}")
-    # central differences at the wire's pixels only
+    # central differences at the wire's pixels only (converted to float there, not the whole frame)
     H, Wd = img.shape
     ui = np.clip(np.rint(uv[:, 0]).astype(int), 1, Wd - 2)
     vi = np.clip(np.rint(uv[:, 1]).astype(int), 1, H - 2)
-    g = 0.5 * np.column_stack([img[vi, ui + 1] - img[vi, ui - 1], img[vi + 1, ui] - img[vi - 1, ui]])
-    lo, hi = float(np.nanmin(img)), float(np.nanmax(img))
+
+    def at(v, u):
+        return img[v, u].astype(float)
+
+    g = 0.5 * np.column_stack([at(vi, ui + 1) - at(vi, ui - 1), at(vi + 1, ui) - at(vi - 1, ui)])
+    if img.dtype.kind == "f":
+        lo, hi = float(np.nanmin(img)), float(np.nanmax(img))
+    else:
+        lo, hi = float(img.min()), float(img.max())
     return g / (hi - lo) if hi > lo else np.zeros_like(g)  # intensities normalised to [0, 1] (paper)
 
 
@@ -796,40 +818,17 @@ def _viterbi(ctx, uv_a, cand, outside, opt, track_tip):
         + up / opt.sigma_retreat_mm
     )
     acc = U[0] + opt.start_cost_per_mm * ctx.s[safe[0]]
-    alpha = np.empty((A, K))
-    alpha[0] = acc
-    back = np.zeros((A - 1, K), np.int64)
-    ar = np.arange(K)
     # the path may end before the last anchor, paying skip_cost per anchor left unexplained (a
     # distal part outside every lumen, e.g. a missing or mis-registered end branch, is then not
-    # forced onto a far branch by a long jump)
-    end_t, end_k = 0, int(np.argmin(acc))
-    end_cost = float(acc[end_k]) + opt.skip_cost * (A - 1)
-    tot = np.empty((K, K))
-    for t in range(A - 1):
-        np.add(acc[:, None], C[t], out=tot)
-        b = tot.argmin(axis=0)
-        back[t] = b
-        acc = tot[b, ar]
-        acc += U[t + 1]
-        alpha[t + 1] = acc
-        k = int(np.argmin(acc))
-        c = float(acc[k]) + opt.skip_cost * (A - 2 - t)
-        if c < end_cost:
-            end_t, end_k, end_cost = t + 1, k, c
+    # forced onto a far branch by a long jump); the recursions run compiled (kernels)
+    alpha, back, end_t, end_k, end_cost = kernels.viterbi_forward(acc, U, C, opt.skip_cost)
+    end_t, end_k, end_cost = int(end_t), int(end_k), float(end_cost)
     best = np.empty(end_t + 1, np.int64)
     best[-1] = end_k
     for t in range(end_t - 1, -1, -1):
         best[t] = back[t, best[t + 1]]
     # min-marginals of the path ending at end_t: forward + backward min-sum costs
-    beta = np.zeros((end_t + 1, K))
-    nxt = U[1 : end_t + 1] if end_t > 0 else U[:0]
-    buf = np.empty((K, K))
-    w = np.empty(K)
-    for t in range(end_t - 1, -1, -1):
-        np.add(nxt[t], beta[t + 1], out=w)
-        np.add(C[t], w, out=buf)
-        buf.min(axis=1, out=beta[t])
+    beta = kernels.viterbi_backward(C, U, end_t)
     with np.errstate(invalid="ignore"):
         excess = alpha[: end_t + 1] + beta - (alpha[end_t, end_k])
     excess = np.where(np.isfinite(excess), np.maximum(excess, 0.0), np.inf)

@@ -360,6 +360,15 @@ class _TorchRunner:
             return self.model(x).float().numpy()
 
 
+def _default_threads() -> int:
+    """Inference threads when none are asked for: 2, or fewer when the process may use fewer cores."""
+    try:
+        n = len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        n = os.cpu_count() or 1
+    return max(1, min(2, n))
+
+
 class _OrtRunner:
     name = "onnxruntime"
 
@@ -367,8 +376,12 @@ class _OrtRunner:
         import onnxruntime as ort
 
         so = ort.SessionOptions()
-        so.intra_op_num_threads = int(num_threads or 2)
+        so.intra_op_num_threads = int(num_threads or _default_threads())
         so.inter_op_num_threads = 1
+        # worker threads sleep between calls instead of spinning: on a busy host (other processes on
+        # the cores) spinning threads fight them for the CPU and the per-frame time collapses
+        so.add_session_config_entry("session.intra_op.allow_spinning", "0")
+        so.add_session_config_entry("session.inter_op.allow_spinning", "0")
         so.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
         so.log_severity_level = 3
         self.session = ort.InferenceSession(str(onnx_path), so, providers=["CPUExecutionProvider"])
@@ -444,17 +457,36 @@ def _sigmoid(x: np.ndarray) -> np.ndarray:
     return 1.0 / (1.0 + np.exp(-np.clip(x, -30, 30)))
 
 
-def _run_unet_boxes(frame: np.ndarray, stats, boxes, runner, *, context_px: int) -> np.ndarray:
+def _pad_reflect(frame: np.ndarray, c: int) -> np.ndarray:
+    """``np.pad(frame, c, mode="reflect")`` (OpenCV's BORDER_REFLECT_101 where it takes the dtype)."""
+    if c <= 0:
+        return frame
+    if frame.dtype in (np.uint8, np.uint16, np.int16, np.float32, np.float64) and min(frame.shape) > c:
+        import cv2
+
+        return cv2.copyMakeBorder(np.ascontiguousarray(frame), c, c, c, c, cv2.BORDER_REFLECT_101)
+    return np.pad(frame, c, mode="reflect")
+
+
+def _run_unet_boxes(frame: np.ndarray, stats, boxes, runner, *, context_px: int,
+                    threshold: float | None = None) -> np.ndarray:
     """UNet probability on the inner ``boxes`` (u0, v0, u1, v1) of a raw frame (0 elsewhere).
 
     Each box is cut out with ``context_px`` of real image around it (reflect-padded at the frame
     border, then to a multiple of 8), normalised with the full frame's ``stats``; boxes of equal
-    size are batched into one network call.
+    size are batched into one network call. With ``threshold`` the (H, W) bool mask
+    ``probability > threshold`` is returned instead, compared on the logits (no sigmoid).
     """
     h, w = frame.shape
-    prob = np.zeros((h, w), np.float32)
+    if threshold is None:
+        prob = np.zeros((h, w), np.float32)
+    else:
+        prob = np.zeros((h, w), bool)
+        # sigmoid(x) > t  <=>  x > log(t / (1 - t)) (the sigmoid is increasing)
+        t = float(threshold)
+        logit_t = np.inf if t >= 1.0 else (-np.inf if t <= 0.0 else float(np.log(t / (1.0 - t))))
     c = int(context_px)
-    fp = np.pad(frame, c, mode="reflect") if c > 0 else frame
+    fp = _pad_reflect(frame, c)
     groups: dict = {}
     for box in boxes:
         u0, v0, u1, v1 = box
@@ -463,7 +495,8 @@ def _run_unet_boxes(frame: np.ndarray, stats, boxes, runner, *, context_px: int)
         crops = np.stack([fp[v0:v1 + 2 * c, u0:u1 + 2 * c] for (u0, v0, u1, v1) in bxs])
         crops = _pad_to_multiple(normalize_frame_stack(crops, stats))[:, None]
         logits = runner(crops)
-        p = _sigmoid(logits[:, 0, c:c + bh, c:c + bw])
+        inner = logits[:, 0, c:c + bh, c:c + bw]
+        p = _sigmoid(inner) if threshold is None else inner > logit_t
         for k, (u0, v0, u1, v1) in enumerate(bxs):
             prob[v0:v1, u0:u1] = p[k]
     return prob
@@ -640,8 +673,8 @@ class UNetSegmenter:
     def mask(self, frame, stats, boxes, *, backend, num_threads, context_px):
         runner, config = _get_runner(backend, None, num_threads)
         boxes = [(0, 0, frame.shape[1], frame.shape[0])] if boxes is None else boxes
-        prob = _run_unet_boxes(frame, stats, boxes, runner, context_px=context_px)
-        return _unet_mask_from_prob(prob, config.threshold)
+        m = _run_unet_boxes(frame, stats, boxes, runner, context_px=context_px, threshold=config.threshold)
+        return _remove_small(m) if m.any() else m
 
 
 class RidgeSegmenter:

@@ -41,6 +41,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage as ndi
 
+from guidewire3d import kernels
 from guidewire3d.errors import InputError
 
 __all__ = ["WirePresence", "wire_presence", "presence_of_curve"]
@@ -170,8 +171,7 @@ def _profiles(img: np.ndarray, uv: np.ndarray, half_px: float, scale: float):
     nrm = np.column_stack([-t[:, 1], t[:, 0]])
     offs = _offsets(half_px)
     samp = rc[:, None, :] + offs[None, :, None] * nrm[:, None, :]
-    prof = -ndi.map_coordinates(img, [samp[..., 0].ravel(), samp[..., 1].ravel()], order=1, mode="nearest",
-                                output=np.float64).reshape(samp.shape[:2])
+    prof = -kernels.sample_bilinear(img, samp[..., 0], samp[..., 1], mode="nearest")
     per = max(block // stride, 1)
     n_blocks = max(len(rc) // per, 1)
     starts = (np.arange(n_blocks) * len(rc)) // n_blocks

@@ -2,9 +2,17 @@
 
 Per frame: guidewire segmentation, ordered 2D wire, 3D reconstruction (tracking) and the
 report entry. Measured over a long simulated sequence, per segmenter mode, and printed as a
-table of medians.
+table of medians: the whole frame, each stage (``live.FrameResult.stage_seconds``), and the
+accuracy of what was measured (Dice of the live masks and median 3D error against the
+simulator's truth), so that a faster path is seen to give the same answers.
 
-    nice .venv/bin/python scripts/bench_live.py --frames 120 --seed 2024
+    .venv/bin/python scripts/bench_live.py --frames 120
+    .venv/bin/python scripts/bench_live.py --frames 120 --background-load 2   # a busy host
+
+``--background-load N`` starts N busy processes (pure Python loops, one core each) before the
+measurement and stops them at exit (each also stops by itself after ``--background-max-seconds``).
+``--modes`` picks modes (default: all three). The host's CPU model and load average (before the
+background load starts, and at the end) are printed beside the table.
 
 ``--igtl`` measures ``guidewire3d live`` instead (``bench_igtl``): source time stamp -> messages
 received by a client, over OpenIGTLink on 127.0.0.1, at 15 and 30 fps input, then a bounded soak
@@ -15,17 +23,67 @@ at 30 fps with client reconnects and the server's RSS sampled:
 from __future__ import annotations
 
 import argparse
+import atexit
 import os
+import subprocess
+import sys
 import time
 
 import numpy as np
+
+MODES = {"default": ("UNet, ROI tracking (default)", "unet", True),
+         "full": ("UNet, full frame", "unet", False),
+         "ridge": ("Ridge, ROI tracking", "ridge", True)}
+STAGES = ("segmentation", "ordered_wire", "reconstruction")
+
+
+def start_background_load(n: int, max_seconds: float) -> list:
+    """``n`` busy processes (one core each), stopped at exit and by themselves after ``max_seconds``."""
+    code = f"import time\nend = time.monotonic() + {float(max_seconds)}\nwhile time.monotonic() < end:\n    pass\n"
+    procs = [subprocess.Popen([sys.executable, "-c", code], stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                              stderr=subprocess.DEVNULL) for _ in range(max(0, int(n)))]
+
+    def stop():
+        for p in procs:
+            if p.poll() is None:
+                p.terminate()
+        for p in procs:
+            try:
+                p.wait(timeout=5)
+            except subprocess.TimeoutExpired:
+                p.kill()
+                p.wait()
+
+    atexit.register(stop)
+    return procs
+
+
+class _Recording:
+    """The session's segmenter, keeping each frame's mask (for the Dice against the truth)."""
+
+    def __init__(self, seg):
+        self.seg, self.masks = seg, []
+        self.method = getattr(seg, "method", "custom")
+
+    def segment(self, frame):
+        m = self.seg.segment(frame)
+        self.masks.append(m)
+        return m
+
+    def reset(self):
+        self.seg.reset()
 
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--frames", type=int, default=120)
     ap.add_argument("--seed", type=int, default=2024)
-    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--threads", type=int, default=None, help="inference threads (default: the segmenter's)")
+    ap.add_argument("--modes", default="default,full,ridge", help=f"comma-separated, of {', '.join(MODES)}")
+    ap.add_argument("--background-load", type=int, default=0, metavar="N",
+                    help="run N busy processes during the measurement (a busy host)")
+    ap.add_argument("--background-max-seconds", type=float, default=1800.0,
+                    help="the busy processes stop by themselves after this long")
     ap.add_argument("--igtl", action="store_true", help="measure `guidewire3d live` over OpenIGTLink (bench_igtl)")
     ap.add_argument("--rate-seconds", type=float, default=40.0, help="--igtl: seconds per input rate (15, 30 fps)")
     ap.add_argument("--soak-seconds", type=float, default=300.0, help="--igtl: soak at 30 fps (0: none)")
@@ -33,8 +91,14 @@ def main() -> int:
     args = ap.parse_args()
     if args.igtl:
         return bench_igtl(args)
+    modes = [m.strip() for m in args.modes.split(",") if m.strip()]
+    bad = [m for m in modes if m not in MODES]
+    if bad or not modes:
+        ap.error(f"--modes: expected some of {', '.join(MODES)}, got {args.modes!r}")
+    if not 0 <= args.background_load <= 64:
+        ap.error("--background-load: expected 0..64 processes")
 
-    from guidewire3d import bench, export, image2d, live, phantom, registration, vessels3d
+    from guidewire3d import bench, export, image2d, live, metrics, phantom, registration, vessels3d
     from guidewire3d.segmentation import GuidewireSegmenter, guidewire_mask
 
     case = phantom.simulate(phantom.PhantomOptions(seed=args.seed, n_frames=args.frames))
@@ -46,30 +110,60 @@ def main() -> int:
     reg = registration.register(ves.tree, cl.points_uv_px, case.carm, centerline_radius_px=cl.radius_px)
     t_reg = time.perf_counter() - t0
 
+    load_before = os.getloadavg()
+    if args.background_load:
+        start_background_load(args.background_load, args.background_max_seconds)
+        time.sleep(2.0)  # let them take the cores
+
     rows = []
-    modes = (("UNet, ROI tracking (default)", "unet", True),
-             ("UNet, full frame", "unet", False),
-             ("Ridge, ROI tracking", "ridge", True))
-    for name, method, tracking in modes:
+    for key in modes:
+        name, method, tracking = MODES[key]
         seg = GuidewireSegmenter(method=method, num_threads=args.threads)
         if not tracking:
             seg.segment = lambda frame, _m=method: guidewire_mask(frame, method=_m)  # noqa: E731
+        rec = _Recording(seg)
         session = live.Session(ves.tree, case.carm, reg.pose, registration_covariance=reg.covariance_6x6,
-                               segmenter=seg)
+                               segmenter=rec)
         session.warm_up(case.frames[0])  # session creation, first-call compilation
-        lat, ok = [], 0
+        rec.masks.clear()
+        lat, ok, stages, results = [], 0, {s: [] for s in STAGES}, []
         t_all = time.perf_counter()
         for fr in session.run(case.frames):
             export.frame_record(fr.index, fr.wire2d, fr.wire3d, fr.seconds, fr)  # the report entry is part of the live path
             lat.append(fr.seconds)
             ok += bool(fr)
+            for s in STAGES:
+                if s in getattr(fr, "stage_seconds", {}):  # (older versions of the package: none)
+                    stages[s].append(fr.stage_seconds[s])
+            results.append(fr)
         marginal = (time.perf_counter() - t_all) / len(case.frames)
-        rows.append([name, f"{1000 * marginal:.1f}", f"{1.0 / marginal:.1f}", f"{1000 * float(np.median(lat)):.1f}",
+        # accuracy of what was timed (after the clock): the live masks and 3D wires against the truth
+        dice = [metrics.dice(m, case.wire_mask[k]) for k, m in enumerate(rec.masks[:len(case.frames)])]
+        err = []
+        for fr in results:
+            vis = np.asarray(case.wire_visible[fr.index], bool)
+            tru = np.asarray(case.wire_lps_mm[fr.index])[vis]
+            if fr and len(tru) >= 2:
+                err.append(metrics.wire_errors_mm(fr.wire3d.points_lps_mm, tru)["mean_error_mm"])
+
+        def med_ms(v):
+            return f"{1000 * float(np.median(v)):.1f}" if v else "n/a"
+
+        rows.append([name, f"{1000 * marginal:.1f}", f"{1.0 / marginal:.1f}", med_ms(lat),
+                     f"{1000 * float(np.percentile(lat, 90)):.1f}", *(med_ms(stages[s]) for s in STAGES),
+                     f"{100 * float(np.mean(dice)):.2f}", f"{float(np.median(err)):.3f}" if err else "n/a",
                      f"{ok}/{len(case.frames)}"])
-    print(f"live path, {args.frames} frames 512x512, seed {args.seed}; one-off: CTA vessels {t_cta:.1f} s, "
-          f"roadmap + registration {t_reg * 1000:.0f} ms; machine: {bench.machine_line()}, "
-          f"load average {os.getloadavg()[0]:.1f}")
-    print(bench._table(["mode", "marginal ms/frame", "FPS", "median latency ms", "frames ok"], rows))
+    load_after = os.getloadavg()
+    print(f"live path, {args.frames} frames {case.frames.shape[2]}x{case.frames.shape[1]}, seed {args.seed}; one-off: "
+          f"CTA vessels {t_cta:.1f} s, roadmap + registration {t_reg * 1000:.0f} ms")
+    print(f"machine: {bench.machine_line()}; load average (1/5/15 min) before "
+          f"{' / '.join(f'{x:.2f}' for x in load_before)}, at the end {' / '.join(f'{x:.2f}' for x in load_after)}; "
+          f"background load: {args.background_load} busy process(es)")
+    print(bench._table(["mode", "marginal ms/frame", "FPS", "median latency ms", "p90 latency ms",
+                        "segmentation ms", "ordered wire ms", "3D ms", "mask Dice %", "3D err mm", "frames ok"], rows))
+    print("stage columns: medians over frames (live.FrameResult.stage_seconds); the report entry is in the latency, "
+          "not in a stage. Dice: the live masks against the simulator's; 3D err: median over frames of the mean "
+          "distance to the true wire.")
     return 0
 
 

@@ -15,7 +15,8 @@ CORE = Path(__file__).resolve().parents[1] / "core"
 
 # Lowest first; a module may import its own layer and the layers below it, never one above.
 LAYERS: dict[str, tuple[str, ...]] = {
-    "base": ("guidewire3d", "errors", "geometry", "vesseltree", "io", "metrics", "assets", "imaging", "unet", "methods"),
+    "base": ("guidewire3d", "errors", "geometry", "vesseltree", "io", "metrics", "assets", "imaging", "unet", "methods",
+             "kernels"),
     "stages": ("vessels3d", "wirepresence", "wiremask", "vessels2d_learned", "image2d", "segmentation",
                "registration", "reconstruction", "motion", "triangulation"),
     "engine": ("live",),

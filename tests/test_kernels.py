@@ -1,0 +1,82 @@
+"""The compiled kernels against the numpy / SciPy code they replace (guidewire3d.kernels)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy import ndimage as ndi
+
+from guidewire3d import kernels
+
+SAMPLE_TOL = 1e-12   # relative to the image's range: a rounding difference, not an interpolation one
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32, np.uint8, np.uint16, bool])
+@pytest.mark.parametrize("mode", ["nearest", "constant"])
+def test_sample_bilinear_is_map_coordinates_order_1(dtype, mode):
+    rng = np.random.default_rng(7)
+    img = (rng.random((23, 31)) * (1 if dtype is bool else 200)).astype(dtype) if dtype is not bool \
+        else rng.random((23, 31)) > 0.5
+    r = rng.uniform(-3.0, 25.0, 5000)
+    c = rng.uniform(-3.0, 33.0, 5000)
+    r[:40], c[40:80] = np.round(r[:40]), np.round(c[40:80])          # on pixel centres
+    r[80:90], c[90:100] = 22.0, 30.0                                  # exactly on the last row / column
+    r[100:110], c[110:120] = -1e-12, 30.0 + 1e-12                     # just outside
+    ref = ndi.map_coordinates(img.astype(np.float64), [r, c], order=1, mode=mode, cval=0.0)
+    got = kernels.sample_bilinear(img, r, c, mode=mode)
+    assert got.dtype == np.float64 and got.shape == r.shape
+    np.testing.assert_allclose(got, ref, rtol=0, atol=SAMPLE_TOL * max(float(np.ptp(ref)), 1.0))
+    if mode == "constant":
+        outside = (r < 0) | (r > 22) | (c < 0) | (c > 30)
+        assert np.all(got[outside] == 0.0)
+
+
+def test_sample_bilinear_keeps_the_shape_and_refuses_other_modes():
+    img = np.arange(12.0).reshape(3, 4)
+    rows, cols = np.full((2, 5), 1.5), np.full((2, 5), 2.25)
+    out = kernels.sample_bilinear(img, rows, cols)
+    assert out.shape == (2, 5)
+    np.testing.assert_allclose(out, 1.5 * 4 + 2.25)     # a linear image is reproduced exactly
+    with pytest.raises(ValueError, match="mode"):
+        kernels.sample_bilinear(img, [0.0], [0.0], mode="reflect")
+
+
+def _viterbi_reference(acc0, U, C, skip):
+    """The numpy recursions that reconstruction._viterbi ran before the kernels."""
+    A, K = U.shape
+    acc = acc0.copy()
+    alpha = np.empty((A, K))
+    alpha[0] = acc
+    back = np.zeros((A - 1, K), np.int64)
+    end_t, end_k = 0, int(np.argmin(acc))
+    end_cost = float(acc[end_k]) + skip * (A - 1)
+    for t in range(A - 1):
+        tot = acc[:, None] + C[t]
+        b = tot.argmin(axis=0)
+        back[t] = b
+        acc = tot[b, np.arange(K)] + U[t + 1]
+        alpha[t + 1] = acc
+        k = int(np.argmin(acc))
+        c = float(acc[k]) + skip * (A - 2 - t)
+        if c < end_cost:
+            end_t, end_k, end_cost = t + 1, k, c
+    beta = np.zeros((end_t + 1, K))
+    for t in range(end_t - 1, -1, -1):
+        beta[t] = (C[t] + (U[t + 1] + beta[t + 1])).min(axis=1)
+    return alpha, back, end_t, end_k, end_cost, beta
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_viterbi_kernels_equal_the_numpy_recursions(seed):
+    rng = np.random.default_rng(seed)
+    A, K = int(rng.integers(2, 40)), int(rng.integers(1, 12))
+    U = rng.random((A, K)) * 3.0
+    U[rng.random((A, K)) < 0.3] = np.inf            # anchors without some candidates
+    C = np.round(rng.random((A - 1, K, K)) * 4.0, 1)  # rounded: ties, which the first minimum breaks
+    acc0 = U[0] + rng.random(K)
+    skip = float(rng.choice([0.5, 2.0, 50.0]))
+    alpha, back, end_t, end_k, end_cost, beta = _viterbi_reference(acc0, U, C, skip)
+    a2, b2, t2, k2, c2 = kernels.viterbi_forward(acc0, U, C, skip)
+    np.testing.assert_array_equal(a2, alpha)
+    np.testing.assert_array_equal(b2, back)
+    assert (int(t2), int(k2), float(c2)) == (end_t, end_k, end_cost)
+    np.testing.assert_array_equal(kernels.viterbi_backward(C, U, end_t), beta)
