@@ -837,6 +837,12 @@ def centerline_from_mask(mask_zyx, *, spacing_mm, origin_lps_mm, direction=None,
     # -- skeleton + skan pruning
     skel = skeletonize(mp).astype(bool)
     if skel.sum() < 2:
+        # Lee's thinning can erase a perfectly symmetric axis-aligned tube of even width
+        # entirely; one voxel of asymmetry (the mask widened toward +x) gives it its axis
+        mp2 = mp.copy()
+        mp2[:, :, 1:] |= mp[:, :, :-1]
+        skel = skeletonize(mp2).astype(bool) & mp
+    if skel.sum() < 2:
         raise SegmentationError("centerline_from_mask: no vessels found (the mask is too small for a centerline)")
     for _ in range(50):
         sk = Skeleton(skel, spacing=tuple(sp_zyx))
