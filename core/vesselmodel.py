@@ -432,8 +432,6 @@ def estimate_intensity_model(volume: io.Volume, *, seeds_lps_mm=None) -> Intensi
         raise SegmentationError(f"{what}: no vessels found (no bright tubular structure; background {bg:.4g}, "
                                 f"noise {noise:.3g}); give --seed-lps in a vessel if there is one")
     L = _lumen_mode(vals[tub], ves[tub], max(noise, 0.004 * (top - bg)))
-    if _DEBUG:
-        _debug_hist(vals, ves, bg, top, "lumen", L)
     radius = float(np.exp(np.average(np.log(2.0 * np.asarray(MODEL_SCALES_MM)[arg[tub]]), weights=ves[tub])))
     tub_cm3 = float(tub.mean()) * n_cand * vox_cm3
     bone = _bone_level(ds, bg, L, hu, vox_cm3)
@@ -451,17 +449,6 @@ def estimate_intensity_model(volume: io.Volume, *, seeds_lps_mm=None) -> Intensi
         raise SegmentationError(f"{what}: no vessels found (the brightest tubular structures are {L:.0f} HU: bone, "
                                 f"not contrast); give --seed-lps in a vessel if there is one")
     return model
-
-
-_DEBUG = False
-
-
-def _debug_hist(vals, ves, bg, top, label, L):  # pragma: no cover - development aid
-    tub = ves >= TUBULAR_MIN
-    h, e = np.histogram(vals[tub], bins=30, weights=ves[tub])
-    print(label, "bg", bg, "top", top, "L", L, "n_tub", tub.sum())
-    for hh, ee in zip(h, e):
-        print(f"  {ee:8.1f} {hh:10.1f}")
 
 
 def _bone_level(ds, bg, L, hu, vox_cm3) -> float | None:

