@@ -1,4 +1,4 @@
-"""Command line: ``guidewire3d {demo,phantom,reconstruct,segment,view,live,bench,batch,listen}``.
+"""Command line: ``guidewire3d {demo,phantom,reconstruct,vessels,segment,view,live,bench,batch,listen}``.
 
 Bad input prints one line (``guidewire3d: error: ...``) and exits with status 2; ``--verbose``
 shows the traceback instead.
@@ -284,17 +284,41 @@ def _add_listen_parser(sub) -> None:
     p.set_defaults(func=dicomnet.cli_listen)
 
 
+def _add_vessels_parser(sub) -> None:  # issue 17: the vessel tree alone, any angiographic volume
+    p = sub.add_parser("vessels", help="vessel tree of a CTA, MRA or 3DRA alone (planning): centerline, surface, JSON",
+                       description="Find the contrast lumen's intensity in the volume itself (HU CTA, MRA in any "
+                                   "units, 3DRA), segment vessels of 0.5-16 mm radius and write centerline.vtp, "
+                                   "vessels.stl, vessels.vtp and vessels.json (branches, lengths, radii, the "
+                                   "estimated intensities) into --out. A volume without a plausible vessel tree is "
+                                   "refused (exit 2) with the reason; --seed-lps picks the tree containing a point.")
+    p.add_argument("--cta", required=True, help="the volume: a DICOM series folder (CT or MR), or a NIfTI/NRRD/MHA file "
+                                                "(CTA in HU, MRA in any units, 3DRA)")
+    p.add_argument("--out", required=True, help="output folder (created; must be empty or absent)")
+    p.add_argument("--seed-lps", type=_parse_xyz, action="append", default=None, metavar="X,Y,Z",
+                   help="a point in LPS mm inside a vessel lumen: the result is the connected tree containing it "
+                        "(repeatable; the first is the root; write --seed-lps=X,Y,Z when X is negative)")
+    p.add_argument("--series-uid", default=None, help="SeriesInstanceUID to read from a DICOM folder")
+
+    def run(args):
+        from guidewire3d import vesselplan
+
+        return vesselplan.cli_main(args)
+
+    p.set_defaults(func=run)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(
         prog="guidewire3d",
         description="Real-time 3D guidewire reconstruction from a CTA and single-view DSA.",
     )
     parser.add_argument("--verbose", action="store_true", help="show tracebacks and debug messages")
-    sub = parser.add_subparsers(dest="command", metavar="{demo,phantom,reconstruct,segment,view,live,bench,batch,listen}")
+    sub = parser.add_subparsers(dest="command", metavar="{demo,phantom,reconstruct,vessels,segment,view,live,bench,batch,listen}")
     sub.required = True
     _add_demo_parser(sub)
     _add_phantom_parser(sub)
     _add_reconstruct_parser(sub)
+    _add_vessels_parser(sub)
     _add_segment_parser(sub)
     _add_view_parser(sub)
     _add_live_parser(sub)

@@ -562,8 +562,12 @@ def _has_dicm(path: Path) -> bool:
 
 
 @_quiet
-def read_volume(path, *, series_uid: str | None = None, max_voxels: int = MAX_VOXELS_DEFAULT, log=None) -> Volume:
+def read_volume(path, *, series_uid: str | None = None, max_voxels: int = MAX_VOXELS_DEFAULT, log=None,
+                modalities: tuple[str, ...] = ("CT",)) -> Volume:
     """Read a CTA: a DICOM series folder (or one of its files), or a NIfTI/NRRD/MHA file.
+
+    ``modalities`` are the DICOM Modality (0008,0060) values accepted (``("CT", "MR")`` for
+    the planning command, which also takes an MR angiogram).
 
     If a folder holds several series, the CT series with the most slices is read (and ``log``
     is told); ``series_uid`` chooses one explicitly. Every file is checked first (complete,
@@ -617,14 +621,15 @@ def read_volume(path, *, series_uid: str | None = None, max_voxels: int = MAX_VO
             except Exception:  # noqa: BLE001
                 continue
             modality = str(getattr(ds, "Modality", "")).strip()
-            cands.append((modality == "CT", len(files), uid, modality))
+            cands.append((modality in modalities, len(files), uid, modality))
         if not cands:
             raise DicomError(f"{folder}: no readable DICOM series found")
         cands.sort(reverse=True)
         is_ct, _, uid, modality = cands[0]
         if not is_ct:
-            raise DicomError(f"{path}: no CT series found (Modality (0008,0060) is {modality or 'missing'}), "
-                             "expected a CTA")
+            want = " or ".join(modalities)
+            raise DicomError(f"{path}: no {want} series found (Modality (0008,0060) is {modality or 'missing'}), "
+                             f"expected a {'CTA' if modalities == ('CT',) else 'CTA or MRA volume'}")
         if len(series) > 1 and log is not None:
             log(f"{folder}: {len(series)} series found, using the largest CT series {uid} ({len(series[uid])} slices)")
     files = series[uid]

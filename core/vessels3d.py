@@ -81,6 +81,10 @@ class VesselOptions:
     peak_smooth_mm: float = 0.8  # Gaussian sigma applied before taking the local peak
     seed_radius_mm: float = 3.0  # a component within this distance of a seed is kept
     max_voxels: int = MAX_VOXELS_DEFAULT
+    background_hu: float = 40.0  # tissue level used when the crop has no voxel below lumen_min_hu
+    min_peak_hu: float = float("-inf")  # a lumen voxel's local peak must reach this (enhancing organs do not)
+    tubular_support_mm: float = 0.0  # > 0: keep only voxels within this of a tubular voxel (organ sponges out)
+    tubular_support_min: float = 0.25  # the vesselness of those tubular voxels
 
 
 @dataclass(frozen=True)
@@ -181,7 +185,7 @@ def _seeds_to_index(seeds_lps_mm, M, o, what: str) -> np.ndarray:
 # 1. segmentation
 # --------------------------------------------------------------------------------------
 def _frangi_at(img_zyx: np.ndarray, idx_zyx: np.ndarray, spacing_zyx, scales_mm, *, alpha: float = 0.5,
-               beta: float = 0.5, gamma: float = 0.15) -> np.ndarray:
+               beta: float = 0.5, gamma: float = 0.15, return_scale: bool = False):
     """Multi-scale Frangi vesselness of bright tubes at the voxels ``idx_zyx`` (max over scales).
 
     ``img_zyx`` is a windowed image scaled to about 0 (tissue) .. 1 (lumen). At each scale it is
@@ -195,6 +199,7 @@ def _frangi_at(img_zyx: np.ndarray, idx_zyx: np.ndarray, spacing_zyx, scales_mm,
     Returns
     -------
     (K,) ndarray of float32 in [0, 1]
+        And, with ``return_scale``, the ``(K,)`` index into ``scales_mm`` of the best scale.
     """
     import SimpleITK as sitk
 
@@ -204,7 +209,8 @@ def _frangi_at(img_zyx: np.ndarray, idx_zyx: np.ndarray, spacing_zyx, scales_mm,
     idx = np.asarray(idx_zyx, dtype=np.int64)
     inner = np.all((idx >= 1) & (idx < np.array(img_zyx.shape) - 1), axis=1)
     out = np.zeros(len(idx), np.float32)
-    for s in scales_mm:
+    best = np.zeros(len(idx), np.int64)
+    for k_s, s in enumerate(scales_mm):
         sm = sitk.GetArrayFromImage(sitk.SmoothingRecursiveGaussian(im, sigma=float(s)))
         _, H = _derivs_at(sm, idx[inner], sp)
         del sm
@@ -218,8 +224,31 @@ def _frangi_at(img_zyx: np.ndarray, idx_zyx: np.ndarray, spacing_zyx, scales_mm,
         S2 = l1 * l1 + l2 * l2 + l3 * l3
         v = (1 - np.exp(-ra * ra / (2 * alpha ** 2))) * np.exp(-rb * rb / (2 * beta ** 2)) * (1 - np.exp(-S2 / (2 * gamma ** 2)))
         v = np.where(ok, v, 0.0).astype(np.float32)
+        if return_scale:
+            better = np.zeros(len(idx), bool)
+            better[inner] = v > out[inner]
+            best[better] = k_s
         out[inner] = np.maximum(out[inner], v)
-    return out
+    return (out, best) if return_scale else out
+
+
+def _labels_near(lab: np.ndarray, seeds_idx: np.ndarray, radius_mm: float, sp_zyx: np.ndarray) -> set[int]:
+    """Labels (> 0) of ``lab`` with a voxel within ``radius_mm`` of a seed (``(K, 3)`` indices into ``lab``)."""
+    chosen: set[int] = set()
+    r_vox = radius_mm / sp_zyx
+    for s in np.atleast_2d(seeds_idx):
+        lo = np.maximum(np.floor(s - r_vox).astype(int), 0)
+        hi = np.minimum(np.ceil(s + r_vox).astype(int) + 1, lab.shape)
+        if np.any(hi <= lo):
+            continue
+        win_lab = lab[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]]
+        zz, yy, xx = np.nonzero(win_lab)
+        if len(zz) == 0:
+            continue
+        d = np.linalg.norm((np.column_stack([zz, yy, xx]) + lo - s) * sp_zyx, axis=1)
+        ok = d <= radius_mm
+        chosen.update(int(v) for v in np.unique(win_lab[zz[ok], yy[ok], xx[ok]]))
+    return chosen
 
 
 def segment_vessels(volume: io.Volume, *, seeds_lps_mm=None, progress: bool = False,
@@ -308,16 +337,17 @@ def segment_vessels(volume: io.Volume, *, seeds_lps_mm=None, progress: bool = Fa
     if bone.any():
         bone = _ball_dilate(bone, opt.bone_margin_mm, sp_zyx)
     low = sm < opt.lumen_min_hu
-    bg = float(np.median(sm[low & ~bone])) if np.any(low & ~bone) else 40.0
+    bg = float(np.median(sm[low & ~bone])) if np.any(low & ~bone) else opt.background_hu
     del low
     peak_size = np.maximum(2 * np.round(opt.local_peak_mm / sp_zyx) + 1, 3).astype(int)
     # local lumen level: max of a more smoothed copy (a max over raw noise would bias it up)
     peak = ndi.gaussian_filter(np.where(bone, np.float32(bg), sm), sigma=opt.peak_smooth_mm / sp_zyx, truncate=2.5)
     peak = ndi.maximum_filter(peak, size=tuple(peak_size))
     thr = np.maximum(bg + 0.5 * (peak - bg), opt.lumen_min_hu)
-    del peak
     cand = (sm >= thr) & ~bone
-    del thr, bone
+    if np.isfinite(opt.min_peak_hu):
+        cand &= peak >= opt.min_peak_hu
+    del thr, bone, peak
     lab, nlab = ndi.label(cand, structure=np.ones((3, 3, 3)))
     if nlab == 0:
         raise SegmentationError(f"{what}: no vessels found (only bone above {opt.lumen_min_hu:g} HU)")
@@ -348,7 +378,7 @@ def segment_vessels(volume: io.Volume, *, seeds_lps_mm=None, progress: bool = Fa
     win = (np.clip(sm[vcrop], bg, top) - bg) / max(top - bg, 1.0)
     candv = cand[vcrop]
     cidx = np.argwhere(candv)
-    ves_c = _frangi_at(win, cidx, sp_zyx, opt.vesselness_scales_mm)
+    ves_c, scale_c = _frangi_at(win, cidx, sp_zyx, opt.vesselness_scales_mm, return_scale=True)
     del win
     bar.update()
 
@@ -364,20 +394,7 @@ def segment_vessels(volume: io.Volume, *, seeds_lps_mm=None, progress: bool = Fa
     mass[~tubular] = 0
     if seeds_idx is not None:
         vofs = off + np.array([s.start for s in vcrop])
-        chosen = set()
-        r_vox = opt.seed_radius_mm / sp_zyx
-        for s in seeds_idx:
-            lo = np.maximum(np.floor(s - vofs - r_vox).astype(int), 0)
-            hi = np.minimum(np.ceil(s - vofs + r_vox).astype(int) + 1, lab.shape)
-            if np.any(hi <= lo):
-                continue
-            win_lab = lab[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]]
-            zz, yy, xx = np.nonzero(win_lab)
-            if len(zz) == 0:
-                continue
-            d = np.linalg.norm((np.column_stack([zz, yy, xx]) + lo + vofs - s) * sp_zyx, axis=1)
-            ok = d <= opt.seed_radius_mm
-            chosen.update(int(v) for v in np.unique(win_lab[zz[ok], yy[ok], xx[ok]]))
+        chosen = _labels_near(lab, seeds_idx - vofs, opt.seed_radius_mm, sp_zyx)
         if not chosen:
             raise SegmentationError(f"{what}: no vessels found within {opt.seed_radius_mm:g} mm of the seeds")
         keep = np.zeros(nlab + 1, bool)
@@ -388,6 +405,33 @@ def segment_vessels(volume: io.Volume, *, seeds_lps_mm=None, progress: bool = Fa
         keep = np.zeros(nlab + 1, bool)
         keep[int(np.argmax(mass))] = True
     sel = keep[lab]
+    if opt.tubular_support_mm > 0:
+        # only what lies near tubular voxels: the enhancing parenchyma an artery enters is not a vessel.
+        # A voxel tubular at scale sigma supports max(tubular_support_mm, 1.3 sigma) around it (the
+        # lumen of a tube of radius r answers best near sigma = r / 2, and only in its middle)
+        support = np.zeros_like(sel)
+        is_tub = ves_c >= opt.tubular_support_min
+        for k_s, s_mm in enumerate(opt.vesselness_scales_mm):
+            pick = cidx[is_tub & (scale_c == k_s)]
+            if len(pick) == 0:
+                continue
+            tub = np.zeros_like(sel)
+            tub[tuple(pick.T)] = True
+            tub &= sel
+            if tub.any():
+                support |= _ball_dilate(tub, max(opt.tubular_support_mm, 1.3 * s_mm), sp_zyx)
+        sel &= support
+        del support
+        lab2, n2 = ndi.label(sel, structure=np.ones((3, 3, 3)))
+        if n2 > 1:
+            keep2 = np.zeros(n2 + 1, bool)
+            near = _labels_near(lab2, seeds_idx - vofs, opt.seed_radius_mm, sp_zyx) if seeds_idx is not None else set()
+            if near:
+                keep2[sorted(near)] = True
+            else:
+                keep2[1 + int(np.argmax(np.bincount(lab2.ravel())[1:]))] = True
+            sel = keep2[lab2]
+        del lab2
     bar.update()
     bar.close()
 
@@ -796,6 +840,12 @@ def centerline_from_mask(mask_zyx, *, spacing_mm, origin_lps_mm, direction=None,
 
     # -- skeleton + skan pruning
     skel = skeletonize(mp).astype(bool)
+    if skel.sum() < 2:
+        # Lee's thinning can erase a perfectly symmetric axis-aligned tube of even width
+        # entirely; one voxel of asymmetry (the mask widened toward +x) gives it its axis
+        mp2 = mp.copy()
+        mp2[:, :, 1:] |= mp[:, :, :-1]
+        skel = skeletonize(mp2).astype(bool) & mp
     if skel.sum() < 2:
         raise SegmentationError("centerline_from_mask: no vessels found (the mask is too small for a centerline)")
     for _ in range(50):

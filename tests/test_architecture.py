@@ -17,11 +17,11 @@ CORE = Path(__file__).resolve().parents[1] / "core"
 LAYERS: dict[str, tuple[str, ...]] = {
     "base": ("guidewire3d", "errors", "geometry", "vesseltree", "io", "metrics", "assets", "imaging", "unet", "methods",
              "kernels"),
-    "stages": ("vessels3d", "wirepresence", "wiremask", "vessels2d_learned", "image2d", "segmentation",
+    "stages": ("vessels3d", "vesselmodel", "wirepresence", "wiremask", "vessels2d_learned", "image2d", "segmentation",
                "registration", "reconstruction", "motion", "triangulation"),
     "engine": ("live",),
     "simulation": ("phantom",),
-    "application": ("pipeline", "export", "outdir", "stream", "bench", "batch2d", "batch", "dicomnet", "biplane"),
+    "application": ("pipeline", "export", "outdir", "stream", "bench", "batch2d", "batch", "dicomnet", "biplane", "vesselplan"),
     "front ends": ("cli", "viewer", "viewer.app", "viewer.controller", "viewer.scene", "viewer.biplane_scene"),
 }
 FRONT_ENDS = set(LAYERS["front ends"])

@@ -374,3 +374,14 @@ def test_tiny_mask_is_no_vessel():
     m[4, 4, 4] = True  # a single voxel has no centerline
     with pytest.raises(SegmentationError, match="no vessels found"):
         centerline_from_mask(m, spacing_mm=(0.5, 0.5, 0.5), origin_lps_mm=(0, 0, 0))
+
+
+def test_centerline_of_an_axis_aligned_even_width_tube():
+    """Lee's thinning erases a symmetric axis-aligned tube 6 voxels wide; the centerline still
+    follows its axis (issue 17: a seeded straight vessel returned 'no vessels found')."""
+    sp = (0.8, 0.8, 0.8)
+    m = tube_mask((46, 12, 12), np.array(sp), [(np.array([4.0, 4.4, 4.4]), np.array([32.0, 4.4, 4.4]), 2.0, 2.0)])
+    tree = centerline_from_mask(m, spacing_mm=sp, origin_lps_mm=(0, 0, 0))
+    p = tree.points_lps_mm  # (x, y, z)
+    assert np.abs(p[:, 0] - 4.4).max() < AXIS_TOL_MM and np.abs(p[:, 1] - 4.4).max() < AXIS_TOL_MM
+    assert p[:, 2].max() - p[:, 2].min() > 24.0

@@ -1,0 +1,245 @@
+"""The automatic vessel stage on any angiographic volume (issue 17): intensity model, calibre range,
+plausibility, seeds, the ``vessels`` command, and refusals of wrong volumes."""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from scipy import ndimage as ndi
+from scipy.spatial import cKDTree
+
+from guidewire3d import cli, io, vesselmodel
+from guidewire3d.errors import InputError, SegmentationError
+
+SP = 0.8  # mm, isotropic
+SHAPE = (76, 84, 84)
+# a thick trunk (an aorta-like 9 mm radius) with a 3 mm and a 1.6 mm branch, axis points in (z, y, x) mm
+TRUNK = (np.array([4.0, 33.0, 33.0]), np.array([56.0, 33.0, 33.0]), 9.0)
+BRANCHES = [(np.array([30.0, 33.0, 41.0]), np.array([30.0, 33.0, 56.0]), 3.0),
+            (np.array([44.0, 39.0, 33.0]), np.array([44.0, 56.0, 43.0]), 1.6)]
+CENTRE_TOL_MM = 0.6  # mean distance of the centerline to the true axes (0.8 mm voxels)
+AU_REL_TOL = 0.02  # an affine change of units changes the mask by less than this fraction
+
+
+def _tubes_depth(shape, segments):
+    """Signed distance inside the union of tubes (positive inside), mm."""
+    grid = np.stack(np.meshgrid(*[np.arange(n) * SP for n in shape], indexing="ij"), -1)
+    d = np.full(shape, -1e9, np.float32)
+    for a, b, r in segments:
+        ab = b - a
+        t = np.clip(((grid - a) @ ab) / (ab @ ab), 0, 1)
+        rho = np.linalg.norm(grid - a - t[..., None] * ab, axis=-1)
+        d = np.maximum(d, r - rho)
+    return d
+
+
+def _axes(segments, step=0.2):
+    pts = []
+    for a, b, r in segments:
+        n = int(np.linalg.norm(b - a) / step)
+        pts.append(a + np.linspace(0, 1, n)[:, None] * (b - a))
+    return np.vstack(pts)
+
+
+def _volume(*, lumen=380.0, tissue=40.0, air=-1000.0, noise=12.0, bone=None, segments=None, seed=0, spacing=SP,
+            source="synthetic CT"):
+    """A body (ellipse in x-y, air outside) of tissue with contrast tubes, blur and noise."""
+    rng = np.random.default_rng(seed)
+    segments = [TRUNK, *BRANCHES] if segments is None else segments
+    a = np.full(SHAPE, tissue, np.float32)
+    zz, yy, xx = np.meshgrid(*[np.arange(n) * SP for n in SHAPE], indexing="ij")
+    body = ((yy - 33) / 31) ** 2 + ((xx - 35) / 31) ** 2 <= 1.0
+    a[~body] = air
+    if segments:
+        d = _tubes_depth(SHAPE, segments)
+        frac = np.clip(0.5 + d / SP, 0, 1)
+        a = a * (1 - frac) + lumen * frac
+    if bone is not None:  # a curved rib: cortex shell around marrow, away from the vessels
+        rho = np.hypot(yy - 33, xx - 35)
+        rib = np.hypot(rho - 27.0, zz - 30.0)
+        a = np.where(rib <= 3.0, np.float32(bone), a)
+        a = np.where(rib <= 1.8, np.float32(0.35 * bone), a)
+    a = ndi.gaussian_filter(a, 0.5)
+    a = a + rng.normal(0.0, noise, SHAPE).astype(np.float32)
+    return io.Volume(a.astype(np.float32), (spacing,) * 3, (0.0, 0.0, 0.0), np.eye(3), source=source)
+
+
+def _zyx_to_lps(p_zyx_mm):
+    return np.asarray(p_zyx_mm)[..., ::-1]
+
+
+@pytest.fixture(scope="module")
+def ct():
+    return _volume(bone=1100.0)
+
+
+@pytest.fixture(scope="module")
+def ct_result(ct):
+    return vesselmodel.extract_vessels_auto(ct)
+
+
+# --------------------------------------------------------------------------------------
+# a good volume, in HU and in arbitrary units
+# --------------------------------------------------------------------------------------
+def test_model_finds_lumen_and_background_of_a_ct(ct_result):
+    m = ct_result.model
+    assert m.hu
+    assert abs(m.lumen - 380.0) < 40.0  # the trunk's plateau
+    assert 20.0 < m.background < 80.0
+    assert m.bone is not None and m.lumen < m.bone < 1100.0
+
+
+def test_one_tree_from_aorta_calibre_to_small_branches(ct_result):
+    tree = ct_result.vessels.tree
+    truth = _zyx_to_lps(_axes([TRUNK, *BRANCHES]))
+    d, _ = cKDTree(truth).query(tree.points_lps_mm)
+    assert d.mean() < CENTRE_TOL_MM
+    # every axis is covered (trunk away from its rounded ends, both branches)
+    for a, b, r in [TRUNK, *BRANCHES]:
+        inner = _zyx_to_lps(_axes([(a + (b - a) * 0.2, b - (b - a) * 0.2, r)]))
+        dd, _ = cKDTree(tree.points_lps_mm).query(inner)
+        assert np.mean(dd < max(1.0, 0.3 * r)) > 0.9, r
+    assert tree.radius_mm.max() == pytest.approx(TRUNK[2], abs=1.0)
+    # the rib is not part of it
+    rho = np.hypot(*(np.meshgrid(np.arange(SHAPE[1]) * SP - 33, np.arange(SHAPE[2]) * SP - 35, indexing="ij")))
+    rib_cols = np.abs(rho - 27.0) < 1.5
+    assert not ct_result.vessels.mask_zyx[int(30 / SP)][rib_cols].any()
+    assert ct_result.plausibility.ok
+
+
+def test_arbitrary_units_give_the_same_tree(ct, ct_result):
+    au = io.Volume(ct.array_zyx * np.float32(0.5) + np.float32(1000.0), ct.spacing_mm, ct.origin_lps_mm,
+                   ct.direction, source="AU")
+    r = vesselmodel.extract_vessels_auto(au)
+    assert not r.model.hu
+    assert r.model.lumen == pytest.approx(0.5 * ct_result.model.lumen + 1000.0, rel=0.01)
+    m0, m1 = ct_result.vessels.mask_zyx, r.vessels.mask_zyx
+    assert np.count_nonzero(m0 ^ m1) < AU_REL_TOL * np.count_nonzero(m0)
+    assert r.vessels.tree.total_length_mm == pytest.approx(ct_result.vessels.tree.total_length_mm, rel=0.05)
+
+
+def test_mra_like_volume_without_bone():
+    """MR units: air ~ 20, tissue ~ 250, lumen ~ 1900 (the volume of issue 17's report)."""
+    v = _volume(lumen=1900.0, tissue=250.0, air=20.0, noise=30.0, source="synthetic MRA")
+    r = vesselmodel.extract_vessels_auto(v)
+    assert not r.model.hu and r.model.bone is None
+    assert abs(r.model.lumen - 1900.0) < 200.0
+    d, _ = cKDTree(_zyx_to_lps(_axes([TRUNK, *BRANCHES]))).query(r.vessels.tree.points_lps_mm)
+    assert d.mean() < CENTRE_TOL_MM
+
+
+# --------------------------------------------------------------------------------------
+# seeds
+# --------------------------------------------------------------------------------------
+def test_seed_gives_the_connected_tree_containing_it():
+    # two separate trees: a seed in the smaller one returns it, not the trunk
+    small = (np.array([20.0, 15.0, 50.0]), np.array([50.0, 15.0, 50.0]), 2.0)
+    v = _volume(segments=[TRUNK, small], source="two trees")
+    seed = _zyx_to_lps(np.array([35.0, 15.0, 50.0]))
+    r = vesselmodel.extract_vessels_auto(v, seeds_lps_mm=[seed])
+    assert r.model.source == "seeds"
+    d, _ = cKDTree(_zyx_to_lps(_axes([small]))).query(r.vessels.tree.points_lps_mm)
+    assert d.max() < 2.0
+    auto = vesselmodel.extract_vessels_auto(v)
+    d, _ = cKDTree(_zyx_to_lps(_axes([TRUNK]))).query(auto.vessels.tree.points_lps_mm)
+    assert np.median(d) < 1.0
+
+
+def test_seed_outside_a_lumen_is_refused(ct):
+    with pytest.raises(InputError, match="not inside a bright lumen"):
+        vesselmodel.extract_vessels_auto(ct, seeds_lps_mm=[_zyx_to_lps(np.array([30.0, 10.0, 10.0]))])
+    with pytest.raises(InputError, match="outside"):
+        vesselmodel.extract_vessels_auto(ct, seeds_lps_mm=[[500.0, 0.0, 0.0]])
+
+
+# --------------------------------------------------------------------------------------
+# wrong volumes: a named reason, exit 2, nothing written
+# --------------------------------------------------------------------------------------
+def _wrong_volumes():
+    good = _volume(seed=3)
+    rng = np.random.default_rng(7)
+    noise = io.Volume(rng.normal(100.0, 30.0, SHAPE).astype(np.float32), (SP,) * 3, (0, 0, 0), np.eye(3),
+                      source="pure noise")
+    return {
+        "ct_without_contrast": (_volume(lumen=45.0, bone=1100.0, source="CT without contrast"),
+                                "no contrast|bone, not contrast|no vessels"),
+        "mr_without_vessels": (_volume(segments=[], tissue=250.0, air=20.0, noise=30.0, source="MR without vessels"),
+                               "no vessels found"),
+        "pure_noise": (noise, "no vessels found|implausible"),
+        "only_bone": (_volume(segments=[], bone=1100.0, source="bone only"), "bone, not contrast|no vessels found"),
+        "spacing_x10": (io.Volume(good.array_zyx, (10 * SP,) * 3, (0, 0, 0), np.eye(3), source="spacing x10"),
+                        "no vessels found|implausible|spacing"),
+        "spacing_x0.1": (io.Volume(good.array_zyx, (0.1 * SP,) * 3, (0, 0, 0), np.eye(3), source="spacing x0.1"),
+                         "spacing"),
+    }
+
+
+WRONG = _wrong_volumes()
+
+
+@pytest.mark.parametrize("name", sorted(WRONG))
+def test_wrong_volume_is_refused_with_a_reason(name):
+    vol, reason = WRONG[name]
+    with pytest.raises((SegmentationError, InputError), match=reason) as e:
+        vesselmodel.extract_vessels_auto(vol)
+    assert vol.source in str(e.value) and "\n" not in str(e.value)
+
+
+@pytest.mark.parametrize("name", ["ct_without_contrast", "spacing_x10"])
+def test_cli_refuses_wrong_volume_and_writes_nothing(name, tmp_path, capsys):
+    vol, reason = WRONG[name]
+    f = io.write_volume(vol, tmp_path / "v.nii.gz")
+    out = tmp_path / "out"
+    rc = cli.main(["vessels", "--cta", str(f), "--out", str(out)])
+    err = capsys.readouterr().err
+    assert rc == 2 and err.count("\n") == 1 and err.startswith("guidewire3d: error: ")
+    assert not out.exists() and not list(tmp_path.glob(".out*"))
+
+
+def test_implausible_tree_is_named():
+    """A sponge (soft tissue taken for lumen) fails the plausibility check, which says why."""
+    from guidewire3d.vesseltree import VesselTree
+
+    v = _volume()
+    # a tree of 2000 short branches in a mask filling half the body
+    n = 2000
+    pts = np.column_stack([np.arange(2 * n) * 0.3 % 50, np.zeros(2 * n), np.zeros(2 * n)])
+    par = np.r_[-1, np.arange(2 * n - 1)]
+    par[2::2] = 0  # every second point hangs off the root: 2000 branches of 0.3 mm
+    tree = VesselTree(pts, np.full(2 * n, 0.8), par)
+    mask = np.zeros(SHAPE, bool)
+    mask[:, :60, :] = True
+    pl = vesselmodel.check_plausibility(v, mask, tree)
+    assert not pl.ok
+    text = "; ".join(pl.problems)
+    assert "2000 branches" in text and "% of the body" in text and "x the field of view" in text
+
+
+# --------------------------------------------------------------------------------------
+# the command
+# --------------------------------------------------------------------------------------
+def test_vessels_command_writes_the_planning_folder(ct, tmp_path):
+    from guidewire3d import export
+
+    f = io.write_volume(ct, tmp_path / "ct.nrrd")
+    out = tmp_path / "plan"
+    rc = cli.main(["vessels", "--cta", str(f), "--out", str(out)])
+    assert rc == 0
+    assert sorted(p.name for p in out.iterdir()) == ["centerline.vtp", "vessels.json", "vessels.stl", "vessels.vtp"]
+    rec = json.loads((out / "vessels.json").read_text())
+    assert abs(rec["intensity_model"]["lumen"] - 380.0) < 40.0 and rec["intensity_model"]["units"] == "HU"
+    assert rec["plausibility"]["ok"] and rec["tree"]["n_branches"] == len(rec["branches"]) >= 3
+    lengths = sum(b["length_mm"] for b in rec["branches"])
+    assert lengths == pytest.approx(rec["tree"]["total_length_mm"], rel=0.01)
+    assert rec["tree"]["radius_mm"]["max"] == pytest.approx(TRUNK[2], abs=1.0)
+    cl = export.read_polydata(out / "centerline.vtp")
+    assert cl.GetNumberOfPoints() >= rec["tree"]["n_points"]
+
+
+def test_vessels_help_and_seed_option():
+    out = subprocess.run([sys.executable, "-m", "guidewire3d.cli", "vessels", "--help"], capture_output=True,
+                         text=True, check=True).stdout
+    assert "--seed-lps" in out and "vessels.json" in out
