@@ -618,14 +618,7 @@ def run(volume, roadmaps, frames, *, roadmap_frame=None, seeds_lps_mm=None, meth
     tree = vessels.tree
 
     t0 = time.perf_counter()
-    ks, imgs, cls = [], [], []
-    for road in roadmaps:
-        k = pipeline.choose_roadmap_frame(road, roadmap_frame)
-        img = np.asarray(road.frames[k])
-        r_px = float(tree.radius_mm.max()) / road.carm.pixel_at_iso_mm * 1.5
-        ks.append(k)
-        imgs.append(img)
-        cls.append(image2d.roadmap_centerline(img, max_radius_px=r_px))
+    ks, imgs, cls = zip(*(pipeline.roadmap_centerline_of(road, tree, roadmap_frame) for road in roadmaps))
     timing["roadmap_2d"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()

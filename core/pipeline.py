@@ -197,11 +197,7 @@ def run(volume: io.Volume, roadmap: io.XARun, frames: io.XARun, *, roadmap_frame
     tree = vessels.tree
 
     t0 = time.perf_counter()
-    k = choose_roadmap_frame(roadmap, roadmap_frame)
-    road_img = np.asarray(roadmap.frames[k])
-    # the widest CTA vessel, in roadmap pixels at the isocentre, bounds the 2D vesselness scales
-    max_radius_px = float(tree.radius_mm.max()) / roadmap.carm.pixel_at_iso_mm * 1.5
-    cl2d = image2d.roadmap_centerline(road_img, max_radius_px=max_radius_px)
+    k, road_img, cl2d = roadmap_centerline_of(roadmap, tree, roadmap_frame)
     timing["roadmap_2d"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
@@ -243,6 +239,15 @@ def run(volume: io.Volume, roadmap: io.XARun, frames: io.XARun, *, roadmap_frame
     return PipelineResult(volume, vessels, road_img, k, cl2d, roadmap.carm, frames.carm, reg,
                           live[frame_ids], wires2d, wires3d, timing, frame_seconds, frame_ids,
                           frame_results=frame_results)
+
+
+def roadmap_centerline_of(roadmap: io.XARun, tree, roadmap_frame=None):
+    """``(k, image, Centerline2D)``: the roadmap frame used (:func:`choose_roadmap_frame`) and its 2D
+    centerline, its vesselness scales bounded by the widest CTA vessel in roadmap pixels."""
+    k = choose_roadmap_frame(roadmap, roadmap_frame)
+    image = np.asarray(roadmap.frames[k])
+    max_radius_px = float(tree.radius_mm.max()) / roadmap.carm.pixel_at_iso_mm * 1.5
+    return k, image, image2d.roadmap_centerline(image, max_radius_px=max_radius_px)
 
 
 def geometry_overrides(args) -> dict:

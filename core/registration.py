@@ -1302,7 +1302,7 @@ def _jackknife_pose_std_mm(prob: _Problem, pose: Pose, q: np.ndarray, radius_px,
     (narrow stage, at most ``JACKKNIFE_ITERATIONS`` iterations). The jackknife covariance of the
     K poses, ``(K - 1) / K sum (theta_k - mean)(theta_k - mean)^T``, captures what the Gauss-Newton
     covariance cannot: errors that are correlated along a vessel (a segment off as a whole, a wrong
-    branch matched). NaN when a tile would leave fewer than 10 points.
+    branch matched). NaN with fewer than 10 points per tile, or fewer than 3 tiles refined.
     """
     k = JACKKNIFE_TILES
     if len(q) < 10 * k:
