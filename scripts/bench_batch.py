@@ -17,25 +17,12 @@ from __future__ import annotations
 
 import argparse
 import os
-import platform
 import shutil
 import statistics
-import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
-
-
-def _cpu() -> str:
-    try:
-        out = subprocess.run(["lscpu"], capture_output=True, text=True, check=True).stdout
-        for line in out.splitlines():
-            if line.startswith("Model name"):
-                return line.split(":", 1)[1].strip()
-    except (OSError, subprocess.CalledProcessError):
-        pass
-    return platform.processor() or "unknown"
 
 
 def _load() -> str:
@@ -54,12 +41,12 @@ def main(argv=None) -> int:
     if not 1 <= args.studies <= 64 or not 1 <= args.frames <= 50 or min(args.workers) < 1 or args.repeats < 1:
         ap.error("expected 1..64 studies, 1..50 frames, workers >= 1, repeats >= 1")
 
-    from guidewire3d import batch
+    from guidewire3d import batch, bench
     from guidewire3d.phantom import PhantomOptions, simulate, write_case
 
     root = Path(args.keep) if args.keep else Path(tempfile.mkdtemp(prefix="bench_batch-"))
     root.mkdir(parents=True, exist_ok=True)
-    print(f"CPU: {_cpu()}, {os.cpu_count()} logical CPUs; load average at start {_load()}", flush=True)
+    print(f"machine: {bench.machine_line()}; load average at start {_load()}", flush=True)
     t0 = time.perf_counter()
     specs = []
     for i in range(args.studies):

