@@ -23,7 +23,6 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-
 from guidewire3d.errors import GeometryError
 
 __all__ = ["Pose", "CArm", "hat", "so3_exp", "so3_log"]

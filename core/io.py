@@ -25,7 +25,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-
 from guidewire3d.errors import DicomError, GeometryError, InputError, OutputError
 from guidewire3d.geometry import CArm
 

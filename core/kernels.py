@@ -1,6 +1,6 @@
 """Compiled kernels of the live path (numba): the loops that numpy cannot vectorise.
 
-The per-frame engine (:class:`guidewire3d.live.Session`) spends its time in a few loops over small
+The per-frame engine (:class:`guidewire3d.live.session.Session`) spends its time in a few loops over small
 arrays: the Viterbi recursion of the 3D reconstruction (one step per anchor of the 2D wire) and the
 bilinear sampling of profiles across the 2D wire (sub-pixel centring, end caps, the presence test).
 Each kernel here computes what the numpy / SciPy code it replaces computes, in the same order of

@@ -1,4 +1,4 @@
-"""The 3D vessel centerline graph shared by every stage (``guidewire3d.vessels3d.VesselTree``).
+"""The 3D vessel centerline graph shared by every stage (``guidewire3d.cta.vessels3d.VesselTree``).
 
 A ``VesselTree`` is a rooted tree over centerline points: ``parent[i]`` is the index of the
 point one step closer to the root (``-1`` for the root). Branches (runs between the root,
@@ -11,9 +11,8 @@ from functools import cached_property
 
 import numpy as np
 import scipy.sparse as sp
-from scipy.sparse.csgraph import dijkstra
-
 from guidewire3d.errors import InputError
+from scipy.sparse.csgraph import dijkstra
 
 __all__ = ["Branch", "VesselTree"]
 

@@ -41,8 +41,9 @@ def main(argv=None) -> int:
     if not 1 <= args.studies <= 64 or not 1 <= args.frames <= 50 or min(args.workers) < 1 or args.repeats < 1:
         ap.error("expected 1..64 studies, 1..50 frames, workers >= 1, repeats >= 1")
 
-    from guidewire3d import batch, bench
-    from guidewire3d.phantom import PhantomOptions, simulate, write_case
+    from guidewire3d.app import batch
+    from guidewire3d.app import bench
+    from guidewire3d.phantom.simulator import PhantomOptions, simulate, write_case
 
     root = Path(args.keep) if args.keep else Path(tempfile.mkdtemp(prefix="bench_batch-"))
     root.mkdir(parents=True, exist_ok=True)

@@ -38,9 +38,12 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_registration import SUCCESS_MM, _render_roadmap  # noqa: E402
 
-from guidewire3d import biplane, image2d, live, metrics  # noqa: E402
-from guidewire3d import registration as reg  # noqa: E402
-from guidewire3d.phantom import PhantomOptions, simulate  # noqa: E402
+from guidewire3d import metrics
+from guidewire3d.app import biplane
+from guidewire3d.xray import image2d
+from guidewire3d.live import session as live
+from guidewire3d.registration import solve as reg
+from guidewire3d.phantom.simulator import PhantomOptions, simulate  # noqa: E402
 
 
 def _centerline(img, tree, carm):
@@ -51,7 +54,7 @@ def _centerline(img, tree, carm):
 def _tree_of(case, use_cta: bool):
     if not use_cta:
         return case.tree
-    from guidewire3d import vessels3d
+    from guidewire3d.cta import vessels3d
 
     return vessels3d.extract_vessels(case.volume).tree
 
@@ -62,7 +65,7 @@ _SEGMENTERS = {}
 def _segmenters(method: str):
     """Three segmenters (monoplane, biplane plane A, plane B), made once."""
     if method not in _SEGMENTERS:
-        from guidewire3d.segmentation import GuidewireSegmenter
+        from guidewire3d.xray.segmentation import GuidewireSegmenter
 
         _SEGMENTERS[method] = tuple(GuidewireSegmenter(method=method) for _ in range(3))
     return _SEGMENTERS[method]

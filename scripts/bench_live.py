@@ -98,8 +98,15 @@ def main() -> int:
     if not 0 <= args.background_load <= 64:
         ap.error("--background-load: expected 0..64 processes")
 
-    from guidewire3d import bench, export, image2d, live, metrics, phantom, registration, vessels3d
-    from guidewire3d.segmentation import GuidewireSegmenter, guidewire_mask
+    from guidewire3d import metrics
+    from guidewire3d.app import bench
+    from guidewire3d.app import export
+    from guidewire3d.xray import image2d
+    from guidewire3d.live import session as live
+    from guidewire3d.phantom import simulator as phantom
+    from guidewire3d.registration import solve as registration
+    from guidewire3d.cta import vessels3d
+    from guidewire3d.xray.segmentation import GuidewireSegmenter, guidewire_mask
 
     case = phantom.simulate(phantom.PhantomOptions(seed=args.seed, n_frames=args.frames))
     t0 = time.perf_counter()
@@ -191,9 +198,9 @@ def _igtl_run(out_dir, frames, *, fps: float, seconds: float, reconnect_s: float
 
     import pyigtl
 
-    from guidewire3d import stream
+    from guidewire3d.app import stream
 
-    cmd = [sys.executable, "-m", "guidewire3d.cli", "live", "--from", str(out_dir), "--port", "0",
+    cmd = [sys.executable, "-m", "guidewire3d.app.cli", "live", "--from", str(out_dir), "--port", "0",
            "--duration", str(seconds + 120)]
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
     lines: list[str] = []
@@ -294,7 +301,8 @@ def _igtl_transport_only(out_dir, frames, *, fps: float, seconds: float) -> dict
 
     import pyigtl
 
-    from guidewire3d import live, stream
+    from guidewire3d.live import session as live
+    from guidewire3d.app import stream
 
     st = stream.setup_from_outdir(out_dir)
     session = live.Session(st.tree, st.frames_carm, st.pose, registration_covariance=st.covariance)
@@ -334,7 +342,10 @@ def bench_igtl(args) -> int:
     import tempfile
     from pathlib import Path
 
-    from guidewire3d import bench, io, phantom, pipeline
+    from guidewire3d import io
+    from guidewire3d.app import bench
+    from guidewire3d.phantom import simulator as phantom
+    from guidewire3d.app import pipeline
 
     tmp = Path(tempfile.mkdtemp(prefix="bench-live-igtl-"))
     case = phantom.simulate(phantom.PhantomOptions(seed=args.seed, n_frames=args.frames))

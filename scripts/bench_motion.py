@@ -1,4 +1,4 @@
-"""Motion: per-frame pose tracking (``guidewire3d.motion``) on simulated breathing and on real data.
+"""Motion: per-frame pose tracking (``guidewire3d.motion.tracking``) on simulated breathing and on real data.
 
 Two tables:
 
@@ -31,9 +31,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 
 def simulated(args) -> list[list[str]]:
-    from guidewire3d import live
+    from guidewire3d.live import session as live
     from guidewire3d.metrics import mtre_mm
-    from guidewire3d.phantom import PhantomOptions, simulate
+    from guidewire3d.phantom.simulator import PhantomOptions, simulate
 
     acc = {False: dict(err=[], tip=[], pose=[], ok=0, n=0, ms=[]), True: dict(err=[], tip=[], pose=[], ok=0, n=0, ms=[])}
     for k in range(args.cases):
@@ -67,7 +67,7 @@ def simulated(args) -> list[list[str]]:
 def real(args) -> list[list[str]] | None:
     from ambrosini_data import dataset1_root, load_dataset1
 
-    from guidewire3d import motion
+    from guidewire3d.motion import tracking as motion
     from guidewire3d.geometry import Pose
 
     if not (dataset1_root() / "dataset1_lps.npz").exists():
@@ -109,7 +109,7 @@ def main() -> int:
     ap.add_argument("--only", choices=("sim", "real"), default=None)
     args = ap.parse_args()
 
-    from guidewire3d import bench
+    from guidewire3d.app import bench
 
     print(f"machine: {bench.machine_line()}, load average {os.getloadavg()[0]:.1f}")
     if args.only != "sim":

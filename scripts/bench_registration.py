@@ -1,7 +1,7 @@
 """Benchmark of the 3D-2D registration (issue 6) on simulator cases x start perturbations.
 
-For every simulator case (``guidewire3d.phantom.simulate(PhantomOptions(seed=k), make_ct=False)``)
-the 2D roadmap centerline is taken from ``guidewire3d.image2d.roadmap_centerline`` (with the
+For every simulator case (``guidewire3d.phantom.simulator.simulate(PhantomOptions(seed=k), make_ct=False)``)
+the 2D roadmap centerline is taken from ``guidewire3d.xray.image2d.roadmap_centerline`` (with the
 pipeline's ``max_radius_px``, unless ``--no-max-radius``) when it can be
 imported (realistic: partial, with extraction errors), else from the projected true tree with
 0.5 px noise and random branch dropout; the script prints which. Starts are the true pose moved by
@@ -43,8 +43,8 @@ from pathlib import Path
 
 import numpy as np
 
-from guidewire3d import registration as reg
-from guidewire3d.bench import package_source_digest
+from guidewire3d.registration import solve as reg
+from guidewire3d.app.bench import package_source_digest
 from guidewire3d.geometry import Pose
 from guidewire3d.metrics import mtre_mm, resample_polyline
 
@@ -86,10 +86,10 @@ def _truth_centerline(tree, carm, pose, rng, *, noise_px=0.5, dropout=0.3, path_
 
 
 def load_cases(n, seed0, cache: Path | None, log, *, max_radius=True):
-    from guidewire3d.phantom import PhantomOptions, simulate
+    from guidewire3d.phantom.simulator import PhantomOptions, simulate
 
     try:
-        from guidewire3d.image2d import roadmap_centerline
+        from guidewire3d.xray.image2d import roadmap_centerline
         source = "image2d.roadmap_centerline(roadmap)"
     except Exception as e:  # pragma: no cover - depends on the other stage
         roadmap_centerline = None
@@ -173,7 +173,9 @@ def run(cases, modes, levels, n_pert, rng, log, epnp=True):
 
 def load_e2e_cases(n, seed0, cache: Path | None, log):
     """The pipeline's own registration inputs for the ``guidewire3d bench`` cases (cached)."""
-    from guidewire3d import image2d, pipeline, vessels3d
+    from guidewire3d.xray import image2d
+    from guidewire3d.app import pipeline
+    from guidewire3d.cta import vessels3d
 
     cases = []
     tag = package_source_digest()
@@ -182,7 +184,7 @@ def load_e2e_cases(n, seed0, cache: Path | None, log):
         if f is not None and f.exists():
             cases.append(pickle.loads(f.read_bytes()))
             continue
-        from guidewire3d.bench import case_options, simulated_case_from_dicom
+        from guidewire3d.app.bench import case_options, simulated_case_from_dicom
 
         case, truth, vol, road, _live = simulated_case_from_dicom(case_options(seed - 100, first_seed=100))
         tree = vessels3d.extract_vessels(vol).tree
@@ -251,15 +253,16 @@ def _inputs_digest() -> str:
     import guidewire3d
 
     h = hashlib.sha1()
-    for f in sorted(Path(guidewire3d.__file__).resolve().parent.glob("*.py")):
-        if f.name != "registration.py":
-            h.update(f.name.encode() + f.read_bytes())
+    package = Path(guidewire3d.__file__).resolve().parent
+    for f in sorted(package.rglob("*.py")):
+        if f.relative_to(package).parts[0] != "registration":
+            h.update(str(f.relative_to(package)).encode() + f.read_bytes())
     return h.hexdigest()[:10]
 
 
 def _render_roadmap(carm, pose, chains, rng):
     """A subtracted DSA roadmap of the given lumen chains, exposed as the simulator does."""
-    from guidewire3d import phantom
+    from guidewire3d.phantom import simulator as phantom
 
     L = phantom.render_tube_line_integral(carm, pose, chains, supersample=2)
     n0 = 300.0 * (carm.pixel_mm / 0.2) ** 2
@@ -285,8 +288,9 @@ def load_verdict_cases(seeds, cache: Path | None, log):
     seen from the case's second C-arm view (other angles, SID, SOD). Distractors (bone, blobs) in
     the CT of odd seeds. No DICOM round trip (the e2e mode has one).
     """
-    from guidewire3d import image2d, vessels3d
-    from guidewire3d.phantom import PhantomOptions, simulate
+    from guidewire3d.xray import image2d
+    from guidewire3d.cta import vessels3d
+    from guidewire3d.phantom.simulator import PhantomOptions, simulate
 
     tag = _inputs_digest()
     out, stale = [], []
@@ -457,7 +461,7 @@ def main(argv=None):
         name, value = kv.split("=", 1)
         mod = reg
         if name.startswith("image2d."):
-            from guidewire3d import image2d as mod
+            from guidewire3d.xray import image2d as mod
 
             name = name[len("image2d."):]
         if not hasattr(mod, name):

@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from guidewire3d.bench import package_source_digest
+from guidewire3d.app.bench import package_source_digest
 
 ROOT = Path(__file__).resolve().parents[1]
 DOSES = (0.5, 1.0, 2.0)
@@ -51,8 +51,8 @@ def load_cases(n_seeds, n_frames, cache_dir):
     """The held-out cases: frames, truth masks and projections, and the wire's radius in px at the
     isocentre from its diameter and the C-arm tags (what a user knows: the wire's size and the DICOM
     geometry). Cached per seed in ``cache_dir``, keyed on the package's source."""
-    from guidewire3d.phantom import PhantomOptions, simulate
-    from guidewire3d.wiremask import projected_wire_radius_px
+    from guidewire3d.phantom.simulator import PhantomOptions, simulate
+    from guidewire3d.xray.wiremask import projected_wire_radius_px
 
     cases = []
     tag = package_source_digest()
@@ -80,7 +80,7 @@ def load_cases(n_seeds, n_frames, cache_dir):
 
 def wire_errors(mask, frame, uv_true, vis, ow=None):
     """(success, centerline mean distance px, tip error px or nan) of ordered_wire on a mask."""
-    from guidewire3d.image2d import ordered_wire
+    from guidewire3d.xray.image2d import ordered_wire
     from guidewire3d.metrics import mean_closest_distance, resample_polyline
 
     if ow is None:
@@ -101,9 +101,9 @@ def timed(fn, *a, **k):
 
 
 def run_methods(cases, backend, threads, *, quality=True):
-    from guidewire3d.image2d import ordered_wire
+    from guidewire3d.xray.image2d import ordered_wire
     from guidewire3d.metrics import dice, precision_recall
-    from guidewire3d.segmentation import GuidewireSegmenter, unet_probability
+    from guidewire3d.xray.segmentation import GuidewireSegmenter, unet_probability
 
     unet_probability(cases[0]["frames"][0], backend=backend, num_threads=threads)  # warm up / export
     rows = []

@@ -1,18 +1,18 @@
-"""Benchmarks of the classical 2D image analysis (guidewire3d.image2d).
+"""Benchmarks of the classical 2D image analysis (guidewire3d.xray.image2d).
 
 Three measurements, each a function other benches can import:
 
-- :func:`real_vessel_dice`: vessel Dice of :func:`guidewire3d.image2d.vessel_mask` on the real
+- :func:`real_vessel_dice`: vessel Dice of :func:`guidewire3d.xray.image2d.vessel_mask` on the real
   non-subtracted coronary angiograms of ``/work/shared/data/coronary-angiograms`` (``N.png`` with
   manual masks ``N_gt.png``), no per-image tuning, for the classical and the learned method side by
   side. The learned model was TRAINED on these 40 images, so its column is a training-set score;
   the honest estimate for unseen images is the k-fold cross-validated Dice recorded in the weights'
   metadata by ``scripts/train_vessels2d.py`` (printed below the table).
 - :func:`simulated_roadmap_dice`: vessel Dice of both methods on simulated subtracted roadmaps
-  (``guidewire3d.phantom.simulate(...).roadmap`` vs ``vessel_mask_2d``), with and without the
+  (``guidewire3d.phantom.simulator.simulate(...).roadmap`` vs ``vessel_mask_2d``), with and without the
   CTA-derived ``max_radius_px`` the pipeline passes; the basis of ``VesselMethod.AUTO``.
-- :func:`simulated_wire_accuracy`: :func:`guidewire3d.image2d.ordered_wire` on simulated live frames
-  (``guidewire3d.phantom.simulate``) from a given mask source (the TRUE wire mask by default, or any
+- :func:`simulated_wire_accuracy`: :func:`guidewire3d.xray.image2d.ordered_wire` on simulated live frames
+  (``guidewire3d.phantom.simulator.simulate``) from a given mask source (the TRUE wire mask by default, or any
   callable ``(frame, case, t) -> mask``): mean symmetric centerline distance to the true projected
   wire, tip error, failures and time.
 
@@ -31,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-from guidewire3d.image2d import ordered_wire, vessel_mask
+from guidewire3d.xray.image2d import ordered_wire, vessel_mask
 from guidewire3d.metrics import dice, precision_recall, symmetric_polyline_distance
 
 REAL_DIR = Path("/work/shared/data/coronary-angiograms")
@@ -67,7 +67,7 @@ def simulated_roadmap_dice(*, n_cases: int = 10, seed0: int = 0) -> list[dict]:
         One row per case: ``case``, and ``dice_<method>`` / ``s_<method>`` for ``classical``,
         ``learned``, ``auto``, plus ``dice_classical_r`` / ``dice_auto_r`` (with ``max_radius_px``).
     """
-    from guidewire3d.phantom import PhantomOptions, simulate
+    from guidewire3d.phantom.simulator import PhantomOptions, simulate
 
     rows = []
     for c in range(n_cases):
@@ -104,7 +104,7 @@ def simulated_wire_accuracy(*, n_cases: int = 10, n_frames: int = 20, seed0: int
         extracted distal end and the true tip; NaN if the true tip is outside the image),
         ``reversed`` (ordering wrong), ``ms``.
     """
-    from guidewire3d.phantom import PhantomOptions, simulate
+    from guidewire3d.phantom.simulator import PhantomOptions, simulate
 
     rows = []
     for c in range(n_cases):
@@ -160,7 +160,7 @@ def _print_cv():
     """The learned model's cross-validated Dice, from its weights' metadata."""
     import json
 
-    from guidewire3d.vessels2d_learned import DEFAULT_WEIGHTS_PATH, load_vessel_unet
+    from guidewire3d.xray.vessels2d_learned import DEFAULT_WEIGHTS_PATH, load_vessel_unet
 
     if not DEFAULT_WEIGHTS_PATH.is_file():
         return
@@ -218,7 +218,7 @@ def main(argv=None):
     ap.add_argument("--frames", type=int, default=20)
     args = ap.parse_args(argv)
     if args.only in (None, "real"):
-        from guidewire3d.vessels2d_learned import DEFAULT_WEIGHTS_PATH
+        from guidewire3d.xray.vessels2d_learned import DEFAULT_WEIGHTS_PATH
 
         learned = real_vessel_dice(args.data, method="learned") if DEFAULT_WEIGHTS_PATH.is_file() else None
         _print_real(real_vessel_dice(args.data, method="classical"), learned)

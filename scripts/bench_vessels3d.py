@@ -128,9 +128,9 @@ def main(argv=None):
     ap.add_argument("--first-seed", type=int, default=0)
     ap.add_argument("--volume", default="small", choices=["small", "large"])
     a = ap.parse_args(argv)
-    from guidewire3d import bench
-    from guidewire3d.phantom import PhantomOptions, simulate
-    from guidewire3d.vessels3d import extract_vessels
+    from guidewire3d.app import bench
+    from guidewire3d.phantom.simulator import PhantomOptions, simulate
+    from guidewire3d.cta.vessels3d import extract_vessels
 
     print(f"machine: {bench.machine_line()}, volume={a.volume}")
     cols = ["seed", "distr", "shape", "mean_mm", "p95_mm", "cover_mm", "recall", "n_true", "stubs", "false", "r_err_mm",

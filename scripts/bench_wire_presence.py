@@ -4,7 +4,7 @@ Prints one table: on frames WITHOUT a wire (the 40 shared real coronary angiogra
 times ``guidewire3d segment`` would still report a wire (a false wire), before the test
 (``ordered_wire(..., check_presence=False)``) and with it; on simulated frames WITH a wire, how
 many traced wires the test keeps (and that their points are unchanged); and what the test costs
-per frame (median ms of :func:`guidewire3d.wirepresence.presence_of_curve` inside
+per frame (median ms of :func:`guidewire3d.xray.wirepresence.presence_of_curve` inside
 ``ordered_wire``, 512x512 frames, next to ``ordered_wire`` itself).
 
 Simulated frames: training-range seeds 1300.. (``--train-seeds``, where the thresholds were
@@ -29,7 +29,7 @@ TRAIN_SEED0 = 1300
 
 
 def _segment(frame, method):
-    from guidewire3d.segmentation import guidewire_mask
+    from guidewire3d.xray.segmentation import guidewire_mask
 
     return guidewire_mask(frame, method=method)
 
@@ -38,7 +38,7 @@ def real_negatives(method):
     """(n images, false wires before, false wires after, reasons) on the real angiograms."""
     from skimage.io import imread
 
-    from guidewire3d.image2d import ordered_wire
+    from guidewire3d.xray.image2d import ordered_wire
 
     files = sorted(REAL_DIR.glob("*.png"), key=lambda p: p.stem)
     files = [f for f in files if not f.stem.endswith("_gt")]
@@ -59,8 +59,8 @@ def real_negatives(method):
 
 def simulated_positives(cases, method):
     """(frames, traced without the test, kept with it, kept with the same points, presence ms, ordered_wire ms)."""
-    from guidewire3d.image2d import ordered_wire
-    from guidewire3d.wirepresence import presence_of_curve
+    from guidewire3d.xray.image2d import ordered_wire
+    from guidewire3d.xray.wirepresence import presence_of_curve
 
     n = traced = kept = same = 0
     t_presence, t_ow = [], []
@@ -91,7 +91,7 @@ def simulated_positives(cases, method):
 
 
 def train_cases(n_seeds, n_frames):
-    from guidewire3d.phantom import PhantomOptions, simulate
+    from guidewire3d.phantom.simulator import PhantomOptions, simulate
 
     sys.path.insert(0, str(ROOT / "scripts"))
     from bench_segmentation import case_options

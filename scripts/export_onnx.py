@@ -4,13 +4,13 @@
 
 Without ``--out`` the file goes to the run-time cache (``$GUIDEWIRE3D_CACHE`` or
 ``~/.cache/guidewire3d``), keyed by the weights' SHA-256, which is where
-``guidewire3d.segmentation`` looks for it; inference exports it there on first use anyway.
+``guidewire3d.xray.segmentation`` looks for it; inference exports it there on first use anyway.
 """
 from __future__ import annotations
 
 import argparse
 
-from guidewire3d.segmentation import DEFAULT_WEIGHTS_PATH, export_onnx
+from guidewire3d.xray.segmentation import DEFAULT_WEIGHTS_PATH, export_onnx
 
 
 def main(argv=None):

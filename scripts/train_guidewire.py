@@ -166,14 +166,14 @@ def phantom_options(seed, index):
 
 def phantom_frames(seed, n_frames, options):
     """Simulator live frames and truth masks for one seed (imported lazily)."""
-    from guidewire3d.phantom import PhantomOptions, simulate
+    from guidewire3d.phantom.simulator import PhantomOptions, simulate
 
     sim = simulate(PhantomOptions(seed=int(seed), n_frames=int(n_frames), **options), make_ct=False)
     return np.asarray(sim.frames, np.float32), np.asarray(sim.wire_mask, bool)
 
 
 def build_dataset(args, seeds, log):
-    from guidewire3d.segmentation import _frame_stats, normalize_frame
+    from guidewire3d.xray.segmentation import _frame_stats, normalize_frame
 
     zs, ms = [], []
     t0 = time.time()
@@ -310,7 +310,7 @@ def main(argv=None):
 
     import torch
 
-    from guidewire3d.segmentation import UNetConfig, build_unet, load_unet, save_unet
+    from guidewire3d.xray.segmentation import UNetConfig, build_unet, load_unet, save_unet
 
     torch.manual_seed(args.seed)
     torch.set_num_threads(args.threads)

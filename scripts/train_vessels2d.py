@@ -1,4 +1,4 @@
-"""Train the vessel UNet (guidewire3d.vessels2d_learned) on the 40 real coronary angiograms.
+"""Train the vessel UNet (guidewire3d.xray.vessels2d_learned) on the 40 real coronary angiograms.
 
 Honest evaluation first: k-fold cross-validation (default 5 folds of 8 held-out images, folds
 drawn by a seeded permutation), each fold trained from scratch on the other images and scored
@@ -77,7 +77,7 @@ def _task(args):
     import torch
 
     torch.set_num_threads(1)
-    from guidewire3d.vessels2d_learned import TrainOptions, VesselUNetConfig, save_vessel_unet, train_vessel_unet
+    from guidewire3d.xray.vessels2d_learned import TrainOptions, VesselUNetConfig, save_vessel_unet, train_vessel_unet
 
     name, train_idx, test_idx, data_dir, seed, recipe, save_dir = args
     ids, images, masks = load_real(data_dir)
@@ -100,7 +100,7 @@ def _task(args):
 
 def _load_results(folder: Path) -> list[dict]:
     """Task results from the models a previous run wrote with ``--save-dir``."""
-    from guidewire3d.vessels2d_learned import load_vessel_unet
+    from guidewire3d.xray.vessels2d_learned import load_vessel_unet
 
     out = []
     for f in sorted(folder.glob("vessel_unet_*.safetensors")):
@@ -118,7 +118,7 @@ def _load_results(folder: Path) -> list[dict]:
 
 def _model(state, channels):
     """The network of a task result; a list of states is an ensemble of them."""
-    from guidewire3d.vessels2d_learned import VesselUNetConfig, build_vessel_ensemble, build_vessel_unet
+    from guidewire3d.xray.vessels2d_learned import VesselUNetConfig, build_vessel_ensemble, build_vessel_unet
 
     if isinstance(state, list):
         return build_vessel_ensemble([_model(s, channels) for s in state])
@@ -149,7 +149,7 @@ THRESHOLD_GRID = np.round(np.arange(0.30, 0.701, 0.05), 2)   # candidate probabi
 
 def _probabilities(model, ids, images, which, tta) -> dict[int, np.ndarray]:
     """``vessel_probability`` (automatic polarity, as ``vessel_mask`` runs it) per image id."""
-    from guidewire3d.vessels2d_learned import vessel_probability
+    from guidewire3d.xray.vessels2d_learned import vessel_probability
 
     pos = {i: k for k, i in enumerate(ids)}
     return {i: vessel_probability(images[pos[i]], model=model, tta=tta) for i in which}
@@ -158,7 +158,7 @@ def _probabilities(model, ids, images, which, tta) -> dict[int, np.ndarray]:
 def _dice_at(probs, ids, masks, threshold) -> dict[int, float]:
     """Dice of the ``learned_vessel_mask`` post-processing at ``threshold`` per image id."""
     from guidewire3d.metrics import dice
-    from guidewire3d.vessels2d_learned import mask_from_probability
+    from guidewire3d.xray.vessels2d_learned import mask_from_probability
 
     pos = {i: k for k, i in enumerate(ids)}
     return {i: float(dice(mask_from_probability(p, threshold=threshold), masks[pos[i]])) for i, p in probs.items()}
@@ -196,7 +196,7 @@ def main(argv=None):
     ap.add_argument("--out", default=None, help="weights path (default resources/vessel_unet.safetensors)")
     args = ap.parse_args(argv)
 
-    from guidewire3d.vessels2d_learned import DEFAULT_WEIGHTS_PATH, THRESHOLD, save_vessel_unet
+    from guidewire3d.xray.vessels2d_learned import DEFAULT_WEIGHTS_PATH, THRESHOLD, save_vessel_unet
 
     ids, images, masks = load_real(args.data)
     n = len(ids)

@@ -24,7 +24,7 @@ import pydicom
 import pytest
 
 from guidewire3d import io
-from guidewire3d.cli import main
+from guidewire3d.app.cli import main
 from guidewire3d.errors import OutputError
 
 ENHANCED_XA_STORAGE = "1.2.840.10008.5.1.4.1.1.12.1.1"
@@ -675,7 +675,7 @@ def _as_nobody(python, argv, cwd):
     import sysconfig
 
     code = (f"import site, sys; site.addsitedir({sysconfig.get_paths()['purelib']!r}); "
-            "from guidewire3d.cli import main; sys.exit(main(sys.argv[1:]))")
+            "from guidewire3d.app.cli import main; sys.exit(main(sys.argv[1:]))")
     env = dict(os.environ, HOME=str(cwd), XDG_CACHE_HOME=str(cwd / "cache"))
     return subprocess.run([python, "-c", code, *argv], user=NOBODY, group=NOBODY, extra_groups=[], cwd=cwd,
                           env=env, capture_output=True, text=True, timeout=120)
@@ -795,7 +795,7 @@ def test_enhanced_xa_with_geometry_in_functional_groups_reads(small_case_dir, ro
 def test_lzw_tiff_16_bit_reads(tmp_path):
     import cv2
 
-    from guidewire3d.batch2d import read_inputs
+    from guidewire3d.app.batch2d import read_inputs
 
     img = np.random.default_rng(3).integers(0, 65535, (40, 56), dtype=np.uint16)
     p = tmp_path / "frame.tif"
@@ -871,7 +871,8 @@ def test_output_filled_by_something_else_during_the_run_is_not_replaced(tmp_path
 def test_full_disk_while_writing_is_one_line_and_leaves_nothing(small_case_dir, tmp_path, monkeypatch, capsys):
     import errno
 
-    from guidewire3d import export, pipeline
+    from guidewire3d.app import export
+    from guidewire3d.app import pipeline
 
     class Result:  # what pipeline.run returns, as far as run_to_outdir looks
         roadmap_frame_index = 0
@@ -893,7 +894,7 @@ def test_full_disk_while_writing_is_one_line_and_leaves_nothing(small_case_dir, 
 def test_nearly_full_disk_is_refused_before_the_work(small_case_dir, tmp_path, monkeypatch, capsys):
     import shutil
 
-    from guidewire3d import pipeline
+    from guidewire3d.app import pipeline
 
     usage = shutil.disk_usage(tmp_path)
     monkeypatch.setattr(io.shutil, "disk_usage", lambda p: usage._replace(free=5 << 20))
@@ -908,7 +909,7 @@ def test_error_after_a_progress_bar_starts_on_its_own_line(small_case_dir, tmp_p
     """A late error (here: no vessels near the seed, found in the vessel stage) closes the bar first."""
     from tqdm import tqdm
 
-    from guidewire3d import pipeline
+    from guidewire3d.app import pipeline
     from guidewire3d.errors import SegmentationError
 
     def vessel_stage(*a, **k):

@@ -9,8 +9,8 @@ import time
 import numpy as np
 import pytest
 
-from guidewire3d import batch
-from guidewire3d.cli import main
+from guidewire3d.app import batch
+from guidewire3d.app.cli import main
 from guidewire3d.io import STAGING_OWNER
 
 KILL_WAIT_S = 240.0  # the killer gives up if no study started within this time (it asserts below)

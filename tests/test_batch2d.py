@@ -1,4 +1,4 @@
-"""Tests of ``guidewire3d segment`` (guidewire3d.batch2d): the simulator's XA DICOM frames against
+"""Tests of ``guidewire3d segment`` (guidewire3d.app.batch2d): the simulator's XA DICOM frames against
 their true wire, a real angiogram PNG against its manual mask, and bad inputs."""
 import json
 from pathlib import Path
@@ -6,11 +6,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from guidewire3d import cli
-from guidewire3d.image2d import ordered_wire, vessel_mask
+from guidewire3d.app import cli
+from guidewire3d.xray.image2d import ordered_wire, vessel_mask
 from guidewire3d.io import read_xa
 from guidewire3d.metrics import dice
-from guidewire3d.segmentation import guidewire_mask
+from guidewire3d.xray.segmentation import guidewire_mask
 
 REAL_DIR = Path("/work/shared/data/coronary-angiograms")
 WIRE_DICE_MIN = 0.8         # UNet wire mask vs the simulator's truth (per frame)
@@ -58,7 +58,7 @@ def test_segment_xa_frames_against_the_truth(small_case, small_case_dir, tmp_pat
 
 
 def test_segment_wire_model_uses_the_dicom_geometry(small_case, small_case_dir, tmp_path):
-    from guidewire3d.wiremask import projected_wire_radius_px
+    from guidewire3d.xray.wiremask import projected_wire_radius_px
 
     out = tmp_path / "seg"
     d_mm = small_case.wire_diameter_mm

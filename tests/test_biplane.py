@@ -4,11 +4,12 @@ import json
 import numpy as np
 import pytest
 
-from guidewire3d import biplane, metrics
-from guidewire3d import triangulation as tri
+from guidewire3d import metrics
+from guidewire3d.app import biplane
+from guidewire3d.reconstruction import triangulation as tri
 from guidewire3d.errors import InputError
 from guidewire3d.geometry import CArm, Pose
-from guidewire3d.phantom import PhantomOptions, simulate
+from guidewire3d.phantom.simulator import PhantomOptions, simulate
 
 POSE_TOL_MM = 0.5  # joint registration mTRE on exact (projected true) centerlines
 WIRE_MEAN_TOL_MM = 0.15  # two-view wire from the true 2D wires, mean distance to the true wire
@@ -166,7 +167,7 @@ def test_pairs_by_index_and_by_time():
 # ---------------------------------------------------------------------------------------------
 @pytest.fixture(scope="module")
 def bcase_dir(tmp_path_factory):
-    from guidewire3d.cli import main
+    from guidewire3d.app.cli import main
 
     out = tmp_path_factory.mktemp("biplane") / "case"
     assert main(["phantom", "--out", str(out), "--seed", "3", "--frames", "3", "--biplane"]) == 0
@@ -180,8 +181,8 @@ def _args(d, out, *, roadmap_b=None, frames_b=None):
 
 
 def test_cli_biplane_end_to_end(bcase_dir, tmp_path, capsys):
-    from guidewire3d.cli import main
-    from guidewire3d.phantom import load_truth
+    from guidewire3d.app.cli import main
+    from guidewire3d.phantom.simulator import load_truth
 
     out = tmp_path / "out"
     assert main(_args(bcase_dir, out)) == 0
@@ -223,7 +224,7 @@ def test_cli_biplane_end_to_end(bcase_dir, tmp_path, capsys):
 
 def test_cli_mismatched_frame_counts_exit_2(bcase_dir, tmp_path, capsys):
     from guidewire3d import io
-    from guidewire3d.cli import main
+    from guidewire3d.app.cli import main
 
     run = io.read_xa(bcase_dir / "frames_b.dcm")
     short = tmp_path / "frames_b_short.dcm"
@@ -238,7 +239,7 @@ def test_cli_mismatched_frame_counts_exit_2(bcase_dir, tmp_path, capsys):
 def test_cli_plane_without_positioner_tags_exit_2(bcase_dir, tmp_path, capsys):
     import pydicom
 
-    from guidewire3d.cli import main
+    from guidewire3d.app.cli import main
 
     ds = pydicom.dcmread(bcase_dir / "roadmap_b.dcm")
     del ds.PositionerPrimaryAngle
@@ -252,7 +253,7 @@ def test_cli_plane_without_positioner_tags_exit_2(bcase_dir, tmp_path, capsys):
 
 
 def test_cli_planes_swapped_between_roadmaps_and_frames_exit_2(bcase_dir, tmp_path, capsys):
-    from guidewire3d.cli import main
+    from guidewire3d.app.cli import main
 
     args = _args(bcase_dir, tmp_path / "out")
     i = args.index(str(bcase_dir / "frames.dcm"))
@@ -262,7 +263,7 @@ def test_cli_planes_swapped_between_roadmaps_and_frames_exit_2(bcase_dir, tmp_pa
 
 
 def test_cli_two_roadmaps_one_frames_exit_2(bcase_dir, tmp_path, capsys):
-    from guidewire3d.cli import main
+    from guidewire3d.app.cli import main
 
     args = _args(bcase_dir, tmp_path / "out")
     i = args.index(str(bcase_dir / "frames_b.dcm"))

@@ -3,9 +3,9 @@ import sys
 
 import pytest
 
-from guidewire3d import cli
-from guidewire3d.reconstruction import ReconMethod
-from guidewire3d.segmentation import SegMethod
+from guidewire3d.app import cli
+from guidewire3d.reconstruction.wire import ReconMethod
+from guidewire3d.xray.segmentation import SegMethod
 
 
 def test_cli_choices_match_the_enums():
@@ -14,7 +14,7 @@ def test_cli_choices_match_the_enums():
 
 
 def test_help_lists_every_subcommand():
-    out = subprocess.run([sys.executable, "-m", "guidewire3d.cli", "--help"], capture_output=True, text=True, check=True).stdout
+    out = subprocess.run([sys.executable, "-m", "guidewire3d.app.cli", "--help"], capture_output=True, text=True, check=True).stdout
     for sub in ("demo", "phantom", "reconstruct", "segment", "view", "bench", "batch", "listen"):
         assert sub in out
 

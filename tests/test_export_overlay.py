@@ -1,7 +1,7 @@
 """export.overlay_image: centerline pixels at the image border."""
 import numpy as np
 
-from guidewire3d.export import overlay_image
+from guidewire3d.app.export import overlay_image
 
 
 def test_centerline_points_rounding_onto_the_border_are_dropped():

@@ -1,4 +1,4 @@
-"""Tests of guidewire3d.image2d against synthetic curves with known centerlines, the simulator's
+"""Tests of guidewire3d.xray.image2d against synthetic curves with known centerlines, the simulator's
 ground truth and real angiograms with manual masks."""
 from pathlib import Path
 
@@ -7,7 +7,7 @@ import pytest
 from scipy.spatial import cKDTree
 
 from guidewire3d.errors import InputError, SegmentationError
-from guidewire3d.image2d import (
+from guidewire3d.xray.image2d import (
     discrete_curvature,
     ordered_wire,
     roadmap_centerline,

@@ -8,10 +8,11 @@ import numpy as np
 import pydicom
 import pytest
 
-from guidewire3d import batch, metrics
-from guidewire3d.dicomnet import StudyReceiver
+from guidewire3d import metrics
+from guidewire3d.app import batch
+from guidewire3d.app.dicomnet import StudyReceiver
 from guidewire3d.geometry import Pose
-from guidewire3d.phantom import load_truth
+from guidewire3d.phantom.simulator import load_truth
 
 QUIET_S = 1.0           # the receiver's quiet period in this test
 WAIT_S = 300.0          # bound on the wait for the reconstruction (a loaded 2-core host)
@@ -94,7 +95,7 @@ def test_bad_options_are_refused(tmp_path):
 def test_instance_without_valid_uids_is_refused(tmp_path, uids):
     from types import SimpleNamespace
 
-    from guidewire3d.dicomnet import STATUS_CANNOT_UNDERSTAND
+    from guidewire3d.app.dicomnet import STATUS_CANNOT_UNDERSTAND
 
     import warnings
 

@@ -1,4 +1,4 @@
-"""The per-frame engine (``guidewire3d.live``): one path for every front end, never silently wrong.
+"""The per-frame engine (``guidewire3d.live.session``): one path for every front end, never silently wrong.
 
 * the same frames through ``reconstruct`` (CLI), the viewer's *apply* and the Slicer logic give
   identical wires and uncertainties;
@@ -16,10 +16,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from guidewire3d import live, pipeline, reconstruction
+from guidewire3d.live import session as live
+from guidewire3d.app import pipeline
+from guidewire3d.reconstruction import wire as reconstruction
 from guidewire3d.geometry import Pose
-from guidewire3d.phantom import PhantomOptions, simulate
-from guidewire3d.registration import Verdict
+from guidewire3d.phantom.simulator import PhantomOptions, simulate
+from guidewire3d.registration.solve import Verdict
 
 SCRIPTS = Path(__file__).resolve().parents[1] / "scripts"
 ROUNDED_MM = 1e-4  # report.json rounds points and uncertainties to 4 decimals
@@ -42,7 +44,7 @@ def test_cli_viewer_and_plugin_give_identical_wires(cli_run, tmp_path):
     pytest.importorskip("pyvista")
     pytest.importorskip("slicer")
     from guidewire3d.viewer.controller import ViewerController
-    from guidewire3d.outdir import load_outdir
+    from guidewire3d.app.outdir import load_outdir
 
     result, out, report = cli_run
     cli_wires = result.wires3d

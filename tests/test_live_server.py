@@ -18,9 +18,12 @@ import time
 import numpy as np
 import pytest
 
-from guidewire3d import io, live, pipeline, stream
+from guidewire3d import io
+from guidewire3d.live import session as live
+from guidewire3d.app import pipeline
+from guidewire3d.app import stream
 from guidewire3d.errors import InputError
-from guidewire3d.registration import Verdict
+from guidewire3d.registration.solve import Verdict
 
 pyigtl = pytest.importorskip("pyigtl")
 
@@ -89,7 +92,7 @@ def _wire3d(points, uncertainty):
     """A successful ``Wire3D`` with the given points (the fields the messages read)."""
     from dataclasses import replace
 
-    from guidewire3d import reconstruction
+    from guidewire3d.reconstruction import wire as reconstruction
 
     n = len(points)
     return replace(reconstruction.Wire3D.failed("-"), points_lps_mm=np.asarray(points, float),
@@ -178,8 +181,8 @@ def test_track_motion_streams_the_engines_motion_tracked_wires(setup, frames):
 
 def test_ras_space_flips_points_and_tip():
     """``--space ras``: what 3D Slicer reads as RAS is the LPS wire with x and y negated."""
-    from guidewire3d import reconstruction
-    from guidewire3d.image2d import OrderedWire
+    from guidewire3d.reconstruction import wire as reconstruction
+    from guidewire3d.xray.image2d import OrderedWire
 
     pts = np.array([[10.0, -20.0, 30.0], [11.0, -20.0, 31.0], [12.0, -19.0, 33.0], [12.5, -18.0, 35.0]])
     w3 = _wire3d(pts, np.full(4, 0.5))
@@ -214,7 +217,7 @@ def test_guidewire_polydata_bytes_follow_the_openigtlink_spec():
     """What Slicer's OpenIGTLinkIF unpacks (igtl_polydata): read here with struct alone, not pyigtl."""
     import struct
 
-    from guidewire3d.image2d import OrderedWire
+    from guidewire3d.xray.image2d import OrderedWire
 
     pts = np.array([[1.5, -2.0, 3.25], [2.0, -2.5, 4.0], [2.5, -2.0, 5.5]])
     fr = live.FrameResult(0, OrderedWire(points_uv_px=np.zeros((3, 2)), success=True, message="ok"),
@@ -450,7 +453,7 @@ def test_setup_from_the_inputs_is_the_one_reconstruct_made(setup, small_case_dir
 # the command line
 # --------------------------------------------------------------------------------------
 def test_cli_live_replay_stops_by_itself_at_max_frames(live_out, small_case_dir, capsys):
-    from guidewire3d.cli import main
+    from guidewire3d.app.cli import main
 
     out, _ = live_out
     before = signal.getsignal(signal.SIGINT)
@@ -463,7 +466,7 @@ def test_cli_live_replay_stops_by_itself_at_max_frames(live_out, small_case_dir,
 
 
 def test_cli_live_bad_setup_is_one_line_exit_2(tmp_path, capsys):
-    from guidewire3d.cli import main
+    from guidewire3d.app.cli import main
 
     assert main(["live", "--from", str(tmp_path / "nowhere")]) == 2
     assert "no such output folder" in capsys.readouterr().err
@@ -476,7 +479,7 @@ def test_cli_live_bad_setup_is_one_line_exit_2(tmp_path, capsys):
 def test_ctrl_c_stops_cleanly_and_prints_the_summary(live_out, small_case_dir):
     out, _ = live_out
     env = dict(os.environ, PYTHONUNBUFFERED="1")
-    cmd = [sys.executable, "-m", "guidewire3d.cli", "live", "--from", str(out), "--replay",
+    cmd = [sys.executable, "-m", "guidewire3d.app.cli", "live", "--from", str(out), "--replay",
            str(small_case_dir / "frames.dcm"), "--fps", "10", "--loop", "--port", "0", "--duration", "300"]
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
     try:
@@ -520,8 +523,8 @@ def _broadcast_until(server, payload, done: threading.Event, period_s=0.05, limi
 
 def test_viewer_follows_the_live_wire_offscreen(live_out, tmp_path):
     pytest.importorskip("pyvista")
-    from guidewire3d import reconstruction
-    from guidewire3d.image2d import OrderedWire
+    from guidewire3d.reconstruction import wire as reconstruction
+    from guidewire3d.xray.image2d import OrderedWire
     from guidewire3d.viewer import app
 
     out, report = live_out

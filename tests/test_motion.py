@@ -1,4 +1,4 @@
-"""Per-frame pose tracking (``guidewire3d.motion``) against ground truth and real data (issue 18)."""
+"""Per-frame pose tracking (``guidewire3d.motion.tracking``) against ground truth and real data (issue 18)."""
 from __future__ import annotations
 
 import sys
@@ -8,12 +8,13 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from guidewire3d import live, motion
+from guidewire3d.live import session as live
+from guidewire3d.motion import tracking as motion
 from guidewire3d.errors import InputError
 from guidewire3d.geometry import Pose
 from guidewire3d.metrics import mtre_mm
-from guidewire3d.phantom import PhantomOptions, load_truth, simulate, write_case
-from guidewire3d.registration import RegistrationResult, Verdict
+from guidewire3d.phantom.simulator import PhantomOptions, load_truth, simulate, write_case
+from guidewire3d.registration.solve import RegistrationResult, Verdict
 
 SCRIPTS = Path(__file__).resolve().parents[1] / "scripts"
 SHIFT_TOL_MM = 0.5  # in-plane shift recovered from an exact curve
@@ -130,7 +131,7 @@ def test_real_liver_catheter_is_followed_through_breathing():
 def test_reconstruct_track_motion_writes_each_frames_pose(small_case_dir, tmp_path):
     import json
 
-    from guidewire3d.cli import main
+    from guidewire3d.app.cli import main
 
     d, out = small_case_dir, tmp_path / "out"
     rc = main(["reconstruct", "--cta", str(d / "ct"), "--roadmap", str(d / "roadmap.dcm"), "--frames",
@@ -147,7 +148,7 @@ def test_reconstruct_track_motion_writes_each_frames_pose(small_case_dir, tmp_pa
         assert mtre_mm(pose, Pose.from_matrix(rep["pose"]), truth.tree.points_lps_mm) < 1.0
     # the viewer shows each tracked frame in its own pose, and applies a correction the same way
     from guidewire3d.viewer.controller import ViewerController
-    from guidewire3d.outdir import load_outdir
+    from guidewire3d.app.outdir import load_outdir
 
     ctrl = ViewerController(load_outdir(out), persist=False)
     k = next(i for i, w in enumerate(ctrl._case.wires) if w.pose is not None)

@@ -40,8 +40,8 @@ def test_the_installed_wheel_reconstructs_from_another_folder(wheel, small_case_
     work = tmp_path / "work"
     work.mkdir()
     env = dict(os.environ, PYTHONPATH=str(site))
-    probe = subprocess.run([sys.executable, "-c", "import guidewire3d, guidewire3d.segmentation as s, "
-                            "guidewire3d.vessels2d_learned as v; print(guidewire3d.__file__); "
+    probe = subprocess.run([sys.executable, "-c", "import guidewire3d, guidewire3d.xray.segmentation as s, "
+                            "guidewire3d.xray.vessels2d_learned as v; print(guidewire3d.__file__); "
                             "print(s.DEFAULT_WEIGHTS_PATH); print(v.DEFAULT_WEIGHTS_PATH)"],
                            cwd=work, env=env, capture_output=True, text=True, errors="replace")
     assert probe.returncode == 0, probe.stderr[-2000:]
@@ -50,7 +50,7 @@ def test_the_installed_wheel_reconstructs_from_another_folder(wheel, small_case_
         assert Path(line).exists(), line
     out = work / "out"
     d = small_case_dir
-    run = subprocess.run([sys.executable, "-m", "guidewire3d.cli", "reconstruct", "--cta", str(d / "ct"),
+    run = subprocess.run([sys.executable, "-m", "guidewire3d.app.cli", "reconstruct", "--cta", str(d / "ct"),
                           "--roadmap", str(d / "roadmap.dcm"), "--frames", str(d / "frames.dcm"), "--out", str(out),
                           "--force", "--no-images"], cwd=work, env=env, capture_output=True, text=True, errors="replace", timeout=600)
     assert run.returncode == 0, run.stderr[-2000:]

@@ -7,11 +7,12 @@ import pydicom
 import pytest
 from scipy import ndimage
 
-from guidewire3d import io, phantom
-from guidewire3d.cli import build_parser, main
+from guidewire3d import io
+from guidewire3d.phantom import simulator as phantom
+from guidewire3d.app.cli import build_parser, main
 from guidewire3d.errors import InputError
 from guidewire3d.geometry import CArm, Pose, nominal_pose
-from guidewire3d.phantom import (
+from guidewire3d.phantom.simulator import (
     WIRE_MARGIN_MM,
     PhantomOptions,
     VolumeSize,

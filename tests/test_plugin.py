@@ -25,9 +25,9 @@ from vtk.util.numpy_support import vtk_to_numpy  # noqa: E402
 from guidewire3d import io, metrics  # noqa: E402
 from guidewire3d.errors import InputError, RegistrationError  # noqa: E402
 from guidewire3d.geometry import CArm, Pose  # noqa: E402
-from guidewire3d.reconstruction import ReconMethod, Wire3D  # noqa: E402
-from guidewire3d.registration import RegistrationResult  # noqa: E402
-from guidewire3d.segmentation import SegMethod  # noqa: E402
+from guidewire3d.reconstruction.wire import ReconMethod, Wire3D  # noqa: E402
+from guidewire3d.registration.solve import RegistrationResult  # noqa: E402
+from guidewire3d.xray.segmentation import SegMethod  # noqa: E402
 from guidewire3d.vesseltree import VesselTree  # noqa: E402
 
 PLUGIN_DIR = Path(__file__).resolve().parents[1] / "plugin" / "GuidewireReconstruction"
@@ -650,7 +650,7 @@ def test_e2e_failed_registration_then_manual_correction_and_refine(e2e):
 def test_e2e_refine_adopts_an_uncertain_pose_and_not_a_failed_one(e2e, monkeypatch, verdict):
     """Refine's result fits the roadmap but the data leave the pose open (as for one vessel path's depth):
     the transform takes it and the summary says UNCERTAIN; a failed refine changes nothing."""
-    from guidewire3d import registration
+    from guidewire3d.registration import solve as registration
 
     core, out = e2e.core, e2e.out
     moved = Pose.exp([1.0, -1.0, 0.5, *np.radians([0.5, 0.5, -0.5])]) @ e2e.pose
@@ -674,9 +674,11 @@ def test_the_module_follows_a_live_server(hs):
     import time
     from dataclasses import replace
 
-    from guidewire3d import live, reconstruction, stream
-    from guidewire3d.image2d import OrderedWire
-    from guidewire3d.registration import Verdict
+    from guidewire3d.live import session as live
+    from guidewire3d.reconstruction import wire as reconstruction
+    from guidewire3d.app import stream
+    from guidewire3d.xray.image2d import OrderedWire
+    from guidewire3d.registration.solve import Verdict
 
     rng = np.random.default_rng(3)
     pts = np.cumsum(rng.normal(0.0, 1.0, (30, 3)), axis=0) + np.array([10.0, -20.0, 30.0])
@@ -728,9 +730,9 @@ def test_the_module_follows_a_live_server(hs):
 def test_tracked_frames_move_the_carm_with_the_frame_browser(hs):
     """A result whose frames were tracked (track_motion): a pose sequence synchronised with the frames'
     browser, whose proxy the C-arm follows; each frame's transform holds that frame's pose."""
-    from guidewire3d import live
+    from guidewire3d.live import session as live
     from guidewire3d.geometry import so3_exp
-    from guidewire3d.registration import Verdict
+    from guidewire3d.registration.solve import Verdict
 
     rng = np.random.default_rng(8)
     res = _synthetic_result(rng)

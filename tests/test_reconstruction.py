@@ -7,7 +7,7 @@ from scipy.spatial import cKDTree
 from guidewire3d.errors import InputError
 from guidewire3d.geometry import CArm, Pose, nominal_pose
 from guidewire3d.metrics import polyline_length, resample_polyline
-from guidewire3d.reconstruction import (
+from guidewire3d.reconstruction.wire import (
     ReconMethod,
     ReconOptions,
     Wire3D,
@@ -311,7 +311,7 @@ def test_uncertainty_is_calibrated_on_simulator_sequences():
     far below it (overconfident) nor far above it (the former model: RMS error / sigma ~ 0.4).
     One pose error per sequence makes the per-point errors correlated, so the 2-sigma coverage of
     two cases is not a sharp statistic; the RMS ratio is the calibration check."""
-    phantom = pytest.importorskip("guidewire3d.phantom")
+    phantom = pytest.importorskip("guidewire3d.phantom.simulator")
     rng = np.random.default_rng(11)
     reg_cov = np.diag([0.6**2] * 3 + [0.006**2] * 3)
     e_all, s_all = [], []
@@ -382,7 +382,7 @@ def test_result_record_and_context_cache():
 
 
 def test_simulator_sequence_oracle_accuracy():
-    phantom = pytest.importorskip("guidewire3d.phantom")
+    phantom = pytest.importorskip("guidewire3d.phantom.simulator")
     case = phantom.simulate(phantom.PhantomOptions(seed=3, n_frames=3), make_ct=False)
     tracker = WireTracker(case.pose, case.carm, case.tree)
     on = np.zeros(case.tree.n_points, bool)

@@ -4,7 +4,7 @@ import json
 import numpy as np
 import pytest
 
-from guidewire3d import registration as reg
+from guidewire3d.registration import solve as reg
 from guidewire3d.errors import InputError
 from guidewire3d.geometry import CArm, Pose, nominal_pose, so3_log
 from guidewire3d.metrics import mtre_mm, resample_polyline

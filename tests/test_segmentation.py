@@ -6,8 +6,8 @@ import pytest
 
 from guidewire3d.errors import InputError
 from guidewire3d.metrics import dice
-from guidewire3d.phantom import PhantomOptions, simulate
-from guidewire3d.segmentation import (
+from guidewire3d.phantom.simulator import PhantomOptions, simulate
+from guidewire3d.xray.segmentation import (
     DEFAULT_WEIGHTS_PATH,
     Backend,
     GuidewireSegmenter,
@@ -149,7 +149,7 @@ def test_bad_frames_give_an_empty_mask(method):
 
 
 def test_ordered_wire_reports_failure_on_empty_mask():
-    from guidewire3d.image2d import ordered_wire
+    from guidewire3d.xray.image2d import ordered_wire
 
     mask = guidewire_mask(np.zeros((128, 128), np.float32))
     ow = ordered_wire(mask)
@@ -197,7 +197,7 @@ def test_backends_agree(cases, backend):
 def test_collimator_edge_is_not_a_wire(cases):
     from scipy import ndimage as ndi
 
-    from guidewire3d.segmentation import _unet_mask_from_prob, load_unet
+    from guidewire3d.xray.segmentation import _unet_mask_from_prob, load_unet
 
     frames, masks = cases[0.89]
     frame, truth = frames[DICE_FRAMES[0]], masks[DICE_FRAMES[0]]
@@ -243,8 +243,9 @@ def test_bad_input_raises(tmp_path):
 
 
 def test_every_segmentation_method_has_a_segmenter_and_a_cli_choice():
-    from guidewire3d import batch2d, cli
-    from guidewire3d.segmentation import SEGMENTERS
+    from guidewire3d.app import batch2d
+    from guidewire3d.app import cli
+    from guidewire3d.xray.segmentation import SEGMENTERS
 
     assert set(SEGMENTERS) == set(SegMethod)
     assert cli.SEGMENTERS == tuple(m.value for m in SegMethod)
@@ -257,7 +258,7 @@ def test_every_segmentation_method_has_a_segmenter_and_a_cli_choice():
 @pytest.mark.parametrize("method", list(SegMethod))
 def test_the_registry_gives_the_same_mask_as_guidewire_mask(cases, method):
     """A segmenter's full-frame mask is guidewire_mask's (no collimator in the simulated frame)."""
-    from guidewire3d.segmentation import SEGMENTERS, UNET_CONTEXT_PX, Backend, _frame_stats
+    from guidewire3d.xray.segmentation import SEGMENTERS, UNET_CONTEXT_PX, Backend, _frame_stats
 
     frames = cases[0.89][0]
     a = np.asarray(frames[0])

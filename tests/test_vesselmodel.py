@@ -11,7 +11,9 @@ import pytest
 from scipy import ndimage as ndi
 from scipy.spatial import cKDTree
 
-from guidewire3d import cli, io, vesselmodel
+from guidewire3d import io
+from guidewire3d.app import cli
+from guidewire3d.cta import vesselmodel
 from guidewire3d.errors import InputError, SegmentationError
 
 SP = 0.8  # mm, isotropic
@@ -222,7 +224,7 @@ def test_implausible_tree_is_named():
 # the command
 # --------------------------------------------------------------------------------------
 def test_vessels_command_writes_the_planning_folder(ct, tmp_path):
-    from guidewire3d import export
+    from guidewire3d.app import export
 
     f = io.write_volume(ct, tmp_path / "ct.nrrd")
     out = tmp_path / "plan"
@@ -240,6 +242,6 @@ def test_vessels_command_writes_the_planning_folder(ct, tmp_path):
 
 
 def test_vessels_help_and_seed_option():
-    out = subprocess.run([sys.executable, "-m", "guidewire3d.cli", "vessels", "--help"], capture_output=True,
+    out = subprocess.run([sys.executable, "-m", "guidewire3d.app.cli", "vessels", "--help"], capture_output=True,
                          text=True, check=True).stdout
     assert "--seed-lps" in out and "vessels.json" in out

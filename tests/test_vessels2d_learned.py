@@ -1,5 +1,5 @@
-"""Tests of the learned vessel segmenter (guidewire3d.vessels2d_learned) and of the method dispatch
-of guidewire3d.image2d.vessel_mask, against the real angiograms' manual masks and the simulator."""
+"""Tests of the learned vessel segmenter (guidewire3d.xray.vessels2d_learned) and of the method dispatch
+of guidewire3d.xray.image2d.vessel_mask, against the real angiograms' manual masks and the simulator."""
 import json
 import pickle
 import struct
@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 from guidewire3d.errors import InputError
-from guidewire3d.image2d import VesselMethod, vessel_mask
+from guidewire3d.xray.image2d import VesselMethod, vessel_mask
 from guidewire3d.metrics import dice
-from guidewire3d.vessels2d_learned import (
+from guidewire3d.xray.vessels2d_learned import (
     DEFAULT_WEIGHTS_PATH,
     THRESHOLD,
     TTA,
@@ -29,7 +29,7 @@ from guidewire3d.vessels2d_learned import (
     train_vessel_unet,
     vessel_probability,
 )
-from guidewire3d.vessels2d_learned import _augment_crop
+from guidewire3d.xray.vessels2d_learned import _augment_crop
 
 REAL_DIR = Path("/work/shared/data/coronary-angiograms")
 REAL_IDS = (3, 17, 29)           # a few of the 40 real images (the model was trained on all 40)

@@ -11,7 +11,7 @@ from scipy.spatial import cKDTree
 
 from guidewire3d import io
 from guidewire3d.errors import InputError, SegmentationError
-from guidewire3d.vessels3d import (
+from guidewire3d.cta.vessels3d import (
     CenterlineOptions,
     VesselOptions,
     VesselTree,
@@ -200,7 +200,7 @@ def test_bent_tube_centerline_is_not_inside_the_curve(R_mm, r_mm):
 
 
 def test_quadratic_smoothing_keeps_circles():
-    from guidewire3d.vessels3d import _smooth_polyline, _smooth_polyline_quadratic
+    from guidewire3d.cta.vessels3d import _smooth_polyline, _smooth_polyline_quadratic
 
     rng = np.random.default_rng(7)
     R_mm = 10.0

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from guidewire3d import cli
+from guidewire3d.app import cli
 from guidewire3d.errors import InputError
 from guidewire3d.geometry import Pose
 from guidewire3d.metrics import mtre_mm
@@ -25,7 +25,7 @@ pv = pytest.importorskip("pyvista")
 from guidewire3d.viewer import scene as sc  # noqa: E402
 from guidewire3d.viewer.app import open_viewer, parse_size  # noqa: E402
 from guidewire3d.viewer.controller import STEP_DEG, STEP_MM, Axis, ExportKind, Step, ViewerController  # noqa: E402
-from guidewire3d.outdir import display_images_uint8, load_outdir  # noqa: E402
+from guidewire3d.app.outdir import display_images_uint8, load_outdir  # noqa: E402
 
 SIZE = (480, 320)
 TOL_POINT_MM = 1e-6
@@ -437,7 +437,7 @@ def test_nudge_then_refine_returns_to_the_automatic_pose(viewer, synth):
 def test_refine_adopts_an_uncertain_pose_and_keeps_the_pose_on_failure(viewer, synth, monkeypatch, verdict):
     """A refinement the overlay fits but the roadmap leaves uncertain (e.g. one vessel path's depth) is
     adopted with a warning; a failed one leaves the pose alone."""
-    from guidewire3d import registration
+    from guidewire3d.registration import solve as registration
 
     ctl, h = viewer
     auto = ctl.case.automatic_pose
@@ -471,7 +471,7 @@ def test_reset_goes_back_to_automatic(viewer, synth, case_dir):
 
 @pytest.mark.parametrize("kind", list(ExportKind))
 def test_export_writes_models_that_read_back(viewer, synth, tmp_path, kind):
-    from guidewire3d import export as ex
+    from guidewire3d.app import export as ex
 
     ctl, h = viewer
     ctl.set_frame(2)
@@ -546,7 +546,7 @@ def test_cli_screenshot_and_errors(synth, tmp_path, capsys):
 def test_cli_runs_the_pipeline_first_with_inputs(synth, tmp_path, monkeypatch, capsys):
     import cv2
 
-    from guidewire3d import pipeline
+    from guidewire3d.app import pipeline
 
     calls = []
 
@@ -571,7 +571,7 @@ _HAVE_X_TOOLS = all(shutil.which(t) for t in ("xvfb-run", "xdotool"))
 
 _DRIVER = r"""
 set -u
-"$PY" -m guidewire3d.cli view "$OUT" --size 800x500 > "$LOG" 2>&1 &
+"$PY" -m guidewire3d.app.cli view "$OUT" --size 800x500 > "$LOG" 2>&1 &
 APP=$!
 WID=$(timeout 30 xdotool search --sync --name "guidewire3d" | head -1)
 if [ -z "$WID" ]; then echo "no window" >&2; kill $APP; exit 3; fi

@@ -1,4 +1,4 @@
-"""Tests of the guidewire presence test (guidewire3d.wirepresence, issue #20 item 2): real
+"""Tests of the guidewire presence test (guidewire3d.xray.wirepresence, issue #20 item 2): real
 angiograms without a wire, the simulator's frames with one (against its truth), synthetic frames
 with a vessel, a vessel tree or a collimator edge and no wire, and the live path."""
 import json
@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from guidewire3d import cli
-from guidewire3d.image2d import ordered_wire
+from guidewire3d.app import cli
+from guidewire3d.xray.image2d import ordered_wire
 from guidewire3d.metrics import mean_closest_distance, resample_polyline
-from guidewire3d.wirepresence import WirePresence, wire_presence
+from guidewire3d.xray.wirepresence import WirePresence, wire_presence
 
 REAL_DIR = Path("/work/shared/data/coronary-angiograms")
 # Real angiograms whose UNet mask traces a curve (8 and 25 fail earlier, as blobs): vessels that
@@ -148,7 +148,7 @@ def test_wire_presence_bad_input_raises():
 def test_real_angiograms_hold_no_wire(name):
     from skimage.io import imread
 
-    from guidewire3d.segmentation import guidewire_mask
+    from guidewire3d.xray.segmentation import guidewire_mask
 
     image = imread(REAL_DIR / f"{name}.png")
     mask = guidewire_mask(image)
@@ -182,8 +182,8 @@ def test_segment_reports_no_wire_on_real_angiograms(tmp_path, capsys):
 
 @pytest.mark.parametrize("seed, diameter_mm", [(1300, 0.36), (1301, 0.89), (1304, 0.36), (1305, 0.89)])
 def test_simulated_wires_are_present_and_unchanged(seed, diameter_mm):
-    from guidewire3d.phantom import PhantomOptions, simulate
-    from guidewire3d.segmentation import guidewire_mask
+    from guidewire3d.phantom.simulator import PhantomOptions, simulate
+    from guidewire3d.xray.segmentation import guidewire_mask
 
     sim = simulate(PhantomOptions(seed=seed, n_frames=3, wire_diameter_mm=diameter_mm, catheter=True), make_ct=False)
     for t in range(3):
@@ -218,11 +218,11 @@ class _FixedMasks:
 
 
 def test_live_path_reports_no_guidewire(small_case):
-    """``guidewire3d.live.Session`` is the per-frame engine of reconstruct, the viewer and the
+    """``guidewire3d.live.session.Session`` is the per-frame engine of reconstruct, the viewer and the
     streaming server: the frame without a wire is a failed Wire3D that says so, and the session goes on."""
-    from guidewire3d.live import Session
-    from guidewire3d.registration import Verdict
-    from guidewire3d.segmentation import guidewire_mask
+    from guidewire3d.live.session import Session
+    from guidewire3d.registration.solve import Verdict
+    from guidewire3d.xray.segmentation import guidewire_mask
 
     wire_frame = small_case.frames[0]
     shape = wire_frame.shape

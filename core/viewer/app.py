@@ -9,9 +9,9 @@ import os
 import tempfile
 from pathlib import Path
 
-from guidewire3d import pipeline, stream
+from guidewire3d.app import pipeline, stream
+from guidewire3d.app.outdir import load_outdir
 from guidewire3d.errors import Guidewire3DError, InputError
-from guidewire3d.outdir import load_outdir
 from guidewire3d.viewer import scene as sc
 from guidewire3d.viewer.biplane_scene import add_plane_b, plane_b_of_outdir
 from guidewire3d.viewer.controller import Axis, ExportKind, ViewerController

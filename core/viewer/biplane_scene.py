@@ -12,10 +12,9 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-
 from guidewire3d import io
+from guidewire3d.app.outdir import display_images_uint8
 from guidewire3d.geometry import CArm, Pose
-from guidewire3d.outdir import display_images_uint8
 from guidewire3d.viewer import scene as sc
 
 __all__ = ["PlaneB", "plane_b_of_outdir", "add_plane_b"]

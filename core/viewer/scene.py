@@ -12,8 +12,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-
-from guidewire3d.export import WIRE_TUBE_RADIUS_MM
+from guidewire3d.app.export import WIRE_TUBE_RADIUS_MM
 from guidewire3d.geometry import CArm, Pose
 
 __all__ = [

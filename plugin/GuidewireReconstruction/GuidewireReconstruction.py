@@ -48,9 +48,9 @@ except ImportError:  # Slicer < 5.4 and slicer-core
 
 MODULE_DIR = Path(__file__).resolve().parent
 REQUIREMENTS = MODULE_DIR / "Resources" / "requirements.txt"
-#: Values of ``guidewire3d.reconstruction.ReconMethod`` (the combo box choices; tested to match).
+#: Values of ``guidewire3d.reconstruction.wire.ReconMethod`` (the combo box choices; tested to match).
 METHOD_CHOICES = ("vessel", "paper", "bspline")
-#: Values of ``guidewire3d.segmentation.SegMethod``.
+#: Values of ``guidewire3d.xray.segmentation.SegMethod``.
 SEGMENTER_CHOICES = ("unet", "ridge")
 
 
@@ -390,7 +390,7 @@ if SLICER_APP:
         def _case(self):
             import tempfile
 
-            from guidewire3d import phantom
+            from guidewire3d.phantom import simulator as phantom
 
             self._tmp = tempfile.TemporaryDirectory()
             case = phantom.simulate(phantom.PhantomOptions(seed=3, n_frames=4))  # = tests/conftest.py small_case

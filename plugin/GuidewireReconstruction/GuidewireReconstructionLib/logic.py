@@ -40,11 +40,13 @@ import slicer
 import vtk
 from vtk.util.numpy_support import numpy_to_vtk, vtk_to_numpy
 
-from guidewire3d import export, io, stream
+from guidewire3d import io
+from guidewire3d.app import export
+from guidewire3d.app import stream
 from guidewire3d.errors import InputError, ReconstructionError, RegistrationError
 from guidewire3d.geometry import CArm, Pose
-from guidewire3d.reconstruction import ReconMethod, Wire3D
-from guidewire3d.segmentation import SegMethod
+from guidewire3d.reconstruction.wire import ReconMethod, Wire3D
+from guidewire3d.xray.segmentation import SegMethod
 
 __all__ = [
     "WireMethod",
@@ -579,7 +581,7 @@ class GuidewireReconstructionCoreLogic:
             Follow breathing: each frame's pose is updated from its wire (``reconstruct
             --track-motion``); with a frames sequence the C-arm then follows the frame browser.
         """
-        from guidewire3d import pipeline
+        from guidewire3d.app import pipeline
 
         method = WireMethod(method)
         segmenter = Segmenter(segmenter)
@@ -635,7 +637,7 @@ class GuidewireReconstructionCoreLogic:
         in the node and reconstructs every frame's wire again; a pose the overlay fits but the roadmap
         leaves uncertain (``Verdict.UNCERTAIN``) is adopted. Returns the ``RegistrationResult``.
         """
-        from guidewire3d import registration
+        from guidewire3d.registration import solve as registration
 
         if self.result is None:
             raise RegistrationError("refine: run Apply (process) first")
@@ -664,7 +666,7 @@ class GuidewireReconstructionCoreLogic:
         registration, no ``force``), they are extracted now, as the pipeline does. Returns the new
         ``Wire3D`` list.
         """
-        from guidewire3d import live
+        from guidewire3d.live import session as live
 
         if self.result is None:
             raise ReconstructionError("update_wires: run Apply (process) first")
@@ -717,7 +719,7 @@ class GuidewireReconstructionCoreLogic:
 
     def refine_parameters(self, p) -> str:
         """Run :meth:`refine` from ``p.registrationTransform``; returns a one-line summary."""
-        from guidewire3d.registration import Verdict
+        from guidewire3d.registration.solve import Verdict
 
         reg = self.refine(transform_node=p.registrationTransform, force=bool(p.force))
         if reg.verdict is Verdict.FAILED and not p.force:

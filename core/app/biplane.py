@@ -1,0 +1,748 @@
+"""Biplane: two X-ray planes (A and B) around one isocentre, imaging at the same time (issue 23).
+
+With one view the depth along the beam rests on the vessel prior alone; with two it is measured.
+Both planes share the isocentre, so one patient pose ``T_iso_from_lps`` explains both roadmaps and
+both live frames; each plane has its own C-arm geometry (its DICOM positioner tags).
+
+* :func:`register_biplane`: the joint registration. The residuals of both views are stacked in
+  the single-view problem of :mod:`guidewire3d.registration.solve` (the same bidirectional pseudo-Huber
+  energy per view, one ``_Problem`` each over the same 3D samples, their energies, gradients and
+  Gauss-Newton matrices summed) and solved by its Levenberg-Marquardt. Start: its coarse global
+  search in each plane; a candidate from plane A's search knows nothing of the depth along A's
+  beam, which plane B sees in its image plane, so each candidate's depth along its own beam is
+  scanned against the other plane's centerline (a symmetric truncated chamfer), and LM starts
+  from the best candidates. Covariance from the summed information; verdict per view (each
+  roadmap's overlay must fit) and from the pose 1-sigma.
+* :class:`BiplaneSession`: the per-frame engine for a pair of frames: each plane's 2D wire
+  through its own :class:`guidewire3d.live.session.Session` (segmenter with its ROI tracking, ordered
+  wire), then the two-view wire of :mod:`guidewire3d.reconstruction.triangulation`; a pair whose wire is missing
+  (or cannot be matched) in one plane falls back to the other plane's single-view reconstruction
+  and says so in its record.
+* :func:`run` / :func:`run_to_outdir` (the command line's ``guidewire3d reconstruct`` with
+  ``--roadmap A --roadmap B --frames A --frames B``).
+"""
+from __future__ import annotations
+
+import json
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from guidewire3d import io
+from guidewire3d.app import export, pipeline
+from guidewire3d.cta import vessels3d
+from guidewire3d.errors import Guidewire3DError, InputError
+from guidewire3d.geometry import CArm, Pose, nominal_pose
+from guidewire3d.live import session as live
+from guidewire3d.live.session import FrameResult, _no_wire, orientation_of
+from guidewire3d.reconstruction.triangulation import (
+    TwoViewContext,
+    extend_distal,
+    triangulate_wire,
+)
+from guidewire3d.reconstruction.wire import reconstruct_wire
+from guidewire3d.registration import solve as R
+from guidewire3d.registration.solve import Verdict
+from guidewire3d.xray import image2d
+from scipy.spatial import cKDTree
+
+__all__ = ["ViewFit", "BiplaneRegistration", "register_biplane", "BiplaneFrame", "BiplaneSession",
+           "pair_frames", "check_planes", "run", "run_to_outdir", "PLANES"]
+
+PLANES = ("A", "B")
+#: the two beams must be at least this far apart (deg) for the second plane to measure depth
+MIN_SEPARATION_DEG = 15.0
+#: depth scan of a search candidate along its own beam, against the other plane (mm)
+DEPTH_SCAN_MM = 45.0
+DEPTH_STEP_MM = 1.5
+DEPTH_TRUNC_PX = 24.0  # chamfer truncation (px) of the depth scan
+JOINT_STARTS = 3  # LM starts (wide gate) from the best candidates of the joint coarse search
+SEARCH_WEIGHT_3D = 0.1  # joint search: weight of the 3D -> 2D chamfer half (it favours poses that crowd the tree onto a partial roadmap)
+
+
+# ============================================================================================
+# joint registration
+# ============================================================================================
+@dataclass(frozen=True, eq=False)
+class ViewFit:
+    """How one plane's roadmap fits the joint pose."""
+
+    plane: str
+    carm: CArm
+    projection_matrix: np.ndarray  # (3, 4) LPS mm -> px of this plane at the pose
+    mean_residual_px: float
+    inlier_fraction: float
+    fits_2d: bool
+    explained_fraction: float
+    single_path: bool
+
+    def to_dict(self) -> dict:
+        def f(x):
+            x = float(x)
+            return round(x, 4) if np.isfinite(x) else None
+
+        return {"plane": self.plane, "carm": self.carm.to_dict(),
+                "projection_matrix": np.asarray(self.projection_matrix, float).tolist(),
+                "mean_residual_px": f(self.mean_residual_px), "inlier_fraction": f(self.inlier_fraction),
+                "fits_2d": bool(self.fits_2d), "explained_fraction": f(self.explained_fraction),
+                "single_path": bool(self.single_path)}
+
+
+@dataclass(frozen=True, eq=False)
+class BiplaneRegistration:
+    """The joint registration: ``result`` (a ``registration.RegistrationResult`` whose
+    ``projection_matrix``, residual and inlier figures are plane A's, and whose ``success``,
+    ``verdict``, covariance and pose 1-sigma are the joint ones) and each plane's fit."""
+
+    result: object  # registration.RegistrationResult
+    views: tuple[ViewFit, ViewFit]
+
+    @property
+    def pose(self) -> Pose:
+        return self.result.pose
+
+    @property
+    def success(self) -> bool:
+        return bool(self.result.success)
+
+    def __bool__(self) -> bool:
+        return self.success
+
+
+class _JointProblem:
+    """The single-view problems of both planes over the same 3D samples: one energy.
+
+    Duck-types ``registration._Problem`` for ``registration._levenberg_marquardt`` and
+    ``registration._narrow_stage``: energies, gradients and Gauss-Newton matrices are sums; the
+    correspondences are a tuple (one per plane); the weak stabiliser toward the LM stage's start is
+    counted once.
+    """
+
+    def __init__(self, probs):
+        self.probs = tuple(probs)
+        self.m3 = self.probs[0].m3
+        self.scale = self.probs[0].scale
+        self._anchor = None
+
+    @property
+    def anchor(self):
+        return self._anchor
+
+    @anchor.setter
+    def anchor(self, pose):
+        self._anchor = pose  # the sub-problems carry none (the stabiliser is added here, once)
+
+    @property
+    def visible3(self) -> np.ndarray:
+        return np.concatenate([p.visible3 for p in self.probs])
+
+    def set_visibility(self, pose: Pose, gate_px: float) -> None:
+        for p in self.probs:
+            p.set_visibility(pose, gate_px)
+
+    def evaluate(self, pose: Pose, gate_px: float, *, delta=None, need_jac: bool = True, corr=None,
+                 need_info: bool = False):
+        evs = [p.evaluate(pose, gate_px, delta=delta, need_jac=need_jac, need_info=need_info,
+                          corr=None if corr is None else corr[k]) for k, p in enumerate(self.probs)]
+        energy = sum(e.energy for e in evs)
+        stab_r = None
+        if self._anchor is not None:
+            stab_r = self.probs[0]._tangent_offset(pose, self._anchor)
+            energy += R.STABILISER * float(stab_r @ stab_r)
+        ev = R._Eval(pose, float(energy), tuple(e.corr for e in evs), gate_px=gate_px,
+                     delta=evs[0].delta)
+        if evs[0].g is not None:
+            ev.g = sum(e.g for e in evs)
+            ev.H = sum(e.H for e in evs)
+            if stab_r is not None:
+                ev.H = ev.H + 2.0 * R.STABILISER * np.eye(6)
+                ev.g = ev.g + 2.0 * R.STABILISER * stab_r
+            ev.rnorm = float(np.sqrt(sum(e.rnorm**2 for e in evs)))
+            ev.n_in3 = sum(e.n_in3 for e in evs)
+            ev.n_in2 = sum(e.n_in2 for e in evs)
+        if need_info and all(e.H_info is not None for e in evs):
+            ev.H_info = sum(e.H_info for e in evs)
+            ev.chi2 = sum(e.chi2 for e in evs)
+            ev.dof = sum(e.dof for e in evs) + 6 * (len(evs) - 1)
+        return ev
+
+    def with_info(self, ev):
+        if ev.H_info is not None:
+            return ev
+        return self.evaluate(ev.pose, ev.gate_px, delta=ev.delta, corr=ev.corr, need_info=True)
+
+    def step(self, pose: Pose, h_theta: np.ndarray) -> Pose:
+        return Pose.exp(self.scale * h_theta) @ pose
+
+
+def _beam_angle_deg(a: CArm, b: CArm) -> float:
+    return float(np.degrees(np.arccos(np.clip(a.beam_direction @ b.beam_direction, -1.0, 1.0))))
+
+
+def _depth_scan(m3, q_other: np.ndarray, carm_other: CArm, cand: Pose, beam: np.ndarray) -> tuple[float, Pose]:
+    """The shift of ``cand`` along ``beam`` (its own plane's beam, which its plane cannot see) that
+    best fits the other plane's centerline: symmetric chamfer, truncated at ``DEPTH_TRUNC_PX``."""
+    offsets = np.arange(-DEPTH_SCAN_MM, DEPTH_SCAN_MM + 1e-9, DEPTH_STEP_MM)
+    tree2 = cKDTree(q_other)
+    q_sub = q_other[:: max(1, len(q_other) // 400)]
+    base = cand.apply(m3.coarse)
+    tau = DEPTH_TRUNC_PX
+    costs = np.empty(len(offsets))
+    for k, off in enumerate(offsets):
+        uv = carm_other.project(base + off * beam)
+        ok = np.isfinite(uv).all(axis=1) & carm_other.in_image(uv)
+        if ok.sum() < 3:
+            costs[k] = 2 * tau
+            continue
+        d1 = np.minimum(tree2.query(uv[ok])[0], tau).mean()
+        d2 = np.minimum(cKDTree(uv[ok]).query(q_sub)[0], tau).mean()
+        costs[k] = d1 + d2 + tau * (1.0 - ok.mean())  # points leaving the image cost the truncation
+    k = int(np.argmin(costs))
+    return float(costs[k]), Pose(np.eye(3), offsets[k] * beam) @ cand
+
+
+def _joint_search(m3, m2s, carms, start: Pose, *, n_best: int) -> list[Pose]:
+    """The coarse search of both planes at once: for every rotation of plane A's grid, the chamfer
+    cost maps of both planes (``registration._search_cost_maps``, the same rotations) are summed
+    over a 3D grid of translations (plane A's in-plane shifts x depths along A's beam, each
+    translation read in plane B's map where it lands); the best ``n_best`` distinct poses."""
+    rotvecs = R.search_rotvecs(carms[0])
+    maps = [R._search_cost_maps(m3, m2, c, start, rotvecs, weight_3d=SEARCH_WEIGHT_3D) for m2, c in zip(m2s, carms)]
+    (Ca, _, centre, mmpx_a, c0a, ma), (Cb, _, _, mmpx_b, c0b, mb) = maps
+    step_a = mmpx_a * c0a  # mm per cell of plane A's map
+    e_ua, e_va, d_a = carms[0].axes
+    e_ub, e_vb, _ = carms[1].axes
+    g = np.arange(-ma, ma + 1)
+    # translations: (a, b) plane A's cells, c depth along A's beam in the same step
+    A_, B_, D_ = np.meshgrid(g, g, g, indexing="ij")
+    t = (A_[..., None] * e_ua + B_[..., None] * e_va + D_[..., None] * d_a).reshape(-1, 3) * step_a
+    ia_x, ia_y = (A_.ravel() + ma), (B_.ravel() + ma)
+    ib_x = np.rint(t @ e_ub / (mmpx_b * c0b)).astype(int) + mb
+    ib_y = np.rint(t @ e_vb / (mmpx_b * c0b)).astype(int) + mb
+    inb = (ib_x >= 0) & (ib_x <= 2 * mb) & (ib_y >= 0) & (ib_y <= 2 * mb)
+    t, ia_x, ia_y, ib_x, ib_y = t[inb], ia_x[inb], ia_y[inb], ib_x[inb], ib_y[inb]
+    best = []
+    for k in range(len(rotvecs)):
+        cost = Ca[k, ia_y, ia_x] + Cb[k, ib_y, ib_x]
+        j = int(np.argmin(cost))
+        best.append((float(cost[j]), k, t[j]))
+    best.sort(key=lambda x: x[0])
+    out: list[Pose] = []
+    for _, k, tk in best:
+        cand = Pose(np.eye(3), tk) @ Pose.from_rotvec_about(rotvecs[k], centre) @ start
+        if any(R._pose_close(cand, p, m3, mm=2.0 * step_a) for p in out):
+            continue
+        out.append(cand)
+        if len(out) >= n_best:
+            break
+    return out
+
+
+def register_biplane(tree, centerlines_uv_px, carms, *, centerline_radius_px=(None, None), init_pose: Pose | None = None,
+                     global_search: bool = True, max_iterations: int = 100) -> BiplaneRegistration:
+    """Register the CTA vessel centerline to two roadmaps at once (one pose, both planes).
+
+    Parameters
+    ----------
+    tree : VesselTree
+        3D centerline, LPS mm.
+    centerlines_uv_px : pair of (M_k, 2) ndarray of float
+        The 2D centerline of plane A's and plane B's roadmap (px).
+    carms : pair of CArm
+        Plane A's and plane B's geometry (their own positioner tags; the isocentre is shared).
+    centerline_radius_px : pair of (M_k,) ndarray or None
+        Vessel radius at each 2D point (larger vessels: larger point uncertainty).
+    init_pose : Pose, optional
+        Start (default: plane A's DICOM angles, isocentre at the tree centroid).
+    global_search : bool
+        Run the coarse search of :func:`guidewire3d.registration.solve.register` in each plane, with a
+        depth scan against the other plane, before LM.
+
+    Returns
+    -------
+    BiplaneRegistration
+        Never raises on valid input that cannot be registered: ``success`` is then false.
+    """
+    t0 = time.perf_counter()
+    if len(carms) != 2 or len(centerlines_uv_px) != 2 or len(centerline_radius_px) != 2:
+        raise InputError("register_biplane: expected two planes (A, B) of centerlines, C-arms and radii")
+    for c in carms:
+        R._check_common(c, R.LAMBDA, R.DELTA, max_iterations)
+    sep = _beam_angle_deg(*carms)
+    if min(sep, 180.0 - sep) < MIN_SEPARATION_DEG:
+        raise InputError(f"register_biplane: the planes' beams are {sep:.1f} deg apart; two views measure depth only "
+                         f"when at least {MIN_SEPARATION_DEG:g} deg apart (and not opposed)")
+    qs = [R._check_2d(q, name=f"plane {p} centerline_uv_px") for q, p in zip(centerlines_uv_px, PLANES)]
+    m3 = R._model_from_input(tree, carms[0])
+    start = nominal_pose(m3.centroid) if init_pose is None else init_pose
+    if not isinstance(start, Pose):
+        raise InputError(f"init_pose must be a Pose, got {type(start).__name__}")
+    short = [p for q, p in zip(qs, PLANES) if len(q) < 10]
+    if short:
+        res = R._failed(start, carms[0], f"2D centerline of plane {', '.join(short)} has fewer than 10 points", t0)
+        return BiplaneRegistration(res, tuple(_view_fit(m3, q, c, start, p, None) for q, c, p in zip(qs, carms, PLANES)))
+    m2s = [R._model_2d(q, r, c) for q, r, c in zip(qs, centerline_radius_px, carms)]
+    probs = [R._Problem(m3, m2, c, lam=R.LAMBDA, delta=R.DELTA) for m2, c in zip(m2s, carms)]
+    prob = _JointProblem(probs)
+
+    iterations = 0
+    if global_search:
+        cands = _joint_search(m3, m2s, carms, start, n_best=JOINT_STARTS)
+        gate_a = max(R.GATE_WIDE_PX, 3.0 * max(R._search_cell_px(c) for c in carms))
+    else:
+        cands = [start]
+        gate_a = R.GATE_WIDE_PX
+    best = None
+    for cand in cands:
+        prob.set_visibility(cand, gate_a)
+        out = R._levenberg_marquardt(prob, cand, gate_px=gate_a, delta=max(R.DELTA_WIDE, R.DELTA),
+                                     max_iterations=int(max_iterations))
+        iterations += out.iterations
+        if best is None or out.ev.energy < best.ev.energy:
+            best = out
+    out, it = R._narrow_stage(prob, best.pose, int(max_iterations))
+    return _finish(prob, out, qs, carms, iterations + it, t0)
+
+
+def _view_fit(m3, q, carm: CArm, pose: Pose, plane: str, visible3) -> ViewFit:
+    mean_in, frac, _ = R._quality(m3, q, carm, pose) if len(q) else (float("inf"), 0.0, float("inf"))
+    fits = bool(mean_in <= R.MAX_MEAN_RESIDUAL_PX and frac >= R.MIN_INLIER_FRACTION)
+    explained = float(visible3.mean()) if visible3 is not None and len(visible3) else 0.0
+    single = R._explains_single_path(m3, visible3) if visible3 is not None else False
+    return ViewFit(plane, carm, carm.projection_matrix(pose), float(mean_in), float(frac), fits, explained, single)
+
+
+def _finish(prob: _JointProblem, out, qs, carms, iterations, t0) -> BiplaneRegistration:
+    pose = out.pose
+    m3 = prob.m3
+    views = tuple(_view_fit(m3, q, c, pose, p, sub.visible3) for q, c, p, sub in zip(qs, carms, PLANES, prob.probs))
+    cov = None
+    ev = prob.with_info(out.ev)
+    if ev.H_info is not None and ev.dof > 0:
+        try:
+            S = np.diag(prob.scale)
+            cov = S @ np.linalg.inv(ev.H_info) @ S * (ev.chi2 / ev.dof) * R.COVARIANCE_INFLATION**2
+            cov = 0.5 * (cov + cov.T)
+        except np.linalg.LinAlgError:
+            cov = None
+    pose_std = R._pose_std_mm(cov, pose, m3.points)
+    union = np.logical_or(*[p.visible3 for p in prob.probs])
+    single = R._explains_single_path(m3, union)
+    explained = float(union.mean()) if len(union) else 0.0
+    # two views measure the depth: a single path's stricter limit (its depth rests on perspective
+    # alone in one view) does not apply; the explained-fraction rule does
+    max_std = R.pose_std_limit_mm(explained, False)
+    fits = all(v.fits_2d for v in views)
+    ok = fits and pose_std <= max_std
+    why = []
+    for v in views:
+        if v.mean_residual_px > R.MAX_MEAN_RESIDUAL_PX:
+            why.append(f"plane {v.plane}: mean residual {v.mean_residual_px:.2f} px > {R.MAX_MEAN_RESIDUAL_PX}")
+        if v.inlier_fraction < R.MIN_INLIER_FRACTION:
+            why.append(f"plane {v.plane}: only {100 * v.inlier_fraction:.0f}% of the 2D centerline explained "
+                       f"(< {100 * R.MIN_INLIER_FRACTION:.0f}%)")
+    if pose_std > max_std:
+        why.append(f"the two roadmaps do not determine the pose (1-sigma {pose_std:.1f} mm > {max_std:.1f} mm with "
+                   f"{100 * explained:.0f}% of the tree explained)")
+    msg = (f"biplane LM {out.status} after {iterations} iterations; "
+           + "; ".join(f"plane {v.plane}: mean residual {v.mean_residual_px:.2f} px, {100 * v.inlier_fraction:.0f}% "
+                       f"inliers" for v in views)
+           + f"; pose 1-sigma {pose_std:.2f} mm (limit {max_std:.1f} mm: {100 * explained:.0f}% of the tree explained)"
+           + (" (single vessel path)" if single else ""))
+    if not ok:
+        msg = "untrustworthy: " + "; ".join(why) + " | " + msg
+    a = views[0]
+    res = R.RegistrationResult(
+        pose=pose, projection_matrix=carms[0].projection_matrix(pose), success=bool(ok), message=msg,
+        mean_residual_px=a.mean_residual_px, inlier_fraction=a.inlier_fraction, iterations=int(iterations),
+        seconds=time.perf_counter() - t0, covariance_6x6=cov, energy=out.ev.energy, pose_std_mm=pose_std,
+        single_path=single, fits_2d=bool(fits), explained_fraction=explained, max_pose_std_mm=max_std,
+    )
+    return BiplaneRegistration(res, views)
+
+
+# ============================================================================================
+# the per-pair engine
+# ============================================================================================
+@dataclass(frozen=True, eq=False)
+class BiplaneFrame:
+    """One pair of live frames' outcome.
+
+    ``result`` is a ``live.FrameResult`` (its ``wire2d`` plane A's, its ``wire3d`` the two-view
+    wire, or a single plane's after a fallback); ``views`` says which planes made the 3D wire
+    (``"AB"``, ``"A"``, ``"B"`` or ``""``), ``fallback`` why one plane was left out ("" when none).
+    """
+
+    result: object  # live.FrameResult
+    views: str
+    fallback: str
+    wire2d_b: object  # image2d.OrderedWire of plane B
+    projection_error_px: tuple[float, float]  # of the 3D wire in plane A and in plane B (NaN if none)
+    index_b: int
+    seconds: float
+
+    def __bool__(self) -> bool:
+        return bool(self.result)
+
+    def to_dict(self) -> dict:
+        def f(x):
+            return round(float(x), 4) if np.isfinite(x) else None
+
+        uv_b = np.asarray(getattr(self.wire2d_b, "points_uv_px", np.zeros((0, 2))), float).reshape(-1, 2) \
+            if self.wire2d_b is not None and self.wire2d_b else np.zeros((0, 2))
+        return {"views": self.views, "fallback": self.fallback, "index_b": int(self.index_b),
+                "projection_error_px_a": f(self.projection_error_px[0]),
+                "projection_error_px_b": f(self.projection_error_px[1]), "wire_uv_px_b": uv_b.tolist()}
+
+
+class BiplaneSession:
+    """The per-pair engine over one (joint) registration: one :class:`guidewire3d.live.session.Session` per
+    plane for the 2D analysis (each with its own segmenter and ROI tracking) and for the fallback,
+    and the two-view wire (:func:`guidewire3d.reconstruction.triangulation.triangulate_wire`) when both planes
+    show it.
+
+    Parameters
+    ----------
+    tree : VesselTree
+    carms : pair of CArm
+        The live frames' views of plane A and plane B.
+    pose : Pose
+        ``T_iso_from_lps`` (shared by both planes).
+    registration_covariance : (6, 6) ndarray, optional
+    segmenter, method, options
+        As :class:`guidewire3d.live.session.Session` (``method`` is the single-view fallback's); ``segmenter``
+        may also be a pair of segmenter objects, one per plane.
+    threads : int
+        2: the two planes' 2D analyses (segmentation, ordered wire) run in two threads (the
+        network and most of the image code release the GIL); 1: one after the other.
+    """
+
+    def __init__(self, tree, carms, pose: Pose, *, registration_covariance=None, segmenter="unet",
+                 method="vessel", options=None, two_view_options=None, threads: int = 2):
+        if len(carms) != 2:
+            raise InputError("BiplaneSession: expected two C-arms (plane A, plane B)")
+        self.tree, self.carms, self.pose = tree, tuple(carms), pose
+        segs = tuple(segmenter) if isinstance(segmenter, (tuple, list)) else (segmenter, segmenter)
+        if len(segs) != 2 or (segs[0] is segs[1] and hasattr(segs[0], "segment")):
+            raise InputError("BiplaneSession: segmenter must be a name or one segmenter object per plane (each keeps "
+                             "its own ROI tracking)")
+        self.sessions = tuple(live.Session(tree, c, pose, registration_covariance=registration_covariance,
+                                           segmenter=sg, method=method, options=options)
+                              for c, sg in zip(self.carms, segs))
+        self.context = TwoViewContext(tree, self.carms, pose, registration_covariance=registration_covariance,
+                                      options=two_view_options)
+        self.n_pairs = 0
+        if int(threads) not in (1, 2):
+            raise InputError(f"BiplaneSession: threads must be 1 or 2, got {threads!r}")
+        self._pool = None
+        if int(threads) == 2:
+            from concurrent.futures import ThreadPoolExecutor
+
+            self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="guidewire3d-plane-b")
+
+    def close(self) -> None:
+        """Stop the plane-B worker thread (also done when the session is garbage-collected)."""
+        if self._pool is not None:
+            self._pool.shutdown(wait=True)
+            self._pool = None
+
+    def __del__(self):
+        pool = getattr(self, "_pool", None)
+        if pool is not None:
+            pool.shutdown(wait=False)
+
+    def warm_up(self, frame_a, frame_b) -> None:
+        for s, f in zip(self.sessions, (frame_a, frame_b)):
+            s.warm_up(f)
+
+    def reset(self) -> None:
+        for s in self.sessions:
+            s.reset()
+
+    def _single_view(self, k: int, uv) -> object:
+        """Plane k's single-view reconstruction of ``uv`` (no tracking state is changed)."""
+        s = self.sessions[k]
+        return reconstruct_wire(uv, s.pose, s.carm, self.tree, method="vessel",
+                                registration_covariance=s.registration_covariance, options=s.options)
+
+    def _wire2d(self, k: int, frame):
+        """Plane k's ordered 2D wire (or an error message)."""
+        s = self.sessions[k]
+        try:
+            img = np.asarray(frame)
+            mask = s.segmenter.segment(img)
+            return image2d.ordered_wire(mask, image=img, proximal_hint_uv=s.root_uv_px), img, ""
+        except Guidewire3DError as e:
+            return None, None, f"bad frame: {e}"
+        except Exception as e:  # noqa: BLE001 - a live session reports a broken frame and goes on
+            return None, None, f"internal error in the 2D analysis: {e.__class__.__name__}: {e}"
+
+    def process(self, frame_a, frame_b, *, index: int | None = None, index_b: int | None = None) -> BiplaneFrame:
+        """Segment and order both frames, then triangulate; one plane's wire missing: single view."""
+        t0 = time.perf_counter()
+        index = self.n_pairs if index is None else int(index)
+        index_b = index if index_b is None else int(index_b)
+        if self._pool is not None:  # plane B in the worker thread, plane A here
+            fut = self._pool.submit(self._wire2d, 1, frame_b)
+            got = [self._wire2d(0, frame_a), fut.result()]
+        else:
+            got = [self._wire2d(k, f) for k, f in enumerate((frame_a, frame_b))]
+        return self.process_wires(got[0][0], got[1][0], images=(got[0][1], got[1][1]), index=index, index_b=index_b,
+                                  errors=(got[0][2], got[1][2]), t0=t0)
+
+    def process_wires(self, wire_a, wire_b, *, images=(None, None), index: int | None = None,
+                      index_b: int | None = None, errors=("", ""), t0: float | None = None) -> BiplaneFrame:
+        """Reconstruct a pair from its ordered 2D wires (``OrderedWire`` or (M, 2) px arrays; None or
+        a falsy wire when a plane's wire was not found)."""
+        t0 = time.perf_counter() if t0 is None else t0
+        index = self.n_pairs if index is None else int(index)
+        index_b = index if index_b is None else int(index_b)
+        self.n_pairs += 1
+        wires = [wire_a, wire_b]
+        why = []
+        for k, (w, err) in enumerate(zip(wires, errors)):
+            if w is None:
+                why.append(f"plane {PLANES[k]}: {err or '2D wire not found'}")
+                wires[k] = _no_wire(err or "2D wire not found")
+            elif hasattr(w, "success") and not w:
+                why.append(f"plane {PLANES[k]}: 2D wire not found ({w.message})")
+            elif len(np.asarray(w, float).reshape(-1, 2)) < 2:
+                why.append(f"plane {PLANES[k]}: 2D wire not found (fewer than 2 points)")
+        present = [k for k in range(2) if not any(s.startswith(f"plane {PLANES[k]}:") for s in why)]
+        tv = None
+        if len(present) == 2:
+            uv = [np.asarray(w, float).reshape(-1, 2) for w in wires]
+            tv = triangulate_wire(uv[0], uv[1], self.context)
+            if tv:
+                tv = extend_distal(tv, uv[0], uv[1], self.context, self._single_view)
+                w3 = tv.wire3d
+                s_a = self.sessions[0]
+                ori = orientation_of(w3, uv[0], root_uv_px=s_a.root_uv_px)
+                verdict, message = Verdict.OK, w3.message
+                if ori.conflict or not ori.determined:
+                    verdict, message = Verdict.UNCERTAIN, ori.explain()
+                fr = FrameResult(index, wires[0], w3, verdict, message, ori, time.perf_counter() - t0, float("nan"),
+                                 self.pose)
+                return BiplaneFrame(fr, "AB", "", wires[1], tv.projection_error_px, index_b, fr.seconds)
+            why.append(f"two-view matching failed: {tv.wire3d.message}")
+            # the plane whose wire is longer carries the single-view fallback
+            present = [int(np.argmax([len(u) for u in uv]))]
+        if not present:
+            msg = "; ".join(why)
+            fr = self.sessions[0]._failed(index, wires[0], msg, t0, float("nan"))
+            return BiplaneFrame(fr, "", msg, wires[1], (float("nan"), float("nan")), index_b, fr.seconds)
+        k = present[0]
+        fr_k = self.sessions[k].process_wire(wires[k], image=images[k], index=index)
+        fallback = f"one view (plane {PLANES[k]} only): " + "; ".join(why)
+        perr = [float("nan"), float("nan")]
+        if fr_k.wire3d:
+            perr[k] = float(fr_k.wire3d.projection_error_px)
+        fr = FrameResult(index, wires[0], fr_k.wire3d, fr_k.verdict, f"{fallback}. {fr_k.message}".strip(),
+                         fr_k.orientation, time.perf_counter() - t0, float("nan"), self.pose)
+        return BiplaneFrame(fr, PLANES[k] if fr_k.wire3d else "", fallback, wires[1], tuple(perr), index_b, fr.seconds)
+
+
+# ============================================================================================
+# inputs: planes and frame pairs
+# ============================================================================================
+def check_planes(roadmaps, frames) -> None:
+    """InputError naming the file if the two planes cannot form a biplane: the live frames' view of
+    a plane must be its roadmap's (same angles), and the planes' beams far enough apart."""
+    for p, r, f in zip(PLANES, roadmaps, frames):
+        a, b = r.carm, f.carm
+        if abs(a.primary_deg - b.primary_deg) > 0.5 or abs(a.secondary_deg - b.secondary_deg) > 0.5:
+            raise InputError(f"{f.source}: plane {p}'s live frames are at {b.primary_deg:+.1f}/{b.secondary_deg:+.1f} deg "
+                             f"(PositionerPrimaryAngle/PositionerSecondaryAngle) but its roadmap {r.source} at "
+                             f"{a.primary_deg:+.1f}/{a.secondary_deg:+.1f} deg: the roadmaps and frames must be given "
+                             "in the same plane order (A, B)")
+    sep = _beam_angle_deg(roadmaps[0].carm, roadmaps[1].carm)
+    if min(sep, 180.0 - sep) < MIN_SEPARATION_DEG:
+        raise InputError(f"{roadmaps[1].source}: plane B's beam is {sep:.1f} deg from plane A's ({roadmaps[0].source}; "
+                         f"PositionerPrimaryAngle/PositionerSecondaryAngle): a biplane needs at least "
+                         f"{MIN_SEPARATION_DEG:g} deg between the planes")
+
+
+def pair_frames(frames_a: io.XARun, frames_b: io.XARun, ids_a, ids_b) -> list[tuple[int, int]]:
+    """Pairs ``(frame of A, frame of B)`` of the live frames: by acquisition time when both runs have
+    a FrameTime and they differ, else by index (then the counts must match)."""
+    ids_a, ids_b = list(ids_a), list(ids_b)
+    ta, tb = frames_a.frame_time_ms, frames_b.frame_time_ms
+    if ta and tb and abs(ta - tb) > 1e-3:
+        times_b = np.asarray(ids_b, float) * tb
+        pairs = []
+        for i in ids_a:
+            k = int(np.argmin(np.abs(times_b - i * ta)))
+            if abs(times_b[k] - i * ta) <= 0.5 * max(ta, tb):
+                pairs.append((i, ids_b[k]))
+        if not pairs:
+            raise InputError(f"{frames_b.source}: no live frame within half a frame time of plane A's "
+                             f"({frames_a.source}; FrameTime {ta:g} / {tb:g} ms)")
+        return pairs
+    if len(ids_a) != len(ids_b):
+        raise InputError(f"{frames_b.source}: {len(ids_b)} live frames in plane B but {len(ids_a)} in plane A "
+                         f"({frames_a.source}): mismatched frame counts cannot be paired by index (and the "
+                         "FrameTime (0018,1063) of both runs is the same or missing, so not by time)")
+    return list(zip(ids_a, ids_b))
+
+
+# ============================================================================================
+# the chain and its output folder
+# ============================================================================================
+@dataclass(frozen=True, eq=False)
+class BiplaneResult:
+    """The biplane chain's outcome: ``plane_a`` is a ``pipeline.PipelineResult`` of plane A whose
+    registration is the joint one and whose frames are the pairs' 3D wires (so the single-view
+    writers and the viewer read it), plus plane B's inputs and each pair's record."""
+
+    plane_a: object  # pipeline.PipelineResult
+    registration: BiplaneRegistration
+    roadmap_b_image: np.ndarray
+    roadmap_b_frame_index: int
+    centerline2d_b: object
+    carm_b: CArm
+    frames_carm_b: CArm
+    frames_b: np.ndarray
+    pairs: list = field(default_factory=list)  # BiplaneFrame per pair
+
+
+def _frame_ids(road: io.XARun, live: io.XARun, k: int) -> list[int]:
+    if live is road:
+        return [i for i in range(live.n_frames) if i != k] or [k]
+    return list(range(live.n_frames))
+
+
+def run(volume, roadmaps, frames, *, roadmap_frame=None, seeds_lps_mm=None, method="vessel", segmenter="unet",
+        force: bool = False, progress: bool = False, log=None) -> BiplaneResult:
+    """The biplane chain on in-memory inputs: CTA vessels, both roadmaps' centerlines, the joint
+    registration, then every pair of live frames through a :class:`BiplaneSession`."""
+    check_planes(roadmaps, frames)
+    timing: dict[str, float] = {}
+    t0 = time.perf_counter()
+    vessels = vessels3d.extract_vessels(volume, seeds_lps_mm=seeds_lps_mm, progress=progress)
+    timing["cta_vessels"] = time.perf_counter() - t0
+    tree = vessels.tree
+
+    t0 = time.perf_counter()
+    ks, imgs, cls = zip(*(pipeline.roadmap_centerline_of(road, tree, roadmap_frame) for road in roadmaps))
+    timing["roadmap_2d"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    breg = register_biplane(tree, [c.points_uv_px for c in cls], [r.carm for r in roadmaps],
+                            centerline_radius_px=[c.radius_px for c in cls])
+    reg = breg.result
+    timing["registration"] = time.perf_counter() - t0
+    if log is not None:
+        log(f"biplane registration: {reg.verdict.label} ({reg.message})")
+
+    ids = [_frame_ids(r, f, k) for r, f, k in zip(roadmaps, frames, ks)]
+    pairs = pair_frames(frames[0], frames[1], ids[0], ids[1])
+    live_a, live_b = np.asarray(frames[0].frames), np.asarray(frames[1].frames)
+    ia = [p[0] for p in pairs]
+    ib = [p[1] for p in pairs]
+    records = []
+    if reg.success or force:
+        session = BiplaneSession(tree, (frames[0].carm, frames[1].carm), reg.pose,
+                                 registration_covariance=reg.covariance_6x6, segmenter=segmenter, method=method)
+        session.warm_up(live_a[ia[0]], live_b[ib[0]])
+        t_frames = time.perf_counter()
+        it = zip(ia, ib)
+        if progress:
+            from tqdm import tqdm
+
+            it = tqdm(list(it), desc="frame pairs", unit="pair", file=sys.stderr, leave=False)
+        for i, j in it:
+            records.append(session.process(live_a[i], live_b[j], index=i, index_b=j))
+        timing["frames"] = time.perf_counter() - t_frames
+    else:
+        timing["frames"] = 0.0
+    frs = [r.result for r in records]
+    plane_a = pipeline.PipelineResult(
+        volume, vessels, imgs[0], ks[0], cls[0], roadmaps[0].carm, frames[0].carm, reg, live_a[ia],
+        [fr.wire2d for fr in frs], [fr.wire3d for fr in frs], timing, [r.seconds for r in records],
+        ia if records else [], reconstructed=bool(records), frame_results=frs)
+    return BiplaneResult(plane_a, breg, imgs[1], ks[1], cls[1], roadmaps[1].carm, frames[1].carm, live_b[ib], records)
+
+
+def report_additions(result: BiplaneResult, inputs: dict) -> dict:
+    """What a biplane run adds to ``report.json``: ``inputs`` with both planes' files, ``biplane``
+    (each plane's geometry, projection matrix and roadmap fit) and per frame ``biplane``."""
+    views = []
+    for v, road_k, carm_f in zip(result.registration.views, (result.plane_a.roadmap_frame_index,
+                                                             result.roadmap_b_frame_index),
+                                 (result.plane_a.frames_carm, result.frames_carm_b)):
+        d = v.to_dict()
+        d["roadmap_frame"] = int(road_k)
+        d["frames_carm"] = carm_f.to_dict()
+        views.append(d)
+    return {"inputs": inputs, "biplane": {"planes": views, "n_pairs": len(result.pairs),
+                                          "two_view_pairs": sum(1 for p in result.pairs if p.views == "AB"),
+                                          "fallback_pairs": sum(1 for p in result.pairs if p.fallback)}}
+
+
+def write_outdir(result: BiplaneResult, out_dir: Path, *, inputs: dict, images: bool = True, screenshot=None) -> None:
+    """The single-view output folder of plane A (the joint pose, the pairs' 3D wires) plus plane B:
+    ``report.json`` gets ``biplane`` and each frame's ``biplane`` record; ``overlay_b_NNNN.png``."""
+    export.write_outdir(result.plane_a, out_dir, inputs=inputs, images=images, screenshot=screenshot)
+    rep_path = Path(out_dir) / "report.json"
+    rep = json.loads(rep_path.read_text())
+    add = report_additions(result, inputs)
+    rep["inputs"] = add["inputs"]
+    rep["biplane"] = add["biplane"]
+    for fr, p in zip(rep["frames"], result.pairs):
+        fr["biplane"] = p.to_dict()
+    io.atomic_write_text(rep_path, json.dumps(rep, indent=1))
+    if images:
+        pose = result.registration.pose
+        cl_uv = result.carm_b.project(result.plane_a.tree.points_lps_mm, pose)
+        for p, frame in zip(result.pairs, result.frames_b):
+            w3 = p.result.wire3d
+            w3uv = result.frames_carm_b.project(w3.points_lps_mm, pose) if w3 else None
+            txt = (f"plane B frame {p.index_b}: {p.views or 'no'} view(s), proj err "
+                   f"{p.projection_error_px[1]:.2f} px" if w3 else f"plane B frame {p.index_b}: {w3.message}")
+            uv_b = getattr(p.wire2d_b, "points_uv_px", None) if p.wire2d_b is not None and p.wire2d_b else None
+            rgb = export.overlay_image(frame, centerline_uv_px=cl_uv, wire2d_uv_px=uv_b, wire3d_uv_px=w3uv, text=txt)
+            export.write_png(Path(out_dir) / f"overlay_b_{p.result.index:04d}.png", rgb)
+
+
+def run_to_outdir(cta, roadmaps, frames, out_dir, *, series_uid=None, roadmap_frame=None, seeds_lps_mm=None,
+                  method="vessel", segmenter="unet", force=False, images=True, progress=True, log=None,
+                  screenshot=None) -> BiplaneResult:
+    """Read both planes' files and the CTA, run, and write ``out_dir`` atomically (as
+    ``pipeline.run_to_outdir``: every input checked before the heavy work, a staging folder renamed
+    at the end)."""
+    out_dir = Path(out_dir)
+    io.require_empty_folder(out_dir, min_free_mb=pipeline.MIN_FREE_MB)
+    t0 = time.perf_counter()
+    roads = [pipeline.read_xa_input(r) for r in roadmaps]
+    lives = [road if Path(f).resolve() == Path(r).resolve() else pipeline.read_xa_input(f)
+             for road, r, f in zip(roads, roadmaps, frames)]
+    check_planes(roads, lives)
+    ks = [pipeline.choose_roadmap_frame(r, roadmap_frame) for r in roads]
+    pair_frames(lives[0], lives[1], *[_frame_ids(r, f, k) for r, f, k in zip(roads, lives, ks)])
+    vol = io.read_volume(cta, series_uid=series_uid, log=log)
+    pipeline.check_seeds(vol, seeds_lps_mm)
+    t_load = time.perf_counter() - t0
+    with io.staged_folder(out_dir) as staging:
+        result = run(vol, roads, lives, roadmap_frame=roadmap_frame, seeds_lps_mm=seeds_lps_mm, method=method,
+                     segmenter=segmenter, force=force, progress=progress, log=log)
+        result.plane_a.timing["load_inputs"] = t_load
+        inputs = {
+            "cta": str(Path(cta).resolve()),
+            "roadmap": str(Path(roadmaps[0]).resolve()),
+            "frames": str(Path(frames[0]).resolve()),
+            "roadmap_b": str(Path(roadmaps[1]).resolve()),
+            "frames_b": str(Path(frames[1]).resolve()),
+            "roadmap_frame": result.plane_a.roadmap_frame_index,
+            "roadmap_frame_b": result.roadmap_b_frame_index,
+            "series_uid": vol.series_uid,
+            "method": str(getattr(method, "value", method)),
+            "segmenter": str(getattr(segmenter, "value", segmenter)),
+            "forced": bool(force),
+            "track_motion": False,
+            "biplane": True,
+        }
+        io.write_into(out_dir, staging, lambda st: write_outdir(result, st, inputs=inputs, images=images,
+                                                                screenshot=screenshot))
+    return result

@@ -1,0 +1,564 @@
+"""Vessels of any angiographic volume: an intensity model from the data, plausibility checks (issue 17).
+
+:mod:`guidewire3d.cta.vessels3d` segments in fixed HU. This module makes the same stage work on a
+contrast CTA in HU, an MR angiogram in arbitrary units or a 3D rotational angiogram, for vessels
+from 0.5 to 16 mm radius (an aorta with its branches, coronaries with theirs), and refuses a volume
+in which it cannot find a plausible vessel tree instead of returning garbage:
+
+1. :func:`check_geometry` - voxel spacing and field of view of a human body part.
+2. :func:`estimate_intensity_model` - the background (soft tissue), the noise and the contrast
+   lumen level taken from the volume itself: the lumen is the mode of the intensity histogram of
+   the bright voxels that answer a multi-scale Frangi vesselness (the bright tubular mode), or the
+   intensity at the seeds when seeds are given. Every number is a quantile, a median or a mode of
+   the data, so an affine change of the intensity scale (HU -> arbitrary units) changes the model
+   the same way and the segmentation not at all.
+3. :meth:`IntensityModel.vessel_options` - the segmentation thresholds of
+   :class:`guidewire3d.cta.vessels3d.VesselOptions` as fractions of the lumen-background contrast (at a
+   lumen of 400 HU over 40 HU they are the HU defaults of issue 4).
+4. :func:`check_plausibility` - vessel volume against the body, branch count, total length and
+   tubularity against the field of view; an implausible tree is a ``SegmentationError`` that says
+   what was implausible and suggests seeds.
+
+:func:`extract_vessels_auto` chains them with the segmentation, surface and centerline of
+:mod:`guidewire3d.cta.vessels3d`.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import asdict, dataclass, field, replace
+
+import numpy as np
+from guidewire3d import io
+from guidewire3d.cta import vessels3d
+from guidewire3d.cta.vessels3d import VesselOptions, _frangi_at
+from guidewire3d.errors import InputError, SegmentationError
+from scipy import ndimage as ndi
+
+__all__ = [
+    "IntensityModel",
+    "Plausibility",
+    "AutoVessels",
+    "check_geometry",
+    "estimate_intensity_model",
+    "check_plausibility",
+    "extract_vessels_auto",
+    "MIN_RADIUS_MM",
+    "MAX_RADIUS_MM",
+]
+
+#: The calibre range of the stage (radius, mm): coronary side branches to an aorta.
+MIN_RADIUS_MM = 0.5
+MAX_RADIUS_MM = 16.0
+#: Voxel spacing (mm) and field of view (mm) of a human CT / MR / 3DRA volume.
+SPACING_RANGE_MM = (0.1, 8.0)
+MAX_FOV_MM = 2200.0  # whole-body CT length
+MAX_FOV_SHORT_MM = 800.0  # the second-longest extent (a scanner bore)
+MIN_FOV_MM = 20.0
+#: Frangi scales (Gaussian sigma, mm) of the intensity model; a tube of radius r answers best
+#: near sigma = r / 2 (0.75 mm .. 8 mm: radius 1.5 .. 16 mm; thinner vessels are too few voxels
+#: to set a level).
+MODEL_SCALES_MM = (0.75, 1.5, 3.0, 5.5, 8.0)
+#: The model works on a block-averaged copy with voxels of about this size (mm).
+MODEL_VOXEL_MM = 1.2
+#: At most this many candidate voxels are sampled for the lumen histogram.
+MAX_MODEL_SAMPLES = 150_000
+#: The background (tissue) level is this percentile of the body's voxels.
+BACKGROUND_PERCENTILE = 75.0
+#: A histogram peak counts as a mode at this fraction of the highest peak.
+MODE_MIN_MASS = 0.2
+#: In calibrated CT a contrast lumen is below this (HU); brighter tubes are bone.
+HU_LUMEN_MAX = 650.0
+HU_BONE_MIN = 620.0
+#: Vesselness (0..1) above which a bright voxel counts as tubular.
+TUBULAR_MIN = 0.15
+#: Thresholds of the segmentation as fractions of the contrast ``lumen - background``; at 40 / 400
+#: HU these are issue 4's defaults (100, 160 HU) and a bone threshold just under its 620 HU.
+LUMEN_MIN_FRACTION = 0.17
+CROP_FRACTION = 0.33
+BONE_FACTOR = 1.45
+#: A lumen voxel's local peak (the plateau it belongs to) reaches this fraction of the contrast:
+#: enhancing parenchyma (spleen, kidney cortex, liver) stays below it, a 0.5 mm vessel does not.
+PEAK_FRACTION = 0.4
+#: Only voxels within this distance (mm) of a tubular voxel are vessel (the vessel stage's
+#: ``tubular_support_mm``).
+TUBULAR_SUPPORT_MM = 3.0
+#: A lumen needs at least this contrast over the background, in noise standard deviations.
+MIN_CNR = 5.0
+#: Plausibility limits of a vessel tree (see :func:`check_plausibility`).
+MAX_VESSEL_BODY_FRACTION = 0.2
+MAX_LENGTH_PER_FOV = 40.0
+MIN_MEAN_BRANCH_MM = 4.0
+MAX_BRANCHES = 1500
+MAX_VOLUME_PER_TUBE = 2.5
+
+
+@dataclass(frozen=True)
+class IntensityModel:
+    """What the volume's intensities mean, estimated from the volume (its own units).
+
+    ``lumen`` is the contrast-filled lumen level, ``background`` the soft tissue around the
+    vessels, ``noise`` the standard deviation of the voxel noise; ``bone`` the level above which a
+    voxel is bone (or metal, or undiluted contrast in a vein) rather than lumen, ``None`` when the
+    volume has no such brighter class (MRA, 3DRA). ``hu`` tells whether the volume looks like
+    calibrated CT (air near -1000, tissue near 0-100 HU). ``lumen_radius_mm`` is the typical radius
+    of the tubular structures the lumen level was read from; ``source`` is ``"automatic"`` or
+    ``"seeds"``.
+    """
+
+    background: float
+    lumen: float
+    noise: float
+    bone: float | None
+    hu: bool
+    lumen_radius_mm: float
+    tubular_cm3: float
+    source: str = "automatic"
+
+    @property
+    def contrast(self) -> float:
+        return self.lumen - self.background
+
+    @property
+    def cnr(self) -> float:
+        return self.contrast / max(self.noise, 1e-6 * max(abs(self.contrast), 1.0))
+
+    def vessel_options(self, base=None, *, max_radius_mm: float = MAX_RADIUS_MM):
+        """:class:`guidewire3d.cta.vessels3d.VesselOptions` in this volume's units."""
+        base = base or VesselOptions()
+        c = self.contrast
+        bone = self.bone if self.bone is not None else self.lumen + 1e3 * max(c, 1.0)
+        scales = tuple(sorted(set(base.vesselness_scales_mm) | {5.0, 9.0})) if max_radius_mm > 8 else \
+            base.vesselness_scales_mm
+        return replace(base, lumen_min_hu=self.background + LUMEN_MIN_FRACTION * c,
+                       crop_hu=self.background + CROP_FRACTION * c, bone_min_hu=float(bone),
+                       max_vessel_radius_mm=float(max_radius_mm), vesselness_scales_mm=scales,
+                       background_hu=self.background, min_peak_hu=self.background + PEAK_FRACTION * c,
+                       tubular_support_mm=TUBULAR_SUPPORT_MM)
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d["contrast"] = self.contrast
+        d["cnr"] = self.cnr
+        d["units"] = "HU" if self.hu else "arbitrary (not HU)"
+        return {k: (round(v, 3) if isinstance(v, float) else v) for k, v in d.items()}
+
+
+@dataclass(frozen=True)
+class Plausibility:
+    """The numbers :func:`check_plausibility` judged, and its verdict."""
+
+    vessel_cm3: float
+    body_cm3: float
+    n_branches: int
+    total_length_mm: float
+    fov_mm: float
+    mean_branch_mm: float
+    tube_cm3: float
+    max_radius_mm: float
+    problems: tuple[str, ...] = ()
+
+    @property
+    def ok(self) -> bool:
+        return not self.problems
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d["problems"] = list(self.problems)
+        d["ok"] = self.ok
+        return {k: (round(v, 3) if isinstance(v, float) else v) for k, v in d.items()}
+
+
+@dataclass(frozen=True, eq=False)
+class AutoVessels:
+    """The vessel stage's result with the intensity model and the plausibility record."""
+
+    vessels: object  # vessels3d.CTAVessels
+    model: IntensityModel
+    plausibility: Plausibility
+    seconds: dict = field(default_factory=dict)
+
+
+# --------------------------------------------------------------------------------------
+# geometry
+# --------------------------------------------------------------------------------------
+def check_geometry(volume: io.Volume) -> None:
+    """InputError when the voxel spacing or the field of view cannot be a human body part.
+
+    A spacing off by a factor of ten (a wrong header, millimetres taken for centimetres) makes
+    every vessel ten times too wide or too narrow; this is the cheap part of that check (the
+    calibre of the vessels found is the other).
+    """
+    what = volume.source or "volume"
+    sp = np.asarray(volume.spacing_mm, dtype=float)
+    lo, hi = SPACING_RANGE_MM
+    if sp.min() < lo or sp.max() > hi:
+        raise InputError(f"{what}: implausible voxel spacing {tuple(round(float(s), 4) for s in sp)} mm "
+                         f"(a CT, MR or 3DRA volume has {lo:g}-{hi:g} mm voxels); check the spacing in the header")
+    fov = np.sort(sp * np.array(volume.shape_zyx[::-1]))
+    if fov[-1] > MAX_FOV_MM or fov[-2] > MAX_FOV_SHORT_MM:
+        raise InputError(f"{what}: implausible field of view {tuple(round(float(f)) for f in fov)} mm (larger "
+                         f"than a body); check the voxel spacing in the header")
+    if fov[-1] < MIN_FOV_MM:
+        raise InputError(f"{what}: field of view of {fov[-1]:.1f} mm is too small for vessels "
+                         f"(at least {MIN_FOV_MM:g} mm expected); check the voxel spacing in the header")
+
+
+# --------------------------------------------------------------------------------------
+# intensity model
+# --------------------------------------------------------------------------------------
+def _block_mean(a: np.ndarray, f: np.ndarray) -> np.ndarray:
+    """Mean over ``f = (fz, fy, fx)`` blocks (the remainder is dropped), float32."""
+    n = (np.array(a.shape) // f) * f
+    if np.all(f == 1):
+        return np.asarray(a, dtype=np.float32)
+    b = a[:n[0], :n[1], :n[2]].reshape(n[0] // f[0], f[0], n[1] // f[1], f[1], n[2] // f[2], f[2])
+    return b.mean(axis=(1, 3, 5), dtype=np.float32)
+
+
+def _otsu(values: np.ndarray) -> float:
+    from skimage.filters import threshold_otsu
+
+    return float(threshold_otsu(values, nbins=512))
+
+
+def _body_mask(ds: np.ndarray) -> tuple[np.ndarray, float | None]:
+    """The body (what is not air, lung or the padding outside a CT's reconstruction circle).
+
+    Otsu's threshold is applied repeatedly (at most three times) while its lower class is
+    air-like: 5-90 % of what is left and more than 4 robust standard deviations of the upper class
+    below it, and the upper class's share of the volume
+    stays above 15 % (vessels and bone alone never fill that much). Returns the mask and the
+    median of the last air-like class (``None``: no air, the whole volume is body).
+    """
+    body = np.ones(ds.shape, bool)
+    lo_mode = None
+    n = ds.size
+    for _ in range(3):
+        v = ds[body]
+        sub = v[:: max(1, v.size // 2_000_000)]
+        t = _otsu(sub)
+        low = sub < t
+        below = float(np.mean(low))
+        if not 0.05 < below < 0.9:
+            break
+        lo_med, hi = float(np.median(sub[low])), sub[~low]
+        hi_med = float(np.median(hi))
+        hi_spread = 1.4826 * float(np.median(np.abs(hi - hi_med)))
+        upper = body & (ds >= t)
+        if (hi_med - lo_med) < 4.0 * hi_spread or upper.sum() < 0.15 * n:
+            break
+        body, lo_mode = upper, lo_med
+    return body, lo_mode
+
+
+def _noise_sigma(a: np.ndarray, band: tuple[float, float] | None = None) -> float:
+    """Voxel noise: robust std of ``a`` minus the mean of its 4 in-slice neighbours, corrected for
+    the neighbours' own noise (white noise), over the voxels whose value lies in ``band`` (on at
+    most about 40 slices)."""
+    if a.shape[0] > 80:
+        a = a[:: a.shape[0] // 40]
+    a = np.asarray(a, dtype=np.float32)
+    mask = None if band is None else (a >= band[0]) & (a <= band[1])
+    if min(a.shape[1:]) < 3:
+        return 0.0
+    c = a[:, 1:-1, 1:-1]
+    r = c - 0.25 * (a[:, :-2, 1:-1] + a[:, 2:, 1:-1] + a[:, 1:-1, :-2] + a[:, 1:-1, 2:])
+    if mask is not None:
+        r = r[mask[:, 1:-1, 1:-1]]
+    r = r.ravel()
+    if r.size == 0:
+        return 0.0
+    mad = float(np.median(np.abs(r - np.median(r))))
+    return 1.4826 * mad / np.sqrt(1.0 + 1.0 / 4.0)
+
+
+def _lumen_mode(values: np.ndarray, weights: np.ndarray, bin_width: float) -> float:
+    """The lowest significant mode of a weighted histogram (``MODE_MIN_MASS`` of the highest peak's
+    height): the contrast lumen, below bone (CT) when both are tubular."""
+    if len(values) == 0:
+        return float("nan")
+    lo, hi = np.percentile(values, [0.5, 99.5])
+    if not hi > lo:
+        return float(np.median(values))
+    nb = int(np.clip(np.ceil((hi - lo) / max(bin_width, 1e-9)), 8, 4000))
+    h, e = np.histogram(values, bins=nb, range=(lo, hi), weights=weights)
+    h = ndi.gaussian_filter1d(h.astype(float), 2.0, mode="constant")
+    peaks = np.flatnonzero((h >= np.r_[-1.0, h[:-1]]) & (h > np.r_[h[1:], -1.0]) & (h >= MODE_MIN_MASS * h.max()))
+    k = int(peaks[0]) if len(peaks) else int(np.argmax(h))
+    return float(0.5 * (e[k] + e[k + 1]))
+
+
+def estimate_intensity_model(volume: io.Volume, *, seeds_lps_mm=None) -> IntensityModel:
+    """Background, noise and contrast-lumen level of an angiographic volume, from its voxels.
+
+    Parameters
+    ----------
+    volume : io.Volume
+        CTA (HU), MRA (arbitrary units) or 3DRA.
+    seeds_lps_mm : (K, 3) array_like of float, optional
+        Points inside lumens: the lumen level is read there instead of found.
+
+    Returns
+    -------
+    IntensityModel
+
+    Raises
+    ------
+    InputError
+        A seed outside the volume or not in a bright lumen.
+    SegmentationError
+        No contrast-filled lumen: no bright tubular structure, too little contrast over the noise,
+        or (a CT in HU) the brightest tubular structures are bone, not contrast.
+
+    Notes
+    -----
+    On a copy block-averaged to voxels of about ``MODEL_VOXEL_MM``: the body is what lies above
+    Otsu's threshold (air, and lungs, below); the background is the body's median and its spread
+    the body's robust standard deviation. Voxels brighter than ``background + 2.5 spread`` are
+    candidates; a multi-scale Frangi vesselness (``MODEL_SCALES_MM``) is computed there on the
+    image windowed between background and the candidates' 99th percentile, then once more with
+    the window (background, lumen) of the first estimate. The lumen level is the mode of the
+    vesselness-weighted histogram of the candidates with a vesselness above ``TUBULAR_MIN``. A
+    brighter class (bone) is assumed when the volume looks like calibrated CT or has more than
+    2 cm3 of voxels above ``background + 2 (lumen - background)``; its threshold is
+    ``background + BONE_FACTOR (lumen - background)``.
+    """
+    what = volume.source or "volume"
+    check_geometry(volume)
+    a = volume.array_zyx
+    sp_zyx = np.asarray(volume.spacing_mm, dtype=float)[::-1]
+    f = np.maximum(np.round(MODEL_VOXEL_MM / sp_zyx), 1).astype(int)
+    f = np.minimum(f, np.maximum(np.array(a.shape) // 8, 1))
+    ds = _block_mean(a, f)
+    sp_ds = sp_zyx * f
+    vox_cm3 = float(np.prod(sp_ds)) / 1000.0
+
+    # -- body, background, spread, noise
+    body, lo_mode = _body_mask(ds)
+    air_like = lo_mode is not None
+    bvals = ds[body]
+    med = float(np.median(bvals))
+    spread = 1.4826 * float(np.median(np.abs(bvals - med)))
+    # the tissue level around vessels: the upper quartile of the body (a CT body's median sits
+    # between fat and muscle; the lumen threshold must clear enhancing soft tissue)
+    bg = float(np.percentile(bvals, BACKGROUND_PERCENTILE))
+    noise = _noise_sigma(a, band=(bg - 2.0 * spread, bg + 2.0 * spread))
+    noise = max(noise, 1e-6 * max(abs(bg), 1.0))
+    hu = bool(-60.0 <= med <= 160.0 and (not air_like or -1200.0 <= lo_mode <= -300.0))
+
+    if seeds_lps_mm is not None:
+        seeds = np.atleast_2d(np.asarray(seeds_lps_mm, dtype=float))
+        levels = []
+        for s in seeds:
+            idx = volume.lps_to_index_zyx(s[None])[0]
+            shape = np.array(volume.shape_zyx)
+            lab = f"--seed-lps={','.join(f'{v:g}' for v in s)}"
+            if np.any(idx < -0.5) or np.any(idx > shape - 0.5):
+                lo_b, hi_b = volume.bounds_lps_mm
+                raise InputError(f"{lab}: outside {what} (LPS bounds {np.round(lo_b, 1).tolist()} .. "
+                                 f"{np.round(hi_b, 1).tolist()} mm)")
+            c = np.rint(idx).astype(int)
+            r = np.ceil(1.5 / sp_zyx).astype(int)
+            lo_i, hi_i = np.maximum(c - r, 0), np.minimum(c + r + 1, shape)
+            win = ndi.gaussian_filter(np.asarray(a[lo_i[0]:hi_i[0], lo_i[1]:hi_i[1], lo_i[2]:hi_i[2]],
+                                                 dtype=np.float32), 0.6 * sp_zyx.min() / sp_zyx)
+            lvl = float(np.percentile(win, 75))
+            if (lvl - bg) < MIN_CNR * noise or lvl <= bg + spread:
+                raise InputError(f"{lab}: not inside a bright lumen of {what} (intensity {lvl:.4g} there, "
+                                 f"background {bg:.4g}, noise {noise:.3g})")
+            levels.append(lvl)
+        L = float(np.median(levels))
+        bone = _bone_level(ds, bg, L, hu, vox_cm3)
+        return IntensityModel(bg, L, noise, bone, hu, float("nan"), 0.0, source="seeds")
+
+    # -- candidates and vesselness
+    thr0 = bg + max(2.5 * spread, MIN_CNR * noise)
+    cand = ds > thr0
+    cand &= body
+    n_cand = int(cand.sum())
+    if n_cand < 20:
+        raise SegmentationError(f"{what}: no vessels found (no contrast: nothing brighter than the tissue, "
+                                f"background {bg:.4g}, noise {noise:.3g}); give --seed-lps in a vessel if there is one")
+    # saturated voxels (the scanner's ceiling: metal, an undiluted bolus) carry no level
+    hi_val = float(ds.max())
+    cand &= ds < hi_val - max(noise, 1e-6 * abs(hi_val))
+    idx = np.argwhere(cand)
+    vals = ds[cand]
+    # the sitk Frangi at the candidate voxels needs one voxel of margin
+    inner = np.all((idx >= 1) & (idx < np.array(ds.shape) - 1), axis=1)
+    idx, vals = idx[inner], vals[inner]
+    top = float(np.percentile(vals, 90))
+
+    if len(idx) > MAX_MODEL_SAMPLES:  # the histogram needs a sample, not every voxel
+        keep = np.linspace(0, len(idx) - 1, MAX_MODEL_SAMPLES).astype(np.int64)
+        idx, vals = idx[keep], vals[keep]
+    # each scale on a grid of about sigma / 2.5 voxels (a Gaussian of sigma >= 2.5 voxels is
+    # resolved): the large scales cost little
+    grids = []
+    for s in MODEL_SCALES_MM:
+        if s < 0.6 * sp_ds.min():
+            continue
+        g = np.maximum(np.floor(s / (2.5 * sp_ds)), 1).astype(int)
+        g = np.minimum(g, np.maximum(np.array(ds.shape) // 8, 1))
+        ic = np.minimum(idx // g, np.array(ds.shape) // g - 1)
+        u, inv = np.unique(ic, axis=0, return_inverse=True)
+        grids.append((s, g, u, inv.reshape(-1)))
+
+    def tubular(top_level):
+        win = (np.clip(ds, bg, top_level) - bg) / max(top_level - bg, 1e-12)
+        best = np.zeros(len(idx), np.float32)
+        arg = np.zeros(len(idx), np.int64)
+        for s, g, u, inv in grids:
+            v = _frangi_at(_block_mean(win, g), u, sp_ds * g, (s,))[inv]
+            better = v > best
+            best[better] = v[better]
+            arg[better] = MODEL_SCALES_MM.index(s)
+        return best, arg
+
+    ves, arg = tubular(top)
+    tub = ves >= TUBULAR_MIN
+    if tub.sum() < 10:
+        raise SegmentationError(f"{what}: no vessels found (no bright tubular structure of {MIN_RADIUS_MM:g}-"
+                                f"{MAX_RADIUS_MM:g} mm radius; background {bg:.4g}, noise {noise:.3g}); "
+                                f"check the voxel spacing, or give --seed-lps in a vessel")
+    if hu:  # calibrated CT: contrast lumen is below cortical bone
+        tub &= vals <= HU_LUMEN_MAX
+    L = _lumen_mode(vals[tub], ves[tub], max(noise, 0.004 * (top - bg)))
+    tub &= vals > bg + 0.5 * (L - bg)
+    if tub.sum() < 10:
+        raise SegmentationError(f"{what}: no vessels found (no bright tubular structure; background {bg:.4g}, "
+                                f"noise {noise:.3g}); give --seed-lps in a vessel if there is one")
+    L = _lumen_mode(vals[tub], ves[tub], max(noise, 0.004 * (top - bg)))
+    radius = float(np.exp(np.average(np.log(2.0 * np.asarray(MODEL_SCALES_MM)[arg[tub]]), weights=ves[tub])))
+    tub_cm3 = float(tub.mean()) * n_cand * vox_cm3
+    bone = _bone_level(ds, bg, L, hu, vox_cm3)
+    model = IntensityModel(bg, L, noise, bone, hu, radius, tub_cm3)
+    # -- is it contrast?
+    if model.cnr < MIN_CNR:
+        raise SegmentationError(f"{what}: no vessels found (no contrast: the brightest tubular structures are "
+                                f"{L:.4g}, background {bg:.4g}, noise {noise:.3g}: contrast-to-noise "
+                                f"{model.cnr:.1f} < {MIN_CNR:g}); give --seed-lps in a vessel if there is one")
+    if hu and L < bg + 80.0:
+        raise SegmentationError(f"{what}: no vessels found (a CT without contrast: the brightest tubular "
+                                f"structures are {L:.0f} HU over a background of {bg:.0f} HU); give --seed-lps "
+                                f"in a vessel if there is one")
+    if hu and L >= HU_LUMEN_MAX - 3.0 * max(noise, 0.004 * (top - bg)):
+        raise SegmentationError(f"{what}: no vessels found (the brightest tubular structures are {L:.0f} HU: bone, "
+                                f"not contrast); give --seed-lps in a vessel if there is one")
+    return model
+
+
+def _bone_level(ds, bg, L, hu, vox_cm3) -> float | None:
+    tail_cm3 = float(np.count_nonzero(ds > bg + 2.0 * (L - bg))) * vox_cm3
+    if hu:  # calibrated CT: cortical bone starts about 620 HU (issue 4's default)
+        return float(min(bg + BONE_FACTOR * (L - bg), max(HU_BONE_MIN, L + 0.2 * (L - bg))))
+    if tail_cm3 >= 2.0:
+        return float(bg + BONE_FACTOR * (L - bg))
+    return None
+
+
+# --------------------------------------------------------------------------------------
+# plausibility
+# --------------------------------------------------------------------------------------
+def check_plausibility(volume: io.Volume, mask_zyx: np.ndarray, tree, *, body_cm3: float | None = None,
+                       seeded: bool = False) -> Plausibility:
+    """Judge a vessel tree against its volume: returns the record (``problems`` empty when fine).
+
+    Implausible are: a vessel volume above ``MAX_VESSEL_BODY_FRACTION`` of the body; more than
+    ``MAX_BRANCHES`` branches, or branches shorter than ``MIN_MEAN_BRANCH_MM`` on average (a
+    sponge of noise or tissue); a total length above ``MAX_LENGTH_PER_FOV`` field-of-view
+    diagonals; a mask more than ``MAX_VOLUME_PER_TUBE`` times the volume of the tubes its
+    centerline describes (``sum pi r^2 ds``: blobs, not tubes); a widest vessel beyond
+    ``MAX_RADIUS_MM`` (or, without seeds, a tree whose widest vessel is under ``MIN_RADIUS_MM``).
+    """
+    sp = np.asarray(volume.spacing_mm, dtype=float)
+    vox_cm3 = float(np.prod(sp)) / 1000.0
+    fov = float(np.linalg.norm(sp * np.array(volume.shape_zyx[::-1])))
+    vessel_cm3 = float(np.count_nonzero(mask_zyx)) * vox_cm3
+    if body_cm3 is None:
+        body_cm3 = float(np.prod(volume.shape_zyx)) * vox_cm3
+    branches = tree.branches
+    nb = len(branches)
+    total = float(tree.total_length_mm)
+    e = tree.edges
+    r_edge = 0.5 * (tree.radius_mm[e[:, 0]] + tree.radius_mm[e[:, 1]])
+    tube_cm3 = float(np.sum(np.pi * r_edge ** 2 * tree.edge_length_mm)) / 1000.0
+    rmax = float(np.percentile(tree.radius_mm, 99)) if tree.n_points > 10 else float(tree.radius_mm.max())
+    probs = []
+    if vessel_cm3 > MAX_VESSEL_BODY_FRACTION * body_cm3:
+        probs.append(f"vessel volume {vessel_cm3:.0f} cm3 is {100 * vessel_cm3 / body_cm3:.0f}% of the body "
+                     f"(at most {100 * MAX_VESSEL_BODY_FRACTION:.0f}% expected)")
+    if nb > MAX_BRANCHES:
+        probs.append(f"{nb} branches (at most {MAX_BRANCHES} expected)")
+    if nb > 3 and total / nb < MIN_MEAN_BRANCH_MM:
+        probs.append(f"branches of {total / nb:.1f} mm on average (a sponge, not a tree)")
+    if total > MAX_LENGTH_PER_FOV * fov:
+        probs.append(f"total length {total / 1000:.1f} m is {total / fov:.0f} x the field of view")
+    if tube_cm3 > 0 and vessel_cm3 > MAX_VOLUME_PER_TUBE * tube_cm3 and vessel_cm3 > 1.0:
+        probs.append(f"not tubular ({vessel_cm3:.1f} cm3 segmented, its centerline's tubes hold {tube_cm3:.1f} cm3)")
+    if rmax > MAX_RADIUS_MM * 1.25:
+        probs.append(f"vessels of {rmax:.1f} mm radius (at most {MAX_RADIUS_MM:g} mm expected; check the voxel spacing)")
+    if not seeded and tree.radius_mm.max() < MIN_RADIUS_MM:
+        probs.append(f"widest vessel of {tree.radius_mm.max():.2f} mm radius (at least {MIN_RADIUS_MM:g} mm "
+                     f"expected; check the voxel spacing)")
+    return Plausibility(vessel_cm3, float(body_cm3), nb, total, fov, total / max(nb, 1), tube_cm3, rmax, tuple(probs))
+
+
+# --------------------------------------------------------------------------------------
+# all stages
+# --------------------------------------------------------------------------------------
+def _body_cm3(volume: io.Volume) -> float:
+    a = volume.array_zyx
+    sub = np.asarray(a[::2, ::2, ::2], dtype=np.float32).ravel()
+    t = _otsu(sub)
+    below = float(np.mean(sub < t))
+    frac = 1.0 - below if 0.05 < below < 0.9 else 1.0
+    return frac * float(np.prod(volume.shape_zyx)) * float(np.prod(volume.spacing_mm)) / 1000.0
+
+
+def extract_vessels_auto(volume: io.Volume, *, seeds_lps_mm=None, progress: bool = False, options=None,
+                         centerline_options=None) -> AutoVessels:
+    """Intensity model, segmentation, surface, centerline and plausibility of any angiographic volume.
+
+    Parameters
+    ----------
+    volume : io.Volume
+        CTA in HU, MRA in arbitrary units or 3DRA.
+    seeds_lps_mm : (K, 3) array_like of float, optional
+        Points inside lumens: the result is the connected tree containing them (the first picks
+        the root), whatever the rest of the volume holds.
+    options : vessels3d.VesselOptions, optional
+        Base options; the intensity thresholds are always replaced by the model's.
+
+    Returns
+    -------
+    AutoVessels
+
+    Raises
+    ------
+    InputError, SegmentationError
+        The volume is not a plausible angiogram, or the tree found is implausible (the message
+        says what was implausible and suggests seeds).
+    """
+    what = volume.source or "volume"
+    secs = {}
+    t0 = time.perf_counter()
+    model = estimate_intensity_model(volume, seeds_lps_mm=seeds_lps_mm)
+    secs["model"] = time.perf_counter() - t0
+    opt = model.vessel_options(options)
+    if seeds_lps_mm is not None:
+        opt = replace(opt, seed_radius_mm=max(opt.seed_radius_mm, 3.0))
+    res = vessels3d.extract_vessels(volume, seeds_lps_mm=seeds_lps_mm, progress=progress, options=opt,
+                                    centerline_options=centerline_options)
+    secs.update(res.seconds)
+    t0 = time.perf_counter()
+    pl = check_plausibility(volume, res.mask_zyx, res.tree, body_cm3=_body_cm3(volume),
+                            seeded=seeds_lps_mm is not None)
+    secs["plausibility"] = time.perf_counter() - t0
+    secs["total"] = secs["model"] + res.seconds.get("total", 0.0) + secs["plausibility"]
+    if not pl.ok:
+        hint = ("the seeds may be outside the lumen or the vessels too faint" if seeds_lps_mm is not None
+                else "give --seed-lps X,Y,Z inside a vessel")
+        raise SegmentationError(f"{what}: implausible vessel tree: {'; '.join(pl.problems)} (lumen estimated at "
+                                f"{model.lumen:.4g}, background {model.background:.4g}); {hint}")
+    return AutoVessels(res, model, pl, secs)

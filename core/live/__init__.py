@@ -1,0 +1,14 @@
+"""The per-frame engine: one ``Session`` segments, orders, reconstructs and judges each live frame.
+
+The public names of the modules below, importable from ``guidewire3d.live``.
+"""
+from guidewire3d.live.session import (  # noqa: F401
+    HINT_MARGIN_ALONE,
+    HINT_MARGIN_MIN,
+    TREE_RISE_MIN_MM,
+    FrameResult,
+    Orientation,
+    Session,
+    log,
+    orientation_of,
+)

@@ -1,0 +1,366 @@
+"""The per-frame engine: one live frame in; its 2D wire, 3D wire and verdict out.
+
+Every front end runs its frames through :class:`Session`: ``reconstruct`` (``pipeline.run``),
+the viewer's *apply*, the Slicer logic and, for streaming, ``guidewire3d live``. A frame's path:
+
+1. guidewire mask (``segmentation.GuidewireSegmenter``, ROI tracking between frames);
+2. ordered 2D wire (``image2d.ordered_wire``, proximal end nearest the projected tree root);
+3. 3D wire inside the vessel tree (``reconstruction.WireTracker``: the previous frame's path is a
+   prior, a failed frame does not replace it);
+4. the frame's verdict: ``ok``, ``uncertain`` (a 3D wire exists but something about it is not
+   settled: which end is the tip) or ``failed``, with the reason.
+
+Which end is the tip rests on two independent cues. In 2D, the proximal end is the one nearer the
+projected root of the vessel tree (``hint_margin``: how much nearer, relative). In 3D, a wire
+advanced from the root runs away from it through the tree (``Wire3D.tree_rise_mm``). When both
+speak and disagree (for example the proximal part of the wire runs beyond the segmented tree and
+projects over other branches), the frame is ``uncertain`` and says so; it is never silently
+reported with the tip at the wrong end. A frame whose processing raises is reported as failed
+with the error, and the session goes on.
+"""
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+from guidewire3d import kernels
+from guidewire3d.errors import Guidewire3DError
+from guidewire3d.geometry import CArm, Pose
+from guidewire3d.motion.tracking import MotionTracker
+from guidewire3d.reconstruction import wire as reconstruction
+from guidewire3d.registration.solve import Verdict
+from guidewire3d.vesseltree import VesselTree
+from guidewire3d.xray import image2d, segmentation
+from guidewire3d.xray.image2d import OrderedWire
+
+__all__ = ["Orientation", "FrameResult", "Session", "orientation_of"]
+
+log = logging.getLogger(__name__)
+
+#: the 2D cue speaks when the proximal end is nearer the projected root than the distal end by at
+#: least this fraction of their summed distances ((d_far - d_near) / (d_far + d_near))
+HINT_MARGIN_MIN = 0.15
+#: without the 3D cue, the 2D cue alone decides only when it is this strong (on simulated wires
+#: whose proximal part runs beyond the segmented tree, the root's projection put the true tip
+#: first with margins up to 0.28)
+HINT_MARGIN_ALONE = 0.5
+#: the 3D cue speaks when the path through the tree rises (or falls) by at least this much (mm);
+#: the same as ``ReconOptions.reverse_mm``, the reconstruction's own reversal trigger
+TREE_RISE_MIN_MM = 5.0
+
+
+@dataclass(frozen=True, eq=False)
+class Orientation:
+    """Which end of a frame's wire is the tip, and how sure that is.
+
+    Attributes
+    ----------
+    hint_margin : float
+        ``(d_far - d_near) / (d_far + d_near)`` of the output's ends to the projected tree root:
+        positive when the output's first point is the end nearer the root (NaN without a root).
+    tree_rise_mm : float
+        Arclength from the tree root gained along the output's path through the tree (NaN when
+        the method does not use the tree).
+    reversed_by_tree : bool
+        The reconstruction reversed the 2D order because the tree explained the wire better so.
+    cue_2d, cue_3d : int
+        +1: the cue agrees with the output's order; -1: it says the output runs tip -> proximal;
+        0: the cue does not speak.
+    """
+
+    hint_margin: float
+    tree_rise_mm: float
+    reversed_by_tree: bool
+    cue_2d: int
+    cue_3d: int
+
+    @property
+    def conflict(self) -> bool:
+        """The cues disagree, or the tree reversed the 2D order against the 2D position of the root."""
+        return self.cue_2d * self.cue_3d < 0 or (self.reversed_by_tree and self.hint_margin < 0)
+
+    @property
+    def determined(self) -> bool:
+        """The tree's path rises towards the tip with no 2D cue against it, or, where the tree is
+        silent, the 2D cue is strong (``HINT_MARGIN_ALONE``)."""
+        if self.conflict:
+            return False
+        if self.cue_3d > 0:
+            return True
+        return self.cue_3d == 0 and np.isfinite(self.hint_margin) and self.hint_margin >= HINT_MARGIN_ALONE
+
+    @property
+    def confidence(self) -> str:
+        """``high`` (both cues agree), ``medium`` (one agrees, the other is silent), ``low``."""
+        if self.cue_2d > 0 and self.cue_3d > 0:
+            return "high"
+        return "medium" if self.determined else "low"
+
+    def explain(self) -> str:
+        if self.conflict:
+            near = "the wire's first point" if self.hint_margin > 0 else "the wire's last point"
+            return (f"tip end uncertain: in 2D {near} is nearer the vessel tree's root, but the path through the tree "
+                    f"{'rises' if self.tree_rise_mm > 0 else 'falls'} {abs(self.tree_rise_mm):.0f} mm from the "
+                    f"first point to the tip" + (" (the tree reversed the 2D order)" if self.reversed_by_tree else ""))
+        if not self.determined:
+            if self.cue_3d < 0:
+                return (f"tip end uncertain: the path through the tree falls {abs(self.tree_rise_mm):.0f} mm towards "
+                        f"the tip, and the 2D position of the tree root does not decide it")
+            return ("tip end uncertain: the path through the tree does not rise towards either end, and the 2D "
+                    "position of the tree root does not decide it clearly")
+        return ""
+
+    def to_dict(self) -> dict:
+        def f(x):
+            return None if not np.isfinite(x) else round(float(x), 4)
+
+        return {"confidence": self.confidence, "conflict": bool(self.conflict), "hint_margin": f(self.hint_margin),
+                "tree_rise_mm": f(self.tree_rise_mm), "reversed_by_tree": bool(self.reversed_by_tree),
+                "cue_2d": int(self.cue_2d), "cue_3d": int(self.cue_3d)}
+
+
+def orientation_of(wire3d, wire_uv_px, *, root_uv_px=None) -> Orientation:
+    """The :class:`Orientation` of a reconstructed wire.
+
+    Parameters
+    ----------
+    wire3d : reconstruction.Wire3D
+        A successful reconstruction (``reversed_input``, ``tree_rise_mm`` are read).
+    wire_uv_px : (M, 2) ndarray of float
+        The 2D wire as it was given to the reconstruction (proximal -> distal as ordered in 2D).
+    root_uv_px : (2,) array_like, optional
+        The projected vessel-tree root in the frame (the 2D cue); without it the 2D cue is silent.
+    """
+    uv = np.asarray(wire_uv_px, float).reshape(-1, 2)
+    rev = bool(getattr(wire3d, "reversed_input", False))
+    margin = float("nan")
+    cue_2d = 0
+    if root_uv_px is not None and len(uv) >= 2:
+        h = np.asarray(root_uv_px, float).reshape(2)
+        first, last = (uv[-1], uv[0]) if rev else (uv[0], uv[-1])
+        d_first, d_last = float(np.linalg.norm(first - h)), float(np.linalg.norm(last - h))
+        margin = (d_last - d_first) / max(d_last + d_first, 1e-9)
+        cue_2d = int(np.sign(margin)) if abs(margin) >= HINT_MARGIN_MIN else 0
+    rise = float(getattr(wire3d, "tree_rise_mm", float("nan")))
+    cue_3d = int(np.sign(rise)) if np.isfinite(rise) and abs(rise) >= TREE_RISE_MIN_MM else 0
+    return Orientation(margin, rise, rev, cue_2d, cue_3d)
+
+
+@dataclass(frozen=True, eq=False)
+class FrameResult:
+    """One live frame's outcome (falsy when no 3D wire was made).
+
+    ``verdict`` is ``registration.Verdict``: OK, UNCERTAIN (a 3D wire exists but ``message`` says
+    what is not settled) or FAILED.
+    """
+
+    index: int
+    wire2d: object  # image2d.OrderedWire (an (N, 2) array-like; falsy when not found)
+    wire3d: object  # reconstruction.Wire3D
+    verdict: object  # registration.Verdict
+    message: str
+    orientation: Orientation | None = None
+    seconds: float = 0.0
+    timestamp: float = field(default=float("nan"))  # the source frame's time stamp, when it has one
+    pose: Pose | None = None  # the pose the frame was reconstructed in
+    motion: object = None  # registration.RegistrationResult of the frame's pose update (track_motion), or None
+    #: seconds per stage of this frame: "segmentation", "ordered_wire", "motion", "reconstruction"
+    #: (those that ran)
+    stage_seconds: dict = field(default_factory=dict)
+
+    def __bool__(self) -> bool:
+        return bool(self.wire3d)
+
+    @property
+    def tip_lps_mm(self) -> np.ndarray:
+        """The distal end ``(3,)``; NaNs when there is no 3D wire."""
+        p = self.wire3d.points_lps_mm
+        return p[-1].copy() if len(p) else np.full(3, np.nan)
+
+    def to_dict(self) -> dict:
+        d = {"index": int(self.index), "verdict": self.verdict.value, "verdict_message": self.message,
+             "orientation": self.orientation.to_dict() if self.orientation is not None else None}
+        if self.motion is not None:
+            m = self.motion
+            d["motion"] = {"pose": self.pose.matrix.tolist() if self.pose is not None else None,
+                           "verdict": m.verdict.value, "message": m.message,
+                           "residual_px": _finite_or_none(m.mean_residual_px),
+                           "inlier_fraction": _finite_or_none(m.inlier_fraction)}
+        return d
+
+
+class Session:
+    """The per-frame engine over one registration.
+
+    Parameters
+    ----------
+    tree : VesselTree
+        The CTA centerline tree (LPS mm).
+    carm : CArm
+        The live frames' view.
+    pose : Pose
+        ``T_iso_from_lps`` (the registration, or a user's correction).
+    registration_covariance : (6, 6) ndarray, optional
+        The pose covariance; it enters each point's uncertainty.
+    segmenter : str, segmentation.SegMethod or a segmenter object
+        ``"unet"`` (default) or ``"ridge"``: a ``segmentation.GuidewireSegmenter`` created on first
+        use (a session fed 2D wires only, e.g. the viewer's *apply*, never loads a network); or an
+        object with ``segment(frame) -> mask`` and ``reset()``.
+    method : str or reconstruction.ReconMethod
+        3D reconstruction method (default ``"vessel"``).
+    track_motion : bool
+        Follow breathing and heartbeat: each frame's 2D wire updates the pose
+        (``motion.MotionTracker``, with the roadmap pose as its prior) before the frame is
+        reconstructed in it. Off by default: with a static patient it only adds noise.
+    """
+
+    def __init__(self, tree: VesselTree, carm: CArm, pose: Pose, *, registration_covariance=None,
+                 segmenter="unet", method="vessel", options=None, track_motion: bool = False,
+                 motion_options=None):
+        self.tree, self.carm = tree, carm
+        self.method = getattr(method, "value", method)
+        self.options = options
+        if hasattr(segmenter, "segment"):  # a ready segmenter object (``segment(frame)``, ``reset()``)
+            self.segmenter_method, self._segmenter = getattr(segmenter, "method", "custom"), segmenter
+        else:
+            self.segmenter_method, self._segmenter = getattr(segmenter, "value", segmenter), None
+        self._reconstruction = reconstruction
+        self.track_motion = bool(track_motion)
+        self.motion_options = motion_options
+        self.n_frames = 0
+        self.tracker = None
+        self.set_pose(pose, registration_covariance=registration_covariance)
+
+    # --- state --------------------------------------------------------------------------------
+    def set_pose(self, pose: Pose, *, registration_covariance=None) -> None:
+        """Use ``pose`` (a new registration or a user's correction) from the next frame on: it is
+        also the centre of the motion prior. The wire's temporal prior is kept."""
+        self.motion_tracker = None
+        if self.track_motion:
+            self.motion_tracker = MotionTracker(self.tree, self.carm, pose, covariance=registration_covariance,
+                                                options=self.motion_options)
+        self._use_pose(pose, registration_covariance)
+
+    def _use_pose(self, pose: Pose, registration_covariance) -> None:
+        previous = self.tracker
+        self.pose = pose
+        self.registration_covariance = registration_covariance
+        self.tracker = self._reconstruction.WireTracker(pose, self.carm, self.tree, method=self.method,
+                                                        registration_covariance=registration_covariance,
+                                                        options=self.options)
+        if previous is not None:
+            self.tracker.previous = previous.previous
+        self.root_uv_px = self.carm.project(self.tree.points_lps_mm[self.tree.root], pose)
+
+    @property
+    def segmenter(self):
+        if self._segmenter is None:
+            self._segmenter = segmentation.GuidewireSegmenter(method=self.segmenter_method)
+        return self._segmenter
+
+    def reset(self) -> None:
+        """Forget the previous frames (ROI tracking and the wire prior)."""
+        if self._segmenter is not None:
+            self._segmenter.reset()
+        self.tracker.previous = None
+        if self.motion_tracker is not None:
+            self.motion_tracker.reset()
+
+    def warm_up(self, frame) -> None:
+        """Load the network and run it once, and compile the kernels (first-call costs), without
+        touching the tracking state."""
+        kernels.warm_up()
+        self.segmenter.segment(np.asarray(frame))
+        self.segmenter.reset()
+
+    # --- frames -------------------------------------------------------------------------------
+    def process(self, frame, *, index: int | None = None, timestamp: float = float("nan")) -> FrameResult:
+        """Segment, order and reconstruct one frame; never raises on a frame (a bad one is failed)."""
+        t0 = time.perf_counter()
+        index = self.n_frames if index is None else int(index)
+        stages = {}
+        try:
+            img = np.asarray(frame)
+            mask = self.segmenter.segment(img)
+            t1 = time.perf_counter()
+            stages["segmentation"] = t1 - t0
+            wire2d = image2d.ordered_wire(mask, image=img, proximal_hint_uv=self.root_uv_px)
+            stages["ordered_wire"] = time.perf_counter() - t1
+        except Guidewire3DError as e:
+            return self._failed(index, None, f"bad frame: {e}", t0, timestamp)
+        except Exception as e:  # noqa: BLE001 - a live session reports a broken frame and goes on
+            log.exception("frame %d: 2D analysis raised", index)
+            return self._failed(index, None, f"internal error in the 2D analysis: {e.__class__.__name__}: {e}",
+                                t0, timestamp)
+        return self._finish(index, wire2d, img, t0, timestamp, stages)
+
+    def process_wire(self, wire2d, *, image=None, index: int | None = None,
+                     timestamp: float = float("nan")) -> FrameResult:
+        """Reconstruct a frame from its ordered 2D wire (an ``OrderedWire`` or an (M, 2) px array)."""
+        t0 = time.perf_counter()
+        index = self.n_frames if index is None else int(index)
+        return self._finish(index, wire2d, None if image is None else np.asarray(image), t0, timestamp)
+
+    def _failed(self, index, wire2d, message, t0, timestamp, stages=None) -> FrameResult:
+        self.n_frames += 1
+        self.tracker.n_frames += 1
+        self.tracker.failed_frames.append(index)
+        w3 = self._reconstruction.Wire3D.failed(message, seconds=time.perf_counter() - t0, method=self.method)
+        return FrameResult(index, wire2d if wire2d is not None else _no_wire(message), w3, Verdict.FAILED,
+                           message, None, time.perf_counter() - t0, timestamp, self.pose,
+                           stage_seconds=dict(stages or {}))
+
+    def _finish(self, index, wire2d, image, t0, timestamp, stages=None) -> FrameResult:
+        stages = {} if stages is None else stages
+        has_flag = hasattr(wire2d, "success")
+        if has_flag and not wire2d:
+            return self._failed(index, wire2d, f"2D wire not found: {wire2d.message}", t0, timestamp, stages)
+        uv = np.asarray(wire2d, float).reshape(-1, 2)
+        if len(uv) < 2:
+            return self._failed(index, wire2d, "2D wire not found: fewer than 2 points", t0, timestamp, stages)
+        motion = None
+        if self.motion_tracker is not None:
+            t1 = time.perf_counter()
+            motion = self.motion_tracker.update(uv)
+            if not self.pose.allclose(motion.pose, atol_mm=1e-6, atol_rad=1e-9):
+                self._use_pose(motion.pose, self.registration_covariance)
+            stages["motion"] = time.perf_counter() - t1
+        try:
+            t1 = time.perf_counter()
+            w3 = self.tracker.update(uv, image=image)
+            stages["reconstruction"] = time.perf_counter() - t1
+        except Guidewire3DError as e:
+            return self._failed(index, wire2d, f"3D reconstruction refused the frame: {e}", t0, timestamp)
+        except Exception as e:  # noqa: BLE001 - reported in the frame's record; the session goes on
+            log.exception("frame %d: 3D reconstruction raised", index)
+            return self._failed(index, wire2d, f"internal error in the 3D reconstruction: {e.__class__.__name__}: {e}",
+                                t0, timestamp)
+        self.n_frames += 1
+        if not w3:
+            return FrameResult(index, wire2d, w3, Verdict.FAILED, w3.message, None, time.perf_counter() - t0,
+                               timestamp, self.pose, motion, stages)
+        ori = orientation_of(w3, uv, root_uv_px=self.root_uv_px) if self.method == "vessel" else None
+        verdict, message = Verdict.OK, w3.message
+        if ori is not None and (ori.conflict or not ori.determined):
+            verdict, message = Verdict.UNCERTAIN, ori.explain()
+        if motion is not None and not motion.success:
+            message = f"motion: {motion.message}" + (f"; {message}" if verdict is not Verdict.OK else "")
+            verdict = Verdict.UNCERTAIN
+        return FrameResult(index, wire2d, w3, verdict, message, ori, time.perf_counter() - t0, timestamp,
+                           self.pose, motion, stages)
+
+    def run(self, frames, *, start_index: int = 0):
+        """Yield a :class:`FrameResult` for each frame of an iterable, in order."""
+        for k, frame in enumerate(frames):
+            yield self.process(frame, index=start_index + k)
+
+
+def _finite_or_none(x):
+    x = float(x)
+    return round(x, 5) if np.isfinite(x) else None
+
+
+def _no_wire(message: str):
+    return OrderedWire(points_uv_px=np.zeros((0, 2)), success=False, message=message)

@@ -1,0 +1,16 @@
+"""The pose followed frame by frame through breathing (``track_poses``, ``MotionTracker``).
+
+The public names of the modules below, importable from ``guidewire3d.motion``.
+"""
+from guidewire3d.motion.tracking import (  # noqa: F401
+    ACQUIRE_STARTS,
+    CROP_MARGIN_PX,
+    MAX_CURVE_POINTS,
+    MIN_CC_IN_PLANE,
+    STEP_TOL_MM,
+    STEP_TOL_RAD,
+    MotionOptions,
+    MotionTracker,
+    curve_to_tree_distance_px,
+    track_poses,
+)

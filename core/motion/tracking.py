@@ -1,0 +1,408 @@
+"""Motion: the patient pose followed frame by frame from what each live frame shows.
+
+Breathing moves the liver, kidneys and heart 5-20 mm, mostly cranio-caudally; one pose from the
+roadmap lets the overlay drift off and places the 3D wire in the wrong vessel position. Each live
+frame shows a curve that lies inside the vessels (the guidewire, or a catheter); its 2D fit to the
+projected tree updates the pose.
+
+What one frame can tell: a curve pins the tree's projection across the curve well, along it
+less, and the depth along the beam and the rotations out of the image plane hardly at all. So
+the update is a maximum a posteriori estimate of a small rigid motion ``delta`` of the tree,
+written in the C-arm's camera axes about the tree's centroid
+``(t_u, t_v, t_depth, r_u, r_v, r_beam)`` (mm, rad), with
+
+* the curve's robust (pseudo-Huber) point-to-projected-tree distances, px;
+* the roadmap's prior ``delta ~ N(0, diag(sigma_roadmap^2))``: tight in depth and out-of-plane
+  rotation, loose in the image plane (``MotionOptions``), plus the registration's own covariance
+  when it is given;
+* a temporal prior ``delta_t ~ N(delta_{t-1}, diag(sigma_step^2))``: motion is smooth.
+
+Gauss-Newton with correspondences found again at each iteration (the nearest projected tree
+sample and its local 2D tangent), a few iterations per frame. Each frame gets its pose, residual
+and verdict as a ``registration.RegistrationResult``.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+from guidewire3d.errors import InputError
+from guidewire3d.geometry import CArm, Pose, hat, so3_exp
+from guidewire3d.registration.solve import RegistrationResult
+from guidewire3d.vesseltree import VesselTree
+from scipy.spatial import cKDTree
+
+__all__ = ["MotionOptions", "MotionTracker", "track_poses", "curve_to_tree_distance_px"]
+
+#: below this image-plane fraction of the patient's axis (a beam nearly along it) the in-plane
+#: prior is isotropic and the acquisition search is skipped
+MIN_CC_IN_PLANE = 0.3
+
+#: a frame without a fitted predecessor is solved from the roadmap pose and from this many
+#: cranio-caudal shifts (the best local minima of the search)
+ACQUIRE_STARTS = 3
+#: the curve is thinned to at most this many evenly spaced points (cost per frame)
+MAX_CURVE_POINTS = 128
+#: Gauss-Newton stops when a step moves less than this (mm, rad): 0.01 mm is 0.05 px at the isocentre
+STEP_TOL_MM = 0.01
+STEP_TOL_RAD = 1e-5
+#: tree samples projected farther than the gate plus this outside the curve's bounding box are
+#: not looked at in a frame (a frame moves the tree by a few px)
+CROP_MARGIN_PX = 30.0
+
+
+@dataclass(frozen=True)
+class MotionOptions:
+    """Priors and robust kernel of the per-frame pose update."""
+
+    #: roadmap prior, 1 sigma: image-plane translation along the patient's cranio-caudal axis as
+    #: projected (breathing moves the organs mostly so) and across it (mm), depth (mm),
+    #: out-of-plane rotation (deg), rotation about the beam (deg)
+    sigma_cc_mm: float = 20.0
+    sigma_across_mm: float = 4.0
+    sigma_depth_mm: float = 0.3
+    sigma_tilt_deg: float = 0.5
+    sigma_spin_deg: float = 1.0
+    #: temporal prior, 1 sigma per frame on the image-plane translation (mm); depth and rotations
+    #: are held by the roadmap prior alone (no random walk)
+    sigma_step_inplane_mm: float = 2.0
+    #: a frame with no fitted predecessor first searches the cranio-caudal shift (mm) in this range
+    acquire_range_mm: float = 25.0
+    #: 2D residuals: noise (px), pseudo-Huber cutoff (px), gate beyond which a point is ignored (px)
+    sigma_px: float = 1.5
+    huber_px: float = 3.0
+    gate_px: float = 40.0
+    #: tree samples at most this far apart (mm) for the nearest-point correspondence
+    sample_mm: float = 1.0
+    iterations: int = 4
+    #: verdict: a curve point is an inlier within the projected lumen plus ``inlier_px``; the curve
+    #: fits when its inliers lie on average within ``max_mean_residual_px`` of the lumen and they are
+    #: at least ``min_inlier_fraction`` of it (a catheter or wire rides anywhere inside the lumen,
+    #: not on the centerline)
+    inlier_px: float = 3.0
+    max_mean_residual_px: float = 1.5
+    min_inlier_fraction: float = 0.5
+    #: a fitted frame whose depth moved more than this from the roadmap's is UNCERTAIN
+    max_depth_shift_mm: float = 5.0
+
+    def __post_init__(self):
+        for name in ("sigma_cc_mm", "sigma_across_mm", "sigma_depth_mm", "sigma_tilt_deg", "sigma_spin_deg",
+                     "sigma_step_inplane_mm", "acquire_range_mm", "sigma_px", "huber_px",
+                     "gate_px", "sample_mm", "inlier_px", "max_mean_residual_px", "max_depth_shift_mm"):
+            v = getattr(self, name)
+            if not (np.isfinite(v) and v > 0):
+                raise InputError(f"MotionOptions.{name}: expected a positive number, got {v!r}")
+        if int(self.iterations) < 1:
+            raise InputError(f"MotionOptions.iterations: expected >= 1, got {self.iterations!r}")
+
+
+def _samples(tree: VesselTree, step_mm: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Tree samples (K, 3) at most ``step_mm`` apart, their radii (K,) and for each a neighbour
+    along the tree (K,) that gives the local tangent (its parent; the root's first child)."""
+    dense, _ = tree.densified(step_mm)
+    nbr = dense.parent.copy()
+    kids = dense.children[dense.root]
+    nbr[dense.root] = kids[0] if kids else dense.root
+    return dense.points_lps_mm, dense.radius_mm, nbr
+
+
+class MotionTracker:
+    """Per-frame pose tracking against one registration (the roadmap's pose and covariance).
+
+    Parameters
+    ----------
+    tree : VesselTree
+        The CTA (or 3DRA) centerline tree, LPS mm.
+    carm : CArm
+        The live frames' view.
+    initial_pose : Pose
+        The roadmap registration ``T_iso_from_lps``: the prior's centre.
+    covariance : (6, 6) ndarray, optional
+        The registration's covariance (left-perturbation tangent ``(t mm, phi rad)`` about the
+        isocentre origin); added to the roadmap prior.
+    options : MotionOptions, optional
+    """
+
+    def __init__(self, tree: VesselTree, carm: CArm, initial_pose: Pose, *, covariance=None,
+                 options: MotionOptions | None = None):
+        self.tree, self.carm, self.initial_pose = tree, carm, initial_pose
+        self.options = opt = options or MotionOptions()
+        pts, self._radius_mm, self._nbr = _samples(tree, opt.sample_mm)
+        # tree samples in the camera frame of the initial pose: x_cam = Rc x + tc (z: depth)
+        Rc, tc = carm.extrinsics(initial_pose)
+        self._Rc_room = carm.axes  # camera axes in the room frame (rows)
+        self._Y0 = pts @ Rc.T + tc
+        self._c = self._Y0.mean(axis=0)
+        self._f = carm.focal_px
+        self._pp = carm.principal_point_px
+        deg = np.pi / 180.0
+        # the patient's superior axis (LPS +z) in camera axes; its image-plane part is the
+        # breathing direction
+        # breathing direction: the patient's superior axis (LPS +z) in camera axes (3D: a
+        # cranio-caudal shift seen in the image implies its depth component too)
+        self.cc_cam = self._Rc_room @ (initial_pose.R @ np.array([0.0, 0.0, 1.0]))
+        a = self.cc_cam
+        P0 = np.zeros((6, 6))
+        P0[:3, :3] = np.diag([opt.sigma_across_mm**2, opt.sigma_across_mm**2, opt.sigma_depth_mm**2])
+        # (with a cranio-caudal axis in the image, depth is also tied to it below)
+        if np.linalg.norm(a[:2]) > MIN_CC_IN_PLANE:
+            P0[:3, :3] += opt.sigma_cc_mm**2 * np.outer(a, a)
+        else:  # the beam runs along the patient's axis: no preferred direction in the image
+            P0[:2, :2] = opt.sigma_cc_mm**2 * np.eye(2)
+        P0[3:, 3:] = np.diag(np.array([opt.sigma_tilt_deg * deg, opt.sigma_tilt_deg * deg,
+                                       opt.sigma_spin_deg * deg]) ** 2)
+        if covariance is not None:
+            P0 = P0 + self._camera_covariance(covariance)
+        self._Lambda0 = np.linalg.inv(P0)
+        # depth is not seen in one view, and an image-plane scaling (the heart contracting, a
+        # vessel straightened by the wire) would pass for it: the depth may differ from what the
+        # cranio-caudal shift implies by ``sigma_depth_mm`` only
+        if np.linalg.norm(a[:2]) > MIN_CC_IN_PLANE:
+            k = a[2] * a[:2] / float(a[:2] @ a[:2])
+            wz = np.array([-k[0], -k[1], 1.0, 0.0, 0.0, 0.0])
+            self._Lambda0 += np.outer(wz, wz) / opt.sigma_depth_mm**2
+        self._Lambda_t = np.zeros((6, 6))
+        self._Lambda_t[:3, :3] = np.eye(3) / opt.sigma_step_inplane_mm**2
+        self.reset()
+
+    def reset(self) -> None:
+        """Back to the roadmap pose, no temporal history."""
+        self.delta = np.zeros(6)
+        self._has_previous = False
+
+    def _camera_covariance(self, covariance) -> np.ndarray:
+        """The registration covariance (about the iso origin, room axes) in this tracker's
+        parametrisation (about the tree centroid, camera axes)."""
+        C = np.asarray(covariance, float)
+        if C.shape != (6, 6) or not np.all(np.isfinite(C)):
+            raise InputError(f"covariance: expected a finite (6, 6) matrix, got shape {C.shape}")
+        Rc = self._Rc_room
+        # camera coordinates of the centroid in the room frame (iso origin): x_room = Rc^T x_cam + S
+        c_room = Rc.T @ self._c + self.carm.source_room_mm
+        # about the centroid: t_c = t_0 - [c]x phi... (t0 = t_c + (I - R) c  =>  t_c ~ t_0 + [c]x phi)
+        A = np.zeros((6, 6))
+        A[:3, :3] = Rc
+        A[:3, 3:] = Rc @ hat(c_room)
+        A[3:, 3:] = Rc
+        return A @ C @ A.T
+
+    # --- pose <-> delta ------------------------------------------------------------------------
+    def pose_of(self, delta) -> Pose:
+        """``T_iso_from_lps`` of the tree moved by ``delta`` (camera axes, about the centroid)."""
+        d = np.asarray(delta, float)
+        Rd = so3_exp(d[3:])
+        Rc, S = self._Rc_room, self.carm.source_room_mm
+        T0 = self.initial_pose
+        # x_cam' = Rd (x_cam - c) + c + t,  x_cam = Rc (T0 x - S),  T x = Rc^T x_cam' + S
+        R = Rc.T @ Rd @ Rc @ T0.R
+        t = Rc.T @ (Rd @ (Rc @ (T0.t - S) - self._c) + self._c + d[:3]) + S
+        return Pose(R, t)
+
+    def _moved(self, delta) -> np.ndarray:
+        return self._moved_subset(delta, slice(None))
+
+    def _moved_subset(self, delta, idx) -> np.ndarray:
+        Rd = so3_exp(delta[3:])
+        return (self._Y0[idx] - self._c) @ Rd.T + self._c + delta[:3]
+
+    def _project(self, Y) -> np.ndarray:
+        return self._f * Y[:, :2] / Y[:, 2:3] + self._pp
+
+    # --- one frame -----------------------------------------------------------------------------
+    def update(self, curve_uv_px):
+        """Update the pose from one frame's curve (``(N, 2)`` px); returns a ``RegistrationResult``.
+
+        An empty or unusable curve keeps the previous frame's pose (verdict FAILED, with why).
+        """
+        t0 = time.perf_counter()
+        opt = self.options
+        c = np.asarray(curve_uv_px, float).reshape(-1, 2) if curve_uv_px is not None else np.zeros((0, 2))
+        c = c[np.all(np.isfinite(c), axis=1)]
+        if len(c) > MAX_CURVE_POINTS:  # a 1-px ordered wire has hundreds: evenly spaced ones suffice
+            c = c[np.linspace(0, len(c) - 1, MAX_CURVE_POINTS).round().astype(int)]
+        prev = self.delta.copy()
+        if len(c) < 3:
+            pose = self.pose_of(prev)
+            return RegistrationResult(pose, self.carm.projection_matrix(pose), False,
+                                      "no curve in the frame: pose held from the previous frame",
+                                      float("nan"), 0.0, 0, time.perf_counter() - t0)
+        Lt = self._Lambda_t if self._has_previous else np.zeros((6, 6))
+        starts = [prev] if self._has_previous else self._acquire(c, prev)
+        best = None
+        for start in starts:
+            sol = self._solve(c, start, prev, Lt)
+            if sol is not None and (best is None or sol[0] < best[0]):
+                best = sol
+        if best is None:
+            pose = self.pose_of(prev)
+            return RegistrationResult(pose, self.carm.projection_matrix(pose), False,
+                                      "the curve lies away from the projected tree: pose held from the previous "
+                                      "frame", float("inf"), 0.0, 0, time.perf_counter() - t0)
+        _, delta, H, it, frac, mean_res = best
+        cov = np.linalg.inv(H)
+        fits = frac >= opt.min_inlier_fraction and mean_res <= opt.max_mean_residual_px
+        depth_shift = float(delta[2])
+        pose = self.pose_of(delta)
+        std_mm = float(np.sqrt(np.trace(cov[:3, :3]) + np.trace(cov[3:, 3:]) * float(
+            np.mean(np.sum((self._Y0 - self._c) ** 2, axis=1)))))
+        if fits:
+            self.delta = delta
+            self._has_previous = True
+            ok = abs(depth_shift) <= opt.max_depth_shift_mm
+            msg = (f"tracked: {100 * frac:.0f}% of the curve in the projected lumen ({mean_res:.2f} px outside on "
+                   f"average); moved "
+                   f"{np.linalg.norm(delta[:2]):.1f} mm in the image plane, {depth_shift:+.1f} mm in depth")
+            if not ok:
+                msg += f" (depth moved more than {opt.max_depth_shift_mm:g} mm from the roadmap's)"
+        else:
+            # keep the previous estimate: a curve that does not lie on the tree does not move it
+            pose = self.pose_of(prev)
+            ok = False
+            msg = (f"the curve does not fit the projected tree ({100 * frac:.0f}% within {opt.inlier_px:g} px of the "
+                   f"lumen, {mean_res:.2f} px outside on average): pose held from the previous frame")
+        return RegistrationResult(pose, self.carm.projection_matrix(pose), bool(ok), msg, mean_res, frac, it,
+                                  time.perf_counter() - t0, covariance_6x6=None, pose_std_mm=std_mm,
+                                  fits_2d=bool(fits))
+
+    def _solve(self, c, start, prev, Lt):
+        """Gauss-Newton from ``start``: ``(robust cost, delta, H, iterations, inlier fraction,
+        mean px outside the lumen)``, or None when no tree sample projects near the curve."""
+        opt = self.options
+        delta = np.array(start, float)
+        # the tree samples that can matter: projected (at the start pose) near the curve
+        uv = self._project(self._moved(delta))
+        lo, hi = c.min(axis=0) - (opt.gate_px + CROP_MARGIN_PX), c.max(axis=0) + (opt.gate_px + CROP_MARGIN_PX)
+        sel = np.flatnonzero((uv[:, 0] >= lo[0]) & (uv[:, 0] <= hi[0]) & (uv[:, 1] >= lo[1]) & (uv[:, 1] <= hi[1]))
+        if len(sel) < 2:
+            return None
+        self._sel = sel
+        H = np.eye(6)
+        it = 0
+        j = None
+        for it in range(1, int(opt.iterations) + 1):
+            # correspondences: found at the start and again every other iteration (a frame's
+            # motion is a few px, so point-to-line steps with fixed pairs converge in between)
+            r, J, w, j = self._residuals(c, delta, with_jacobian=True, pairs=None if it % 2 else j)
+            H = J.T @ (J * w[:, None]) + self._Lambda0 + Lt
+            g = J.T @ (w * r) + self._Lambda0 @ delta + Lt @ (delta - prev)
+            step = -np.linalg.solve(H, g)
+            delta = delta + step
+            if np.abs(step[:3]).max() < STEP_TOL_MM and np.abs(step[3:]).max() < STEP_TOL_RAD:
+                break
+        r, _, _, j = self._residuals(c, delta, with_jacobian=False)
+        lumen_px = self._f * self._radius_mm[j] / self._moved_subset(delta, j)[:, 2]
+        outside = np.maximum(np.abs(r) - lumen_px, 0.0)
+        inl = outside <= opt.inlier_px
+        frac = float(inl.mean())
+        mean_res = float(outside[inl].mean()) if inl.any() else float("inf")
+        # the MAP objective: pseudo-Huber of the centerline distances (gated) plus the priors
+        a = np.minimum(np.abs(r), opt.gate_px) / opt.sigma_px
+        h = opt.huber_px / opt.sigma_px
+        cost = float(np.sum(2.0 * h * h * (np.sqrt(1.0 + (a / h) ** 2) - 1.0))
+                     + delta @ self._Lambda0 @ delta + (delta - prev) @ Lt @ (delta - prev))
+        return cost, delta, H, it, frac, mean_res
+
+    def _acquire(self, c, delta) -> list:
+        """Starts for a frame without a fitted predecessor: ``delta`` and the cranio-caudal shifts
+        (1 mm steps within ``acquire_range_mm``) at the best local minima of how far the curve lies
+        from the projected tree (a wire can fit a neighbouring vessel too: each start is solved
+        and the best fit kept)."""
+        opt = self.options
+        a = self.cc_cam
+        if np.linalg.norm(a[:2]) <= MIN_CC_IN_PLANE:
+            return [delta]
+        uv = self._project(self._moved(delta))
+        kd = cKDTree(uv)
+        step_px = self._f / self._c[2] * a[:2]  # image shift of 1 mm along the axis, at the centroid
+        shifts = np.arange(-opt.acquire_range_mm, opt.acquire_range_mm + 0.5, 1.0)
+        cost = np.empty(len(shifts))
+        for k, sh in enumerate(shifts):
+            d, _ = kd.query(c - sh * step_px, distance_upper_bound=opt.gate_px)
+            cost[k] = np.sum(np.minimum(d, opt.gate_px) ** 2)
+        interior = (cost[1:-1] <= cost[:-2]) & (cost[1:-1] <= cost[2:])
+        minima = np.r_[cost[0] <= cost[1], interior, cost[-1] <= cost[-2]]
+        order = [k for k in np.argsort(cost) if minima[k]][:ACQUIRE_STARTS]
+        starts = [delta]
+        for k in order:
+            out = delta.copy()
+            out[:3] += shifts[k] * a
+            starts.append(out)
+        return starts
+
+    def _residuals(self, c, delta, *, with_jacobian: bool, pairs=None):
+        """Signed point-to-projected-tangent distances (px), their Jacobian, IRLS weights and the
+        tree sample paired with each curve point (``pairs``: reuse these instead of searching)."""
+        opt = self.options
+        if pairs is None:
+            sel = self._sel
+            uv_sel = self._project(self._moved_subset(delta, sel))
+            j = sel[cKDTree(uv_sel).query(c)[1]]
+        else:
+            j = pairs
+        Y = self._moved_subset(delta, np.concatenate([j, self._nbr[j]]))
+        uv2 = self._project(Y)
+        Y, uv, uvn = Y[: len(j)], uv2[: len(j)], uv2[len(j):]
+        tan = uvn - uv
+        nrm = np.linalg.norm(tan, axis=1, keepdims=True)
+        tan = np.where(nrm > 1e-9, tan / np.maximum(nrm, 1e-12), 0.0)
+        d = c - uv
+        # signed distance to the local tangent line (the projected segment), px
+        n = np.stack([-tan[:, 1], tan[:, 0]], axis=1)
+        n = np.where(nrm > 1e-9, n, d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12))
+        r = -np.einsum("ij,ij->i", n, d)  # n . (uv_j - c)
+        a = np.abs(r)
+        w = np.where(a <= opt.gate_px, 1.0 / np.sqrt(1.0 + (a / opt.huber_px) ** 2), 0.0) / opt.sigma_px**2
+        if not with_jacobian:
+            return r, None, w, j
+        # d r / d delta = n^T (d uv / d Y) (d Y / d delta), with d Y / d delta = [I, -[Y - c]x]
+        z = Y[:, 2]
+        g = np.empty((len(r), 3))
+        g[:, 0] = n[:, 0] * (self._f / z)
+        g[:, 1] = n[:, 1] * (self._f / z)
+        g[:, 2] = -(g[:, 0] * Y[:, 0] + g[:, 1] * Y[:, 1]) / z
+        J = np.hstack([g, np.cross(Y - self._c, g)])
+        return r, J, w, j
+
+
+def track_poses(tree: VesselTree, curves_uv_px, carm: CArm, initial_pose: Pose, *, covariance=None,
+                options: MotionOptions | None = None) -> list:
+    """Follow the pose through a sequence of frames.
+
+    Parameters
+    ----------
+    tree : VesselTree
+        The vessel centerline tree, LPS mm.
+    curves_uv_px : sequence of (N_k, 2) ndarray
+        Per frame, the 2D wire or catheter (proximal -> distal, px); an empty one holds the pose.
+    carm : CArm
+        The frames' view.
+    initial_pose : Pose
+        The roadmap registration (the prior's centre and the first frame's start).
+    covariance : (6, 6) ndarray, optional
+        The roadmap registration's covariance.
+
+    Returns
+    -------
+    list of registration.RegistrationResult
+        One per frame: ``pose``, ``mean_residual_px``, ``inlier_fraction``, ``verdict``, ``message``.
+    """
+    tracker = MotionTracker(tree, carm, initial_pose, covariance=covariance, options=options)
+    return [tracker.update(c) for c in curves_uv_px]
+
+
+def curve_to_tree_distance_px(curve_uv_px, tree: VesselTree, carm: CArm, pose: Pose) -> np.ndarray:
+    """Distance (px) of each curve point to the nearest segment of the projected tree (N,)."""
+    c = np.asarray(curve_uv_px, float).reshape(-1, 2)
+    uv = carm.project(tree.points_lps_mm, pose)
+    e = np.flatnonzero(tree.parent >= 0)
+    A, B = uv[e], uv[tree.parent[e]]
+    out = np.empty(len(c))
+    AB = B - A
+    L2 = np.maximum(np.einsum("ij,ij->i", AB, AB), 1e-12)
+    for k0 in range(0, len(c), 256):
+        P = c[k0:k0 + 256, None, :]
+        s = np.clip(np.einsum("mij,ij->mi", P - A[None], AB) / L2, 0.0, 1.0)
+        Q = A[None] + s[..., None] * AB[None]
+        out[k0:k0 + 256] = np.sqrt(np.min(np.sum((P - Q) ** 2, axis=2), axis=1))
+    return out

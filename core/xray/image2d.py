@@ -1,0 +1,1279 @@
+"""Classical 2D image analysis: roadmap vessels, their centerline, the ordered guidewire.
+
+Three stages of the paper's pipeline live here (DESIGN.md, "The flow of data"):
+
+- :func:`vessel_mask` segments the vessels of any 2D angiogram (subtracted DSA or a plain,
+  non-subtracted XA frame, any dtype). Steps: robust intensity normalisation, automatic
+  polarity, log attenuation (Beer-Lambert: contrast becomes independent of the local
+  background level), collimator / field-of-view mask, background removal by a morphological
+  top-hat, multi-scale Hessian vesselness (Sato) of the top-hat, a combined feature
+  ``sqrt(top-hat * vesselness)``, hysteresis thresholds relative to the feature's Otsu threshold,
+  and removal of components smaller than a fixed fraction of the image or of the largest
+  component (the vessel tree is connected; noise and unlabelled side branches are not), then
+  growth to the full vessel width (half maximum of a wide top-hat). Vessels wider than the
+  default range (a simulated aorta-sized trunk) need ``max_radius_px``: a second pass on a
+  binned image. Every length scales with
+  the image size (reference: 300 px), so no parameter is tuned per image.
+- :func:`roadmap_centerline` skeletonises that mask and applies the paper's skeleton criteria:
+  keep end points and branch points, drop spurs (terminal branches shorter than the local vessel
+  width). Points carry the local radius (distance transform, px) and are centred across the
+  vessel with sub-pixel precision (midpoint of the half-maximum crossings of the attenuation
+  profile): a thinned skeleton cuts the inside of curves, which shrinks the 2D tree and biases
+  the depth of a single-view registration.
+- :func:`ordered_wire` turns a guidewire mask into an ordered, sub-pixel polyline:
+  Zhang-Suen thinning, an 8-connected pixel graph, the longest path of each skeleton piece
+  (a good-continuation trace through junctions, so a wire looping over itself is followed
+  through the crossing and spurs are left; double Dijkstra for junction-free pieces), bridging of
+  pieces whose ends are close and whose directions agree, sub-pixel centring across the normal
+  (mask centroid, weighted by the frame's darkness when given), extension of both ends to the
+  mask's end caps, proximal -> distal ordering and resampling at ~1 px. With the frame, a presence
+  test (:mod:`guidewire3d.xray.wirepresence`) fails a curve that is not a guidewire (a vessel, a branch
+  of a vessel tree, the collimator's edge: a frame without a wire).
+- :func:`wire_graph_spectrum` builds the paper's gradient-weighted path graph and its Laplacian
+  eigenbasis, and projects the wire's discrete curvature onto it.
+
+Pixel coordinates are ``(u, v) = (col, row)``; pixel ``(0, 0)`` is the centre of the first pixel.
+"""
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass
+
+import numpy as np
+from guidewire3d import kernels
+from guidewire3d.errors import InputError, SegmentationError
+from guidewire3d.metrics import resample_polyline
+from guidewire3d.xray.imaging import (
+    BLANK_REL_SPREAD,
+    FOV_MARGIN_PX,
+    REFERENCE_SIZE_PX,
+    WIDE_RADIUS_PX,
+    as_image,
+    as_mask,
+    dark_vessels_auto,
+    field_of_view,
+    grey,
+    normalise01,
+    polyline_normals,
+)
+from guidewire3d.xray.vessels2d_learned import DEFAULT_WEIGHTS_PATH, learned_vessel_mask
+from guidewire3d.xray.wirepresence import WirePresence, presence_of_curve
+from scipy import ndimage as ndi
+from scipy import sparse
+from scipy.sparse import csgraph
+
+__all__ = [
+    "VesselMethod",
+    "vessel_mask",
+    "Centerline2D",
+    "roadmap_centerline",
+    "OrderedWire",
+    "ordered_wire",
+    "WireSpectrum",
+    "wire_graph_spectrum",
+    "discrete_curvature",
+]
+
+# --------------------------------------------------------------------------------------------
+# Vessel mask parameters (lengths in px for a REFERENCE_SIZE_PX image; they scale with the size).
+BACKGROUND_RADIUS_PX = 8.0        # top-hat disk radius (must exceed the widest vessel's radius)
+TOPHAT_SMOOTH_PX = 0.7            # Gaussian smoothing of the top-hat (noise)
+VESSELNESS_SIGMAS_PX = (1.0, 4.0)  # smallest, largest Hessian scale
+VESSELNESS_N_SCALES = 4
+HYSTERESIS_LOW = 0.85             # x Otsu threshold of the feature
+HYSTERESIS_HIGH = 1.5             # x Otsu threshold of the feature
+MIN_COMPONENT_FRACTION = 0.001    # components smaller than this fraction of the image are dropped
+MIN_COMPONENT_OF_LARGEST = 0.1    # ... and those smaller than this fraction of the largest (the tree)
+FINE_MAX_RADIUS_PX = 6.0          # widest vessel radius the single-resolution pass covers
+MAX_COARSE_FACTOR = 8             # largest binning of the coarse pass (see max_radius_px)
+HALF_MAX = 0.5                    # fraction of the local vessel contrast at the vessel edge
+# Ordered-wire parameters.
+MIN_WIRE_LENGTH_PX = 10.0         # a shorter longest path is "no wire"
+MAX_MASK_FRACTION = 0.25          # a mask covering more of the image is not a wire
+MAX_MEAN_WIDTH_PX = 20.0          # mask area / path length above this: a blob, not a wire
+MIN_PIECE_PX = 3                  # skeleton pieces with fewer pixels are noise
+MAX_PIECES = 24                   # only the largest pieces are considered for bridging
+TANGENT_BACK_PX = 6               # end tangent from this many pixels back along the piece
+BRIDGE_MAX_ANGLE_DEG = 50.0       # gap vector vs each end's outward tangent
+TURN_PENALTY_PX = 4.0            # trail score: length - this x (1 - cos turn) at each junction
+TRACE_MAX_STEPS = 5000            # search budget of the trail search
+BRIDGE_FREE_PX = 2.5              # gaps up to this length are bridged regardless of direction
+TIP_CAP_FRACTION = 0.25          # mask end cap beyond the tip, x local width (flat 0 .. round 0.5)
+PROFILE_STEP_PX = 0.5            # sampling step across the normal (centring)
+REFINE_STEP_PX = 0.25             # sampling step along the tangent (end extension)
+REFINE_SMOOTH_PX = 2.0            # Gaussian smoothing (arc length) of the pixel path before normals
+SATURATED_FRACTION = 0.5         # frame with this fraction of pixels at its maximum: saturated
+# Proximal end without a hint: a guiding catheter (a darker tube around the wire) marks it.
+CATHETER_SEARCH_PX = 30.0         # arc length from each wire end searched for the catheter
+CATHETER_NEAR_PX = (1.0, 4.0)     # band beyond the wire's half-width on each side: the catheter wall
+CATHETER_FAR_PX = (9.0, 14.0)     # background band beyond the wire's half-width on each side
+CATHETER_MIN_Z = 2.0              # catheter contrast (noise sigmas, weaker side) that marks an end
+CATHETER_MIN_GAP_Z = 1.5          # ... and by which it must exceed the other end's
+
+
+# --------------------------------------------------------------------------------------------
+# Vessels
+# --------------------------------------------------------------------------------------------
+
+def _vessel_feature(a: np.ndarray, dark_vessels, scale: float | None = None):
+    """Top-hat x vesselness feature in [0, ~1], the field-of-view mask, the attenuation image and
+    the length scale used (px per reference px)."""
+    from skimage.filters import sato
+    from skimage.morphology import disk
+
+    im01, ok = normalise01(a)
+    if not ok:
+        return None, None, None, None
+    if scale is None:
+        scale = max(a.shape) / REFERENCE_SIZE_PX
+    if dark_vessels is None:
+        dark_vessels = dark_vessels_auto(im01, scale)
+    if not dark_vessels:
+        im01 = 1.0 - im01
+    fov = field_of_view(im01, max(2, int(round(FOV_MARGIN_PX * scale))))
+    if fov.sum() < 64:
+        return None, None, None, None
+    att = -np.log(im01 + 1.0 / 255.0)                  # vessels bright in attenuation
+    att = np.where(fov, att, np.median(att[fov]))
+    r_bg = max(2, int(round(BACKGROUND_RADIUS_PX * scale)))
+    opened = ndi.grey_opening(att, footprint=disk(r_bg))
+    tophat = ndi.gaussian_filter(att - opened, TOPHAT_SMOOTH_PX * max(scale, 1.0)) * fov
+    sig = np.geomspace(VESSELNESS_SIGMAS_PX[0] * max(scale, 1.0), VESSELNESS_SIGMAS_PX[1] * scale,
+                       VESSELNESS_N_SCALES)
+    sig = np.unique(np.maximum(sig, 1.0))
+    ves = sato(tophat, sigmas=sig, black_ridges=False) * fov
+    t99 = float(np.percentile(tophat[fov], 99))
+    v99 = float(np.percentile(ves[fov], 99))
+    if t99 <= 0 or v99 <= 0:
+        return None, None, None, None
+    feat = np.sqrt(np.clip(tophat / t99, 0, None) * np.clip(ves / v99, 0, None))
+    return feat, fov, att, scale
+
+
+def _drop_small(mask: np.ndarray, min_px: int, connectivity: int = 2) -> np.ndarray:
+    lab, n = ndi.label(mask, structure=ndi.generate_binary_structure(2, connectivity))
+    if n == 0:
+        return mask.copy()
+    size = np.bincount(lab.ravel())
+    size[0] = 0
+    return (size >= min_px)[lab]
+
+
+class VesselMethod(enum.Enum):
+    """Vessel segmentation method of :func:`vessel_mask`.
+
+    - ``CLASSICAL``: top-hat x multi-scale Hessian vesselness with hysteresis (this module).
+    - ``LEARNED``: the small UNet of :mod:`guidewire3d.xray.vessels2d_learned`, trained on real
+      non-subtracted coronary angiograms (``resources/vessel_unet.safetensors``).
+    - ``AUTO``: see :func:`vessel_mask`.
+    """
+
+    CLASSICAL = "classical"
+    LEARNED = "learned"
+    AUTO = "auto"
+
+
+def _vessel_method(method) -> VesselMethod:
+    try:
+        return method if isinstance(method, VesselMethod) else VesselMethod(str(method).lower())
+    except ValueError:
+        raise InputError(f"method: expected one of {[m.value for m in VesselMethod]}, got {method!r}") from None
+
+
+def _auto_vessel_method(image, max_radius_px: float | None) -> VesselMethod:
+    """The method ``AUTO`` stands for (see :func:`vessel_mask`)."""
+    if max_radius_px is not None or not DEFAULT_WEIGHTS_PATH.is_file():
+        return VesselMethod.CLASSICAL
+    a = np.asarray(image)
+    if a.dtype == bool or not np.issubdtype(a.dtype, np.number):
+        return VesselMethod.CLASSICAL                  # (rejected or handled by the classical path)
+    stored_pixels = np.issubdtype(a.dtype, np.integer) or bool(np.all(a == np.rint(a)))
+    return VesselMethod.LEARNED if stored_pixels else VesselMethod.CLASSICAL
+
+
+def vessel_mask(image, *, dark_vessels: bool | None = None, max_radius_px: float | None = None,
+                method: VesselMethod | str = VesselMethod.AUTO) -> np.ndarray:
+    """Segment the vessels of a 2D angiogram.
+
+    Parameters
+    ----------
+    image : (H, W) array_like of numbers
+        Subtracted DSA roadmap or a plain (non-subtracted) XA frame, any dtype and intensity scale.
+        A colour array ``(H, W, 3)`` / ``(H, W, 4)`` (an angiogram exported as RGB) is reduced to
+        its luminance.
+    dark_vessels : bool or None
+        ``True`` if contrast-filled vessels are darker than the background (X-ray convention),
+        ``False`` if brighter; ``None`` detects the polarity (dark vs bright top-hat details).
+    max_radius_px : float, optional
+        Radius of the widest vessel expected, px (e.g. from the CTA and the C-arm magnification).
+        ``None``: vessels up to ``FINE_MAX_RADIUS_PX`` x (image size / 300 px), typical of
+        coronary angiograms. A larger value adds a second detection pass on an f-times binned
+        image, ``f = ceil(max_radius_px / (FINE_MAX_RADIUS_PX x scale))`` (at most 8).
+        Used by ``CLASSICAL`` only (the learned model covers coronary-sized vessels).
+    method : VesselMethod or str
+        ``"classical"``, ``"learned"`` or ``"auto"`` (default). ``AUTO`` is ``CLASSICAL`` when
+        ``max_radius_px`` is given (the pipeline's roadmaps, vessels sized from the CTA: there the
+        classical method measured better, Dice 0.886 vs 0.791 on 10 simulated roadmaps, and the
+        registration was tuned on it) or when the image has non-integer values (a simulated or
+        processed DSA: classical 0.796 vs learned 0.791 without ``max_radius_px``); ``LEARNED``
+        for integer-valued images (stored detector pixels: 8/16-bit PNG or DICOM data, also when
+        read as float), where the learned model measured better on real non-subtracted coronary
+        angiograms (5-fold cross-validated Dice 0.778 vs 0.694), provided its weights file is
+        present. Measurements: ``scripts/bench_vessels2d_real.py``.
+
+    Returns
+    -------
+    (H, W) ndarray of bool
+        Vessel pixels True. All False for a blank image or one without line structures.
+
+    Raises
+    ------
+    InputError
+        If ``image`` is not a finite 2D numeric array of at least 8x8 pixels, a bad
+        ``max_radius_px`` or ``method``, or (``LEARNED``) a missing or unreadable weights file.
+    """
+    method = _vessel_method(method)
+    if max_radius_px is not None and not (np.isfinite(max_radius_px) and max_radius_px > 0):
+        raise InputError(f"max_radius_px: expected a positive number of pixels, got {max_radius_px!r}")
+    if method is VesselMethod.AUTO:
+        method = _auto_vessel_method(image, max_radius_px)
+    if method is VesselMethod.LEARNED:
+        return learned_vessel_mask(as_image(image, "image"), dark_vessels=dark_vessels)
+    a = as_image(image, "image")
+    im01, ok = normalise01(a)
+    if not ok:
+        return np.zeros(a.shape, bool)
+    scale = max(a.shape) / REFERENCE_SIZE_PX
+    if dark_vessels is None:
+        dark_vessels = dark_vessels_auto(im01, scale)
+    m, fov, att = _detect(a, bool(dark_vessels), scale)
+    if m is None:
+        return np.zeros(a.shape, bool)
+    th_l = _wide_tophat(att, scale)
+    f = 1
+    if max_radius_px is not None:
+        if not (np.isfinite(max_radius_px) and max_radius_px > 0):
+            raise InputError(f"max_radius_px: expected a positive number of pixels, got {max_radius_px!r}")
+        f = int(min(MAX_COARSE_FACTOR, np.ceil(max_radius_px / (FINE_MAX_RADIUS_PX * scale))))
+    if f > 1 and min(a.shape) >= 64 * f:
+        # Coarse pass: the same detector on an f-times binned image finds vessels f times wider.
+        h, w = (a.shape[0] // f) * f, (a.shape[1] // f) * f
+        binned = a[:h, :w].reshape(h // f, f, w // f, f).mean(axis=(1, 3))
+        mc, _, _ = _detect(binned, bool(dark_vessels), scale)
+        if mc is not None and mc.any():
+            up = np.zeros(a.shape, bool)
+            up[:h, :w] = np.repeat(np.repeat(mc, f, axis=0), f, axis=1)
+            m = m | (up & fov)
+    m = _filter_components(m)
+    if m.any():                                  # grow the detections to full width (FWHM)
+        m = _complete_width(m, th_l, fov, scale)
+    return m
+
+
+def _wide_tophat(att: np.ndarray, scale: float) -> np.ndarray:
+    """White top-hat of the attenuation with a disk of WIDE_RADIUS_PX (computed on a subsampled
+    grid, interpolated back): the local contrast of vessels up to that radius."""
+    from skimage.morphology import disk
+
+    k = max(1, int(round(2.0 * scale)))
+    small = att[::k, ::k]
+    r_l = max(2, int(round(WIDE_RADIUS_PX * scale / k)))
+    th_l = small - ndi.grey_opening(small, footprint=disk(r_l))
+    zoom = (att.shape[0] / small.shape[0], att.shape[1] / small.shape[1])
+    return ndi.zoom(th_l, zoom, order=1, grid_mode=True, mode="nearest")[: att.shape[0], : att.shape[1]]
+
+
+def _detect(a: np.ndarray, dark_vessels: bool, scale: float):
+    """One detection pass: hysteresis on the feature (thresholds relative to its Otsu level)."""
+    from skimage.filters import apply_hysteresis_threshold, threshold_otsu
+
+    feat, fov, att, _ = _vessel_feature(a, dark_vessels, scale)
+    if feat is None:
+        return None, None, None
+    vals = feat[fov]
+    if float(vals.max()) - float(vals.min()) <= 1e-9:
+        return None, None, None
+    t = float(threshold_otsu(vals))
+    return apply_hysteresis_threshold(feat, HYSTERESIS_LOW * t, HYSTERESIS_HIGH * t), fov, att
+
+
+def _filter_components(m: np.ndarray) -> np.ndarray:
+    """Drop components smaller than a fraction of the image or of the largest component."""
+    lab, n = ndi.label(m, structure=np.ones((3, 3), bool))
+    if n == 0:
+        return m
+    size = np.bincount(lab.ravel())
+    size[0] = 0
+    keep = (size >= MIN_COMPONENT_FRACTION * m.size) & (size >= MIN_COMPONENT_OF_LARGEST * size.max())
+    return keep[lab]
+
+
+def _complete_width(m: np.ndarray, th_l: np.ndarray, fov: np.ndarray, scale: float) -> np.ndarray:
+    """Grow the detected vessels to their full width: pixels near the mask whose wide top-hat is
+    at least half of the local vessel contrast (full width at half maximum). This also fills wide
+    vessels whose small-radius top-hat is hollow."""
+    win = 2 * int(round(WIDE_RADIUS_PX * scale)) + 1
+    local = ndi.maximum_filter(np.where(m, th_l, 0.0), size=win)
+    near = ndi.binary_dilation(m, iterations=max(1, int(round(WIDE_RADIUS_PX * scale))))
+    grown = near & fov & (th_l >= HALF_MAX * local) & (local > 0)
+    # Keep only grown pixels connected to the detected vessels.
+    lab, n = ndi.label(grown | m, structure=np.ones((3, 3), bool))
+    hit = np.zeros(n + 1, bool)
+    hit[np.unique(lab[m])] = True
+    hit[0] = False
+    return hit[lab]
+
+
+# --------------------------------------------------------------------------------------------
+# Skeleton helpers
+# --------------------------------------------------------------------------------------------
+
+_OFFSETS8 = np.array([(-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1)])
+
+
+def _neighbour_count(skel: np.ndarray) -> np.ndarray:
+    k = np.ones((3, 3), np.int32)
+    k[1, 1] = 0
+    return ndi.convolve(skel.astype(np.int32), k, mode="constant") * skel
+
+
+def _pixel_graph(skel: np.ndarray):
+    """8-connected graph of the skeleton pixels: (rows, cols) of the nodes and a CSR matrix of
+    Euclidean edge lengths (1 or sqrt 2)."""
+    rr, cc = np.nonzero(skel)
+    n = rr.size
+    h, w = skel.shape
+    index = np.full((h + 2, w + 2), -1, np.int64)
+    index[rr + 1, cc + 1] = np.arange(n)
+    src, dst, wt = [], [], []
+    for dr, dc in _OFFSETS8:
+        if (dr, dc) < (0, 0):
+            continue                       # each undirected edge once
+        j = index[rr + 1 + dr, cc + 1 + dc]
+        ok = j >= 0
+        src.append(np.nonzero(ok)[0])
+        dst.append(j[ok])
+        wt.append(np.full(ok.sum(), np.hypot(dr, dc)))
+    src, dst, wt = np.concatenate(src), np.concatenate(dst), np.concatenate(wt)
+    g = sparse.coo_matrix((np.r_[wt, wt], (np.r_[src, dst], np.r_[dst, src])), shape=(n, n)).tocsr()
+    return rr, cc, g
+
+
+def _prune_spurs(skel: np.ndarray, radius: np.ndarray, *, min_spur_px: float, n_iter: int = 6) -> np.ndarray:
+    """Remove terminal branches (end point to junction) shorter than max(min_spur_px, 2 x radius
+    at the junction). Iterated, then re-thinned; isolated pieces are kept."""
+    from skimage.morphology import skeletonize
+
+    sk = skel.copy()
+    for it in range(n_iter):
+        nb = _neighbour_count(sk)
+        junction = (nb >= 3) & sk
+        if not junction.any():
+            break
+        # Cut the skeleton at the junctions: the remaining pieces are the branches.
+        lab, n = ndi.label(sk & ~ndi.binary_dilation(junction, np.ones((3, 3), bool)),
+                           structure=np.ones((3, 3), bool))
+        if n == 0:
+            break
+        ends = (nb == 1) & sk
+        size = np.bincount(lab.ravel(), minlength=n + 1)
+        has_end = np.bincount(lab[ends], minlength=n + 1) > 0
+        # A branch touching a junction neighbourhood (not an isolated piece).
+        near_j = ndi.binary_dilation(junction, np.ones((5, 5), bool))
+        touches = np.bincount(lab[near_j & (lab > 0)], minlength=n + 1) > 0
+        rmax = ndi.maximum(radius, lab, index=np.arange(n + 1)) if n else np.zeros(1)
+        rmax = np.asarray(rmax, float)
+        # Radius at the parent junction ~ the largest radius of the branch's neighbourhood.
+        thresh = np.maximum(min_spur_px, 2.0 * rmax)
+        # One pass of spur removal (no cascade into the branches the spurs hung from), then
+        # only the leftover stubs inside junction neighbourhoods.
+        spur = has_end & touches & (size < thresh) & (it == 0)
+        spur[0] = False
+        stub = ends & (lab == 0)                   # end pixels inside a junction's neighbourhood
+        if not spur.any() and not stub.any():
+            break
+        sk = sk & ~spur[lab] & ~stub
+        sk = skeletonize(sk)
+    return sk
+
+
+# Sub-pixel centring of the roadmap centerline (see _centre_across).
+CENTRE_SMOOTH_PX = 0.7            # Gaussian smoothing of the attenuation image (noise)
+CENTRE_STEP_PX = 0.25             # profile sampling step across the vessel
+CENTRE_MARGIN_PX = 4.0            # profile reaches this far beyond the local mask radius
+CENTRE_TANGENT_K = 9              # skeleton neighbours of the local tangent (PCA)
+CENTRE_MAX_HALF_WIDTH = 2.0       # a half-width above this x radius + 2 px: merged with a neighbour
+
+
+def _attenuation(a: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """Smoothed attenuation ``-log(I)`` with the vessels bright, polarity from the mask (vessel
+    pixels darker or brighter than their surroundings)."""
+    im01, ok = normalise01(a)
+    if not ok:
+        return np.zeros_like(a)
+    ring = ndi.binary_dilation(mask, iterations=3) & ~mask
+    if ring.any() and float(np.mean(im01[mask])) > float(np.mean(im01[ring])):
+        im01 = 1.0 - im01                              # bright vessels
+    return ndi.gaussian_filter(-np.log(im01 + 1.0 / 255.0), CENTRE_SMOOTH_PX)
+
+
+def _centre_across(att: np.ndarray, skel_uv: np.ndarray, radius: np.ndarray) -> np.ndarray:
+    """Move skeleton points to the centre of the vessel's intensity profile across the vessel.
+
+    A thinned skeleton of a curved vessel lies slightly inside the curve (and is quantised to
+    pixels), which shrinks the 2D tree by a fraction of a per cent: in a single-view registration
+    that is a depth error of millimetres. Here each point is moved along the normal of the local
+    skeleton direction to the midpoint of the two half-maximum crossings of the attenuation
+    profile (background = the mean of the profile's outer minima on both sides): the full width at half
+    maximum is symmetric about the axis of a projected tube, straight or curved. Points whose
+    profile is not a single isolated peak (junctions, touching or crossing vessels, the image
+    border) keep their skeleton position.
+
+    Parameters
+    ----------
+    att : (H, W) ndarray
+        Attenuation image, vessels bright.
+    skel_uv : (M, 2) ndarray
+        Skeleton pixel centres ``(u, v)``.
+    radius : (M,) ndarray
+        Mask radius at each point (px).
+
+    Returns
+    -------
+    (M, 2) ndarray
+        Centred points.
+    """
+    n_pts = len(skel_uv)
+    if n_pts < 3:
+        return skel_uv.copy()
+    from scipy.spatial import cKDTree
+
+    k = int(min(CENTRE_TANGENT_K, n_pts))
+    _, idx = cKDTree(skel_uv).query(skel_uv, k=k)
+    nb = skel_uv[idx] - skel_uv[idx].mean(axis=1, keepdims=True)
+    _, vec = np.linalg.eigh(np.einsum("nki,nkj->nij", nb, nb))
+    t = vec[:, :, -1]
+    nrm = np.column_stack([-t[:, 1], t[:, 0]])
+    reach = np.maximum(radius, 1.0) + CENTRE_MARGIN_PX
+    s = np.arange(-np.ceil(reach.max()), np.ceil(reach.max()) + 1e-9, CENTRE_STEP_PX)
+    P = skel_uv[:, None, :] + s[None, :, None] * nrm[:, None, :]
+    prof = ndi.map_coordinates(att, [P[..., 1].ravel(), P[..., 0].ravel()], order=1, mode="nearest")
+    prof = prof.reshape(P.shape[:2])
+    inside = np.abs(s)[None, :] <= reach[:, None]
+    i = np.arange(n_pts)
+    col = np.arange(len(s))[None, :]
+    c = len(s) // 2
+    # the peak near the skeleton point; the background on each side
+    ip = np.argmax(np.where(np.abs(s)[None, :] <= np.maximum(radius, 1.0)[:, None], prof, -np.inf), axis=1)
+    peak = prof[i, ip]
+    left_min = np.min(np.where(inside & (col < ip[:, None]), prof, np.inf), axis=1)
+    right_min = np.min(np.where(inside & (col > ip[:, None]), prof, np.inf), axis=1)
+    base = 0.5 * (left_min + right_min)
+    level = 0.5 * (peak + base)
+    below = (prof < level[:, None]) & inside
+    rmask = below & (col > ip[:, None])
+    lmask = below & (col < ip[:, None])
+    ok = rmask.any(axis=1) & lmask.any(axis=1) & np.isfinite(base) & (peak > base)
+    ir = np.clip(np.where(ok, np.argmax(rmask, axis=1), c + 1), 1, len(s) - 1)
+    il = np.clip(np.where(ok, len(s) - 1 - np.argmax(lmask[:, ::-1], axis=1), c - 1), 0, len(s) - 2)
+
+    def crossing(a_idx, b_idx):
+        pa, pb = prof[i, a_idx], prof[i, b_idx]
+        d = pa - pb
+        f = np.clip((pa - level) / np.where(np.abs(d) < 1e-12, 1.0, d), 0.0, 1.0)
+        return s[a_idx] + f * (s[b_idx] - s[a_idx])
+
+    s_r, s_l = crossing(ir - 1, ir), crossing(il + 1, il)
+    mid, half = 0.5 * (s_r + s_l), 0.5 * (s_r - s_l)
+    ok &= (np.abs(mid) <= np.maximum(1.0, 0.5 * radius)) & (half <= CENTRE_MAX_HALF_WIDTH * radius + 2.0)
+    out = skel_uv.copy()
+    out[ok] += mid[ok, None] * nrm[ok]
+    return out
+
+
+@dataclass(frozen=True, eq=False)
+class Centerline2D:
+    """2D vessel centerline of a roadmap.
+
+    Attributes
+    ----------
+    points_uv_px : (M, 2) ndarray of float
+        Centerline points ``(u, v) = (col, row)``, one per skeleton pixel (after spur removal),
+        moved across the vessel to the centre of its intensity profile (sub-pixel). Points where the profile is not one isolated vessel (junctions,
+        touching vessels) stay at their skeleton pixel centre.
+    radius_px : (M,) ndarray of float
+        Local vessel radius (Euclidean distance transform of the mask at the skeleton pixel), px.
+    mask : (H, W) ndarray of bool
+        Vessel mask the centerline was taken from.
+    skeleton : (H, W) ndarray of bool
+        One-pixel-wide skeleton (the pixels ``points_uv_px`` were centred from).
+    endpoints_uv_px : (K, 2) ndarray of float
+        Skeleton end points (one neighbour).
+    branchpoints_uv_px : (L, 2) ndarray of float
+        Branch points (three or more neighbours; adjacent junction pixels merged to their centroid).
+    """
+
+    points_uv_px: np.ndarray
+    radius_px: np.ndarray
+    mask: np.ndarray
+    skeleton: np.ndarray
+    endpoints_uv_px: np.ndarray
+    branchpoints_uv_px: np.ndarray
+
+    @property
+    def n_points(self) -> int:
+        return int(len(self.points_uv_px))
+
+
+def roadmap_centerline(image, *, mask=None, max_radius_px: float | None = None) -> Centerline2D:
+    """Vessel centerline (skeleton with local radius) of a roadmap image.
+
+    The skeleton of the vessel mask gives the topology (end and branch points, one point per
+    skeleton pixel); each point is then moved across the vessel to the midpoint of the
+    half-maximum crossings of the image's attenuation profile (:func:`_centre_across`), so the
+    points are unbiased on curved vessels (measured on 30 ``guidewire3d bench`` roadmaps: mean
+    distance to the projected true centerline 0.73 -> 0.42 px, 2D scale error 1.4 -> 0.1 per
+    mille, which single-view registration turns into depth error).
+
+    Parameters
+    ----------
+    image : (H, W) array_like
+        Contrast XA frame (subtracted DSA or not); its intensities centre the points.
+    mask : (H, W) array_like of bool, optional
+        Vessel mask to use instead of :func:`vessel_mask` of ``image``.
+    max_radius_px : float, optional
+        Passed to :func:`vessel_mask` (widest expected vessel radius, px) when ``mask`` is None.
+
+    Returns
+    -------
+    Centerline2D
+
+    Raises
+    ------
+    InputError
+        Bad image or a mask of another shape.
+    SegmentationError
+        If no vessels are found.
+    """
+    from skimage.morphology import skeletonize
+
+    a = as_image(image, "image")
+    if mask is None:
+        m = vessel_mask(a, max_radius_px=max_radius_px)
+    else:
+        m = as_mask(mask, "mask")
+        if m.shape != a.shape:
+            raise InputError(f"mask: shape {m.shape} differs from the image's {a.shape}")
+        m = m.copy()
+    if not m.any():
+        raise SegmentationError("roadmap_centerline: no vessels found in the image")
+    # Fill pin holes so that the skeleton has no small loops.
+    holes = ndi.binary_fill_holes(m) & ~m
+    m = m | (holes & ~_drop_small(holes, 16, connectivity=1))
+    radius = ndi.distance_transform_edt(m)
+    scale = max(a.shape) / REFERENCE_SIZE_PX
+    skel = skeletonize(m)
+    skel = _prune_spurs(skel, radius, min_spur_px=max(4.0, 4.0 * scale))
+    if not skel.any():
+        raise SegmentationError("roadmap_centerline: the vessel mask has an empty skeleton")
+    nb = _neighbour_count(skel)
+    rr, cc = np.nonzero(skel)
+    er, ec = np.nonzero((nb == 1) & skel)
+    jl, nj = ndi.label((nb >= 3) & skel, structure=np.ones((3, 3), bool))
+    if nj:
+        cen = np.asarray(ndi.center_of_mass(np.ones_like(jl), jl, np.arange(1, nj + 1)), float)
+        branch = cen[:, ::-1]
+    else:
+        branch = np.zeros((0, 2))
+    pts = np.column_stack([cc, rr]).astype(float)
+    rad = radius[rr, cc].astype(float)
+    pts = _centre_across(_attenuation(a, m), pts, rad)
+    return Centerline2D(
+        points_uv_px=pts,
+        radius_px=rad,
+        mask=m,
+        skeleton=skel,
+        endpoints_uv_px=np.column_stack([ec, er]).astype(float),
+        branchpoints_uv_px=branch,
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# Ordered guidewire
+# --------------------------------------------------------------------------------------------
+
+@dataclass(frozen=True, eq=False)
+class OrderedWire:
+    """Ordered 2D guidewire polyline (falsy when extraction failed).
+
+    It behaves as its ``(N, 2)`` point array where an array is expected (``np.asarray(wire)``,
+    ``wire[:, 0]``, ``len(wire)``, ``wire.shape``), so callers of the stable API
+    ``ordered_wire(mask) -> (N, 2) float`` can use it directly; a failure is empty and falsy.
+
+    Attributes
+    ----------
+    points_uv_px : (N, 2) ndarray of float
+        ``(u, v) = (col, row)`` at ~1 px spacing, proximal -> distal (tip last). Empty on failure.
+    success : bool
+    message : str
+        ``"ok"`` or the reason of the failure.
+    length_px : float
+        Polyline length, px.
+    n_gaps_bridged : int
+        Number of breaks in the mask that were bridged.
+    presence : WirePresence or None
+        The presence test of the traced curve (:func:`guidewire3d.xray.wirepresence.wire_presence`;
+        None when it did not run: no image, ``check_presence=False``, or no curve was traced).
+        When it says the curve is not a guidewire, the result is falsy and ``message`` starts
+        with ``"no guidewire in the frame: "``.
+    """
+
+    points_uv_px: np.ndarray
+    success: bool
+    message: str
+    length_px: float = 0.0
+    n_gaps_bridged: int = 0
+    presence: WirePresence | None = None
+
+    def __bool__(self) -> bool:
+        return bool(self.success)
+
+    # --- the (N, 2) array protocol -------------------------------------------------------------
+    def __array__(self, dtype=None, copy=None):
+        a = self.points_uv_px if dtype is None else self.points_uv_px.astype(dtype)
+        return a.copy() if copy else a
+
+    def __len__(self) -> int:
+        return len(self.points_uv_px)
+
+    def __getitem__(self, index):
+        return self.points_uv_px[index]
+
+    @property
+    def shape(self) -> tuple[int, ...]:
+        return self.points_uv_px.shape
+
+    @property
+    def dtype(self):
+        return self.points_uv_px.dtype
+
+    @property
+    def tip_uv_px(self) -> np.ndarray:
+        """Distal end ``(u, v)``; NaNs on failure."""
+        return self.points_uv_px[-1].copy() if len(self.points_uv_px) else np.full(2, np.nan)
+
+
+def _failed(msg: str) -> OrderedWire:
+    return OrderedWire(points_uv_px=np.zeros((0, 2)), success=False, message=msg)
+
+
+def _diameter_path(g, rr, cc, node0):
+    """Geodesic diameter path (double Dijkstra) of the component holding ``node0``."""
+    d0 = csgraph.dijkstra(g, directed=False, indices=node0)
+    d0[~np.isfinite(d0)] = -1.0
+    a = int(np.argmax(d0))
+    d1, pred = csgraph.dijkstra(g, directed=False, indices=a, return_predecessors=True)
+    d1[~np.isfinite(d1)] = -1.0
+    b = int(np.argmax(d1))
+    node, seq = b, []
+    while node >= 0:
+        seq.append(node)
+        node = pred[node]
+    seq = np.asarray(seq[::-1])
+    return np.column_stack([rr[seq], cc[seq]]).astype(float), float(d1[b])
+
+
+def _away_tangent(p: np.ndarray, end: int, centre: np.ndarray) -> np.ndarray:
+    """Unit direction along branch ``p`` leaving its ``end`` (0: first point, 1: last point)."""
+    q = p if end == 0 else p[::-1]
+    k = min(TANGENT_BACK_PX, len(q) - 1)
+    t = q[k] - q[0] if k >= 1 else q[0] - centre
+    n = np.linalg.norm(t)
+    return t / n if n > 0 else np.zeros(2)
+
+
+def _traces(g, rr, cc, lab, comp_ids, merge_px: float):
+    """Good-continuation traces of the skeleton pieces that contain junctions.
+
+    The skeleton is cut into branches at its junction pixels; junction clusters joined by a
+    branch shorter than ``merge_px`` are merged (an X crossing thins into two T junctions).
+    From every free end a depth-first search follows trails (each branch at most once) and keeps
+    the one with the best length minus turning penalty, so crossings (a wire looping over itself)
+    are passed straight, hairpins whose limbs touch are followed round, and spurs are left. Returns ``{component: ((M, 2) rows/cols, length_px)}`` with the
+    longest trace of each component.
+    """
+    deg = np.diff(g.indptr)
+    junc = deg >= 3
+    jidx, bidx = np.flatnonzero(junc), np.flatnonzero(~junc)
+    if len(jidx) == 0 or len(bidx) == 0:
+        return {}
+    n = len(rr)
+    ncl, cl = csgraph.connected_components(g[jidx][:, jidx], directed=False)
+    clus = np.full(n, -1)
+    clus[jidx] = cl
+    gb = g[bidx][:, bidx]
+    nbr, bl = csgraph.connected_components(gb, directed=False)
+    sdeg = np.diff(gb.indptr)
+    order = np.lexsort((sdeg, bl))
+    starts = order[np.searchsorted(bl[order], np.arange(nbr))]
+    dist = csgraph.dijkstra(gb, directed=False, indices=starts, min_only=True)
+    ordr = np.lexsort((dist, bl))
+    bounds = np.searchsorted(bl[ordr], np.arange(nbr + 1))
+    pts = np.column_stack([rr, cc]).astype(float)
+    parent = list(range(ncl))
+
+    def find(x):
+        while parent[x] != x:
+            parent[x] = parent[parent[x]]
+            x = parent[x]
+        return x
+
+    branches = []                                   # (points, length, [cluster at end 0, end 1], comp)
+    for k in range(nbr):
+        nodes = bidx[ordr[bounds[k]:bounds[k + 1]]]
+        if lab[nodes[0]] not in comp_ids:
+            continue
+        ends = []
+        for e in (nodes[0], nodes[-1]):
+            nb = g.indices[g.indptr[e]:g.indptr[e + 1]]
+            c = clus[nb]
+            c = c[c >= 0]
+            ends.append(c)
+        c0 = int(ends[0][0]) if len(ends[0]) else -1
+        c1s = [int(x) for x in ends[1] if int(x) != c0] if len(nodes) == 1 else [int(x) for x in ends[1]]
+        c1 = c1s[0] if c1s else -1
+        length = float(dist[ordr[bounds[k + 1] - 1]])
+        branches.append([pts[nodes], length, [c0, c1], int(lab[nodes[0]])])
+    for b in branches:                              # merge split crossings
+        c0, c1 = b[2]
+        if c0 >= 0 and c1 >= 0 and c0 != c1 and b[1] < merge_px:
+            parent[find(c0)] = find(c1)
+            b.append(True)                          # internal to a merged junction
+    cpos_sum = np.zeros((ncl, 2))
+    cpos_n = np.zeros(ncl)
+    root = np.array([find(c) for c in range(ncl)])
+    np.add.at(cpos_sum, root[cl], pts[jidx])
+    np.add.at(cpos_n, root[cl], 1.0)
+    cpos = cpos_sum / np.maximum(cpos_n, 1.0)[:, None]
+    incident: dict[int, list[tuple[int, int]]] = {}
+    for k, b in enumerate(branches):
+        if len(b) > 4:
+            continue
+        for e in (0, 1):
+            if b[2][e] >= 0:
+                b[2][e] = int(root[b[2][e]])
+                incident.setdefault(b[2][e], []).append((k, e))
+    # Depth-first search over trails (each branch used once) from every free end; the score is the
+    # length minus a turning penalty at each junction, so the longest trail wins and, among
+    # equally long ones (which way round a loop), the smoothest.
+    best: dict[int, tuple[float, list, float]] = {}
+    budget = [TRACE_MAX_STEPS]
+
+    def away(k, e, c):
+        return _away_tangent(branches[k][0], e, cpos[c])
+
+    for k0, b0 in enumerate(branches):
+        if len(b0) > 4:
+            continue
+        for e0 in (0, 1):
+            if b0[2][e0] >= 0:
+                continue                            # start only at free ends
+            stack = [(k0, 1 - e0, frozenset([k0]), [(k0, e0)], b0[1], b0[1])]
+            while stack and budget[0] > 0:
+                budget[0] -= 1
+                k, out, used, trail, length, score = stack.pop()
+                comp = b0[3]
+                if comp not in best or score > best[comp][0]:
+                    best[comp] = (score, trail, length)
+                c = branches[k][2][out]
+                if c < 0:
+                    continue
+                d_in = -away(k, out, c)
+                last = branches[k][0][-1] if out == 1 else branches[k][0][0]
+                for k2, e2 in incident.get(c, ()):
+                    if k2 in used:
+                        continue
+                    cosv = float(d_in @ away(k2, e2, c))
+                    nxt = branches[k2][0][0] if e2 == 0 else branches[k2][0][-1]
+                    step = branches[k2][1] + float(np.linalg.norm(nxt - last))
+                    stack.append((k2, 1 - e2, used | {k2}, trail + [(k2, e2)], length + step,
+                                  score + step - TURN_PENALTY_PX * (1.0 - cosv)))
+    out_paths: dict[int, tuple[np.ndarray, float]] = {}
+    for comp, (_, trail, length) in best.items():
+        seq = [branches[k][0] if e == 0 else branches[k][0][::-1] for k, e in trail]
+        out_paths[comp] = (np.vstack(seq), length)
+    return out_paths
+
+
+def _longest_paths(skel: np.ndarray, merge_px: float):
+    """Longest path of each skeleton piece, as ordered (row, col) pixel arrays with their lengths,
+    largest pieces first: the good-continuation trace for pieces with junctions (see
+    :func:`_traces`), the geodesic diameter (double Dijkstra) otherwise."""
+    rr, cc, g = _pixel_graph(skel)
+    n_comp, lab = csgraph.connected_components(g, directed=False)
+    size = np.bincount(lab, minlength=n_comp)
+    comps = [int(c) for c in np.argsort(-size)[:MAX_PIECES] if size[c] >= MIN_PIECE_PX]
+    if not comps:
+        return []
+    traced = _traces(g, rr, cc, lab, set(comps), merge_px)
+    paths = []
+    for c in comps:
+        diam = _diameter_path(g, rr, cc, int(np.argmax(lab == c)))
+        tr = traced.get(c)
+        # The trace wins unless it is much shorter than the diameter (a trace stopped early).
+        paths.append(tr if tr is not None and tr[1] >= 0.8 * diam[1] else diam)
+    return paths
+
+
+def _end_tangent(path: np.ndarray, at_end: bool) -> np.ndarray:
+    """Outward unit tangent (row, col) of a pixel path at its last (``at_end``) or first point."""
+    k = min(TANGENT_BACK_PX, len(path) - 1)
+    if k < 1:
+        return np.zeros(2)
+    t = path[-1] - path[-1 - k] if at_end else path[0] - path[k]
+    nrm = np.linalg.norm(t)
+    return t / nrm if nrm > 0 else np.zeros(2)
+
+
+def _bridge(paths, max_gap_px: float):
+    """Join path ends that are close and whose directions agree; return the longest chain as one
+    ordered (row, col) array and the number of bridges on it."""
+    n = len(paths)
+    if n == 1 or max_gap_px <= 0:
+        return paths[0][0], 0
+    ends = []                                      # (piece, at_end, point, outward tangent)
+    for i, (p, _) in enumerate(paths):
+        ends.append((i, False, p[0], _end_tangent(p, False)))
+        ends.append((i, True, p[-1], _end_tangent(p, True)))
+    pts = np.array([e[2] for e in ends])
+    tan = np.array([e[3] for e in ends])
+    piece = np.array([e[0] for e in ends])
+    diff = pts[None, :, :] - pts[:, None, :]       # from end i to end j
+    dist = np.linalg.norm(diff, axis=2)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        unit = diff / dist[:, :, None]
+    cos_i = np.einsum("ijk,ik->ij", unit, tan)     # gap vs outward tangent at i
+    cos_j = -np.einsum("ijk,jk->ij", unit, tan)    # gap vs outward tangent at j (reversed)
+    cmin = np.cos(np.radians(BRIDGE_MAX_ANGLE_DEG))
+    no_tan = np.linalg.norm(tan, axis=1) == 0
+    ok_i = (cos_i >= cmin) | no_tan[:, None]
+    ok_j = (cos_j >= cmin) | no_tan[None, :]
+    valid = (dist <= max_gap_px) & (piece[:, None] != piece[None, :])
+    valid &= (ok_i & ok_j) | (dist <= BRIDGE_FREE_PX)
+    valid = np.triu(valid, 1)
+    cost = dist * (2.0 + np.nan_to_num(-cos_i - cos_j))
+    ii, jj = np.nonzero(valid)
+    order = np.argsort(cost[ii, jj])
+    used = np.zeros(len(ends), bool)
+    parent = list(range(n))
+
+    def find(x):
+        while parent[x] != x:
+            parent[x] = parent[parent[x]]
+            x = parent[x]
+        return x
+
+    link = {}
+    for k in order:
+        i, j = ii[k], jj[k]
+        if used[i] or used[j]:
+            continue
+        ri, rj = find(piece[i]), find(piece[j])
+        if ri == rj:
+            continue
+        parent[ri] = rj
+        used[i] = used[j] = True
+        link[i], link[j] = j, i
+    # Walk the chains: start from a piece end with no link (every chain is acyclic).
+    best, best_len, best_bridges = None, -1.0, 0
+    seen = np.zeros(n, bool)
+    for start in range(len(ends)):
+        if start in link or seen[piece[start]]:
+            continue
+        seq, total, bridges, e = [], 0.0, 0, start
+        while True:
+            i = piece[e]
+            seen[i] = True
+            p, length = paths[i]
+            forward = not ends[e][1]               # entering at the first point: keep the order
+            seq.append(p if forward else p[::-1])
+            total += length
+            other = e + 1 if forward else e - 1    # the same piece's other end
+            if other not in link:
+                break
+            nxt = link[other]
+            total += dist[other, nxt]
+            bridges += 1
+            e = nxt
+        if total > best_len:
+            best, best_len, best_bridges = np.vstack(seq), total, bridges
+    return best, best_bridges
+
+
+def _smooth_polyline(p: np.ndarray, sigma_px: float) -> np.ndarray:
+    """Resample at 1 px and Gaussian-smooth along the arc length (ends kept in place)."""
+    q = resample_polyline(p, 1.0)
+    if len(q) < 5 or sigma_px <= 0:
+        return q
+    s = ndi.gaussian_filter1d(q, sigma_px, axis=0, mode="nearest")
+    s[0], s[-1] = q[0], q[-1]
+    return s
+
+
+def _refine(p_rc: np.ndarray, maskf: np.ndarray, image: np.ndarray | None, half_px: float) -> np.ndarray:
+    """Move each point of an ordered (row, col) polyline to the weighted centroid of the mask
+    (times the image darkness ``-image``, if given) sampled along its normal. ``maskf`` and
+    ``image`` may be of any real dtype (a 0/1 uint8 mask, the frame's own dtype): the samples are
+    float64."""
+    nrm = polyline_normals(p_rc)
+    offs = np.arange(-half_px, half_px + 1e-9, PROFILE_STEP_PX)
+    samp = p_rc[:, None, :] + offs[None, :, None] * nrm[:, None, :]          # (N, K, 2)
+    w = kernels.sample_bilinear(maskf, samp[..., 0], samp[..., 1], mode="constant")
+    if image is not None:
+        dk = -kernels.sample_bilinear(image, samp[..., 0], samp[..., 1], mode="nearest")
+        w = w * np.clip(dk - dk.min(axis=1, keepdims=True), 0, None)
+    sw = w.sum(axis=1)
+    ok = sw > 1e-6
+    delta = np.zeros(len(p_rc))
+    delta[ok] = (w[ok] * offs[None, :]).sum(axis=1) / sw[ok]
+    return p_rc + delta[:, None] * nrm
+
+
+def _pad_edge(a: np.ndarray, ext) -> np.ndarray:
+    """``np.pad(a, ext, mode="edge")`` of a 2D array (OpenCV's border replication where it takes the dtype)."""
+    import cv2
+
+    (top, bottom), (left, right) = ext
+    if a.dtype == bool:
+        return _pad_edge(a.view(np.uint8), ext).view(bool)
+    if a.dtype in (np.uint8, np.uint16, np.int16, np.float32, np.float64) and min(a.shape) > 0:
+        return cv2.copyMakeBorder(np.ascontiguousarray(a), int(top), int(bottom), int(left), int(right),
+                                  cv2.BORDER_REPLICATE)
+    return np.pad(a, ext, mode="edge")
+
+
+def _catheter_contrast(img: np.ndarray, uv: np.ndarray, half_width_px: float) -> float:
+    """How strongly a darker tube (a guiding catheter) encloses the first ``CATHETER_SEARCH_PX``
+    of the ordered wire ``uv`` (from ``uv[0]``): on each side, the median of a background band
+    (``CATHETER_FAR_PX`` beyond the wire's half-width) minus that of the band next to the wire
+    (``CATHETER_NEAR_PX``), in units of the background's noise (1.4826 MAD); the weaker side
+    counts, so a tube (dark on both sides) scores and a neighbouring structure on one side does not."""
+    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(uv, axis=0), axis=1))])
+    rc = uv[s <= CATHETER_SEARCH_PX][:, ::-1]
+    if len(rc) < 3:
+        return 0.0
+    nrm = polyline_normals(rc)
+
+    def band(lo_hi, sign):
+        w = sign * (half_width_px + np.arange(lo_hi[0], lo_hi[1] + 1e-9, PROFILE_STEP_PX))
+        pts = rc[:, None, :] + w[None, :, None] * nrm[:, None, :]
+        return kernels.sample_bilinear(img, pts[..., 0].ravel(), pts[..., 1].ravel(), mode="nearest")
+
+    far = {sign: band(CATHETER_FAR_PX, sign) for sign in (1, -1)}
+    both = np.concatenate(list(far.values()))
+    noise = 1.4826 * float(np.median(np.abs(both - np.median(both))))
+    if noise <= 0.0:
+        noise = max(1e-12, 1e-6 * float(np.ptp(both)))
+    return min(float(np.median(far[sign]) - np.median(band(CATHETER_NEAR_PX, sign))) / noise for sign in (1, -1))
+
+
+def _catheter_end(img: np.ndarray, uv: np.ndarray, half_width_px: float) -> int | None:
+    """0 or 1 (first or last point of ``uv``) if a guiding catheter clearly encloses that end of the
+    wire and not the other (``CATHETER_MIN_Z``, ``CATHETER_MIN_GAP_Z``), else None."""
+    z = (_catheter_contrast(img, uv, half_width_px), _catheter_contrast(img, uv[::-1], half_width_px))
+    k = int(np.argmax(z))
+    if z[k] >= CATHETER_MIN_Z and z[k] - z[1 - k] >= CATHETER_MIN_GAP_Z:
+        return k
+    return None
+
+
+def _extend_end(p_rc: np.ndarray, maskf: np.ndarray, at_end: bool, max_px: float) -> np.ndarray:
+    """Extend one end along its tangent to where the mask's centre line leaves the mask, minus
+    ``TIP_CAP_FRACTION`` x the local mask width (the end cap: 0 for a flat cut, 0.5 for a round
+    cap; the rasterised mask of a tube's end lies in between)."""
+    k = min(4, len(p_rc) - 1)
+    if k < 1:
+        return p_rc
+    t = p_rc[-1] - p_rc[-1 - k] if at_end else p_rc[0] - p_rc[k]
+    nt = np.linalg.norm(t)
+    if nt == 0:
+        return p_rc
+    t /= nt
+    e = p_rc[-1] if at_end else p_rc[0]
+    steps = np.arange(0.0, max_px + 1e-9, REFINE_STEP_PX)
+    line = e[None, :] + steps[:, None] * t[None, :]
+    val = kernels.sample_bilinear(maskf, line[:, 0], line[:, 1], mode="constant")
+    outside = np.nonzero(val < 0.5)[0]
+    reach = steps[outside[0]] - REFINE_STEP_PX / 2 if len(outside) else steps[-1]
+    # Half-width across the end: mask sampled along the normal at the end point.
+    nrm = np.array([-t[1], t[0]])
+    offs = np.arange(-max_px, max_px + 1e-9, REFINE_STEP_PX)
+    across = e[None, :] + offs[:, None] * nrm[None, :]
+    width = kernels.sample_bilinear(maskf, across[:, 0], across[:, 1], mode="constant").sum() * REFINE_STEP_PX
+    ext = reach - TIP_CAP_FRACTION * width
+    if ext <= 0.25:
+        return p_rc
+    new = e + ext * t
+    return np.vstack([p_rc, new]) if at_end else np.vstack([new, p_rc])
+
+
+def ordered_wire(mask, *, image=None, proximal_hint_uv=None, max_gap_px: float = 15.0,
+                 check_presence: bool = True) -> OrderedWire:
+    """Ordered sub-pixel guidewire centerline from a guidewire mask.
+
+    Zhang-Suen thinning of the mask, an 8-connected pixel graph, the longest path of each skeleton
+    piece (a good-continuation trace through junctions and crossings; spurs are left), bridging of
+    pieces whose end points are within ``max_gap_px`` with agreeing directions,
+    sub-pixel centring across the local normal, extension of both ends to the mask's end caps,
+    proximal -> distal ordering and resampling at ~1 px.
+
+    Parameters
+    ----------
+    mask : (H, W) array_like of bool
+        Guidewire mask (float masks are thresholded at 0.5, integer masks at != 0).
+    image : (H, W) array_like, optional
+        The live frame (wire darker than background); if given, the sub-pixel centring weights the
+        mask by the local darkness of the image, and a blank or saturated image fails.
+    proximal_hint_uv : (2,) array_like, optional
+        ``(u, v)`` near the proximal end (e.g. the projected vessel root). Without it, the end
+        enclosed by a guiding catheter (a darker tube around the wire, seen in ``image``; see
+        ``CATHETER_*``) is proximal if only one end is, else the end closer to the image border.
+    max_gap_px : float
+        Largest break in the mask that is bridged, px.
+    check_presence : bool
+        With ``image``: test whether the traced curve is a guidewire at all
+        (:func:`guidewire3d.xray.wirepresence.wire_presence`: its width across the curve, the mask
+        branching around it, a one-sided edge), and fail with ``"no guidewire in the frame: <why>"``
+        if not (a frame without a wire: the segmenter's answer is a vessel, a branch of the tree or
+        the collimator's edge). ``False`` skips the test (callers that trace a curve in any case).
+
+    Returns
+    -------
+    OrderedWire
+        Falsy (``success=False`` and a reason) for an empty or blob-like mask, a blank image, no
+        path longer than ``MIN_WIRE_LENGTH_PX`` or (with ``image``) a curve that is not a
+        guidewire; never a fabricated wire. ``presence`` holds the presence test's evidence.
+
+    Raises
+    ------
+    InputError
+        If the mask is not 2D, the image shape differs, or the hint is not a finite (u, v).
+    """
+    from skimage.morphology import skeletonize
+
+    m_full = as_mask(mask, "mask")
+    img = None
+    if image is not None:
+        img = grey(image)
+        if img.shape != m_full.shape:
+            raise InputError(f"image: shape {img.shape} differs from the mask's {m_full.shape}")
+        if img.dtype == bool or not np.issubdtype(img.dtype, np.number):
+            raise InputError(f"image: expected a numeric image, got dtype {img.dtype}")
+        if np.issubdtype(img.dtype, np.floating) and not np.isfinite(img).all():
+            raise InputError("image: image contains NaN or infinite values")
+    hint = None
+    if proximal_hint_uv is not None:
+        hint = np.asarray(proximal_hint_uv, float).reshape(-1)
+        if hint.shape != (2,) or not np.all(np.isfinite(hint)):
+            raise InputError(f"proximal_hint_uv: expected a finite (u, v) pair, got {proximal_hint_uv!r}")
+    if not np.isfinite(max_gap_px) or max_gap_px < 0:
+        raise InputError(f"max_gap_px: expected a finite value >= 0, got {max_gap_px}")
+    if img is not None:
+        sub = img[::4, ::4].astype(np.float64)
+        lo, hi = np.percentile(sub, [1, 99])
+        if hi - lo <= BLANK_REL_SPREAD * max(abs(lo), abs(hi), 1e-12):
+            return _failed("image is blank or saturated (no intensity contrast)")
+        at_max = float(np.mean(sub >= sub.max()))
+        if at_max >= SATURATED_FRACTION:
+            return _failed(f"image is saturated ({100 * at_max:.0f}% of the pixels at the maximum)")
+    n_on = int(np.count_nonzero(m_full))
+    if n_on == 0:
+        return _failed("empty guidewire mask")
+    if n_on > MAX_MASK_FRACTION * m_full.size:
+        return _failed(f"mask covers {100.0 * n_on / m_full.size:.0f}% of the image: not a guidewire")
+
+    # Region of interest around the mask (speed), with a margin for the refinement samples.
+    rows = np.flatnonzero(m_full.any(axis=1))
+    cols = np.flatnonzero(m_full.any(axis=0))
+    pad = 8
+    r0, r1 = max(rows[0] - pad, 0), min(rows[-1] + pad + 1, m_full.shape[0])
+    c0, c1 = max(cols[0] - pad, 0), min(cols[-1] + pad + 1, m_full.shape[1])
+    # Where the wire leaves the image, continue the mask beyond the border (edge replication) so
+    # that the skeleton does not fork at the cut; points outside the image are dropped at the end.
+    H, W = m_full.shape
+    ext = ((pad if r0 == 0 else 0, pad if r1 == H else 0), (pad if c0 == 0 else 0, pad if c1 == W else 0))
+    m = _pad_edge(m_full[r0:r1, c0:c1], ext) if any(map(any, ext)) else m_full[r0:r1, c0:c1]
+    o_r, o_c = r0 - ext[0][0], c0 - ext[1][0]           # ROI (0, 0) in image pixels
+    m = np.array(m, dtype=bool, copy=True)              # skeletonize needs a writable array
+
+    skel = skeletonize(m)
+    half_width = 0.5 * float(m.sum()) / max(float(skel.sum()), 1.0)   # mean half-width, px
+    paths = _longest_paths(skel, merge_px=4.0 * half_width + 2.0)
+    if not paths:
+        return _failed("no skeleton piece of the mask is long enough to be a guidewire")
+    path_rc, n_bridges = _bridge(paths, float(max_gap_px))
+    if len(path_rc) < 2:
+        return _failed("no skeleton piece of the mask is long enough to be a guidewire")
+    raw_len = float(np.linalg.norm(np.diff(path_rc, axis=0), axis=1).sum())
+    if raw_len < MIN_WIRE_LENGTH_PX:
+        return _failed(f"longest wire path is {raw_len:.1f} px (< {MIN_WIRE_LENGTH_PX:.0f} px): no guidewire")
+    comp_area = float(m.sum())
+    if comp_area / max(raw_len, 1.0) > MAX_MEAN_WIDTH_PX:
+        return _failed(f"mask is blob-like (area / length = {comp_area / raw_len:.1f} px): not a guidewire")
+
+    # Sub-pixel centring.
+    maskf = m.view(np.uint8)                            # 0/1, sampled as float64
+    half = float(np.clip(np.ceil(half_width + 2.0), 2.0, 8.0))
+    darkness = None
+    if img is not None:
+        darkness = img[r0:r1, c0:c1]                    # the wire darker: _refine weighs by -image
+        if any(map(any, ext)):
+            darkness = _pad_edge(darkness, ext)
+    p = _smooth_polyline(path_rc, REFINE_SMOOTH_PX)
+    p = _refine(p, maskf, darkness, half)
+    p = _smooth_polyline(p, 1.0)
+    p = _extend_end(p, maskf, True, half + 2.0)
+    p = _extend_end(p, maskf, False, half + 2.0)
+    uv = p[:, ::-1] + np.array([o_c, o_r], float)
+    inside = (uv[:, 0] >= -0.5) & (uv[:, 0] <= W - 0.5) & (uv[:, 1] >= -0.5) & (uv[:, 1] <= H - 0.5)
+    if not inside.all():
+        idx = np.flatnonzero(inside)
+        if len(idx) < 2:
+            return _failed("the wire path lies outside the image")
+        runs = np.split(idx, np.flatnonzero(np.diff(idx) > 1) + 1)
+        uv = uv[max(runs, key=len)]                      # the longest stretch inside the image
+    uv = resample_polyline(uv, 1.0)
+
+    # Is the curve a guidewire at all (a frame without a wire: a vessel, a tree, an edge)?
+    presence = None
+    if img is not None and check_presence:
+        sr, sc = np.nonzero(skel)
+        skel_uv = np.column_stack([sc + o_c, sr + o_r])     # with the mask's extension beyond the border
+        presence = presence_of_curve(img, uv, skel_uv)
+        if not presence:
+            why = presence.reason.removeprefix("no guidewire: ")
+            return OrderedWire(points_uv_px=np.zeros((0, 2)), success=False,
+                               message=f"no guidewire in the frame: {why}", presence=presence)
+
+    # Proximal -> distal.
+    h, w = m_full.shape
+    if hint is not None:
+        flip = np.linalg.norm(uv[-1] - hint) < np.linalg.norm(uv[0] - hint)
+    else:
+        catheter = None if img is None else _catheter_end(img, uv, half_width)
+        if catheter is not None:
+            flip = catheter == 1
+        else:
+            def border(q):
+                return min(q[0], q[1], w - 1 - q[0], h - 1 - q[1])
+            flip = border(uv[-1]) < border(uv[0])
+    if flip:
+        uv = uv[::-1].copy()
+    length = float(np.linalg.norm(np.diff(uv, axis=0), axis=1).sum())
+    return OrderedWire(points_uv_px=uv, success=True, message="ok", length_px=length,
+                       n_gaps_bridged=int(n_bridges), presence=presence)
+
+
+# --------------------------------------------------------------------------------------------
+# The paper's gradient-weighted wire graph
+# --------------------------------------------------------------------------------------------
+
+@dataclass(frozen=True, eq=False)
+class WireSpectrum:
+    """Spectral decomposition of the paper's weighted wire graph.
+
+    Attributes
+    ----------
+    weights : (N-1,) ndarray of float
+        ``W[i, i+1] = exp(-||grad I(v_i) - grad I(v_{i+1})||^2 / (2 sigma_g^2))``.
+    laplacian : (N, N) ndarray of float
+        ``L = D - W``.
+    eigenvalues : (N,) ndarray of float
+        Ascending; the first is 0 (the constant vector).
+    eigenvectors : (N, N) ndarray of float
+        Orthonormal columns ``Phi`` with ``L = Phi diag(eigenvalues) Phi^T``.
+    curvature_per_px : (N,) ndarray of float
+        Discrete signed curvature of the wire at each point (turning angle / arc length), 1/px.
+    curvature_spectrum : (N,) ndarray of float
+        ``Phi^T curvature`` (graph Fourier coefficients, low frequencies first).
+    gradient : (N, 2) ndarray of float
+        ``(dI/du, dI/dv)`` of the normalised image at the points, 1/px.
+    """
+
+    weights: np.ndarray
+    laplacian: np.ndarray
+    eigenvalues: np.ndarray
+    eigenvectors: np.ndarray
+    curvature_per_px: np.ndarray
+    curvature_spectrum: np.ndarray
+    gradient: np.ndarray
+
+    def energy_fraction(self, k: int) -> float:
+        """Fraction of the curvature energy in the ``k`` lowest graph frequencies."""
+        e = self.curvature_spectrum ** 2
+        tot = float(e.sum())
+        return 1.0 if tot == 0 else float(e[:k].sum() / tot)
+
+
+def discrete_curvature(points_uv_px) -> np.ndarray:
+    """Signed discrete curvature (1/px) of an ordered polyline: turning angle at each interior
+    point divided by the mean of its two segment lengths; 0 at both ends."""
+    p = np.asarray(points_uv_px, float)
+    k = np.zeros(len(p))
+    if len(p) < 3:
+        return k
+    a, b = p[1:-1] - p[:-2], p[2:] - p[1:-1]
+    ang = np.arctan2(a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0], (a * b).sum(axis=1))
+    ds = 0.5 * (np.linalg.norm(a, axis=1) + np.linalg.norm(b, axis=1))
+    k[1:-1] = ang / np.maximum(ds, 1e-12)
+    return k
+
+
+def wire_graph_spectrum(points_uv_px, image, *, sigma_g: float = 0.85) -> WireSpectrum:
+    """The paper's weighted wire graph, its Laplacian eigenbasis and the curvature spectrum.
+
+    Adjacency ``A[i, j] = 1`` for consecutive points (``|i - j| = 1``); weights
+    ``W = A * exp(-||grad I(v_i) - grad I(v_j)||^2 / (2 sigma_g^2))`` with the gradient of the
+    image normalised to [0, 1] (robust 0.5-99.5 % range), Gaussian derivative at 1 px, sampled
+    bilinearly at the points; ``L = D - W = Phi Lambda Phi^T``.
+
+    Parameters
+    ----------
+    points_uv_px : (N, 2) array_like of float
+        Ordered wire points ``(u, v)``, N >= 2 (e.g. ``OrderedWire.points_uv_px``).
+    image : (H, W) array_like
+        The frame the points come from.
+    sigma_g : float
+        Gradient similarity bandwidth (paper: 0.85).
+
+    Returns
+    -------
+    WireSpectrum
+
+    Raises
+    ------
+    InputError
+        Fewer than 2 points, non-finite points, bad image or ``sigma_g <= 0``.
+    """
+    from scipy.linalg import eigh_tridiagonal
+
+    p = np.asarray(points_uv_px, float)
+    if p.ndim != 2 or p.shape[1] != 2 or len(p) < 2 or not np.all(np.isfinite(p)):
+        raise InputError(f"points_uv_px: expected finite (N, 2) points with N >= 2, got shape {p.shape}")
+    if not (np.isfinite(sigma_g) and sigma_g > 0):
+        raise InputError(f"sigma_g: expected a positive number, got {sigma_g}")
+    a = as_image(image, "image")
+    im01, _ = normalise01(a)
+    gv = ndi.gaussian_filter(im01, 1.0, order=(1, 0))
+    gu = ndi.gaussian_filter(im01, 1.0, order=(0, 1))
+    coords = [p[:, 1], p[:, 0]]
+    grad = np.column_stack([ndi.map_coordinates(gu, coords, order=1, mode="nearest"),
+                            ndi.map_coordinates(gv, coords, order=1, mode="nearest")])
+    dg = np.sum(np.diff(grad, axis=0) ** 2, axis=1)
+    w = np.exp(-dg / (2.0 * sigma_g ** 2))
+    deg = np.r_[w, 0.0] + np.r_[0.0, w]
+    lam, phi = eigh_tridiagonal(deg, -w)
+    lap = np.diag(deg) - np.diag(w, 1) - np.diag(w, -1)
+    kappa = discrete_curvature(p)
+    return WireSpectrum(weights=w, laplacian=lap, eigenvalues=lam, eigenvectors=phi,
+                        curvature_per_px=kappa, curvature_spectrum=phi.T @ kappa, gradient=grad)

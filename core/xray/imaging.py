@@ -1,0 +1,126 @@
+"""Shared 2D image helpers of the X-ray analysis stages (:mod:`guidewire3d.xray.image2d`,
+:mod:`guidewire3d.xray.vessels2d_learned`, :mod:`guidewire3d.xray.segmentation`, :mod:`guidewire3d.xray.wiremask`,
+:mod:`guidewire3d.app.batch2d`): input checks, robust normalisation, polarity, the collimator's field of
+view and polyline normals. The 2D modules import these instead of each other's private names.
+
+Pixel coordinates are ``(u, v) = (col, row)``.
+"""
+from __future__ import annotations
+
+import numpy as np
+from guidewire3d.errors import InputError
+from scipy import ndimage as ndi
+from skimage.color import rgb2gray
+from skimage.morphology import disk
+
+__all__ = [
+    "REFERENCE_SIZE_PX",
+    "as_image",
+    "as_mask",
+    "dark_vessels_auto",
+    "field_of_view",
+    "grey",
+    "normalise01",
+    "polyline_normals",
+]
+
+REFERENCE_SIZE_PX = 300.0         # classical 2D lengths are for an image of this size; they scale with it
+BLANK_REL_SPREAD = 1e-3           # image 1-99 % spread below this x its level: blank/saturated
+FOV_DARK_FRACTION = 0.25          # smoothed intensity below this x median = outside the collimator
+BORDER_PX = 2                     # image border band ignored (edge artefacts)
+FOV_MARGIN_PX = 5.0               # erosion of the field of view (edge responses)
+WIDE_RADIUS_PX = 12.0             # wide top-hat radius (polarity test, width completion, search distance)
+
+
+def grey(image) -> np.ndarray:
+    """The image as a 2D array: single-channel stacks ``(1, H, W)`` / ``(H, W, 1)`` squeezed,
+    colour ``(H, W, 3)`` / ``(H, W, 4)`` (an angiogram saved as RGB or RGBA) reduced to its
+    luminance (alpha ignored); anything else is returned unchanged for the caller's check."""
+    a = np.asarray(image)
+    if a.ndim == 3 and a.shape[0] == 1:
+        return a[0]
+    if a.ndim == 3 and a.shape[2] == 1:
+        return a[..., 0]
+    if a.ndim == 3 and a.shape[2] in (3, 4) and np.issubdtype(a.dtype, np.number) and min(a.shape[:2]) >= 8:
+        return rgb2gray(a[..., :3])
+    return a
+
+
+def as_image(image, name: str) -> np.ndarray:
+    """The image checked (finite, numeric, 2D, at least 8x8; colour reduced) as float64;
+    :class:`InputError` naming ``name`` otherwise."""
+    a = grey(image)
+    if a.ndim != 2 or min(a.shape) < 8:
+        raise InputError(f"{name}: expected a 2D image of at least 8x8 pixels, got shape {a.shape}")
+    if a.dtype == bool:
+        a = a.astype(np.float32)
+    if not np.issubdtype(a.dtype, np.number):
+        raise InputError(f"{name}: expected a numeric array, got dtype {a.dtype}")
+    a = a.astype(np.float64, copy=False)
+    if not np.all(np.isfinite(a)):
+        raise InputError(f"{name}: image contains NaN or infinite values")
+    return a
+
+
+def as_mask(mask, name: str) -> np.ndarray:
+    """The mask checked (2D, finite) as bool (numbers: > 0.5 for floats, non-zero for integers)."""
+    m = np.asarray(mask)
+    if m.ndim != 2:
+        raise InputError(f"{name}: expected a 2D mask, got shape {m.shape}")
+    if m.dtype == bool:
+        return m
+    if not np.issubdtype(m.dtype, np.number):
+        raise InputError(f"{name}: expected a boolean or numeric mask, got dtype {m.dtype}")
+    if np.issubdtype(m.dtype, np.floating):
+        if not np.all(np.isfinite(m)):
+            raise InputError(f"{name}: mask contains NaN or infinite values")
+        return m > 0.5
+    return m != 0
+
+
+def normalise01(a: np.ndarray) -> tuple[np.ndarray, bool]:
+    """Robust [0, 1] normalisation; second value False if the image is flat.
+
+    Non-negative images are divided by their 99.5 percentile (zero stays zero, so that ``-log`` is
+    the attenuation); images with negative values are stretched between the 0.5 and 99.5 percentiles.
+    """
+    sub = a[:: max(1, a.shape[0] // 256), :: max(1, a.shape[1] // 256)]
+    lo, hi = (float(x) for x in np.percentile(sub, [0.5, 99.5]))
+    level = max(abs(lo), abs(hi), 1e-12)
+    if hi - lo <= BLANK_REL_SPREAD * level:
+        return np.zeros_like(a), False
+    if lo >= 0.0:
+        # Non-negative intensities (raw X-ray): keep zero as zero so that log(I) is attenuation.
+        return np.clip(a / hi, 0.0, 1.0), True
+    return np.clip((a - lo) / (hi - lo), 0.0, 1.0), True
+
+
+def dark_vessels_auto(im01: np.ndarray, scale: float) -> bool:
+    """Polarity: compare the strongest dark and bright line-sized details (black vs white top-hat
+    with a disk wider than the vessels, on a subsampled copy)."""
+    k = max(1, int(round(2.0 * scale)))
+    small = ndi.uniform_filter(im01, size=k)[::k, ::k]
+    fp = disk(max(2, int(round(WIDE_RADIUS_PX * scale / k))))
+    dark = ndi.grey_closing(small, footprint=fp) - small
+    bright = small - ndi.grey_opening(small, footprint=fp)
+    return float(np.percentile(dark, 99.5)) >= float(np.percentile(bright, 99.5))
+
+
+def field_of_view(im01: np.ndarray, margin_px: int) -> np.ndarray:
+    """Pixels inside the collimator, away from the image border and dark shutter edges."""
+    sm = ndi.uniform_filter(im01, size=2 * margin_px + 1)
+    med = float(np.median(sm))
+    fov = sm > FOV_DARK_FRACTION * med if med > 0 else np.ones_like(sm, bool)
+    # Erode away from the shutter edges only; the image border itself loses BORDER_PX.
+    fov = ndi.binary_erosion(fov, iterations=margin_px, border_value=1)
+    b = BORDER_PX
+    fov[:b] = fov[-b:] = False
+    fov[:, :b] = fov[:, -b:] = False
+    return fov
+
+
+def polyline_normals(p: np.ndarray) -> np.ndarray:
+    """Unit normals ``(N, 2)`` of an ``(N, 2)`` polyline (tangent by central differences, rotated +90 deg)."""
+    t = np.gradient(p, axis=0)
+    t /= np.maximum(np.linalg.norm(t, axis=1, keepdims=True), 1e-12)
+    return np.column_stack([-t[:, 1], t[:, 0]])
