@@ -7,6 +7,7 @@ import hides a cycle; it does not remove it).
 from __future__ import annotations
 
 import ast
+import importlib
 from pathlib import Path
 
 
@@ -151,3 +152,38 @@ def test_the_plugin_uses_the_package_api_only():
             if isinstance(node, ast.ImportFrom) and (node.module or "").startswith("guidewire3d"):
                 private += [f"{p.name}: {node.module}.{a.name}" for a in node.names if a.name.startswith("_")]
     assert private == []
+
+
+# Folders whose name was a module's before the folders existed: their public names stay importable from
+# the folder (``from guidewire3d.motion import track_poses``, the API evaluation scripts call).
+REEXPORTING = ("registration", "motion", "reconstruction", "live", "phantom")
+
+
+def _public_names(path: Path) -> list[str]:
+    names = []
+    for node in ast.parse(path.read_text(), str(path)).body:
+        if isinstance(node, (ast.FunctionDef, ast.ClassDef)):
+            names.append(node.name)
+        elif isinstance(node, ast.Assign):
+            names += [t.id for t in node.targets if isinstance(t, ast.Name)]
+        elif isinstance(node, ast.AnnAssign) and isinstance(node.target, ast.Name):
+            names.append(node.target.id)
+    return [n for n in names if not n.startswith("_")]
+
+
+def test_folders_reexport_their_public_names():
+    missing = []
+    for pkg in REEXPORTING:
+        package = importlib.import_module(f"guidewire3d.{pkg}")
+        submodules = {m.split(".")[-1] for m in MODULES if m.startswith(pkg + ".")}
+        for name in sorted(m for m in MODULES if m.startswith(pkg + ".")):
+            module = importlib.import_module(f"guidewire3d.{name}")
+            missing += [f"guidewire3d.{pkg}.{n} (from {name})" for n in _public_names(MODULES[name])
+                        if n not in submodules and getattr(package, n, None) is not getattr(module, n)]
+    assert missing == []
+    from guidewire3d.live import Session
+    from guidewire3d.motion import track_poses
+    from guidewire3d.phantom import simulate
+    from guidewire3d.reconstruction import reconstruct_wire
+    from guidewire3d.registration import register
+    assert all(callable(f) for f in (Session, track_poses, simulate, reconstruct_wire, register))
