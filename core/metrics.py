@@ -95,7 +95,7 @@ def wire_errors_mm(points_lps_mm, truth_points_lps_mm, *, step_mm: float = 0.1) 
 def evaluate_against_truth(result, truth) -> dict:
     """Registration mTRE and per-frame 3D wire errors of a pipeline result against simulator truth.
 
-    ``truth`` is a ``guidewire3d.phantom.simulator.Truth``; only the visible (in-image) part of each true wire
+    ``truth`` is a ``guidewire3d.phantom.Truth``; only the visible (in-image) part of each true wire
     is compared, since that is all a single view can show.
     """
     pts = truth.tree.points_lps_mm

@@ -43,7 +43,7 @@ def main(argv=None) -> int:
 
     from guidewire3d.app import batch
     from guidewire3d.app import bench
-    from guidewire3d.phantom.simulator import PhantomOptions, simulate, write_case
+    from guidewire3d.phantom import PhantomOptions, simulate, write_case
 
     root = Path(args.keep) if args.keep else Path(tempfile.mkdtemp(prefix="bench_batch-"))
     root.mkdir(parents=True, exist_ok=True)

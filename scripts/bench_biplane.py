@@ -43,7 +43,7 @@ from guidewire3d.app import biplane
 from guidewire3d.xray import image2d
 from guidewire3d.live import session as live
 from guidewire3d.registration import solve as reg
-from guidewire3d.phantom.simulator import PhantomOptions, simulate  # noqa: E402
+from guidewire3d.phantom import PhantomOptions, simulate  # noqa: E402
 
 
 def _centerline(img, tree, carm):

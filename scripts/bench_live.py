@@ -103,7 +103,7 @@ def main() -> int:
     from guidewire3d.app import export
     from guidewire3d.xray import image2d
     from guidewire3d.live import session as live
-    from guidewire3d.phantom import simulator as phantom
+    from guidewire3d import phantom
     from guidewire3d.registration import solve as registration
     from guidewire3d.cta import vessels3d
     from guidewire3d.xray.segmentation import GuidewireSegmenter, guidewire_mask
@@ -344,7 +344,7 @@ def bench_igtl(args) -> int:
 
     from guidewire3d import io
     from guidewire3d.app import bench
-    from guidewire3d.phantom import simulator as phantom
+    from guidewire3d import phantom
     from guidewire3d.app import pipeline
 
     tmp = Path(tempfile.mkdtemp(prefix="bench-live-igtl-"))

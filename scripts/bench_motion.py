@@ -33,7 +33,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 def simulated(args) -> list[list[str]]:
     from guidewire3d.live import session as live
     from guidewire3d.metrics import mtre_mm
-    from guidewire3d.phantom.simulator import PhantomOptions, simulate
+    from guidewire3d.phantom import PhantomOptions, simulate
 
     acc = {False: dict(err=[], tip=[], pose=[], ok=0, n=0, ms=[]), True: dict(err=[], tip=[], pose=[], ok=0, n=0, ms=[])}
     for k in range(args.cases):

@@ -36,7 +36,7 @@ def main() -> int:
 
     from guidewire3d.app import bench
     from guidewire3d.live import session as live
-    from guidewire3d.phantom.simulator import PhantomOptions, simulate
+    from guidewire3d.phantom import PhantomOptions, simulate
 
     cases = [simulate(PhantomOptions(seed=s, n_frames=args.frames), make_ct=False) for s in range(args.seeds)]
     rows = []

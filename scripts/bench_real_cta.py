@@ -203,7 +203,7 @@ def sim_rows(n: int) -> list[dict]:
     from bench_vessels3d import evaluate as sim_eval
 
     from guidewire3d.cta import vesselmodel
-    from guidewire3d.phantom.simulator import PhantomOptions, simulate
+    from guidewire3d.phantom import PhantomOptions, simulate
 
     rows = []
     for seed in range(n):

@@ -1,6 +1,6 @@
 """Benchmark of the 3D-2D registration (issue 6) on simulator cases x start perturbations.
 
-For every simulator case (``guidewire3d.phantom.simulator.simulate(PhantomOptions(seed=k), make_ct=False)``)
+For every simulator case (``guidewire3d.phantom.simulate(PhantomOptions(seed=k), make_ct=False)``)
 the 2D roadmap centerline is taken from ``guidewire3d.xray.image2d.roadmap_centerline`` (with the
 pipeline's ``max_radius_px``, unless ``--no-max-radius``) when it can be
 imported (realistic: partial, with extraction errors), else from the projected true tree with
@@ -86,7 +86,7 @@ def _truth_centerline(tree, carm, pose, rng, *, noise_px=0.5, dropout=0.3, path_
 
 
 def load_cases(n, seed0, cache: Path | None, log, *, max_radius=True):
-    from guidewire3d.phantom.simulator import PhantomOptions, simulate
+    from guidewire3d.phantom import PhantomOptions, simulate
 
     try:
         from guidewire3d.xray.image2d import roadmap_centerline
@@ -262,12 +262,12 @@ def _inputs_digest() -> str:
 
 def _render_roadmap(carm, pose, chains, rng):
     """A subtracted DSA roadmap of the given lumen chains, exposed as the simulator does."""
-    from guidewire3d.phantom import simulator as phantom
+    from guidewire3d.phantom import xray
 
-    L = phantom.render_tube_line_integral(carm, pose, chains, supersample=2)
+    L = xray.render_tube_line_integral(carm, pose, chains, supersample=2)
     n0 = 300.0 * (carm.pixel_mm / 0.2) ** 2
-    return phantom._expose(rng, rng.uniform(0.1, 0.22) * L, b0=rng.uniform(3000, 12000), n0=4 * n0,
-                           psf_px=phantom._psf_sigma_px(rng, carm), gain_field=phantom._gain_field(carm.shape), gain=1.0)
+    return xray._expose(rng, rng.uniform(0.1, 0.22) * L, b0=rng.uniform(3000, 12000), n0=4 * n0,
+                        psf_px=xray._psf_sigma_px(rng, carm), gain_field=xray._gain_field(carm.shape), gain=1.0)
 
 
 def _branch_chains(tree, branches):
@@ -290,7 +290,7 @@ def load_verdict_cases(seeds, cache: Path | None, log):
     """
     from guidewire3d.xray import image2d
     from guidewire3d.cta import vessels3d
-    from guidewire3d.phantom.simulator import PhantomOptions, simulate
+    from guidewire3d.phantom import PhantomOptions, simulate
 
     tag = _inputs_digest()
     out, stale = [], []

@@ -51,7 +51,7 @@ def load_cases(n_seeds, n_frames, cache_dir):
     """The held-out cases: frames, truth masks and projections, and the wire's radius in px at the
     isocentre from its diameter and the C-arm tags (what a user knows: the wire's size and the DICOM
     geometry). Cached per seed in ``cache_dir``, keyed on the package's source."""
-    from guidewire3d.phantom.simulator import PhantomOptions, simulate
+    from guidewire3d.phantom import PhantomOptions, simulate
     from guidewire3d.xray.wiremask import projected_wire_radius_px
 
     cases = []

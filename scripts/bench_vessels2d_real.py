@@ -9,10 +9,10 @@ Three measurements, each a function other benches can import:
   the honest estimate for unseen images is the k-fold cross-validated Dice recorded in the weights'
   metadata by ``scripts/train_vessels2d.py`` (printed below the table).
 - :func:`simulated_roadmap_dice`: vessel Dice of both methods on simulated subtracted roadmaps
-  (``guidewire3d.phantom.simulator.simulate(...).roadmap`` vs ``vessel_mask_2d``), with and without the
+  (``guidewire3d.phantom.simulate(...).roadmap`` vs ``vessel_mask_2d``), with and without the
   CTA-derived ``max_radius_px`` the pipeline passes; the basis of ``VesselMethod.AUTO``.
 - :func:`simulated_wire_accuracy`: :func:`guidewire3d.xray.image2d.ordered_wire` on simulated live frames
-  (``guidewire3d.phantom.simulator.simulate``) from a given mask source (the TRUE wire mask by default, or any
+  (``guidewire3d.phantom.simulate``) from a given mask source (the TRUE wire mask by default, or any
   callable ``(frame, case, t) -> mask``): mean symmetric centerline distance to the true projected
   wire, tip error, failures and time.
 
@@ -67,7 +67,7 @@ def simulated_roadmap_dice(*, n_cases: int = 10, seed0: int = 0) -> list[dict]:
         One row per case: ``case``, and ``dice_<method>`` / ``s_<method>`` for ``classical``,
         ``learned``, ``auto``, plus ``dice_classical_r`` / ``dice_auto_r`` (with ``max_radius_px``).
     """
-    from guidewire3d.phantom.simulator import PhantomOptions, simulate
+    from guidewire3d.phantom import PhantomOptions, simulate
 
     rows = []
     for c in range(n_cases):
@@ -104,7 +104,7 @@ def simulated_wire_accuracy(*, n_cases: int = 10, n_frames: int = 20, seed0: int
         extracted distal end and the true tip; NaN if the true tip is outside the image),
         ``reversed`` (ordering wrong), ``ms``.
     """
-    from guidewire3d.phantom.simulator import PhantomOptions, simulate
+    from guidewire3d.phantom import PhantomOptions, simulate
 
     rows = []
     for c in range(n_cases):

@@ -129,7 +129,7 @@ def main(argv=None):
     ap.add_argument("--volume", default="small", choices=["small", "large"])
     a = ap.parse_args(argv)
     from guidewire3d.app import bench
-    from guidewire3d.phantom.simulator import PhantomOptions, simulate
+    from guidewire3d.phantom import PhantomOptions, simulate
     from guidewire3d.cta.vessels3d import extract_vessels
 
     print(f"machine: {bench.machine_line()}, volume={a.volume}")

@@ -91,7 +91,7 @@ def simulated_positives(cases, method):
 
 
 def train_cases(n_seeds, n_frames):
-    from guidewire3d.phantom.simulator import PhantomOptions, simulate
+    from guidewire3d.phantom import PhantomOptions, simulate
 
     sys.path.insert(0, str(ROOT / "scripts"))
     from bench_segmentation import case_options

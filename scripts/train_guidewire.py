@@ -166,7 +166,7 @@ def phantom_options(seed, index):
 
 def phantom_frames(seed, n_frames, options):
     """Simulator live frames and truth masks for one seed (imported lazily)."""
-    from guidewire3d.phantom.simulator import PhantomOptions, simulate
+    from guidewire3d.phantom import PhantomOptions, simulate
 
     sim = simulate(PhantomOptions(seed=int(seed), n_frames=int(n_frames), **options), make_ct=False)
     return np.asarray(sim.frames, np.float32), np.asarray(sim.wire_mask, bool)

@@ -9,7 +9,7 @@ from guidewire3d.app import biplane
 from guidewire3d.reconstruction import triangulation as tri
 from guidewire3d.errors import InputError
 from guidewire3d.geometry import CArm, Pose
-from guidewire3d.phantom.simulator import PhantomOptions, simulate
+from guidewire3d.phantom import PhantomOptions, simulate
 
 POSE_TOL_MM = 0.5  # joint registration mTRE on exact (projected true) centerlines
 WIRE_MEAN_TOL_MM = 0.15  # two-view wire from the true 2D wires, mean distance to the true wire
@@ -182,7 +182,7 @@ def _args(d, out, *, roadmap_b=None, frames_b=None):
 
 def test_cli_biplane_end_to_end(bcase_dir, tmp_path, capsys):
     from guidewire3d.app.cli import main
-    from guidewire3d.phantom.simulator import load_truth
+    from guidewire3d.phantom import load_truth
 
     out = tmp_path / "out"
     assert main(_args(bcase_dir, out)) == 0

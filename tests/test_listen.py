@@ -12,7 +12,7 @@ from guidewire3d import metrics
 from guidewire3d.app import batch
 from guidewire3d.app.dicomnet import StudyReceiver
 from guidewire3d.geometry import Pose
-from guidewire3d.phantom.simulator import load_truth
+from guidewire3d.phantom import load_truth
 
 QUIET_S = 1.0           # the receiver's quiet period in this test
 WAIT_S = 300.0          # bound on the wait for the reconstruction (a loaded 2-core host)

@@ -20,7 +20,7 @@ from guidewire3d.live import session as live
 from guidewire3d.app import pipeline
 from guidewire3d.reconstruction import wire as reconstruction
 from guidewire3d.geometry import Pose
-from guidewire3d.phantom.simulator import PhantomOptions, simulate
+from guidewire3d.phantom import PhantomOptions, simulate
 from guidewire3d.registration.solve import Verdict
 
 SCRIPTS = Path(__file__).resolve().parents[1] / "scripts"

@@ -8,11 +8,11 @@ import pytest
 from scipy import ndimage
 
 from guidewire3d import io
-from guidewire3d.phantom import simulator as phantom
+from guidewire3d import phantom
 from guidewire3d.app.cli import build_parser, main
 from guidewire3d.errors import InputError
 from guidewire3d.geometry import CArm, Pose, nominal_pose
-from guidewire3d.phantom.simulator import (
+from guidewire3d.phantom import (
     WIRE_MARGIN_MM,
     PhantomOptions,
     VolumeSize,
@@ -22,6 +22,8 @@ from guidewire3d.phantom.simulator import (
     simulate,
     write_case,
 )
+from guidewire3d.phantom.anatomy import _make_tree, _sample_grid
+from guidewire3d.phantom.case import _rngs
 from guidewire3d.vesseltree import VesselTree
 
 TOL_UV_PX = 0.5  # truth wire vs rendered wire
@@ -320,21 +322,21 @@ def test_detector_1024_and_motion():
 def test_wire_diameter_from_seed_takes_both_values():
     seen = set()
     for seed in range(12):
-        rng = phantom._rngs(seed)["wire"]
+        rng = _rngs(seed)["wire"]
         seen.add(float(rng.choice(phantom.WIRE_DIAMETERS_MM)))
     assert seen == {0.36, 0.89}
 
 
 @pytest.mark.parametrize("size", list(VolumeSize))
 def test_volume_sizes(size):
-    rngs = phantom._rngs(9)
-    grid, lo, hi = phantom._sample_grid(rngs["grid"], size)
+    rngs = _rngs(9)
+    grid, lo, hi = _sample_grid(rngs["grid"], size)
     if size is VolumeSize.LARGE:
         assert grid.shape_zyx == (300, 512, 512)
     else:
         assert grid.shape_zyx[1:] == (160, 160) and 100 <= grid.shape_zyx[0] <= 140
     assert np.all(lo >= grid.lo) and np.all(hi <= grid.hi)
-    tree, _ = phantom._make_tree(rngs["tree"], lo, hi, grid)
+    tree, _ = _make_tree(rngs["tree"], lo, hi, grid)
     assert np.all(tree.points_lps_mm >= grid.lo) and np.all(tree.points_lps_mm <= grid.hi)
 
 
@@ -423,7 +425,7 @@ def test_bad_options(kwargs, match):
 def test_default_case_cached(tmp_path, monkeypatch):
     cfg = tmp_path / "default.json"
     cfg.write_text(json.dumps({"options": {"seed": 8, "n_frames": 1, "catheter": False}}))
-    monkeypatch.setattr(phantom, "_DEFAULT_JSON", cfg)
+    monkeypatch.setattr(phantom.files, "_DEFAULT_JSON", cfg)
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
     d = phantom.default_case_dir(progress=False)
     assert d.parent == tmp_path / "cache" / "guidewire3d"

@@ -7,7 +7,7 @@ import pytest
 from guidewire3d import metrics
 from guidewire3d.app import export
 from guidewire3d.app.cli import main
-from guidewire3d.phantom.simulator import load_truth
+from guidewire3d.phantom import load_truth
 
 # Tolerances of the end-to-end chain on the small case (issue 7's targets are for the benchmark)
 MEAN_3D_ERROR_MM = 1.0

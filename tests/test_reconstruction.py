@@ -311,7 +311,7 @@ def test_uncertainty_is_calibrated_on_simulator_sequences():
     far below it (overconfident) nor far above it (the former model: RMS error / sigma ~ 0.4).
     One pose error per sequence makes the per-point errors correlated, so the 2-sigma coverage of
     two cases is not a sharp statistic; the RMS ratio is the calibration check."""
-    phantom = pytest.importorskip("guidewire3d.phantom.simulator")
+    phantom = pytest.importorskip("guidewire3d.phantom")
     rng = np.random.default_rng(11)
     reg_cov = np.diag([0.6**2] * 3 + [0.006**2] * 3)
     e_all, s_all = [], []
@@ -382,7 +382,7 @@ def test_result_record_and_context_cache():
 
 
 def test_simulator_sequence_oracle_accuracy():
-    phantom = pytest.importorskip("guidewire3d.phantom.simulator")
+    phantom = pytest.importorskip("guidewire3d.phantom")
     case = phantom.simulate(phantom.PhantomOptions(seed=3, n_frames=3), make_ct=False)
     tracker = WireTracker(case.pose, case.carm, case.tree)
     on = np.zeros(case.tree.n_points, bool)

@@ -6,7 +6,7 @@ import pytest
 
 from guidewire3d.errors import InputError
 from guidewire3d.metrics import dice
-from guidewire3d.phantom.simulator import PhantomOptions, simulate
+from guidewire3d.phantom import PhantomOptions, simulate
 from guidewire3d.xray.segmentation import (
     DEFAULT_WEIGHTS_PATH,
     Backend,

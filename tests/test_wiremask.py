@@ -7,7 +7,7 @@ import pytest
 
 from guidewire3d.errors import InputError
 from guidewire3d.metrics import dice
-from guidewire3d.phantom.simulator import PhantomOptions, simulate
+from guidewire3d.phantom import PhantomOptions, simulate
 from guidewire3d.xray.segmentation import GuidewireSegmenter, SegMethod, guidewire_mask
 from guidewire3d.xray.wiremask import (
     RESIDUAL_MIN_PX,

@@ -182,7 +182,7 @@ def test_segment_reports_no_wire_on_real_angiograms(tmp_path, capsys):
 
 @pytest.mark.parametrize("seed, diameter_mm", [(1300, 0.36), (1301, 0.89), (1304, 0.36), (1305, 0.89)])
 def test_simulated_wires_are_present_and_unchanged(seed, diameter_mm):
-    from guidewire3d.phantom.simulator import PhantomOptions, simulate
+    from guidewire3d.phantom import PhantomOptions, simulate
     from guidewire3d.xray.segmentation import guidewire_mask
 
     sim = simulate(PhantomOptions(seed=seed, n_frames=3, wire_diameter_mm=diameter_mm, catheter=True), make_ct=False)

@@ -16,10 +16,10 @@ import time
 from pathlib import Path
 
 import numpy as np
-from guidewire3d import io, metrics
+from guidewire3d import io, metrics, phantom
 from guidewire3d.app import pipeline
 from guidewire3d.io import atomic_write_text
-from guidewire3d.phantom import simulator as phantom
+from guidewire3d.phantom.files import _cache_root
 from guidewire3d.reconstruction import wire as reconstruction
 from guidewire3d.registration import solve as registration
 from guidewire3d.xray.segmentation import guidewire_mask
@@ -70,7 +70,7 @@ def _markdown(headers, rows) -> str:
 def _case_dir_for_seed(seed: int | None) -> Path:
     if seed is None:
         return phantom.default_case_dir(progress=True)
-    cache = phantom._cache_root() / f"demo-seed{seed}-v{phantom.CACHE_VERSION}"
+    cache = _cache_root() / f"demo-seed{seed}-v{phantom.CACHE_VERSION}"
     if not (cache / "truth.json").exists():
         case = phantom.simulate(phantom.PhantomOptions(seed=seed), progress=True)
         phantom.write_case(case, cache)

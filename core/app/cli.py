@@ -145,7 +145,7 @@ def _run_bench(args) -> int:
 
 # --- subcommands ----------------------------------------------------------------------
 def _add_phantom_parser(sub) -> None:
-    from guidewire3d.phantom import simulator as phantom
+    from guidewire3d import phantom
 
     p = sub.add_parser("phantom", help="write a simulated case (DICOM CT + XA + truth.json)",
                        description="Write a simulated case with ground truth: DICOM CT series, XA roadmap and "

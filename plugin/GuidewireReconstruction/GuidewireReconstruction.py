@@ -390,7 +390,7 @@ if SLICER_APP:
         def _case(self):
             import tempfile
 
-            from guidewire3d.phantom import simulator as phantom
+            from guidewire3d import phantom
 
             self._tmp = tempfile.TemporaryDirectory()
             case = phantom.simulate(phantom.PhantomOptions(seed=3, n_frames=4))  # = tests/conftest.py small_case
