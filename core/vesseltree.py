@@ -1,4 +1,4 @@
-"""The 3D vessel centerline graph shared by every stage (``guidewire3d.cta.vessels3d.VesselTree``).
+"""The 3D vessel centerline graph shared by every stage (what ``guidewire3d.cta.centerline`` builds).
 
 A ``VesselTree`` is a rooted tree over centerline points: ``parent[i]`` is the index of the
 point one step closer to the root (``-1`` for the root). Branches (runs between the root,

@@ -10,7 +10,7 @@ isocentre). Per case two roadmap variants, as ``scripts/bench_registration.py`` 
 
 The 3D tree is the simulator's true centerline tree (``--cta``: the one ``vessels3d`` extracts from
 the simulated CT, as ``reconstruct`` sees it; ~15 s more per case), the 2D centerlines
-``image2d.roadmap_centerline`` of the roadmaps (``max_radius_px`` as the pipeline), the start the
+``roadmap_centerline`` of the roadmaps (``max_radius_px`` as the pipeline), the start the
 DICOM one. Registration success as in ``bench_registration.py``: the verdict is ``ok`` AND the
 mTRE over the true centerline is below 2 mm. Monoplane: ``registration.register`` on plane A's
 roadmap; biplane: ``biplane.register_biplane`` on both.
@@ -40,7 +40,7 @@ from bench_registration import SUCCESS_MM, _render_roadmap  # noqa: E402
 
 from guidewire3d import metrics
 from guidewire3d.app import biplane
-from guidewire3d.xray import image2d
+from guidewire3d.xray.roadmap import roadmap_centerline
 from guidewire3d.live import session as live
 from guidewire3d.registration import solve as reg
 from guidewire3d.phantom import PhantomOptions, simulate  # noqa: E402
@@ -48,7 +48,7 @@ from guidewire3d.phantom import PhantomOptions, simulate  # noqa: E402
 
 def _centerline(img, tree, carm):
     r_px = float(tree.radius_mm.max()) / carm.pixel_at_iso_mm * 1.5
-    return image2d.roadmap_centerline(img, max_radius_px=r_px)
+    return roadmap_centerline(img, max_radius_px=r_px)
 
 
 def _tree_of(case, use_cta: bool):

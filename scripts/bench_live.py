@@ -101,7 +101,7 @@ def main() -> int:
     from guidewire3d import metrics
     from guidewire3d.app import bench
     from guidewire3d.app import export
-    from guidewire3d.xray import image2d
+    from guidewire3d.xray.roadmap import roadmap_centerline
     from guidewire3d.live import session as live
     from guidewire3d import phantom
     from guidewire3d.registration import solve as registration
@@ -113,7 +113,7 @@ def main() -> int:
     ves = vessels3d.extract_vessels(case.volume)
     t_cta = time.perf_counter() - t0
     t0 = time.perf_counter()
-    cl = image2d.roadmap_centerline(case.roadmap, max_radius_px=float(ves.tree.radius_mm.max()) / case.carm.pixel_at_iso_mm * 1.5)
+    cl = roadmap_centerline(case.roadmap, max_radius_px=float(ves.tree.radius_mm.max()) / case.carm.pixel_at_iso_mm * 1.5)
     reg = registration.register(ves.tree, cl.points_uv_px, case.carm, centerline_radius_px=cl.radius_px)
     t_reg = time.perf_counter() - t0
 

@@ -15,7 +15,7 @@ Rows
   1 px + 0.4 px Gaussian noise, visible part only, a missing tip of 0-5 px in half the frames.
 * ``registered``: as realistic, but the pose and its ``covariance_6x6`` come from the real
   ``registration.register`` of the perturbed tree on the simulated roadmap's
-  ``image2d.roadmap_centerline`` (cases whose registration reports failure are left out).
+  ``roadmap_centerline`` (cases whose registration reports failure are left out).
 * Calibration per error source: oracle inputs with one error added (the perturbed pose, the
   perturbed tree, the noisy 2D wire).
 * Baselines (realistic inputs): ``EPnP`` = the same depth method with a pose from
@@ -295,7 +295,7 @@ def print_table(summary, jumps, title):
 
 # ------------------------------------------------------------------------------------------
 def run(n_cases: int, n_frames: int, first_seed: int, verbose: bool, registered_cases: int | None = None) -> int:
-    from guidewire3d.xray import image2d
+    from guidewire3d.xray.roadmap import roadmap_centerline
     from guidewire3d.registration import solve as registration
     from guidewire3d.phantom import PhantomOptions, simulate
 
@@ -332,8 +332,8 @@ def run(n_cases: int, n_frames: int, first_seed: int, verbose: bool, registered_
         # the real registration of the perturbed ("segmented") tree on the simulated roadmap
         reg = None
         if registered_cases is None or c < registered_cases:
-            cl = image2d.roadmap_centerline(case.roadmap, max_radius_px=float(ptree.radius_mm.max())
-                                            / carm.pixel_at_iso_mm * 1.5)
+            cl = roadmap_centerline(case.roadmap, max_radius_px=float(ptree.radius_mm.max())
+                                    / carm.pixel_at_iso_mm * 1.5)
             reg = registration.register(ptree, cl.points_uv_px, carm, centerline_radius_px=cl.radius_px)
             reg_mtre = float(np.linalg.norm(reg.pose.apply(tree.points_lps_mm) - pose.apply(tree.points_lps_mm),
                                             axis=1).mean())

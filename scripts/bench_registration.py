@@ -1,7 +1,7 @@
 """Benchmark of the 3D-2D registration (issue 6) on simulator cases x start perturbations.
 
 For every simulator case (``guidewire3d.phantom.simulate(PhantomOptions(seed=k), make_ct=False)``)
-the 2D roadmap centerline is taken from ``guidewire3d.xray.image2d.roadmap_centerline`` (with the
+the 2D roadmap centerline is taken from ``guidewire3d.xray.roadmap.roadmap_centerline`` (with the
 pipeline's ``max_radius_px``, unless ``--no-max-radius``) when it can be
 imported (realistic: partial, with extraction errors), else from the projected true tree with
 0.5 px noise and random branch dropout; the script prints which. Starts are the true pose moved by
@@ -26,7 +26,7 @@ end-to-end inputs, five roadmaps per seed (see ``load_verdict_cases``; preparing
 ~20 s, cached under ``--cache``).
 
 ``--e2e`` uses the inputs of ``guidewire3d bench`` (seeds 100.., same ``PhantomOptions``, DICOM
-round trip): the CTA-derived tree (``vessels3d.extract_vessels``) and the image2d centerline of the
+round trip): the CTA-derived tree (``vessels3d.extract_vessels``) and the 2D centerline (``roadmap_centerline``) of the
 pipeline's roadmap frame, registered from the DICOM start as ``pipeline.run`` does, and prints per
 case the error split into its along-beam (depth) and in-plane parts, the rotation error, the
 quality figures and an LM run started at the true pose (same energy minimum => not a search
@@ -89,11 +89,11 @@ def load_cases(n, seed0, cache: Path | None, log, *, max_radius=True):
     from guidewire3d.phantom import PhantomOptions, simulate
 
     try:
-        from guidewire3d.xray.image2d import roadmap_centerline
-        source = "image2d.roadmap_centerline(roadmap)"
+        from guidewire3d.xray.roadmap import roadmap_centerline
+        source = "xray.roadmap.roadmap_centerline(roadmap)"
     except Exception as e:  # pragma: no cover - depends on the other stage
         roadmap_centerline = None
-        source = f"projected truth + 0.5 px noise, 30% branch dropout (image2d not importable: {e!r})"
+        source = f"projected truth + 0.5 px noise, 30% branch dropout (xray.roadmap not importable: {e!r})"
     cases = []
     tag = package_source_digest()
     for k in range(seed0, seed0 + n):
@@ -113,7 +113,7 @@ def load_cases(n, seed0, cache: Path | None, log, *, max_radius=True):
         log(f"  case {k}: simulated in {time.perf_counter() - t0:.1f} s")
         cases.append(rec)
     if roadmap_centerline is not None:
-        # the 2D centerline is extracted at every run (not cached), so changes to image2d count
+        # the 2D centerline is extracted at every run (not cached), so changes to xray.roadmap count
         for rec in cases:
             # as the pipeline does: the widest 3D vessel, in roadmap pixels at the isocentre, x 1.5
             r_px = float(rec["tree"].radius_mm.max()) / rec["carm"].pixel_at_iso_mm * 1.5
@@ -173,9 +173,9 @@ def run(cases, modes, levels, n_pert, rng, log, epnp=True):
 
 def load_e2e_cases(n, seed0, cache: Path | None, log):
     """The pipeline's own registration inputs for the ``guidewire3d bench`` cases (cached)."""
-    from guidewire3d.xray import image2d
     from guidewire3d.app import pipeline
     from guidewire3d.cta import vessels3d
+    from guidewire3d.xray.roadmap import roadmap_centerline
 
     cases = []
     tag = package_source_digest()
@@ -196,8 +196,8 @@ def load_e2e_cases(n, seed0, cache: Path | None, log):
             f.write_bytes(pickle.dumps(rec))
         cases.append(rec)
         log(f"  e2e case {seed} prepared")
-    for rec in cases:  # extracted at every run (not cached), so changes to image2d count
-        cl = image2d.roadmap_centerline(rec["roadmap"], max_radius_px=rec["max_radius_px"])
+    for rec in cases:  # extracted at every run (not cached), so changes to xray.roadmap count
+        cl = roadmap_centerline(rec["roadmap"], max_radius_px=rec["max_radius_px"])
         rec.update(uv=np.asarray(cl.points_uv_px, float), radius=np.asarray(cl.radius_px, float))
     return cases
 
@@ -281,16 +281,17 @@ def load_verdict_cases(seeds, cache: Path | None, log):
     """Per seed, the inputs ``reconstruct`` sees, in five variants of the roadmap.
 
     The 3D tree is always the CTA-extracted one (``vessels3d``, as the pipeline), the 2D centerline
-    ``image2d.roadmap_centerline`` of a simulated roadmap (``max_radius_px`` as the pipeline), the
+    ``roadmap_centerline`` of a simulated roadmap (``max_radius_px`` as the pipeline), the
     start the DICOM one (``init_pose=None``). Roadmaps: ``full`` the simulator's (every vessel);
     ``path`` only the catheterised root-to-leaf path (a selective injection: a single-path roadmap);
     ``partial`` the path and 1-3 other branches; ``view2`` / ``view2-path`` the full tree / the path
     seen from the case's second C-arm view (other angles, SID, SOD). Distractors (bone, blobs) in
     the CT of odd seeds. No DICOM round trip (the e2e mode has one).
     """
-    from guidewire3d.xray import image2d
-    from guidewire3d.cta import vessels3d
+    from guidewire3d.cta.centerline import centerline_from_mask
+    from guidewire3d.cta.segment import segment_vessels
     from guidewire3d.phantom import PhantomOptions, simulate
+    from guidewire3d.xray.roadmap import roadmap_centerline
 
     tag = _inputs_digest()
     out, stale = [], []
@@ -307,9 +308,9 @@ def load_verdict_cases(seeds, cache: Path | None, log):
         t0 = time.perf_counter()
         case = simulate(PhantomOptions(seed=seed, n_frames=1, distractors=bool(seed % 2)), make_ct=True)
         vol = case.volume
-        mask = vessels3d.segment_vessels(vol)
-        tree = vessels3d.centerline_from_mask(mask, spacing_mm=vol.spacing_mm, origin_lps_mm=vol.origin_lps_mm,
-                                              direction=vol.direction)
+        mask = segment_vessels(vol)
+        tree = centerline_from_mask(mask, spacing_mm=vol.spacing_mm, origin_lps_mm=vol.origin_lps_mm,
+                                    direction=vol.direction)
         true_tree = case.tree
         rng = np.random.default_rng(50_000 + seed)
         path_ids = np.asarray(case.wire_path_point_ids)
@@ -328,7 +329,7 @@ def load_verdict_cases(seeds, cache: Path | None, log):
         r_px = None
         for name, (carm, img) in views.items():
             r_px = float(tree.radius_mm.max()) / carm.pixel_at_iso_mm * 1.5
-            cl = image2d.roadmap_centerline(img, max_radius_px=r_px)
+            cl = roadmap_centerline(img, max_radius_px=r_px)
             recs.append(dict(seed=seed, variant=name, tree=tree, carm=carm, true_pose=case.pose,
                              true_pts=true_tree.points_lps_mm, path_pts=true_tree.points_lps_mm[path_ids],
                              uv=np.asarray(cl.points_uv_px, float), radius=np.asarray(cl.radius_px, float)))
@@ -446,8 +447,8 @@ def main(argv=None):
     p.add_argument("--cache", default=os.environ.get("GW_BENCH_CACHE", "/tmp/gw_bench_registration"))
     p.add_argument("--quick", action="store_true", help="levels 0, 5/10 and 10/20 only")
     p.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
-                   help="override a registration (or, prefixed 'image2d.', an image2d) module constant "
-                        "(experiments), e.g. --set SEARCH_STARTS=2 --set image2d.HALF_MAX=0.4")
+                   help="override a registration (or, prefixed 'roadmap.', an xray.roadmap) module constant "
+                        "(experiments), e.g. --set SEARCH_STARTS=2 --set roadmap.HALF_MAX=0.4")
     p.add_argument("--save", default="", help="write the per-registration rows to this pickle")
     p.add_argument("--no-max-radius", action="store_true",
                    help="image2d mode: call roadmap_centerline without max_radius_px (before 2026-11-22 the "
@@ -460,10 +461,10 @@ def main(argv=None):
     for kv in a.set:
         name, value = kv.split("=", 1)
         mod = reg
-        if name.startswith("image2d."):
-            from guidewire3d.xray import image2d as mod
+        if name.startswith("roadmap."):
+            from guidewire3d.xray import roadmap as mod
 
-            name = name[len("image2d."):]
+            name = name[len("roadmap."):]
         if not hasattr(mod, name):
             p.error(f"--set: {mod.__name__} has no constant {name}")
         kind = type(getattr(mod, name))

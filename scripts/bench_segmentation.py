@@ -80,7 +80,7 @@ def load_cases(n_seeds, n_frames, cache_dir):
 
 def wire_errors(mask, frame, uv_true, vis, ow=None):
     """(success, centerline mean distance px, tip error px or nan) of ordered_wire on a mask."""
-    from guidewire3d.xray.image2d import ordered_wire
+    from guidewire3d.xray.orderedwire import ordered_wire
     from guidewire3d.metrics import mean_closest_distance, resample_polyline
 
     if ow is None:
@@ -101,7 +101,7 @@ def timed(fn, *a, **k):
 
 
 def run_methods(cases, backend, threads, *, quality=True):
-    from guidewire3d.xray.image2d import ordered_wire
+    from guidewire3d.xray.orderedwire import ordered_wire
     from guidewire3d.metrics import dice, precision_recall
     from guidewire3d.xray.segmentation import GuidewireSegmenter, unet_probability
 

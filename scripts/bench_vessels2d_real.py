@@ -1,8 +1,8 @@
-"""Benchmarks of the classical 2D image analysis (guidewire3d.xray.image2d).
+"""Benchmarks of the classical 2D image analysis (guidewire3d.xray.roadmap, guidewire3d.xray.orderedwire).
 
 Three measurements, each a function other benches can import:
 
-- :func:`real_vessel_dice`: vessel Dice of :func:`guidewire3d.xray.image2d.vessel_mask` on the real
+- :func:`real_vessel_dice`: vessel Dice of :func:`guidewire3d.xray.roadmap.vessel_mask` on the real
   non-subtracted coronary angiograms of ``/work/shared/data/coronary-angiograms`` (``N.png`` with
   manual masks ``N_gt.png``), no per-image tuning, for the classical and the learned method side by
   side. The learned model was TRAINED on these 40 images, so its column is a training-set score;
@@ -11,7 +11,7 @@ Three measurements, each a function other benches can import:
 - :func:`simulated_roadmap_dice`: vessel Dice of both methods on simulated subtracted roadmaps
   (``guidewire3d.phantom.simulate(...).roadmap`` vs ``vessel_mask_2d``), with and without the
   CTA-derived ``max_radius_px`` the pipeline passes; the basis of ``VesselMethod.AUTO``.
-- :func:`simulated_wire_accuracy`: :func:`guidewire3d.xray.image2d.ordered_wire` on simulated live frames
+- :func:`simulated_wire_accuracy`: :func:`guidewire3d.xray.orderedwire.ordered_wire` on simulated live frames
   (``guidewire3d.phantom.simulate``) from a given mask source (the TRUE wire mask by default, or any
   callable ``(frame, case, t) -> mask``): mean symmetric centerline distance to the true projected
   wire, tip error, failures and time.
@@ -31,7 +31,8 @@ from pathlib import Path
 
 import numpy as np
 
-from guidewire3d.xray.image2d import ordered_wire, vessel_mask
+from guidewire3d.xray.orderedwire import ordered_wire
+from guidewire3d.xray.roadmap import vessel_mask
 from guidewire3d.metrics import dice, precision_recall, symmetric_polyline_distance
 
 REAL_DIR = Path("/work/shared/data/coronary-angiograms")

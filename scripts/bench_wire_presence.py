@@ -38,7 +38,7 @@ def real_negatives(method):
     """(n images, false wires before, false wires after, reasons) on the real angiograms."""
     from skimage.io import imread
 
-    from guidewire3d.xray.image2d import ordered_wire
+    from guidewire3d.xray.orderedwire import ordered_wire
 
     files = sorted(REAL_DIR.glob("*.png"), key=lambda p: p.stem)
     files = [f for f in files if not f.stem.endswith("_gt")]
@@ -59,7 +59,7 @@ def real_negatives(method):
 
 def simulated_positives(cases, method):
     """(frames, traced without the test, kept with it, kept with the same points, presence ms, ordered_wire ms)."""
-    from guidewire3d.xray.image2d import ordered_wire
+    from guidewire3d.xray.orderedwire import ordered_wire
     from guidewire3d.xray.wirepresence import presence_of_curve
 
     n = traced = kept = same = 0

@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 from guidewire3d.app import cli
-from guidewire3d.xray.image2d import ordered_wire, vessel_mask
+from guidewire3d.xray.orderedwire import ordered_wire
+from guidewire3d.xray.roadmap import vessel_mask
 from guidewire3d.io import read_xa
 from guidewire3d.metrics import dice
 from guidewire3d.xray.segmentation import guidewire_mask

@@ -1,4 +1,4 @@
-"""Tests of guidewire3d.xray.image2d against synthetic curves with known centerlines, the simulator's
+"""Tests of guidewire3d.xray.roadmap and guidewire3d.xray.orderedwire against synthetic curves with known centerlines, the simulator's
 ground truth and real angiograms with manual masks."""
 from pathlib import Path
 
@@ -7,13 +7,8 @@ import pytest
 from scipy.spatial import cKDTree
 
 from guidewire3d.errors import InputError, SegmentationError
-from guidewire3d.xray.image2d import (
-    discrete_curvature,
-    ordered_wire,
-    roadmap_centerline,
-    vessel_mask,
-    wire_graph_spectrum,
-)
+from guidewire3d.xray.orderedwire import discrete_curvature, ordered_wire, wire_graph_spectrum
+from guidewire3d.xray.roadmap import roadmap_centerline, vessel_mask
 from guidewire3d.metrics import dice, polyline_length, resample_polyline, symmetric_polyline_distance
 
 REAL_DIR = Path("/work/shared/data/coronary-angiograms")

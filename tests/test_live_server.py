@@ -182,7 +182,7 @@ def test_track_motion_streams_the_engines_motion_tracked_wires(setup, frames):
 def test_ras_space_flips_points_and_tip():
     """``--space ras``: what 3D Slicer reads as RAS is the LPS wire with x and y negated."""
     from guidewire3d.reconstruction import wire as reconstruction
-    from guidewire3d.xray.image2d import OrderedWire
+    from guidewire3d.xray.orderedwire import OrderedWire
 
     pts = np.array([[10.0, -20.0, 30.0], [11.0, -20.0, 31.0], [12.0, -19.0, 33.0], [12.5, -18.0, 35.0]])
     w3 = _wire3d(pts, np.full(4, 0.5))
@@ -217,7 +217,7 @@ def test_guidewire_polydata_bytes_follow_the_openigtlink_spec():
     """What Slicer's OpenIGTLinkIF unpacks (igtl_polydata): read here with struct alone, not pyigtl."""
     import struct
 
-    from guidewire3d.xray.image2d import OrderedWire
+    from guidewire3d.xray.orderedwire import OrderedWire
 
     pts = np.array([[1.5, -2.0, 3.25], [2.0, -2.5, 4.0], [2.5, -2.0, 5.5]])
     fr = live.FrameResult(0, OrderedWire(points_uv_px=np.zeros((3, 2)), success=True, message="ok"),
@@ -524,7 +524,7 @@ def _broadcast_until(server, payload, done: threading.Event, period_s=0.05, limi
 def test_viewer_follows_the_live_wire_offscreen(live_out, tmp_path):
     pytest.importorskip("pyvista")
     from guidewire3d.reconstruction import wire as reconstruction
-    from guidewire3d.xray.image2d import OrderedWire
+    from guidewire3d.xray.orderedwire import OrderedWire
     from guidewire3d.viewer import app
 
     out, report = live_out

@@ -677,7 +677,7 @@ def test_the_module_follows_a_live_server(hs):
     from guidewire3d.live import session as live
     from guidewire3d.reconstruction import wire as reconstruction
     from guidewire3d.app import stream
-    from guidewire3d.xray.image2d import OrderedWire
+    from guidewire3d.xray.orderedwire import OrderedWire
     from guidewire3d.registration.solve import Verdict
 
     rng = np.random.default_rng(3)

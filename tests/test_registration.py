@@ -433,8 +433,8 @@ def test_bad_inputs_raise(case0):
 
 def test_jackknife_refuses_a_pose_that_rests_on_part_of_the_roadmap():
     """Issue 20 item 4, a false acceptance of the covariance alone: `bench_registration.py --verdict`
-    seed 105, the "partial" roadmap (the catheterised path and 1-3 other branches, image2d
-    centerline) against the CTA-extracted tree. The pose lands 10.7 mm off along the beam with a
+    seed 105, the "partial" roadmap (the catheterised path and 1-3 other branches, its
+    roadmap_centerline) against the CTA-extracted tree. The pose lands 10.7 mm off along the beam with a
     1-sigma of 1.4 mm (under the 2 mm limit); leaving out parts of the roadmap moves it by several mm,
     so the verdict is UNCERTAIN and says why."""
     from pathlib import Path

@@ -149,7 +149,7 @@ def test_bad_frames_give_an_empty_mask(method):
 
 
 def test_ordered_wire_reports_failure_on_empty_mask():
-    from guidewire3d.xray.image2d import ordered_wire
+    from guidewire3d.xray.orderedwire import ordered_wire
 
     mask = guidewire_mask(np.zeros((128, 128), np.float32))
     ow = ordered_wire(mask)

@@ -1,5 +1,5 @@
 """Tests of the learned vessel segmenter (guidewire3d.xray.vessels2d_learned) and of the method dispatch
-of guidewire3d.xray.image2d.vessel_mask, against the real angiograms' manual masks and the simulator."""
+of guidewire3d.xray.roadmap.vessel_mask, against the real angiograms' manual masks and the simulator."""
 import json
 import pickle
 import struct
@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from guidewire3d.errors import InputError
-from guidewire3d.xray.image2d import VesselMethod, vessel_mask
+from guidewire3d.xray.roadmap import VesselMethod, vessel_mask
 from guidewire3d.metrics import dice
 from guidewire3d.xray.vessels2d_learned import (
     DEFAULT_WEIGHTS_PATH,

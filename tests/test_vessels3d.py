@@ -11,16 +11,11 @@ from scipy.spatial import cKDTree
 
 from guidewire3d import io
 from guidewire3d.errors import InputError, SegmentationError
-from guidewire3d.cta.vessels3d import (
-    CenterlineOptions,
-    VesselOptions,
-    VesselTree,
-    centerline_from_mask,
-    extract_vessels,
-    ridge_points,
-    segment_vessels,
-    surface_from_mask,
-)
+from guidewire3d.cta.centerline import CenterlineOptions, centerline_from_mask, ridge_points
+from guidewire3d.cta.segment import VesselOptions, segment_vessels
+from guidewire3d.cta.surface import surface_from_mask
+from guidewire3d.cta.vessels3d import extract_vessels
+from guidewire3d.vesseltree import VesselTree
 
 # acceptance numbers of issue 4
 MEAN_DIST_MM = 0.3
@@ -200,7 +195,7 @@ def test_bent_tube_centerline_is_not_inside_the_curve(R_mm, r_mm):
 
 
 def test_quadratic_smoothing_keeps_circles():
-    from guidewire3d.cta.vessels3d import _smooth_polyline, _smooth_polyline_quadratic
+    from guidewire3d.cta.centerline import _smooth_polyline, _smooth_polyline_quadratic
 
     rng = np.random.default_rng(7)
     R_mm = 10.0

@@ -10,7 +10,7 @@ import pytest
 from scipy.spatial import cKDTree
 
 from guidewire3d.app import cli
-from guidewire3d.xray.image2d import ordered_wire
+from guidewire3d.xray.orderedwire import ordered_wire
 from guidewire3d.metrics import mean_closest_distance, resample_polyline
 from guidewire3d.xray.wirepresence import WirePresence, wire_presence
 

@@ -2,9 +2,9 @@
 
 Reads angiograms and live frames -- XA / RF DICOM files (single- or multi-frame; no C-arm
 geometry needed), PNG / TIFF / JPEG images, or folders of them -- and writes, per image, the
-vessel mask (:func:`guidewire3d.xray.image2d.vessel_mask`), the guidewire mask
+vessel mask (:func:`guidewire3d.xray.roadmap.vessel_mask`), the guidewire mask
 (:func:`guidewire3d.xray.segmentation.guidewire_mask`) and the ordered wire
-(:func:`guidewire3d.xray.image2d.ordered_wire`, proximal -> distal) into a new folder:
+(:func:`guidewire3d.xray.orderedwire.ordered_wire`, proximal -> distal) into a new folder:
 
 - ``<name>_vessels.png`` and ``<name>_wire.png``: masks, 0 / 255 (8-bit grey);
 - ``<name>_overlay.png``: the image with the vessel skeleton (green) and the ordered wire (yellow),
@@ -29,7 +29,8 @@ from guidewire3d import io
 from guidewire3d.app.export import overlay_image, write_png
 from guidewire3d.errors import InputError
 from guidewire3d.methods import SegMethod, choices
-from guidewire3d.xray.image2d import ordered_wire, vessel_mask
+from guidewire3d.xray.orderedwire import ordered_wire
+from guidewire3d.xray.roadmap import vessel_mask
 from guidewire3d.xray.imaging import as_image
 from guidewire3d.xray.segmentation import guidewire_mask
 from guidewire3d.xray.wiremask import projected_wire_radius_px

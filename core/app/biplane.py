@@ -45,7 +45,7 @@ from guidewire3d.reconstruction.triangulation import (
 from guidewire3d.reconstruction.wire import reconstruct_wire
 from guidewire3d.registration import solve as R
 from guidewire3d.registration.solve import Verdict
-from guidewire3d.xray import image2d
+from guidewire3d.xray.orderedwire import ordered_wire
 from scipy.spatial import cKDTree
 
 __all__ = ["ViewFit", "BiplaneRegistration", "register_biplane", "BiplaneFrame", "BiplaneSession",
@@ -378,7 +378,7 @@ class BiplaneFrame:
     result: object  # live.FrameResult
     views: str
     fallback: str
-    wire2d_b: object  # image2d.OrderedWire of plane B
+    wire2d_b: object  # orderedwire.OrderedWire of plane B
     projection_error_px: tuple[float, float]  # of the 3D wire in plane A and in plane B (NaN if none)
     index_b: int
     seconds: float
@@ -473,7 +473,7 @@ class BiplaneSession:
         try:
             img = np.asarray(frame)
             mask = s.segmenter.segment(img)
-            return image2d.ordered_wire(mask, image=img, proximal_hint_uv=s.root_uv_px), img, ""
+            return ordered_wire(mask, image=img, proximal_hint_uv=s.root_uv_px), img, ""
         except Guidewire3DError as e:
             return None, None, f"bad frame: {e}"
         except Exception as e:  # noqa: BLE001 - a live session reports a broken frame and goes on

@@ -15,7 +15,8 @@ import numpy as np
 from guidewire3d import io
 from guidewire3d.app import export
 from guidewire3d.cta import vessels3d
-from guidewire3d.cta.vessels3d import CTAVessels, VesselOptions
+from guidewire3d.cta.segment import VesselOptions
+from guidewire3d.cta.vessels3d import CTAVessels
 from guidewire3d.errors import InputError
 from guidewire3d.geometry import CArm, Pose
 from guidewire3d.live import session as live_engine
@@ -23,8 +24,8 @@ from guidewire3d.live.session import FrameResult
 from guidewire3d.reconstruction.wire import Wire3D
 from guidewire3d.registration import solve as registration
 from guidewire3d.registration.solve import RegistrationResult
-from guidewire3d.xray import image2d
-from guidewire3d.xray.image2d import Centerline2D, OrderedWire
+from guidewire3d.xray.orderedwire import OrderedWire
+from guidewire3d.xray.roadmap import Centerline2D, roadmap_centerline
 
 __all__ = ["PipelineResult", "run", "run_to_outdir", "load_inputs", "choose_roadmap_frame", "check_roadmap_frame",
            "check_seeds"]
@@ -250,7 +251,7 @@ def roadmap_centerline_of(roadmap: io.XARun, tree, roadmap_frame=None):
     k = choose_roadmap_frame(roadmap, roadmap_frame)
     image = np.asarray(roadmap.frames[k])
     max_radius_px = float(tree.radius_mm.max()) / roadmap.carm.pixel_at_iso_mm * 1.5
-    return k, image, image2d.roadmap_centerline(image, max_radius_px=max_radius_px)
+    return k, image, roadmap_centerline(image, max_radius_px=max_radius_px)
 
 
 def geometry_overrides(args) -> dict:

@@ -51,8 +51,8 @@ from guidewire3d.live import session as live
 from guidewire3d.reconstruction import wire as reconstruction
 from guidewire3d.registration import solve as registration
 from guidewire3d.registration.solve import Verdict
-from guidewire3d.xray import image2d
-from guidewire3d.xray.image2d import OrderedWire
+from guidewire3d.xray.orderedwire import OrderedWire
+from guidewire3d.xray.roadmap import roadmap_centerline
 
 __all__ = ["LiveWire", "WireFollower", "DEFAULT_PORT", "DEVICE_WIRE", "DEVICE_UNCERTAINTY", "DEVICE_TIP", "DEVICE_STATUS", "DEVICE_POINTS",
            "Space", "Frame",
@@ -997,8 +997,8 @@ def setup_from_inputs(cta, roadmap, *, roadmap_frame=None, seeds_lps_mm=None, se
     t0 = time.perf_counter()
     ves = vessels3d.extract_vessels(vol, seeds_lps_mm=seeds_lps_mm)
     tree = ves.tree
-    cl = image2d.roadmap_centerline(np.asarray(road.frames[k]),
-                                    max_radius_px=float(tree.radius_mm.max()) / road.carm.pixel_at_iso_mm * 1.5)
+    cl = roadmap_centerline(np.asarray(road.frames[k]),
+                            max_radius_px=float(tree.radius_mm.max()) / road.carm.pixel_at_iso_mm * 1.5)
     reg = registration.register(tree, cl.points_uv_px, road.carm, centerline_radius_px=cl.radius_px)
     if log is not None:
         log(f"registration: {reg.verdict.label} ({reg.message}); residual {reg.mean_residual_px:.2f} px "

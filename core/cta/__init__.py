@@ -1,5 +1,9 @@
 """The CTA (or any angiographic volume): volume -> vessel mask -> centerline tree with radii (stage 1 of DESIGN.md).
 
-- ``vessels3d``: the vessel mask and the centerline graph of a CTA in HU
+- ``grid``: the voxel grid helpers the stages share (index -> LPS, checks, bounding boxes, finite differences)
+- ``segment``: the vessel mask of a CTA in HU (HU window, multi-scale vesselness, the tubular component)
+- ``surface``: the surface mesh of the mask
+- ``centerline``: the centerline graph of the mask (distance-transform ridges, skeleton graph, radii)
+- ``vessels3d``: the three chained (``extract_vessels``), with stage timings
 - ``vesselmodel``: the intensity model taken from the volume itself (HU CTA, MRA, 3DRA) and the plausibility checks
 """

@@ -1,6 +1,6 @@
 """Vessels of any angiographic volume: an intensity model from the data, plausibility checks (issue 17).
 
-:mod:`guidewire3d.cta.vessels3d` segments in fixed HU. This module makes the same stage work on a
+:mod:`guidewire3d.cta.segment` segments in fixed HU. This module makes the same stage work on a
 contrast CTA in HU, an MR angiogram in arbitrary units or a 3D rotational angiogram, for vessels
 from 0.5 to 16 mm radius (an aorta with its branches, coronaries with theirs), and refuses a volume
 in which it cannot find a plausible vessel tree instead of returning garbage:
@@ -13,7 +13,7 @@ in which it cannot find a plausible vessel tree instead of returning garbage:
    the data, so an affine change of the intensity scale (HU -> arbitrary units) changes the model
    the same way and the segmentation not at all.
 3. :meth:`IntensityModel.vessel_options` - the segmentation thresholds of
-   :class:`guidewire3d.cta.vessels3d.VesselOptions` as fractions of the lumen-background contrast (at a
+   :class:`guidewire3d.cta.segment.VesselOptions` as fractions of the lumen-background contrast (at a
    lumen of 400 HU over 40 HU they are the HU defaults of issue 4).
 4. :func:`check_plausibility` - vessel volume against the body, branch count, total length and
    tubularity against the field of view; an implausible tree is a ``SegmentationError`` that says
@@ -30,7 +30,7 @@ from dataclasses import asdict, dataclass, field, replace
 import numpy as np
 from guidewire3d import io
 from guidewire3d.cta import vessels3d
-from guidewire3d.cta.vessels3d import VesselOptions, _frangi_at
+from guidewire3d.cta.segment import VesselOptions, frangi_at
 from guidewire3d.errors import InputError, SegmentationError
 from scipy import ndimage as ndi
 
@@ -123,7 +123,7 @@ class IntensityModel:
         return self.contrast / max(self.noise, 1e-6 * max(abs(self.contrast), 1.0))
 
     def vessel_options(self, base=None, *, max_radius_mm: float = MAX_RADIUS_MM):
-        """:class:`guidewire3d.cta.vessels3d.VesselOptions` in this volume's units."""
+        """:class:`guidewire3d.cta.segment.VesselOptions` in this volume's units."""
         base = base or VesselOptions()
         c = self.contrast
         bone = self.bone if self.bone is not None else self.lumen + 1e3 * max(c, 1.0)
@@ -409,7 +409,7 @@ def estimate_intensity_model(volume: io.Volume, *, seeds_lps_mm=None) -> Intensi
         best = np.zeros(len(idx), np.float32)
         arg = np.zeros(len(idx), np.int64)
         for s, g, u, inv in grids:
-            v = _frangi_at(_block_mean(win, g), u, sp_ds * g, (s,))[inv]
+            v = frangi_at(_block_mean(win, g), u, sp_ds * g, (s,))[inv]
             better = v > best
             best[better] = v[better]
             arg[better] = MODEL_SCALES_MM.index(s)
@@ -527,7 +527,7 @@ def extract_vessels_auto(volume: io.Volume, *, seeds_lps_mm=None, progress: bool
     seeds_lps_mm : (K, 3) array_like of float, optional
         Points inside lumens: the result is the connected tree containing them (the first picks
         the root), whatever the rest of the volume holds.
-    options : vessels3d.VesselOptions, optional
+    options : segment.VesselOptions, optional
         Base options; the intensity thresholds are always replaced by the model's.
 
     Returns

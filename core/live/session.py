@@ -4,7 +4,7 @@ Every front end runs its frames through :class:`Session`: ``reconstruct`` (``pip
 the viewer's *apply*, the Slicer logic and, for streaming, ``guidewire3d live``. A frame's path:
 
 1. guidewire mask (``segmentation.GuidewireSegmenter``, ROI tracking between frames);
-2. ordered 2D wire (``image2d.ordered_wire``, proximal end nearest the projected tree root);
+2. ordered 2D wire (``orderedwire.ordered_wire``, proximal end nearest the projected tree root);
 3. 3D wire inside the vessel tree (``reconstruction.WireTracker``: the previous frame's path is a
    prior, a failed frame does not replace it);
 4. the frame's verdict: ``ok``, ``uncertain`` (a 3D wire exists but something about it is not
@@ -32,8 +32,8 @@ from guidewire3d.motion.tracking import MotionTracker
 from guidewire3d.reconstruction import wire as reconstruction
 from guidewire3d.registration.solve import Verdict
 from guidewire3d.vesseltree import VesselTree
-from guidewire3d.xray import image2d, segmentation
-from guidewire3d.xray.image2d import OrderedWire
+from guidewire3d.xray import segmentation
+from guidewire3d.xray.orderedwire import OrderedWire, ordered_wire
 
 __all__ = ["Orientation", "FrameResult", "Session", "orientation_of"]
 
@@ -157,7 +157,7 @@ class FrameResult:
     """
 
     index: int
-    wire2d: object  # image2d.OrderedWire (an (N, 2) array-like; falsy when not found)
+    wire2d: object  # orderedwire.OrderedWire (an (N, 2) array-like; falsy when not found)
     wire3d: object  # reconstruction.Wire3D
     verdict: object  # registration.Verdict
     message: str
@@ -286,7 +286,7 @@ class Session:
             mask = self.segmenter.segment(img)
             t1 = time.perf_counter()
             stages["segmentation"] = t1 - t0
-            wire2d = image2d.ordered_wire(mask, image=img, proximal_hint_uv=self.root_uv_px)
+            wire2d = ordered_wire(mask, image=img, proximal_hint_uv=self.root_uv_px)
             stages["ordered_wire"] = time.perf_counter() - t1
         except Guidewire3DError as e:
             return self._failed(index, None, f"bad frame: {e}", t0, timestamp)

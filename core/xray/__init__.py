@@ -5,6 +5,7 @@
 - ``vessels2d_learned``: the learned roadmap vessel mask
 - ``wirepresence``: is there a wire in this frame at all
 - ``wiremask``: the ordered sub-pixel wire rendered back as a tube
-- ``image2d``: roadmap vesselness and centerline; the ordered wire (proximal -> distal)
+- ``roadmap``: the roadmap's vessel mask (classical vesselness, or the learned one) and its 2D centerline
+- ``orderedwire``: the ordered sub-pixel wire (proximal -> distal) traced in a wire mask; the paper's wire graph
 - ``segmentation``: the wire segmenters (UNet, ridge), one ``Segmenter`` per ``SegMethod`` in ``SEGMENTERS``
 """

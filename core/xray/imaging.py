@@ -1,7 +1,8 @@
-"""Shared 2D image helpers of the X-ray analysis stages (:mod:`guidewire3d.xray.image2d`,
-:mod:`guidewire3d.xray.vessels2d_learned`, :mod:`guidewire3d.xray.segmentation`, :mod:`guidewire3d.xray.wiremask`,
-:mod:`guidewire3d.app.batch2d`): input checks, robust normalisation, polarity, the collimator's field of
-view and polyline normals. The 2D modules import these instead of each other's private names.
+"""Shared 2D image helpers of the X-ray analysis stages (:mod:`guidewire3d.xray.roadmap`,
+:mod:`guidewire3d.xray.orderedwire`, :mod:`guidewire3d.xray.vessels2d_learned`,
+:mod:`guidewire3d.xray.segmentation`, :mod:`guidewire3d.xray.wiremask`, :mod:`guidewire3d.app.batch2d`):
+input checks, robust normalisation, polarity, the collimator's field of view and polyline normals. The
+2D modules import these instead of each other's private names.
 
 Pixel coordinates are ``(u, v) = (col, row)``.
 """

@@ -48,7 +48,7 @@ import numpy as np
 from guidewire3d.assets import resource_path
 from guidewire3d.errors import InputError
 from guidewire3d.methods import SegMethod
-from guidewire3d.xray.image2d import ordered_wire
+from guidewire3d.xray.orderedwire import ordered_wire
 from guidewire3d.xray.imaging import grey
 from guidewire3d.xray.unet import unet_class
 from guidewire3d.xray.wiremask import check_radius_px, model_wire_mask
@@ -753,7 +753,7 @@ def guidewire_mask(frame, *, method="unet", roi_uv=None, backend="auto", wire_mo
         UNet inference backend.
     wire_model : bool
         Return the wire model instead of the pixel mask: the ordered sub-pixel wire traced in the
-        mask (:func:`guidewire3d.xray.image2d.ordered_wire`) rendered back as a tube
+        mask (:func:`guidewire3d.xray.orderedwire.ordered_wire`) rendered back as a tube
         (:func:`guidewire3d.xray.wiremask.model_wire_mask`). Its edges follow the wire's sub-pixel
         position, which a pixel classifier cannot place on a 1-2 px wide wire. The mask itself is
         returned when no wire can be traced in it.

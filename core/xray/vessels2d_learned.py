@@ -1,6 +1,6 @@
 """Learned 2D vessel segmentation for real (non-subtracted) angiograms: a small UNet.
 
-The classical :func:`guidewire3d.xray.image2d.vessel_mask` (top-hat x Hessian vesselness) is tuned
+The classical :func:`guidewire3d.xray.roadmap.vessel_mask` (top-hat x Hessian vesselness) is tuned
 for clean subtracted roadmaps; on real coronary angiograms (catheter, ribs, diaphragm, low
 contrast of small branches) a UNet trained on manually labelled frames does better (5-fold
 cross-validated Dice 0.778 vs 0.694 on the 40 real images of ``shared/data/coronary-angiograms``).
@@ -107,7 +107,7 @@ class VesselUNetConfig:
 # --------------------------------------------------------------------------------------------------
 
 def _as_image(image, name: str = "image") -> np.ndarray:
-    """The checked 2D image as float32 (the checks are image2d's)."""
+    """The checked 2D image as float32 (the checks of ``imaging.as_image``)."""
     return imaging.as_image(image, name).astype(np.float32)
 
 
@@ -134,7 +134,7 @@ def normalize_angiogram(image, *, dark_vessels: bool | None = None) -> np.ndarra
         Angiogram, any dtype and intensity scale.
     dark_vessels : bool or None
         ``False`` inverts the image (bright vessels); ``None`` detects the polarity with the
-        classical detector of :mod:`guidewire3d.xray.image2d`.
+        classical detector of :mod:`guidewire3d.xray.roadmap`.
 
     Returns
     -------

@@ -2,7 +2,7 @@
 
 A pixel classifier cannot place the edge of a 1-2 px wide wire: whether a border pixel is
 "wire" depends on where the wire's centre lies inside the pixel, to a tenth of a pixel. The
-ordered wire (:func:`guidewire3d.xray.image2d.ordered_wire`) does know that (its centre line is
+ordered wire (:func:`guidewire3d.xray.orderedwire.ordered_wire`) does know that (its centre line is
 within ~0.1 px of the truth on the simulator's frames), so this module draws the mask from it:
 
 - :func:`render_wire_mask`: the pixels of which at least ``COVER_FRACTION`` of the area lies
@@ -322,7 +322,7 @@ def model_wire_mask(seg, points_uv_px, *, width_seg=None, radius_px: float | Non
     seg : (H, W) array_like of bool
         The binary segmentation the wire was traced in.
     points_uv_px : (N, 2) array_like of float
-        The ordered sub-pixel centre line (:func:`guidewire3d.xray.image2d.ordered_wire`).
+        The ordered sub-pixel centre line (:func:`guidewire3d.xray.orderedwire.ordered_wire`).
     width_seg : (H, W) array_like of float, optional
         Segmentation whose width sets the radius (e.g. the network's probability map); ``seg``
         if omitted.

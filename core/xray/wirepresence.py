@@ -1,4 +1,4 @@
-"""Is the traced curve a guidewire? A presence test for :func:`guidewire3d.xray.image2d.ordered_wire`.
+"""Is the traced curve a guidewire? A presence test for :func:`guidewire3d.xray.orderedwire.ordered_wire`.
 
 A wire segmenter answers *something* on every frame, and the ordered-wire tracer then finds the
 longest curve in that answer. On a frame without a wire (a diagnostic coronary angiogram) that
@@ -247,7 +247,7 @@ def wire_presence(mask, points_uv_px, image, *, skeleton=None) -> WirePresence:
     mask : (H, W) array_like of bool
         The guidewire mask the curve was traced in.
     points_uv_px : (N, 2) array_like of float
-        The traced curve, ``(u, v)`` px at about 1 px spacing (an :class:`~guidewire3d.xray.image2d.OrderedWire`).
+        The traced curve, ``(u, v)`` px at about 1 px spacing (an :class:`~guidewire3d.xray.orderedwire.OrderedWire`).
     image : (H, W) array_like
         The frame (the wire darker than the background).
     skeleton : (H, W) array_like of bool, optional
@@ -274,7 +274,7 @@ def wire_presence(mask, points_uv_px, image, *, skeleton=None) -> WirePresence:
 
 def presence_of_curve(image: np.ndarray, points_uv_px, skeleton_uv_px: np.ndarray) -> WirePresence:
     """:func:`wire_presence` with the mask given by its skeleton's pixels ``(M, 2)`` ``(u, v)`` (the
-    form :func:`guidewire3d.xray.image2d.ordered_wire` has at hand); ``image`` is used as given (2D, numeric)."""
+    form :func:`guidewire3d.xray.orderedwire.ordered_wire` has at hand); ``image`` is used as given (2D, numeric)."""
     uv = np.asarray(points_uv_px, dtype=np.float64).reshape(-1, 2)
     if len(uv) < 3 or not np.all(np.isfinite(uv)):
         return WirePresence(False, "no guidewire: no traced curve")

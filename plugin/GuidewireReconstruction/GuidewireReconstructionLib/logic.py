@@ -484,7 +484,7 @@ class GuidewireReconstructionCoreLogic:
         self.result = None  # pipeline.PipelineResult of the last process()
         self.method = WireMethod.VESSEL
         self.segmenter = Segmenter.UNET
-        self.wires2d: list = []  # ordered 2D wire per live frame (image2d.OrderedWire)
+        self.wires2d: list = []  # ordered 2D wire per live frame (orderedwire.OrderedWire)
         self.registration = None  # the registration currently shown (after refine: the refined one)
         self.wires3d: list = []
         self.frame_results: list = []  # live.FrameResult per live frame (verdict: ok / uncertain / failed)

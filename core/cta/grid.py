@@ -1,0 +1,87 @@
+"""The voxel grid the CTA stages share (:mod:`~guidewire3d.cta.segment`, :mod:`~guidewire3d.cta.surface`,
+:mod:`~guidewire3d.cta.centerline`): index -> LPS affine, grid and seed checks, bounding boxes, finite
+differences at chosen voxels, the stage progress bar.
+
+Volumes are indexed ``(z, y, x)``; ``spacing_mm`` and ``origin_lps_mm`` are ``(x, y, z)`` as in
+SimpleITK and :class:`guidewire3d.io.Volume`; ``direction`` columns are the x, y, z index axes in LPS.
+"""
+from __future__ import annotations
+
+import numpy as np
+from guidewire3d.errors import InputError
+
+__all__ = ["progress_bar", "affine_zyx", "check_grid", "bbox", "seeds_to_index", "derivs_at"]
+
+
+def progress_bar(stages, progress: bool, desc: str):
+    """A tqdm bar over ``stages`` (hidden unless ``progress``), closed by the caller."""
+    from tqdm.auto import tqdm
+
+    return tqdm(total=len(stages), desc=desc, disable=not progress, leave=False)
+
+
+def affine_zyx(spacing_mm, origin_lps_mm, direction) -> tuple[np.ndarray, np.ndarray]:
+    """``(M, o)`` with LPS = M @ (z, y, x) + o."""
+    sp = np.asarray(spacing_mm, dtype=float).reshape(3)
+    D = np.eye(3) if direction is None else np.asarray(direction, dtype=float).reshape(3, 3)
+    A = D @ np.diag(sp)  # columns: x, y, z index axes
+    return A[:, ::-1], np.asarray(origin_lps_mm, dtype=float).reshape(3)
+
+
+def check_grid(mask_zyx, spacing_mm, origin_lps_mm, direction, what: str):
+    """``(mask as bool, spacing (x, y, z))`` after checking a 3D mask and its grid; raises InputError naming ``what``."""
+    m = np.asarray(mask_zyx)
+    if m.ndim != 3:
+        raise InputError(f"{what}: mask_zyx must be a 3D array, got shape {m.shape}")
+    sp = np.asarray(spacing_mm, dtype=float).reshape(-1)
+    if sp.shape != (3,) or np.any(~np.isfinite(sp)) or np.any(sp <= 0):
+        raise InputError(f"{what}: spacing_mm must be 3 positive numbers (x, y, z), got {spacing_mm}")
+    if np.asarray(origin_lps_mm, dtype=float).reshape(-1).shape != (3,):
+        raise InputError(f"{what}: origin_lps_mm must be 3 numbers (x, y, z), got {origin_lps_mm}")
+    if direction is not None:
+        D = np.asarray(direction, dtype=float)
+        if D.size != 9 or abs(abs(np.linalg.det(D.reshape(3, 3))) - 1) > 1e-3:
+            raise InputError(f"{what}: direction must be an orthonormal 3x3 matrix")
+    return m.astype(bool, copy=False), sp
+
+
+def bbox(mask, pad: int = 0) -> tuple[slice, slice, slice]:
+    """Bounding box of a non-empty 3D mask, ``pad`` voxels wider on each side (clipped to the array)."""
+    idx = [np.flatnonzero(mask.any(axis=tuple(j for j in range(3) if j != k))) for k in range(3)]
+    return tuple(slice(max(int(i[0]) - pad, 0), min(int(i[-1]) + pad + 1, n)) for i, n in zip(idx, mask.shape))
+
+
+def seeds_to_index(seeds_lps_mm, M, o, what: str) -> np.ndarray:
+    """``(K, 3)`` continuous ``(z, y, x)`` indices of LPS mm seeds, ``(M, o)`` from :func:`affine_zyx`."""
+    s = np.asarray(seeds_lps_mm, dtype=float)
+    if s.ndim == 1:
+        s = s[None]
+    if s.ndim != 2 or s.shape[1] != 3 or not np.all(np.isfinite(s)):
+        raise InputError(f"{what}: seeds_lps_mm must be (K, 3) finite LPS mm points, got shape {s.shape}")
+    return (s - o) @ np.linalg.inv(M).T
+
+
+def derivs_at(F: np.ndarray, idx_zyx: np.ndarray, sp_rel: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Gradient ``(K, 3)`` and Hessian ``(K, 3, 3)`` of ``F`` at integer voxels, reference-voxel units.
+
+    Central first differences; compact second differences ``f(x+1) - 2 f(x) + f(x-1)`` on the
+    diagonal (the crest of a distance transform is a kink: a wide stencil would flatten it) and
+    the 4-point central stencil for the mixed terms. Voxels must be at least 1 from the border.
+    """
+    z, y, x = (np.asarray(idx_zyx, dtype=np.int64).T)
+    c = F[z, y, x].astype(np.float64)
+    e = np.eye(3, dtype=np.int64)
+
+    def at(dz, dy, dx):
+        return F[z + dz, y + dy, x + dx].astype(np.float64)
+
+    g = np.empty((len(z), 3))
+    H = np.empty((len(z), 3, 3))
+    for i in range(3):
+        p, m = at(*e[i]), at(*(-e[i]))
+        g[:, i] = (p - m) / (2 * sp_rel[i])
+        H[:, i, i] = (p - 2 * c + m) / sp_rel[i] ** 2
+        for j in range(i + 1, 3):
+            v = (at(*(e[i] + e[j])) - at(*(e[i] - e[j])) - at(*(e[j] - e[i])) + at(*(-e[i] - e[j])))
+            H[:, i, j] = H[:, j, i] = v / (4 * sp_rel[i] * sp_rel[j])
+    return g, H
