@@ -363,16 +363,6 @@ def test_score_equals_result_mean_residual(case0):
     assert s_all > s_in + 1.0
 
 
-def test_smooth_motion_prior_pulls_to_prior(case0):
-    tree, carm, true = case0
-    uv = _centerline(tree, carm, true)
-    prior = _perturb(true, tree, 1.0, 2.0, seed=12)
-    free = reg.register(tree, uv, carm, init_pose=prior, global_search=False)
-    held = reg.register(tree, uv, carm, init_pose=prior, global_search=False, prior_pose=prior, prior_weight=1e6)
-    assert mtre_mm(free.pose, true, tree.points_lps_mm) < EXACT_MM
-    assert mtre_mm(held.pose, prior, tree.points_lps_mm) < 0.05
-
-
 def test_epnp_baseline_exact_and_mirror(case0):
     tree, carm, true = case0
     rng = np.random.default_rng(13)

@@ -25,7 +25,7 @@ known from the DICOM tags. The pipeline is the paper's:
 
 The energy (paper, eq. 3)::
 
-    E(T) = sum_i rho(min(s_i, G_i))  +  lam (N/M) sum_j rho(min(s_j, G_j))  [+ prior_weight R(T)]
+    E(T) = sum_i rho(min(s_i, G_i))  +  lam (N/M) sum_j rho(min(s_j, G_j))
 
 * ``s_i`` (3D -> 2D, ``N`` samples of the 3D centerline every ~4 px): squared Mahalanobis norm of
   ``pi(T p_i) - q_j(i)`` (px); ``q_j(i)`` is the 2D centerline point nearest to the projection,
@@ -68,9 +68,7 @@ The energy (paper, eq. 3)::
   projected truth 100% both, median mTRE lower in all three (measured before the 2D and 3D
   centerlines were centred, the --quick numbers on centerlines cached by an older image2d;
   current numbers: README, "Accuracy and speed").
-* Optional smooth-motion prior (sequences): ``R(T) = ||(dt_mm, r_g dphi_rad)||^2`` with
-  ``(dt, dphi) = log(T prior_pose^-1)`` and ``r_g`` the radius of gyration of the tree. A much
-  weaker pull (``STABILISER``) toward each LM run's start keeps the directions the data cannot
+* A weak pull (``STABILISER``) toward each LM run's start keeps the directions the data cannot
   determine (depth, and a rotation when a single path is visible) where they were.
 
 Tangent coordinates inside LM are ``theta = (t_mm, r_g * phi_rad)`` (both in mm) so that
@@ -600,7 +598,7 @@ def _rho(s: np.ndarray, inv_delta2: float) -> np.ndarray:
 class _Problem:
     """Fixed data of one registration: models, camera, settings; evaluates the energy."""
 
-    def __init__(self, m3: _Model3D, m2: _Model2D, carm: CArm, *, lam, delta, prior_pose=None, prior_weight=0.0):
+    def __init__(self, m3: _Model3D, m2: _Model2D, carm: CArm, *, lam, delta):
         self.m3, self.m2, self.carm = m3, m2, carm
         self.lam, self.delta = float(lam), float(delta)
         self.A = carm.axes
@@ -615,8 +613,6 @@ class _Problem:
         self.sig3_px = m3.sigma_mm / carm.pixel_at_iso_mm
         self.visible3 = np.ones(len(m3.points), bool)
         self.scale = np.array([1.0, 1.0, 1.0, 1.0 / m3.r_g, 1.0 / m3.r_g, 1.0 / m3.r_g])  # xi = scale * theta
-        self.prior_pose = prior_pose
-        self.prior_weight = float(prior_weight)
         self.anchor = None  # start of the current LM stage (weak stabiliser, see STABILISER)
         self._last_corr = None  # (pose, _Corr) of the last recomputed correspondences (Pose is immutable)
         # pose-independent 2D data, split into contiguous components
@@ -734,10 +730,6 @@ class _Problem:
         E2 = k2 * float(np.sum(_rho(sc2, inv_d2)))
 
         energy = E1 + E2
-        prior_r = None
-        if self.prior_pose is not None and self.prior_weight > 0:
-            prior_r = (pose @ self.prior_pose.inverse()).log() / self.scale
-            energy += self.prior_weight * float(prior_r @ prior_r)
         stab_r = None
         if self.anchor is not None:
             stab_r = self._tangent_offset(pose, self.anchor)
@@ -787,9 +779,6 @@ class _Problem:
         H = Jw.T @ J
         g = Jw.T @ rf
         rnorm = float(np.sqrt(np.dot(wf * rf, rf)))
-        if prior_r is not None:
-            H = H + 2.0 * self.prior_weight * np.eye(6)
-            g = g + 2.0 * self.prior_weight * prior_r
         if stab_r is not None:
             H = H + 2.0 * STABILISER * np.eye(6)
             g = g + 2.0 * STABILISER * stab_r
@@ -808,7 +797,7 @@ class _Problem:
         return self.evaluate(ev.pose, ev.gate_px, delta=ev.delta, corr=ev.corr, need_info=True)
 
     def _tangent_offset(self, pose: Pose, ref: Pose) -> np.ndarray:
-        """``log(pose ref^-1)`` in theta units, to first order (cheap; for priors)."""
+        """``log(pose ref^-1)`` in theta units, to first order (cheap; for the stabiliser)."""
         dR = pose.R @ ref.R.T
         return np.concatenate([pose.t - dR @ ref.t, so3_log(dR) * self.m3.r_g])
 
@@ -1151,8 +1140,6 @@ def register(
     lam: float | None = None,
     delta: float | None = None,
     max_iterations: int = 100,
-    prior_pose: Pose | None = None,
-    prior_weight: float = 0.0,
 ) -> RegistrationResult:
     """Register the CTA vessel centerline to the 2D roadmap centerline.
 
@@ -1177,9 +1164,6 @@ def register(
         Pseudo-Huber cutoff in whitened units; default ``DELTA`` (paper: 1).
     max_iterations : int
         LM iteration cap per LM run (paper: 100).
-    prior_pose, prior_weight : Pose, float
-        Smooth-motion prior for sequences: adds ``prior_weight * ||(dt_mm, r_g dphi)||^2``
-        about ``prior_pose`` (``r_g`` = radius of gyration of the tree, mm).
 
     Returns
     -------
@@ -1200,12 +1184,10 @@ def register(
     start = nominal_pose(m3.centroid) if init_pose is None else init_pose
     if not isinstance(start, Pose):
         raise InputError(f"init_pose must be a Pose, got {type(start).__name__}")
-    if prior_pose is not None and not isinstance(prior_pose, Pose):
-        raise InputError(f"prior_pose must be a Pose, got {type(prior_pose).__name__}")
     if len(q) < 10:
         return _failed(start, carm, f"2D centerline has only {len(q)} points (need >= 10)", t0)
     m2 = _model_2d(q, centerline_radius_px, carm)
-    prob = _Problem(m3, m2, carm, lam=lam, delta=delta, prior_pose=prior_pose, prior_weight=prior_weight)
+    prob = _Problem(m3, m2, carm, lam=lam, delta=delta)
 
     iterations = 0
     if global_search:
