@@ -42,7 +42,7 @@ from guidewire3d import metrics
 from guidewire3d.app import biplane
 from guidewire3d.xray.roadmap import roadmap_centerline
 from guidewire3d.live import session as live
-from guidewire3d.registration import solve as reg
+from guidewire3d import registration as reg
 from guidewire3d.phantom import PhantomOptions, simulate  # noqa: E402
 
 

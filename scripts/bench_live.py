@@ -104,7 +104,7 @@ def main() -> int:
     from guidewire3d.xray.roadmap import roadmap_centerline
     from guidewire3d.live import session as live
     from guidewire3d import phantom
-    from guidewire3d.registration import solve as registration
+    from guidewire3d import registration
     from guidewire3d.cta import vessels3d
     from guidewire3d.xray.segmentation import GuidewireSegmenter, guidewire_mask
 

@@ -296,7 +296,7 @@ def print_table(summary, jumps, title):
 # ------------------------------------------------------------------------------------------
 def run(n_cases: int, n_frames: int, first_seed: int, verbose: bool, registered_cases: int | None = None) -> int:
     from guidewire3d.xray.roadmap import roadmap_centerline
-    from guidewire3d.registration import solve as registration
+    from guidewire3d import registration
     from guidewire3d.phantom import PhantomOptions, simulate
 
     rows: dict[str, list] = defaultdict(list)

@@ -43,9 +43,9 @@ from pathlib import Path
 
 import numpy as np
 
-from guidewire3d.registration import solve as reg
+from guidewire3d import registration as reg
 from guidewire3d.app.bench import package_source_digest
-from guidewire3d.geometry import Pose
+from guidewire3d.geometry import Pose, nominal_pose
 from guidewire3d.metrics import mtre_mm, resample_polyline
 
 LEVELS = [(0.0, 0.0), (2.5, 5.0), (5.0, 10.0), (7.5, 15.0), (10.0, 20.0), (15.0, 30.0), (20.0, 40.0)]
@@ -156,7 +156,7 @@ def run(cases, modes, levels, n_pert, rng, log, epnp=True):
                 t0, c0 = time.perf_counter(), time.process_time()
                 r = reg.register(tree, uv, carm, init_pose=init, centerline_radius_px=rad)
                 wall, cpu = time.perf_counter() - t0, time.process_time() - c0
-                start_pose = init if init is not None else reg.nominal_pose(tree.centroid_lps_mm)
+                start_pose = init if init is not None else nominal_pose(tree.centroid_lps_mm)
                 row = dict(case=c["seed"], mode=mode, level=lv, init_mtre=mtre_mm(start_pose, true, P),
                            mtre=mtre_mm(r.pose, true, P), mtre_path=mtre_mm(r.pose, true, path_P),
                            flagged=bool(r.success), flagged_before=legacy_ok(r), wall=wall, cpu=cpu, it=r.iterations,
@@ -246,7 +246,7 @@ VERDICT_VARIANTS = ("full", "path", "partial", "view2", "view2-path")
 
 
 def _inputs_digest() -> str:
-    """Hash of the package source except registration.py: the verdict cases (simulator, CTA
+    """Hash of the package source except registration/: the verdict cases (simulator, CTA
     extraction, 2D centerline) do not depend on the registration, so they are cached across its edits."""
     import hashlib
 
@@ -338,7 +338,7 @@ def load_verdict_cases(seeds, cache: Path | None, log):
         log(f"  verdict case {seed} prepared in {time.perf_counter() - t0:.1f} s")
         out.extend(recs)
     if stale:
-        log(f"  note: {len(stale)} cached verdict cases were prepared by another package source (not registration.py)")
+        log(f"  note: {len(stale)} cached verdict cases were prepared by another package source (not registration/)")
     return out
 
 
@@ -460,13 +460,16 @@ def main(argv=None):
     a = p.parse_args(argv)
     for kv in a.set:
         name, value = kv.split("=", 1)
-        mod = reg
         if name.startswith("roadmap."):
             from guidewire3d.xray import roadmap as mod
 
             name = name[len("roadmap."):]
-        if not hasattr(mod, name):
-            p.error(f"--set: {mod.__name__} has no constant {name}")
+        else:  # the registration module that defines the constant: its code reads it there at call time
+            from guidewire3d.registration import model, problem, search, solve, verdict
+
+            mod = next((m for m in (model, problem, search, solve, verdict) if name in vars(m)), None)
+        if mod is None or not hasattr(mod, name):
+            p.error(f"--set: no registration module (or xray.roadmap) has a constant {name}")
         kind = type(getattr(mod, name))
         setattr(mod, name, value.lower() in ("1", "true", "yes") if kind is bool else kind(value))
     cache = Path(a.cache) if a.cache else None

@@ -21,7 +21,7 @@ from guidewire3d.app import pipeline
 from guidewire3d.reconstruction import wire as reconstruction
 from guidewire3d.geometry import Pose
 from guidewire3d.phantom import PhantomOptions, simulate
-from guidewire3d.registration.solve import Verdict
+from guidewire3d.registration import Verdict
 
 SCRIPTS = Path(__file__).resolve().parents[1] / "scripts"
 ROUNDED_MM = 1e-4  # report.json rounds points and uncertainties to 4 decimals

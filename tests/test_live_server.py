@@ -23,7 +23,7 @@ from guidewire3d.live import session as live
 from guidewire3d.app import pipeline
 from guidewire3d.app import stream
 from guidewire3d.errors import InputError
-from guidewire3d.registration.solve import Verdict
+from guidewire3d.registration import Verdict
 
 pyigtl = pytest.importorskip("pyigtl")
 

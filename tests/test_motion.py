@@ -14,7 +14,7 @@ from guidewire3d.errors import InputError
 from guidewire3d.geometry import Pose
 from guidewire3d.metrics import mtre_mm
 from guidewire3d.phantom import PhantomOptions, load_truth, simulate, write_case
-from guidewire3d.registration.solve import RegistrationResult, Verdict
+from guidewire3d.registration import RegistrationResult, Verdict
 
 SCRIPTS = Path(__file__).resolve().parents[1] / "scripts"
 SHIFT_TOL_MM = 0.5  # in-plane shift recovered from an exact curve

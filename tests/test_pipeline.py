@@ -171,9 +171,9 @@ def test_viewer_shows_the_registration_residual_of_the_output(reconstructed):
 def test_reconstruct_stops_after_a_registration_that_did_not_pass(small_case_dir, tmp_path, monkeypatch, capsys,
                                                                    limit, verdict, says):
     """Exit status 1, the registration outputs written with their verdict, no wires; --force is named."""
-    from guidewire3d.registration import solve as registration
+    from guidewire3d.registration import verdict as registration_verdict
 
-    monkeypatch.setattr(registration, limit, 0.0)  # a limit no pose meets
+    monkeypatch.setattr(registration_verdict, limit, 0.0)  # a limit no pose meets
     out = tmp_path / "out"
     rc = main(["reconstruct", "--cta", str(small_case_dir / "ct"), "--roadmap", str(small_case_dir / "roadmap.dcm"),
                "--frames", str(small_case_dir / "frames.dcm"), "--out", str(out), "--no-images"])

@@ -26,7 +26,7 @@ from guidewire3d import io, metrics  # noqa: E402
 from guidewire3d.errors import InputError, RegistrationError  # noqa: E402
 from guidewire3d.geometry import CArm, Pose  # noqa: E402
 from guidewire3d.reconstruction.wire import ReconMethod, Wire3D  # noqa: E402
-from guidewire3d.registration.solve import RegistrationResult  # noqa: E402
+from guidewire3d.registration import RegistrationResult  # noqa: E402
 from guidewire3d.xray.segmentation import SegMethod  # noqa: E402
 from guidewire3d.vesseltree import VesselTree  # noqa: E402
 
@@ -650,12 +650,13 @@ def test_e2e_failed_registration_then_manual_correction_and_refine(e2e):
 def test_e2e_refine_adopts_an_uncertain_pose_and_not_a_failed_one(e2e, monkeypatch, verdict):
     """Refine's result fits the roadmap but the data leave the pose open (as for one vessel path's depth):
     the transform takes it and the summary says UNCERTAIN; a failed refine changes nothing."""
-    from guidewire3d.registration import solve as registration
+    from guidewire3d.registration import verdict as registration_verdict
 
     core, out = e2e.core, e2e.out
     moved = Pose.exp([1.0, -1.0, 0.5, *np.radians([0.5, 0.5, -0.5])]) @ e2e.pose
     L.pose_to_transform_node(moved, out.transform)
-    monkeypatch.setattr(registration, "MAX_POSE_STD_MM" if verdict == "uncertain" else "MAX_MEAN_RESIDUAL_PX", 0.0)
+    limit = "MAX_POSE_STD_MM" if verdict == "uncertain" else "MAX_MEAN_RESIDUAL_PX"
+    monkeypatch.setattr(registration_verdict, limit, 0.0)
     summary = core.refine_parameters(e2e.p)
     if verdict == "uncertain":
         assert summary.startswith("Registration UNCERTAIN") and core.registration.verdict == "uncertain"
@@ -678,7 +679,7 @@ def test_the_module_follows_a_live_server(hs):
     from guidewire3d.reconstruction import wire as reconstruction
     from guidewire3d.app import stream
     from guidewire3d.xray.orderedwire import OrderedWire
-    from guidewire3d.registration.solve import Verdict
+    from guidewire3d.registration import Verdict
 
     rng = np.random.default_rng(3)
     pts = np.cumsum(rng.normal(0.0, 1.0, (30, 3)), axis=0) + np.array([10.0, -20.0, 30.0])
@@ -732,7 +733,7 @@ def test_tracked_frames_move_the_carm_with_the_frame_browser(hs):
     browser, whose proxy the C-arm follows; each frame's transform holds that frame's pose."""
     from guidewire3d.live import session as live
     from guidewire3d.geometry import so3_exp
-    from guidewire3d.registration.solve import Verdict
+    from guidewire3d.registration import Verdict
 
     rng = np.random.default_rng(8)
     res = _synthetic_result(rng)

@@ -437,7 +437,7 @@ def test_nudge_then_refine_returns_to_the_automatic_pose(viewer, synth):
 def test_refine_adopts_an_uncertain_pose_and_keeps_the_pose_on_failure(viewer, synth, monkeypatch, verdict):
     """A refinement the overlay fits but the roadmap leaves uncertain (e.g. one vessel path's depth) is
     adopted with a warning; a failed one leaves the pose alone."""
-    from guidewire3d.registration import solve as registration
+    from guidewire3d.registration import verdict as registration_verdict
 
     ctl, h = viewer
     auto = ctl.case.automatic_pose
@@ -445,7 +445,8 @@ def test_refine_adopts_an_uncertain_pose_and_keeps_the_pose_on_failure(viewer, s
     ctl.rotate(Axis.BEAM, +1)
     moved = ctl.pose
     # a limit no pose meets: every refinement becomes "uncertain" (pose) or "failed" (2D fit)
-    monkeypatch.setattr(registration, "MAX_POSE_STD_MM" if verdict == "uncertain" else "MAX_MEAN_RESIDUAL_PX", 0.0)
+    limit = "MAX_POSE_STD_MM" if verdict == "uncertain" else "MAX_MEAN_RESIDUAL_PX"
+    monkeypatch.setattr(registration_verdict, limit, 0.0)
     res = ctl.refine()
     assert res.verdict == verdict and not res.success
     if verdict == "uncertain":

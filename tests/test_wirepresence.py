@@ -221,7 +221,7 @@ def test_live_path_reports_no_guidewire(small_case):
     """``guidewire3d.live.session.Session`` is the per-frame engine of reconstruct, the viewer and the
     streaming server: the frame without a wire is a failed Wire3D that says so, and the session goes on."""
     from guidewire3d.live.session import Session
-    from guidewire3d.registration.solve import Verdict
+    from guidewire3d.registration import Verdict
     from guidewire3d.xray.segmentation import guidewire_mask
 
     wire_frame = small_case.frames[0]

@@ -5,7 +5,7 @@ Both planes share the isocentre, so one patient pose ``T_iso_from_lps`` explains
 both live frames; each plane has its own C-arm geometry (its DICOM positioner tags).
 
 * :func:`register_biplane`: the joint registration. The residuals of both views are stacked in
-  the single-view problem of :mod:`guidewire3d.registration.solve` (the same bidirectional pseudo-Huber
+  the single-view problem of :mod:`guidewire3d.registration.problem` (the same bidirectional pseudo-Huber
   energy per view, one ``_Problem`` each over the same 3D samples, their energies, gradients and
   Gauss-Newton matrices summed) and solved by its Levenberg-Marquardt. Start: its coarse global
   search in each plane; a candidate from plane A's search knows nothing of the depth along A's
@@ -43,8 +43,8 @@ from guidewire3d.reconstruction.triangulation import (
     triangulate_wire,
 )
 from guidewire3d.reconstruction.wire import reconstruct_wire
-from guidewire3d.registration import solve as R
-from guidewire3d.registration.solve import Verdict
+from guidewire3d.registration import model, problem, search, solve, verdict
+from guidewire3d.registration.result import RegistrationResult, Verdict, _failed
 from guidewire3d.xray.orderedwire import ordered_wire
 from scipy.spatial import cKDTree
 
@@ -114,8 +114,8 @@ class BiplaneRegistration:
 class _JointProblem:
     """The single-view problems of both planes over the same 3D samples: one energy.
 
-    Duck-types ``registration._Problem`` for ``registration._levenberg_marquardt`` and
-    ``registration._narrow_stage``: energies, gradients and Gauss-Newton matrices are sums; the
+    Duck-types ``problem._Problem`` for ``problem._levenberg_marquardt`` and
+    ``problem._narrow_stage``: energies, gradients and Gauss-Newton matrices are sums; the
     correspondences are a tuple (one per plane); the weak stabiliser toward the LM stage's start is
     counted once.
     """
@@ -150,15 +150,15 @@ class _JointProblem:
         stab_r = None
         if self._anchor is not None:
             stab_r = self.probs[0]._tangent_offset(pose, self._anchor)
-            energy += R.STABILISER * float(stab_r @ stab_r)
-        ev = R._Eval(pose, float(energy), tuple(e.corr for e in evs), gate_px=gate_px,
-                     delta=evs[0].delta)
+            energy += problem.STABILISER * float(stab_r @ stab_r)
+        ev = problem._Eval(pose, float(energy), tuple(e.corr for e in evs), gate_px=gate_px,
+                           delta=evs[0].delta)
         if evs[0].g is not None:
             ev.g = sum(e.g for e in evs)
             ev.H = sum(e.H for e in evs)
             if stab_r is not None:
-                ev.H = ev.H + 2.0 * R.STABILISER * np.eye(6)
-                ev.g = ev.g + 2.0 * R.STABILISER * stab_r
+                ev.H = ev.H + 2.0 * problem.STABILISER * np.eye(6)
+                ev.g = ev.g + 2.0 * problem.STABILISER * stab_r
             ev.rnorm = float(np.sqrt(sum(e.rnorm**2 for e in evs)))
             ev.n_in3 = sum(e.n_in3 for e in evs)
             ev.n_in2 = sum(e.n_in2 for e in evs)
@@ -205,11 +205,12 @@ def _depth_scan(m3, q_other: np.ndarray, carm_other: CArm, cand: Pose, beam: np.
 
 def _joint_search(m3, m2s, carms, start: Pose, *, n_best: int) -> list[Pose]:
     """The coarse search of both planes at once: for every rotation of plane A's grid, the chamfer
-    cost maps of both planes (``registration._search_cost_maps``, the same rotations) are summed
+    cost maps of both planes (``search._search_cost_maps``, the same rotations) are summed
     over a 3D grid of translations (plane A's in-plane shifts x depths along A's beam, each
     translation read in plane B's map where it lands); the best ``n_best`` distinct poses."""
-    rotvecs = R.search_rotvecs(carms[0])
-    maps = [R._search_cost_maps(m3, m2, c, start, rotvecs, weight_3d=SEARCH_WEIGHT_3D) for m2, c in zip(m2s, carms)]
+    rotvecs = search.search_rotvecs(carms[0])
+    maps = [search._search_cost_maps(m3, m2, c, start, rotvecs, weight_3d=SEARCH_WEIGHT_3D)
+            for m2, c in zip(m2s, carms)]
     (Ca, _, centre, mmpx_a, c0a, ma), (Cb, _, _, mmpx_b, c0b, mb) = maps
     step_a = mmpx_a * c0a  # mm per cell of plane A's map
     e_ua, e_va, d_a = carms[0].axes
@@ -232,7 +233,7 @@ def _joint_search(m3, m2s, carms, start: Pose, *, n_best: int) -> list[Pose]:
     out: list[Pose] = []
     for _, k, tk in best:
         cand = Pose(np.eye(3), tk) @ Pose.from_rotvec_about(rotvecs[k], centre) @ start
-        if any(R._pose_close(cand, p, m3, mm=2.0 * step_a) for p in out):
+        if any(search._pose_close(cand, p, m3, mm=2.0 * step_a) for p in out):
             continue
         out.append(cand)
         if len(out) >= n_best:
@@ -257,7 +258,7 @@ def register_biplane(tree, centerlines_uv_px, carms, *, centerline_radius_px=(No
     init_pose : Pose, optional
         Start (default: plane A's DICOM angles, isocentre at the tree centroid).
     global_search : bool
-        Run the coarse search of :func:`guidewire3d.registration.solve.register` in each plane, with a
+        Run the coarse search of :func:`guidewire3d.registration.register` in each plane, with a
         depth scan against the other plane, before LM.
 
     Returns
@@ -269,48 +270,48 @@ def register_biplane(tree, centerlines_uv_px, carms, *, centerline_radius_px=(No
     if len(carms) != 2 or len(centerlines_uv_px) != 2 or len(centerline_radius_px) != 2:
         raise InputError("register_biplane: expected two planes (A, B) of centerlines, C-arms and radii")
     for c in carms:
-        R._check_common(c, R.LAMBDA, R.DELTA, max_iterations)
+        solve._check_common(c, problem.LAMBDA, problem.DELTA, max_iterations)
     sep = _beam_angle_deg(*carms)
     if min(sep, 180.0 - sep) < MIN_SEPARATION_DEG:
         raise InputError(f"register_biplane: the planes' beams are {sep:.1f} deg apart; two views measure depth only "
                          f"when at least {MIN_SEPARATION_DEG:g} deg apart (and not opposed)")
-    qs = [R._check_2d(q, name=f"plane {p} centerline_uv_px") for q, p in zip(centerlines_uv_px, PLANES)]
-    m3 = R._model_from_input(tree, carms[0])
+    qs = [model._check_2d(q, name=f"plane {p} centerline_uv_px") for q, p in zip(centerlines_uv_px, PLANES)]
+    m3 = model._model_from_input(tree, carms[0])
     start = nominal_pose(m3.centroid) if init_pose is None else init_pose
     if not isinstance(start, Pose):
         raise InputError(f"init_pose must be a Pose, got {type(start).__name__}")
     short = [p for q, p in zip(qs, PLANES) if len(q) < 10]
     if short:
-        res = R._failed(start, carms[0], f"2D centerline of plane {', '.join(short)} has fewer than 10 points", t0)
+        res = _failed(start, carms[0], f"2D centerline of plane {', '.join(short)} has fewer than 10 points", t0)
         return BiplaneRegistration(res, tuple(_view_fit(m3, q, c, start, p, None) for q, c, p in zip(qs, carms, PLANES)))
-    m2s = [R._model_2d(q, r, c) for q, r, c in zip(qs, centerline_radius_px, carms)]
-    probs = [R._Problem(m3, m2, c, lam=R.LAMBDA, delta=R.DELTA) for m2, c in zip(m2s, carms)]
+    m2s = [model._model_2d(q, r, c) for q, r, c in zip(qs, centerline_radius_px, carms)]
+    probs = [problem._Problem(m3, m2, c, lam=problem.LAMBDA, delta=problem.DELTA) for m2, c in zip(m2s, carms)]
     prob = _JointProblem(probs)
 
     iterations = 0
     if global_search:
         cands = _joint_search(m3, m2s, carms, start, n_best=JOINT_STARTS)
-        gate_a = max(R.GATE_WIDE_PX, 3.0 * max(R._search_cell_px(c) for c in carms))
+        gate_a = max(problem.GATE_WIDE_PX, 3.0 * max(model._search_cell_px(c) for c in carms))
     else:
         cands = [start]
-        gate_a = R.GATE_WIDE_PX
+        gate_a = problem.GATE_WIDE_PX
     best = None
     for cand in cands:
         prob.set_visibility(cand, gate_a)
-        out = R._levenberg_marquardt(prob, cand, gate_px=gate_a, delta=max(R.DELTA_WIDE, R.DELTA),
-                                     max_iterations=int(max_iterations))
+        out = problem._levenberg_marquardt(prob, cand, gate_px=gate_a, delta=max(problem.DELTA_WIDE, problem.DELTA),
+                                           max_iterations=int(max_iterations))
         iterations += out.iterations
         if best is None or out.ev.energy < best.ev.energy:
             best = out
-    out, it = R._narrow_stage(prob, best.pose, int(max_iterations))
+    out, it = problem._narrow_stage(prob, best.pose, int(max_iterations))
     return _finish(prob, out, qs, carms, iterations + it, t0)
 
 
 def _view_fit(m3, q, carm: CArm, pose: Pose, plane: str, visible3) -> ViewFit:
-    mean_in, frac, _ = R._quality(m3, q, carm, pose) if len(q) else (float("inf"), 0.0, float("inf"))
-    fits = bool(mean_in <= R.MAX_MEAN_RESIDUAL_PX and frac >= R.MIN_INLIER_FRACTION)
+    mean_in, frac, _ = verdict._quality(m3, q, carm, pose) if len(q) else (float("inf"), 0.0, float("inf"))
+    fits = bool(mean_in <= verdict.MAX_MEAN_RESIDUAL_PX and frac >= verdict.MIN_INLIER_FRACTION)
     explained = float(visible3.mean()) if visible3 is not None and len(visible3) else 0.0
-    single = R._explains_single_path(m3, visible3) if visible3 is not None else False
+    single = verdict._explains_single_path(m3, visible3) if visible3 is not None else False
     return ViewFit(plane, carm, carm.projection_matrix(pose), float(mean_in), float(frac), fits, explained, single)
 
 
@@ -323,26 +324,26 @@ def _finish(prob: _JointProblem, out, qs, carms, iterations, t0) -> BiplaneRegis
     if ev.H_info is not None and ev.dof > 0:
         try:
             S = np.diag(prob.scale)
-            cov = S @ np.linalg.inv(ev.H_info) @ S * (ev.chi2 / ev.dof) * R.COVARIANCE_INFLATION**2
+            cov = S @ np.linalg.inv(ev.H_info) @ S * (ev.chi2 / ev.dof) * verdict.COVARIANCE_INFLATION**2
             cov = 0.5 * (cov + cov.T)
         except np.linalg.LinAlgError:
             cov = None
-    pose_std = R._pose_std_mm(cov, pose, m3.points)
+    pose_std = verdict._pose_std_mm(cov, pose, m3.points)
     union = np.logical_or(*[p.visible3 for p in prob.probs])
-    single = R._explains_single_path(m3, union)
+    single = verdict._explains_single_path(m3, union)
     explained = float(union.mean()) if len(union) else 0.0
     # two views measure the depth: a single path's stricter limit (its depth rests on perspective
     # alone in one view) does not apply; the explained-fraction rule does
-    max_std = R.pose_std_limit_mm(explained, False)
+    max_std = verdict.pose_std_limit_mm(explained, False)
     fits = all(v.fits_2d for v in views)
     ok = fits and pose_std <= max_std
     why = []
     for v in views:
-        if v.mean_residual_px > R.MAX_MEAN_RESIDUAL_PX:
-            why.append(f"plane {v.plane}: mean residual {v.mean_residual_px:.2f} px > {R.MAX_MEAN_RESIDUAL_PX}")
-        if v.inlier_fraction < R.MIN_INLIER_FRACTION:
+        if v.mean_residual_px > verdict.MAX_MEAN_RESIDUAL_PX:
+            why.append(f"plane {v.plane}: mean residual {v.mean_residual_px:.2f} px > {verdict.MAX_MEAN_RESIDUAL_PX}")
+        if v.inlier_fraction < verdict.MIN_INLIER_FRACTION:
             why.append(f"plane {v.plane}: only {100 * v.inlier_fraction:.0f}% of the 2D centerline explained "
-                       f"(< {100 * R.MIN_INLIER_FRACTION:.0f}%)")
+                       f"(< {100 * verdict.MIN_INLIER_FRACTION:.0f}%)")
     if pose_std > max_std:
         why.append(f"the two roadmaps do not determine the pose (1-sigma {pose_std:.1f} mm > {max_std:.1f} mm with "
                    f"{100 * explained:.0f}% of the tree explained)")
@@ -354,7 +355,7 @@ def _finish(prob: _JointProblem, out, qs, carms, iterations, t0) -> BiplaneRegis
     if not ok:
         msg = "untrustworthy: " + "; ".join(why) + " | " + msg
     a = views[0]
-    res = R.RegistrationResult(
+    res = RegistrationResult(
         pose=pose, projection_matrix=carms[0].projection_matrix(pose), success=bool(ok), message=msg,
         mean_residual_px=a.mean_residual_px, inlier_fraction=a.inlier_fraction, iterations=int(iterations),
         seconds=time.perf_counter() - t0, covariance_6x6=cov, energy=out.ev.energy, pose_std_mm=pose_std,

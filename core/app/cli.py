@@ -64,7 +64,7 @@ def _viewer_screenshot(out_dir, path):
 
 def _run_reconstruct(args) -> int:
     from guidewire3d.app import pipeline
-    from guidewire3d.registration.solve import Verdict
+    from guidewire3d.registration import Verdict
 
     # biplane (issue 23): two --roadmap and two --frames (plane A, then plane B); one of each is one view
     n_road, n_frames = len(args.roadmap), len(args.frames)
@@ -98,7 +98,7 @@ def _run_reconstruct_biplane(args) -> int:
     """``guidewire3d reconstruct`` with two ``--roadmap`` and two ``--frames`` (plane A, plane B)."""
     from guidewire3d.app import biplane, pipeline
     from guidewire3d.errors import InputError
-    from guidewire3d.registration.solve import Verdict
+    from guidewire3d.registration import Verdict
 
     given = [f"--{k.replace('_mm', '').replace('_deg', '')}" for k, v in pipeline.geometry_overrides(args).items()
              if v is not None]

@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-from guidewire3d import io
+from guidewire3d import io, registration
 from guidewire3d.app import export
 from guidewire3d.cta import vessels3d
 from guidewire3d.cta.segment import VesselOptions
@@ -22,8 +22,7 @@ from guidewire3d.geometry import CArm, Pose
 from guidewire3d.live import session as live_engine
 from guidewire3d.live.session import FrameResult
 from guidewire3d.reconstruction.wire import Wire3D
-from guidewire3d.registration import solve as registration
-from guidewire3d.registration.solve import RegistrationResult
+from guidewire3d.registration import RegistrationResult
 from guidewire3d.xray.orderedwire import OrderedWire
 from guidewire3d.xray.roadmap import Centerline2D, roadmap_centerline
 

@@ -30,7 +30,7 @@ from guidewire3d.errors import Guidewire3DError
 from guidewire3d.geometry import CArm, Pose
 from guidewire3d.motion.tracking import MotionTracker
 from guidewire3d.reconstruction import wire as reconstruction
-from guidewire3d.registration.solve import Verdict
+from guidewire3d.registration import Verdict
 from guidewire3d.vesseltree import VesselTree
 from guidewire3d.xray import segmentation
 from guidewire3d.xray.orderedwire import OrderedWire, ordered_wire

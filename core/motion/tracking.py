@@ -29,7 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 from guidewire3d.errors import InputError
 from guidewire3d.geometry import CArm, Pose, hat, so3_exp
-from guidewire3d.registration.solve import RegistrationResult
+from guidewire3d.registration import RegistrationResult
 from guidewire3d.vesseltree import VesselTree
 from scipy.spatial import cKDTree
 

@@ -1,53 +1,77 @@
 """Registration of the 3D centerline tree to the 2D roadmap on SE(3) (stage 4 of DESIGN.md).
 
-The public names of the modules below, importable from ``guidewire3d.registration``.
+The modules, in the order a registration uses them:
+
+* ``result``: :class:`RegistrationResult` and its :class:`Verdict`;
+* ``model``: the inputs checked and sampled once (the 3D and 2D models);
+* ``search``: the coarse global search that gives LM its starts;
+* ``problem``: the robust bidirectional energy and its Levenberg-Marquardt;
+* ``verdict``: residuals, score, covariance, jackknife and the verdict;
+* ``solve``: the entry points :func:`register`, :func:`refine`, :func:`nudge`;
+* ``epnp``: the EPnP baseline on matched landmarks.
+
+Their public names are importable from ``guidewire3d.registration``. The named constants live in
+the module that uses them and are read there at call time: patch them in that module (tests,
+``scripts/bench_registration.py --set``), not here.
 """
-from guidewire3d.registration.solve import (  # noqa: F401
-    COVARIANCE_INFLATION,
+from guidewire3d.registration.epnp import (  # noqa: F401
+    match_bifurcations,
+    register_epnp,
+)
+from guidewire3d.registration.model import (  # noqa: F401
+    FIT_RMS_WEIGHT,
+    RADIUS_GROWTH,
+    SEARCH_CELL_PX,
+    SIGMA_2D_PX,
+    SIGMA_3D_MM,
+)
+from guidewire3d.registration.problem import (  # noqa: F401
     DELTA,
     DELTA_WIDE,
     EPS_ABS_MM,
     EPS_REL,
-    FIT_RMS_WEIGHT,
-    FULL_LIMIT_EXPLAINED_FRACTION,
     GATE_NARROW_PX,
     GATE_WIDE_PX,
-    INLIER_PX,
-    JACKKNIFE_FACTOR,
-    JACKKNIFE_ITERATIONS,
-    JACKKNIFE_TILES,
     LAMBDA,
-    MAX_MEAN_RESIDUAL_PX,
-    MAX_POSE_STD_MM,
-    MAX_POSE_STD_MM_SINGLE_PATH,
-    MIN_INLIER_FRACTION,
     MU0,
     PATIENCE,
-    RADIUS_GROWTH,
     REL_DECREASE_STOP,
-    SEARCH_CELL_PX,
-    SEARCH_ROT_INPLANE_DEG,
-    SEARCH_ROT_OUTPLANE_DEG,
-    SEARCH_SHIFT_MM,
-    SEARCH_STARTS,
-    SEARCH_TRUNC_CELLS,
-    SIGMA_2D_PX,
-    SIGMA_3D_MM,
-    SINGLE_PATH_FRACTION,
     STABILISER,
     SUPPORT_GATE_PX,
     TANGENT_SLACK_PX,
     VISIBILITY_ROUNDS,
+    pseudo_huber,
+)
+from guidewire3d.registration.result import (  # noqa: F401
     RegistrationResult,
     Verdict,
-    match_bifurcations,
+)
+from guidewire3d.registration.search import (  # noqa: F401
+    SEARCH_ROT_INPLANE_DEG,
+    SEARCH_ROT_OUTPLANE_DEG,
+    SEARCH_SHIFT_MM,
+    SEARCH_TRUNC_CELLS,
+    search_rotvecs,
+)
+from guidewire3d.registration.solve import (  # noqa: F401
+    SEARCH_STARTS,
     nudge,
-    pose_std_limit_mm,
-    pseudo_huber,
     refine,
     register,
-    register_epnp,
+)
+from guidewire3d.registration.verdict import (  # noqa: F401
+    COVARIANCE_INFLATION,
+    FULL_LIMIT_EXPLAINED_FRACTION,
+    INLIER_PX,
+    JACKKNIFE_FACTOR,
+    JACKKNIFE_ITERATIONS,
+    JACKKNIFE_TILES,
+    MAX_MEAN_RESIDUAL_PX,
+    MAX_POSE_STD_MM,
+    MAX_POSE_STD_MM_SINGLE_PATH,
+    MIN_INLIER_FRACTION,
+    SINGLE_PATH_FRACTION,
+    pose_std_limit_mm,
     residuals_px,
     score,
-    search_rotvecs,
 )

@@ -11,6 +11,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from guidewire3d import registration
 from guidewire3d.app import export as ex
 from guidewire3d.app.outdir import (
     ViewerCase,
@@ -23,8 +24,7 @@ from guidewire3d.errors import InputError
 from guidewire3d.geometry import Pose
 from guidewire3d.io import atomic_write_bytes
 from guidewire3d.live import session as live
-from guidewire3d.registration import solve as registration
-from guidewire3d.registration.solve import Verdict
+from guidewire3d.registration import Verdict
 from guidewire3d.viewer import scene as sc
 from guidewire3d.viewer.scene import WIRE_RADIUS_MM
 

@@ -637,7 +637,7 @@ class GuidewireReconstructionCoreLogic:
         in the node and reconstructs every frame's wire again; a pose the overlay fits but the roadmap
         leaves uncertain (``Verdict.UNCERTAIN``) is adopted. Returns the ``RegistrationResult``.
         """
-        from guidewire3d.registration import solve as registration
+        from guidewire3d import registration
 
         if self.result is None:
             raise RegistrationError("refine: run Apply (process) first")
@@ -719,7 +719,7 @@ class GuidewireReconstructionCoreLogic:
 
     def refine_parameters(self, p) -> str:
         """Run :meth:`refine` from ``p.registrationTransform``; returns a one-line summary."""
-        from guidewire3d.registration.solve import Verdict
+        from guidewire3d.registration import Verdict
 
         reg = self.refine(transform_node=p.registrationTransform, force=bool(p.force))
         if reg.verdict is Verdict.FAILED and not p.force:
