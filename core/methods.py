@@ -4,7 +4,7 @@ the viewer and the Slicer module take their lists from.
 Nothing heavy is imported here (the command line builds ``--help`` from it in milliseconds). The
 implementations register themselves against these keys: :data:`guidewire3d.xray.segmentation.SEGMENTERS`
 (one :class:`~guidewire3d.xray.segmentation.Segmenter` per :class:`SegMethod`) and
-:func:`guidewire3d.reconstruction.wire.reconstruct_wire` (one per :class:`ReconMethod`). A new
+:func:`guidewire3d.reconstruction.reconstruct_wire` (one per :class:`ReconMethod`). A new
 segmenter is a member here, one module implementing the interface, and its test.
 """
 from __future__ import annotations

@@ -59,7 +59,7 @@ from scipy.spatial import cKDTree  # noqa: E402
 
 from guidewire3d.geometry import Pose  # noqa: E402
 from guidewire3d.metrics import polyline_length, resample_polyline  # noqa: E402
-from guidewire3d.reconstruction.wire import ReconOptions, WireTracker, reconstruct_wire  # noqa: E402
+from guidewire3d.reconstruction import ReconOptions, WireTracker, build_context, reconstruct_wire  # noqa: E402
 from guidewire3d.vesseltree import VesselTree  # noqa: E402
 
 
@@ -344,8 +344,6 @@ def run(n_cases: int, n_frames: int, first_seed: int, verbose: bool, registered_
         mtre_epnp.append(float(np.linalg.norm(epnp_pose.apply(tree.points_lps_mm) - pose.apply(tree.points_lps_mm),
                                               axis=1).mean()))
         t0 = time.perf_counter()
-        from guidewire3d.reconstruction.wire import build_context
-
         build_context(ppose, carm, ptree)
         ctx_ms.append(1e3 * (time.perf_counter() - t0))
         trackers = {

@@ -4,7 +4,7 @@ import sys
 import pytest
 
 from guidewire3d.app import cli
-from guidewire3d.reconstruction.wire import ReconMethod
+from guidewire3d.methods import ReconMethod
 from guidewire3d.xray.segmentation import SegMethod
 
 

@@ -41,7 +41,7 @@ def test_sample_bilinear_keeps_the_shape_and_refuses_other_modes():
 
 
 def _viterbi_reference(acc0, U, C, skip):
-    """The numpy recursions that reconstruction._viterbi ran before the kernels."""
+    """The numpy recursions that the Viterbi (reconstruction.path.viterbi_path) ran before the kernels."""
     A, K = U.shape
     acc = acc0.copy()
     alpha = np.empty((A, K))

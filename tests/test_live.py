@@ -18,7 +18,7 @@ import pytest
 
 from guidewire3d.live import session as live
 from guidewire3d.app import pipeline
-from guidewire3d.reconstruction import wire as reconstruction
+from guidewire3d import reconstruction
 from guidewire3d.geometry import Pose
 from guidewire3d.phantom import PhantomOptions, simulate
 from guidewire3d.registration import Verdict

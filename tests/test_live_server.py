@@ -92,7 +92,7 @@ def _wire3d(points, uncertainty):
     """A successful ``Wire3D`` with the given points (the fields the messages read)."""
     from dataclasses import replace
 
-    from guidewire3d.reconstruction import wire as reconstruction
+    from guidewire3d import reconstruction
 
     n = len(points)
     return replace(reconstruction.Wire3D.failed("-"), points_lps_mm=np.asarray(points, float),
@@ -181,7 +181,7 @@ def test_track_motion_streams_the_engines_motion_tracked_wires(setup, frames):
 
 def test_ras_space_flips_points_and_tip():
     """``--space ras``: what 3D Slicer reads as RAS is the LPS wire with x and y negated."""
-    from guidewire3d.reconstruction import wire as reconstruction
+    from guidewire3d import reconstruction
     from guidewire3d.xray.orderedwire import OrderedWire
 
     pts = np.array([[10.0, -20.0, 30.0], [11.0, -20.0, 31.0], [12.0, -19.0, 33.0], [12.5, -18.0, 35.0]])
@@ -523,7 +523,7 @@ def _broadcast_until(server, payload, done: threading.Event, period_s=0.05, limi
 
 def test_viewer_follows_the_live_wire_offscreen(live_out, tmp_path):
     pytest.importorskip("pyvista")
-    from guidewire3d.reconstruction import wire as reconstruction
+    from guidewire3d import reconstruction
     from guidewire3d.xray.orderedwire import OrderedWire
     from guidewire3d.viewer import app
 

@@ -25,7 +25,8 @@ from vtk.util.numpy_support import vtk_to_numpy  # noqa: E402
 from guidewire3d import io, metrics  # noqa: E402
 from guidewire3d.errors import InputError, RegistrationError  # noqa: E402
 from guidewire3d.geometry import CArm, Pose  # noqa: E402
-from guidewire3d.reconstruction.wire import ReconMethod, Wire3D  # noqa: E402
+from guidewire3d.methods import ReconMethod  # noqa: E402
+from guidewire3d.reconstruction import Wire3D  # noqa: E402
 from guidewire3d.registration import RegistrationResult  # noqa: E402
 from guidewire3d.xray.segmentation import SegMethod  # noqa: E402
 from guidewire3d.vesseltree import VesselTree  # noqa: E402
@@ -676,7 +677,7 @@ def test_the_module_follows_a_live_server(hs):
     from dataclasses import replace
 
     from guidewire3d.live import session as live
-    from guidewire3d.reconstruction import wire as reconstruction
+    from guidewire3d import reconstruction
     from guidewire3d.app import stream
     from guidewire3d.xray.orderedwire import OrderedWire
     from guidewire3d.registration import Verdict

@@ -6,9 +6,9 @@ from scipy.spatial import cKDTree
 
 from guidewire3d.errors import InputError
 from guidewire3d.geometry import CArm, Pose, nominal_pose
+from guidewire3d.methods import ReconMethod
 from guidewire3d.metrics import polyline_length, resample_polyline
-from guidewire3d.reconstruction.wire import (
-    ReconMethod,
+from guidewire3d.reconstruction import (
     ReconOptions,
     Wire3D,
     WireTracker,

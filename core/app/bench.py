@@ -16,11 +16,10 @@ import time
 from pathlib import Path
 
 import numpy as np
-from guidewire3d import io, metrics, phantom, registration
+from guidewire3d import io, metrics, phantom, reconstruction, registration
 from guidewire3d.app import pipeline
 from guidewire3d.io import atomic_write_text
 from guidewire3d.phantom.files import _cache_root
-from guidewire3d.reconstruction import wire as reconstruction
 from guidewire3d.xray.segmentation import guidewire_mask
 from guidewire3d.xray.wiremask import projected_wire_radius_px
 

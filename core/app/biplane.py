@@ -42,7 +42,7 @@ from guidewire3d.reconstruction.triangulation import (
     extend_distal,
     triangulate_wire,
 )
-from guidewire3d.reconstruction.wire import reconstruct_wire
+from guidewire3d.reconstruction import reconstruct_wire
 from guidewire3d.registration import model, problem, search, solve, verdict
 from guidewire3d.registration.result import RegistrationResult, Verdict, _failed
 from guidewire3d.xray.orderedwire import ordered_wire

@@ -21,7 +21,7 @@ from guidewire3d.errors import InputError
 from guidewire3d.geometry import CArm, Pose
 from guidewire3d.live import session as live_engine
 from guidewire3d.live.session import FrameResult
-from guidewire3d.reconstruction.wire import Wire3D
+from guidewire3d.reconstruction import Wire3D
 from guidewire3d.registration import RegistrationResult
 from guidewire3d.xray.orderedwire import OrderedWire
 from guidewire3d.xray.roadmap import Centerline2D, roadmap_centerline

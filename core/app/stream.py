@@ -40,7 +40,7 @@ from enum import Enum
 from pathlib import Path
 
 import numpy as np
-from guidewire3d import io, registration
+from guidewire3d import io, reconstruction, registration
 from guidewire3d.app import pipeline
 from guidewire3d.app.outdir import load_outdir
 from guidewire3d.app.pipeline import geometry_overrides
@@ -48,7 +48,6 @@ from guidewire3d.cta import vessels3d
 from guidewire3d.errors import GeometryError, InputError
 from guidewire3d.geometry import CArm
 from guidewire3d.live import session as live
-from guidewire3d.reconstruction import wire as reconstruction
 from guidewire3d.registration import Verdict
 from guidewire3d.xray.orderedwire import OrderedWire
 from guidewire3d.xray.roadmap import roadmap_centerline

@@ -25,11 +25,10 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
-from guidewire3d import kernels
+from guidewire3d import kernels, reconstruction
 from guidewire3d.errors import Guidewire3DError
 from guidewire3d.geometry import CArm, Pose
 from guidewire3d.motion.tracking import MotionTracker
-from guidewire3d.reconstruction import wire as reconstruction
 from guidewire3d.registration import Verdict
 from guidewire3d.vesseltree import VesselTree
 from guidewire3d.xray import segmentation

@@ -1,7 +1,49 @@
 """The wire in 3D: depth from the vessel prior in one view, triangulation from two (stage 5 of DESIGN.md).
 
+One view (``single_view``: :func:`reconstruct_wire`, :class:`WireTracker`, the result :class:`Wire3D`),
+in the order of its steps: ``context`` (per-pose tables, :class:`ReconOptions`), ``candidates`` (tree
+points under the 2D wire), ``path`` (Viterbi through the tree), ``placement`` (each point on its ray,
+inside the lumen), ``smoothing`` (the P-spline), ``uncertainty`` (per-point covariance); ``baselines``
+(the paper's closed form, the B-spline). Two views: ``triangulation``.
+
 The public names of the modules below, importable from ``guidewire3d.reconstruction``.
 """
+from guidewire3d.reconstruction.baselines import (  # noqa: F401
+    bspline_points,
+    paper_depth_mm,
+    paper_points,
+)
+from guidewire3d.reconstruction.candidates import (  # noqa: F401
+    anchor_indices,
+    tree_candidates,
+)
+from guidewire3d.reconstruction.context import (  # noqa: F401
+    ReconOptions,
+    ReconstructionContext,
+    build_context,
+)
+from guidewire3d.reconstruction.path import (  # noqa: F401
+    ambiguity_mm2,
+    tracking_tip,
+    viterbi_path,
+)
+from guidewire3d.reconstruction.placement import (  # noqa: F401
+    ALONG_SCALE_MM,
+    DIST_SCALE_MM,
+    place_on_path,
+)
+from guidewire3d.reconstruction.single_view import (  # noqa: F401
+    Wire3D,
+    WireTracker,
+    reconstruct_wire,
+)
+from guidewire3d.reconstruction.smoothing import (  # noqa: F401
+    arclength,
+    curvature,
+    fit_pspline,
+    smooth_wire,
+    tangents,
+)
 from guidewire3d.reconstruction.triangulation import (  # noqa: F401
     TwoViewContext,
     TwoViewOptions,
@@ -11,12 +53,7 @@ from guidewire3d.reconstruction.triangulation import (  # noqa: F401
     triangulate_points,
     triangulate_wire,
 )
-from guidewire3d.reconstruction.wire import (  # noqa: F401
-    ReconOptions,
-    ReconstructionContext,
-    Wire3D,
-    WireTracker,
-    build_context,
-    paper_depth_mm,
-    reconstruct_wire,
+from guidewire3d.reconstruction.uncertainty import (  # noqa: F401
+    covariance_lumen,
+    covariance_unconstrained,
 )

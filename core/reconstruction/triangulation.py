@@ -33,7 +33,8 @@ from dataclasses import dataclass
 import numpy as np
 from guidewire3d.errors import InputError
 from guidewire3d.geometry import CArm, Pose
-from guidewire3d.reconstruction.wire import Wire3D, _pspline
+from guidewire3d.reconstruction.single_view import Wire3D
+from guidewire3d.reconstruction.smoothing import fit_pspline
 from scipy.spatial import cKDTree
 
 __all__ = ["TwoViewOptions", "TwoViewWire", "TwoViewContext", "fundamental_matrix", "triangulate_points",
@@ -287,9 +288,9 @@ def _viterbi(n: int, ia, jb, X, unary, step_mm: float, direction: int, opt: TwoV
 
 
 def _weighted_pspline(x, Y, w, lam: float, knot: float) -> np.ndarray:
-    """The single-view reconstruction's P-spline (``reconstruction._pspline``) with weights ``w``:
+    """The single-view reconstruction's P-spline (``smoothing.fit_pspline``) with weights ``w``:
     the fitted values of ``Y (M, D)`` at ``x (M,)``."""
-    spl, Bm = _pspline(x, Y, lam, knot, weights=w)
+    spl, Bm = fit_pspline(x, Y, lam=lam, knot=knot, weights=w)
     return Bm @ spl.c
 
 

@@ -48,7 +48,7 @@ except ImportError:  # Slicer < 5.4 and slicer-core
 
 MODULE_DIR = Path(__file__).resolve().parent
 REQUIREMENTS = MODULE_DIR / "Resources" / "requirements.txt"
-#: Values of ``guidewire3d.reconstruction.wire.ReconMethod`` (the combo box choices; tested to match).
+#: Values of ``guidewire3d.methods.ReconMethod`` (the combo box choices; tested to match).
 METHOD_CHOICES = ("vessel", "paper", "bspline")
 #: Values of ``guidewire3d.xray.segmentation.SegMethod``.
 SEGMENTER_CHOICES = ("unet", "ridge")

@@ -45,7 +45,8 @@ from guidewire3d.app import export
 from guidewire3d.app import stream
 from guidewire3d.errors import InputError, ReconstructionError, RegistrationError
 from guidewire3d.geometry import CArm, Pose
-from guidewire3d.reconstruction.wire import ReconMethod, Wire3D
+from guidewire3d.methods import ReconMethod
+from guidewire3d.reconstruction import Wire3D
 from guidewire3d.xray.segmentation import SegMethod
 
 __all__ = [
