@@ -56,4 +56,5 @@ from guidewire3d.reconstruction.triangulation import (  # noqa: F401
 from guidewire3d.reconstruction.uncertainty import (  # noqa: F401
     covariance_lumen,
     covariance_unconstrained,
+    pose_jacobian,
 )

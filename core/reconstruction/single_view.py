@@ -182,8 +182,8 @@ def _finish(ctx, X, uv, tid, depth_std, extra, *, image, registration_covariance
     if lam < opt.smoothing_lambda:
         msg += f"; smoothing lambda reduced to {lam:.3g} to keep the projection"
     tree_ids = np.where(tid >= 0, ctx.orig_id[np.maximum(tid, 0)], -1)
-    return Wire3D(Xs, unc, float(arc[-1]), perr, ok, msg, tree_ids, arc, curvature(Xs) if len(Xs) > 2 else
-                  np.zeros(len(Xs)), time.perf_counter() - t0, method.value, cov)
+    return Wire3D(Xs, unc, float(arc[-1]), perr, ok, msg, tree_ids, arc, curvature(Xs), time.perf_counter() - t0,
+                  method.value, cov)
 
 
 def _reconstruct_vessel(ctx, uv, *, track_tip, image, registration_covariance, opt, t0):

@@ -34,7 +34,8 @@ import numpy as np
 from guidewire3d.errors import InputError
 from guidewire3d.geometry import CArm, Pose
 from guidewire3d.reconstruction.single_view import Wire3D
-from guidewire3d.reconstruction.smoothing import fit_pspline
+from guidewire3d.reconstruction.smoothing import arclength, curvature, fit_pspline, tangents
+from guidewire3d.reconstruction.uncertainty import pose_jacobian
 from scipy.spatial import cKDTree
 
 __all__ = ["TwoViewOptions", "TwoViewWire", "TwoViewContext", "fundamental_matrix", "triangulate_points",
@@ -419,14 +420,13 @@ def triangulate_wire(wire_a_uv_px, wire_b_uv_px, ctx: TwoViewContext) -> TwoView
     else:
         Xs = X.copy()
     # resample the output along the 3D arclength (~ step_px at the isocentre)
-    arc = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(Xs, axis=0), axis=1))]
+    arc = arclength(Xs)
     step = opt.step_px * ctx.pixel_at_iso_mm
     if arc[-1] > step:
         n_out = max(int(np.ceil(arc[-1] / step)) + 1, 2)
         sa = np.linspace(0.0, arc[-1], n_out)
         Xs = np.column_stack([np.interp(sa, arc, Xs[:, d]) for d in range(3)])
-    tan3 = np.gradient(Xs, axis=0)
-    tan3 /= np.maximum(np.linalg.norm(tan3, axis=1, keepdims=True), 1e-12)
+    tan3 = tangents(Xs)
     # uncertainty: both views' information across their 2D wires, summed; inverted across the 3D wire
     H = np.zeros((len(Xs), 3, 3))
     for k in range(2):
@@ -440,17 +440,11 @@ def triangulate_wire(wire_a_uv_px, wire_b_uv_px, ctx: TwoViewContext) -> TwoView
     big = 1e6 * tan3[:, :, None] * tan3[:, None, :]
     cov = Pperp @ np.linalg.inv(H + big) @ Pperp
     if ctx.cov is not None:
-        x_room = ctx.pose.apply(Xs)
-        G = np.zeros((len(Xs), 3, 6))
-        G[:, :, :3] = -np.eye(3)
-        G[:, 0, 4], G[:, 0, 5] = -x_room[:, 2], x_room[:, 1]
-        G[:, 1, 3], G[:, 1, 5] = x_room[:, 2], -x_room[:, 0]
-        G[:, 2, 3], G[:, 2, 4] = -x_room[:, 1], x_room[:, 0]
-        G = ctx.pose.R.T[None] @ G
+        G = pose_jacobian(ctx.pose, Xs)
         cov = cov + Pperp @ (G @ ctx.cov @ np.transpose(G, (0, 2, 1))) @ Pperp
     unc = np.sqrt(np.clip(np.trace(cov, axis1=1, axis2=2), 0.0, None))
     perr = tuple(float(_polyline_distance_px(ctx.project(k, Xs), u).mean()) for k, u in ((0, ua), (1, ub)))
-    arc = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(Xs, axis=0), axis=1))]
+    arc = arclength(Xs)
     _, i = ctx.kd.query(Xs)
     tree_ids = ctx.dense_orig[i]
     rise = float(ctx.s_root[tree_ids[-1]] - ctx.s_root[tree_ids[0]])
@@ -459,7 +453,7 @@ def triangulate_wire(wire_a_uv_px, wire_b_uv_px, ctx: TwoViewContext) -> TwoView
            + ("" if direction > 0 else " (plane B's 2D order reversed)"))
     if not ok:
         msg = f"two views: projection error {max(perr):.2f} px exceeds {opt.max_reprojection_px} px"
-    w3 = Wire3D(Xs, unc, float(arc[-1]), float(np.mean(perr)), ok, msg, tree_ids, arc, _curvature(Xs),
+    w3 = Wire3D(Xs, unc, float(arc[-1]), float(np.mean(perr)), ok, msg, tree_ids, arc, curvature(Xs),
                 time.perf_counter() - t0, "biplane", cov, False, rise)
     gaps = (float(L_a - s_a.max()), float(L_b - s_b.max()))
     return TwoViewWire(w3, perr, frac, direction < 0, gaps)
@@ -507,14 +501,14 @@ def extend_distal(tv: TwoViewWire, wire_a_uv_px, wire_b_uv_px, ctx: TwoViewConte
     unc = np.r_[W.uncertainty_mm, np.asarray(w.uncertainty_mm)[beyond]]
     cov = np.concatenate([W.covariance_mm2, np.asarray(w.covariance_mm2)[beyond]]) \
         if len(w.covariance_mm2) == len(w.points_lps_mm) else np.zeros((0, 3, 3))
-    arc = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(X, axis=0), axis=1))]
+    arc = arclength(X)
     ids = np.r_[W.tree_point_ids, np.asarray(w.tree_point_ids)[beyond]]
     ext_mm = float(arc[-1] - W.arclength_mm[-1])
     rise = float(ctx.s_root[ids[-1]] - ctx.s_root[ids[0]]) if ids[-1] >= 0 and ids[0] >= 0 else W.tree_rise_mm
     msg = (f"{W.message}; the distal {ext_mm:.1f} mm from plane {plane} alone (plane {'BA'[k]} does not show it: "
            "its depth is the vessel prior's)")
     perr = list(tv.projection_error_px)
-    w3 = Wire3D(X, unc, float(arc[-1]), W.projection_error_px, W.success, msg, ids, arc, _curvature(X),
+    w3 = Wire3D(X, unc, float(arc[-1]), W.projection_error_px, W.success, msg, ids, arc, curvature(X),
                 W.seconds + w.seconds, "biplane", cov, False, rise)
     return TwoViewWire(w3, tuple(perr), tv.matched_fraction, tv.b_reversed, tv.distal_gap_px, ext_mm)
 
@@ -524,12 +518,3 @@ def _with_message(tv: TwoViewWire, message: str) -> TwoViewWire:
 
     return replace(tv, wire3d=replace(tv.wire3d, message=message))
 
-
-def _curvature(X) -> np.ndarray:
-    if len(X) < 3:
-        return np.zeros(len(X))
-    d1 = np.gradient(X, axis=0)
-    d2 = np.gradient(d1, axis=0)
-    num = np.linalg.norm(np.cross(d1, d2), axis=1)
-    den = np.maximum(np.linalg.norm(d1, axis=1) ** 3, 1e-12)
-    return num / den

@@ -52,7 +52,7 @@ import numpy as np
 from guidewire3d.errors import InputError
 from guidewire3d.reconstruction.placement import ALONG_SCALE_MM, DIST_SCALE_MM
 
-__all__ = ["covariance_lumen", "covariance_unconstrained"]
+__all__ = ["covariance_lumen", "covariance_unconstrained", "pose_jacobian"]
 
 
 def _projection_jacobian(ctx, X) -> np.ndarray:
@@ -85,16 +85,26 @@ def _ray_shift_covariance(ctx, X, uv, *, image, registration_covariance, opt):
     cov = Jp @ S2 @ np.transpose(Jp, (0, 2, 1))
     if registration_covariance is not None:
         C = _check_registration_covariance(registration_covariance)
-        x_room = ctx.pose.apply(X)
-        G = np.zeros((M, 3, 6))
-        G[:, :, :3] = -np.eye(3)
-        # -phi x x = [x]x phi
-        G[:, 0, 4], G[:, 0, 5] = -x_room[:, 2], x_room[:, 1]
-        G[:, 1, 3], G[:, 1, 5] = x_room[:, 2], -x_room[:, 0]
-        G[:, 2, 3], G[:, 2, 4] = -x_room[:, 1], x_room[:, 0]
-        G = ctx.pose.R.T[None] @ G
+        G = pose_jacobian(ctx.pose, X)
         cov += G @ C @ np.transpose(G, (0, 2, 1))
     return cov
+
+
+def pose_jacobian(pose, points_lps_mm) -> np.ndarray:
+    """(M, 3, 6) how a pose error moves the rays at the points ``points_lps_mm`` (M, 3), in CTA mm.
+
+    For a left perturbation ``(tx, ty, tz, rx, ry, rz)`` (mm, rad) of ``pose``,
+    ``dX = R^T (-dt + [x]x dphi)`` with ``x`` the point in room coordinates: the registration
+    covariance ``C`` (6, 6) becomes ``G C G^T`` at each point.
+    """
+    x_room = pose.apply(points_lps_mm)
+    G = np.zeros((len(x_room), 3, 6))
+    G[:, :, :3] = -np.eye(3)
+    # -phi x x = [x]x phi
+    G[:, 0, 4], G[:, 0, 5] = -x_room[:, 2], x_room[:, 1]
+    G[:, 1, 3], G[:, 1, 5] = x_room[:, 2], -x_room[:, 0]
+    G[:, 2, 3], G[:, 2, 4] = -x_room[:, 1], x_room[:, 0]
+    return pose.R.T[None] @ G
 
 
 def _check_registration_covariance(registration_covariance) -> np.ndarray:
