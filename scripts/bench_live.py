@@ -198,7 +198,7 @@ def _igtl_run(out_dir, frames, *, fps: float, seconds: float, reconnect_s: float
 
     import pyigtl
 
-    from guidewire3d.app import stream
+    from guidewire3d.app import igtl
 
     cmd = [sys.executable, "-m", "guidewire3d.app.cli", "live", "--from", str(out_dir), "--port", "0",
            "--duration", str(seconds + 120)]
@@ -217,7 +217,7 @@ def _igtl_run(out_dir, frames, *, fps: float, seconds: float, reconnect_s: float
         if not port_ready.wait(300):
             raise RuntimeError(f"the live server did not start: {lines}")
         port = int([ln for ln in lines if "listening on" in ln][0].split("listening on ")[1].split()[0].rsplit(":", 1)[1])
-        client = stream.IGTLClient("127.0.0.1", port, keep=1 << 14)
+        client = igtl.IGTLClient("127.0.0.1", port, keep=1 << 14)
         lat_wire, t_wire, statuses, rss = [], [], [], []
         n_sent, n_reconnects = 0, 0
         period = 1.0 / fps
@@ -226,11 +226,11 @@ def _igtl_run(out_dir, frames, *, fps: float, seconds: float, reconnect_s: float
 
         def drain():
             for m in client.messages():
-                if m.device_name == stream.DEVICE_WIRE:
+                if m.device_name == igtl.DEVICE_WIRE:
                     lat_wire.append(m.received_at - m.timestamp)
                     t_wire.append(m.received_at)
-                elif m.device_name == stream.DEVICE_STATUS:
-                    st = stream.status_of(m)
+                elif m.device_name == igtl.DEVICE_STATUS:
+                    st = igtl.status_of(m)
                     statuses.append({k: st.get(k) for k in ("frames_in", "processed", "dropped", "failed",
                                                             "processing_ms")})
 
@@ -242,7 +242,7 @@ def _igtl_run(out_dir, frames, *, fps: float, seconds: float, reconnect_s: float
             if now >= t_reconnect:  # a client that goes away and comes back
                 drain()
                 client.close()
-                client = stream.IGTLClient("127.0.0.1", port, keep=1 << 14)
+                client = igtl.IGTLClient("127.0.0.1", port, keep=1 << 14)
                 n_reconnects += 1
                 t_reconnect += reconnect_s
             time.sleep(max(0.0, t_next - time.monotonic()))
@@ -301,21 +301,21 @@ def _igtl_transport_only(out_dir, frames, *, fps: float, seconds: float) -> dict
 
     import pyigtl
 
+    from guidewire3d.app import igtl, sources, stream
     from guidewire3d.live import session as live
-    from guidewire3d.app import stream
 
     st = stream.setup_from_outdir(out_dir)
     session = live.Session(st.tree, st.frames_carm, st.pose, registration_covariance=st.covariance)
     engine = _Precomputed(session, frames[0].astype(np.float32))
-    box = stream.LatestFrame()
-    server = stream.IGTLServer("127.0.0.1", 0, on_message=lambda m: box.put(stream.Frame(m.image, m.timestamp)))
+    box = sources.LatestFrame()
+    server = igtl.IGTLServer("127.0.0.1", 0, on_message=lambda m: box.put(sources.Frame(m.image, m.timestamp)))
     runner = stream.LiveRunner(engine, server, box, duration_s=seconds + 30)
     stop = threading.Event()
     worker = threading.Thread(target=runner.run, args=(stop,), daemon=True)
     worker.start()
     lat = []
     try:
-        with stream.IGTLClient("127.0.0.1", server.port, keep=1 << 14) as client:
+        with igtl.IGTLClient("127.0.0.1", server.port, keep=1 << 14) as client:
             t_next = t0 = time.monotonic()
             k = 0
             while time.monotonic() - t0 < seconds:
@@ -324,9 +324,9 @@ def _igtl_transport_only(out_dir, frames, *, fps: float, seconds: float) -> dict
                 client.send(pyigtl.ImageMessage(frames[k % len(frames)][None], device_name="Image",
                                                 timestamp=time.time()))
                 k += 1
-                lat += [m.received_at - m.timestamp for m in client.messages() if m.device_name == stream.DEVICE_WIRE]
+                lat += [m.received_at - m.timestamp for m in client.messages() if m.device_name == igtl.DEVICE_WIRE]
             time.sleep(0.5)
-            lat += [m.received_at - m.timestamp for m in client.messages() if m.device_name == stream.DEVICE_WIRE]
+            lat += [m.received_at - m.timestamp for m in client.messages() if m.device_name == igtl.DEVICE_WIRE]
     finally:
         stop.set()
         worker.join(10)

@@ -20,8 +20,7 @@ import pytest
 
 from guidewire3d import io
 from guidewire3d.live import session as live
-from guidewire3d.app import pipeline
-from guidewire3d.app import stream
+from guidewire3d.app import igtl, pipeline, sources, stream
 from guidewire3d.errors import InputError
 from guidewire3d.registration import Verdict
 
@@ -63,13 +62,13 @@ def serving(setup, *, track_motion=False, **runner_kw):
     session = live.Session(setup.tree, setup.frames_carm, setup.pose, registration_covariance=setup.covariance,
                            track_motion=track_motion)
     stream.warm_up(session)
-    mailbox = stream.LatestFrame()
+    mailbox = sources.LatestFrame()
 
     def on_message(msg):
         if msg.message_type == "IMAGE":
-            mailbox.put(stream.Frame(msg.image, float(msg.timestamp), f"igtl:{msg.device_name}"))
+            mailbox.put(sources.Frame(msg.image, float(msg.timestamp), f"igtl:{msg.device_name}"))
 
-    server = stream.IGTLServer(HOST, 0, on_message=on_message)
+    server = igtl.IGTLServer(HOST, 0, on_message=on_message)
     runner = stream.LiveRunner(session, server, mailbox, duration_s=600.0, **runner_kw)
     stop = threading.Event()
     thread = threading.Thread(target=runner.run, args=(stop,), daemon=True)
@@ -101,14 +100,14 @@ def _wire3d(points, uncertainty):
 
 
 def next_status(client, timeout_s=WAIT_S):
-    m = client.wait_for(lambda m: m.device_name == stream.DEVICE_STATUS, timeout_s=timeout_s)
+    m = client.wait_for(lambda m: m.device_name == igtl.DEVICE_STATUS, timeout_s=timeout_s)
     assert m is not None, "no GuidewireStatus within the time limit"
-    return m, stream.status_of(m)
+    return m, igtl.status_of(m)
 
 
 def bundle_after(client, status_msg, timeout_s=10.0):
     """The messages of the frame whose status was ``status_msg`` (same time stamp), by device name."""
-    out = {stream.DEVICE_STATUS: status_msg}
+    out = {igtl.DEVICE_STATUS: status_msg}
     end = time.monotonic() + timeout_s
     while len(out) < 4 and time.monotonic() < end:
         m = client.wait_for(lambda m: m.timestamp == status_msg.timestamp, timeout_s=0.2)
@@ -124,7 +123,7 @@ def test_streamed_wires_match_reconstruct(setup, live_out, frames):
     _, report = live_out
     recs = report["frames"]
     assert len(recs) == len(frames) and sum(r["success"] for r in recs) >= 3, [r["message"] for r in recs]
-    with serving(setup) as (server, runner, _), stream.IGTLClient(HOST, server.port) as client:
+    with serving(setup) as (server, runner, _), igtl.IGTLClient(HOST, server.port) as client:
         t0 = time.time() - 100.0
         for k, (frame, rec) in enumerate(zip(frames, recs)):
             ts = t0 + 0.1 * k + 0.012345  # any source time stamp: it must come back on every message
@@ -135,24 +134,24 @@ def test_streamed_wires_match_reconstruct(setup, live_out, frames):
             assert st["space"] == "LPS" and st["dropped"] == 0
             got = bundle_after(client, msg)
             if not rec["success"]:
-                assert stream.DEVICE_WIRE not in got
+                assert igtl.DEVICE_WIRE not in got
                 continue
-            assert set(got) == {stream.DEVICE_STATUS, stream.DEVICE_WIRE, stream.DEVICE_UNCERTAINTY, stream.DEVICE_TIP}
+            assert set(got) == {igtl.DEVICE_STATUS, igtl.DEVICE_WIRE, igtl.DEVICE_UNCERTAINTY, igtl.DEVICE_TIP}
             for m in got.values():
                 assert abs(m.timestamp - ts) < 1e-6, m.device_name
             ref = np.asarray(rec["points_lps_mm"])
-            pts = got[stream.DEVICE_WIRE].points
+            pts = got[igtl.DEVICE_WIRE].points
             assert pts.shape == ref.shape
             assert np.abs(pts - ref).max() <= MATCH_MM
             assert np.abs(pts - ref).max() <= FLOAT32_MM  # in fact: the same wire, in float32
-            [ids] = got[stream.DEVICE_WIRE].polylines()  # one polyline, proximal -> distal
+            [ids] = got[igtl.DEVICE_WIRE].polylines()  # one polyline, proximal -> distal
             np.testing.assert_array_equal(ids, np.arange(len(ref)))
-            unc = np.array(got[stream.DEVICE_UNCERTAINTY].string.split(), float)
+            unc = np.array(got[igtl.DEVICE_UNCERTAINTY].string.split(), float)
             np.testing.assert_allclose(unc, rec["uncertainty_mm"], atol=UNC_DECIMALS_MM)
-            tip = np.asarray(got[stream.DEVICE_TIP].matrix, float)
+            tip = np.asarray(got[igtl.DEVICE_TIP].matrix, float)
             np.testing.assert_allclose(tip[:3, 3], ref[-1], atol=FLOAT32_MM)
             np.testing.assert_allclose(tip[:3, :3] @ tip[:3, :3].T, np.eye(3), atol=1e-5)
-            chord = ref[-1] - ref[np.nonzero(np.linalg.norm(ref[-1] - ref, axis=1) >= stream.TIP_DIRECTION_MM)[0][-1]]
+            chord = ref[-1] - ref[np.nonzero(np.linalg.norm(ref[-1] - ref, axis=1) >= igtl.TIP_DIRECTION_MM)[0][-1]]
             np.testing.assert_allclose(tip[:3, 2], chord / np.linalg.norm(chord), atol=2e-4)  # 1e-4 mm rounding / 2 mm
         time.sleep(0.3)
     s = runner.summary
@@ -166,7 +165,7 @@ def test_track_motion_streams_the_engines_motion_tracked_wires(setup, frames):
     ref = list(live.Session(setup.tree, setup.frames_carm, setup.pose, registration_covariance=setup.covariance,
                             track_motion=True).run(frames))
     assert any(fr.motion is not None for fr in ref)  # the pose was updated from the frames
-    with serving(setup, track_motion=True) as (server, runner, _), stream.IGTLClient(HOST, server.port) as client:
+    with serving(setup, track_motion=True) as (server, runner, _), igtl.IGTLClient(HOST, server.port) as client:
         for k, (frame, fr) in enumerate(zip(frames, ref)):
             client.send(image_message(frame, 7000.0 + k))
             msg, st = next_status(client)
@@ -175,7 +174,7 @@ def test_track_motion_streams_the_engines_motion_tracked_wires(setup, frames):
                 assert st["motion"]["verdict"] == fr.motion.verdict.value
             got = bundle_after(client, msg)
             if fr:
-                np.testing.assert_allclose(got[stream.DEVICE_WIRE].points, fr.wire3d.points_lps_mm, atol=FLOAT32_MM)
+                np.testing.assert_allclose(got[igtl.DEVICE_WIRE].points, fr.wire3d.points_lps_mm, atol=FLOAT32_MM)
     assert runner.summary.dropped == 0
 
 
@@ -188,19 +187,19 @@ def test_ras_space_flips_points_and_tip():
     w3 = _wire3d(pts, np.full(4, 0.5))
     fr = live.FrameResult(7, OrderedWire(points_uv_px=np.zeros((4, 2)), success=True, message="ok"), w3, Verdict.OK,
                           "ok", None, 0.01, 1234.5)
-    lps = {m.device_name: m for m in stream.frame_messages(fr)}
-    ras = {m.device_name: m for m in stream.frame_messages(fr, space=stream.Space.RAS)}
-    assert stream.status_of(ras[stream.DEVICE_STATUS])["space"] == "RAS"
-    np.testing.assert_allclose(ras[stream.DEVICE_WIRE].points, pts * [-1, -1, 1])
-    np.testing.assert_allclose(lps[stream.DEVICE_WIRE].points, pts)
+    lps = {m.device_name: m for m in igtl.frame_messages(fr)}
+    ras = {m.device_name: m for m in igtl.frame_messages(fr, space=igtl.Space.RAS)}
+    assert igtl.status_of(ras[igtl.DEVICE_STATUS])["space"] == "RAS"
+    np.testing.assert_allclose(ras[igtl.DEVICE_WIRE].points, pts * [-1, -1, 1])
+    np.testing.assert_allclose(lps[igtl.DEVICE_WIRE].points, pts)
     f = np.diag([-1.0, -1.0, 1.0, 1.0])
-    np.testing.assert_allclose(ras[stream.DEVICE_TIP].matrix, f @ lps[stream.DEVICE_TIP].matrix @ f, atol=1e-6)
-    assert np.isclose(np.linalg.det(ras[stream.DEVICE_TIP].matrix[:3, :3]), 1.0)
+    np.testing.assert_allclose(ras[igtl.DEVICE_TIP].matrix, f @ lps[igtl.DEVICE_TIP].matrix @ f, atol=1e-6)
+    assert np.isclose(np.linalg.det(ras[igtl.DEVICE_TIP].matrix[:3, :3]), 1.0)
     for m in ras.values():
         assert m.timestamp == 1234.5
     # --points: the same wire as a POINT message, diameter twice the 1-sigma uncertainty
-    [pm] = [m for m in stream.frame_messages(fr, space=stream.Space.RAS, points=True)
-            if m.device_name == stream.DEVICE_POINTS]
+    [pm] = [m for m in igtl.frame_messages(fr, space=igtl.Space.RAS, points=True)
+            if m.device_name == igtl.DEVICE_POINTS]
     packed = pm.pack()
     back = pyigtl.PointMessage()
     back.unpack(pyigtl.MessageBase.parse_header(packed[:58]), packed[58:])
@@ -209,8 +208,8 @@ def test_ras_space_flips_points_and_tip():
     # a frame without a wire sends its status only
     failed = live.FrameResult(8, OrderedWire(points_uv_px=np.zeros((0, 2)), success=False, message="no"),
                               reconstruction.Wire3D.failed("no wire"), Verdict.FAILED, "no wire", None, 0.0, 99.0)
-    [only] = stream.frame_messages(failed)
-    assert only.device_name == stream.DEVICE_STATUS and stream.status_of(only)["verdict"] == "failed"
+    [only] = igtl.frame_messages(failed)
+    assert only.device_name == igtl.DEVICE_STATUS and igtl.status_of(only)["verdict"] == "failed"
 
 
 def test_guidewire_polydata_bytes_follow_the_openigtlink_spec():
@@ -222,7 +221,7 @@ def test_guidewire_polydata_bytes_follow_the_openigtlink_spec():
     pts = np.array([[1.5, -2.0, 3.25], [2.0, -2.5, 4.0], [2.5, -2.0, 5.5]])
     fr = live.FrameResult(0, OrderedWire(points_uv_px=np.zeros((3, 2)), success=True, message="ok"),
                           _wire3d(pts, [0.1, 0.2, 0.3]), Verdict.OK, "ok", None, 0.0, 1700000000.25)
-    [wire] = [m for m in stream.frame_messages(fr) if m.device_name == stream.DEVICE_WIRE]
+    [wire] = [m for m in igtl.frame_messages(fr) if m.device_name == igtl.DEVICE_WIRE]
     raw = wire.pack()
     version, mtype, device, sec, frac, size, crc = struct.unpack(">H12s20sIIQQ", raw[:58])
     body = raw[58:]
@@ -244,7 +243,7 @@ def test_guidewire_polydata_bytes_follow_the_openigtlink_spec():
 def test_bad_frames_give_a_status_and_the_server_goes_on(setup, frames):
     nan_frame = np.array(frames[0], copy=True)
     nan_frame[100, 200] = np.nan
-    with serving(setup) as (server, runner, thread), stream.IGTLClient(HOST, server.port) as client:
+    with serving(setup) as (server, runner, thread), igtl.IGTLClient(HOST, server.port) as client:
         # not OpenIGTLink at all: that connection is closed, the server goes on
         with __import__("socket").create_connection((HOST, server.port), timeout=5) as raw:
             raw.sendall(b"GET / HTTP/1.1\r\n" + b"x" * 200)
@@ -260,7 +259,7 @@ def test_bad_frames_give_a_status_and_the_server_goes_on(setup, frames):
         client.send(image_message(frames[0], 2000.0))
         msg, st = next_status(client)
         assert st["verdict"] in ("ok", "uncertain") and st["failed"] == len(cases), st
-        assert stream.DEVICE_WIRE in bundle_after(client, msg)
+        assert igtl.DEVICE_WIRE in bundle_after(client, msg)
         assert thread.is_alive()
     assert runner.summary.failed == len(cases) and runner.summary.processed == len(cases) + 1
 
@@ -268,11 +267,11 @@ def test_bad_frames_give_a_status_and_the_server_goes_on(setup, frames):
 def test_a_client_disconnect_and_reconnect_keeps_the_server_running(setup, frames):
     with serving(setup) as (server, runner, thread):
         for k in range(2):  # the first client goes away mid-stream, the second one connects afresh
-            client = stream.IGTLClient(HOST, server.port, reconnect=False)
+            client = igtl.IGTLClient(HOST, server.port, reconnect=False)
             try:
                 client.send(image_message(frames[k], 3000.0 + k))
                 msg, st = next_status(client)
-                assert st["frame"] == k and stream.DEVICE_WIRE in bundle_after(client, msg)
+                assert st["frame"] == k and igtl.DEVICE_WIRE in bundle_after(client, msg)
             finally:
                 client.close()
             end = time.monotonic() + 10
@@ -280,7 +279,7 @@ def test_a_client_disconnect_and_reconnect_keeps_the_server_running(setup, frame
                 time.sleep(0.02)
             assert server.n_clients == 0
         # a frame with no client connected is processed, and its bundle goes nowhere
-        runner.process(stream.Frame(frames[2], time.time(), "direct"))
+        runner.process(sources.Frame(frames[2], time.time(), "direct"))
         assert thread.is_alive() and server.n_connections == 2
     assert runner.summary.processed == 3
 
@@ -288,8 +287,8 @@ def test_a_client_disconnect_and_reconnect_keeps_the_server_running(setup, frame
 def test_a_busy_server_keeps_its_clients():
     """Frames in and results out on the same connection while the processing holds the GIL: the
     client stays connected (sends must not change the socket timeout under the reader's recv)."""
-    box, stop = stream.LatestFrame(), threading.Event()
-    server = stream.IGTLServer(HOST, 0, on_message=lambda m: box.put(stream.Frame(m.image, m.timestamp)))
+    box, stop = sources.LatestFrame(), threading.Event()
+    server = igtl.IGTLServer(HOST, 0, on_message=lambda m: box.put(sources.Frame(m.image, m.timestamp)))
 
     def busy_loop():
         k = 0
@@ -299,13 +298,13 @@ def test_a_busy_server_keeps_its_clients():
             x = 0
             for i in range(1_000_000):  # pure Python: holds the GIL as parts of the 2D and 3D steps do
                 x += i
-            server.broadcast(stream.pack([pyigtl.StringMessage(f"result {k}", device_name="Result")]))
+            server.broadcast(igtl.pack([pyigtl.StringMessage(f"result {k}", device_name="Result")]))
             k += 1
 
     worker = threading.Thread(target=busy_loop, daemon=True)
     worker.start()
     try:
-        with stream.IGTLClient(HOST, server.port) as client:
+        with igtl.IGTLClient(HOST, server.port) as client:
             frame = np.zeros((1, 512, 512), np.uint16)
             end = time.monotonic() + 4.0
             while time.monotonic() < end:
@@ -322,20 +321,20 @@ def test_a_busy_server_keeps_its_clients():
 
 def test_frames_faster_than_processing_are_dropped_and_counted(setup, frames):
     n = 12
-    with serving(setup) as (server, runner, _), stream.IGTLClient(HOST, server.port) as client:
+    with serving(setup) as (server, runner, _), igtl.IGTLClient(HOST, server.port) as client:
         stamps = [5000.0 + k for k in range(n)]
         for k, ts in enumerate(stamps):  # a burst: each frame arrives well before the previous one is done
             client.send(image_message(frames[k % len(frames)], ts))
         last = None
         end = time.monotonic() + WAIT_S
         while time.monotonic() < end:  # until the newest frame's status arrives
-            m = client.wait_for(lambda m: m.device_name == stream.DEVICE_STATUS, timeout_s=1.0)
+            m = client.wait_for(lambda m: m.device_name == igtl.DEVICE_STATUS, timeout_s=1.0)
             if m is not None:
                 last = m
                 if m.timestamp == stamps[-1]:
                     break
         assert last is not None and last.timestamp == stamps[-1], "the newest frame was not processed"
-        st = stream.status_of(last)
+        st = igtl.status_of(last)
     s = runner.summary
     assert s.frames_in == n and s.dropped >= 1
     assert s.processed + s.dropped == s.frames_in  # every frame is either processed or counted as dropped
@@ -346,10 +345,10 @@ def test_frames_faster_than_processing_are_dropped_and_counted(setup, frames):
 # the mailbox and the other sources
 # --------------------------------------------------------------------------------------
 def test_latest_frame_mailbox_keeps_one_frame_and_counts_the_rest():
-    box = stream.LatestFrame()
+    box = sources.LatestFrame()
     assert box.take(0.01) is None
     for k in range(5):
-        box.put(stream.Frame(k, float(k)))
+        box.put(sources.Frame(k, float(k)))
     assert (box.n_in, box.n_dropped) == (5, 4)
     assert box.take(0.01).image == 4 and box.take(0.01) is None
     box.skipped(3)
@@ -360,7 +359,7 @@ def test_latest_frame_mailbox_keeps_one_frame_and_counts_the_rest():
 def test_check_frame_accepts_the_openigtlink_layouts(shape):
     rng = np.random.default_rng(0)
     img = rng.uniform(0, 255, shape).astype(np.uint8)
-    f, why = stream.check_frame(img, (6, 5))
+    f, why = sources.check_frame(img, (6, 5))
     assert why == "" and f.shape == (6, 5) and f.dtype == np.float32
     if shape[-1] in (3, 4) and len(shape) >= 3:
         rgb = img.reshape(6, 5, -1)[..., :3].astype(float)
@@ -381,8 +380,8 @@ def test_folder_source_delivers_the_newest_new_file(tmp_path):
         os.replace(staging / f"{name}.png", watched / f"{name}.png")
 
     write("f000", 1)  # already there: the past, not the live stream
-    box, stop = stream.LatestFrame(), threading.Event()
-    src = stream.FolderSource(watched, carm=None)
+    box, stop = sources.LatestFrame(), threading.Event()
+    src = sources.FolderSource(watched, carm=None)
     src.start(box, stop)
     try:
         time.sleep(0.1)
@@ -416,8 +415,8 @@ def test_video_source_paces_a_file_at_its_frame_rate(tmp_path):
     for k in range(n):
         w.write(np.full((30, 40), 30 * k + 20, np.uint8))
     w.release()
-    box, stop = stream.LatestFrame(), threading.Event()
-    src = stream.VideoSource(path, carm=None)
+    box, stop = sources.LatestFrame(), threading.Event()
+    src = sources.VideoSource(path, carm=None)
     assert src.fps == pytest.approx(fps)
     got = []
     src.start(box, stop)
@@ -436,7 +435,7 @@ def test_video_source_paces_a_file_at_its_frame_rate(tmp_path):
     stamps = [f.timestamp for f in got]
     assert all(b - a >= 0.5 / fps for a, b in zip(stamps, stamps[1:]))  # paced, not as fast as it decodes
     with pytest.raises(InputError, match="cannot open"):
-        stream.VideoSource(tmp_path / "missing.avi", carm=None)
+        sources.VideoSource(tmp_path / "missing.avi", carm=None)
 
 
 def test_setup_from_the_inputs_is_the_one_reconstruct_made(setup, small_case_dir):
@@ -492,10 +491,10 @@ def test_ctrl_c_stops_cleanly_and_prints_the_summary(live_out, small_case_dir):
             if "listening on" in line:
                 port = int(line.split("listening on ")[1].split()[0].rsplit(":", 1)[1])
         assert port is not None, proc.stderr.read() if proc.poll() is not None else "no 'listening on' line"
-        with stream.IGTLClient(HOST, port) as client:  # a viewer: receives, sends nothing
+        with igtl.IGTLClient(HOST, port) as client:  # a viewer: receives, sends nothing
             n = 0
             while n < 2:
-                m = client.wait_for(lambda m: m.device_name == stream.DEVICE_WIRE, timeout_s=WAIT_S)
+                m = client.wait_for(lambda m: m.device_name == igtl.DEVICE_WIRE, timeout_s=WAIT_S)
                 assert m is not None
                 n += 1
         proc.send_signal(signal.SIGINT)
@@ -523,7 +522,6 @@ def _broadcast_until(server, payload, done: threading.Event, period_s=0.05, limi
 
 def test_viewer_follows_the_live_wire_offscreen(live_out, tmp_path):
     pytest.importorskip("pyvista")
-    from guidewire3d import reconstruction
     from guidewire3d.xray.orderedwire import OrderedWire
     from guidewire3d.viewer import app
 
@@ -533,12 +531,12 @@ def test_viewer_follows_the_live_wire_offscreen(live_out, tmp_path):
     w3 = _wire3d(pts, unc)
     fr = live.FrameResult(3, OrderedWire(points_uv_px=np.zeros((2, 2)), success=True, message="ok"), w3, Verdict.OK,
                           "ok", None, 0.01, time.time())
-    payload = stream.pack(stream.frame_messages(fr, space=stream.Space.RAS))  # the viewer converts back to LPS
+    payload = igtl.pack(igtl.frame_messages(fr, space=igtl.Space.RAS))  # the viewer converts back to LPS
 
-    with stream.IGTLServer(HOST, 0) as server:
+    with igtl.IGTLServer(HOST, 0) as server:
         ctl, handles = app.open_viewer(out, size_px=(400, 300), off_screen=True, persist=False)
         try:
-            with stream.IGTLClient(HOST, server.port) as client:
+            with igtl.IGTLClient(HOST, server.port) as client:
                 follower = app.LiveFollower(handles.wire, client, status_text=handles.status_text)
                 before = np.array(handles.wire.polyline.points, copy=True)
                 done = threading.Event()

@@ -678,7 +678,7 @@ def test_the_module_follows_a_live_server(hs):
 
     from guidewire3d.live import session as live
     from guidewire3d import reconstruction
-    from guidewire3d.app import stream
+    from guidewire3d.app import igtl
     from guidewire3d.xray.orderedwire import OrderedWire
     from guidewire3d.registration import Verdict
 
@@ -692,11 +692,11 @@ def test_the_module_follows_a_live_server(hs):
     logic = L.GuidewireReconstructionCoreLogic(hs.scene)
     with pytest.raises(InputError, match="live server 127.0.0.1:1"):
         logic.connect_live("127.0.0.1:1", wait_s=0.5)
-    for space in (stream.Space.LPS, stream.Space.RAS):
+    for space in (igtl.Space.LPS, igtl.Space.RAS):
         fr = live.FrameResult(5, OrderedWire(points_uv_px=np.zeros((2, 2)), success=True, message="ok"), w3,
                               Verdict.OK, "ok", None, 0.01, time.time())
-        payload = stream.pack(stream.frame_messages(fr, space=space))
-        with stream.IGTLServer("127.0.0.1", 0) as server:
+        payload = igtl.pack(igtl.frame_messages(fr, space=space))
+        with igtl.IGTLServer("127.0.0.1", 0) as server:
             logic.connect_live(f"127.0.0.1:{server.port}", wait_s=10)
             done = threading.Event()
 

@@ -9,7 +9,7 @@ import os
 import tempfile
 from pathlib import Path
 
-from guidewire3d.app import pipeline, stream
+from guidewire3d.app import igtl, pipeline
 from guidewire3d.app.outdir import load_outdir
 from guidewire3d.errors import Guidewire3DError, InputError
 from guidewire3d.viewer import scene as sc
@@ -252,14 +252,14 @@ def run_interactive(out_dir, *, size_px=DEFAULT_SIZE, frame: int = 0) -> int:
 class LiveFollower:
     """Follows a ``guidewire3d live`` server: its newest ``Guidewire`` replaces the wire tube.
 
-    ``poll()`` (no window needed) reads what ``client`` (a ``stream.IGTLClient``) received, updates
+    ``poll()`` (no window needed) reads what ``client`` (an ``igtl.IGTLClient``) received, updates
     the wire in place (``scene.update_wire``, with the ``GuidewireUncertainty`` of the same frame)
     and the status line; it returns True when the wire changed.
     """
 
     def __init__(self, wire_handles, client, *, status_text=None):
         self.wire, self.status_text = wire_handles, status_text
-        self.follower = stream.WireFollower(client)
+        self.follower = igtl.WireFollower(client)
 
     @property
     def status(self) -> dict:
@@ -292,7 +292,7 @@ def run_live(address, *, out_dir=None, size_px=DEFAULT_SIZE, screenshot=None, wa
     import sys
     import time
 
-    host, port = stream.parse_host_port(address)
+    host, port = igtl.parse_host_port(address)
     off = screenshot is not None
     if not off:
         if sys.platform.startswith("linux") and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
@@ -302,7 +302,7 @@ def run_live(address, *, out_dir=None, size_px=DEFAULT_SIZE, screenshot=None, wa
     else:
         _prepare_offscreen_env()
     try:
-        client = stream.IGTLClient(host, port, keep=64, connect_timeout_s=wait_s)
+        client = igtl.IGTLClient(host, port, keep=64, connect_timeout_s=wait_s)
     except ConnectionError as e:
         raise InputError(f"--live {address}: {e}") from None
     try:

@@ -42,7 +42,7 @@ from vtk.util.numpy_support import numpy_to_vtk, vtk_to_numpy
 
 from guidewire3d import io
 from guidewire3d.app import export
-from guidewire3d.app import stream
+from guidewire3d.app import igtl
 from guidewire3d.errors import InputError, ReconstructionError, RegistrationError
 from guidewire3d.geometry import CArm, Pose
 from guidewire3d.methods import ReconMethod
@@ -491,11 +491,11 @@ class GuidewireReconstructionCoreLogic:
         self.frame_results: list = []  # live.FrameResult per live frame (verdict: ok / uncertain / failed)
         self.track_motion = False  # the frames' poses follow breathing (process(track_motion=True))
         self.outputs = OutputNodes()
-        self.live = None  # stream.WireFollower of a connected `guidewire3d live` server (connect_live)
+        self.live = None  # igtl.WireFollower of a connected `guidewire3d live` server (connect_live)
         self.live_status = ""
 
     # --- live ---------------------------------------------------------------------------
-    def connect_live(self, address: str = f"127.0.0.1:{stream.DEFAULT_PORT}", *, wait_s: float = 10.0):
+    def connect_live(self, address: str = f"127.0.0.1:{igtl.DEFAULT_PORT}", *, wait_s: float = 10.0):
         """Follow a ``guidewire3d live`` server (``HOST:PORT``): :meth:`poll_live` then shows its newest
         wire as the model node ``GW live guidewire`` (RAS, uncertainty as point scalars). The widget
         polls on a timer; without one, call :meth:`poll_live` yourself.
@@ -504,12 +504,12 @@ class GuidewireReconstructionCoreLogic:
         OpenIGTLinkIF installed, a connector node shows the same ``Guidewire`` POLYDATA directly.
         """
         self.disconnect_live()
-        host, port = stream.parse_host_port(address, option="live server")
+        host, port = igtl.parse_host_port(address, option="live server")
         try:
-            client = stream.IGTLClient(host, port, keep=64, connect_timeout_s=wait_s)
+            client = igtl.IGTLClient(host, port, keep=64, connect_timeout_s=wait_s)
         except ConnectionError as e:
             raise InputError(f"live server {address}: {e}") from None
-        self.live = stream.WireFollower(client)
+        self.live = igtl.WireFollower(client)
         self.live_status = f"connected to {host}:{port}, waiting for a wire"
         return self.live
 
