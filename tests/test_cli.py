@@ -1,7 +1,6 @@
 import subprocess
 import sys
 
-import pytest
 
 from guidewire3d.app import cli
 from guidewire3d.methods import ReconMethod

@@ -7,7 +7,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 from scipy import ndimage as ndi
-from scipy.spatial import cKDTree
 
 from guidewire3d import io
 from guidewire3d.errors import InputError, SegmentationError
