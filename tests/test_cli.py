@@ -32,3 +32,15 @@ def test_verbose_shows_traceback(tmp_path, capsys):
                    "--out", str(tmp_path / "o")])
     err = capsys.readouterr().err
     assert rc == 2 and "Traceback" in err and "no such file" in err
+
+
+def test_help_imports_no_stage():
+    """`guidewire3d --help` lists the commands without importing a stage: each command's options are built
+    (and its modules imported) only when that command is named."""
+    code = ("import sys\nfrom guidewire3d.app import cli\n"
+            "try:\n    cli.main(['--help'])\nexcept SystemExit:\n    pass\n"
+            "print(sorted(m for m in sys.modules if m.startswith('guidewire3d.')))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    loaded = eval(out.strip().splitlines()[-1])
+    assert "phantom" in out and "listen" in out                     # the commands are listed
+    assert loaded == ["guidewire3d.app", "guidewire3d.app.cli", "guidewire3d.errors", "guidewire3d.methods"]

@@ -144,14 +144,15 @@ def _run_bench(args) -> int:
 
 
 # --- subcommands ----------------------------------------------------------------------
-def _add_phantom_parser(sub) -> None:
-    from guidewire3d import phantom
-
+def _add_phantom_parser(sub, full: bool = True) -> None:
     p = sub.add_parser("phantom", help="write a simulated case (DICOM CT + XA + truth.json)",
                        description="Write a simulated case with ground truth: DICOM CT series, XA roadmap and "
                                    "live frames, a held-out second view, and truth.json.")
-    phantom.add_cli_options(p)
-    p.set_defaults(func=phantom.cli_main)
+    if full:
+        from guidewire3d import phantom
+
+        phantom.add_cli_options(p)
+        p.set_defaults(func=phantom.cli_main)
 
 
 def _add_reconstruct_parser(sub) -> None:
@@ -228,7 +229,7 @@ def _add_bench_parser(sub) -> None:
     p.set_defaults(func=_run_bench)
 
 
-def _add_live_parser(sub) -> None:
+def _add_live_parser(sub, full: bool = True) -> None:
     p = sub.add_parser("live", help="stream: live frames in, the 3D wire out over OpenIGTLink (3D Slicer, robots)",
                        description="Set up once (--from OUT, or --cta/--roadmap), then reconstruct the newest live "
                                    "frame (OpenIGTLink IMAGE, --video, --watch or --replay) and send Guidewire "
@@ -240,48 +241,51 @@ def _add_live_parser(sub) -> None:
 
         return stream.cli_live(args)
 
-    # the options live in stream.add_cli_options, which imports nothing heavy
-    from guidewire3d.app.stream import add_cli_options
+    if full:
+        from guidewire3d.app.stream import add_cli_options
 
-    add_cli_options(p)
-    _add_geometry_overrides(p)
-    p.set_defaults(func=run)
+        add_cli_options(p)
+        _add_geometry_overrides(p)
+        p.set_defaults(func=run)
 
 
-def _add_segment_parser(sub) -> None:
-    from guidewire3d.app import batch2d
-
+def _add_segment_parser(sub, full: bool = True) -> None:
     p = sub.add_parser("segment", help="2D analysis of angiograms / frames: vessel and guidewire masks, ordered wire",
                        description="Segment the vessels and the guidewire of XA DICOM files or PNG/TIFF/JPEG "
                                    "images (no C-arm geometry needed); writes <name>_vessels.png, "
                                    "<name>_wire.png and segment.json (the ordered wire) into --out.")
-    batch2d.add_cli_options(p)
-    p.set_defaults(func=batch2d.cli_segment)
+    if full:
+        from guidewire3d.app import batch2d
+
+        batch2d.add_cli_options(p)
+        p.set_defaults(func=batch2d.cli_segment)
 
 
 # --- batch and listen (issue 24): many studies on Dask, studies received over DICOM -------------
-def _add_batch_parser(sub) -> None:
-    from guidewire3d.app import batch
-
+def _add_batch_parser(sub, full: bool = True) -> None:
     p = sub.add_parser("batch", help="reconstruct many studies (a CSV manifest or a DICOM tree) on a Dask cluster",
                        description="Run reconstruct on every study of MANIFEST, one Dask task per study (a local "
                                    "cluster of --workers processes, or --scheduler), into DIR/<study>/ as "
                                    "reconstruct writes it, and DIR/summary.csv. Failed studies are retried, then "
                                    "recorded; finished studies are skipped on a rerun. Exit 1 if a study failed.")
-    batch.add_cli_options(p)
-    p.set_defaults(func=batch.cli_batch)
+    if full:
+        from guidewire3d.app import batch
+
+        batch.add_cli_options(p)
+        p.set_defaults(func=batch.cli_batch)
 
 
-def _add_listen_parser(sub) -> None:
-    from guidewire3d.app import dicomnet
-
+def _add_listen_parser(sub, full: bool = True) -> None:
     p = sub.add_parser("listen", help="DICOM C-STORE receiver: file incoming studies and reconstruct each one",
                        description="A DICOM storage SCP (pynetdicom) that files incoming instances under "
                                    "STORE/<study>/<series>/ and reconstructs a study into OUT/<study>/ once it has "
                                    "a CT series and XA runs and nothing new arrived for --quiet-seconds (or on "
                                    "SIGUSR1). Ctrl-C stops.")
-    dicomnet.add_cli_options(p)
-    p.set_defaults(func=dicomnet.cli_listen)
+    if full:
+        from guidewire3d.app import dicomnet
+
+        dicomnet.add_cli_options(p)
+        p.set_defaults(func=dicomnet.cli_listen)
 
 
 def _add_vessels_parser(sub) -> None:  # issue 17: the vessel tree alone, any angiographic volume
@@ -307,24 +311,38 @@ def _add_vessels_parser(sub) -> None:  # issue 17: the vessel tree alone, any an
     p.set_defaults(func=run)
 
 
-def build_parser() -> argparse.ArgumentParser:
+COMMANDS = ("demo", "phantom", "reconstruct", "vessels", "segment", "view", "live", "bench", "batch", "listen")
+# commands whose options come from their (heavy) module: only the command being run imports it
+_HEAVY_OPTIONS = {"phantom", "live", "segment", "batch", "listen"}
+
+
+def command_of(argv) -> str | None:
+    """The subcommand named in ``argv`` (the first argument that is not an option), or None."""
+    return next((a for a in argv if not a.startswith("-")), None)
+
+
+def build_parser(command: str | None = "all") -> argparse.ArgumentParser:
+    """The command line parser. ``command``: the subcommand whose options are built (``"all"``: every
+    one); the others are listed by name and help only, so that ``guidewire3d --help`` and each command
+    import only their own modules."""
     parser = _Parser(
         prog="guidewire3d",
         description="Real-time 3D guidewire reconstruction from a CTA and single-view DSA.",
     )
     parser.add_argument("--verbose", action="store_true", help="show tracebacks and debug messages")
-    sub = parser.add_subparsers(dest="command", metavar="{demo,phantom,reconstruct,vessels,segment,view,live,bench,batch,listen}")
+    sub = parser.add_subparsers(dest="command", metavar="{" + ",".join(COMMANDS) + "}")
     sub.required = True
     _add_demo_parser(sub)
-    _add_phantom_parser(sub)
+    full = {name: command == "all" or name == command for name in _HEAVY_OPTIONS}
+    _add_phantom_parser(sub, full["phantom"])
     _add_reconstruct_parser(sub)
     _add_vessels_parser(sub)
-    _add_segment_parser(sub)
+    _add_segment_parser(sub, full["segment"])
     _add_view_parser(sub)
-    _add_live_parser(sub)
+    _add_live_parser(sub, full["live"])
     _add_bench_parser(sub)
-    _add_batch_parser(sub)
-    _add_listen_parser(sub)
+    _add_batch_parser(sub, full["batch"])
+    _add_listen_parser(sub, full["listen"])
     return parser
 
 
@@ -351,7 +369,8 @@ def _error(msg: str) -> int:
 
 def main(argv=None) -> int:
     """Run the command line; returns the exit status (2 for bad input, with one line on stderr)."""
-    parser = build_parser()
+    argv = sys.argv[1:] if argv is None else list(argv)
+    parser = build_parser(command_of(argv))
     try:
         args = parser.parse_args(argv)
     except _UsageError as e:
