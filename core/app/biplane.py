@@ -288,23 +288,16 @@ def register_biplane(tree, centerlines_uv_px, carms, *, centerline_radius_px=(No
     probs = [problem._Problem(m3, m2, c, lam=problem.LAMBDA, delta=problem.DELTA) for m2, c in zip(m2s, carms)]
     prob = _JointProblem(probs)
 
-    iterations = 0
     if global_search:
         cands = _joint_search(m3, m2s, carms, start, n_best=JOINT_STARTS)
         gate_a = max(problem.GATE_WIDE_PX, 3.0 * max(model._search_cell_px(c) for c in carms))
     else:
         cands = [start]
         gate_a = problem.GATE_WIDE_PX
-    best = None
-    for cand in cands:
-        prob.set_visibility(cand, gate_a)
-        out = problem._levenberg_marquardt(prob, cand, gate_px=gate_a, delta=max(problem.DELTA_WIDE, problem.DELTA),
-                                           max_iterations=int(max_iterations))
-        iterations += out.iterations
-        if best is None or out.ev.energy < best.ev.energy:
-            best = out
-    out, it = problem._narrow_stage(prob, best.pose, int(max_iterations))
-    return _finish(prob, out, qs, carms, iterations + it, t0)
+    out, iterations = problem.two_stage_lm(prob, cands, gate_wide_px=gate_a,
+                                           delta_wide=max(problem.DELTA_WIDE, problem.DELTA),
+                                           max_iterations=max_iterations)
+    return _finish(prob, out, qs, carms, iterations, t0)
 
 
 def _view_fit(m3, q, carm: CArm, pose: Pose, plane: str, visible3) -> ViewFit:

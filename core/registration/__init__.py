@@ -41,6 +41,7 @@ from guidewire3d.registration.problem import (  # noqa: F401
     TANGENT_SLACK_PX,
     VISIBILITY_ROUNDS,
     pseudo_huber,
+    two_stage_lm,
 )
 from guidewire3d.registration.result import (  # noqa: F401
     RegistrationResult,

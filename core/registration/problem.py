@@ -432,6 +432,23 @@ def _levenberg_marquardt(prob: _Problem, pose: Pose, *, gate_px: float, max_iter
     return _LMOut(ev.pose, ev, it, status)
 
 
+def two_stage_lm(prob, starts, *, gate_wide_px: float, delta_wide: float, max_iterations: int) -> tuple[_LMOut, int]:
+    """The registration's two LM stages on ``prob`` (a :class:`_Problem` or anything with its
+    interface, such as the biplane joint problem): from each start pose, LM with the wide gate
+    ``gate_wide_px`` and the wide cutoff ``delta_wide``; the lowest energy of these is then refined by
+    :func:`_narrow_stage`. Returns the final LM result and the total iterations."""
+    best, iterations = None, 0
+    for start in starts:
+        prob.set_visibility(start, gate_wide_px)
+        out = _levenberg_marquardt(prob, start, gate_px=gate_wide_px, delta=delta_wide,
+                                   max_iterations=int(max_iterations))
+        iterations += out.iterations
+        if best is None or out.ev.energy < best.ev.energy:
+            best = out
+    out, it = _narrow_stage(prob, best.pose, int(max_iterations))
+    return out, iterations + it
+
+
 def _narrow_stage(prob: _Problem, pose: Pose, max_iterations: int) -> tuple[_LMOut, int]:
     """LM with the paper's cutoff and the narrow gate from ``pose``; the set of visible 3D segments
     is re-decided at its result until it settles (at most ``VISIBILITY_ROUNDS`` runs)."""

@@ -110,23 +110,15 @@ def register(
     m2 = _model_2d(q, centerline_radius_px, carm)
     prob = problem._Problem(m3, m2, carm, lam=lam, delta=delta)
 
-    iterations = 0
     if global_search:
         cands = [p for _, p in _global_search(m3, m2, carm, start, n_best=SEARCH_STARTS)]
         gate_a = max(problem.GATE_WIDE_PX, 3.0 * _search_cell_px(carm))
     else:
         cands = [start]
         gate_a = problem.GATE_WIDE_PX
-    best = None
-    for cand in cands:
-        prob.set_visibility(cand, gate_a)
-        out = problem._levenberg_marquardt(prob, cand, gate_px=gate_a, delta=max(problem.DELTA_WIDE, delta),
-                                           max_iterations=int(max_iterations))
-        iterations += out.iterations
-        if best is None or out.ev.energy < best.ev.energy:
-            best = out
-    out, it = problem._narrow_stage(prob, best.pose, int(max_iterations))
-    return _finish(prob, out, q, carm, iterations + it, t0, radius_px=centerline_radius_px)
+    out, iterations = problem.two_stage_lm(prob, cands, gate_wide_px=gate_a, delta_wide=max(problem.DELTA_WIDE, delta),
+                                           max_iterations=max_iterations)
+    return _finish(prob, out, q, carm, iterations, t0, radius_px=centerline_radius_px)
 
 
 def refine(tree, centerline_uv_px, carm: CArm, from_pose: Pose, **kw) -> RegistrationResult:
