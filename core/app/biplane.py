@@ -50,7 +50,7 @@ from guidewire3d.xray.orderedwire import ordered_wire
 from scipy.spatial import cKDTree
 
 __all__ = ["ViewFit", "BiplaneRegistration", "register_biplane", "BiplaneFrame", "BiplaneSession",
-           "pair_frames", "check_planes", "run", "run_to_outdir", "projection_error_summary", "PLANES"]
+           "pair_frames", "check_planes", "check_inputs", "run", "run_to_outdir", "projection_error_summary", "PLANES"]
 
 PLANES = ("A", "B")
 #: the two beams must be at least this far apart (deg) for the second plane to measure depth
@@ -619,6 +619,15 @@ class BiplaneResult:
     pairs: list = field(default_factory=list)  # BiplaneFrame per pair
 
 
+def check_inputs(roadmaps, frames, *, roadmap_frame=None) -> list[tuple[int, int]]:
+    """Refuse two planes' XA runs before the heavy work, as ``reconstruct`` does (``check_planes``, the
+    roadmap frames, ``pair_frames``); returns the frame pairs. A plane's live run given as its
+    roadmap run (the same object) leaves out the roadmap frame, as :func:`run` does."""
+    check_planes(roadmaps, frames)
+    ks = [pipeline.choose_roadmap_frame(r, roadmap_frame) for r in roadmaps]
+    return pair_frames(frames[0], frames[1], *[_frame_ids(r, f, k) for r, f, k in zip(roadmaps, frames, ks)])
+
+
 def _frame_ids(road: io.XARun, live: io.XARun, k: int) -> list[int]:
     if live is road:
         return [i for i in range(live.n_frames) if i != k] or [k]
@@ -745,9 +754,7 @@ def run_to_outdir(cta, roadmaps, frames, out_dir, *, series_uid=None, roadmap_fr
     roads = [pipeline.read_xa_input(r) for r in roadmaps]
     lives = [road if Path(f).resolve() == Path(r).resolve() else pipeline.read_xa_input(f)
              for road, r, f in zip(roads, roadmaps, frames)]
-    check_planes(roads, lives)
-    ks = [pipeline.choose_roadmap_frame(r, roadmap_frame) for r in roads]
-    pair_frames(lives[0], lives[1], *[_frame_ids(r, f, k) for r, f, k in zip(roads, lives, ks)])
+    check_inputs(roads, lives, roadmap_frame=roadmap_frame)
     vol = io.read_volume(cta, series_uid=series_uid, log=log)
     pipeline.check_seeds(vol, seeds_lps_mm)
     t_load = time.perf_counter() - t0
