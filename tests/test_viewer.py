@@ -725,6 +725,32 @@ exit 0
 
 @pytest.mark.xvfb
 @pytest.mark.skipif(not _HAVE_X_TOOLS, reason="needs xvfb-run and xdotool (apt: xvfb xauth xdotool)")
+def test_real_window_keys_under_xvfb_biplane(bsynth, tmp_path):
+    """The biplane window (three views) under keys: 'n' moves both planes to the next pair, 'l' the pose."""
+    import cv2
+
+    out = tmp_path / "out"
+    shutil.copytree(bsynth.out_dir, out)
+    env = dict(os.environ)
+    env.pop("VTK_DEFAULT_OPENGL_WINDOW", None)
+    env.update(PY=sys.executable, OUT=str(out), LOG=str(tmp_path / "app.log"))
+    proc = subprocess.run(["xvfb-run", "-a", "-s", "-screen 0 1024x768x24", "bash", "-c", _DRIVER], env=env,
+                          capture_output=True, text=True, timeout=55)
+    log = (tmp_path / "app.log").read_text() if (tmp_path / "app.log").exists() else ""
+    assert proc.returncode == 0, proc.stderr + log
+    shot = out / "exports" / "screenshot_frame0001.png"
+    assert shot.exists(), log
+    img = cv2.imread(str(shot))[..., ::-1].astype(float)  # RGB
+    assert img.shape == (500, 800, 3)
+    quad_b = img[250:, 400:]  # plane B's 2D view: its live frame with the projected 3D wire in green
+    green = np.asarray(sc.WIRE_PROJ_COLOR) * 255
+    is_green = np.linalg.norm(quad_b - green, axis=2) < 60
+    assert quad_b.std() > 10 and is_green.sum() > 20
+    moved = Pose.from_matrix(json.loads((out / "registration.json").read_text())["pose"])
+    expected = Pose(np.eye(3), bsynth.carm.axes.T @ np.array([2 * STEP_MM[Step.COARSE], 0, 0])) @ bsynth.pose
+    assert moved.allclose(expected, atol_mm=1e-6, atol_rad=1e-9)
+
+
 def test_real_window_keys_under_xvfb(case_dir, synth, tmp_path):
     import cv2
 

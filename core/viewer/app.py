@@ -177,18 +177,11 @@ class _App:
             self.frame_slider = self.pl.add_slider_widget(
                 self.safe(on_frame, render=False), [0, n - 1], value=self.ctl.frame_index, title="frame", pointa=(0.06, 0.07),
                 pointb=(0.44, 0.07), interaction_event="always", fmt="%.0f", style="modern", title_height=0.02)
-        self.pl.subplot(0, 1)
-        # the pose sliders sit at the bottom of plane A's 2D view (its lower half of the right column
-        # on a biplane window, whose bottom half is plane B's view)
-        y0, y1 = self.h.renderer_2d.GetViewport()[1::2] if self.h.renderer_2d is not None else (0.0, 1.0)
-
-        def at(x, y):
-            return x, y0 + y * (y1 - y0)
-
-        self._add_pose_slider("u", "U", at(0.56, 0.21), at(0.76, 0.21), 20.0)
-        self._add_pose_slider("v", "V", at(0.78, 0.21), at(0.98, 0.21), 20.0)
-        self._add_pose_slider("depth", "BEAM", at(0.56, 0.08), at(0.76, 0.08), 60.0)
-        self._add_pose_slider("rot beam", "ROT_BEAM", at(0.78, 0.08), at(0.98, 0.08), 10.0)
+        self.pl.subplot(0, 1)  # slider points are normalised to this viewport: plane A's 2D view
+        self._add_pose_slider("u", "U", (0.56, 0.21), (0.76, 0.21), 20.0)
+        self._add_pose_slider("v", "V", (0.78, 0.21), (0.98, 0.21), 20.0)
+        self._add_pose_slider("depth", "BEAM", (0.56, 0.08), (0.76, 0.08), 60.0)
+        self._add_pose_slider("rot beam", "ROT_BEAM", (0.78, 0.08), (0.98, 0.08), 10.0)
         self.pl.subplot(0, 0)
         self.pl.iren.add_observer("TimerEvent", self._on_timer)
         for r2 in self._renderers_2d():  # before each render of a 2D view
