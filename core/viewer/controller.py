@@ -411,17 +411,21 @@ class ViewerController:
             self._say("no vessel tree: wires not reconstructed")
             return 0
         t0 = time.perf_counter()
-        new = []
-        n_ok = 0
         cov = self._covariance if np.allclose(self._covariance_pose.matrix, self.pose.matrix) else None
         if self._plane_b is not None:
-            new, n_ok = self._apply_biplane(cov)
-            self._case = self._case.with_wires(new)
-            self._wires_pose = self.pose
-            self.set_frame(self._frame)
-            self._say(f"reconstructed {n_ok}/{len(new)} pairs from both planes with the {self.pose_source} pose "
-                      f"in {time.perf_counter() - t0:.2f} s")
-            return len(new)
+            (new, n_ok), what = self._apply_biplane(cov), "pairs from both planes"
+        else:
+            (new, n_ok), what = self._apply_one_view(cov), "frames"
+        self._case = self._case.with_wires(new)
+        self._wires_pose = self.pose
+        self.set_frame(self._frame)
+        self._say(f"reconstructed {n_ok}/{len(new)} {what} with the {self.pose_source} pose "
+                  f"in {time.perf_counter() - t0:.2f} s")
+        return len(new)
+
+    def _apply_one_view(self, cov) -> tuple[list, int]:
+        """Every frame again through ``live.Session.process_wire`` (its recorded 2D wire)."""
+        new, n_ok = [], 0
         # a run that tracked motion is applied the same way (each frame in its own pose)
         tracked = any(w.pose is not None for w in self._case.wires)
         session = live.Session(self._case.tree, self._case.frames_carm, self.pose, registration_covariance=cov,
@@ -441,12 +445,7 @@ class ViewerController:
             new.append(WireFrame(w.index, ok, str(fr.message), pts, unc, w.wire_uv_px,
                                  float(r.projection_error_px), float(r.length_mm), verdict=fr.verdict.value,
                                  pose=fr.pose if fr.motion is not None else None))
-        self._case = self._case.with_wires(new)
-        self._wires_pose = self.pose
-        self.set_frame(self._frame)
-        self._say(f"reconstructed {n_ok}/{len(new)} frames with the {self.pose_source} pose "
-                  f"in {time.perf_counter() - t0:.2f} s")
-        return len(new)
+        return new, n_ok
 
     def _apply_biplane(self, cov) -> tuple[list, int]:
         """Every pair again through ``BiplaneSession.process_wires`` (both planes' recorded 2D wires)."""
