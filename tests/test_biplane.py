@@ -147,6 +147,35 @@ def test_pair_with_one_plane_missing_falls_back_to_one_view(bcase):
     assert not none and none.views == "" and none.result.verdict.value == "failed"
 
 
+FALLBACK_SHIFT_PX = 40.0  # plane B's 2D wire moved this far across the epipolar lines (rows): no match
+
+
+def test_a_fallback_pair_reports_the_left_out_planes_projection_error(bcase):
+    """Two-view matching fails (plane B's wire, its proximal half, moved off): plane A (the longer
+    wire) carries the pair alone, and the record still says how far that wire projects from plane
+    B's 2D wire."""
+    s = biplane.BiplaneSession(bcase.tree, (bcase.carm, bcase.heldout_carm), bcase.pose, threads=1)
+    ua, ub, truth = _visible(bcase, 2)
+    wrong_b = ub[: len(ub) // 2] + [0.0, FALLBACK_SHIFT_PX]
+    pair = s.process_wires(ua, wrong_b, index=0)
+    assert pair and pair.views == "A" and "two-view matching failed" in pair.fallback
+    perr = np.asarray(pair.projection_error_px)
+    assert perr[0] < 1.0  # plane A: its own wire
+    assert perr[1] > 3.0  # plane B: beyond the two-view match limit, and now measured
+    ctx = tri.TwoViewContext(bcase.tree, (bcase.carm, bcase.heldout_carm), bcase.pose)
+    assert perr[1] == pytest.approx(tri.projection_error_px(ctx, 1, pair.result.wire3d.points_lps_mm, wrong_b))
+    rec = pair.to_dict()
+    assert rec["projection_error_px_a"] == pytest.approx(perr[0], abs=1e-4)
+    assert rec["projection_error_px_b"] == pytest.approx(perr[1], abs=1e-4)
+    # no 2D wire in plane B: nothing to measure there
+    assert s.process_wires(ua, None, index=1).to_dict()["projection_error_px_b"] is None
+
+
+def test_projection_error_summary_leaves_out_the_unmeasured():
+    assert biplane.projection_error_summary([0.2, np.nan, 0.6, 0.3]) == {"median": 0.3, "max": 0.6, "frames": 3}
+    assert biplane.projection_error_summary([np.nan]) == {"median": None, "max": None, "frames": 0}
+
+
 def test_pairs_by_index_and_by_time():
     from guidewire3d.io import XARun
 
@@ -206,6 +235,13 @@ def test_cli_biplane_end_to_end(bcase_dir, tmp_path, capsys):
                                        [truth.wire_visible[fr["index"]]])
             assert e["mean_error_mm"] < 1.0
     assert sum(fr["biplane"]["views"] == "AB" for fr in rep["frames"]) >= 2
+    # both planes' projection errors: per frame, and summarised per plane
+    for plane in "ab":
+        per_frame = [fr["biplane"][f"projection_error_px_{plane}"] for fr in rep["frames"]]
+        per_frame = np.array([np.nan if v is None else v for v in per_frame], float)
+        assert rep["biplane"]["projection_error_px"][plane] == biplane.projection_error_summary(per_frame)
+        assert rep["biplane"]["projection_error_px"][plane]["frames"] >= 2
+        assert rep["biplane"]["projection_error_px"][plane]["median"] < 3.0  # the two-view match limit
     assert (out / "guidewire_0000.vtp").is_file()
     # the viewer shows plane B's detector beside plane A's, where plane B's geometry puts it
     from guidewire3d.viewer.app import open_viewer

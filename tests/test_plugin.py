@@ -456,6 +456,7 @@ SEGMENTER = SegMethod.RIDGE  # independent of trained weights; see the report fo
 def _parameters(**kw):
     """What the module's parameter node holds (the wrapper's attributes), as a plain object."""
     p = dict(ctaVolume=None, roadmapPath=Path("."), framesPath=Path("."), roadmapSequence=None, framesSequence=None,
+             roadmapBPath=Path("."), framesBPath=Path("."), roadmapBSequence=None, framesBSequence=None,
              seeds=None, roadmapFrame=-1, method="vessel", segmenter="unet", force=False, trackMotion=False,
              registrationTransform=None,
              metricsTable=None, vesselModel=None)
@@ -667,6 +668,124 @@ def test_e2e_refine_adopts_an_uncertain_pose_and_not_a_failed_one(e2e, monkeypat
     else:
         assert summary.startswith("Refine failed")
         assert L.pose_from_transform_node(out.transform).allclose(moved, atol_mm=1e-6, atol_rad=1e-9)
+
+
+# ------------------------------------------------------------------------------------------
+# Biplane: plane B's roadmap and frames as a second pair of inputs (issue 23)
+# ------------------------------------------------------------------------------------------
+BIPLANE_MEAN_ERROR_TOL_MM = 0.5  # each frame's wire from both planes: mean distance to the truth (single view: 0.7)
+BIPLANE_TWO_VIEW_PAIRS = 2  # of the 3 pairs, at least this many made from both planes (not a one-view fallback)
+
+
+@pytest.fixture(scope="module")
+def bi_e2e(tmp_path_factory):
+    """A small ``phantom --biplane`` case (seed 3, 3 pairs) run through the parameter node, plane B as
+    files (they become sequence nodes), as the Widget's Apply does."""
+    from guidewire3d.phantom import PhantomOptions, load_truth, simulate, write_case
+
+    root = tmp_path_factory.mktemp("biplane-plugin")
+    case_dir = write_case(simulate(PhantomOptions(seed=3, n_frames=3, biplane=True)), root / "case")
+    truth = load_truth(case_dir)
+    h = L.create_headless_scene(home_directory=root / "home")
+    first = sorted((case_dir / "ct").iterdir())[0]
+    cta = h.logics["Volumes"].AddArchetypeVolume(str(first), "CTA", 0)
+    p = _parameters(ctaVolume=cta, roadmapPath=case_dir / "roadmap.dcm", framesPath=case_dir / "frames.dcm",
+                    roadmapBPath=case_dir / "roadmap_b.dcm", framesBPath=case_dir / "frames_b.dcm",
+                    segmenter=SEGMENTER.value)
+    core = L.GuidewireReconstructionCoreLogic(h.scene, app_logic=h.app_logic)
+    summary = core.process_parameters(p)
+    yield SimpleNamespace(h=h, core=core, out=core.outputs, truth=truth, case_dir=case_dir, p=p, summary=summary)
+    h.scene.Clear(1)
+
+
+def test_biplane_parameters_run_the_two_plane_chain(bi_e2e):
+    core, out, p, truth = bi_e2e.core, bi_e2e.out, bi_e2e.p, bi_e2e.truth
+    assert core.biplane is not None and len(core.pairs) == truth.n_frames
+    for seq, name in ((p.roadmapBSequence, "roadmap_b.dcm"), (p.framesBSequence, "frames_b.dcm")):
+        run = L.xa_from_sequence_node(seq)
+        np.testing.assert_array_equal(run.frames, io.read_xa(bi_e2e.case_dir / name).frames)
+        assert run.carm.primary_deg == pytest.approx(truth.heldout_carm.primary_deg)
+    n_ab = sum(pr.views == "AB" for pr in core.pairs)
+    assert n_ab >= BIPLANE_TWO_VIEW_PAIRS
+    assert bi_e2e.summary.endswith(f"{truth.n_frames}/{truth.n_frames} frames reconstructed ({n_ab} from both planes).")
+    assert core.registration.success
+    assert metrics.mtre_mm(core.registration.pose, truth.pose, truth.tree.points_lps_mm) < 1.0
+    # the wires (curve nodes, RAS) against the truth converted to RAS
+    errors = _curve_errors(out, truth)
+    assert len(errors) == truth.n_frames
+    assert float(np.mean(errors)) <= BIPLANE_MEAN_ERROR_TOL_MM
+    for curve, w in zip(out.wire_curves, core.wires3d):
+        np.testing.assert_allclose(L.ras_to_lps(slicer.util.arrayFromMarkupsControlPoints(curve)), w.points_lps_mm,
+                                   atol=FLOAT32_MM)
+    # the table has each plane's projection error of each pair
+    t = out.table.GetTable()
+    assert t.GetNumberOfRows() == truth.n_frames
+    for i, pr in enumerate(core.pairs):
+        assert t.GetValueByName(i, "views").ToString() == pr.views
+        assert t.GetValueByName(i, "frame_b").ToInt() == pr.index_b
+        for col, v in zip(("projection_error_px_a", "projection_error_px_b"), pr.projection_error_px):
+            got = t.GetValueByName(i, col).ToDouble()
+            assert (np.isnan(got) and np.isnan(v)) or got == pytest.approx(v)
+        if pr.views == "AB":
+            assert max(pr.projection_error_px) < 3.0  # the two-view match limit
+
+
+def test_biplane_plane_b_nodes_are_where_plane_b_looks_from(bi_e2e):
+    core, out, truth = bi_e2e.core, bi_e2e.out, bi_e2e.truth
+    b = core.biplane
+    assert out.carm_b_model is not None and out.roadmap_b_points_model is not None
+    for node in (out.carm_b_model, out.roadmap_b_points_model):
+        assert node.GetParentTransformNode() is out.transform  # moves with the registration, like plane A's
+    # plane B's source and detector corners in the room frame (RAS), as plane A's C-arm model is drawn
+    pts = vtk_to_numpy(out.carm_b_model.GetPolyData().GetPoints().GetData())
+    np.testing.assert_allclose(L.ras_to_lps(pts[0]), b.carm_b.source_room_mm, atol=FLOAT32_MM)
+    np.testing.assert_allclose(L.ras_to_lps(pts[1:]), b.carm_b.detector_corners_lps_mm(Pose.identity()), atol=FLOAT32_MM)
+    # through the transform to world (CTA) RAS: plane B's source is where plane B's C-arm puts it for the pose
+    m = vtk.vtkMatrix4x4()
+    out.carm_b_model.GetParentTransformNode().GetMatrixTransformToWorld(m)
+    src_world = L.ras_to_lps((_matrix(m) @ np.r_[pts[0], 1.0])[:3])
+    np.testing.assert_allclose(src_world, b.carm_b.source_lps_mm(core.registration.pose), atol=1e-3)
+    # the roadmap centerline of plane B on plane B's detector: one point each, projecting back to its pixel
+    uv = np.asarray(b.centerline2d_b.points_uv_px, float)
+    q = vtk_to_numpy(out.roadmap_b_points_model.GetPolyData().GetPoints().GetData())
+    assert len(q) == len(uv) > 50
+    room_lps = L.ras_to_lps(q)
+    np.testing.assert_allclose(b.carm_b.project(room_lps, Pose.identity()), uv, atol=1e-3)
+    assert abs(truth.heldout_carm.primary_deg - b.carm_b.primary_deg) < 1e-9
+
+
+def test_biplane_refine_uses_both_roadmaps(bi_e2e):
+    """The C-arm dragged off along plane A's beam (the depth one view barely sees): the joint refine
+    brings it back, and the wires are made again from both planes."""
+    core, out, truth = bi_e2e.core, bi_e2e.out, bi_e2e.truth
+    auto = core.registration.pose
+    beam = core.result.carm.beam_direction
+    moved = Pose(np.eye(3), 6.0 * beam) @ Pose.exp([0, 0, 0, *np.radians([1.0, -1.0, 0.5])]) @ auto
+    L.pose_to_transform_node(moved, out.transform)
+    P = truth.tree.points_lps_mm
+    assert metrics.mtre_mm(moved, auto, P) > 5.0
+    summary = core.refine_parameters(bi_e2e.p)
+    assert summary.startswith("Registration ok") and "from both planes" in summary
+    assert metrics.mtre_mm(core.registration.pose, auto, P) < 0.5
+    assert len(core.pairs) == truth.n_frames and sum(pr.views == "AB" for pr in core.pairs) >= BIPLANE_TWO_VIEW_PAIRS
+    assert float(np.mean(_curve_errors(out, truth))) <= BIPLANE_MEAN_ERROR_TOL_MM
+
+
+def test_biplane_bad_inputs_raise(bi_e2e, hs):
+    core = L.GuidewireReconstructionCoreLogic(hs.scene)
+    vol = L.volume_to_node(_oblique_volume(np.random.default_rng(8)), scene=hs.scene)
+    d = bi_e2e.case_dir
+    with pytest.raises(InputError, match="plane B: give its roadmap"):
+        core.process(cta_volume_node=vol, roadmap=d / "roadmap.dcm", frames_b=d / "frames_b.dcm")
+    with pytest.raises(InputError, match="not available with two planes"):
+        core.process(cta_volume_node=vol, roadmap=d / "roadmap.dcm", roadmap_b=d / "roadmap_b.dcm", track_motion=True)
+    short = d.parent / "frames_b_short.dcm"
+    run = io.read_xa(d / "frames_b.dcm")
+    io.write_xa(short, run.frames[:2], run.carm)
+    with pytest.raises(InputError, match="mismatched frame counts"):
+        core.process(cta_volume_node=vol, roadmap=d / "roadmap.dcm", frames=d / "frames.dcm",
+                     roadmap_b=d / "roadmap_b.dcm", frames_b=short)
+    assert core.result is None
 
 
 def test_the_module_follows_a_live_server(hs):

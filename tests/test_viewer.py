@@ -224,6 +224,132 @@ def test_2d_view_centerline_overlay_lies_on_the_dark_vessels(viewer, synth):
 
 
 # --------------------------------------------------------------------------------------
+# biplane: plane B's detector and 2D view (issue 23)
+# --------------------------------------------------------------------------------------
+PLANE_B_DEG = (-70.0, 0.0)
+TOL_BIPLANE_WIRE_MM = 0.5  # apply from both planes' exact 2D wires: mean distance to the synthetic wire
+
+
+@pytest.fixture(scope="module")
+def bsynth(tmp_path_factory):
+    return write_synthetic_outdir(tmp_path_factory.mktemp("viewer_biplane"), n_frames=4, plane_b_deg=PLANE_B_DEG)
+
+
+@pytest.fixture()
+def bviewer(bsynth, tmp_path):
+    dst = tmp_path / "out"
+    shutil.copytree(bsynth.out_dir, dst)
+    ctl, h = open_viewer(dst, size_px=(600, 400), off_screen=True, persist=False)
+    yield ctl, h
+    h.plotter.close()
+
+
+def _texture_b(hb, shape) -> np.ndarray:
+    from vtk.util.numpy_support import vtk_to_numpy
+
+    return vtk_to_numpy(hb.carm.texture_image.GetPointData().GetScalars())[:, 0].reshape(shape)
+
+
+def test_biplane_shows_both_planes_and_follows_the_frames(bviewer, bsynth):
+    from viewer_fixture import PLANE_B_PROJECTION_ERRORS_PX
+
+    ctl, h = bviewer
+    hb, carm_b, pose, tree = ctl.plane_b_scene, bsynth.carm_b, bsynth.pose, bsynth.tree
+    assert len(h.plotter.renderers) == 3 and hb.renderer_2d is not h.renderer_2d
+    # 3D view: both detectors, each where its own geometry puts it
+    actors = h.renderer_3d.actors
+    assert {"detector", "detector_b", "xray_source", "xray_source_b", "frustum", "frustum_b"} <= set(actors)
+    np.testing.assert_allclose(np.asarray(h.carm.detector.points), bsynth.carm.detector_corners_lps_mm(pose), atol=1e-9)
+    np.testing.assert_allclose(np.asarray(hb.carm.detector.points), carm_b.detector_corners_lps_mm(pose), atol=1e-9)
+    lo, hi = np.asarray(actors["detector_b"].GetBounds()).reshape(3, 2).T
+    corners = carm_b.detector_corners_lps_mm(pose)
+    np.testing.assert_allclose(lo, corners.min(0), atol=1e-6)
+    np.testing.assert_allclose(hi, corners.max(0), atol=1e-6)
+    # plane B's 2D view: the centerline projected with plane B's C-arm, one point per tree point
+    uv = carm_b.project(tree.points_lps_mm, pose)
+    np.testing.assert_allclose(np.asarray(hb.overlay.centerline.points)[:, :2], uv * [1, -1], atol=1e-9)
+    assert hb.overlay.centerline.n_cells == tree.n_points - 1
+    np.testing.assert_allclose(ctl.plane_b.images, bsynth.images_b, atol=0.51)  # as written (integer pixels)
+    u8_b = display_images_uint8(ctl.plane_b.images)
+    n_actors = (h.renderer_3d.GetActors().GetNumberOfItems(), hb.renderer_2d.GetActors().GetNumberOfItems())
+    for k in (2, 0, 3):
+        ctl.set_frame(k)
+        assert ctl.plane_b_image_index == k + 1  # the pair's plane-B frame, not plane A's index
+        np.testing.assert_array_equal(_texture_b(hb, carm_b.shape), u8_b[k + 1])
+        np.testing.assert_array_equal(_texture(h), display_images_uint8(ctl.case.images)[k])
+        w2 = np.asarray(hb.overlay.wire2d.points)
+        assert len(w2) == len(bsynth.wires_uv_b[k])
+        np.testing.assert_allclose(w2[:, :2], bsynth.wires_uv_b[k] * [1, -1], atol=1e-9)
+        wp = np.asarray(hb.overlay.wire_proj.points)
+        np.testing.assert_allclose(wp[:, :2], carm_b.project(bsynth.wires_lps_mm[k], pose) * [1, -1], atol=1e-6)
+        assert (h.renderer_3d.GetActors().GetNumberOfItems(), hb.renderer_2d.GetActors().GetNumberOfItems()) == n_actors
+    ea, eb = PLANE_B_PROJECTION_ERRORS_PX
+    text = ctl.info_text_b()
+    assert "PLANE B frame 4" in text and f"A {ea:.2f} px, B {eb:.2f} px" in text and "planes A + B" in text
+    assert hb.info_text.GetInput() == text
+    assert ctl.next_frame() == 0 and ctl.plane_b_image_index == 1
+
+
+def test_biplane_wire_colour_where_it_projects_in_plane_b(bviewer, bsynth):
+    ctl, h = bviewer
+    hb = ctl.plane_b_scene
+    ctl.set_frame(3)
+    for a in (hb.overlay.centerline_actor, hb.overlay.wire2d_actor, hb.info_text, h.status_text):
+        a.SetVisibility(False)
+    img = _grab(h.plotter)
+    W, H = h.plotter.window_size
+    pts = np.asarray(hb.overlay.wire_proj.points)
+    xy = np.rint(sc.world_to_display_px(hb.renderer_2d, pts)).astype(int)
+    assert np.all(xy[:, 0] >= W // 2) and np.all(xy[:, 1] >= H // 2)  # bottom right: plane B's view
+    px = img[xy[:, 1], xy[:, 0]] / 255.0
+    green = np.asarray(sc.WIRE_PROJ_COLOR)
+    cos = (px * green).sum(1) / (np.linalg.norm(px, axis=1) * np.linalg.norm(green) + 1e-9)
+    assert np.mean(cos > TOL_CHROMA_COS) >= MIN_HIT_FRACTION
+    hb.overlay.wire_proj_actor.SetVisibility(False)
+    px = _grab(h.plotter)[xy[:, 1], xy[:, 0]] / 255.0
+    cos = (px * green).sum(1) / (np.linalg.norm(px, axis=1) * np.linalg.norm(green) + 1e-9)
+    assert np.mean(cos > TOL_CHROMA_COS) < 0.1  # what matched was the projected wire (the frame is grey)
+    # plane B's live frame: dark vessels where plane B's C-arm projects the tree
+    grey = _grab(h.plotter).mean(axis=2)
+    uv = bsynth.carm_b.project(bsynth.tree.points_lps_mm, bsynth.pose)
+    xy = np.rint(sc.world_to_display_px(hb.renderer_2d, np.column_stack([uv[:, 0], -uv[:, 1], np.zeros(len(uv))])))
+    xy = xy.astype(int)
+    quad = grey[H // 2:, W // 2:]
+    background = np.median(quad[quad > 0])
+    assert np.mean(grey[xy[:, 1], xy[:, 0]] < DARK_FRACTION * background) > 0.9
+
+
+def test_biplane_nudge_moves_plane_b_and_apply_uses_both_planes(bviewer, bsynth):
+    from guidewire3d.metrics import wire_errors_mm
+
+    ctl, h = bviewer
+    hb, carm_b = ctl.plane_b_scene, bsynth.carm_b
+    ctl.set_frame(1)
+    pose = ctl.nudge(Axis.U, +1)
+    np.testing.assert_allclose(np.asarray(hb.carm.detector.points), carm_b.detector_corners_lps_mm(pose), atol=1e-9)
+    np.testing.assert_allclose(np.asarray(hb.overlay.centerline.points)[:, :2],
+                               carm_b.project(bsynth.tree.points_lps_mm, pose) * [1, -1], atol=1e-9)
+    assert "wires stale" in ctl.info_text_b()
+    ctl.reset()
+    assert ctl.apply(force=True) == 4
+    assert "from both planes" in ctl.status
+    for k, w in enumerate(bsynth.wires_lps_mm):
+        ctl.set_frame(k)
+        fb = ctl.plane_b_frame
+        assert fb.views == "AB" and fb.index_b == k + 1
+        assert fb.projection_error_px_a < 1.0 and fb.projection_error_px_b < 1.0
+        assert wire_errors_mm(ctl.wire.points_lps_mm, w)["mean_error_mm"] < TOL_BIPLANE_WIRE_MM
+        np.testing.assert_allclose(np.asarray(hb.overlay.wire_proj.points)[:, :2],
+                                   carm_b.project(ctl.wire.points_lps_mm, ctl.pose) * [1, -1], atol=1e-6)
+
+
+def test_single_view_output_keeps_two_viewports(viewer):
+    ctl, h = viewer
+    assert len(h.plotter.renderers) == 2 and ctl.plane_b is None and ctl.plane_b_scene is None
+    assert ctl.info_text_b() == "" and "detector_b" not in h.renderer_3d.actors
+
+
+# --------------------------------------------------------------------------------------
 # controller
 # --------------------------------------------------------------------------------------
 def _texture(h) -> np.ndarray:
@@ -599,6 +725,32 @@ exit 0
 
 @pytest.mark.xvfb
 @pytest.mark.skipif(not _HAVE_X_TOOLS, reason="needs xvfb-run and xdotool (apt: xvfb xauth xdotool)")
+def test_real_window_keys_under_xvfb_biplane(bsynth, tmp_path):
+    """The biplane window (three views) under keys: 'n' moves both planes to the next pair, 'l' the pose."""
+    import cv2
+
+    out = tmp_path / "out"
+    shutil.copytree(bsynth.out_dir, out)
+    env = dict(os.environ)
+    env.pop("VTK_DEFAULT_OPENGL_WINDOW", None)
+    env.update(PY=sys.executable, OUT=str(out), LOG=str(tmp_path / "app.log"))
+    proc = subprocess.run(["xvfb-run", "-a", "-s", "-screen 0 1024x768x24", "bash", "-c", _DRIVER], env=env,
+                          capture_output=True, text=True, timeout=55)
+    log = (tmp_path / "app.log").read_text() if (tmp_path / "app.log").exists() else ""
+    assert proc.returncode == 0, proc.stderr + log
+    shot = out / "exports" / "screenshot_frame0001.png"
+    assert shot.exists(), log
+    img = cv2.imread(str(shot))[..., ::-1].astype(float)  # RGB
+    assert img.shape == (500, 800, 3)
+    quad_b = img[250:, 400:]  # plane B's 2D view: its live frame with the projected 3D wire in green
+    green = np.asarray(sc.WIRE_PROJ_COLOR) * 255
+    is_green = np.linalg.norm(quad_b - green, axis=2) < 60
+    assert quad_b.std() > 10 and is_green.sum() > 20
+    moved = Pose.from_matrix(json.loads((out / "registration.json").read_text())["pose"])
+    expected = Pose(np.eye(3), bsynth.carm.axes.T @ np.array([2 * STEP_MM[Step.COARSE], 0, 0])) @ bsynth.pose
+    assert moved.allclose(expected, atol_mm=1e-6, atol_rad=1e-9)
+
+
 def test_real_window_keys_under_xvfb(case_dir, synth, tmp_path):
     import cv2
 

@@ -35,6 +35,13 @@ class SyntheticCase:
     uncertainty_mm: tuple
     images: np.ndarray
     roadmap: np.ndarray
+    carm_b: CArm | None = None  # plane B of a biplane case (plane_b_deg given)
+    images_b: np.ndarray | None = None  # plane B's live frames: frame k + 1 pairs with plane A's frame k
+    wires_uv_b: tuple = ()  # plane B's 2D wire per pair
+
+
+#: plane B's recorded projection errors (px) in the synthetic biplane report: (plane A, plane B)
+PLANE_B_PROJECTION_ERRORS_PX = (0.31, 0.47)
 
 
 def make_tree(*, centre_lps_mm=(12.0, -160.0, 1040.0)) -> VesselTree:
@@ -138,8 +145,13 @@ def make_wires(tree: VesselTree, n_frames: int):
 
 
 def write_synthetic_outdir(root, *, n_frames: int = 4, shape=(240, 320), primary_deg: float = 20.0,
-                           secondary_deg: float = 10.0, seed: int = 0) -> SyntheticCase:
-    """Write ``root/frames.dcm`` and the OUT_DIR ``root/out`` for a synthetic case."""
+                           secondary_deg: float = 10.0, seed: int = 0, plane_b_deg=None) -> SyntheticCase:
+    """Write ``root/frames.dcm`` and the OUT_DIR ``root/out`` for a synthetic case.
+
+    ``plane_b_deg=(primary, secondary)``: a biplane case as ``reconstruct`` with two planes writes
+    it: also ``root/frames_b.dcm`` / ``roadmap_b.dcm`` (plane B's live frame ``k + 1`` shows plane A's
+    frame ``k``'s wire, its frame 0 the first wire again) and ``report.json`` ``biplane`` records.
+    """
     import pyvista as pv
 
     root = Path(root)
@@ -194,11 +206,31 @@ def write_synthetic_outdir(root, *, n_frames: int = 4, shape=(240, 320), primary
         "carm": carm.to_dict(), "frames_carm": carm.to_dict(), "pose": pose.matrix.tolist(),
         "projection_matrix": P.tolist(), "registration": reg, "frames": frames, "timing": {"total": 0.0},
     }
+    carm_b = images_b = None
+    uv_b = ()
+    if plane_b_deg is not None:
+        carm_b = CArm(float(plane_b_deg[0]), float(plane_b_deg[1]), 1150.0, 780.0, 0.6, tuple(shape))
+        images_b = render_frames(tree, carm_b, pose, [wires[0], *wires], seed=seed + 2)
+        frames_b_path = root / "frames_b.dcm"
+        io.write_xa(frames_b_path, images_b, carm_b)
+        roadmap_b_path = root / "roadmap_b.dcm"
+        io.write_xa(roadmap_b_path, render_frames(tree, carm_b, pose, [None], seed=seed + 3), carm_b)
+        report["inputs"].update(frames_b=str(frames_b_path), roadmap_b=str(roadmap_b_path), biplane=True)
+        report["biplane"] = {"planes": [
+            {"plane": p, "carm": c.to_dict(), "frames_carm": c.to_dict(), "mean_residual_px": 0.0, "fits_2d": True}
+            for p, c in (("A", carm), ("B", carm_b))], "n_pairs": n_frames, "two_view_pairs": n_frames,
+            "fallback_pairs": 0}
+        uv_b = tuple(carm_b.project(w, pose) for w in wires)
+        ea, eb = PLANE_B_PROJECTION_ERRORS_PX
+        for k, fr in enumerate(report["frames"]):
+            fr["biplane"] = {"views": "AB", "fallback": "", "index_b": k + 1, "projection_error_px_a": ea,
+                             "projection_error_px_b": eb, "wire_uv_px_b": uv_b[k].tolist()}
     (out / "report.json").write_text(json.dumps(report))
     (out / "registration.json").write_text(json.dumps({
         "pose": pose.matrix.tolist(), "automatic_pose": pose.matrix.tolist(), "projection_matrix": P.tolist(),
         "carm": carm.to_dict(), "source": "automatic", "registration": reg}))
-    return SyntheticCase(out, frames_path, carm, pose, tree, cl_uv, tuple(wires), tuple(uncs), images, roadmap[0])
+    return SyntheticCase(out, frames_path, carm, pose, tree, cl_uv, tuple(wires), tuple(uncs), images, roadmap[0],
+                         carm_b, images_b, uv_b)
 
 
 if __name__ == "__main__":

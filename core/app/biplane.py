@@ -40,6 +40,7 @@ from guidewire3d.live.session import FrameResult, _no_wire, orientation_of
 from guidewire3d.reconstruction.triangulation import (
     TwoViewContext,
     extend_distal,
+    projection_error_px,
     triangulate_wire,
 )
 from guidewire3d.reconstruction import reconstruct_wire
@@ -49,7 +50,7 @@ from guidewire3d.xray.orderedwire import ordered_wire
 from scipy.spatial import cKDTree
 
 __all__ = ["ViewFit", "BiplaneRegistration", "register_biplane", "BiplaneFrame", "BiplaneSession",
-           "pair_frames", "check_planes", "run", "run_to_outdir", "PLANES"]
+           "pair_frames", "check_planes", "check_inputs", "run", "run_to_outdir", "projection_error_summary", "PLANES"]
 
 PLANES = ("A", "B")
 #: the two beams must be at least this far apart (deg) for the second plane to measure depth
@@ -384,11 +385,18 @@ class BiplaneFrame:
         def f(x):
             return round(float(x), 4) if np.isfinite(x) else None
 
-        uv_b = np.asarray(getattr(self.wire2d_b, "points_uv_px", np.zeros((0, 2))), float).reshape(-1, 2) \
-            if self.wire2d_b is not None and self.wire2d_b else np.zeros((0, 2))
+        uv_b = _uv_of(self.wire2d_b)
         return {"views": self.views, "fallback": self.fallback, "index_b": int(self.index_b),
                 "projection_error_px_a": f(self.projection_error_px[0]),
                 "projection_error_px_b": f(self.projection_error_px[1]), "wire_uv_px_b": uv_b.tolist()}
+
+
+def _uv_of(wire2d) -> np.ndarray:
+    """``(M, 2)`` pixels of a 2D wire given as an ``OrderedWire`` (empty when it was not found), an
+    array or None."""
+    if wire2d is None or (hasattr(wire2d, "success") and not wire2d):
+        return np.zeros((0, 2))
+    return np.asarray(getattr(wire2d, "points_uv_px", wire2d), float).reshape(-1, 2)
 
 
 class BiplaneSession:
@@ -533,6 +541,9 @@ class BiplaneSession:
         perr = [float("nan"), float("nan")]
         if fr_k.wire3d:
             perr[k] = float(fr_k.wire3d.projection_error_px)
+            o = 1 - k  # the plane left out: how far the one-view wire projects from its 2D wire, if it has one
+            if not any(s.startswith(f"plane {PLANES[o]}:") for s in why):
+                perr[o] = projection_error_px(self.context, o, fr_k.wire3d.points_lps_mm, wires[o])
         fr = FrameResult(index, wires[0], fr_k.wire3d, fr_k.verdict, f"{fallback}. {fr_k.message}".strip(),
                          fr_k.orientation, time.perf_counter() - t0, float("nan"), self.pose)
         return BiplaneFrame(fr, PLANES[k] if fr_k.wire3d else "", fallback, wires[1], tuple(perr), index_b, fr.seconds)
@@ -599,6 +610,15 @@ class BiplaneResult:
     frames_carm_b: CArm
     frames_b: np.ndarray
     pairs: list = field(default_factory=list)  # BiplaneFrame per pair
+
+
+def check_inputs(roadmaps, frames, *, roadmap_frame=None) -> list[tuple[int, int]]:
+    """Refuse two planes' XA runs before the heavy work, as ``reconstruct`` does (``check_planes``, the
+    roadmap frames, ``pair_frames``); returns the frame pairs. A plane's live run given as its
+    roadmap run (the same object) leaves out the roadmap frame, as :func:`run` does."""
+    check_planes(roadmaps, frames)
+    ks = [pipeline.choose_roadmap_frame(r, roadmap_frame) for r in roadmaps]
+    return pair_frames(frames[0], frames[1], *[_frame_ids(r, f, k) for r, f, k in zip(roadmaps, frames, ks)])
 
 
 def _frame_ids(road: io.XARun, live: io.XARun, k: int) -> list[int]:
@@ -670,15 +690,30 @@ def report_additions(result: BiplaneResult, inputs: dict) -> dict:
         d["roadmap_frame"] = int(road_k)
         d["frames_carm"] = carm_f.to_dict()
         views.append(d)
+    perr = np.array([p.projection_error_px for p in result.pairs], float).reshape(-1, 2)
     return {"inputs": inputs, "biplane": {"planes": views, "n_pairs": len(result.pairs),
                                           "two_view_pairs": sum(1 for p in result.pairs if p.views == "AB"),
-                                          "fallback_pairs": sum(1 for p in result.pairs if p.fallback)}}
+                                          "fallback_pairs": sum(1 for p in result.pairs if p.fallback),
+                                          "projection_error_px": {name.lower(): projection_error_summary(perr[:, j])
+                                                                  for j, name in enumerate(PLANES)}}}
+
+
+def projection_error_summary(errors_px) -> dict:
+    """``{"median", "max", "frames"}`` of one plane's per-frame projection errors (px; NaN: not
+    measured, left out; ``frames`` counts the measured ones)."""
+    e = np.asarray(errors_px, float).reshape(-1)
+    e = e[np.isfinite(e)]
+    if len(e) == 0:
+        return {"median": None, "max": None, "frames": 0}
+    return {"median": round(float(np.median(e)), 4), "max": round(float(e.max()), 4), "frames": int(len(e))}
 
 
 def write_outdir(result: BiplaneResult, out_dir: Path, *, inputs: dict, images: bool = True, screenshot=None) -> None:
     """The single-view output folder of plane A (the joint pose, the pairs' 3D wires) plus plane B:
-    ``report.json`` gets ``biplane`` and each frame's ``biplane`` record; ``overlay_b_NNNN.png``."""
-    export.write_outdir(result.plane_a, out_dir, inputs=inputs, images=images, screenshot=screenshot)
+    ``report.json`` gets ``biplane`` (with each plane's projection-error summary) and each frame's
+    ``biplane`` record; ``overlay_b_NNNN.png``; ``metrics.png`` plots both planes' projection errors."""
+    export.write_outdir(result.plane_a, out_dir, inputs=inputs, images=images, screenshot=screenshot,
+                        plane_errors_px=[p.projection_error_px for p in result.pairs])
     rep_path = Path(out_dir) / "report.json"
     rep = json.loads(rep_path.read_text())
     add = report_additions(result, inputs)
@@ -695,7 +730,7 @@ def write_outdir(result: BiplaneResult, out_dir: Path, *, inputs: dict, images: 
             w3uv = result.frames_carm_b.project(w3.points_lps_mm, pose) if w3 else None
             txt = (f"plane B frame {p.index_b}: {p.views or 'no'} view(s), proj err "
                    f"{p.projection_error_px[1]:.2f} px" if w3 else f"plane B frame {p.index_b}: {w3.message}")
-            uv_b = getattr(p.wire2d_b, "points_uv_px", None) if p.wire2d_b is not None and p.wire2d_b else None
+            uv_b = _uv_of(p.wire2d_b)
             rgb = export.overlay_image(frame, centerline_uv_px=cl_uv, wire2d_uv_px=uv_b, wire3d_uv_px=w3uv, text=txt)
             export.write_png(Path(out_dir) / f"overlay_b_{p.result.index:04d}.png", rgb)
 
@@ -712,9 +747,7 @@ def run_to_outdir(cta, roadmaps, frames, out_dir, *, series_uid=None, roadmap_fr
     roads = [pipeline.read_xa_input(r) for r in roadmaps]
     lives = [road if Path(f).resolve() == Path(r).resolve() else pipeline.read_xa_input(f)
              for road, r, f in zip(roads, roadmaps, frames)]
-    check_planes(roads, lives)
-    ks = [pipeline.choose_roadmap_frame(r, roadmap_frame) for r in roads]
-    pair_frames(lives[0], lives[1], *[_frame_ids(r, f, k) for r, f, k in zip(roads, lives, ks)])
+    check_inputs(roads, lives, roadmap_frame=roadmap_frame)
     vol = io.read_volume(cta, series_uid=series_uid, log=log)
     pipeline.check_seeds(vol, seeds_lps_mm)
     t_load = time.perf_counter() - t0

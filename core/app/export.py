@@ -323,9 +323,14 @@ def tracked_motion_mm(result) -> np.ndarray | None:
     return out
 
 
-def metrics_figure(result, path) -> Path:
+def metrics_figure(result, path, *, plane_errors_px=None) -> Path:
     """Per-frame projection error, length and mean uncertainty (and the tracked motion, when the
-    run tracked it), as a PNG."""
+    run tracked it), as a PNG.
+
+    ``plane_errors_px`` : (T, 2) array_like of float, optional
+        A biplane run's projection error of each frame's 3D wire in plane A and in plane B (NaN
+        where not measured); the projection-error plot then shows one line per plane.
+    """
     import matplotlib
 
     matplotlib.use("Agg", force=False)
@@ -339,8 +344,14 @@ def metrics_figure(result, path) -> Path:
     motion = tracked_motion_mm(result)
     rows = 3 + (motion is not None)
     fig, axes = plt.subplots(rows, 1, figsize=(6, 2 * rows), sharex=True)
+    planes = None if plane_errors_px is None else np.asarray(plane_errors_px, float).reshape(-1, 2)
     for ax, y, lab in zip(axes, (perr, length, unc), ("projection error (px)", "wire length (mm)", "mean uncertainty (mm)")):
-        ax.plot(idx, y, "o-", ms=3)
+        if y is perr and planes is not None:
+            for j, name in enumerate("AB"):
+                ax.plot(idx, planes[:, j], "o-", ms=3, label=f"plane {name}")
+            ax.legend(fontsize=7, ncol=2)
+        else:
+            ax.plot(idx, y, "o-", ms=3)
         if (~ok).any():
             ax.plot(idx[~ok], np.zeros((~ok).sum()), "rx", label="not reconstructed")
         ax.set_ylabel(lab, fontsize=8)
@@ -364,8 +375,13 @@ def metrics_figure(result, path) -> Path:
 # --------------------------------------------------------------------------------------
 # the whole folder
 # --------------------------------------------------------------------------------------
-def write_outdir(result, out_dir, *, inputs: dict, images: bool = True, truth=None, screenshot=None) -> Path:
-    """Write every file of the output folder (see the README, "Output folder")."""
+def write_outdir(result, out_dir, *, inputs: dict, images: bool = True, truth=None, screenshot=None,
+                 plane_errors_px=None) -> Path:
+    """Write every file of the output folder (see the README, "Output folder").
+
+    ``plane_errors_px`` ((T, 2), a biplane run's per-plane projection errors): ``overlay_NNNN.png``
+    states plane A's and ``metrics.png`` plots both planes'.
+    """
     out_dir = Path(out_dir)
     tree = result.tree
     write_polydata(tree.to_polydata(), out_dir / "centerline.vtp")
@@ -384,15 +400,18 @@ def write_outdir(result, out_dir, *, inputs: dict, images: bool = True, truth=No
     write_report(result, out_dir, inputs=inputs, truth=truth)
     if images:
         cl_uv = result.carm.project(tree.points_lps_mm, reg.pose)
-        for idx, frame, w2, w3 in zip(result.frame_indices, result.frames, result.wires2d, result.wires3d):
+        planes = None if plane_errors_px is None else np.asarray(plane_errors_px, float).reshape(-1, 2)
+        for k, (idx, frame, w2, w3) in enumerate(zip(result.frame_indices, result.frames, result.wires2d,
+                                                      result.wires3d)):
             w3uv = result.frames_carm.project(w3.points_lps_mm, reg.pose) if w3.success else None
-            txt = (f"frame {idx}: proj err {w3.projection_error_px:.2f} px, length {w3.length_mm:.1f} mm"
+            perr = w3.projection_error_px if planes is None else planes[k, 0]
+            txt = (f"frame {idx}: proj err {perr:.2f} px, length {w3.length_mm:.1f} mm"
                    if w3.success else f"frame {idx}: {w3.message}")
             rgb = overlay_image(frame, centerline_uv_px=cl_uv, wire2d_uv_px=getattr(w2, "points_uv_px", None) if w2 else None,
                                 wire3d_uv_px=w3uv, text=txt)
             write_png(out_dir / f"overlay_{idx:04d}.png", rgb)
         if result.wires3d:
-            metrics_figure(result, out_dir / "metrics.png")
+            metrics_figure(result, out_dir / "metrics.png", plane_errors_px=plane_errors_px)
         if screenshot is not None:
             screenshot(out_dir, out_dir / "screenshot.png")
     return out_dir

@@ -20,7 +20,10 @@ from guidewire3d.vesseltree import VesselTree
 __all__ = [
     "WireFrame",
     "ViewerCase",
+    "PlaneBFrame",
+    "PlaneB",
     "load_outdir",
+    "load_plane_b",
     "save_registration",
     "display_images_uint8",
     "load_cta",
@@ -320,6 +323,103 @@ def load_outdir(out_dir, *, load_images: bool = True) -> ViewerCase:
         messages=tuple(msgs),
         roadmap_image=roadmap_image,
     )
+
+
+@dataclass(frozen=True, eq=False)
+class PlaneBFrame:
+    """Plane B's side of one reconstructed pair (``report.json`` ``frames[k].biplane``).
+
+    Attributes
+    ----------
+    index_b : int
+        The frame of plane B's live run paired with plane A's ``index``.
+    views : str
+        Which planes made the 3D wire: ``"AB"``, ``"A"``, ``"B"`` or ``""``.
+    fallback : str
+        Why one plane was left out ("" when none).
+    wire_uv_px : (M, 2) ndarray of float
+        Plane B's detected 2D wire (empty when it was not found).
+    projection_error_px_a, projection_error_px_b : float
+        The 3D wire's projection error in each plane (NaN when not measured).
+    """
+
+    index_b: int
+    views: str
+    fallback: str
+    wire_uv_px: np.ndarray
+    projection_error_px_a: float = float("nan")
+    projection_error_px_b: float = float("nan")
+
+
+@dataclass(frozen=True, eq=False)
+class PlaneB:
+    """Plane B of a biplane OUT_DIR (``report.json`` ``biplane``, ``inputs.frames_b``).
+
+    Attributes
+    ----------
+    carm, frames_carm : CArm
+        Plane B's roadmap and live-frame views (same pose as plane A: one patient pose).
+    images : (T, rows, cols) ndarray of float32 or None
+        Plane B's live frames, None if the file is unavailable.
+    frames : dict of int -> PlaneBFrame
+        Plane A frame index -> plane B's side of that pair.
+    """
+
+    carm: CArm
+    frames_carm: CArm
+    images: np.ndarray | None
+    frames: dict
+
+    def frame_for(self, index: int) -> PlaneBFrame | None:
+        return self.frames.get(int(index))
+
+    def image_index(self, index: int) -> int:
+        """Plane B's live-frame index paired with plane A's frame ``index`` (``index`` itself if unrecorded)."""
+        f = self.frames.get(int(index))
+        return int(f.index_b) if f is not None else int(index)
+
+
+def _nan(x) -> float:
+    return float("nan") if x is None else float(x)
+
+
+def load_plane_b(out_dir, *, load_images: bool = True) -> PlaneB | None:
+    """Plane B of a biplane OUT_DIR, None for a single-view one.
+
+    Raises
+    ------
+    InputError
+        If ``report.json`` is missing or its ``biplane`` record is malformed.
+    """
+    path = Path(out_dir) / "report.json"
+    rep = _read_json(path)
+    bp = rep.get("biplane")
+    if not bp or len(bp.get("planes", [])) != 2:
+        return None
+    pb = bp["planes"][1]
+    try:
+        carm = CArm.from_dict(pb["carm"])
+        frames_carm = CArm.from_dict(pb.get("frames_carm") or pb["carm"])
+    except (KeyError, TypeError) as e:
+        raise InputError(f"{path}: biplane.planes[1] has no usable C-arm ({e})") from None
+    frames = {}
+    for k, fr in enumerate(rep.get("frames") or []):
+        b = fr.get("biplane")
+        if not isinstance(b, dict):
+            continue
+        uv = _ro(b.get("wire_uv_px_b") or [], shape_tail=(2,), what=f"{path}: frames[{k}].biplane.wire_uv_px_b")
+        idx = int(fr.get("index", k))
+        frames[idx] = PlaneBFrame(int(b.get("index_b", idx)), str(b.get("views", "")), str(b.get("fallback", "")), uv,
+                                  _nan(b.get("projection_error_px_a")), _nan(b.get("projection_error_px_b")))
+    images = None
+    fpath = (rep.get("inputs") or {}).get("frames_b")
+    if load_images and fpath and Path(fpath).is_file():
+        run = io.read_xa(fpath)
+        if tuple(run.frames.shape[1:]) != frames_carm.shape:
+            raise InputError(f"{fpath}: frame size {run.frames.shape[1:]} differs from plane B's frames_carm "
+                             f"{frames_carm.shape}")
+        images = run.frames
+    return PlaneB(carm, frames_carm, images, frames)
 
 
 def save_registration(out_dir, pose: Pose, *, source: str, carm: CArm, automatic_pose: Pose,

@@ -50,6 +50,7 @@ from guidewire3d.reconstruction.triangulation import (  # noqa: F401
     TwoViewWire,
     extend_distal,
     fundamental_matrix,
+    projection_error_px,
     triangulate_points,
     triangulate_wire,
 )

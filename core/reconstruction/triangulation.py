@@ -39,7 +39,7 @@ from guidewire3d.reconstruction.uncertainty import pose_jacobian
 from scipy.spatial import cKDTree
 
 __all__ = ["TwoViewOptions", "TwoViewWire", "TwoViewContext", "fundamental_matrix", "triangulate_points",
-           "triangulate_wire", "extend_distal"]
+           "triangulate_wire", "extend_distal", "projection_error_px"]
 
 
 @dataclass(frozen=True)
@@ -300,6 +300,17 @@ def _polyline_distance_px(uv: np.ndarray, curve: np.ndarray) -> np.ndarray:
     return cKDTree(dense).query(uv)[0]
 
 
+def projection_error_px(ctx: "TwoViewContext", k: int, points_lps_mm, wire_uv_px) -> float:
+    """Mean distance (px) of the 3D wire ``points_lps_mm (N, 3)`` projected into plane ``k`` (0: A,
+    1: B) to that plane's 2D wire ``wire_uv_px (M, 2)``: the measure of ``TwoViewWire.projection_error_px``.
+    NaN when either is empty."""
+    X = np.asarray(points_lps_mm, float).reshape(-1, 3)
+    uv = np.asarray(wire_uv_px, float).reshape(-1, 2)
+    if len(X) == 0 or len(uv) == 0:
+        return float("nan")
+    return float(_polyline_distance_px(ctx.project(int(k), X), uv).mean())
+
+
 def _direction(ia: np.ndarray, jb: np.ndarray) -> int:
     """+1 / -1 when the samples with a single candidate walk the other wire clearly forwards /
     backwards (rank correlation above ``0.8``), else 0 (try both)."""
@@ -443,7 +454,7 @@ def triangulate_wire(wire_a_uv_px, wire_b_uv_px, ctx: TwoViewContext) -> TwoView
         G = pose_jacobian(ctx.pose, Xs)
         cov = cov + Pperp @ (G @ ctx.cov @ np.transpose(G, (0, 2, 1))) @ Pperp
     unc = np.sqrt(np.clip(np.trace(cov, axis1=1, axis2=2), 0.0, None))
-    perr = tuple(float(_polyline_distance_px(ctx.project(k, Xs), u).mean()) for k, u in ((0, ua), (1, ub)))
+    perr = tuple(projection_error_px(ctx, k, Xs, u) for k, u in ((0, ua), (1, ub)))
     arc = arclength(Xs)
     _, i = ctx.kd.query(Xs)
     tree_ids = ctx.dense_orig[i]

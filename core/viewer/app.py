@@ -45,6 +45,9 @@ def _prepare_offscreen_env() -> None:
 def open_viewer(out_dir, *, size_px=DEFAULT_SIZE, off_screen: bool = False, frame: int = 0, persist: bool = True):
     """Load ``out_dir``, build the two-view scene and its controller.
 
+    A biplane output folder gets three views: 3D on the left, plane A's 2D view top right and plane
+    B's bottom right (``ctl.plane_b`` and ``ctl.plane_b_scene`` hold plane B's data and actors).
+
     Returns
     -------
     (ViewerController, SceneHandles)
@@ -54,8 +57,10 @@ def open_viewer(out_dir, *, size_px=DEFAULT_SIZE, off_screen: bool = False, fram
     if off_screen:
         _prepare_offscreen_env()
     case = load_outdir(out_dir)
+    plane_b = plane_b_of_outdir(out_dir)
     vessels = pv.read(str(case.vessels_path)) if case.vessels_path is not None else None
-    pl = sc.new_plotter(size_px=size_px, off_screen=off_screen, title=f"guidewire3d: {Path(out_dir).name}")
+    pl = sc.new_plotter(size_px=size_px, off_screen=off_screen, biplane=plane_b is not None,
+                        title=f"guidewire3d: {Path(out_dir).name}")
     w0 = case.wires[0] if case.wires else None
     handles = sc.build_scene(
         pl, carm=case.frames_carm, pose=case.pose, vessels=vessels, tree=case.tree,
@@ -63,12 +68,9 @@ def open_viewer(out_dir, *, size_px=DEFAULT_SIZE, off_screen: bool = False, fram
         wire_uncertainty_mm=None if w0 is None else w0.uncertainty_mm,
         roadmap_centerline_uv_px=case.centerline_uv_px,
     )
-    ctl = ViewerController(case, handles, persist=persist)
-    # biplane output (issue 23): plane B's C-arm and live frame beside plane A's in the 3D view
-    plane_b = plane_b_of_outdir(out_dir)
-    if plane_b is not None:
-        w = case.wires[frame] if case.wires and 0 <= frame < len(case.wires) else None
-        add_plane_b(pl, plane_b, case.pose, frame=w.index if w is not None else frame)
+    # biplane output (issue 23): plane B's C-arm in the 3D view, its 2D view below plane A's
+    hb = add_plane_b(pl, plane_b, case.pose, tree=case.tree) if plane_b is not None else None
+    ctl = ViewerController(case, handles, persist=persist, plane_b=plane_b, plane_b_scene=hb)
     if frame:
         if case.n_frames and not 0 <= frame < case.n_frames:
             raise InputError(f"--frame: {frame} is out of range (the case has {case.n_frames} frames)")
@@ -175,21 +177,22 @@ class _App:
             self.frame_slider = self.pl.add_slider_widget(
                 self.safe(on_frame, render=False), [0, n - 1], value=self.ctl.frame_index, title="frame", pointa=(0.06, 0.07),
                 pointb=(0.44, 0.07), interaction_event="always", fmt="%.0f", style="modern", title_height=0.02)
-        self.pl.subplot(0, 1)
+        self.pl.subplot(0, 1)  # slider points are normalised to this viewport: plane A's 2D view
         self._add_pose_slider("u", "U", (0.56, 0.21), (0.76, 0.21), 20.0)
         self._add_pose_slider("v", "V", (0.78, 0.21), (0.98, 0.21), 20.0)
         self._add_pose_slider("depth", "BEAM", (0.56, 0.08), (0.76, 0.08), 60.0)
         self._add_pose_slider("rot beam", "ROT_BEAM", (0.78, 0.08), (0.98, 0.08), 10.0)
         self.pl.subplot(0, 0)
         self.pl.iren.add_observer("TimerEvent", self._on_timer)
-        if self.h.renderer_2d is not None:  # before each render of the 2D view
-            self.h.renderer_2d.AddObserver("StartEvent", self._keep_2d_flat)
+        for r2 in self._renderers_2d():  # before each render of a 2D view
+            r2.AddObserver("StartEvent", lambda *_, r=r2: self._keep_2d_flat(r))
 
-    def _keep_2d_flat(self, *_):
-        """The 2D view may pan and zoom but not rotate: put its camera back facing the image."""
-        r2 = self.h.renderer_2d
-        if r2 is None:
-            return
+    def _renderers_2d(self):
+        hb = self.ctl.plane_b_scene
+        return [r for r in (self.h.renderer_2d, hb.renderer_2d if hb is not None else None) if r is not None]
+
+    def _keep_2d_flat(self, r2):
+        """The 2D views may pan and zoom but not rotate: put the camera back facing the image."""
         cam = r2.GetActiveCamera()
         fx, fy, _ = cam.GetFocalPoint()
         if cam.GetViewUp() != (0.0, 1.0, 0.0) or cam.GetPosition()[:2] != (fx, fy):

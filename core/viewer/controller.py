@@ -8,12 +8,16 @@ from __future__ import annotations
 
 import enum
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 from guidewire3d import registration
+from guidewire3d.app import biplane as bp
 from guidewire3d.app import export as ex
 from guidewire3d.app.outdir import (
+    PlaneB,
+    PlaneBFrame,
     ViewerCase,
     WireFrame,
     display_images_uint8,
@@ -66,11 +70,22 @@ class ViewerController:
         Where exports and screenshots go (default ``case.out_dir / "exports"``).
     persist : bool, keyword-only
         Save every pose change to ``registration.json`` (default True).
+    plane_b : PlaneB, optional
+        Plane B of a biplane case (``outdir.load_plane_b``): its live frame, 2D wire and projected
+        3D wire follow the frame, its C-arm and projected centerline the pose, and :meth:`apply`
+        reconstructs from both planes.
+    plane_b_scene : biplane_scene.PlaneBHandles, optional
+        Plane B's actors (``biplane_scene.add_plane_b``), updated in place.
     """
 
-    def __init__(self, case: ViewerCase, scene=None, *, export_dir=None, persist: bool = True):
+    def __init__(self, case: ViewerCase, scene=None, *, export_dir=None, persist: bool = True,
+                 plane_b: PlaneB | None = None, plane_b_scene=None):
         self._case = case
         self._scene = scene
+        self._plane_b = plane_b
+        self._plane_b_scene = plane_b_scene if plane_b is not None else None
+        self._images_b_u8 = (display_images_uint8(plane_b.images)
+                             if plane_b is not None and plane_b.images is not None else None)
         self._export_dir = Path(export_dir) if export_dir is not None else Path(case.out_dir) / "exports"
         self._persist = persist
         self._frame = 0
@@ -130,6 +145,30 @@ class ViewerController:
         return self._status
 
     @property
+    def plane_b(self) -> PlaneB | None:
+        """Plane B of a biplane case (None for one view)."""
+        return self._plane_b
+
+    @property
+    def plane_b_scene(self):
+        """Plane B's actors (``biplane_scene.PlaneBHandles``), None for one view or without a scene."""
+        return self._plane_b_scene
+
+    @property
+    def plane_b_frame(self) -> PlaneBFrame | None:
+        """Plane B's side of the current pair (None for one view or an unrecorded frame)."""
+        if self._plane_b is None or not self.n_frames:
+            return None
+        return self._plane_b.frame_for(self._case.frame_indices[self._frame])
+
+    @property
+    def plane_b_image_index(self) -> int | None:
+        """The index of plane B's live frame shown with the current frame (None for one view)."""
+        if self._plane_b is None or not self.n_frames:
+            return None
+        return self._plane_b.image_index(self._case.frame_indices[self._frame])
+
+    @property
     def wire(self) -> WireFrame | None:
         """The reconstructed wire at the current position (None when the case has no wires)."""
         return self._case.wires[self._frame] if self._frame < len(self._case.wires) else None
@@ -176,6 +215,7 @@ class ViewerController:
             if w is not None:
                 sc.update_wire(self._scene.wire, w.points_lps_mm, w.uncertainty_mm)
             self._refresh_image()
+            self._refresh_image_b()
             if self.wire is not None and self.wire.pose is not None:
                 self._refresh_pose()  # a tracked run: the C-arm and overlays follow the frame's pose
             else:
@@ -201,6 +241,13 @@ class ViewerController:
         idx = self._case.frame_indices[self._frame] if self.n_frames else 0
         if self._images_u8 is not None and idx < len(self._images_u8):
             sc.set_frame_image(self._scene, self._images_u8[idx])
+
+    def _refresh_image_b(self) -> None:
+        hb = self._plane_b_scene
+        k = self.plane_b_image_index
+        if hb is None or k is None or self._images_b_u8 is None:
+            return
+        sc.set_texture_image(hb.carm.texture_image, self._images_b_u8[min(k, len(self._images_b_u8) - 1)])
 
     def toggle_roadmap(self) -> bool:
         """Show the contrast roadmap (what the registration matched) instead of the live frame, or back."""
@@ -351,7 +398,8 @@ class ViewerController:
 
     def apply(self, *, force: bool = False) -> int:
         """Reconstruct every frame's wire again with the current pose, through ``live.Session`` (the
-        engine ``reconstruct`` runs), from each frame's 2D wire and image.
+        engine ``reconstruct`` runs), from each frame's 2D wire and image; a biplane case through
+        ``biplane.BiplaneSession`` from both planes' 2D wires (plane B's records are renewed too).
 
         Returns the number of frames reconstructed (0 when the wires are current, unless ``force``,
         or there is no vessel tree).
@@ -363,9 +411,21 @@ class ViewerController:
             self._say("no vessel tree: wires not reconstructed")
             return 0
         t0 = time.perf_counter()
-        new = []
-        n_ok = 0
         cov = self._covariance if np.allclose(self._covariance_pose.matrix, self.pose.matrix) else None
+        if self._plane_b is not None:
+            (new, n_ok), what = self._apply_biplane(cov), "pairs from both planes"
+        else:
+            (new, n_ok), what = self._apply_one_view(cov), "frames"
+        self._case = self._case.with_wires(new)
+        self._wires_pose = self.pose
+        self.set_frame(self._frame)
+        self._say(f"reconstructed {n_ok}/{len(new)} {what} with the {self.pose_source} pose "
+                  f"in {time.perf_counter() - t0:.2f} s")
+        return len(new)
+
+    def _apply_one_view(self, cov) -> tuple[list, int]:
+        """Every frame again through ``live.Session.process_wire`` (its recorded 2D wire)."""
+        new, n_ok = [], 0
         # a run that tracked motion is applied the same way (each frame in its own pose)
         tracked = any(w.pose is not None for w in self._case.wires)
         session = live.Session(self._case.tree, self._case.frames_carm, self.pose, registration_covariance=cov,
@@ -385,12 +445,40 @@ class ViewerController:
             new.append(WireFrame(w.index, ok, str(fr.message), pts, unc, w.wire_uv_px,
                                  float(r.projection_error_px), float(r.length_mm), verdict=fr.verdict.value,
                                  pose=fr.pose if fr.motion is not None else None))
-        self._case = self._case.with_wires(new)
-        self._wires_pose = self.pose
-        self.set_frame(self._frame)
-        self._say(f"reconstructed {n_ok}/{len(new)} frames with the {self.pose_source} pose "
-                  f"in {time.perf_counter() - t0:.2f} s")
-        return len(new)
+        return new, n_ok
+
+    def _apply_biplane(self, cov) -> tuple[list, int]:
+        """Every pair again through ``BiplaneSession.process_wires`` (both planes' recorded 2D wires)."""
+        pb = self._plane_b
+        session = bp.BiplaneSession(self._case.tree, (self._case.frames_carm, pb.frames_carm), self.pose,
+                                    registration_covariance=cov, threads=1)
+        new, frames_b, n_ok = [], dict(pb.frames), 0
+        try:
+            for w in self._case.wires:
+                fb = pb.frame_for(w.index)
+                k_b = pb.image_index(w.index)
+                uv_b = fb.wire_uv_px if fb is not None else np.zeros((0, 2))
+                img_a = self._case.images[w.index] if self._case.images is not None and w.index < len(self._case.images) \
+                    else None
+                img_b = pb.images[k_b] if pb.images is not None and k_b < len(pb.images) else None
+                wire_a = w.wire_uv_px if len(w.wire_uv_px) >= 2 else None
+                wire_b = uv_b if len(uv_b) >= 2 else None
+                if wire_a is None and wire_b is None:
+                    new.append(w)
+                    continue
+                pair = session.process_wires(wire_a, wire_b, images=(img_a, img_b), index=w.index, index_b=k_b)
+                fr, r = pair.result, pair.result.wire3d
+                ok = bool(r.success)
+                n_ok += ok
+                pts = np.asarray(r.points_lps_mm, float).reshape(-1, 3) if ok else np.zeros((0, 3))
+                unc = np.asarray(r.uncertainty_mm, float).reshape(-1) if ok else np.zeros(0)
+                new.append(WireFrame(w.index, ok, str(fr.message), pts, unc, w.wire_uv_px,
+                                     float(r.projection_error_px), float(r.length_mm), verdict=fr.verdict.value))
+                frames_b[w.index] = PlaneBFrame(k_b, pair.views, pair.fallback, uv_b, *map(float, pair.projection_error_px))
+        finally:
+            session.close()
+        self._plane_b = replace(pb, frames=frames_b)
+        return new, n_ok
 
     def _set_pose(self, pose: Pose, source: str, what: str) -> None:
         self._case = self._case.with_pose(pose, source=source)
@@ -414,10 +502,17 @@ class ViewerController:
         if self._scene.overlay is not None and self._case.tree is not None:
             sc.update_overlay(self._scene.overlay,
                               centerline_uv_px=self.view_carm.project(self._case.tree.points_lps_mm, pose))
+        hb = self._plane_b_scene
+        if hb is not None:  # one patient pose for both planes
+            carm_b = self._plane_b.frames_carm
+            sc.update_carm(hb.carm, carm_b, pose)
+            if hb.overlay is not None and self._case.tree is not None:
+                sc.update_overlay(hb.overlay, centerline_uv_px=carm_b.project(self._case.tree.points_lps_mm, pose))
         self._refresh_overlay_wire()
         self._refresh_text()
 
     def _refresh_overlay_wire(self) -> None:
+        self._refresh_overlay_wire_b()
         if self._scene is None or self._scene.overlay is None:
             return
         w = self.wire
@@ -427,6 +522,40 @@ class ViewerController:
         proj = (self._case.frames_carm.project(w.points_lps_mm, self.shown_pose) if len(w.points_lps_mm)
                 else np.zeros((0, 2)))
         sc.update_overlay(self._scene.overlay, wire_uv_px=w.wire_uv_px, wire_proj_uv_px=proj)
+
+    def _refresh_overlay_wire_b(self) -> None:
+        hb = self._plane_b_scene
+        if hb is None or hb.overlay is None:
+            return
+        w, fb = self.wire, self.plane_b_frame
+        uv = fb.wire_uv_px if fb is not None else np.zeros((0, 2))
+        proj = (self._plane_b.frames_carm.project(w.points_lps_mm, self.shown_pose)
+                if w is not None and len(w.points_lps_mm) else np.zeros((0, 2)))
+        sc.update_overlay(hb.overlay, wire_uv_px=uv, wire_proj_uv_px=proj)
+        sc.set_text(hb.info_text, self.info_text_b())
+
+    def info_text_b(self) -> str:
+        """Plane B's 2D view caption: its frame, which planes made the wire, both projection errors."""
+        k, fb = self.plane_b_image_index, self.plane_b_frame
+        if k is None:
+            return ""
+        parts = [f"PLANE B frame {k}"]
+        if fb is None:
+            parts.append("no plane B record for this frame")
+            return "\n".join(parts)
+
+        def px(x):
+            return f"{x:.2f} px" if np.isfinite(x) else "n/a"
+
+        parts.append(f"3D wire from {'planes ' + ' + '.join(fb.views) if fb.views else 'no plane'}"
+                     + ("" if len(fb.wire_uv_px) >= 2 else "; no 2D wire in plane B"))
+        parts.append(f"projection error A {px(fb.projection_error_px_a)}, B {px(fb.projection_error_px_b)}")
+        if fb.fallback:
+            msg = " ".join(fb.fallback.split())
+            parts.append(msg[:52] + "..." if len(msg) > 55 else msg)
+        if self.wires_stale:
+            parts.append("(wires stale: Return)")
+        return "\n".join(parts)
 
     def info_text(self) -> str:
         w = self.wire
@@ -498,6 +627,13 @@ class ViewerController:
         self._say(f"exported {len(written)} files to {out}")
         return written
 
+    def _fit_2d_cameras(self) -> None:
+        if self._scene.renderer_2d is not None:
+            sc.fit_2d_camera(self._scene.renderer_2d, self._case.frames_carm.shape)
+        hb = self._plane_b_scene
+        if hb is not None and hb.renderer_2d is not None:
+            sc.fit_2d_camera(hb.renderer_2d, self._plane_b.frames_carm.shape)
+
     def screenshot(self, path=None, *, size_px=None, announce: bool = True) -> Path:
         """Render the current view to a PNG (at ``size_px=(w, h)`` if given) and return its path."""
         if self._scene is None:
@@ -510,14 +646,12 @@ class ViewerController:
             self._say(f"screenshot: {path}")
         if size_px is not None:
             pl.window_size = tuple(int(s) for s in size_px)
-        if self._scene.renderer_2d is not None:
-            sc.fit_2d_camera(self._scene.renderer_2d, self._case.frames_carm.shape)
+        self._fit_2d_cameras()
         pl.render()
         img = pl.screenshot(None, return_img=True)
         if size_px is not None:
             pl.window_size = old
-            if self._scene.renderer_2d is not None:
-                sc.fit_2d_camera(self._scene.renderer_2d, self._case.frames_carm.shape)
+            self._fit_2d_cameras()
             pl.render()
         import cv2
 

@@ -21,6 +21,7 @@ __all__ = [
     "Overlay2DHandles",
     "SceneHandles",
     "new_plotter",
+    "renderer_at",
     "add_vessels",
     "add_centerline",
     "add_wire",
@@ -187,16 +188,22 @@ class SceneHandles:
 # --------------------------------------------------------------------------------------
 # plotter
 # --------------------------------------------------------------------------------------
-def new_plotter(*, size_px=(1200, 800), off_screen: bool = False, two_views: bool = True, title: str = "guidewire3d"):
-    """A pyvista Plotter with one (3D) or two (3D | 2D) viewports. ``multi_samples=0`` (fast)."""
+def new_plotter(*, size_px=(1200, 800), off_screen: bool = False, two_views: bool = True, biplane: bool = False,
+                title: str = "guidewire3d"):
+    """A pyvista Plotter with one (3D) or two (3D | 2D) viewports. ``multi_samples=0`` (fast).
+
+    ``biplane=True``: three viewports, the 3D view on the left half (subplot ``(0, 0)``), plane A's
+    2D view top right (``(0, 1)``) and plane B's bottom right (``(1, 1)``).
+    """
     import pyvista as pv
 
     theme = pv.themes.DarkTheme()
     theme.multi_samples = 0
     theme.allow_empty_mesh = True
     theme.font.color = "white"
+    layout = dict(shape=(2, 2), groups=[(np.s_[:], 0)]) if biplane else dict(shape=(1, 2) if two_views else (1, 1))
     pl = pv.Plotter(
-        shape=(1, 2) if two_views else (1, 1),
+        **layout,
         window_size=tuple(int(s) for s in size_px),
         off_screen=off_screen,
         border=False,
@@ -206,8 +213,9 @@ def new_plotter(*, size_px=(1200, 800), off_screen: bool = False, two_views: boo
     return pl
 
 
-def _renderer(plotter, index: int):
-    return plotter.renderers[index]
+def renderer_at(plotter, row: int, col: int):
+    """The renderer of subplot ``(row, col)`` (also inside a group spanning several cells)."""
+    return plotter.renderers[plotter.renderers.loc_to_index((row, col))]
 
 
 # --------------------------------------------------------------------------------------
@@ -354,12 +362,14 @@ def _quad(corners, *, tcoords=((0, 0), (1, 0), (1, 1), (0, 1))):
     return q
 
 
-def add_carm(plotter, carm: CArm, pose: Pose, image_u8, *, texture=None, source_radius_mm: float = 8.0) -> CArmHandles:
+def add_carm(plotter, carm: CArm, pose: Pose, image_u8, *, texture=None, source_radius_mm: float = 8.0,
+             name_suffix: str = "", source_color=(1.0, 0.9, 0.3), frustum_color=FRUSTUM_COLOR) -> CArmHandles:
     """Source point, frustum lines and the detector plane textured with ``image_u8`` in the C-arm pose.
 
     The detector quad's corners are ``carm.detector_corners_lps_mm(pose)`` (pixel edges
     ``(0,0), (W,0), (W,H), (0,H)``) with texture coordinates ``(0,0), (1,0), (1,1), (0,1)``, so the
     pixel ``(u, v)`` lands where the ray from the source to it meets the detector.
+    ``name_suffix`` keeps a second C-arm's actors (plane B: ``"_b"``) apart from the first's.
 
     Parameters
     ----------
@@ -374,12 +384,12 @@ def add_carm(plotter, carm: CArm, pose: Pose, image_u8, *, texture=None, source_
     sphere.SetRadius(source_radius_mm)
     sphere.SetThetaResolution(16)
     sphere.SetPhiResolution(12)
-    source_actor = plotter.add_mesh(sphere, color=(1.0, 0.9, 0.3), name="xray_source", reset_camera=False)
+    source_actor = plotter.add_mesh(sphere, color=source_color, name=f"xray_source{name_suffix}", reset_camera=False)
 
     import pyvista as pv
 
     fr = pv.PolyData(_frustum_points(src, corners), lines=np.column_stack([np.full(8, 2), _FRUSTUM_LINES]).ravel())
-    frustum_actor = plotter.add_mesh(fr, color=FRUSTUM_COLOR, line_width=1.5, name="frustum", reset_camera=False,
+    frustum_actor = plotter.add_mesh(fr, color=frustum_color, line_width=1.5, name=f"frustum{name_suffix}", reset_camera=False,
                                      lighting=False, opacity=0.8)
     if texture is None:
         if image_u8 is None:
@@ -388,7 +398,7 @@ def add_carm(plotter, carm: CArm, pose: Pose, image_u8, *, texture=None, source_
     else:
         data, tex = texture
     det = _quad(corners)
-    det_actor = plotter.add_mesh(det, texture=tex, name="detector", reset_camera=False, lighting=False,
+    det_actor = plotter.add_mesh(det, texture=tex, name=f"detector{name_suffix}", reset_camera=False, lighting=False,
                                  show_scalar_bar=False)
     det_actor.GetProperty().SetColor(1.0, 1.0, 1.0)
     det_actor.GetProperty().BackfaceCullingOff()
@@ -655,8 +665,9 @@ def build_scene(plotter, *, carm: CArm, pose: Pose, image_u8=None, vessels=None,
                 show_help: bool = True) -> SceneHandles:
     """Add every actor of the viewer to ``plotter`` and return the handles.
 
-    With a ``(1, 2)`` plotter the 3D view is subplot ``(0, 0)`` and the 2D view ``(0, 1)``;
-    with a ``(1, 1)`` plotter only the 3D view is built (``overlay`` is None).
+    With a ``(1, 2)`` plotter (or a biplane one, ``new_plotter(biplane=True)``) the 3D view is
+    subplot ``(0, 0)`` and the 2D view ``(0, 1)``; with a ``(1, 1)`` plotter only the 3D view is
+    built (``overlay`` is None).
 
     Parameters
     ----------
@@ -670,12 +681,12 @@ def build_scene(plotter, *, carm: CArm, pose: Pose, image_u8=None, vessels=None,
     wire_points_lps_mm, wire_uncertainty_mm : optional
         The first wire to show.
     """
-    two = tuple(plotter.shape) == (1, 2)
+    two = len(plotter.renderers) > 1
     for r in plotter.renderers:
         # plain alpha blending: order-independent transparency doubles the render time in software GL
         r.SetUseOIT(False)
     plotter.subplot(0, 0)
-    r3 = _renderer(plotter, 0)
+    r3 = renderer_at(plotter, 0, 0)
     r3.SetBackground(*BACKGROUND_3D)
     vessels_actor = add_vessels(plotter, vessels) if vessels is not None else None
     cl_actor = add_centerline(plotter, tree) if tree is not None else None
@@ -705,7 +716,7 @@ def build_scene(plotter, *, carm: CArm, pose: Pose, image_u8=None, vessels=None,
     r2 = None
     if two:
         plotter.subplot(0, 1)
-        r2 = _renderer(plotter, 1)
+        r2 = renderer_at(plotter, 0, 1)
         r2.SetBackground(*BACKGROUND_2D)
         edges = tree.edges if tree is not None else None
         overlay = add_overlay_2d(plotter, carm.shape, texture=texture, centerline_edges=edges,

@@ -1,4 +1,4 @@
-"""3D Slicer scripted module: 3D guidewire reconstruction from a CTA and single-view DSA (guidewire3d).
+"""3D Slicer scripted module: 3D guidewire reconstruction from a CTA and single-view or biplane DSA (guidewire3d).
 
 Layout as Slicer's scripted-module template: module metadata, a thin Widget, a Logic and a Test.
 The computation lives in ``GuidewireReconstructionLib.logic`` (MRML only, no Qt), which imports
@@ -135,7 +135,8 @@ if SLICER_APP:
             self.parent.contributors = ["guidewire3d developers"]
             self.parent.helpText = _(
                 "Reconstructs the guidewire in 3D from a preoperative CTA and an intraoperative DSA roadmap "
-                "plus live fluoroscopy frames (single view). Outputs: the vessel surface, the centerline, the "
+                "plus live fluoroscopy frames (single view, or biplane: give plane B's roadmap and frames too). "
+                "Outputs: the vessel surface, the centerline, the "
                 "registration as a linear transform (correct it with the transform handles, then press Refine), "
                 "a guidewire tube and curve per frame, and a table of per-frame metrics. "
                 "All computation is done by the guidewire3d Python package, installed on first use."
@@ -156,6 +157,8 @@ if SLICER_APP:
         ctaVolume: the CTA (HU). roadmapPath/framesPath: XA DICOM files; loading them creates
         roadmapSequence/framesSequence, which can also be chosen directly. An empty frames input
         means "the roadmap run". roadmapFrame -1: choose the most contrast-filled frame.
+        roadmapBPath/framesBPath (or roadmapBSequence/framesBSequence): plane B of a biplane C-arm,
+        optional; with plane B's roadmap the biplane chain runs (one pose, each wire from both planes).
         """
 
         ctaVolume: vtkMRMLScalarVolumeNode
@@ -163,6 +166,10 @@ if SLICER_APP:
         framesPath: Path
         roadmapSequence: vtkMRMLSequenceNode
         framesSequence: vtkMRMLSequenceNode
+        roadmapBPath: Path
+        framesBPath: Path
+        roadmapBSequence: vtkMRMLSequenceNode
+        framesBSequence: vtkMRMLSequenceNode
         seeds: vtkMRMLMarkupsFiducialNode
         roadmapFrame: Annotated[int, WithinRange(-1, 99999)] = -1
         method: Annotated[str, Choice(list(METHOD_CHOICES))] = "vessel"

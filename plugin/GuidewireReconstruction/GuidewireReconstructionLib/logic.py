@@ -454,10 +454,13 @@ class OutputNodes:
     live_wire_model: object = None  # vtkMRMLModelNode: the newest wire of a connected live server (connect_live)
     motion_sequence: object = None  # vtkMRMLSequenceNode: each frame's tracked pose (track_motion), synchronised
     frame_indices: list = field(default_factory=list)  # index in the frames run of each wire node
+    carm_b_model: object = None  # vtkMRMLModelNode: plane B's source + detector (biplane), child of ``transform``
+    roadmap_b_points_model: object = None  # vtkMRMLModelNode: plane B's 2D roadmap centerline on its detector
 
     def all_nodes(self) -> list:
         singles = [self.transform, self.table, self.vessel_model, self.carm_model, self.roadmap_points_model,
-                   self.wire_sequence, self.live_wire_model, self.motion_sequence]
+                   self.wire_sequence, self.live_wire_model, self.motion_sequence, self.carm_b_model,
+                   self.roadmap_b_points_model]
         return [n for n in singles + self.centerline_curves + self.wire_models + self.wire_curves if n is not None]
 
 
@@ -490,6 +493,8 @@ class GuidewireReconstructionCoreLogic:
         self.wires3d: list = []
         self.frame_results: list = []  # live.FrameResult per live frame (verdict: ok / uncertain / failed)
         self.track_motion = False  # the frames' poses follow breathing (process(track_motion=True))
+        self.biplane = None  # biplane.BiplaneResult of the last process() with plane B, else None
+        self.pairs: list = []  # biplane.BiplaneFrame per pair (plane B's 2D wire, views, both projection errors)
         self.outputs = OutputNodes()
         self.live = None  # igtl.WireFollower of a connected `guidewire3d live` server (connect_live)
         self.live_status = ""
@@ -561,8 +566,12 @@ class GuidewireReconstructionCoreLogic:
     def process(self, *, cta_volume_node, roadmap, frames=None, seeds_node=None, roadmap_frame: int | None = None,
                 method: WireMethod | str = WireMethod.VESSEL, segmenter: Segmenter | str = Segmenter.UNET,
                 force: bool = False, outputs: OutputNodes | None = None, pose: Pose | None = None,
-                track_motion: bool = False) -> OutputNodes:
+                track_motion: bool = False, roadmap_b=None, frames_b=None) -> OutputNodes:
         """Run the pipeline and write (or update) the output nodes.
+
+        With ``roadmap_b`` (plane B of a biplane C-arm) the biplane chain runs instead
+        (``guidewire3d.app.biplane.run``: one pose from both roadmaps, each pair's wire from both
+        planes) and plane B's C-arm and roadmap centerline get nodes of their own.
 
         Parameters
         ----------
@@ -581,11 +590,19 @@ class GuidewireReconstructionCoreLogic:
         track_motion : bool
             Follow breathing: each frame's pose is updated from its wire (``reconstruct
             --track-motion``); with a frames sequence the C-arm then follows the frame browser.
+            Not available with two planes.
+        roadmap_b, frames_b : str | Path | vtkMRMLSequenceNode | io.XARun, optional
+            Plane B's roadmap and live frames (``frames_b=None``: plane B's roadmap run). Each plane's
+            geometry comes from its own positioner tags.
         """
-        from guidewire3d.app import pipeline
+        from guidewire3d.app import biplane, pipeline
 
         method = WireMethod(method)
         segmenter = Segmenter(segmenter)
+        if roadmap_b is None and frames_b is not None:
+            raise InputError("plane B: give its roadmap as well as its live frames")
+        if roadmap_b is not None and track_motion:
+            raise InputError("track motion: not available with two planes yet")
         vol = volume_from_node(cta_volume_node)
         road = self._xa(roadmap, "roadmap")
         live = road if frames is None else self._xa(frames, "frames")
@@ -593,24 +610,39 @@ class GuidewireReconstructionCoreLogic:
         seeds = seeds_from_node(seeds_node)
         if roadmap_frame is not None and roadmap_frame < 0:
             roadmap_frame = None
+        is_seq = hasattr(live_node, "IsA") and live_node.IsA("vtkMRMLSequenceNode")
+        if roadmap_b is not None:
+            road_b = self._xa(roadmap_b, "plane B roadmap")
+            live_b = road_b if frames_b is None else self._xa(frames_b, "plane B frames")
+            biplane.check_inputs([road, road_b], [live, live_b], roadmap_frame=roadmap_frame)  # before the heavy work
+            t0 = time.perf_counter()
+            bres = biplane.run(vol, [road, road_b], [live, live_b], roadmap_frame=roadmap_frame, seeds_lps_mm=seeds,
+                               method=method.value, segmenter=segmenter.value, force=force, progress=False,
+                               log=log.info)
+            log.info("guidewire3d biplane: %.1f s", time.perf_counter() - t0)
+            return self.show_result(bres.plane_a, method=method, segmenter=segmenter, outputs=outputs,
+                                    frames_sequence=live_node if is_seq else None, biplane_result=bres)
         t0 = time.perf_counter()
         result = pipeline.run(vol, road, live, roadmap_frame=roadmap_frame, seeds_lps_mm=seeds, method=method.value,
                               segmenter=segmenter.value, force=force, progress=False, pose=pose, log=log.info,
                               track_motion=bool(track_motion))
         log.info("guidewire3d pipeline: %.1f s", time.perf_counter() - t0)
-        is_seq = hasattr(live_node, "IsA") and live_node.IsA("vtkMRMLSequenceNode")
         return self.show_result(result, method=method, segmenter=segmenter, outputs=outputs,
                                 frames_sequence=live_node if is_seq else None, track_motion=track_motion)
 
     def show_result(self, result, *, method: WireMethod | str = WireMethod.VESSEL,
                     segmenter: Segmenter | str = Segmenter.UNET, outputs: OutputNodes | None = None,
-                    frames_sequence=None, track_motion: bool = False) -> OutputNodes:
+                    frames_sequence=None, track_motion: bool = False, biplane_result=None) -> OutputNodes:
         """Write (or update) the output nodes from a ``pipeline.PipelineResult`` and keep it for :meth:`refine`.
 
         ``frames_sequence`` (the live frames' sequence node) gets a synchronised wire sequence, and,
         when the frames were tracked (``track_motion``), a synchronised sequence of each frame's pose
-        that the C-arm and the roadmap centerline follow.
+        that the C-arm and the roadmap centerline follow. ``biplane_result`` (a
+        ``biplane.BiplaneResult`` whose ``plane_a`` is ``result``) adds plane B's nodes and the
+        per-plane columns of the metrics table.
         """
+        self.biplane = biplane_result
+        self.pairs = list(biplane_result.pairs) if biplane_result is not None else []
         self.result = result
         self.track_motion = bool(track_motion)
         self.method = WireMethod(method)
@@ -626,6 +658,7 @@ class GuidewireReconstructionCoreLogic:
         if outputs is not None:
             self.outputs = outputs
         self._write_static_outputs()
+        self._write_plane_b_outputs()
         self._write_registration_outputs()
         self._write_wire_outputs()
         return self.outputs
@@ -649,7 +682,16 @@ class GuidewireReconstructionCoreLogic:
         kwargs = {}
         if getattr(cl, "radius_px", None) is not None:
             kwargs["centerline_radius_px"] = cl.radius_px
-        reg = registration.refine(res.tree, cl.points_uv_px, res.carm, start, **kwargs)
+        if self.biplane is not None:  # one pose for both roadmaps: the joint problem, from this start
+            from guidewire3d.app import biplane
+
+            b = self.biplane
+            reg = biplane.register_biplane(res.tree, [cl.points_uv_px, b.centerline2d_b.points_uv_px], [res.carm, b.carm_b],
+                                           centerline_radius_px=(getattr(cl, "radius_px", None),
+                                                                 getattr(b.centerline2d_b, "radius_px", None)),
+                                           init_pose=start, global_search=False).result
+        else:
+            reg = registration.refine(res.tree, cl.points_uv_px, res.carm, start, **kwargs)
         log.info("refine: %s (%s), residual %.2f px", reg.verdict.value, reg.message, reg.mean_residual_px)
         if reg.verdict is registration.Verdict.FAILED and not force:
             return reg
@@ -674,6 +716,8 @@ class GuidewireReconstructionCoreLogic:
         if method is not None:
             self.method = WireMethod(method)
         res, reg = self.result, self.registration
+        if self.biplane is not None:
+            return self._update_biplane_wires()
         session = live.Session(res.tree, res.frames_carm, reg.pose, registration_covariance=reg.covariance_6x6,
                                method=self.method.value, segmenter=self.segmenter.value,
                                track_motion=self.track_motion)
@@ -689,12 +733,39 @@ class GuidewireReconstructionCoreLogic:
         self._write_wire_outputs()
         return wires
 
+    def _update_biplane_wires(self) -> list:
+        """Every pair again through ``biplane.BiplaneSession`` at the current registration (both planes'
+        2D wires of the last run reused; segmented now when the run stopped before the frames)."""
+        from guidewire3d.app import biplane
+
+        res, reg, b = self.result, self.registration, self.biplane
+        session = biplane.BiplaneSession(res.tree, (res.frames_carm, b.frames_carm_b), reg.pose,
+                                         registration_covariance=reg.covariance_6x6, segmenter=self.segmenter.value,
+                                         method=self.method.value, threads=1)
+        ids = list(getattr(res, "frame_indices", None) or range(len(res.frames)))
+        try:
+            if len(self.pairs) == len(res.frames):
+                pairs = [session.process_wires(w2, p.wire2d_b, images=(fa, fb), index=i, index_b=p.index_b)
+                         for i, w2, p, fa, fb in zip(ids, self.wires2d, self.pairs, res.frames, b.frames_b)]
+            else:  # the run stopped before the frames: pairs in order
+                pairs = [session.process(fa, fb, index=i, index_b=k)
+                         for k, (i, fa, fb) in enumerate(zip(ids, res.frames, b.frames_b))]
+        finally:
+            session.close()
+        self.pairs = pairs
+        self.frame_results = [p.result for p in pairs]
+        self.wires2d = [fr.wire2d for fr in self.frame_results]
+        self.wires3d = [fr.wire3d for fr in self.frame_results]
+        self._write_wire_outputs()
+        return self.wires3d
+
     # --- the module's parameter node ---------------------------------------------------------
     def process_parameters(self, p) -> str:
         """Run :meth:`process` with the module's parameter node ``p``; returns a one-line summary.
 
         ``p`` is the module's ``@parameterNodeWrapper`` (or any object with the same attributes):
-        ``ctaVolume``, ``roadmapPath``/``roadmapSequence``, ``framesPath``/``framesSequence``, ``seeds``,
+        ``ctaVolume``, ``roadmapPath``/``roadmapSequence``, ``framesPath``/``framesSequence``, plane B's
+        ``roadmapBPath``/``roadmapBSequence`` and ``framesBPath``/``framesBSequence`` (optional), ``seeds``,
         ``roadmapFrame``, ``method``, ``segmenter``, ``force``, ``registrationTransform``,
         ``metricsTable``, ``vesselModel``. An XA file is loaded into a new sequence node, which is
         written back to ``p``; so are the output nodes created by the run.
@@ -706,13 +777,21 @@ class GuidewireReconstructionCoreLogic:
         frames = self._xa_parameter(p.framesSequence, p.framesPath, "Frames")
         if frames is not None:
             p.framesSequence = frames
+        # plane B (optional): a biplane run when its roadmap is given
+        roadmap_b = self._xa_parameter(getattr(p, "roadmapBSequence", None), getattr(p, "roadmapBPath", None),
+                                       "Roadmap B")
+        frames_b = self._xa_parameter(getattr(p, "framesBSequence", None), getattr(p, "framesBPath", None), "Frames B")
+        if roadmap_b is not None:
+            p.roadmapBSequence = roadmap_b
+        if frames_b is not None:
+            p.framesBSequence = frames_b
         o = self.outputs
         outputs = OutputNodes(**{**o.__dict__, "transform": p.registrationTransform or o.transform,
                                  "table": p.metricsTable or o.table, "vessel_model": p.vesselModel or o.vessel_model})
         out = self.process(cta_volume_node=p.ctaVolume, roadmap=roadmap, frames=frames, seeds_node=p.seeds,
                            roadmap_frame=int(p.roadmapFrame), method=p.method, segmenter=p.segmenter,
                            force=bool(p.force), outputs=outputs,
-                           track_motion=bool(getattr(p, "trackMotion", False)))
+                           track_motion=bool(getattr(p, "trackMotion", False)), roadmap_b=roadmap_b, frames_b=frames_b)
         p.registrationTransform = out.transform
         p.metricsTable = out.table
         p.vesselModel = out.vessel_model
@@ -741,8 +820,11 @@ class GuidewireReconstructionCoreLogic:
             return "No result yet."
         reg = self.registration
         ok = sum(1 for w in self.wires3d if w.success)
-        return (f"Registration {reg.verdict.label} ({float(reg.mean_residual_px):.2f} px); "
-                f"{ok}/{len(self.wires3d)} frames reconstructed.")
+        line = (f"Registration {reg.verdict.label} ({float(reg.mean_residual_px):.2f} px); "
+                f"{ok}/{len(self.wires3d)} frames reconstructed")
+        if self.biplane is not None:
+            line += f" ({sum(1 for p in self.pairs if p.views == 'AB')} from both planes)"
+        return line + "."
 
     def set_transform_interaction(self, visible: bool, *, transform_node=None) -> None:
         """Show or hide Slicer's interaction handles on the registration transform (moves the C-arm)."""
@@ -814,6 +896,28 @@ class GuidewireReconstructionCoreLogic:
         o.roadmap_points_model.GetDisplayNode().SetPointSize(3.0)
         o.roadmap_points_model.SetAndObserveTransformNodeID(o.transform.GetID())
 
+    def _write_plane_b_outputs(self) -> None:
+        """Plane B's C-arm and its roadmap centerline on its detector (children of the registration
+        transform, like plane A's); removed when the last run had one plane."""
+        o, b = self.outputs, self.biplane
+        if b is None:
+            for name in ("carm_b_model", "roadmap_b_points_model"):
+                node = getattr(o, name)
+                if node is not None and self.scene.GetNodeByID(node.GetID()) is node:
+                    self.scene.RemoveNode(node)
+                setattr(o, name, None)
+            return
+        o.carm_b_model = self._model(o.carm_b_model, "GW C-arm plane B", "carm_b", _carm_polydata_room_ras(b.carm_b),
+                                     color=(0.4, 0.8, 1.0))
+        uv = np.asarray(b.centerline2d_b.points_uv_px, dtype=float)
+        o.roadmap_b_points_model = self._model(o.roadmap_b_points_model, "GW roadmap centerline plane B (detector)",
+                                               "roadmap_b",
+                                               _points_polydata(lps_to_ras(detector_points_room_lps_mm(uv, b.carm_b))),
+                                               color=(0.4, 0.8, 1.0))
+        o.roadmap_b_points_model.GetDisplayNode().SetPointSize(3.0)
+        for node in (o.carm_b_model, o.roadmap_b_points_model):
+            node.SetAndObserveTransformNodeID(o.transform.GetID())
+
     def _write_registration_outputs(self, *, source: str = "automatic") -> None:
         """The pose into the transform node; quality figures and ``Source`` (automatic | refined) as attributes."""
         reg, node = self.registration, self.outputs.transform
@@ -879,7 +983,20 @@ class GuidewireReconstructionCoreLogic:
             ("reconstruction_seconds", "float", [float(w.seconds) for w in ws]),  # 3D step of the shown wire
             ("verdict", "str", [_frame_verdict(self.frame_results, i, w) for i, w in enumerate(ws)]),
             ("message", "str", [_frame_message(self.frame_results, i, w) for i, w in enumerate(ws)]),
-        ])
+        ] + (self._biplane_columns(len(ws)) if self.biplane is not None else []))
+
+    def _biplane_columns(self, n: int) -> list:
+        """The metrics table's per-plane columns of a biplane run: plane B's frame, which planes made
+        the wire, the 3D wire's projection error in each plane (NaN where not measured)."""
+        pairs = self.pairs if len(self.pairs) == n else [None] * n
+        return [
+            ("frame_b", "int", [int(p.index_b) if p is not None else -1 for p in pairs]),
+            ("views", "str", [p.views if p is not None else "" for p in pairs]),
+            ("projection_error_px_a", "float", [float(p.projection_error_px[0]) if p is not None else float("nan")
+                                                for p in pairs]),
+            ("projection_error_px_b", "float", [float(p.projection_error_px[1]) if p is not None else float("nan")
+                                                for p in pairs]),
+        ]
 
     def _browser_for(self, sequence_node):
         for i in range(self.scene.GetNumberOfNodesByClass("vtkMRMLSequenceBrowserNode")):
@@ -999,7 +1116,7 @@ class GuidewireReconstructionCoreLogic:
         written = []
         o = self.outputs
         plan = [(o.vessel_model, "stl"), (o.carm_model, "vtk"), (o.roadmap_points_model, "vtk"), (o.transform, "h5"),
-                (o.table, "tsv")]
+                (o.table, "tsv"), (o.carm_b_model, "vtk"), (o.roadmap_b_points_model, "vtk")]
         plan += [(n, "mrk.json") for n in o.centerline_curves + o.wire_curves]
         plan += [(n, "vtk") for n in o.wire_models]
         for node, ext in plan:
