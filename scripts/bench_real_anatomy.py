@@ -35,7 +35,8 @@ the same registration started with the isocentre at the centroid of the tree's i
 start the product cannot know: a diagnostic of the capture range): start mTRE, then verdict and mTRE; ``wire``/``tip``
 the 3D mean and tip errors (mm, median over the frames with a 3D wire) against the in-image part
 of the true wire, ``wire_tp`` the same reconstructed in the true pose (isolates the 2D wire and the
-3D reconstruction from the registration); ``frames`` frames with a 3D wire; diagnostics:
+3D reconstruction from the registration); ``frames`` frames with a 3D wire; diagnostics: ``wire2d_tp`` the fraction of the in-image true
+wire's projection within 3 px of the 2D wire the session found (median over the frames);
 ``tree3`` the fraction of the in-image true wire within 3 mm of the extracted 3D centerline,
 ``cl2d`` the fraction of the 2D centerline points within 5 px of the projected reference (label)
 centerline and ``cov2d`` the fraction of the in-image projected reference centerline within 5 px
@@ -229,8 +230,13 @@ def run_pose(k, rng, wires, tree, iodine, mu_ct, vol, ref_lps, log):
         sess = Session(tree, carm, use_pose, registration_covariance=cov)
         sess.warm_up(frames[0])
         errs, tips, secs = [], [], []
+        cover = []
         for fr, tw in zip(sess.run(frames), true_wires):
             secs.append(fr.seconds)
+            # 2D diagnostic: the in-image true wire's projection covered by the 2D wire found (3 px)
+            tuv = carm.project(metrics.resample_polyline(visible_part(carm, pose, tw), 0.5), pose)
+            w2 = np.asarray(fr.wire2d, float).reshape(-1, 2) if fr.wire2d is not None else np.zeros((0, 2))
+            cover.append(float(np.mean(cKDTree(w2).query(tuv)[0] <= 3.0)) if len(w2) and len(tuv) else 0.0)
             if not fr:
                 continue
             tru = visible_part(carm, pose, tw)
@@ -242,6 +248,7 @@ def run_pose(k, rng, wires, tree, iodine, mu_ct, vol, ref_lps, log):
         row["wire" + key] = float(np.median(errs)) if errs else float("nan")
         row["tip" + key] = float(np.median(tips)) if tips else float("nan")
         row["frames" + key] = len(errs)
+        row["wire2d" + key] = float(np.median(cover))
         if key == "":
             row["t_fr"] = float(np.mean(secs))
             row["wire_all"] = errs
@@ -277,7 +284,7 @@ def main(argv=None):
     rng = np.random.default_rng(a.seed)
     rows = []
     cols = ["pose", "target", "primary", "secondary", "reg_ok", "mtre_view", "mtre_all", "start", "lm_true", "vc_start", "vc",
-            "wire", "tip", "frames", "wire_tp", "tip_tp", "frames_tp", "tree3", "cl2d", "cov2d", "t_cl", "t_reg", "t_fr"]
+            "wire", "tip", "frames", "wire_tp", "tip_tp", "frames_tp", "wire2d_tp", "tree3", "cl2d", "cov2d", "t_cl", "t_reg", "t_fr"]
     print("| " + " | ".join(cols) + " |")
     print("|" + "---|" * len(cols))
     for k in range(a.poses):
