@@ -50,7 +50,7 @@ from guidewire3d.errors import InputError
 from guidewire3d.methods import SegMethod
 from guidewire3d.xray.orderedwire import ordered_wire
 from guidewire3d.xray.imaging import grey
-from guidewire3d.xray.unet import unet_class
+from guidewire3d.xray.unet import load_weights_into, read_weights, unet_class
 from guidewire3d.xray.wiremask import check_radius_px, model_wire_mask
 
 __all__ = [
@@ -282,15 +282,6 @@ def save_unet(model, path, *, config: UNetConfig | None = None, extra_metadata: 
     return path
 
 
-def _read_safetensors(path: Path):
-    from safetensors import safe_open
-
-    with safe_open(str(path), framework="pt") as f:
-        meta = f.metadata() or {}
-        tensors = {k: f.get_tensor(k) for k in f.keys()}
-    return tensors, meta
-
-
 def load_unet(path=None):
     """Load the UNet from a safetensors file (no pickle), in eval mode.
 
@@ -306,22 +297,9 @@ def load_unet(path=None):
         and ``metadata`` holds the file's metadata (training recipe, validation scores).
     """
     path = Path(DEFAULT_WEIGHTS_PATH if path is None else path)
-    if not path.is_file():
-        raise InputError(f"{path}: UNet weights file not found")
-    try:
-        tensors, meta = _read_safetensors(path)
-    except Exception as err:  # safetensors raises its own error types
-        raise InputError(f"{path}: not a readable safetensors file ({err})") from None
+    tensors, meta = read_weights(path, "UNet")
     config = UNetConfig.from_metadata(meta)
-    model = build_unet(config)
-    missing, unexpected = model.load_state_dict(tensors, strict=False)
-    missing = [k for k in missing if not k.endswith("num_batches_tracked")]
-    if missing or unexpected:
-        raise InputError(f"{path}: weights do not match the UNet config {config} "
-                         f"(missing {missing[:3]}, unexpected {list(unexpected)[:3]})")
-    model.eval()
-    model.metadata = dict(meta)
-    return model
+    return load_weights_into(build_unet(config), tensors, meta, path, config)
 
 
 # --------------------------------------------------------------------------------------------------

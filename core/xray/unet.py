@@ -6,6 +6,10 @@ through onnxruntime and never needs it).
 """
 from __future__ import annotations
 
+from pathlib import Path
+
+from guidewire3d.errors import InputError
+
 __all__ = ["unet_class"]
 
 _CLASS = None
@@ -63,3 +67,33 @@ def unet_class():
 
     _CLASS = UNet
     return UNet
+
+
+def read_weights(path, what: str = "UNet") -> tuple[dict, dict]:
+    """The tensors and metadata of a safetensors weights file (no pickle); ``what`` names the network
+    in the errors. Raises InputError for a missing or unreadable file."""
+    from safetensors import safe_open
+
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"{path}: {what} weights file not found")
+    try:
+        with safe_open(str(path), framework="pt") as f:
+            meta = dict(f.metadata() or {})
+            tensors = {k: f.get_tensor(k) for k in f.keys()}
+    except Exception as err:  # safetensors raises its own error types
+        raise InputError(f"{path}: not a readable safetensors file ({err})") from None
+    return tensors, meta
+
+
+def load_weights_into(model, tensors: dict, meta: dict, path, arch) -> object:
+    """Load ``tensors`` into ``model`` (the running statistics' counters may be absent), set eval
+    mode and ``model.metadata``; InputError naming ``path`` when they do not match ``arch``."""
+    missing, unexpected = model.load_state_dict(tensors, strict=False)
+    missing = [k for k in missing if not k.endswith("num_batches_tracked")]
+    if missing or unexpected:
+        raise InputError(f"{path}: weights do not match the architecture {arch} "
+                         f"(missing {missing[:3]}, unexpected {list(unexpected)[:3]})")
+    model.eval()
+    model.metadata = dict(meta)
+    return model

@@ -42,7 +42,7 @@ import numpy as np
 from guidewire3d.assets import resource_path
 from guidewire3d.errors import InputError
 from guidewire3d.xray import imaging
-from guidewire3d.xray.unet import unet_class
+from guidewire3d.xray.unet import load_weights_into, read_weights, unet_class
 
 __all__ = [
     "DEFAULT_WEIGHTS_PATH",
@@ -249,17 +249,8 @@ def load_vessel_unet(path=None):
     InputError
         Missing or unreadable file, or weights that do not match the recorded architecture.
     """
-    from safetensors import safe_open
-
     path = Path(DEFAULT_WEIGHTS_PATH if path is None else path)
-    if not path.is_file():
-        raise InputError(f"{path}: vessel UNet weights file not found")
-    try:
-        with safe_open(str(path), framework="pt") as f:
-            meta = dict(f.metadata() or {})
-            tensors = {k: f.get_tensor(k) for k in f.keys()}
-    except Exception as err:  # safetensors raises its own error types
-        raise InputError(f"{path}: not a readable safetensors file ({err})") from None
+    tensors, meta = read_weights(path, "vessel UNet")
     if meta.get("format") != FORMAT_TAG:
         raise InputError(f"{path}: not a vessel UNet file (format {meta.get('format')!r})")
     try:
@@ -271,14 +262,7 @@ def load_vessel_unet(path=None):
     config = VesselUNetConfig.from_metadata(meta)
     model = (build_vessel_unet(config) if n_members == 1
              else build_vessel_ensemble([build_vessel_unet(config) for _ in range(n_members)]))
-    missing, unexpected = model.load_state_dict(tensors, strict=False)
-    missing = [k for k in missing if not k.endswith("num_batches_tracked")]
-    if missing or unexpected:
-        raise InputError(f"{path}: weights do not match the architecture {model.config} "
-                         f"(missing {missing[:3]}, unexpected {list(unexpected)[:3]})")
-    model.eval()
-    model.metadata = meta
-    return model
+    return load_weights_into(model, tensors, meta, path, model.config)
 
 
 _MODELS: dict[str, object] = {}
