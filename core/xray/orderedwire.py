@@ -194,6 +194,14 @@ def _away_tangent(p: np.ndarray, end: int, centre: np.ndarray) -> np.ndarray:
     return t / n if n > 0 else np.zeros(2)
 
 
+def _find_root(parent: list, x: int) -> int:
+    """Root of ``x`` in the union-find forest ``parent`` (a list, compressed in place by path halving)."""
+    while parent[x] != x:
+        parent[x] = parent[parent[x]]
+        x = parent[x]
+    return x
+
+
 def _traces(g, rr, cc, lab, comp_ids, merge_px: float):
     """Good-continuation traces of the skeleton pieces that contain junctions.
 
@@ -224,12 +232,6 @@ def _traces(g, rr, cc, lab, comp_ids, merge_px: float):
     pts = np.column_stack([rr, cc]).astype(float)
     parent = list(range(ncl))
 
-    def find(x):
-        while parent[x] != x:
-            parent[x] = parent[parent[x]]
-            x = parent[x]
-        return x
-
     branches = []                                   # (points, length, [cluster at end 0, end 1], comp)
     for k in range(nbr):
         nodes = bidx[ordr[bounds[k]:bounds[k + 1]]]
@@ -249,11 +251,11 @@ def _traces(g, rr, cc, lab, comp_ids, merge_px: float):
     for b in branches:                              # merge split crossings
         c0, c1 = b[2]
         if c0 >= 0 and c1 >= 0 and c0 != c1 and b[1] < merge_px:
-            parent[find(c0)] = find(c1)
+            parent[_find_root(parent, c0)] = _find_root(parent, c1)
             b.append(True)                          # internal to a merged junction
     cpos_sum = np.zeros((ncl, 2))
     cpos_n = np.zeros(ncl)
-    root = np.array([find(c) for c in range(ncl)])
+    root = np.array([_find_root(parent, c) for c in range(ncl)])
     np.add.at(cpos_sum, root[cl], pts[jidx])
     np.add.at(cpos_n, root[cl], 1.0)
     cpos = cpos_sum / np.maximum(cpos_n, 1.0)[:, None]
@@ -369,18 +371,12 @@ def _bridge(paths, max_gap_px: float):
     used = np.zeros(len(ends), bool)
     parent = list(range(n))
 
-    def find(x):
-        while parent[x] != x:
-            parent[x] = parent[parent[x]]
-            x = parent[x]
-        return x
-
     link = {}
     for k in order:
         i, j = ii[k], jj[k]
         if used[i] or used[j]:
             continue
-        ri, rj = find(piece[i]), find(piece[j])
+        ri, rj = _find_root(parent, piece[i]), _find_root(parent, piece[j])
         if ri == rj:
             continue
         parent[ri] = rj
