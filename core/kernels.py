@@ -17,7 +17,7 @@ import warnings
 
 import numpy as np
 
-__all__ = ["viterbi_forward", "viterbi_backward", "sample_bilinear", "warm_up"]
+__all__ = ["viterbi_forward", "viterbi_backward", "sample_bilinear", "cover_cells", "warm_up"]
 
 _LOCK = threading.Lock()
 #: image dtypes sampled as they are (one compiled specialisation each); others are converted to float64
@@ -121,8 +121,102 @@ def _compile():
                 out[k] = t
             return out
 
+        @jit
+        def cover_cells(cells, g, c2, call_cost):
+            nh, nw = cells.shape
+            out = np.empty((nh * nw + 1, 4), np.int64)
+            stack = np.empty((nh * nw + 2, 4), np.int64)
+            n_out = 0
+            b0, b1, a0, a1 = nh, 0, nw, 0
+            for i in range(nh):
+                for j in range(nw):
+                    if cells[i, j]:
+                        b0 = min(b0, i)
+                        b1 = max(b1, i + 1)
+                        a0 = min(a0, j)
+                        a1 = max(a1, j + 1)
+            if b1 == 0:
+                return out[:0]
+            stack[0, 0], stack[0, 1], stack[0, 2], stack[0, 3] = b0, b1, a0, a1
+            ns = 1
+            n_max = max(nh, nw)
+            lo = np.empty(n_max, np.int64)      # per line (row or column): first occupied cell
+            hi = np.empty(n_max, np.int64)      # ... and last (lo > hi: an empty line)
+            s_lo = np.empty(n_max, np.int64)    # suffix minima / maxima / first occupied line
+            s_hi = np.empty(n_max, np.int64)
+            s_first = np.empty(n_max, np.int64)
+            best_box = np.empty((2, 2, 4), np.int64)    # [axis][part] -> fitted child (i0, i1, j0, j1)
+            for _ in range(4 * nh * nw + 4):
+                if ns == 0:
+                    break
+                ns -= 1
+                i0, i1, j0, j1 = stack[ns, 0], stack[ns, 1], stack[ns, 2], stack[ns, 3]
+                here = ((i1 - i0) * g + c2) * ((j1 - j0) * g + c2) + call_cost
+                best = np.array([here + 1, here + 1])
+                for axis in range(2):
+                    # lines along the cut axis: rows (axis 0) or columns (axis 1) of the box
+                    L0, L1 = (i0, i1) if axis == 0 else (j0, j1)
+                    M0, M1 = (j0, j1) if axis == 0 else (i0, i1)
+                    n = L1 - L0
+                    if n < 2:
+                        continue
+                    for t in range(n):
+                        f, l = M1, M0 - 1
+                        for m in range(M0, M1):
+                            v = cells[L0 + t, m] if axis == 0 else cells[m, L0 + t]
+                            if v:
+                                if f == M1:
+                                    f = m
+                                l = m
+                        lo[t], hi[t] = f, l
+                    cur_lo, cur_hi, cur_first = M1, M0 - 1, n
+                    for t in range(n - 1, -1, -1):
+                        cur_lo = min(cur_lo, lo[t])
+                        cur_hi = max(cur_hi, hi[t])
+                        if lo[t] <= hi[t]:
+                            cur_first = t
+                        s_lo[t], s_hi[t], s_first[t] = cur_lo, cur_hi, cur_first
+                    p_lo, p_hi, p_last = M1, M0 - 1, -1
+                    for k in range(1, n):
+                        t = k - 1
+                        p_lo = min(p_lo, lo[t])
+                        p_hi = max(p_hi, hi[t])
+                        if lo[t] <= hi[t]:
+                            p_last = t
+                        top = ((p_last + 1) * g + c2) * ((p_hi - p_lo + 1) * g + c2) + call_cost
+                        cost = top
+                        if s_first[k] < n:
+                            cost += ((n - s_first[k]) * g + c2) * ((s_hi[k] - s_lo[k] + 1) * g + c2) + call_cost
+                        if cost < best[axis]:
+                            best[axis] = cost
+                            if axis == 0:
+                                best_box[0, 0, 0], best_box[0, 0, 1] = L0, L0 + p_last + 1
+                                best_box[0, 0, 2], best_box[0, 0, 3] = p_lo, p_hi + 1
+                                best_box[0, 1, 0], best_box[0, 1, 1] = L0 + s_first[k], L1
+                                best_box[0, 1, 2], best_box[0, 1, 3] = s_lo[k], s_hi[k] + 1
+                            else:
+                                best_box[1, 0, 0], best_box[1, 0, 1] = p_lo, p_hi + 1
+                                best_box[1, 0, 2], best_box[1, 0, 3] = L0, L0 + p_last + 1
+                                best_box[1, 1, 0], best_box[1, 1, 1] = s_lo[k], s_hi[k] + 1
+                                best_box[1, 1, 2], best_box[1, 1, 3] = L0 + s_first[k], L1
+                            best_box[axis, 1, 0] = best_box[axis, 1, 0] if s_first[k] < n else -1
+                if best[0] < here and best[0] <= best[1]:
+                    axis = 0
+                elif best[1] < here:
+                    axis = 1
+                else:
+                    out[n_out, 0], out[n_out, 1], out[n_out, 2], out[n_out, 3] = i0, i1, j0, j1
+                    n_out += 1
+                    continue
+                for part in range(2):
+                    if best_box[axis, part, 0] >= 0:
+                        for q in range(4):
+                            stack[ns, q] = best_box[axis, part, q]
+                        ns += 1
+            return out[:n_out]
+
         _COMPILED.update(viterbi_forward=viterbi_forward, viterbi_backward=viterbi_backward,
-                         sample_bilinear=sample_bilinear)
+                         sample_bilinear=sample_bilinear, cover_cells=cover_cells)
         return _COMPILED
 
 
@@ -182,6 +276,19 @@ def sample_bilinear(image: np.ndarray, rows, cols, *, mode: str = "nearest", cva
     return out.reshape(shape)
 
 
+def cover_cells(cells: np.ndarray, cell_px: int, context_px: int, call_cost_px: int) -> np.ndarray:
+    """Boxes ``(i0, i1, j0, j1)`` (cells, end-exclusive; an (n, 4) int64 array) covering every True
+    cell of ``cells`` at a low network cost; see :func:`guidewire3d.xray.segmentation.cover_boxes`.
+
+    From the bounding box of the True cells, a box is split in two (across its rows, or across its
+    columns: the cheaper; rows on a tie), each part shrunk to the cells it holds, at the cut that
+    lowers ``sum((h cell_px + 2 context_px)(w cell_px + 2 context_px) + call_cost_px)`` most, and
+    recursively, until no cut lowers it.
+    """
+    f = _compile()["cover_cells"]
+    return f(np.ascontiguousarray(cells, np.bool_), int(cell_px), 2 * int(context_px), int(call_cost_px))
+
+
 def warm_up() -> None:
     """Compile (or load from the disk cache) every kernel on tiny inputs: the first live frame then
     pays no compilation."""
@@ -193,3 +300,4 @@ def warm_up() -> None:
         viterbi_backward(C, U, 2)
         for dt in _WARM:  # the masks and the usual frame dtypes (others compile on first use)
             sample_bilinear(np.zeros((3, 3), dt), [0.5], [0.5], mode="nearest")
+        cover_cells(np.eye(3, dtype=bool), 8, 8, 2000)

@@ -80,3 +80,58 @@ def test_viterbi_kernels_equal_the_numpy_recursions(seed):
     np.testing.assert_array_equal(b2, back)
     assert (int(t2), int(k2), float(c2)) == (end_t, end_k, end_cost)
     np.testing.assert_array_equal(kernels.viterbi_backward(C, U, end_t), beta)
+
+
+def _cover_cells_reference(cells, g, c, call):
+    """The recursive bisection of kernels.cover_cells written plainly (numpy per cut)."""
+    def fit(i0, i1, j0, j1):
+        sub = cells[i0:i1, j0:j1]
+        rows = np.flatnonzero(sub.any(axis=1))
+        if rows.size == 0:
+            return None
+        cols = np.flatnonzero(sub.any(axis=0))
+        return (i0 + rows[0], i0 + rows[-1] + 1, j0 + cols[0], j0 + cols[-1] + 1)
+
+    def cost(b):
+        return 0 if b is None else ((b[1] - b[0]) * g + 2 * c) * ((b[3] - b[2]) * g + 2 * c) + call
+
+    out, todo = [], [fit(0, cells.shape[0], 0, cells.shape[1])]
+    while todo:
+        b = todo.pop()
+        if b is None:
+            continue
+        i0, i1, j0, j1 = b
+        rows = min(((cost(fit(i0, k, j0, j1)) + cost(fit(k, i1, j0, j1)), k) for k in range(i0 + 1, i1)), default=None)
+        cols = min(((cost(fit(i0, i1, j0, k)) + cost(fit(i0, i1, k, j1)), k) for k in range(j0 + 1, j1)), default=None)
+        if rows is not None and rows[0] < cost(b) and (cols is None or rows[0] <= cols[0]):
+            todo += [fit(i0, rows[1], j0, j1), fit(rows[1], i1, j0, j1)]
+        elif cols is not None and cols[0] < cost(b):
+            todo += [fit(i0, i1, j0, cols[1]), fit(i0, i1, cols[1], j1)]
+        else:
+            out.append(tuple(int(x) for x in b))
+    return out
+
+
+@pytest.mark.parametrize("seed", range(12))
+def test_cover_cells_is_the_plain_bisection_and_covers_every_cell(seed):
+    rng = np.random.default_rng(seed)
+    n = int(rng.integers(1, 40))
+    cells = np.zeros((n, int(rng.integers(1, 40))), bool)
+    # a random walk (a wire's band) plus a few isolated cells
+    i, j = rng.integers(0, cells.shape[0]), rng.integers(0, cells.shape[1])
+    for _ in range(int(rng.integers(1, 80))):
+        cells[i, j] = True
+        i = int(np.clip(i + rng.integers(-1, 2), 0, cells.shape[0] - 1))
+        j = int(np.clip(j + rng.integers(-1, 2), 0, cells.shape[1] - 1))
+    cells[rng.integers(0, cells.shape[0], 3), rng.integers(0, cells.shape[1], 3)] = True
+    got = [tuple(int(x) for x in b) for b in kernels.cover_cells(cells, 8, 8, 2000)]
+    assert sorted(got) == sorted(_cover_cells_reference(cells, 8, 8, 2000))
+    covered = np.zeros_like(cells)
+    for i0, i1, j0, j1 in got:
+        assert cells[i0:i1, j0:j1].any()
+        covered[i0:i1, j0:j1] = True
+    assert not (cells & ~covered).any()
+
+
+def test_cover_cells_of_an_empty_grid_is_empty():
+    assert kernels.cover_cells(np.zeros((5, 7), bool), 8, 8, 2000).shape == (0, 4)

@@ -105,9 +105,9 @@ def test_roi_tracking_matches_full_frame(cases, method):
     assert seg.last_mode == "full"
 
 
-def test_roi_tracking_grows_the_strips_when_the_wire_moved_beyond_them():
+def test_roi_tracking_grows_the_boxes_when_the_wire_moved_beyond_them():
     """In a sequence whose wire advances tens of px per frame (6 frames over the whole insertion),
-    the wire leaves the 24 px strips; the grown strips find it without a full-frame pass, and
+    the wire leaves the 24 px boxes; the grown boxes find it without a full-frame pass, and
     every tracked mask equals the full-frame one."""
     sim = simulate(PhantomOptions(seed=GROW_SEED, n_frames=6, wire_diameter_mm=0.36), make_ct=False)
     seg = GuidewireSegmenter(method="unet", roi_margin_px=24)
