@@ -135,3 +135,39 @@ def test_cover_cells_is_the_plain_bisection_and_covers_every_cell(seed):
 
 def test_cover_cells_of_an_empty_grid_is_empty():
     assert kernels.cover_cells(np.zeros((5, 7), bool), 8, 8, 2000).shape == (0, 4)
+
+
+def _frangi_reference(F, idx, sp, s, alpha=0.5, beta=0.5, gamma=0.15):
+    """The numpy formulation kernels.frangi_at replaced (derivs_at, LAPACK eigvalsh, Frangi's formula)."""
+    from guidewire3d.cta.grid import derivs_at
+
+    _, H = derivs_at(F, idx, sp)
+    lam = np.linalg.eigvalsh(H * (s * s))
+    lam = np.take_along_axis(lam, np.argsort(np.abs(lam), axis=1), axis=1)
+    l1, l2, l3 = lam[:, 0], lam[:, 1], lam[:, 2]
+    ra = np.abs(l2) / np.maximum(np.abs(l3), 1e-12)
+    rb = np.abs(l1) / np.sqrt(np.maximum(np.abs(l2 * l3), 1e-24))
+    S2 = l1 * l1 + l2 * l2 + l3 * l3
+    v = (1 - np.exp(-ra * ra / (2 * alpha ** 2))) * np.exp(-rb * rb / (2 * beta ** 2)) * (1 - np.exp(-S2 / (2 * gamma ** 2)))
+    return np.where((l2 < 0) & (l3 < 0), v, 0.0).astype(np.float32)
+
+
+def test_frangi_at_is_the_numpy_formulation():
+    """On a smoothed bright tube and noise: the same vesselness within float32 rounding, at the
+    tube's axis high and in the background 0; and diagonal (p1 = 0) Hessians handled."""
+    rng = np.random.default_rng(3)
+    z, y, x = np.mgrid[0:30, 0:40, 0:50].astype(float)
+    tube = np.exp(-((y - 20.0) ** 2 + (z - 15.0) ** 2) / (2 * 2.5 ** 2))          # along x
+    F = ndi.gaussian_filter(tube + 0.05 * rng.standard_normal(tube.shape), 1.0).astype(np.float32)
+    sp = np.array([1.2, 0.7, 0.7])
+    idx = np.argwhere(np.ones(F.shape, bool)[1:-1, 1:-1, 1:-1]) + 1
+    for s in (0.8, 2.0, 4.0):
+        got = kernels.frangi_at(F, idx, sp, s, alpha=0.5, beta=0.5, gamma=0.15)
+        ref = _frangi_reference(F, idx, sp, s)
+        assert got.dtype == np.float32
+        np.testing.assert_allclose(got, ref, rtol=0, atol=1e-6)
+    on_axis, far = kernels.frangi_at(F, np.array([[15, 20, 25], [15, 3, 25]]), sp, 2.0, alpha=0.5, beta=0.5, gamma=0.15)
+    assert on_axis > 0.1 and far < 0.01 * on_axis
+    flat = np.zeros((5, 5, 5), np.float32)
+    flat[2, 2, 2] = -1.0          # a dark point: diagonal Hessian, positive eigenvalues
+    assert kernels.frangi_at(flat, np.array([[2, 2, 2]]), np.ones(3), 1.0, alpha=0.5, beta=0.5, gamma=0.15)[0] == 0.0

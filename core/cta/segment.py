@@ -10,8 +10,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from guidewire3d import io
-from guidewire3d.cta.grid import affine_zyx, bbox, derivs_at, progress_bar, seeds_to_index
+from guidewire3d import io, kernels
+from guidewire3d.cta.grid import affine_zyx, bbox, edt_mm, progress_bar, seeds_to_index
 from guidewire3d.errors import InputError, SegmentationError
 from scipy import ndimage as ndi
 
@@ -53,7 +53,7 @@ def _ball_dilate(mask, radius_mm: float, spacing_zyx) -> np.ndarray:
         return mask.copy()
     sl = bbox(mask, pad=int(np.ceil(radius_mm / min(spacing_zyx))) + 1)
     out = np.zeros_like(mask)
-    out[sl] = ndi.distance_transform_edt(~mask[sl], sampling=spacing_zyx) <= radius_mm
+    out[sl] = edt_mm(~mask[sl], spacing_zyx) <= radius_mm
     return out
 
 
@@ -85,18 +85,10 @@ def frangi_at(img_zyx: np.ndarray, idx_zyx: np.ndarray, spacing_zyx, scales_mm, 
     best = np.zeros(len(idx), np.int64)
     for k_s, s in enumerate(scales_mm):
         sm = sitk.GetArrayFromImage(sitk.SmoothingRecursiveGaussian(im, sigma=float(s)))
-        _, H = derivs_at(sm, idx[inner], sp)
+        # Hessian (derivs_at's stencils) x s^2, its eigenvalues sorted by magnitude, Frangi's formula:
+        # one compiled pass (kernels.frangi_at; was numpy's eigvalsh, argsort and a dozen array passes)
+        v = kernels.frangi_at(sm, idx[inner], sp, float(s), alpha=alpha, beta=beta, gamma=gamma)
         del sm
-        lam = np.linalg.eigvalsh(H * (s * s))
-        order = np.argsort(np.abs(lam), axis=1)
-        lam = np.take_along_axis(lam, order, axis=1)  # |l1| <= |l2| <= |l3|
-        l1, l2, l3 = lam[:, 0], lam[:, 1], lam[:, 2]
-        ok = (l2 < 0) & (l3 < 0)
-        ra = np.abs(l2) / np.maximum(np.abs(l3), 1e-12)
-        rb = np.abs(l1) / np.sqrt(np.maximum(np.abs(l2 * l3), 1e-24))
-        S2 = l1 * l1 + l2 * l2 + l3 * l3
-        v = (1 - np.exp(-ra * ra / (2 * alpha ** 2))) * np.exp(-rb * rb / (2 * beta ** 2)) * (1 - np.exp(-S2 / (2 * gamma ** 2)))
-        v = np.where(ok, v, 0.0).astype(np.float32)
         if return_scale:
             better = np.zeros(len(idx), bool)
             better[inner] = v > out[inner]
@@ -234,10 +226,10 @@ def segment_vessels(volume: io.Volume, *, seeds_lps_mm=None, progress: bool = Fa
     # blobs: cut off regions thicker than the widest vessel (opening by a ball of that radius)
     ccrop = bbox(cand, pad=2)
     c2 = cand[ccrop]
-    edt = ndi.distance_transform_edt(c2, sampling=sp_zyx)
+    edt = edt_mm(c2, sp_zyx)
     thick = edt > opt.max_vessel_radius_mm
     if thick.any():
-        blob = ndi.distance_transform_edt(~thick, sampling=sp_zyx) <= opt.max_vessel_radius_mm + sp_zyx.max()
+        blob = edt_mm(~thick, sp_zyx) <= opt.max_vessel_radius_mm + sp_zyx.max()
         c2 = c2 & ~blob
         cand[ccrop] = c2
     del edt, thick
