@@ -215,7 +215,7 @@ def test_plane_b_stops_and_plane_a_goes_on_alone(bsetup, bframes, bcase_dir):
 
 
 def test_a_bad_frame_in_one_plane_leaves_that_plane_out(bsetup, bframes):
-    fa, fb = bframes
+    fa = bframes[0]
     with serving(bsetup) as (server, runner, _), igtl.IGTLClient(HOST, server.port) as client:
         client.send(image_message(fa[1], 200.0, DEV_A))
         client.send(image_message(np.zeros((100, 80), np.float32), 200.0, DEV_B))
