@@ -436,7 +436,7 @@ class BiplaneSummary(LiveSummary):
         lat, what = ((self.latency_sent_s, "source time stamp -> sent") if self.latency_sent_s
                      else (self.latency_processed_s, "source time stamp -> published, no client"))
         s = (f"{self.processed} pairs processed ({self.two_view} from both planes, {self.one_view['A']} from plane A "
-             f"alone, {self.one_view['B']} from plane B alone; {self.ok} ok, {self.uncertain} uncertain, "
+             f"only, {self.one_view['B']} from plane B only; {self.ok} ok, {self.uncertain} uncertain, "
              f"{self.failed} failed) in {self.seconds:.1f} s; "
              + "; ".join(f"plane {p}: {self.planes_in[p]} frames in, {self.planes_dropped[p]} dropped"
                          + (f", {self.alone[p]} processed without the other plane" if self.alone[p] else "")
