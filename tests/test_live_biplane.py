@@ -280,6 +280,17 @@ def test_pairs_are_the_newest_within_the_tolerance_and_stale_frames_are_counted_
     assert t.take(0).complete
 
 
+def test_senders_without_time_stamps_still_pair_the_newest_frames():
+    """Every frame stamped 0 (a sender that does not stamp): the newest frame of each plane pair."""
+    m = sources.PairedFrames(clock=_Clock())
+    for k in range(3):
+        m.put("A", _f(0.0, f"a{k}"))
+        m.put("B", _f(0.0, f"b{k}"))
+    pair = m.take(0)
+    assert (pair.a.source, pair.b.source) == ("a2", "b2") and m.n_dropped == {"A": 2, "B": 2}
+    _conserved(m)
+
+
 def test_a_silent_plane_does_not_stall_the_other_and_nothing_queues():
     clock = _Clock()
     m = sources.PairedFrames(timeout_s=0.5, keep=4, clock=clock)

@@ -313,9 +313,9 @@ class PairedFrames:
       if within ``tolerance_s`` (default: half the frame period, measured as the median interval of
       each plane's recent time stamps, the longer of the two planes'; ``DEFAULT_PERIOD_S`` until a
       plane has two frames). :meth:`take` hands out the pair with the newest plane-A frame.
-    * **Stale frames**: when a pair is handed out, each plane's frames older than its own frame of the
-      pair are dropped and counted per plane (``n_dropped``); when a lone frame is, its plane's older
-      frames and the other plane's frames older than it by more than the tolerance. Each plane keeps at most ``keep`` frames (the oldest is dropped and
+    * **Stale frames**: when a pair is handed out, each plane's frames that came before its own frame
+      of the pair are dropped and counted per plane (``n_dropped``); when a lone frame is, its plane's
+      older frames and the other plane's frames older than it by more than the tolerance. Each plane keeps at most ``keep`` frames (the oldest is dropped and
       counted when a newer one arrives): nothing queues without bound.
     * **A silent plane**: when one plane sent nothing for ``timeout_s`` (switched off, unplugged), or no
       partner came for a plane's frames for ``timeout_s`` although both send (time stamps too far
@@ -423,13 +423,14 @@ class PairedFrames:
             for i in range(len(A) - 1, -1, -1):
                 fa = A[i][0]
                 gap = np.abs(tb - fa.timestamp)
-                j = int(np.argmin(gap))
+                j = len(gap) - 1 - int(np.argmin(gap[::-1]))  # the nearest; of equals, the newest
                 if gap[j] <= tol:
                     fb = B[j][0]
-                    del A[i]
-                    del B[j]
-                    for p, f in (("A", fa), ("B", fb)):
-                        self._drop_older(p, f.timestamp, 0.0)  # older than the pair: stale
+                    # each plane's frames that came before its frame of the pair are stale
+                    for p, n in (("A", i), ("B", j)):
+                        buf = self._buf[p]
+                        self.n_dropped[p] += n
+                        self._buf[p] = deque(list(buf)[n + 1:])
                         self._taken(p)
                     self.n_pairs += 1
                     return FramePair(fa, fb)

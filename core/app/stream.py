@@ -251,9 +251,12 @@ def warm_up(session) -> None:
 
 
 def warm_up_biplane(session) -> None:
-    """:func:`warm_up` for a ``biplane.BiplaneSession`` (both planes' segmenters)."""
+    """:func:`warm_up` for a ``biplane.BiplaneSession`` (both planes' segmenters; the heap frozen
+    the same way)."""
     rng = np.random.default_rng(0)
     session.warm_up(*(rng.normal(1000.0, 50.0, c.shape).astype(np.float32) for c in session.carms))
+    gc.collect()
+    gc.freeze()
 
 
 # --------------------------------------------------------------------------------------
