@@ -404,7 +404,7 @@ def bench_igtl(args) -> int:
         load1 = os.getloadavg()[0]
         rss = [m for _, m in r["rss"]]
         rss_first = rss[min(1, len(rss) - 1)] if rss else float("nan")  # after the network's first frames
-        name = f"{fps:g} {'pairs' if planes else 'fps'}/s, {seconds:g} s" + (
+        name = f"{fps:g} {'pairs/s' if planes else 'fps'}, {seconds:g} s" + (
             f", soak (reconnect every {reconnect:g} s: {r['reconnects']})" if reconnect else "")
         dropped = (" / ".join(str((r["planes"] or {}).get(p, {}).get("dropped")) for p in ("A", "B")) if planes
                    else f"{r['dropped']}")
