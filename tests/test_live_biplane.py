@@ -311,7 +311,7 @@ def test_a_silent_plane_does_not_stall_the_other_and_nothing_queues():
     _conserved(m)
     clock.t = 0.6
     m.put("A", _f(1.6, "a11"))
-    assert m.take(0).a.source == "a11"  # plane B still silent: at once, no new wait
+    assert m.take(0).a.source == "a11"  # plane B still left out: at once, no new wait
     # plane A silent too long: plane B goes on alone
     m.put("B", _f(2.0, "b-back"))
     clock.t = 1.2
@@ -319,6 +319,29 @@ def test_a_silent_plane_does_not_stall_the_other_and_nothing_queues():
     assert lone.a is None and lone.b.source == "b-back" and "no frame from plane A" in lone.reason
     assert lone.timestamp == 2.0
     _conserved(m)
+
+
+def test_after_a_busy_loop_a_frame_waits_for_its_partner():
+    """The loop was busy for longer than the timeout (nothing came from either plane meanwhile): the
+    next frame of one plane is not taken for a silent other plane; its partner gets the tolerance."""
+    clock = _Clock()
+    m = sources.PairedFrames(timeout_s=0.5, clock=clock)
+    m.put("A", _f(1.0, "a0"))
+    m.put("B", _f(1.0, "b0"))
+    assert m.take(0).complete
+    clock.t = 2.0  # two seconds of processing
+    m.put("B", _f(1.1, "b1"))
+    assert m.take(0) is None  # plane A "silent" for 2 s, but b1 has just come: it waits for a1
+    clock.t = 2.01
+    m.put("A", _f(1.1, "a1"))
+    pair = m.take(0)
+    assert pair.complete and (pair.a.source, pair.b.source) == ("a1", "b1")
+    m.put("B", _f(1.2, "b2"))  # a2 never comes: once plane A was silent for the timeout, b2 goes alone
+    clock.t = 2.01 + 0.5 - 1e-6
+    assert m.take(0) is None
+    clock.t = 2.01 + 0.5 + 1e-6
+    lone = m.take(0)
+    assert lone.b.source == "b2" and "no frame from plane A" in lone.reason
 
 
 def test_planes_that_never_pair_fall_back_after_the_timeout():

@@ -29,7 +29,7 @@ from guidewire3d.errors import InputError
 
 __all__ = ["Frame", "LatestFrame", "check_frame", "ReplaySource", "VideoSource", "FolderSource", "PLANES",
            "FramePair", "PairedFrames", "PairReplaySource", "DEFAULT_PERIOD_S", "DEFAULT_PLANE_TIMEOUT_S",
-           "KEEP_PER_PLANE"]
+           "KEEP_PER_PLANE", "PARTNER_WAIT_S"]
 
 PLANES = ("A", "B")
 #: the frame period assumed until a plane's time stamps show their own (15 fps)
@@ -41,6 +41,9 @@ DEFAULT_PLANE_TIMEOUT_S = 0.5
 KEEP_PER_PLANE = 8
 #: time stamps per plane over which the frame period is measured (their median interval)
 PERIOD_WINDOW = 16
+#: before a silent plane is left out, the other plane's frames wait at least this long (or the pairing
+#: tolerance, if longer) for a partner (the loop may have been busy: then nothing came from either)
+PARTNER_WAIT_S = 0.1
 
 
 @dataclass(frozen=True, eq=False)
@@ -319,7 +322,10 @@ class PairedFrames:
       counted when a newer one arrives): nothing queues without bound.
     * **A silent plane**: when one plane sent nothing for ``timeout_s`` (switched off, unplugged), or no
       partner came for a plane's frames for ``timeout_s`` although both send (time stamps too far
-      apart), that plane's newest frame is handed out alone (plane A first), with the reason.
+      apart), that plane's newest frame is handed out alone (plane A first), with the reason. Before
+      the silent plane is left out, the other's frames wait ``PARTNER_WAIT_S`` (or the tolerance) for
+      a partner (after a loop busy for longer than the timeout, the partner is on its way); while the
+      plane stays left out, the next frames go at once.
 
     ``n_in[p] = n_used[p] + n_dropped[p] + waiting(p)`` for each plane ``p``.
 
@@ -352,6 +358,7 @@ class PairedFrames:
         self._stamps = {p: deque(maxlen=PERIOD_WINDOW + 1) for p in PLANES}
         self._last_arrival = {p: now for p in PLANES}  # the start counts as an arrival
         self._waiting_since = {p: None for p in PLANES}  # arrival of the oldest frame waiting since the last take
+        self._left_out = {p: False for p in PLANES}  # the plane is left out (the other's frames go alone)
         self.n_in = {p: 0 for p in PLANES}
         self.n_dropped = {p: 0 for p in PLANES}
         self.n_used = {p: 0 for p in PLANES}
@@ -433,6 +440,7 @@ class PairedFrames:
                         self._buf[p] = deque(list(buf)[n + 1:])
                         self._taken(p)
                     self.n_pairs += 1
+                    self._left_out = {q: False for q in PLANES}
                     return FramePair(fa, fb)
         for k, p in enumerate(PLANES):
             q = PLANES[1 - k]
@@ -440,7 +448,10 @@ class PairedFrames:
                 continue
             silent = now - self._last_arrival[q]
             unpaired = now - self._waiting_since[p]
-            if silent > self.timeout_s:
+            # plane p's frames wait a little for a partner before plane q is left out (a sender that
+            # waits for each result sends nothing while the loop is busy, longer than the timeout
+            # maybe), unless plane q is left out already
+            if silent > self.timeout_s and (unpaired >= self._grace(tol) or self._left_out[q]):
                 reason = f"no frame from plane {q} for {silent:.1f} s"
             elif unpaired > self.timeout_s:
                 reason = (f"no plane {q} frame within {1000 * tol:.0f} ms of plane {p}'s for {unpaired:.1f} s "
@@ -452,14 +463,25 @@ class PairedFrames:
             self._buf[p].clear()
             self._drop_older(q, f.timestamp, tol)
             self._taken(p)
+            self._left_out[q] = True
             self.n_alone[p] += 1
             return FramePair(f, None, reason) if p == "A" else FramePair(None, f, reason)
         return None
 
+    def _grace(self, tol: float) -> float:
+        return min(self.timeout_s, max(tol, PARTNER_WAIT_S))
+
     def _next_due(self, now: float) -> float:
         """Seconds until a lone frame could become due (the plane timeout), for the wait."""
-        due = [min(self._last_arrival[PLANES[1 - k]], self._waiting_since[p]) + self.timeout_s - now
-               for k, p in enumerate(PLANES) if self._buf[p]]
+        tol = self._tolerance()
+        due = []
+        for k, p in enumerate(PLANES):
+            if self._buf[p]:
+                q = PLANES[1 - k]
+                silent_due = self._last_arrival[q] + self.timeout_s
+                if not self._left_out[q]:
+                    silent_due = max(silent_due, self._waiting_since[p] + self._grace(tol))
+                due.append(min(silent_due, self._waiting_since[p] + self.timeout_s) - now)
         return min(max(min(due), 0.001), self.timeout_s) if due else float("inf")
 
     def take(self, timeout_s: float) -> FramePair | None:
