@@ -19,6 +19,13 @@ received by a client, over OpenIGTLink on 127.0.0.1, at 15 and 30 fps input, the
 at 30 fps with client reconnects and the server's RSS sampled:
 
     nice -n 5 .venv/bin/python scripts/bench_live.py --igtl --rate-seconds 40 --soak-seconds 300
+
+``--igtl --biplane`` does the same with two planes (issues 19/23): a ``phantom --biplane`` sequence,
+the biplane ``reconstruct`` as the setup, each pair sent as two IMAGE messages (device names
+``PlaneA``, ``PlaneB``, one time stamp), latency from the pair's time stamp to its Guidewire
+POLYDATA; the drops are counted per plane (``--rates 15`` for the 15 fps pairs only):
+
+    nice -n 5 .venv/bin/python scripts/bench_live.py --igtl --biplane --rates 15 --rate-seconds 40 --soak-seconds 0
 """
 from __future__ import annotations
 
@@ -88,6 +95,8 @@ def main() -> int:
     ap.add_argument("--rate-seconds", type=float, default=40.0, help="--igtl: seconds per input rate (15, 30 fps)")
     ap.add_argument("--soak-seconds", type=float, default=300.0, help="--igtl: soak at 30 fps (0: none)")
     ap.add_argument("--reconnect-seconds", type=float, default=30.0, help="--igtl soak: the client reconnects this often")
+    ap.add_argument("--biplane", action="store_true", help="--igtl: two planes (pairs of IMAGE messages, PlaneA/PlaneB)")
+    ap.add_argument("--rates", default="15,30", help="--igtl: input rates in frames (pairs) per second, comma-separated")
     args = ap.parse_args()
     if args.igtl:
         return bench_igtl(args)
@@ -188,9 +197,12 @@ def _rss_mb(pid: int) -> float:
 
 
 def _igtl_run(out_dir, frames, *, fps: float, seconds: float, reconnect_s: float | None = None,
-              rss_every_s: float = 5.0) -> dict:
+              rss_every_s: float = 5.0, planes=None) -> dict:
     """Start `guidewire3d live --from OUT` in a process, send ``frames`` (cycled) as OpenIGTLink
-    IMAGE messages at ``fps`` for ``seconds``, receive its messages; stop it with SIGINT."""
+    IMAGE messages at ``fps`` for ``seconds``, receive its messages; stop it with SIGINT.
+
+    ``planes``: a biplane OUT's two planes: ``frames`` is then a pair of arrays (plane A's, plane
+    B's), each pair sent as two messages of the device names ``planes`` with one time stamp."""
     import signal
     import subprocess
     import sys
@@ -232,7 +244,7 @@ def _igtl_run(out_dir, frames, *, fps: float, seconds: float, reconnect_s: float
                 elif m.device_name == igtl.DEVICE_STATUS:
                     st = igtl.status_of(m)
                     statuses.append({k: st.get(k) for k in ("frames_in", "processed", "dropped", "failed",
-                                                            "processing_ms")})
+                                                            "processing_ms", "planes", "views")})
 
         while time.monotonic() - t_start < seconds:
             now = time.monotonic()
@@ -247,10 +259,15 @@ def _igtl_run(out_dir, frames, *, fps: float, seconds: float, reconnect_s: float
                 t_reconnect += reconnect_s
             time.sleep(max(0.0, t_next - time.monotonic()))
             t_next += period
-            frame = frames[n_sent % len(frames)]
-            msg = pyigtl.ImageMessage(frame[None], device_name="Image", timestamp=time.time())  # the grab time
+            t_grab = time.time()
+            if planes is None:
+                msgs = [pyigtl.ImageMessage(frames[n_sent % len(frames)][None], device_name="Image", timestamp=t_grab)]
+            else:
+                msgs = [pyigtl.ImageMessage(f[n_sent % len(f)][None], device_name=name, timestamp=t_grab)
+                        for f, name in zip(frames, planes)]
             try:
-                client.send(msg)
+                for msg in msgs:
+                    client.send(msg)
                 n_sent += 1
             except ConnectionError:
                 pass
@@ -270,7 +287,9 @@ def _igtl_run(out_dir, frames, *, fps: float, seconds: float, reconnect_s: float
     lat = np.asarray(lat_wire) * 1000.0
     engine = np.asarray([st["processing_ms"] for st in statuses if st.get("processing_ms") is not None], float)
     thirds = np.array_split(lat, 3) if len(lat) >= 3 else [lat, lat, lat]
+    views = [st.get("views") for st in statuses]
     return {"fps": fps, "seconds": seconds, "sent": n_sent, "wires": len(lat), "statuses": len(statuses),
+            "planes": last.get("planes"), "two_view": sum(v == "AB" for v in views),
             "frames_in": last.get("frames_in"), "processed": last.get("processed"), "dropped": last.get("dropped"),
             "failed": last.get("failed"), "p50": float(np.percentile(lat, 50)) if len(lat) else float("nan"),
             "p99": float(np.percentile(lat, 99)) if len(lat) else float("nan"),
@@ -348,46 +367,67 @@ def bench_igtl(args) -> int:
     from guidewire3d.app import pipeline
 
     tmp = Path(tempfile.mkdtemp(prefix="bench-live-igtl-"))
-    case = phantom.simulate(phantom.PhantomOptions(seed=args.seed, n_frames=args.frames))
+    rates = [float(r) for r in str(args.rates).split(",") if r.strip()]
+    case = phantom.simulate(phantom.PhantomOptions(seed=args.seed, n_frames=args.frames, biplane=args.biplane))
     d = phantom.write_case(case, tmp / "case")
     t0 = time.perf_counter()
-    pipeline.run_to_outdir(d / "ct", d / "roadmap.dcm", d / "frames.dcm", tmp / "out", images=False, progress=False)
+    if args.biplane:
+        from guidewire3d.app import biplane, stream
+
+        biplane.run_to_outdir(d / "ct", [d / "roadmap.dcm", d / "roadmap_b.dcm"], [d / "frames.dcm", d / "frames_b.dcm"],
+                              tmp / "out", images=False, progress=False)
+        planes = stream.DEFAULT_DEVICES
+        names = ("frames.dcm", "frames_b.dcm")
+    else:
+        pipeline.run_to_outdir(d / "ct", d / "roadmap.dcm", d / "frames.dcm", tmp / "out", images=False, progress=False)
+        planes, names = None, ("frames.dcm",)
     t_setup = time.perf_counter() - t0
-    frames = io.read_xa(d / "frames.dcm").frames
-    if np.all(frames == np.round(frames)) and frames.min() >= 0 and frames.max() < 65536:
-        frames = frames.astype(np.uint16)  # as a frame grabber sends them (the DICOM's stored values)
-    print(f"live over OpenIGTLink, {args.frames}-frame sequence {frames.shape[1]}x{frames.shape[2]} {frames.dtype} "
-          f"(cycled), seed {args.seed}; reconstruct --out for the setup {t_setup:.0f} s; machine: "
+    runs = []
+    for name in names:
+        frames = io.read_xa(d / name).frames
+        if np.all(frames == np.round(frames)) and frames.min() >= 0 and frames.max() < 65536:
+            frames = frames.astype(np.uint16)  # as a frame grabber sends them (the DICOM's stored values)
+        runs.append(frames)
+    frames = tuple(runs) if args.biplane else runs[0]
+    f0 = runs[0]
+    what = "biplane pairs (PlaneA + PlaneB, one time stamp)" if args.biplane else "frames"
+    print(f"live over OpenIGTLink, {args.frames}-frame sequence {f0.shape[1]}x{f0.shape[2]} {f0.dtype} (cycled), "
+          f"{what}, seed {args.seed}; reconstruct --out for the setup {t_setup:.0f} s; machine: "
           f"{bench.machine_line()}; load average before {' / '.join(f'{x:.1f}' for x in os.getloadavg())}", flush=True)
     rows = []
-    runs = [(15.0, args.rate_seconds, None), (30.0, args.rate_seconds, None)]
+    plan = [(fps, args.rate_seconds, None) for fps in rates]
     if args.soak_seconds > 0:
-        runs.append((30.0, args.soak_seconds, args.reconnect_seconds))
-    for fps, seconds, reconnect in runs:
+        plan.append((30.0, args.soak_seconds, args.reconnect_seconds))
+    for fps, seconds, reconnect in plan:
         load0 = os.getloadavg()[0]
-        r = _igtl_run(tmp / "out", frames, fps=fps, seconds=seconds, reconnect_s=reconnect)
+        r = _igtl_run(tmp / "out", frames, fps=fps, seconds=seconds, reconnect_s=reconnect, planes=planes)
         load1 = os.getloadavg()[0]
         rss = [m for _, m in r["rss"]]
         rss_first = rss[min(1, len(rss) - 1)] if rss else float("nan")  # after the network's first frames
-        name = f"{fps:g} fps, {seconds:g} s" + (f", soak (reconnect every {reconnect:g} s: {r['reconnects']})"
-                                                if reconnect else "")
-        rows.append([name, str(r["sent"]), f"{r['processed']}", f"{r['dropped']}", f"{r['failed']}",
+        name = f"{fps:g} {'pairs/s' if planes else 'fps'}, {seconds:g} s" + (
+            f", soak (reconnect every {reconnect:g} s: {r['reconnects']})" if reconnect else "")
+        dropped = (" / ".join(str((r["planes"] or {}).get(p, {}).get("dropped")) for p in ("A", "B")) if planes
+                   else f"{r['dropped']}")
+        rows.append([name, str(r["sent"]), f"{r['processed']}" + (f" ({r['two_view']} AB)" if planes else ""),
+                     dropped, f"{r['failed']}",
                      f"{r['p50']:.1f}", f"{r['p99']:.1f}", f"{r['engine_p50']:.1f}",
                      f"{r['p50_first_third']:.1f} -> {r['p50_last_third']:.1f}",
                      f"{rss_first:.0f} -> {rss[-1]:.0f}" if rss else "n/a", f"{load0:.1f} / {load1:.1f}"])
         print(f"  {name}: server: {r['server_summary']}", flush=True)
         print(f"  {name}: server RSS MB every 5 s: {' '.join(f'{m:.0f}' for m in rss)}", flush=True)
-    for fps in (15.0, 30.0):
-        load0 = os.getloadavg()[0]
-        r = _igtl_transport_only(tmp / "out", frames, fps=fps, seconds=min(args.rate_seconds, 20.0))
-        rows.append([f"{fps:g} fps, streaming only (engine answers at once)", str(r["sent"]), str(r["processed"]),
-                     str(r["dropped"]), "0", f"{r['p50']:.1f}", f"{r['p99']:.1f}", "0", "", "",
-                     f"{load0:.1f} / {os.getloadavg()[0]:.1f}"])
-    print(bench._table(["input", "frames sent", "processed", "dropped", "failed", "latency p50 ms", "p99 ms",
+    if not planes:
+        for fps in rates:
+            load0 = os.getloadavg()[0]
+            r = _igtl_transport_only(tmp / "out", frames, fps=fps, seconds=min(args.rate_seconds, 20.0))
+            rows.append([f"{fps:g} fps, streaming only (engine answers at once)", str(r["sent"]), str(r["processed"]),
+                         str(r["dropped"]), "0", f"{r['p50']:.1f}", f"{r['p99']:.1f}", "0", "", "",
+                         f"{load0:.1f} / {os.getloadavg()[0]:.1f}"])
+    print(bench._table(["input", "pairs sent" if planes else "frames sent", "processed",
+                        "dropped A / B" if planes else "dropped", "failed", "latency p50 ms", "p99 ms",
                         "engine p50 ms", "p50 first -> last third", "server RSS MB start -> end",
                         "load avg start / end"], rows))
-    print("latency: the frame's OpenIGTLink time stamp (set when it is sent) -> its Guidewire POLYDATA received "
-          "by the client, same host")
+    print("latency: the frame's (pair's) OpenIGTLink time stamp (set when it is sent) -> its Guidewire POLYDATA "
+          "received by the client, same host")
     return 0
 
 

@@ -7,19 +7,43 @@ server's ``on_message``, see ``stream``). Each frame carries its source time sta
 (:class:`LatestFrame`) keeps only the newest frame: a frame that a newer one replaced before it was
 processed is dropped and counted; nothing queues up. :func:`check_frame` turns what a source
 delivered into the frame the engine takes, or says why it cannot.
+
+Two planes (a biplane C-arm): :class:`PairedFrames` is the mailbox of the two streams. It pairs a
+frame of plane A with the frame of plane B whose source time stamp is nearest, within a tolerance,
+and hands out the newest complete pair; frames older than a pair handed out are dropped and counted
+per plane, and each plane keeps at most a few frames. A plane whose frames stop (or never pair)
+does not stall the other: after a timeout the other plane's newest frame is handed out alone, with
+the reason. :class:`PairReplaySource` replays two XA runs as pairs.
 """
 from __future__ import annotations
 
 import os
 import threading
 import time
+from collections import deque
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 from guidewire3d.errors import InputError
 
-__all__ = ["Frame", "LatestFrame", "check_frame", "ReplaySource", "VideoSource", "FolderSource"]
+__all__ = ["Frame", "LatestFrame", "check_frame", "ReplaySource", "VideoSource", "FolderSource", "PLANES",
+           "FramePair", "PairedFrames", "PairReplaySource", "DEFAULT_PERIOD_S", "DEFAULT_PLANE_TIMEOUT_S",
+           "KEEP_PER_PLANE", "PARTNER_WAIT_S"]
+
+PLANES = ("A", "B")
+#: the frame period assumed until a plane's time stamps show their own (15 fps)
+DEFAULT_PERIOD_S = 1.0 / 15.0
+#: a plane that sent nothing for this long (or no pair formed for this long) is left out: the other
+#: plane's frames are processed alone (single-view fallback)
+DEFAULT_PLANE_TIMEOUT_S = 0.5
+#: frames kept per plane while they wait for their partner (older ones are dropped and counted)
+KEEP_PER_PLANE = 8
+#: time stamps per plane over which the frame period is measured (their median interval)
+PERIOD_WINDOW = 16
+#: before a silent plane is left out, the other plane's frames wait at least this long (or the pairing
+#: tolerance, if longer) for a partner (the loop may have been busy: then nothing came from either)
+PARTNER_WAIT_S = 0.1
 
 
 @dataclass(frozen=True, eq=False)
@@ -258,3 +282,270 @@ class FolderSource:
                 self.done.set()
 
         _source_thread("folder", go).start()
+
+
+# --------------------------------------------------------------------------------------
+# two planes: pairs of frames
+# --------------------------------------------------------------------------------------
+@dataclass(frozen=True, eq=False)
+class FramePair:
+    """What :class:`PairedFrames` hands out: a frame of each plane, or one plane's frame alone
+    (``a`` or ``b`` None) with ``reason`` saying why the other is missing."""
+
+    a: Frame | None
+    b: Frame | None
+    reason: str = ""
+
+    @property
+    def complete(self) -> bool:
+        return self.a is not None and self.b is not None
+
+    @property
+    def timestamp(self) -> float:
+        """The pair's time stamp: plane A's (plane B's when A is missing)."""
+        return float(self.a.timestamp if self.a is not None else self.b.timestamp)
+
+    def frame(self, plane: str) -> Frame | None:
+        return self.a if plane == PLANES[0] else self.b
+
+
+class PairedFrames:
+    """The mailbox of two planes' streams (biplane): frames in per plane, the newest complete pair out.
+
+    * **Pair**: a frame of plane A and the frame of plane B whose source time stamp is nearest to it,
+      if within ``tolerance_s`` (default: half the frame period, measured as the median interval of
+      each plane's recent time stamps, the longer of the two planes'; ``DEFAULT_PERIOD_S`` until a
+      plane has two frames). :meth:`take` hands out the pair with the newest plane-A frame.
+    * **Stale frames**: when a pair is handed out, each plane's frames that came before its own frame
+      of the pair are dropped and counted per plane (``n_dropped``); when a lone frame is, its plane's
+      older frames and the other plane's frames older than it by more than the tolerance. Each plane keeps at most ``keep`` frames (the oldest is dropped and
+      counted when a newer one arrives): nothing queues without bound.
+    * **A silent plane**: when one plane sent nothing for ``timeout_s`` (switched off, unplugged), or no
+      partner came for a plane's frames for ``timeout_s`` although both send (time stamps too far
+      apart), that plane's newest frame is handed out alone (plane A first), with the reason. Before
+      the silent plane is left out, the other's frames wait ``PARTNER_WAIT_S`` (or the tolerance) for
+      a partner (after a loop busy for longer than the timeout, the partner is on its way); while the
+      plane stays left out, the next frames go at once.
+
+    ``n_in[p] = n_used[p] + n_dropped[p] + waiting(p)`` for each plane ``p``.
+
+    Parameters
+    ----------
+    tolerance_s : float, optional
+        Pairing tolerance (s); default half the measured frame period.
+    timeout_s : float
+        See above.
+    keep : int
+        Frames kept per plane.
+    clock : callable
+        Monotonic seconds (tests pass their own).
+    """
+
+    def __init__(self, *, tolerance_s: float | None = None, timeout_s: float = DEFAULT_PLANE_TIMEOUT_S,
+                 keep: int = KEEP_PER_PLANE, clock=time.monotonic):
+        if tolerance_s is not None and not tolerance_s > 0:
+            raise InputError(f"pairing tolerance: expected a positive number of seconds, got {tolerance_s}")
+        if not timeout_s > 0:
+            raise InputError(f"plane timeout: expected a positive number of seconds, got {timeout_s}")
+        if int(keep) < 1:
+            raise InputError(f"frames kept per plane: expected at least 1, got {keep}")
+        self.fixed_tolerance_s = None if tolerance_s is None else float(tolerance_s)
+        self.timeout_s, self.keep, self._clock = float(timeout_s), int(keep), clock
+        self._cond = threading.Condition()
+        self._closed = False
+        now = clock()
+        self._buf = {p: deque() for p in PLANES}  # (Frame, arrival time) oldest first
+        self._stamps = {p: deque(maxlen=PERIOD_WINDOW + 1) for p in PLANES}
+        self._last_arrival = {p: now for p in PLANES}  # the start counts as an arrival
+        self._waiting_since = {p: None for p in PLANES}  # arrival of the oldest frame waiting since the last take
+        self._left_out = {p: False for p in PLANES}  # the plane is left out (the other's frames go alone)
+        self.n_in = {p: 0 for p in PLANES}
+        self.n_dropped = {p: 0 for p in PLANES}
+        self.n_used = {p: 0 for p in PLANES}
+        self.n_pairs = 0
+        self.n_alone = {p: 0 for p in PLANES}
+
+    # --- in ----------------------------------------------------------------------------
+    def put(self, plane: str, frame: Frame) -> None:
+        if plane not in PLANES:
+            raise ValueError(f"plane must be one of {PLANES}, got {plane!r}")
+        with self._cond:
+            now = self._clock()
+            buf = self._buf[plane]
+            self.n_in[plane] += 1
+            while len(buf) >= self.keep:
+                buf.popleft()
+                self.n_dropped[plane] += 1
+            buf.append((frame, now))
+            if self._waiting_since[plane] is None:
+                self._waiting_since[plane] = now
+            self._last_arrival[plane] = now
+            if np.isfinite(frame.timestamp):
+                self._stamps[plane].append(float(frame.timestamp))
+            self._cond.notify_all()
+
+    # --- out ---------------------------------------------------------------------------
+    def period_s(self, plane: str) -> float:
+        """The plane's frame period: the median interval of its recent time stamps."""
+        t = np.asarray(self._stamps[plane], float)
+        d = np.diff(t)
+        d = d[d > 0]
+        return float(np.median(d)) if len(d) else DEFAULT_PERIOD_S
+
+    def _tolerance(self) -> float:
+        if self.fixed_tolerance_s is not None:
+            return self.fixed_tolerance_s
+        return 0.5 * max(self.period_s(p) for p in PLANES)
+
+    @property
+    def tolerance_s(self) -> float:
+        """The pairing tolerance now (s)."""
+        with self._cond:
+            return self._tolerance()
+
+    def waiting(self, plane: str) -> int:
+        with self._cond:
+            return len(self._buf[plane])
+
+    def _drop_older(self, plane: str, t: float, tol: float) -> None:
+        buf = self._buf[plane]
+        keep = deque(x for x in buf if not x[0].timestamp < t - tol)
+        if len(keep) < len(buf):
+            self.n_dropped[plane] += len(buf) - len(keep)
+            self._buf[plane] = keep
+            self._waiting_since[plane] = keep[0][1] if keep else None
+
+    def _taken(self, plane: str) -> None:
+        """Plane ``plane`` gave a frame: its wait for a partner starts again with what is left."""
+        self.n_used[plane] += 1
+        buf = self._buf[plane]
+        self._waiting_since[plane] = buf[0][1] if buf else None
+
+    def _pick(self, now: float) -> FramePair | None:
+        """The newest complete pair, else a lone frame once a plane timed out, else None."""
+        tol = self._tolerance()
+        A, B = self._buf["A"], self._buf["B"]
+        if A and B:
+            tb = np.array([f.timestamp for f, _ in B], float)
+            for i in range(len(A) - 1, -1, -1):
+                fa = A[i][0]
+                gap = np.abs(tb - fa.timestamp)
+                j = len(gap) - 1 - int(np.argmin(gap[::-1]))  # the nearest; of equals, the newest
+                if gap[j] <= tol:
+                    fb = B[j][0]
+                    # each plane's frames that came before its frame of the pair are stale
+                    for p, n in (("A", i), ("B", j)):
+                        buf = self._buf[p]
+                        self.n_dropped[p] += n
+                        self._buf[p] = deque(list(buf)[n + 1:])
+                        self._taken(p)
+                    self.n_pairs += 1
+                    self._left_out = {q: False for q in PLANES}
+                    return FramePair(fa, fb)
+        for k, p in enumerate(PLANES):
+            q = PLANES[1 - k]
+            if not self._buf[p]:
+                continue
+            silent = now - self._last_arrival[q]
+            unpaired = now - self._waiting_since[p]
+            # plane p's frames wait a little for a partner before plane q is left out (a sender that
+            # waits for each result sends nothing while the loop is busy, longer than the timeout
+            # maybe), unless plane q is left out already
+            if silent > self.timeout_s and (unpaired >= self._grace(tol) or self._left_out[q]):
+                reason = f"no frame from plane {q} for {silent:.1f} s"
+            elif unpaired > self.timeout_s:
+                reason = (f"no plane {q} frame within {1000 * tol:.0f} ms of plane {p}'s for {unpaired:.1f} s "
+                          "(source time stamps too far apart?)")
+            else:
+                continue
+            f, _ = self._buf[p].pop()
+            self.n_dropped[p] += len(self._buf[p])  # the plane's older frames
+            self._buf[p].clear()
+            self._drop_older(q, f.timestamp, tol)
+            self._taken(p)
+            self._left_out[q] = True
+            self.n_alone[p] += 1
+            return FramePair(f, None, reason) if p == "A" else FramePair(None, f, reason)
+        return None
+
+    def _grace(self, tol: float) -> float:
+        return min(self.timeout_s, max(tol, PARTNER_WAIT_S))
+
+    def _next_due(self, now: float) -> float:
+        """Seconds until a lone frame could become due (the plane timeout), for the wait."""
+        tol = self._tolerance()
+        due = []
+        for k, p in enumerate(PLANES):
+            if self._buf[p]:
+                q = PLANES[1 - k]
+                silent_due = self._last_arrival[q] + self.timeout_s
+                if not self._left_out[q]:
+                    silent_due = max(silent_due, self._waiting_since[p] + self._grace(tol))
+                due.append(min(silent_due, self._waiting_since[p] + self.timeout_s) - now)
+        return min(max(min(due), 0.001), self.timeout_s) if due else float("inf")
+
+    def take(self, timeout_s: float) -> FramePair | None:
+        """The newest complete pair (or a lone frame, see the class), waiting up to ``timeout_s``; None
+        when there is none (or closed)."""
+        end = self._clock() + max(float(timeout_s), 0.0)
+        with self._cond:
+            while True:
+                now = self._clock()
+                got = self._pick(now)
+                if got is not None or self._closed:
+                    return got
+                left = end - now
+                if left <= 0:
+                    return None
+                self._cond.wait(timeout=min(left, self._next_due(now) + 1e-3))
+
+    def close(self) -> None:
+        with self._cond:
+            self._closed = True
+            self._cond.notify_all()
+
+
+class PairReplaySource:
+    """Two planes' XA runs replayed as pairs at ``fps`` (plane A's frame time by default, 15 fps
+    without one): each pair's two frames are put in a :class:`PairedFrames` with the same time stamp
+    (when they are put); ``loop`` repeats the runs.
+
+    Parameters
+    ----------
+    runs : pair of io.XARun
+    pairs : list of (int, int)
+        The frames of A and B that go together (``biplane.pair_frames``).
+    """
+
+    def __init__(self, runs, pairs, *, fps: float | None = None, loop: bool = False):
+        self.runs, self.pairs, self.loop = tuple(runs), list(pairs), loop
+        if len(self.runs) != 2 or not self.pairs:
+            raise InputError("a biplane replay needs two runs and at least one pair of frames")
+        ft = getattr(self.runs[0], "frame_time_ms", None)
+        self.fps = float(fps) if fps else (1000.0 / ft if ft else 15.0)
+        if not 0.1 <= self.fps <= 1000:
+            raise InputError(f"--fps: expected 0.1..1000 frames per second, got {self.fps:g}")
+        self.name = (f"replay of {self.runs[0].source} (plane A) and {self.runs[1].source} (plane B), "
+                     f"{len(self.pairs)} pairs at {self.fps:g} fps" + (" (loop)" if loop else ""))
+        self.done = threading.Event()
+
+    def start(self, mailbox: PairedFrames, stop: threading.Event) -> None:
+        def go():
+            period = 1.0 / self.fps
+            t_next = time.monotonic()
+            try:
+                while not stop.is_set():
+                    for i, j in self.pairs:
+                        if stop.is_set():
+                            return
+                        stop.wait(max(0.0, t_next - time.monotonic()))
+                        ts = time.time()
+                        for p, run, k in zip(PLANES, self.runs, (i, j)):
+                            mailbox.put(p, Frame(run.frames[k], ts, f"{Path(run.source).name}#{k}"))
+                        t_next += period
+                    if not self.loop:
+                        return
+            finally:
+                self.done.set()
+
+        _source_thread("replay-pairs", go).start()
