@@ -416,7 +416,7 @@ def test_field_of_view_keeps_a_dark_wide_vessel_and_removes_shutters():
     im01, ok = normalise01(img)
     assert ok
     fov = field_of_view(im01, 5)
-    (aorta, r_aorta), _ = axes
+    (aorta, _), _ = axes
     on_aorta = np.rint(aorta[(aorta[:, 0] > 45) & (aorta[:, 1] > 10) & (aorta[:, 1] < 289)]).astype(int)
     assert fov[on_aorta[:, 1], on_aorta[:, 0]].all()            # the whole dense aorta is kept
     assert not fov[shutter].any()                               # the blade and the iris corner removed
@@ -425,9 +425,14 @@ def test_field_of_view_keeps_a_dark_wide_vessel_and_removes_shutters():
 
 def test_roadmap_centerline_of_a_collimated_dense_aortogram():
     """The 2D centerline follows the dense aorta and the branch, and nothing along the shutters' edges."""
+    from scipy import ndimage as ndi
+
     img, axes, shutter = _collimated_aortogram(np.random.default_rng(4))
     cl = roadmap_centerline(img, max_radius_px=21.0)
     q = cl.points_uv_px
+    near_shutter = ndi.binary_dilation(shutter, iterations=5)
+    qi = np.rint(q).astype(int)
+    assert not near_shutter[qi[:, 1], qi[:, 0]].any()            # no centerline along the shutters' edges
     dense = np.vstack([a for a, _ in axes])
     d, _ = cKDTree(dense).query(q)
     assert np.percentile(d, 95) <= 3.0                          # every point on a true vessel axis
