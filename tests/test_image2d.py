@@ -383,6 +383,65 @@ def test_roadmap_centerline_is_centred_on_curved_vessels(vessel_radius_px, brigh
     assert len(q) == len(sk) and np.max(d) <= max(1.0, 0.5 * vessel_radius_px) + 1e-9
 
 
+def _collimated_aortogram(rng, shape=(300, 300)):
+    """A subtracted roadmap whose widest vessel is darker than a quarter of the median (a dense
+    aortogram's aorta, radius 14 px, through the middle) with a thin branch, behind a collimator
+    blade along the left side and an iris cutting off the top-right corner. Returns the image, the
+    vessels' axes with their radii, and the true collimated area."""
+    from scipy import ndimage as ndi
+
+    h, w = shape
+    vv, uu = np.mgrid[0:h, 0:w].astype(float)
+    aorta = np.array([[150.0, 0.0], [160.0, 150.0], [150.0, 299.0]])
+    branch = np.array([[160.0, 150.0], [285.0, 60.0]])
+    axes = ((resample_polyline(aorta, 0.5), 14.0), (resample_polyline(branch, 0.5), 4.0))
+    chord = np.zeros(shape)
+    pix = np.column_stack([uu.ravel(), vv.ravel()])
+    for axis, r in axes:
+        d, _ = cKDTree(axis).query(pix)
+        chord = np.maximum(chord, 2.0 * np.sqrt(np.clip(r * r - d.reshape(shape) ** 2, 0.0, None)))
+    img = 1000.0 * np.exp(-0.11 * chord)                       # the aorta's core at ~5 % of the background
+    shutter = (uu < 40) | (np.hypot(uu - 150.0, vv - 150.0) > 205.0)
+    img = np.where(shutter, 30.0, img)
+    img = ndi.gaussian_filter(img, 0.8) + rng.normal(0.0, 5.0, shape)
+    return np.clip(img, 1.0, None), axes, shutter
+
+
+def test_field_of_view_keeps_a_dark_wide_vessel_and_removes_shutters():
+    """Issue 17: a vessel darker than a quarter of the median is not a collimator shutter; a dark band
+    along a side and an iris corner are."""
+    from guidewire3d.xray.imaging import field_of_view, normalise01
+
+    img, axes, shutter = _collimated_aortogram(np.random.default_rng(3))
+    im01, ok = normalise01(img)
+    assert ok
+    fov = field_of_view(im01, 5)
+    (aorta, _), _ = axes
+    on_aorta = np.rint(aorta[(aorta[:, 0] > 45) & (aorta[:, 1] > 10) & (aorta[:, 1] < 289)]).astype(int)
+    assert fov[on_aorta[:, 1], on_aorta[:, 0]].all()            # the whole dense aorta is kept
+    assert not fov[shutter].any()                               # the blade and the iris corner removed
+    assert fov[:, 50:250].mean() > 0.85                         # the rest of the image is in the field
+
+
+def test_roadmap_centerline_of_a_collimated_dense_aortogram():
+    """The 2D centerline follows the dense aorta and the branch, and nothing along the shutters' edges."""
+    from scipy import ndimage as ndi
+
+    img, axes, shutter = _collimated_aortogram(np.random.default_rng(4))
+    cl = roadmap_centerline(img, max_radius_px=21.0)
+    q = cl.points_uv_px
+    near_shutter = ndi.binary_dilation(shutter, iterations=5)
+    qi = np.rint(q).astype(int)
+    assert not near_shutter[qi[:, 1], qi[:, 0]].any()            # no centerline along the shutters' edges
+    dense = np.vstack([a for a, _ in axes])
+    d, _ = cKDTree(dense).query(q)
+    assert np.percentile(d, 95) <= 3.0                          # every point on a true vessel axis
+    (aorta, _), (branch, _) = axes
+    inner = aorta[(aorta[:, 1] > 20) & (aorta[:, 1] < 279)]
+    assert np.mean(cKDTree(q).query(inner)[0] <= 3.0) > 0.9      # the aorta is in the centerline
+    assert np.mean(cKDTree(q).query(branch[10:-10])[0] <= 3.0) > 0.8
+
+
 def test_roadmap_centerline_raises_without_vessels():
     with pytest.raises(SegmentationError, match="no vessels"):
         roadmap_centerline(np.full((64, 64), 3.0))

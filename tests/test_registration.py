@@ -450,3 +450,38 @@ def test_jackknife_keeps_a_right_pose_ok(case0):
     assert r.verdict is reg.Verdict.OK
     assert 0.0 <= r.jackknife_std_mm <= r.max_pose_std_mm                             # computed, and small
     assert mtre_mm(r.pose, true, tree.points_lps_mm) < RECOVER_MM
+
+
+def test_search_range_covers_a_tree_much_larger_than_the_view():
+    """Issue 17: a tree far larger than the view (a chest-abdomen tree, an arch view) puts its centroid,
+    and the nominal start's isocentre, far from the part in view; the search widens its in-plane range
+    to the tree's projected reach and registration lands on the viewed part."""
+    rng = np.random.default_rng(5)
+    root = _curve(rng, (0.0, -150.0, 1000.0), (0.0, 0.1, 1.0), 420.0, curl=0.03)   # along the body axis
+    polys, radii, parents = [root], [np.full(len(root), 4.0)], [None]
+    for i in range(12):
+        pi = 15 + 30 * i
+        side = rng.normal(size=3)
+        side[2] = 0.0
+        pl = _curve(rng, root[pi], side / np.linalg.norm(side), rng.uniform(30, 60))
+        polys.append(pl)
+        radii.append(np.linspace(2.0, 1.0, len(pl)))
+        parents.append((0, pi))
+    tree = VesselTree.from_polylines(polys, radii, parents)
+    carm = CArm(20.0, 10.0, 1200.0, 800.0, 0.3, (512, 512))
+    viewed = root[340]                                     # 340 mm along a 420 mm trunk
+    true = Pose.from_rotvec_about(np.radians([1.0, -2.0, 1.5]), np.zeros(3)) @ Pose(np.eye(3), [4.0, -3.0, 5.0]) \
+        @ nominal_pose(viewed)
+    P = tree.points_lps_mm
+    in_view = carm.in_image(carm.project(P, true))
+    start = nominal_pose(tree.centroid_lps_mm)
+    m3 = model._model_from_input(tree, carm)
+    su, sv = search.shift_range_mm(m3, carm, start)
+    offset = carm.axes @ (true.apply(P[in_view]).mean(0) - start.apply(P[in_view]).mean(0))
+    assert max(abs(offset[:2])) > 2 * search.SEARCH_SHIFT_MM          # far beyond the default range ...
+    assert abs(offset[0]) < su and abs(offset[1]) < sv                 # ... inside the widened one
+    small, small_carm, _ = _case(0)
+    assert search.shift_range_mm(model._model_from_input(small, small_carm), small_carm,
+                                 nominal_pose(small.centroid_lps_mm)) == (search.SEARCH_SHIFT_MM,) * 2  # view-sized
+    r = reg.register(tree, _centerline(tree, carm, true), carm)
+    assert mtre_mm(r.pose, true, P[in_view]) < RECOVER_MM

@@ -48,11 +48,14 @@ from guidewire3d.registration.result import (  # noqa: F401
     Verdict,
 )
 from guidewire3d.registration.search import (  # noqa: F401
+    SEARCH_LARGE_TREE_RATIO,
     SEARCH_ROT_INPLANE_DEG,
     SEARCH_ROT_OUTPLANE_DEG,
+    SEARCH_SHIFT_MAX_MM,
     SEARCH_SHIFT_MM,
     SEARCH_TRUNC_CELLS,
     search_rotvecs,
+    shift_range_mm,
 )
 from guidewire3d.registration.solve import (  # noqa: F401
     SEARCH_STARTS,

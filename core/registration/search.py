@@ -2,8 +2,9 @@
 
 Rotations about the vessel centroid on a grid (+-15 deg about the beam axis in 5 deg steps,
 -10/0/+10 deg about each detector axis) and, for each rotation, an *exhaustive* search of the
-in-plane translation (+-40 mm at the isocentre) done as one FFT cross-correlation of truncated
-distance transforms on a coarse (~8 px) grid. The chamfer cost is symmetric: projected 3D points
+in-plane translation (+-40 mm at the isocentre; wider for a tree much larger than the view, see
+:func:`shift_range_mm`) done as one FFT cross-correlation of truncated distance transforms on a
+coarse (~8 px) grid. The chamfer cost is symmetric: projected 3D points
 against the distance transform of the 2D centerline, plus 2D points against the distance transform
 of the projected 3D centerline (so a partial 2D centerline is not pulled onto the wrong branch).
 Depth translation is left to LM (it only changes the magnification by a few per cent).
@@ -16,11 +17,13 @@ from guidewire3d.registration.model import _Model2D, _Model3D, _search_cell_px
 from scipy import fft as sfft
 from scipy import ndimage as ndi
 
-__all__ = ["search_rotvecs"]
+__all__ = ["search_rotvecs", "shift_range_mm"]
 
 SEARCH_ROT_INPLANE_DEG = np.arange(-15.0, 15.01, 5.0)
 SEARCH_ROT_OUTPLANE_DEG = np.array([-10.0, 0.0, 10.0])
 SEARCH_SHIFT_MM = 40.0
+SEARCH_SHIFT_MAX_MM = 200.0  # widest in-plane range (a chest-abdomen tree seen through a 20 cm view)
+SEARCH_LARGE_TREE_RATIO = 1.5  # a tree reaching beyond this x the view's half-size is larger than the view
 SEARCH_TRUNC_CELLS = 3.0  # truncation of the distance transforms (cells of SEARCH_CELL_PX, model.py)
 
 
@@ -33,13 +36,14 @@ def _global_search(m3: _Model3D, m2: _Model2D, carm: CArm, start: Pose, *, n_bes
     the chamfer costs of all shifts by one batched real FFT, pruned to the rows that hold
     projected points (forward) and to the searched shifts (inverse).
     """
-    C, rvs, centre_room, mm_per_px, c0, m = _search_cost_maps(m3, m2, carm, start)
+    C, rvs, centre_room, mm_per_px, c0, (mu, mv) = _search_cost_maps(m3, m2, carm, start,
+                                                                     shift_mm=shift_range_mm(m3, carm, start))
     K = len(rvs)
     e_u, e_v, _ = carm.axes
     flat = C.reshape(K, -1).argmin(axis=1)
     iy, ix = np.unravel_index(flat, C.shape[1:])
     costs = C.reshape(K, -1)[np.arange(K), flat].astype(float)
-    shifts = np.column_stack([ix - m, iy - m]).astype(float)
+    shifts = np.column_stack([ix - mu, iy - mv]).astype(float)
     order = np.argsort(costs)
     out: list[tuple[float, Pose]] = []
     for k in order:
@@ -61,25 +65,55 @@ def search_rotvecs(carm: CArm) -> list[np.ndarray]:
     return [np.radians(ra) * e_u + np.radians(rb) * e_v + np.radians(rg) * d for ra, rb, rg in rots]
 
 
-def _search_cost_maps(m3: _Model3D, m2: _Model2D, carm: CArm, start: Pose, rotvecs=None, *, weight_3d: float = 1.0):
+def shift_range_mm(m3: _Model3D, carm: CArm, start: Pose) -> tuple[float, float]:
+    """The in-plane shift range ``(along e_u, along e_v)``, mm at the tree centroid, of the search.
+
+    ``+-SEARCH_SHIFT_MM`` (the start's uncertainty) for a tree about the size of the view. A tree
+    that, projected at ``start``, reaches farther from the view's centre than
+    ``SEARCH_LARGE_TREE_RATIO`` x the view's half-size along a detector axis is larger than what one
+    view shows (a chest-abdomen tree seen through a 20 cm view of the aortic arch): its centroid,
+    where the nominal start puts the isocentre, says little about which part is in view, so the view
+    may be centred over any part of it, and the range along each axis is the farthest projected tree
+    point's distance from the view's centre along that axis, at most ``SEARCH_SHIFT_MAX_MM``."""
+    centre_room = start.apply(m3.centroid)
+    mm_per_px = float((centre_room - carm.source_room_mm) @ carm.beam_direction) / carm.focal_px
+    Xc = (start.apply(m3.coarse) - carm.source_room_mm) @ carm.axes.T
+    front = Xc[:, 2] > 1e-6
+    size_px = np.array([carm.cols, carm.rows], float)
+    if not front.any() or mm_per_px <= 0:
+        return SEARCH_SHIFT_MM, SEARCH_SHIFT_MM
+    off_px = carm.focal_px * Xc[front, :2] / Xc[front, 2:3] + carm.principal_point_px - 0.5 * (size_px - 1.0)
+    reach_px = np.abs(off_px).max(axis=0)
+    if not np.any(reach_px > SEARCH_LARGE_TREE_RATIO * 0.5 * size_px):
+        return SEARCH_SHIFT_MM, SEARCH_SHIFT_MM
+    r = np.clip(reach_px * mm_per_px, SEARCH_SHIFT_MM, SEARCH_SHIFT_MAX_MM)
+    return float(r[0]), float(r[1])
+
+
+def _search_cost_maps(m3: _Model3D, m2: _Model2D, carm: CArm, start: Pose, rotvecs=None, *, weight_3d: float = 1.0,
+                      shift_mm: tuple[float, float] | None = None):
     """The chamfer cost of every searched in-plane shift for every rotation of the grid (or of
     ``rotvecs``, rotation vectors about the tree centroid at ``start``).
 
     Returns ``(C, rotvecs, centre_room, mm_per_px, cell_px, m)``: ``C[k, iy, ix]`` is the cost of
     rotation ``k`` shifted by ``(ix - m, iy - m)`` cells of ``cell_px`` along ``(e_u, e_v)``
     (``mm_per_px`` mm per px at the tree centroid). ``weight_3d`` weighs the 3D -> 2D half of the
-    symmetric chamfer (the projected tree's points against the 2D centerline's distance map)."""
+    symmetric chamfer (the projected tree's points against the 2D centerline's distance map).
+    ``shift_mm``: the searched range ``(along e_u, along e_v)`` instead of ``+-SEARCH_SHIFT_MM``;
+    ``m`` is then the pair ``(m_u, m_v)`` and the shift of ``C[k, iy, ix]`` is ``(ix - m_u, iy - m_v)``."""
     c0 = _search_cell_px(carm)
     H, W = int(np.ceil(carm.rows / c0)), int(np.ceil(carm.cols / c0))
     centre_room = start.apply(m3.centroid)
     z_c = float((centre_room - carm.source_room_mm) @ carm.beam_direction)
     mm_per_px = z_c / carm.focal_px
-    m = int(np.ceil(SEARCH_SHIFT_MM / (mm_per_px * c0)))
-    Hp, Wp = sfft.next_fast_len(H + 2 * m + 1), sfft.next_fast_len(W + 2 * m + 1)
+    su, sv = (SEARCH_SHIFT_MM, SEARCH_SHIFT_MM) if shift_mm is None else shift_mm
+    mu, mv = int(np.ceil(su / (mm_per_px * c0))), int(np.ceil(sv / (mm_per_px * c0)))
+    Hp, Wp = sfft.next_fast_len(H + 2 * mv + 1), sfft.next_fast_len(W + 2 * mu + 1)
     tau = SEARCH_TRUNC_CELLS
+    pad = np.array([mu, mv])
 
     def cells(uv):
-        return np.floor((uv + 0.5) / c0).astype(np.int64) + m  # padded cell coordinates (col, row)
+        return np.floor((uv + 0.5) / c0).astype(np.int64) + pad  # padded cell coordinates (col, row)
 
     # 2D side: points image and truncated DT, fixed
     q = cells(m2.all_uv)
@@ -92,7 +126,7 @@ def _search_cost_maps(m3: _Model3D, m2: _Model2D, carm: CArm, start: Pose, rotve
     D2 = np.minimum(ndi.distance_transform_edt(occ2), tau).astype(np.float32)
     # outside the image the 2D side is unknown: a neutral cost
     inside = np.zeros((Hp, Wp), bool)
-    inside[m : m + H, m : m + W] = True
+    inside[mv : mv + H, mu : mu + W] = True
     D2[~inside] = 0.5 * tau
     F_D2 = sfft.rfft2(D2)
     F_P2 = sfft.rfft2(P2)
@@ -144,10 +178,10 @@ def _search_cost_maps(m3: _Model3D, m2: _Model2D, carm: CArm, start: Pose, rotve
     G -= G3
     del G3
     G[:, 0, 0] += tau * Hp * Wp * F_P2[0, 0].real
-    # inverse, pruned to the shifts s within +-m: C(s) is the reversal at index -s (circular)
-    s_range = np.arange(-m, m + 1)
-    C = sfft.irfft(sfft.ifft(G, axis=1, overwrite_x=True)[:, (-s_range) % Hp], n=Wp, axis=2)[:, :, (-s_range) % Wp]
-    return C, rvs, centre_room, mm_per_px, c0, m
+    # inverse, pruned to the searched shifts s: C(s) is the reversal at index -s (circular)
+    s_u, s_v = np.arange(-mu, mu + 1), np.arange(-mv, mv + 1)
+    C = sfft.irfft(sfft.ifft(G, axis=1, overwrite_x=True)[:, (-s_v) % Hp], n=Wp, axis=2)[:, :, (-s_u) % Wp]
+    return C, rvs, centre_room, mm_per_px, c0, (mu if shift_mm is None else (mu, mv))
 
 
 def _truncated_dt_batch(cell_ids: np.ndarray, shape: tuple, tau: float, *, complement: bool = False) -> np.ndarray:

@@ -27,7 +27,10 @@ __all__ = [
 
 REFERENCE_SIZE_PX = 300.0         # classical 2D lengths are for an image of this size; they scale with it
 BLANK_REL_SPREAD = 1e-3           # image 1-99 % spread below this x its level: blank/saturated
-FOV_DARK_FRACTION = 0.25          # smoothed intensity below this x median = outside the collimator
+FOV_DARK_FRACTION = 0.25          # smoothed intensity below this x median = dark (shutter candidate)
+FOV_SHUTTER_SIDE_FRACTION = 0.2   # a dark region is a collimator shutter only if it runs along an image
+                                  # side over at least this fraction of the side's length, ...
+FOV_SHUTTER_DEPTH_RATIO = 0.5     # ... or reaches no farther into the image than this x its border contact
 BORDER_PX = 2                     # image border band ignored (edge artefacts)
 FOV_MARGIN_PX = 5.0               # erosion of the field of view (edge responses)
 WIDE_RADIUS_PX = 12.0             # wide top-hat radius (polarity test, width completion, search distance)
@@ -108,10 +111,37 @@ def dark_vessels_auto(im01: np.ndarray, scale: float) -> bool:
 
 
 def field_of_view(im01: np.ndarray, margin_px: int) -> np.ndarray:
-    """Pixels inside the collimator, away from the image border and dark shutter edges."""
+    """Pixels inside the collimator, away from the image border and dark shutter edges.
+
+    A collimator shutter is dark (smoothed intensity at most ``FOV_DARK_FRACTION`` x the median)
+    *and* enters the image from its border: a dark connected region is taken for a shutter when it
+    runs along one image side over at least ``FOV_SHUTTER_SIDE_FRACTION`` of that side (a blade, an
+    iris smaller than the image), or when it reaches less far into the image than it runs along the
+    border (``FOV_SHUTTER_DEPTH_RATIO``: the corners an iris cuts off). Dark regions inside the image
+    (a dense aorta in a subtracted aortogram, a contrast-filled ventricle) and vessels leaving the
+    image (a short stretch of border, far into the image) stay in the field of view.
+    """
     sm = ndi.uniform_filter(im01, size=2 * margin_px + 1)
     med = float(np.median(sm))
-    fov = sm > FOV_DARK_FRACTION * med if med > 0 else np.ones_like(sm, bool)
+    fov = np.ones(sm.shape, bool)
+    if med > 0:
+        dark = sm <= FOV_DARK_FRACTION * med
+        lab, n = ndi.label(dark) if dark.any() else (None, 0)
+        if n:
+            along = np.zeros((4, n + 1))
+            for i, side in enumerate((lab[0], lab[-1], lab[:, 0], lab[:, -1])):
+                along[i] = np.bincount(side, minlength=n + 1) / len(side)
+            along[:, 0] = 0.0
+            H, W = sm.shape
+            rr, cc = np.ogrid[:H, :W]
+            to_border = np.minimum(np.minimum(rr, H - 1 - rr), np.minimum(cc, W - 1 - cc)) + 1.0
+            depth = np.zeros(n + 1)
+            depth[1:] = ndi.maximum(to_border, lab, np.arange(1, n + 1))
+            contact_px = along[:2].sum(0) * W + along[2:].sum(0) * H
+            shutter = (along.max(0) >= FOV_SHUTTER_SIDE_FRACTION) | (
+                (contact_px > 0) & (depth <= FOV_SHUTTER_DEPTH_RATIO * contact_px))
+            shutter[0] = False
+            fov = ~shutter[lab]
     # Erode away from the shutter edges only; the image border itself loses BORDER_PX.
     fov = ndi.binary_erosion(fov, iterations=margin_px, border_value=1)
     b = BORDER_PX
