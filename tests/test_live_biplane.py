@@ -18,6 +18,7 @@ import pytest
 from guidewire3d import io, metrics
 from guidewire3d.app import biplane, igtl, sources, stream
 from guidewire3d.errors import InputError
+from test_live_server import bundle_after, next_status
 
 pyigtl = pytest.importorskip("pyigtl")
 
@@ -98,22 +99,6 @@ def serving(setup, *, devices=stream.DEFAULT_DEVICES, timeout_s=sources.DEFAULT_
 
 def image_message(frame, ts, device):
     return pyigtl.ImageMessage(np.asarray(frame)[None], device_name=device, timestamp=ts)
-
-
-def next_status(client, timeout_s=WAIT_S):
-    m = client.wait_for(lambda m: m.device_name == igtl.DEVICE_STATUS, timeout_s=timeout_s)
-    assert m is not None, "no GuidewireStatus within the time limit"
-    return m, igtl.status_of(m)
-
-
-def bundle_after(client, status_msg, timeout_s=10.0):
-    out = {igtl.DEVICE_STATUS: status_msg}
-    end = time.monotonic() + timeout_s
-    while len(out) < 4 and time.monotonic() < end:
-        m = client.wait_for(lambda m: m.timestamp == status_msg.timestamp, timeout_s=0.2)
-        if m is not None:
-            out[m.device_name] = m
-    return out
 
 
 def _true_wire(bcase_dir, t):

@@ -142,16 +142,22 @@ def _source_thread(name, target):
     return threading.Thread(target=target, name=name, daemon=True)
 
 
+def _replay_fps(run, fps) -> float:
+    """A replay's rate: ``fps`` (``--fps``), else the run's FrameTime, else 15; InputError outside 0.1..1000."""
+    ft = getattr(run, "frame_time_ms", None)
+    rate = float(fps) if fps else (1000.0 / ft if ft else 15.0)
+    if not 0.1 <= rate <= 1000:
+        raise InputError(f"--fps: expected 0.1..1000 frames per second, got {rate:g}")
+    return rate
+
+
 class ReplaySource:
     """Frames of an ``io.XARun`` at ``fps`` (its frame time by default, 15 fps without one), each
     stamped with the time it is put in the mailbox; ``loop`` repeats the run."""
 
     def __init__(self, run, *, fps: float | None = None, loop: bool = False):
         self.run, self.loop = run, loop
-        ft = getattr(run, "frame_time_ms", None)
-        self.fps = float(fps) if fps else (1000.0 / ft if ft else 15.0)
-        if not 0.1 <= self.fps <= 1000:
-            raise InputError(f"--fps: expected 0.1..1000 frames per second, got {self.fps:g}")
+        self.fps = _replay_fps(run, fps)
         self.carm = run.carm
         self.name = f"replay of {run.source} at {self.fps:g} fps" + (" (loop)" if loop else "")
         self.done = threading.Event()
@@ -521,10 +527,7 @@ class PairReplaySource:
         self.runs, self.pairs, self.loop = tuple(runs), list(pairs), loop
         if len(self.runs) != 2 or not self.pairs:
             raise InputError("a biplane replay needs two runs and at least one pair of frames")
-        ft = getattr(self.runs[0], "frame_time_ms", None)
-        self.fps = float(fps) if fps else (1000.0 / ft if ft else 15.0)
-        if not 0.1 <= self.fps <= 1000:
-            raise InputError(f"--fps: expected 0.1..1000 frames per second, got {self.fps:g}")
+        self.fps = _replay_fps(self.runs[0], fps)
         self.name = (f"replay of {self.runs[0].source} (plane A) and {self.runs[1].source} (plane B), "
                      f"{len(self.pairs)} pairs at {self.fps:g} fps" + (" (loop)" if loop else ""))
         self.done = threading.Event()

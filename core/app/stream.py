@@ -282,17 +282,21 @@ class LiveSummary:
     def _pct(x, q):
         return 1000.0 * float(np.percentile(x, q)) if len(x) else float("nan")
 
-    def line(self) -> str:
+    def _latency_and_clients(self) -> str:
+        """The end of :meth:`line`: the latency percentiles and the clients."""
         lat, what = ((self.latency_sent_s, "source time stamp -> sent") if self.latency_sent_s
                      else (self.latency_processed_s, "source time stamp -> published, no client"))
-        s = (f"{self.frames_in} frames in, {self.processed} processed ({self.ok} ok, {self.uncertain} uncertain, "
-             f"{self.failed} failed), {self.dropped} dropped in {self.seconds:.1f} s")
+        s = ""
         if len(lat):
             s += f"; latency ({what}) median {self._pct(lat, 50):.1f} ms, p99 {self._pct(lat, 99):.1f} ms"
         s += f"; {self.connections} client connection(s)"
         if self.skipped_for_slow_clients:
             s += f", {self.skipped_for_slow_clients} bundles skipped for slow clients"
         return s
+
+    def line(self) -> str:
+        return (f"{self.frames_in} frames in, {self.processed} processed ({self.ok} ok, {self.uncertain} uncertain, "
+                f"{self.failed} failed), {self.dropped} dropped in {self.seconds:.1f} s" + self._latency_and_clients())
 
     def to_dict(self) -> dict:
         d = {k: v for k, v in self.__dict__.items() if not k.startswith("latency")}
@@ -436,8 +440,6 @@ class BiplaneSummary(LiveSummary):
     ignored: int = 0  # IMAGE messages of another device name
 
     def line(self) -> str:
-        lat, what = ((self.latency_sent_s, "source time stamp -> sent") if self.latency_sent_s
-                     else (self.latency_processed_s, "source time stamp -> published, no client"))
         s = (f"{self.processed} pairs processed ({self.two_view} from both planes, {self.one_view['A']} from plane A "
              f"only, {self.one_view['B']} from plane B only; {self.ok} ok, {self.uncertain} uncertain, "
              f"{self.failed} failed) in {self.seconds:.1f} s; "
@@ -446,12 +448,7 @@ class BiplaneSummary(LiveSummary):
                          for p in PLANES))
         if self.ignored:
             s += f"; {self.ignored} IMAGE messages of other device names ignored"
-        if len(lat):
-            s += f"; latency ({what}) median {self._pct(lat, 50):.1f} ms, p99 {self._pct(lat, 99):.1f} ms"
-        s += f"; {self.connections} client connection(s)"
-        if self.skipped_for_slow_clients:
-            s += f", {self.skipped_for_slow_clients} bundles skipped for slow clients"
-        return s
+        return s + self._latency_and_clients()
 
 
 class BiplaneRunner(LiveRunner):
