@@ -1,10 +1,10 @@
-"""The quality of a pose and the verdict on a registration: residuals, covariance, jackknife.
+"""The quality of a pose and the verdict on a registration: residuals, covariance, jackknife, depth profile.
 
 Quality: ``mean_residual_px`` and ``inlier_fraction`` are measured on the 2D side (every 2D
 centerline point should lie on the projection of the CTA tree; the converse does not hold for a
 partial roadmap): :func:`residuals_px`, :func:`score`. ``success`` is false when either says the
-answer cannot be trusted, or when the pose covariance leaves the tree's position uncertain
-(``pose_std_mm`` above ``max_pose_std_mm``). That limit is ``MAX_POSE_STD_MM``; a roadmap that
+answer cannot be trusted, or when the pose is not settled (``max_pose_std_mm``, the limit, sets
+the three checks below). That limit is ``MAX_POSE_STD_MM``; a roadmap that
 explains essentially one vessel path (``single_path``) gets the stricter
 ``MAX_POSE_STD_MM_SINGLE_PATH`` (one curve fixes its depth only through perspective), and one that
 explains less than ``FULL_LIMIT_EXPLAINED_FRACTION`` of the CTA centerline a proportionally smaller
@@ -13,7 +13,7 @@ covariance's tail (a perfect 2D overlay with the tree 2-14 mm off along the beam
 is a screen (``COVARIANCE_SCREEN_FACTOR`` x the limit); a pose that passes it gets two more opinions:
 a block jackknife over spatial tiles of the roadmap (``JACKKNIFE_TILES``, ``JACKKNIFE_FACTOR``) and a
 profile of the energy along the beam (:func:`_depth_profile_mm`, ``DEPTH_PROFILE_FACTOR``): the depth
-is moved by the limit and the rest of the pose re-fitted; the energy must rise by what the
+is moved by that factor x the limit and the rest of the pose re-fitted; the energy must rise by what the
 covariance's own quadratic model predicts at its depth 1-sigma. The Gauss-Newton curvature is local;
 a depth that one view leaves ambiguous is often flatter than quadratic a millimetre or two away.
 
