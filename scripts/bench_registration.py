@@ -20,8 +20,9 @@ bifurcations matched with ``match_bifurcations`` at the same start) is in the sa
     nice .venv/bin/python scripts/bench_registration.py --verdict --cases 100 --seed0 100  # held out
 
 ``--verdict`` counts false refusals (mTRE <= 2 mm, verdict not OK) and false acceptances (mTRE > 2 mm,
-OK) of three verdicts computed from the same results (``legacy_ok``: before issue 20; ``sigma_ok``: the
-covariance's limit alone; the shipped one, with the jackknife second opinion) on
+OK) of four verdicts computed from the same results (``legacy_ok``: before issue 20; ``sigma_ok``: the
+covariance's limit alone; ``jackknife_ok``: that and the jackknife second opinion; the shipped one, with
+the depth profile) on
 end-to-end inputs, five roadmaps per seed (see ``load_verdict_cases``; preparing a seed takes
 ~20 s, cached under ``--cache``).
 
@@ -60,10 +61,28 @@ def legacy_ok(r) -> bool:
     return bool(r.fits_2d and r.pose_std_mm <= lim)
 
 
+def _limit_2026_11(r) -> float:
+    """The pose 1-sigma limit of the verdicts before the depth profile (single vessel path: 1 mm)."""
+    from guidewire3d.registration import verdict
+
+    f = r.explained_fraction if np.isfinite(r.explained_fraction) else 0.0
+    cap = LEGACY_MAX_POSE_STD_MM_SINGLE_PATH if r.single_path else LEGACY_MAX_POSE_STD_MM
+    return min(cap, LEGACY_MAX_POSE_STD_MM * min(1.0, max(f, 0.0) / verdict.FULL_LIMIT_EXPLAINED_FRACTION))
+
+
 def sigma_ok(r) -> bool:
     """The verdict's OK from the covariance alone (the pose 1-sigma limit, without the jackknife
     second opinion: the verdict of 2026-11), from the same result."""
-    return bool(r.fits_2d and r.pose_std_mm <= r.max_pose_std_mm)
+    return bool(r.fits_2d and r.pose_std_mm <= _limit_2026_11(r))
+
+
+def jackknife_ok(r) -> bool:
+    """The verdict's OK before the depth profile (issue 20 item 4): the 2026-11 1-sigma limit and the
+    jackknife within ``JACKKNIFE_FACTOR`` x that limit, from the same result (the jackknife is computed
+    whenever the covariance screen passes, which that limit implies)."""
+    from guidewire3d.registration import verdict
+
+    return bool(sigma_ok(r) and not (r.jackknife_std_mm > verdict.JACKKNIFE_FACTOR * _limit_2026_11(r)))
 CACHE_VERSION = 2  # cached: simulator outputs (roadmap image, tree, geometry), not the 2D centerline
 
 
@@ -345,39 +364,68 @@ def load_verdict_cases(seeds, cache: Path | None, log):
 def run_verdict(cases, log):
     """Register every verdict case from the DICOM start; the verdict before issue 20 is computed
     from the same result (``legacy_ok``), so one run gives both rows."""
+    from guidewire3d.registration import verdict
+
+    spent = {}  # CPU seconds of the verdict's second opinions in the current registration
+
+    def timed(name, fn):
+        def wrapper(*args, **kw):
+            c1 = time.process_time()
+            try:
+                return fn(*args, **kw)
+            finally:
+                spent[name] = spent.get(name, 0.0) + time.process_time() - c1
+        return wrapper
+
     rows = []
-    for k, c in enumerate(cases):
-        t0, c0 = time.perf_counter(), time.process_time()
-        r = reg.register(c["tree"], c["uv"], c["carm"], centerline_radius_px=c["radius"])
-        wall, cpu = time.perf_counter() - t0, time.process_time() - c0
-        d = r.pose.apply(c["true_pts"]) - c["true_pose"].apply(c["true_pts"])
-        rows.append(dict(seed=c["seed"], variant=c["variant"], mtre=mtre_mm(r.pose, c["true_pose"], c["true_pts"]),
-                         depth=float(np.mean(d @ c["carm"].beam_direction)), verdict=r.verdict.value,
-                         ok=bool(r.success), ok_before=legacy_ok(r), ok_sigma=sigma_ok(r), jk=r.jackknife_std_mm,
-                         fits=bool(r.fits_2d), single=bool(r.single_path),
-                         std=r.pose_std_mm, limit=r.max_pose_std_mm, explained=r.explained_fraction,
-                         res=r.mean_residual_px, inl=r.inlier_fraction, wall=wall, cpu=cpu))
-        if (k + 1) % 50 == 0:
-            log(f"  {k + 1}/{len(cases)} registrations")
+    originals = {n: getattr(verdict, n) for n in ("_jackknife_pose_std_mm", "_depth_profile_mm")}
+    for n, fn in originals.items():
+        setattr(verdict, n, timed(n, fn))
+    try:
+        for k, c in enumerate(cases):
+            spent.clear()
+            rows.append(_verdict_row(c, spent))
+            if (k + 1) % 50 == 0:
+                log(f"  {k + 1}/{len(cases)} registrations")
+    finally:
+        for n, fn in originals.items():
+            setattr(verdict, n, fn)
     return rows
 
 
+def _verdict_row(c, spent) -> dict:
+    """One verdict registration and what the table needs of it (``spent``: CPU s of the second opinions)."""
+    t0, c0 = time.perf_counter(), time.process_time()
+    r = reg.register(c["tree"], c["uv"], c["carm"], centerline_radius_px=c["radius"])
+    wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+    d = r.pose.apply(c["true_pts"]) - c["true_pose"].apply(c["true_pts"])
+    return dict(seed=c["seed"], variant=c["variant"], mtre=mtre_mm(r.pose, c["true_pose"], c["true_pts"]),
+                depth=float(np.mean(d @ c["carm"].beam_direction)), verdict=r.verdict.value,
+                ok=bool(r.success), ok_before=legacy_ok(r), ok_sigma=sigma_ok(r), ok_jk=jackknife_ok(r),
+                jk=r.jackknife_std_mm, fits=bool(r.fits_2d), single=bool(r.single_path),
+                std=r.pose_std_mm, limit=r.max_pose_std_mm, explained=r.explained_fraction,
+                res=r.mean_residual_px, inl=r.inlier_fraction, wall=wall, cpu=cpu, pose=r.pose, message=r.message,
+                jk_cpu=spent.get("_jackknife_pose_std_mm", 0.0), profile_cpu=spent.get("_depth_profile_mm", 0.0))
+
+
 def verdict_table(rows, out, seeds):
-    """False refusals (right: mTRE <= SUCCESS_MM, not OK) and false acceptances (wrong, OK) of three
+    """False refusals (right: mTRE <= SUCCESS_MM, not OK) and false acceptances (wrong, OK) of four
     verdicts on the same registrations: before issue 20 (``legacy_ok``), the covariance's 1-sigma
-    alone (``sigma_ok``), and the shipped one (1-sigma and the jackknife second opinion)."""
+    alone (``sigma_ok``), 1-sigma and the jackknife second opinion (``jackknife_ok``) and the shipped
+    one (covariance screen, jackknife and depth profile)."""
     out(f"\n### Verdict vs truth: {len(rows)} registrations from the DICOM start (seeds {seeds}), "
         f"right = mTRE <= {SUCCESS_MM} mm")
     out("verdicts: *legacy* = before issue 20; *1-sigma* = the pose covariance's limit alone; "
-        "*shipped* = 1-sigma and the jackknife second opinion")
-    out("| roadmap | n | right | false refusals legacy / 1-sigma / shipped | false acceptances legacy / 1-sigma / shipped | "
-        "largest mTRE flagged OK legacy / 1-sigma / shipped (mm) |")
+        "*jackknife* = 1-sigma and the jackknife second opinion; *profile* (shipped) = covariance screen, "
+        "jackknife and the depth profile")
+    out("| roadmap | n | right | false refusals legacy / 1-sigma / jackknife / profile | false acceptances legacy / "
+        "1-sigma / jackknife / profile | largest mTRE flagged OK legacy / 1-sigma / jackknife / profile (mm) |")
     out("|---|---|---|---|---|---|")
 
     def line(name, R):
         m = np.array([r["mtre"] for r in R])
         right = m <= SUCCESS_MM
-        verdicts = [np.array([r[k] for r in R]) for k in ("ok_before", "ok_sigma", "ok")]
+        verdicts = [np.array([r[k] for r in R]) for k in ("ok_before", "ok_sigma", "ok_jk", "ok")]
         fr = " / ".join(str(int(np.sum(right & ~v))) for v in verdicts)
         fa = " / ".join(str(int(np.sum(~right & v))) for v in verdicts)
         worst = " / ".join(f"{m[v].max():.1f}" if v.any() else "-" for v in verdicts)
@@ -392,8 +440,15 @@ def verdict_table(rows, out, seeds):
     for lim in (2.5, 3.0, 5.0):
         out(f"flagged OK with mTRE > {lim} mm: legacy {sum(r['ok_before'] and r['mtre'] > lim for r in rows)}, "
             f"1-sigma {sum(r['ok_sigma'] and r['mtre'] > lim for r in rows)}, "
-            f"shipped {sum(r['ok'] and r['mtre'] > lim for r in rows)}")
-    out(f"time per registration (incl. global search and the jackknife): median CPU "
+            f"jackknife {sum(r['ok_jk'] and r['mtre'] > lim for r in rows)}, "
+            f"profile {sum(r['ok'] and r['mtre'] > lim for r in rows)}")
+    prof = np.array([r["profile_cpu"] for r in rows])
+    jk = np.array([r["jk_cpu"] for r in rows])
+    out(f"CPU of the second opinions: depth profile run in {np.sum(prof > 0)} of {len(rows)} registrations, "
+        f"median {1e3 * np.median(prof[prof > 0]) if (prof > 0).any() else 0:.0f} ms there "
+        f"(mean {1e3 * prof.mean():.0f} ms per registration); jackknife in {np.sum(jk > 0)}, median "
+        f"{1e3 * np.median(jk[jk > 0]) if (jk > 0).any() else 0:.0f} ms there (mean {1e3 * jk.mean():.0f} ms)")
+    out(f"time per registration (incl. global search and the second opinions): median CPU "
         f"{1e3 * np.median([r['cpu'] for r in rows]):.0f} ms, median wall {1e3 * np.median([r['wall'] for r in rows]):.0f} ms; "
         f"median mTRE {np.median(m):.2f} mm")
 

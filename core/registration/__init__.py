@@ -65,6 +65,9 @@ from guidewire3d.registration.solve import (  # noqa: F401
 )
 from guidewire3d.registration.verdict import (  # noqa: F401
     COVARIANCE_INFLATION,
+    COVARIANCE_SCREEN_FACTOR,
+    DEPTH_PROFILE_FACTOR,
+    DEPTH_PROFILE_ITERATIONS,
     FULL_LIMIT_EXPLAINED_FRACTION,
     INLIER_PX,
     JACKKNIFE_FACTOR,

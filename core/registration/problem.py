@@ -375,12 +375,22 @@ class _LMOut:
 
 
 def _levenberg_marquardt(prob: _Problem, pose: Pose, *, gate_px: float, max_iterations: int, delta: float | None = None,
-                         eps_abs: float = EPS_ABS_MM, eps_rel: float = EPS_REL) -> _LMOut:
+                         eps_abs: float = EPS_ABS_MM, eps_rel: float = EPS_REL, fixed=None) -> _LMOut:
     """Paper's LM on se(3): IRLS weights, left perturbation, gain-ratio damping (Nielsen).
 
     Closest points are recomputed at every accepted pose; a trial step is judged with the
     current correspondences held fixed, so the gain ratio compares like with like.
+
+    ``fixed`` (a (6,) vector in theta units, optional): steps are restricted to its orthogonal
+    complement, i.e. the linear function ``fixed . theta`` of the pose (such as the depth of the
+    tree in :func:`guidewire3d.registration.verdict._depth_profile_mm`) is held where it starts, to first
+    order (a profile of the energy).
     """
+    if fixed is None:
+        B = np.eye(6)
+    else:
+        a = np.asarray(fixed, float).reshape(6, 1)
+        B = np.linalg.svd(np.eye(6) - (a @ a.T) / float((a.T @ a)[0, 0]))[0][:, :5]  # orthonormal basis of a's complement
     prob.anchor = pose
     ev = prob.evaluate(pose, gate_px, delta=delta)
     best = ev
@@ -393,14 +403,15 @@ def _levenberg_marquardt(prob: _Problem, pose: Pose, *, gate_px: float, max_iter
         if ev.n_in3 + ev.n_in2 < 6:
             status = "too few matched points"
             break
+        gz = B.T @ ev.g
         try:
-            h = np.linalg.solve(ev.H + mu * np.eye(6), -ev.g)
+            h = B @ np.linalg.solve(B.T @ ev.H @ B + mu * np.eye(B.shape[1]), -gz)
         except np.linalg.LinAlgError:
             status = "singular normal equations"
             break
         hn = float(np.linalg.norm(h))
         if hn < eps_abs:
-            grad_small = float(np.abs(ev.g).max()) < eps_rel * max(ev.rnorm, 1e-12)
+            grad_small = float(np.abs(gz).max()) < eps_rel * max(ev.rnorm, 1e-12)
             status = "converged" if grad_small else "converged (step)"
             break
         new_pose = prob.step(ev.pose, h)
@@ -411,7 +422,7 @@ def _levenberg_marquardt(prob: _Problem, pose: Pose, *, gate_px: float, max_iter
             ev = prob.evaluate(new_pose, gate_px, delta=delta)  # new correspondences
             mu *= max(1.0 / 3.0, 1.0 - (2.0 * eta - 1.0) ** 3)
             nu = 2.0
-            grad_small = float(np.abs(ev.g).max()) < eps_rel * max(ev.rnorm, 1e-12)
+            grad_small = float(np.abs(B.T @ ev.g).max()) < eps_rel * max(ev.rnorm, 1e-12)
             if ev.energy < best.energy * (1.0 - REL_DECREASE_STOP):
                 best, since_best = ev, 0
             else:
