@@ -59,8 +59,8 @@ class RegistrationResult:
         large when the visible vessels leave a direction undetermined (e.g. a single path).
     single_path : bool
         The roadmap explains essentially one root-to-leaf vessel path of the tree (see
-        ``SINGLE_PATH_FRACTION``): its depth along the beam rests on perspective alone, so
-        ``success`` then needs ``pose_std_mm <= MAX_POSE_STD_MM_SINGLE_PATH``.
+        ``SINGLE_PATH_FRACTION``): its depth along the beam rests on perspective alone, so its
+        limit ``max_pose_std_mm`` is ``MAX_POSE_STD_MM_SINGLE_PATH``.
     fits_2d : bool
         The 2D centerline lies on the projected tree (the residual and inlier checks pass). With
         ``success`` false this means the overlay fits but the roadmap leaves the pose uncertain
@@ -68,8 +68,10 @@ class RegistrationResult:
     explained_fraction : float
         Fraction of the CTA centerline (LM samples) that the roadmap explains (the visible segments).
     max_pose_std_mm : float
-        The limit ``success`` applied to ``pose_std_mm``: :func:`pose_std_limit_mm` of
-        ``explained_fraction`` and ``single_path``.
+        The pose 1-sigma limit (:func:`pose_std_limit_mm` of ``explained_fraction`` and
+        ``single_path``): ``success`` needs ``pose_std_mm`` within ``COVARIANCE_SCREEN_FACTOR`` x it
+        (a screen), the jackknife within ``JACKKNIFE_FACTOR`` x it and the depth profile's
+        half-width (in the message when it refuses) within ``DEPTH_PROFILE_FACTOR`` x it.
     jackknife_std_mm : float
         The second opinion (NaN when not computed, i.e. when the first checks already failed): the
         RMS 1-sigma displacement of the tree from a block jackknife of the pose, each of
