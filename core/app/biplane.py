@@ -11,8 +11,9 @@ both live frames; each plane has its own C-arm geometry (its DICOM positioner ta
   search in each plane; a candidate from plane A's search knows nothing of the depth along A's
   beam, which plane B sees in its image plane, so each candidate's depth along its own beam is
   scanned against the other plane's centerline (a symmetric truncated chamfer), and LM starts
-  from the best candidates. Covariance from the summed information; verdict per view (each
-  roadmap's overlay must fit) and from the pose 1-sigma.
+  from the best candidates, each through both LM stages; the lowest final energy wins. Covariance
+  from the summed information; verdict per view (each roadmap's overlay must fit), from the pose
+  1-sigma, and a second opinion: another start's end as low in energy but elsewhere -> uncertain.
 * :class:`BiplaneSession`: the per-frame engine for a pair of frames: each plane's 2D wire
   through its own :class:`guidewire3d.live.session.Session` (segmenter with its ROI tracking, ordered
   wire), then the two-view wire of :mod:`guidewire3d.reconstruction.triangulation`; a pair whose wire is missing
