@@ -24,6 +24,7 @@ Frames (pairs) per second: 1 / the median wall time of a frame (pair), after the
 case (warm-up), on this machine (print the load with it).
 
     nice .venv/bin/python scripts/bench_biplane.py --cases 30 --frames 4 --results biplane.pkl
+    .venv/bin/python scripts/bench_biplane.py --cases 30 --seed0 30 --no-wires   # registration columns alone
     .venv/bin/python scripts/bench_biplane.py --timing 100 --frames 12 [--segmenter ridge]   # speed alone
 """
 from __future__ import annotations
@@ -87,15 +88,22 @@ def run_case(seed: int, args, log) -> dict:
     poses = {}
     for variant, imgs in roadmaps.items():
         cls = [_centerline(img, tree, c) for img, c in zip(imgs, carms)]
-        m = reg.register(tree, cls[0].points_uv_px, carms[0], centerline_radius_px=cls[0].radius_px)
-        b = biplane.register_biplane(tree, [c.points_uv_px for c in cls], carms,
-                                     centerline_radius_px=[c.radius_px for c in cls])
-        for name, r in (("mono", m), ("bi", b.result)):
+        done = []
+        if args.only != "bi":
+            done.append(("mono", reg.register(tree, cls[0].points_uv_px, carms[0], centerline_radius_px=cls[0].radius_px)))
+        if args.only != "mono":
+            done.append(("bi", biplane.register_biplane(tree, [c.points_uv_px for c in cls], carms,
+                                                        centerline_radius_px=[c.radius_px for c in cls]).result))
+        for name, r in done:
             e = metrics.mtre_mm(r.pose, case.pose, P_true)
             out["reg"][(name, variant)] = dict(mtre=e, ok=bool(r.success), success=bool(r.success and e < SUCCESS_MM),
                                                seconds=r.seconds, verdict=r.verdict.value)
             if variant == "full":
                 poses[name] = r
+    if args.no_wires:
+        out["wires"] = {"mono": [], "bi": []}
+        log(_case_line(seed, out, t0))
+        return out
     # wires at each method's own pose from the full roadmaps
     truth = []
     for t in range(args.frames):
@@ -132,12 +140,19 @@ def run_case(seed: int, args, log) -> dict:
             recs[name].append(rec)
     bi.close()
     out["wires"] = recs
-    log(f"  seed {seed}: mono {out['reg'][('mono', 'full')]['mtre']:.2f}/{out['reg'][('mono', 'path')]['mtre']:.2f} mm "
-        f"({out['reg'][('mono', 'full')]['verdict']}/{out['reg'][('mono', 'path')]['verdict']}), "
-        f"bi {out['reg'][('bi', 'full')]['mtre']:.2f}/{out['reg'][('bi', 'path')]['mtre']:.2f} mm "
-        f"({out['reg'][('bi', 'full')]['verdict']}/{out['reg'][('bi', 'path')]['verdict']}); "
-        f"{time.perf_counter() - t0:.1f} s")
+    log(_case_line(seed, out, t0))
     return out
+
+
+def _case_line(seed: int, out: dict, t0: float) -> str:
+    r = out["reg"]
+    if len(r) < 4:  # one method only (--only)
+        return f"  seed {seed}: " + ", ".join(f"{k[0]} {k[1]} {x['mtre']:.2f} mm ({x['verdict']})" for k, x in r.items())
+    return (f"  seed {seed}: mono {r[('mono', 'full')]['mtre']:.2f}/{r[('mono', 'path')]['mtre']:.2f} mm "
+            f"({r[('mono', 'full')]['verdict']}/{r[('mono', 'path')]['verdict']}), "
+            f"bi {r[('bi', 'full')]['mtre']:.2f}/{r[('bi', 'path')]['mtre']:.2f} mm "
+            f"({r[('bi', 'full')]['verdict']}/{r[('bi', 'path')]['verdict']}); "
+            f"{time.perf_counter() - t0:.1f} s")
 
 
 def table(results, args, out=print) -> None:
@@ -146,6 +161,8 @@ def table(results, args, out=print) -> None:
 
     rows = []
     for name, label in (("mono", "monoplane (plane A)"), ("bi", "biplane (A + B)")):
+        if (name, "full") not in results[0]["reg"]:
+            continue
         regs = {v: [r["reg"][(name, v)] for r in results] for v in ("full", "path")}
         allr = regs["full"] + regs["path"]
         succ = sum(x["success"] for x in allr)
@@ -178,6 +195,11 @@ def table(results, args, out=print) -> None:
     out("|" + "---|" * (head.count("|") - 1))
     for r in rows:
         out("| " + " | ".join(r) + " |")
+    for name in [n for n in ("mono", "bi") if (n, "full") in results[0]["reg"]]:
+        bad = [f"{r['seed']} {v} {x['mtre']:.2f} mm {x['verdict']}" for r in results for v in ("full", "path")
+               for x in [r["reg"][(name, v)]] if not x["success"]]
+        if name == "bi" or len(bad) <= 20:
+            out(f"\n{name} registrations not successful (seed, roadmap, mTRE, verdict): " + ("; ".join(bad) or "none"))
     bi = [f for r in results for f in r["wires"]["bi"] if "e_pts" in f]
     if bi:
         e = np.concatenate([f["e_pts"] for f in bi])
@@ -236,6 +258,10 @@ def main(argv=None) -> int:
     ap.add_argument("--segmenter", default="unet", choices=("unet", "ridge"))
     ap.add_argument("--threads", type=int, default=2, choices=(1, 2),
                     help="biplane: the two planes' 2D analyses in 1 or 2 threads")
+    ap.add_argument("--no-wires", action="store_true",
+                    help="the registration columns only (no live frames reconstructed; the wire columns are empty)")
+    ap.add_argument("--only", choices=("mono", "bi"), default=None,
+                    help="one method's registration only (needs --no-wires)")
     ap.add_argument("--cta", action="store_true", help="register to the CTA-extracted tree (slower)")
     ap.add_argument("--results", type=Path, default=None, metavar="FILE",
                     help="keep each case's results in FILE (pickle) as it completes; a rerun with the same "
@@ -243,6 +269,8 @@ def main(argv=None) -> int:
     ap.add_argument("--timing", type=int, default=None, metavar="SEED",
                     help="only the speed table: one case, --frames frames, the true pose")
     args = ap.parse_args(argv)
+    if args.only and not args.no_wires:
+        ap.error("--only needs --no-wires (the wire columns compare both methods)")
     if args.timing is not None:
         timing(args.timing, max(args.frames, 4), args.segmenter)
         return 0
@@ -252,7 +280,7 @@ def main(argv=None) -> int:
 
     import pickle
 
-    key = (args.frames, args.segmenter, args.threads, bool(args.cta))
+    key = (args.frames, args.segmenter, args.threads, bool(args.cta), bool(args.no_wires), args.only)
     done = {}
     if args.results is not None and args.results.is_file():
         saved_key, done = pickle.loads(args.results.read_bytes())

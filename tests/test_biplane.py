@@ -107,6 +107,68 @@ def test_a_wrong_pose_is_not_ok(bcase):
     assert not r.success and "plane" in r.result.message
 
 
+def _single_path_roadmap_centerlines(case, rng):
+    """Single-path roadmaps of both planes (the catheterised path alone, rendered and exposed as
+    ``scripts/bench_registration._render_roadmap``) and their 2D centerlines (as ``bench_biplane``)."""
+    from guidewire3d.phantom import xray
+    from guidewire3d.xray.roadmap import roadmap_centerline
+
+    ids = np.asarray(case.wire_path_point_ids)
+    chain = [(case.tree.points_lps_mm[ids], case.tree.radius_mm[ids])]
+    cls = []
+    for c in (case.carm, case.heldout_carm):
+        L = xray.render_tube_line_integral(c, case.pose, chain, supersample=2)
+        n0 = 300.0 * (c.pixel_mm / 0.2) ** 2
+        img = xray._expose(rng, rng.uniform(0.1, 0.22) * L, b0=rng.uniform(3000, 12000), n0=4 * n0,
+                           psf_px=xray._psf_sigma_px(rng, c), gain_field=xray._gain_field(c.shape), gain=1.0)
+        cls.append(roadmap_centerline(img, max_radius_px=float(case.tree.radius_mm.max()) / c.pixel_at_iso_mm * 1.5))
+    return cls
+
+
+def test_single_path_case_once_ok_but_wrong_lands_right():
+    """bench_biplane seed 58, single-path roadmaps: the start with the lowest wide-gate LM energy
+    ended 4.7 mm off (rotated ~13 deg) and was flagged ok; every start is now refined to the end
+    and the lowest final energy is the right pose. Whatever the pose, an ok must be right."""
+    case = simulate(PhantomOptions(seed=58, n_frames=1, biplane=True), make_ct=False)
+    cls = _single_path_roadmap_centerlines(case, np.random.default_rng(70_000 + 58))
+    r = biplane.register_biplane(case.tree, [c.points_uv_px for c in cls], (case.carm, case.heldout_carm),
+                                 centerline_radius_px=[c.radius_px for c in cls])
+    err = metrics.mtre_mm(r.pose, case.pose, case.tree.points_lps_mm)
+    assert not (r.success and err >= 2.0), r.result.message
+    assert r.success and err < POSE_TOL_MM, (err, r.result.message)
+
+
+def test_a_rival_pose_that_fits_as_well_makes_it_uncertain(bcase):
+    """Second opinion: another LM end as low in energy but millimetres away -> uncertain, with the
+    reason; a rival at the same pose or with a clearly higher energy does not count."""
+    from types import SimpleNamespace
+
+    carms = (bcase.carm, bcase.heldout_carm)
+    ids = np.asarray(bcase.wire_path_point_ids)
+    cls = [_projected_centerline(bcase.tree, c, bcase.pose, ids) for c in carms]
+    calls = []
+    finish = biplane._finish
+
+    def with_rival(prob, out, qs, cs, iterations, t0, *, rivals=()):
+        calls.append(out)
+        rival = SimpleNamespace(pose=Pose(np.eye(3), np.array([3.0, 0.0, 0.0])) @ out.pose,
+                                ev=SimpleNamespace(energy=out.ev.energy * rival_ratio))
+        return finish(prob, out, qs, cs, iterations, t0, rivals=[rival])
+
+    biplane._finish, rival_ratio = with_rival, 1.01
+    try:
+        amb = biplane.register_biplane(bcase.tree, cls, carms)
+        rival_ratio = 1.5
+        far = biplane.register_biplane(bcase.tree, cls, carms)
+    finally:
+        biplane._finish = finish
+    assert len(calls) == 2
+    assert metrics.mtre_mm(amb.pose, bcase.pose, bcase.tree.points_lps_mm) < POSE_TOL_MM  # the pose is right ...
+    assert not amb.success and amb.result.verdict.value == "uncertain"  # ... but another fits as well
+    assert "another pose 3.0 mm away" in amb.result.message
+    assert far.success and far.result.verdict.value == "ok"
+
+
 def test_triangulated_wire_matches_truth(bcase):
     ctx = tri.TwoViewContext(bcase.tree, (bcase.carm, bcase.heldout_carm), bcase.pose)
     for t in range(3):

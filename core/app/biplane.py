@@ -11,8 +11,9 @@ both live frames; each plane has its own C-arm geometry (its DICOM positioner ta
   search in each plane; a candidate from plane A's search knows nothing of the depth along A's
   beam, which plane B sees in its image plane, so each candidate's depth along its own beam is
   scanned against the other plane's centerline (a symmetric truncated chamfer), and LM starts
-  from the best candidates. Covariance from the summed information; verdict per view (each
-  roadmap's overlay must fit) and from the pose 1-sigma.
+  from the best candidates, each through both LM stages; the lowest final energy wins. Covariance
+  from the summed information; verdict per view (each roadmap's overlay must fit), from the pose
+  1-sigma, and a second opinion: another start's end as low in energy but elsewhere -> uncertain.
 * :class:`BiplaneSession`: the per-frame engine for a pair of frames: each plane's 2D wire
   through its own :class:`guidewire3d.live.session.Session` (segmenter with its ROI tracking, ordered
   wire), then the two-view wire of :mod:`guidewire3d.reconstruction.triangulation`; a pair whose wire is missing
@@ -59,7 +60,14 @@ MIN_SEPARATION_DEG = 15.0
 DEPTH_SCAN_MM = 45.0
 DEPTH_STEP_MM = 1.5
 DEPTH_TRUNC_PX = 24.0  # chamfer truncation (px) of the depth scan
-JOINT_STARTS = 3  # LM starts (wide gate) from the best candidates of the joint coarse search
+JOINT_STARTS = 3  # LM starts from the best candidates of the joint coarse search, each refined to the end (both
+#   LM stages): the wide stage's energy (24 px gate) does not tell the right basin from a neighbouring one on a
+#   single-path roadmap, the narrow one does (bench_biplane held-out seeds 56 and 58, single-path: the start with the
+#   lowest wide energy ended 2.4 and 4.7 mm off with narrow energies 15 and 39 % above the right start's)
+SAME_POSE_MM = 0.5  # two LM results closer than this (RMS over the tree) are the same minimum
+AMBIGUITY_MM = 1.0  # second opinion: another LM result at least this far (RMS over the tree) from the chosen one ...
+AMBIGUITY_ENERGY_RATIO = 1.05  # ... whose narrow-stage energy is within this factor of the chosen one's: the two
+#   roadmaps do not tell the poses apart, the verdict is uncertain
 SEARCH_WEIGHT_3D = 0.1  # joint search: weight of the 3D -> 2D chamfer half (it favours poses that crowd the tree onto a partial roadmap)
 
 
@@ -295,10 +303,40 @@ def register_biplane(tree, centerlines_uv_px, carms, *, centerline_radius_px=(No
     else:
         cands = [start]
         gate_a = problem.GATE_WIDE_PX
-    out, iterations = problem.two_stage_lm(prob, cands, gate_wide_px=gate_a,
-                                           delta_wide=max(problem.DELTA_WIDE, problem.DELTA),
-                                           max_iterations=max_iterations)
-    return _finish(prob, out, qs, carms, iterations, t0)
+    ends, iterations = _multi_start_lm(prob, cands, gate_wide_px=gate_a,
+                                       delta_wide=max(problem.DELTA_WIDE, problem.DELTA), max_iterations=max_iterations)
+    out, visible = ends[0]
+    for p, v in zip(prob.probs, visible):
+        p.visible3 = v
+    return _finish(prob, out, qs, carms, iterations, t0, rivals=[o for o, _ in ends[1:]])
+
+
+def _rms_mm(a: Pose, b: Pose, points_lps_mm: np.ndarray) -> float:
+    """RMS distance (mm) between the tree points placed by two poses."""
+    return float(np.sqrt(np.mean(np.sum((a.apply(points_lps_mm) - b.apply(points_lps_mm)) ** 2, axis=1))))
+
+
+def _multi_start_lm(prob: _JointProblem, starts, *, gate_wide_px: float, delta_wide: float, max_iterations: int):
+    """Both LM stages (``problem._levenberg_marquardt`` with the wide gate, then ``problem._narrow_stage``)
+    from every start; a wide-stage result within ``SAME_POSE_MM`` of an earlier one is not refined again.
+
+    Returns ``(ends, iterations)``: ``ends`` the distinct refined results as ``(LMOut, visibility)``
+    (each sub-problem's ``visible3`` at its end), lowest narrow-stage energy first."""
+    pts = prob.m3.coarse
+    ends, wides, iterations = [], [], 0
+    for start in starts:
+        prob.set_visibility(start, gate_wide_px)
+        w = problem._levenberg_marquardt(prob, start, gate_px=gate_wide_px, delta=delta_wide,
+                                         max_iterations=int(max_iterations))
+        iterations += w.iterations
+        if any(_rms_mm(w.pose, p, pts) < SAME_POSE_MM for p in wides):
+            continue
+        wides.append(w.pose)
+        n, it = problem._narrow_stage(prob, w.pose, int(max_iterations))
+        iterations += it
+        ends.append((n, tuple(p.visible3.copy() for p in prob.probs)))
+    ends.sort(key=lambda e: e[0].ev.energy)
+    return ends, iterations
 
 
 def _view_fit(m3, q, carm: CArm, pose: Pose, plane: str, visible3) -> ViewFit:
@@ -309,7 +347,9 @@ def _view_fit(m3, q, carm: CArm, pose: Pose, plane: str, visible3) -> ViewFit:
     return ViewFit(plane, carm, carm.projection_matrix(pose), float(mean_in), float(frac), fits, explained, single)
 
 
-def _finish(prob: _JointProblem, out, qs, carms, iterations, t0) -> BiplaneRegistration:
+def _finish(prob: _JointProblem, out, qs, carms, iterations, t0, *, rivals=()) -> BiplaneRegistration:
+    """The joint result at ``out``; ``rivals``: the other starts' refined LM results (``_multi_start_lm``),
+    the second opinion (another pose that fits both roadmaps about as well makes the verdict uncertain)."""
     pose = out.pose
     m3 = prob.m3
     views = tuple(_view_fit(m3, q, c, pose, p, sub.visible3) for q, c, p, sub in zip(qs, carms, PLANES, prob.probs))
@@ -330,7 +370,8 @@ def _finish(prob: _JointProblem, out, qs, carms, iterations, t0) -> BiplaneRegis
     # alone in one view) does not apply; the explained-fraction rule does
     max_std = verdict.pose_std_limit_mm(explained, False)
     fits = all(v.fits_2d for v in views)
-    ok = fits and pose_std <= max_std
+    rival = _closest_rival(out, rivals, m3.coarse)
+    ok = fits and pose_std <= max_std and rival is None
     why = []
     for v in views:
         if v.mean_residual_px > verdict.MAX_MEAN_RESIDUAL_PX:
@@ -341,6 +382,9 @@ def _finish(prob: _JointProblem, out, qs, carms, iterations, t0) -> BiplaneRegis
     if pose_std > max_std:
         why.append(f"the two roadmaps do not determine the pose (1-sigma {pose_std:.1f} mm > {max_std:.1f} mm with "
                    f"{100 * explained:.0f}% of the tree explained)")
+    if rival is not None:
+        why.append(f"another pose {rival[0]:.1f} mm away fits both roadmaps nearly as well (LM energy "
+                   f"{100 * (rival[1] - 1):.1f}% higher, < {100 * (AMBIGUITY_ENERGY_RATIO - 1):.0f}%)")
     msg = (f"biplane LM {out.status} after {iterations} iterations; "
            + "; ".join(f"plane {v.plane}: mean residual {v.mean_residual_px:.2f} px, {100 * v.inlier_fraction:.0f}% "
                        f"inliers" for v in views)
@@ -356,6 +400,21 @@ def _finish(prob: _JointProblem, out, qs, carms, iterations, t0) -> BiplaneRegis
         single_path=single, fits_2d=bool(fits), explained_fraction=explained, max_pose_std_mm=max_std,
     )
     return BiplaneRegistration(res, views)
+
+
+def _closest_rival(out, rivals, points_lps_mm) -> tuple[float, float] | None:
+    """The rival LM result that makes ``out`` ambiguous: at least ``AMBIGUITY_MM`` away (RMS over the
+    tree) with an energy within ``AMBIGUITY_ENERGY_RATIO`` of ``out``'s; ``(distance mm, energy ratio)``
+    of the lowest-energy such rival, or None."""
+    e0 = max(float(out.ev.energy), 1e-12)
+    for r in sorted(rivals, key=lambda r: r.ev.energy):
+        ratio = float(r.ev.energy) / e0
+        if ratio > AMBIGUITY_ENERGY_RATIO:
+            break
+        d = _rms_mm(r.pose, out.pose, points_lps_mm)
+        if d >= AMBIGUITY_MM:
+            return d, ratio
+    return None
 
 
 # ============================================================================================
