@@ -48,7 +48,6 @@ from guidewire3d.reconstruction import reconstruct_wire
 from guidewire3d.registration import model, problem, search, solve, verdict
 from guidewire3d.registration.result import RegistrationResult, Verdict, _failed
 from guidewire3d.xray.orderedwire import ordered_wire
-from scipy.spatial import cKDTree
 
 __all__ = ["ViewFit", "BiplaneRegistration", "register_biplane", "BiplaneFrame", "BiplaneSession",
            "pair_frames", "check_planes", "check_inputs", "run", "run_to_outdir", "projection_error_summary", "PLANES"]
@@ -57,9 +56,6 @@ PLANES = ("A", "B")
 #: the two beams must be at least this far apart (deg) for the second plane to measure depth
 MIN_SEPARATION_DEG = 15.0
 #: depth scan of a search candidate along its own beam, against the other plane (mm)
-DEPTH_SCAN_MM = 45.0
-DEPTH_STEP_MM = 1.5
-DEPTH_TRUNC_PX = 24.0  # chamfer truncation (px) of the depth scan
 JOINT_STARTS = 3  # LM starts from the best candidates of the joint coarse search, each refined to the end (both
 #   LM stages): the wide stage's energy (24 px gate) does not tell the right basin from a neighbouring one on a
 #   single-path roadmap, the narrow one does (bench_biplane held-out seeds 56 and 58, single-path: the start with the
@@ -188,28 +184,6 @@ class _JointProblem:
 
 def _beam_angle_deg(a: CArm, b: CArm) -> float:
     return float(np.degrees(np.arccos(np.clip(a.beam_direction @ b.beam_direction, -1.0, 1.0))))
-
-
-def _depth_scan(m3, q_other: np.ndarray, carm_other: CArm, cand: Pose, beam: np.ndarray) -> tuple[float, Pose]:
-    """The shift of ``cand`` along ``beam`` (its own plane's beam, which its plane cannot see) that
-    best fits the other plane's centerline: symmetric chamfer, truncated at ``DEPTH_TRUNC_PX``."""
-    offsets = np.arange(-DEPTH_SCAN_MM, DEPTH_SCAN_MM + 1e-9, DEPTH_STEP_MM)
-    tree2 = cKDTree(q_other)
-    q_sub = q_other[:: max(1, len(q_other) // 400)]
-    base = cand.apply(m3.coarse)
-    tau = DEPTH_TRUNC_PX
-    costs = np.empty(len(offsets))
-    for k, off in enumerate(offsets):
-        uv = carm_other.project(base + off * beam)
-        ok = np.isfinite(uv).all(axis=1) & carm_other.in_image(uv)
-        if ok.sum() < 3:
-            costs[k] = 2 * tau
-            continue
-        d1 = np.minimum(tree2.query(uv[ok])[0], tau).mean()
-        d2 = np.minimum(cKDTree(uv[ok]).query(q_sub)[0], tau).mean()
-        costs[k] = d1 + d2 + tau * (1.0 - ok.mean())  # points leaving the image cost the truncation
-    k = int(np.argmin(costs))
-    return float(costs[k]), Pose(np.eye(3), offsets[k] * beam) @ cand
 
 
 def _joint_search(m3, m2s, carms, start: Pose, *, n_best: int) -> list[Pose]:
