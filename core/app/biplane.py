@@ -61,7 +61,8 @@ JOINT_STARTS = 3  # LM starts from the best candidates of the joint coarse searc
 #   single-path roadmap, the narrow one does (bench_biplane held-out seeds 56 and 58, single-path: the start with the
 #   lowest wide energy ended 2.4 and 4.7 mm off with narrow energies 15 and 39 % above the right start's)
 SAME_POSE_MM = 0.5  # two LM results closer than this (RMS over the tree) are the same minimum
-AMBIGUITY_MM = 1.0  # second opinion: another LM result at least this far (RMS over the tree) from the chosen one ...
+AMBIGUITY_MM = 1.0  # second opinion: another LM result at least this far (RMS over the tree; and at least the pose
+#   1-sigma limit, so two answers that are both right to the limit are not a conflict) from the chosen one ...
 AMBIGUITY_ENERGY_RATIO = 1.05  # ... whose narrow-stage energy is within this factor of the chosen one's: the two
 #   roadmaps do not tell the poses apart, the verdict is uncertain
 SEARCH_WEIGHT_3D = 0.1  # joint search: weight of the 3D -> 2D chamfer half (it favours poses that crowd the tree onto a partial roadmap)
@@ -344,7 +345,7 @@ def _finish(prob: _JointProblem, out, qs, carms, iterations, t0, *, rivals=()) -
     # alone in one view) does not apply; the explained-fraction rule does
     max_std = verdict.pose_std_limit_mm(explained, False)
     fits = all(v.fits_2d for v in views)
-    rival = _closest_rival(out, rivals, m3.coarse)
+    rival = _closest_rival(out, rivals, m3.coarse, min_mm=max(AMBIGUITY_MM, max_std))
     ok = fits and pose_std <= max_std and rival is None
     why = []
     for v in views:
@@ -376,17 +377,17 @@ def _finish(prob: _JointProblem, out, qs, carms, iterations, t0, *, rivals=()) -
     return BiplaneRegistration(res, views)
 
 
-def _closest_rival(out, rivals, points_lps_mm) -> tuple[float, float] | None:
-    """The rival LM result that makes ``out`` ambiguous: at least ``AMBIGUITY_MM`` away (RMS over the
-    tree) with an energy within ``AMBIGUITY_ENERGY_RATIO`` of ``out``'s; ``(distance mm, energy ratio)``
-    of the lowest-energy such rival, or None."""
+def _closest_rival(out, rivals, points_lps_mm, *, min_mm: float = AMBIGUITY_MM) -> tuple[float, float] | None:
+    """The rival LM result that makes ``out`` ambiguous: at least ``min_mm`` away (RMS over the tree)
+    with an energy within ``AMBIGUITY_ENERGY_RATIO`` of ``out``'s; ``(distance mm, energy ratio)`` of
+    the lowest-energy such rival, or None."""
     e0 = max(float(out.ev.energy), 1e-12)
     for r in sorted(rivals, key=lambda r: r.ev.energy):
         ratio = float(r.ev.energy) / e0
         if ratio > AMBIGUITY_ENERGY_RATIO:
             break
         d = _rms_mm(r.pose, out.pose, points_lps_mm)
-        if d >= AMBIGUITY_MM:
+        if d >= min_mm:
             return d, ratio
     return None
 

@@ -15,6 +15,7 @@ from skimage.color import rgb2gray
 from skimage.morphology import disk
 
 __all__ = [
+    "not_dark",
     "REFERENCE_SIZE_PX",
     "as_image",
     "as_mask",
@@ -108,6 +109,22 @@ def dark_vessels_auto(im01: np.ndarray, scale: float) -> bool:
     dark = ndi.grey_closing(small, footprint=fp) - small
     bright = small - ndi.grey_opening(small, footprint=fp)
     return float(np.percentile(dark, 99.5)) >= float(np.percentile(bright, 99.5))
+
+
+def not_dark(im01: np.ndarray, margin_px: int) -> np.ndarray:
+    """Pixels away from every dark region (smoothed intensity at most ``FOV_DARK_FRACTION`` x the
+    median, eroded by ``margin_px``) and from the image border: where a roadmap's vessel response is
+    normalised. A dense aorta or ventricle is in the field of view (:func:`field_of_view`) but not
+    here: its response, many times a branch's, would otherwise set the detection thresholds and
+    drop the thin vessels."""
+    sm = ndi.uniform_filter(im01, size=2 * margin_px + 1)
+    med = float(np.median(sm))
+    out = sm > FOV_DARK_FRACTION * med if med > 0 else np.ones_like(sm, bool)
+    out = ndi.binary_erosion(out, iterations=margin_px, border_value=1)
+    b = BORDER_PX
+    out[:b] = out[-b:] = False
+    out[:, :b] = out[:, -b:] = False
+    return out
 
 
 def field_of_view(im01: np.ndarray, margin_px: int) -> np.ndarray:

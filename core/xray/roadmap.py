@@ -40,6 +40,7 @@ from guidewire3d.xray.imaging import (
     as_mask,
     dark_vessels_auto,
     field_of_view,
+    not_dark,
     normalise01,
 )
 from guidewire3d.xray.vessels2d_learned import DEFAULT_WEIGHTS_PATH, learned_vessel_mask
@@ -72,23 +73,25 @@ HALF_MAX = 0.5                    # fraction of the local vessel contrast at the
 # --------------------------------------------------------------------------------------------
 
 def _vessel_feature(a: np.ndarray, dark_vessels, scale: float | None = None):
-    """Top-hat x vesselness feature in [0, ~1], the field-of-view mask, the attenuation image and
-    the length scale used (px per reference px)."""
+    """Top-hat x vesselness feature in [0, ~1], the mask it was normalised on (the field of view
+    outside dark regions), the field-of-view mask, the attenuation image and the length scale used
+    (px per reference px)."""
     from skimage.filters import sato
     from skimage.morphology import disk
 
     im01, ok = normalise01(a)
     if not ok:
-        return None, None, None, None
+        return None, None, None, None, None
     if scale is None:
         scale = max(a.shape) / REFERENCE_SIZE_PX
     if dark_vessels is None:
         dark_vessels = dark_vessels_auto(im01, scale)
     if not dark_vessels:
         im01 = 1.0 - im01
-    fov = field_of_view(im01, max(2, int(round(FOV_MARGIN_PX * scale))))
+    margin = max(2, int(round(FOV_MARGIN_PX * scale)))
+    fov = field_of_view(im01, margin)
     if fov.sum() < 64:
-        return None, None, None, None
+        return None, None, None, None, None
     att = -np.log(im01 + 1.0 / 255.0)                  # vessels bright in attenuation
     att = np.where(fov, att, np.median(att[fov]))
     r_bg = max(2, int(round(BACKGROUND_RADIUS_PX * scale)))
@@ -98,12 +101,17 @@ def _vessel_feature(a: np.ndarray, dark_vessels, scale: float | None = None):
                        VESSELNESS_N_SCALES)
     sig = np.unique(np.maximum(sig, 1.0))
     ves = sato(tophat, sigmas=sig, black_ridges=False) * fov
-    t99 = float(np.percentile(tophat[fov], 99))
-    v99 = float(np.percentile(ves[fov], 99))
+    # the response is normalised where the image is not dark: a dense trunk (in the field of view)
+    # would otherwise set the scale and the thresholds, and the thin vessels would drop out
+    stats = fov & not_dark(im01, margin)
+    if stats.sum() < 64:
+        stats = fov
+    t99 = float(np.percentile(tophat[stats], 99))
+    v99 = float(np.percentile(ves[stats], 99))
     if t99 <= 0 or v99 <= 0:
         return None, None, None, None
     feat = np.sqrt(np.clip(tophat / t99, 0, None) * np.clip(ves / v99, 0, None))
-    return feat, fov, att, scale
+    return feat, stats, fov, att, scale
 
 
 def _drop_small(mask: np.ndarray, min_px: int, connectivity: int = 2) -> np.ndarray:
@@ -243,10 +251,10 @@ def _detect(a: np.ndarray, dark_vessels: bool, scale: float):
     """One detection pass: hysteresis on the feature (thresholds relative to its Otsu level)."""
     from skimage.filters import apply_hysteresis_threshold, threshold_otsu
 
-    feat, fov, att, _ = _vessel_feature(a, dark_vessels, scale)
+    feat, stats, fov, att, _ = _vessel_feature(a, dark_vessels, scale)
     if feat is None:
         return None, None, None
-    vals = feat[fov]
+    vals = feat[stats]
     if float(vals.max()) - float(vals.min()) <= 1e-9:
         return None, None, None
     t = float(threshold_otsu(vals))
