@@ -511,15 +511,15 @@ def test_depth_profile_refuses_a_pose_the_jackknife_accepted():
     assert "does not settle the depth along the beam" in r.message and "depth profile" in r.message
 
 
-def test_depth_profile_accepts_a_right_single_path_pose():
-    """The other side, a false refusal of the 1 mm single-path limit before the profile: seed 117, the
-    catheterised path alone seen from the second view ("view2-path"): 0.2 mm off, pose 1-sigma 1.2 mm;
-    the energy rises along the beam as the covariance predicts, so the verdict is OK."""
+def test_single_path_limit_keeps_refusing_a_right_pose_it_cannot_tell_from_wrong_ones():
+    """The price of the 1 mm single-path limit, kept: seed 117, the catheterised path alone seen from
+    the second view ("view2-path"), 0.2 mm off with a pose 1-sigma of 1.2 mm, is refused (uncertain,
+    not failed: the overlay fits). Loosening the limit to 1.5 mm accepted it, and four wrong
+    single-path poses of bench_registration's path mode with it."""
     r, err = _verdict_case("registration_seed117_view2-path.npz")
     assert err < 0.5 and r.single_path
-    assert r.pose_std_mm > 1.0                                                      # over the old single-path limit
-    assert r.verdict is reg.Verdict.OK and r.success
-    assert "depth profile 1-sigma" in r.message
+    assert 1.0 < r.pose_std_mm < 1.5
+    assert r.verdict is reg.Verdict.UNCERTAIN and not r.success and r.fits_2d
 
 
 def test_lm_with_the_depth_held_refits_the_rest(case0):

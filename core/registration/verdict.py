@@ -47,11 +47,12 @@ MAX_MEAN_RESIDUAL_PX = 1.5  # success needs the mean inlier residual below this 
 MIN_INLIER_FRACTION = 0.5  # ... and at least this fraction of 2D points explained ...
 COVARIANCE_INFLATION = 8.0  # std factor: Gauss-Newton covariance vs actual error (benchmark, image2d)
 MAX_POSE_STD_MM = 2.0  # ... and a pose the data determine (1-sigma mTRE from the covariance) ...
-MAX_POSE_STD_MM_SINGLE_PATH = 1.5  # ... stricter when the roadmap explains one vessel path only: its depth
+MAX_POSE_STD_MM_SINGLE_PATH = 1.0  # ... stricter when the roadmap explains one vessel path only: its depth
 #   rests on perspective alone and the covariance's tail is long (bench_registration path mode, seeds 0-29:
 #   26 of 135 results flagged OK under 2.0 mm were wrong by 2-42 mm, mostly along the beam; none under 1.0 mm;
-#   held-out seeds 30-59: 5 of 124 -> 0 of 62). 1.0 until the depth profile (below) took over the depth:
-#   with it, 1.5 (bench_registration --verdict, tuning seeds 100-139) ...
+#   held-out seeds 30-59: 5 of 124 -> 0 of 62). With the depth profile a 1.5 mm limit and a 1.5x screen were
+#   tried (tuned on bench_registration --verdict seeds 100-139): fewer false refusals there, but the path
+#   mode of bench_registration --quick (seeds 0-29) then flagged 4 wrong poses OK (0 before): kept at 1.0 ...
 FULL_LIMIT_EXPLAINED_FRACTION = 0.3  # ... and proportionally stricter when the roadmap explains less than this
 #   fraction of the CTA centerline (pose_std_limit_mm). bench_registration --verdict seeds 0-59: a partial
 #   roadmap 13.9 mm off along the beam was flagged OK with 15% explained and 1-sigma 2.0 mm. Loosening the
@@ -63,8 +64,8 @@ JACKKNIFE_ITERATIONS = 30  # ... (narrow LM from the result, at most this many i
 JACKKNIFE_FACTOR = 2.0  # ... and an OK pose moves by at most this x the pose 1-sigma limit (jackknife 1-sigma):
 #   the Gauss-Newton covariance assumes independent 2D points, a wrong branch match or a vessel segment
 #   that is off as a whole is a correlated error it does not see (bench_registration --verdict)
-COVARIANCE_SCREEN_FACTOR = 1.5  # the covariance's pose 1-sigma may reach this x the limit: it is a screen (cheap,
-#   refuses the flat cases before the profile runs); the depth is judged by the profile
+COVARIANCE_SCREEN_FACTOR = 1.0  # the covariance's pose 1-sigma may reach this x the limit (1.5 was tried as a
+#   screen leaving the depth to the profile; see MAX_POSE_STD_MM_SINGLE_PATH): the profile only adds refusals
 DEPTH_PROFILE_FACTOR = 1.3  # the depth profile's 1-sigma half-width must be within this x the limit: at the depth
 #   offset +-(this x limit) along the beam, the other five pose parameters re-fitted, the energy must have risen
 #   at least as much as the covariance's quadratic model says it rises at its depth 1-sigma. Why above 1: the
