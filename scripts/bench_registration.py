@@ -412,12 +412,12 @@ def verdict_table(rows, out, seeds):
     """False refusals (right: mTRE <= SUCCESS_MM, not OK) and false acceptances (wrong, OK) of four
     verdicts on the same registrations: before issue 20 (``legacy_ok``), the covariance's 1-sigma
     alone (``sigma_ok``), 1-sigma and the jackknife second opinion (``jackknife_ok``) and the shipped
-    one (covariance screen, jackknife and depth profile)."""
+    one (the covariance limit, the jackknife and the depth profile)."""
     out(f"\n### Verdict vs truth: {len(rows)} registrations from the DICOM start (seeds {seeds}), "
         f"right = mTRE <= {SUCCESS_MM} mm")
     out("verdicts: *legacy* = before issue 20; *1-sigma* = the pose covariance's limit alone; "
-        "*jackknife* = 1-sigma and the jackknife second opinion; *profile* (shipped) = covariance screen, "
-        "jackknife and the depth profile")
+        "*jackknife* = 1-sigma and the jackknife second opinion; *profile* (shipped) = the covariance "
+        "limit, the jackknife and the depth profile")
     out("| roadmap | n | right | false refusals legacy / 1-sigma / jackknife / profile | false acceptances legacy / "
         "1-sigma / jackknife / profile | largest mTRE flagged OK legacy / 1-sigma / jackknife / profile (mm) |")
     out("|---|---|---|---|---|---|")
