@@ -9,8 +9,8 @@ explains essentially one vessel path (``single_path``) gets the stricter
 ``MAX_POSE_STD_MM_SINGLE_PATH`` (one curve fixes its depth only through perspective), and one that
 explains less than ``FULL_LIMIT_EXPLAINED_FRACTION`` of the CTA centerline a proportionally smaller
 one (:func:`pose_std_limit_mm`): the less of the tree the roadmap shows, the longer the
-covariance's tail (a perfect 2D overlay with the tree 2-14 mm off along the beam). The covariance
-is a screen (``COVARIANCE_SCREEN_FACTOR`` x the limit); a pose that passes it gets two more opinions:
+covariance's tail (a perfect 2D overlay with the tree 2-14 mm off along the beam). The covariance's
+1-sigma must be within ``COVARIANCE_SCREEN_FACTOR`` (1) x the limit; a pose that passes gets two more opinions:
 a block jackknife over spatial tiles of the roadmap (``JACKKNIFE_TILES``, ``JACKKNIFE_FACTOR``) and a
 profile of the energy along the beam (:func:`_depth_profile_mm`, ``DEPTH_PROFILE_FACTOR``): the depth
 is moved by that factor x the limit and the rest of the pose re-fitted; the energy must rise by what the
@@ -69,8 +69,8 @@ COVARIANCE_SCREEN_FACTOR = 1.0  # the covariance's pose 1-sigma may reach this x
 DEPTH_PROFILE_FACTOR = 1.3  # the depth profile's 1-sigma half-width must be within this x the limit: at the depth
 #   offset +-(this x limit) along the beam, the other five pose parameters re-fitted, the energy must have risen
 #   at least as much as the covariance's quadratic model says it rises at its depth 1-sigma. Why above 1: the
-#   profile of right poses is flatter than the local curvature too (bench_registration --verdict, tuning seeds
-#   100-139 only: false acceptances 7 -> 4, all within 0.3 mm of the 2 mm line; false refusals 31 -> 23)
+#   profile of right poses is flatter than the local curvature too (set on bench_registration --verdict seeds
+#   100-139 only; held out, seeds 200-239 / 240-279: false acceptances 7 -> 3 / 2 -> 0, refusals 31 -> 33 / 33 -> 34)
 DEPTH_PROFILE_ITERATIONS = 10  # LM iterations per side of the profile (the depth held, narrow gate)
 
 
