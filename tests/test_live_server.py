@@ -116,6 +116,25 @@ def bundle_after(client, status_msg, timeout_s=10.0):
     return out
 
 
+def assert_bundle_matches(got, rec, ts):
+    """A frame's messages ``got`` (by device name) against its ``reconstruct`` record ``rec``: a failed
+    frame has no wire; else status, wire, uncertainty and tip, all stamped ``ts``, the wire's points
+    within ``MATCH_MM`` and the uncertainty to its decimals. Returns ``(points, reference)`` or None."""
+    if not rec["success"]:
+        assert igtl.DEVICE_WIRE not in got
+        return None
+    assert set(got) == {igtl.DEVICE_STATUS, igtl.DEVICE_WIRE, igtl.DEVICE_UNCERTAINTY, igtl.DEVICE_TIP}
+    for m in got.values():
+        assert abs(m.timestamp - ts) < 1e-6, m.device_name
+    ref = np.asarray(rec["points_lps_mm"])
+    pts = got[igtl.DEVICE_WIRE].points
+    assert pts.shape == ref.shape
+    assert np.abs(pts - ref).max() <= MATCH_MM
+    unc = np.array(got[igtl.DEVICE_UNCERTAINTY].string.split(), float)
+    np.testing.assert_allclose(unc, rec["uncertainty_mm"], atol=UNC_DECIMALS_MM)
+    return pts, ref
+
+
 # --------------------------------------------------------------------------------------
 # the stream matches reconstruct
 # --------------------------------------------------------------------------------------
@@ -133,21 +152,13 @@ def test_streamed_wires_match_reconstruct(setup, live_out, frames):
             assert st["verdict"] == rec["verdict"], (st, rec["verdict_message"])
             assert st["space"] == "LPS" and st["dropped"] == 0
             got = bundle_after(client, msg)
-            if not rec["success"]:
-                assert igtl.DEVICE_WIRE not in got
+            matched = assert_bundle_matches(got, rec, ts)
+            if matched is None:
                 continue
-            assert set(got) == {igtl.DEVICE_STATUS, igtl.DEVICE_WIRE, igtl.DEVICE_UNCERTAINTY, igtl.DEVICE_TIP}
-            for m in got.values():
-                assert abs(m.timestamp - ts) < 1e-6, m.device_name
-            ref = np.asarray(rec["points_lps_mm"])
-            pts = got[igtl.DEVICE_WIRE].points
-            assert pts.shape == ref.shape
-            assert np.abs(pts - ref).max() <= MATCH_MM
+            pts, ref = matched
             assert np.abs(pts - ref).max() <= FLOAT32_MM  # in fact: the same wire, in float32
             [ids] = got[igtl.DEVICE_WIRE].polylines()  # one polyline, proximal -> distal
             np.testing.assert_array_equal(ids, np.arange(len(ref)))
-            unc = np.array(got[igtl.DEVICE_UNCERTAINTY].string.split(), float)
-            np.testing.assert_allclose(unc, rec["uncertainty_mm"], atol=UNC_DECIMALS_MM)
             tip = np.asarray(got[igtl.DEVICE_TIP].matrix, float)
             np.testing.assert_allclose(tip[:3, 3], ref[-1], atol=FLOAT32_MM)
             np.testing.assert_allclose(tip[:3, :3] @ tip[:3, :3].T, np.eye(3), atol=1e-5)

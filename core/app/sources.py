@@ -142,6 +142,28 @@ def _source_thread(name, target):
     return threading.Thread(target=target, name=name, daemon=True)
 
 
+def _start_paced(name: str, items, fps: float, loop: bool, stop: threading.Event, emit, done: threading.Event) -> None:
+    """In a source thread: ``emit(item, time stamp)`` for each of ``items`` at ``fps`` (from the start
+    again with ``loop``) until ``stop``; ``done`` is set when it ends."""
+    def go():
+        period = 1.0 / fps
+        t_next = time.monotonic()
+        try:
+            while not stop.is_set():
+                for item in items:
+                    if stop.is_set():
+                        return
+                    stop.wait(max(0.0, t_next - time.monotonic()))
+                    emit(item, time.time())
+                    t_next += period
+                if not loop:
+                    return
+        finally:
+            done.set()
+
+    _source_thread(name, go).start()
+
+
 def _replay_fps(run, fps) -> float:
     """A replay's rate: ``fps`` (``--fps``), else the run's FrameTime, else 15; InputError outside 0.1..1000."""
     ft = getattr(run, "frame_time_ms", None)
@@ -163,23 +185,12 @@ class ReplaySource:
         self.done = threading.Event()
 
     def start(self, mailbox: LatestFrame, stop: threading.Event) -> None:
-        def go():
-            period = 1.0 / self.fps
-            t_next = time.monotonic()
-            try:
-                while not stop.is_set():
-                    for k in range(self.run.n_frames):
-                        if stop.is_set():
-                            return
-                        stop.wait(max(0.0, t_next - time.monotonic()))
-                        mailbox.put(Frame(self.run.frames[k], time.time(), f"{Path(self.run.source).name}#{k}"))
-                        t_next += period
-                    if not self.loop:
-                        return
-            finally:
-                self.done.set()
+        name = Path(self.run.source).name
 
-        _source_thread("replay", go).start()
+        def emit(k, ts):
+            mailbox.put(Frame(self.run.frames[k], ts, f"{name}#{k}"))
+
+        _start_paced("replay", range(self.run.n_frames), self.fps, self.loop, stop, emit, self.done)
 
 
 class VideoSource:
@@ -533,22 +544,8 @@ class PairReplaySource:
         self.done = threading.Event()
 
     def start(self, mailbox: PairedFrames, stop: threading.Event) -> None:
-        def go():
-            period = 1.0 / self.fps
-            t_next = time.monotonic()
-            try:
-                while not stop.is_set():
-                    for i, j in self.pairs:
-                        if stop.is_set():
-                            return
-                        stop.wait(max(0.0, t_next - time.monotonic()))
-                        ts = time.time()
-                        for p, run, k in zip(PLANES, self.runs, (i, j)):
-                            mailbox.put(p, Frame(run.frames[k], ts, f"{Path(run.source).name}#{k}"))
-                        t_next += period
-                    if not self.loop:
-                        return
-            finally:
-                self.done.set()
+        def emit(pair, ts):
+            for p, run, k in zip(PLANES, self.runs, pair):
+                mailbox.put(p, Frame(run.frames[k], ts, f"{Path(run.source).name}#{k}"))
 
-        _source_thread("replay-pairs", go).start()
+        _start_paced("replay-pairs", self.pairs, self.fps, self.loop, stop, emit, self.done)
