@@ -17,7 +17,8 @@ import warnings
 
 import numpy as np
 
-__all__ = ["viterbi_forward", "viterbi_backward", "sample_bilinear", "cover_cells", "frangi_at", "warm_up"]
+__all__ = ["viterbi_forward", "viterbi_backward", "sample_bilinear", "cover_cells", "frangi_at", "skeleton_pixels", "pixel_graph",
+           "induced_subgraph", "graph_components", "dijkstra", "diameter_path", "warm_up"]
 
 _LOCK = threading.Lock()
 #: image dtypes sampled as they are (one compiled specialisation each); others are converted to float64
@@ -31,6 +32,8 @@ def _compile():
     with _LOCK:
         if _COMPILED:
             return _COMPILED
+        import heapq
+
         import numba
 
         def jit(f):
@@ -279,9 +282,189 @@ def _compile():
                           * (1 - np.exp(-S2 / (2 * gamma ** 2))))
             return out
 
+        @jit
+        def pixel_graph(rows, cols, h, w, diag_px):
+            n = rows.shape[0]
+            index = np.full((h + 2, w + 2), -1, np.int32)
+            for k in range(n):
+                index[rows[k] + 1, cols[k] + 1] = k
+            indptr = np.zeros(n + 1, np.int64)
+            indices = np.empty(8 * n, np.int64)
+            weights = np.empty(8 * n)
+            m = 0
+            for k in range(n):
+                for dr in range(-1, 2):          # neighbours in row-major order: sorted node indices
+                    for dc in range(-1, 2):
+                        if dr == 0 and dc == 0:
+                            continue
+                        j = index[rows[k] + 1 + dr, cols[k] + 1 + dc]
+                        if j >= 0:
+                            indices[m] = j
+                            weights[m] = 1.0 if dr == 0 or dc == 0 else diag_px
+                            m += 1
+                indptr[k + 1] = m
+            return indptr, indices[:m].copy(), weights[:m].copy()
+
+        @jit
+        def induced_subgraph(indptr, indices, weights, nodes):
+            n = indptr.shape[0] - 1
+            remap = np.full(n, -1, np.int64)
+            for k in range(nodes.shape[0]):
+                remap[nodes[k]] = k
+            sub_ptr = np.zeros(nodes.shape[0] + 1, np.int64)
+            sub_idx = np.empty(indices.shape[0], np.int64)
+            sub_w = np.empty(indices.shape[0])
+            m = 0
+            for k in range(nodes.shape[0]):
+                u = nodes[k]
+                for e in range(indptr[u], indptr[u + 1]):
+                    j = remap[indices[e]]
+                    if j >= 0:
+                        sub_idx[m] = j
+                        sub_w[m] = weights[e]
+                        m += 1
+                sub_ptr[k + 1] = m
+            return sub_ptr, sub_idx[:m].copy(), sub_w[:m].copy()
+
+        @jit
+        def graph_components(indptr, indices):
+            n = indptr.shape[0] - 1
+            labels = np.full(n, -1, np.int64)
+            stack = np.empty(n, np.int64)
+            n_comp = 0
+            for s in range(n):                    # labels in the order of each component's first node
+                if labels[s] >= 0:
+                    continue
+                labels[s] = n_comp
+                top = 1
+                stack[0] = s
+                while top > 0:
+                    top -= 1
+                    u = stack[top]
+                    for e in range(indptr[u], indptr[u + 1]):
+                        v = indices[e]
+                        if labels[v] < 0:
+                            labels[v] = n_comp
+                            stack[top] = v
+                            top += 1
+                n_comp += 1
+            return n_comp, labels
+
+        @jit
+        def dijkstra(indptr, indices, weights, sources):
+            n = indptr.shape[0] - 1
+            dist = np.full(n, np.inf)
+            pred = np.full(n, -9999, np.int64)
+            tie = np.zeros(n, np.bool_)
+            done = np.zeros(n, np.bool_)
+            heap = [(0.0, np.int64(0)) for _ in range(0)]
+            for k in range(sources.shape[0]):
+                s = sources[k]
+                if dist[s] > 0.0:
+                    dist[s] = 0.0
+                    heapq.heappush(heap, (0.0, np.int64(s)))
+            while len(heap) > 0:
+                d, u = heapq.heappop(heap)
+                if done[u] or d > dist[u]:
+                    continue
+                done[u] = True
+                for e in range(indptr[u], indptr[u + 1]):
+                    v = indices[e]
+                    if done[v]:
+                        continue
+                    nd = d + weights[e]
+                    if nd < dist[v]:
+                        dist[v] = nd
+                        pred[v] = u
+                        tie[v] = False
+                        heapq.heappush(heap, (nd, v))
+                    elif nd == dist[v]:
+                        tie[v] = True             # two predecessors at the same distance
+            return dist, pred, tie
+
+        @jit
+        def diameter_path(indptr, indices, weights, node0):
+            src = np.empty(1, np.int64)
+            src[0] = node0
+            d0, _, _ = dijkstra(indptr, indices, weights, src)
+            a = node0
+            for k in range(d0.shape[0]):          # the first farthest node (numpy.argmax)
+                if np.isfinite(d0[k]) and d0[k] > d0[a]:
+                    a = k
+            src[0] = a
+            d1, pred, tie = dijkstra(indptr, indices, weights, src)
+            b = a
+            for k in range(d1.shape[0]):
+                if np.isfinite(d1[k]) and d1[k] > d1[b]:
+                    b = k
+            n_seq = 0
+            node = b
+            ambiguous = False
+            while node >= 0:
+                ambiguous = ambiguous or tie[node]
+                n_seq += 1
+                node = pred[node]
+            seq = np.empty(n_seq, np.int64)
+            node = b
+            for k in range(n_seq - 1, -1, -1):
+                seq[k] = node
+                node = pred[node]
+            return seq, d1[b], ambiguous
+
+
+        @jit
+        def zhang_suen(mask, lut):
+            H, W = mask.shape
+            img = np.zeros((H + 2, W + 2), np.uint8)      # a zero border: no bounds checks
+            n = 0
+            for r in range(H):
+                for c in range(W):
+                    if mask[r, c]:
+                        img[r + 1, c + 1] = 1
+                        n += 1
+            n_on = n
+            rs = np.empty(n, np.int64)
+            cs = np.empty(n, np.int64)
+            k = 0
+            for r in range(H):
+                for c in range(W):
+                    if mask[r, c]:
+                        rs[k] = r
+                        cs[k] = c
+                        k += 1
+            remove = np.empty(n, np.bool_)
+            removed = True
+            while removed:
+                removed = False
+                for sub in range(2):                       # the two sub-iterations (LUT class 1, then 2)
+                    want = sub + 1
+                    hit = False
+                    for k in range(n):                     # decided on the image before the sub-iteration
+                        r = rs[k] + 1
+                        c = cs[k] + 1
+                        v = lut[img[r - 1, c - 1] + 2 * img[r - 1, c] + 4 * img[r - 1, c + 1]
+                                + 8 * img[r, c + 1] + 16 * img[r + 1, c + 1] + 32 * img[r + 1, c]
+                                + 64 * img[r + 1, c - 1] + 128 * img[r, c - 1]]
+                        remove[k] = v == 3 or v == want
+                        hit = hit or remove[k]
+                    if hit:
+                        removed = True
+                        m = 0
+                        for k in range(n):                 # then applied at once; the order is kept
+                            if remove[k]:
+                                img[rs[k] + 1, cs[k] + 1] = 0
+                            else:
+                                rs[m] = rs[k]
+                                cs[m] = cs[k]
+                                m += 1
+                        n = m
+            return rs[:n].copy(), cs[:n].copy(), n_on
+
         _COMPILED.update(viterbi_forward=viterbi_forward, viterbi_backward=viterbi_backward,
                          sample_bilinear=sample_bilinear, cover_cells=cover_cells,
-                         frangi_at=frangi_at)
+                         frangi_at=frangi_at, pixel_graph=pixel_graph, induced_subgraph=induced_subgraph,
+                         graph_components=graph_components, dijkstra=dijkstra, diameter_path=diameter_path,
+                         zhang_suen=zhang_suen)
         return _COMPILED
 
 
@@ -371,6 +554,92 @@ def frangi_at(image_zyx: np.ndarray, idx_zyx: np.ndarray, spacing: np.ndarray, s
              np.ascontiguousarray(spacing, np.float64), float(sigma_mm) ** 2, float(alpha), float(beta), float(gamma))
 
 
+def _zhang_suen_lut() -> np.ndarray:
+    """Zhang-Suen removal classes of the 256 neighbourhoods of a pixel (bit ``i`` of the code: the
+    neighbour ``i`` clockwise from the upper left; 1: removed in the first sub-iteration, 2: in the
+    second, 3: in both, 0: kept): scikit-image's table (``skimage.morphology.skeletonize``, method
+    "zhang"), which refines the paper's conditions; identified from its output and checked against
+    it (tests/test_kernels.py)."""
+    lut = np.zeros(256, np.uint8)
+    lut[[3, 6, 11, 12, 14, 131, 134, 143, 159, 161, 194, 198, 207, 227, 231, 243]] = 1
+    lut[[24, 26, 56, 62, 63, 96, 104, 108, 126, 176, 192, 224, 248, 249, 252]] = 2
+    lut[[7, 10, 15, 28, 30, 31, 40, 60, 112, 120, 124, 130, 135, 160, 193, 195, 199, 225, 240, 241]] = 3
+    lut.setflags(write=False)
+    return lut
+
+
+_ZHANG_SUEN_LUT = _zhang_suen_lut()
+
+
+def skeleton_pixels(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
+    """Zhang-Suen thinning of a 2D mask, as ``skimage.morphology.skeletonize(mask)`` (to the pixel):
+    the skeleton's pixels ``(rows, cols)`` in row-major order (``np.nonzero`` of the skeleton) and
+    the number of pixels of the mask.
+
+    The same parallel sub-iterations as scikit-image, but over the list of remaining foreground
+    pixels instead of the whole image: the cost scales with the mask's area, not its bounding box.
+    """
+    m = np.asarray(mask)
+    if m.ndim != 2:
+        raise ValueError(f"skeleton_pixels: expected a 2D mask, got shape {m.shape}")
+    if m.dtype == bool:
+        m = m.view(np.uint8)
+    elif m.dtype != np.uint8:
+        m = (m != 0).view(np.uint8)
+    f = _compile()["zhang_suen"]
+    rows, cols, n_on = f(np.ascontiguousarray(m), _ZHANG_SUEN_LUT)
+    return rows, cols, int(n_on)
+
+
+def pixel_graph(rows, cols, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """8-connected graph of pixels as CSR arrays ``(indptr, indices, weights_px)``: node ``k`` is pixel
+    ``(rows[k], cols[k])``, its neighbours sorted by node index (as scipy's ``coo_matrix(...).tocsr()``
+    of the same edges), edge lengths 1 or sqrt 2 px. Pixels must be distinct and inside ``shape``."""
+    f = _compile()["pixel_graph"]
+    return f(np.ascontiguousarray(rows, np.int64), np.ascontiguousarray(cols, np.int64),
+             int(shape[0]), int(shape[1]), float(np.hypot(1.0, 1.0)))
+
+
+def induced_subgraph(indptr: np.ndarray, indices: np.ndarray, weights: np.ndarray,
+                     nodes) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """CSR arrays of the subgraph on ``nodes`` (sorted, distinct), renumbered ``0 .. len(nodes) - 1``:
+    scipy's ``g[nodes][:, nodes]``."""
+    f = _compile()["induced_subgraph"]
+    return f(indptr, indices, weights, np.ascontiguousarray(nodes, np.int64))
+
+
+def graph_components(indptr: np.ndarray, indices: np.ndarray) -> tuple[int, np.ndarray]:
+    """Connected components of a symmetric CSR graph: ``(n, labels)``, numbered in the order of
+    their lowest node, as ``scipy.sparse.csgraph.connected_components(g, directed=False)``."""
+    f = _compile()["graph_components"]
+    n, labels = f(indptr, indices)
+    return int(n), labels
+
+
+def dijkstra(indptr: np.ndarray, indices: np.ndarray, weights: np.ndarray,
+             sources) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Shortest distances from the nearest of ``sources`` in a symmetric CSR graph with positive
+    weights: ``(dist, pred, tie)``. ``dist`` (``inf`` where unreachable) is that of
+    ``scipy.sparse.csgraph.dijkstra(g, directed=False, indices=sources, min_only=True)``, to the
+    last bit (each distance is the same sum in the same order); ``pred`` is the predecessor
+    (-9999 at the sources and where unreachable), which is scipy's wherever ``tie`` is False;
+    ``tie`` marks the nodes reached at the same distance from two predecessors (where scipy's
+    choice depends on its heap)."""
+    f = _compile()["dijkstra"]
+    return f(indptr, indices, weights, np.atleast_1d(np.asarray(sources, np.int64)))
+
+
+def diameter_path(indptr: np.ndarray, indices: np.ndarray, weights: np.ndarray,
+                  node0: int) -> tuple[np.ndarray, float, bool]:
+    """Double Dijkstra from ``node0``: the farthest node ``a`` of its component, then the farthest
+    ``b`` from ``a`` (the first on ties, as ``numpy.argmax``); returns the node path ``a -> b``, its
+    length and ``ambiguous``: True when a node on the path has two predecessors at the same
+    distance (scipy's path may then differ; see :func:`dijkstra`)."""
+    f = _compile()["diameter_path"]
+    seq, length, ambiguous = f(indptr, indices, weights, int(node0))
+    return seq, float(length), bool(ambiguous)
+
+
 def warm_up() -> None:
     """Compile (or load from the disk cache) every kernel on tiny inputs: the first live frame then
     pays no compilation."""
@@ -383,3 +652,9 @@ def warm_up() -> None:
         for dt in _WARM:  # the masks and the usual frame dtypes (others compile on first use)
             sample_bilinear(np.zeros((3, 3), dt), [0.5], [0.5], mode="nearest")
         cover_cells(np.eye(3, dtype=bool), 8, 8, 2000)
+        g = pixel_graph([0, 0, 1], [0, 1, 1], (2, 2))
+        sub = induced_subgraph(*g, [0, 1])
+        graph_components(sub[0], sub[1])
+        dijkstra(*g, [0])
+        diameter_path(*g, 0)
+        skeleton_pixels(np.eye(3, dtype=bool))

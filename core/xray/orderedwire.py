@@ -75,29 +75,31 @@ CATHETER_MIN_GAP_Z = 1.5          # ... and by which it must exceed the other en
 # Skeleton helpers
 # --------------------------------------------------------------------------------------------
 
-_OFFSETS8 = np.array([(-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1)])
+@dataclass(frozen=True, eq=False)
+class _PixelGraph:
+    """8-connected graph of skeleton pixels: node ``k`` is pixel ``(rr[k], cc[k])`` (row-major
+    order); CSR arrays ``indptr``, ``indices`` (neighbours sorted by node) and ``weights_px``
+    (Euclidean edge lengths, 1 or sqrt 2)."""
+
+    rr: np.ndarray
+    cc: np.ndarray
+    indptr: np.ndarray
+    indices: np.ndarray
+    weights_px: np.ndarray
+
+    @property
+    def csr(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        return self.indptr, self.indices, self.weights_px
+
+    def matrix(self) -> sparse.csr_matrix:
+        """The graph as a SciPy sparse matrix (for csgraph)."""
+        n = len(self.rr)
+        return sparse.csr_matrix((self.weights_px, self.indices, self.indptr), shape=(n, n))
 
 
-def _pixel_graph(skel: np.ndarray):
-    """8-connected graph of the skeleton pixels: (rows, cols) of the nodes and a CSR matrix of
-    Euclidean edge lengths (1 or sqrt 2)."""
-    rr, cc = np.nonzero(skel)
-    n = rr.size
-    h, w = skel.shape
-    index = np.full((h + 2, w + 2), -1, np.int64)
-    index[rr + 1, cc + 1] = np.arange(n)
-    src, dst, wt = [], [], []
-    for dr, dc in _OFFSETS8:
-        if (dr, dc) < (0, 0):
-            continue                       # each undirected edge once
-        j = index[rr + 1 + dr, cc + 1 + dc]
-        ok = j >= 0
-        src.append(np.nonzero(ok)[0])
-        dst.append(j[ok])
-        wt.append(np.full(ok.sum(), np.hypot(dr, dc)))
-    src, dst, wt = np.concatenate(src), np.concatenate(dst), np.concatenate(wt)
-    g = sparse.coo_matrix((np.r_[wt, wt], (np.r_[src, dst], np.r_[dst, src])), shape=(n, n)).tocsr()
-    return rr, cc, g
+def _pixel_graph(rr: np.ndarray, cc: np.ndarray, shape: tuple[int, int]) -> _PixelGraph:
+    """The :class:`_PixelGraph` of the pixels ``(rr, cc)`` (row-major order) of an image of ``shape``."""
+    return _PixelGraph(rr, cc, *kernels.pixel_graph(rr, cc, shape))
 
 
 # --------------------------------------------------------------------------------------------
@@ -169,8 +171,19 @@ def _failed(msg: str) -> OrderedWire:
     return OrderedWire(points_uv_px=np.zeros((0, 2)), success=False, message=msg)
 
 
-def _diameter_path(g, rr, cc, node0):
-    """Geodesic diameter path (double Dijkstra) of the component holding ``node0``."""
+def _diameter_path(graph: _PixelGraph, node0: int):
+    """Geodesic diameter path (double Dijkstra) of the component holding ``node0``: ``(M, 2)``
+    rows/cols and its length, px. A compiled kernel; where a node of its path has two predecessors
+    at the same distance (the choice then depends on the order of the search), SciPy's
+    :func:`_diameter_path_csgraph` answers, so the path is always SciPy's."""
+    seq, length, ambiguous = kernels.diameter_path(*graph.csr, node0)
+    if ambiguous:
+        return _diameter_path_csgraph(graph.matrix(), graph.rr, graph.cc, node0)
+    return np.column_stack([graph.rr[seq], graph.cc[seq]]).astype(float), length
+
+
+def _diameter_path_csgraph(g, rr, cc, node0):
+    """:func:`_diameter_path` with SciPy's csgraph (``g`` a sparse matrix of the graph)."""
     d0 = csgraph.dijkstra(g, directed=False, indices=node0)
     d0[~np.isfinite(d0)] = -1.0
     a = int(np.argmax(d0))
@@ -202,7 +215,7 @@ def _find_root(parent: list, x: int) -> int:
     return x
 
 
-def _traces(g, rr, cc, lab, comp_ids, merge_px: float):
+def _traces(graph: _PixelGraph, lab, comp_ids, merge_px: float):
     """Good-continuation traces of the skeleton pieces that contain junctions.
 
     The skeleton is cut into branches at its junction pixels; junction clusters joined by a
@@ -212,21 +225,23 @@ def _traces(g, rr, cc, lab, comp_ids, merge_px: float):
     are passed straight, hairpins whose limbs touch are followed round, and spurs are left. Returns ``{component: ((M, 2) rows/cols, length_px)}`` with the
     longest trace of each component.
     """
-    deg = np.diff(g.indptr)
+    rr, cc, indptr, indices = graph.rr, graph.cc, graph.indptr, graph.indices
+    deg = np.diff(indptr)
     junc = deg >= 3
     jidx, bidx = np.flatnonzero(junc), np.flatnonzero(~junc)
     if len(jidx) == 0 or len(bidx) == 0:
         return {}
     n = len(rr)
-    ncl, cl = csgraph.connected_components(g[jidx][:, jidx], directed=False)
+    gj = kernels.induced_subgraph(*graph.csr, jidx)
+    ncl, cl = kernels.graph_components(gj[0], gj[1])
     clus = np.full(n, -1)
     clus[jidx] = cl
-    gb = g[bidx][:, bidx]
-    nbr, bl = csgraph.connected_components(gb, directed=False)
-    sdeg = np.diff(gb.indptr)
+    gb = kernels.induced_subgraph(*graph.csr, bidx)
+    nbr, bl = kernels.graph_components(gb[0], gb[1])
+    sdeg = np.diff(gb[0])
     order = np.lexsort((sdeg, bl))
     starts = order[np.searchsorted(bl[order], np.arange(nbr))]
-    dist = csgraph.dijkstra(gb, directed=False, indices=starts, min_only=True)
+    dist = kernels.dijkstra(*gb, starts)[0]
     ordr = np.lexsort((dist, bl))
     bounds = np.searchsorted(bl[ordr], np.arange(nbr + 1))
     pts = np.column_stack([rr, cc]).astype(float)
@@ -239,7 +254,7 @@ def _traces(g, rr, cc, lab, comp_ids, merge_px: float):
             continue
         ends = []
         for e in (nodes[0], nodes[-1]):
-            nb = g.indices[g.indptr[e]:g.indptr[e + 1]]
+            nb = indices[indptr[e]:indptr[e + 1]]
             c = clus[nb]
             c = c[c >= 0]
             ends.append(c)
@@ -309,20 +324,22 @@ def _traces(g, rr, cc, lab, comp_ids, merge_px: float):
     return out_paths
 
 
-def _longest_paths(skel: np.ndarray, merge_px: float):
-    """Longest path of each skeleton piece, as ordered (row, col) pixel arrays with their lengths,
-    largest pieces first: the good-continuation trace for pieces with junctions (see
-    :func:`_traces`), the geodesic diameter (double Dijkstra) otherwise."""
-    rr, cc, g = _pixel_graph(skel)
-    n_comp, lab = csgraph.connected_components(g, directed=False)
+def _longest_paths(rr: np.ndarray, cc: np.ndarray, shape: tuple[int, int], merge_px: float):
+    """Longest path of each piece of the skeleton with pixels ``(rr, cc)`` (row-major order) in an
+    image of ``shape``, as ordered (row, col) pixel arrays with their lengths, largest pieces first:
+    the good-continuation trace for pieces with junctions (see :func:`_traces`), the geodesic
+    diameter (double Dijkstra) otherwise."""
+    graph = _pixel_graph(rr, cc, shape)
+    n_comp, lab = kernels.graph_components(graph.indptr, graph.indices)
     size = np.bincount(lab, minlength=n_comp)
     comps = [int(c) for c in np.argsort(-size)[:MAX_PIECES] if size[c] >= MIN_PIECE_PX]
     if not comps:
         return []
-    traced = _traces(g, rr, cc, lab, set(comps), merge_px)
+    traced = _traces(graph, lab, set(comps), merge_px)
+    first = np.unique(lab, return_index=True)[1]          # each component's first node
     paths = []
     for c in comps:
-        diam = _diameter_path(g, rr, cc, int(np.argmax(lab == c)))
+        diam = _diameter_path(graph, int(first[c]))
         tr = traced.get(c)
         # The trace wins unless it is much shorter than the diameter (a trace stopped early).
         paths.append(tr if tr is not None and tr[1] >= 0.8 * diam[1] else diam)
@@ -557,8 +574,6 @@ def ordered_wire(mask, *, image=None, proximal_hint_uv=None, max_gap_px: float =
     InputError
         If the mask is not 2D, the image shape differs, or the hint is not a finite (u, v).
     """
-    from skimage.morphology import skeletonize
-
     m_full = as_mask(mask, "mask")
     img = None
     if image is not None:
@@ -602,11 +617,11 @@ def ordered_wire(mask, *, image=None, proximal_hint_uv=None, max_gap_px: float =
     ext = ((pad if r0 == 0 else 0, pad if r1 == H else 0), (pad if c0 == 0 else 0, pad if c1 == W else 0))
     m = _pad_edge(m_full[r0:r1, c0:c1], ext) if any(map(any, ext)) else m_full[r0:r1, c0:c1]
     o_r, o_c = r0 - ext[0][0], c0 - ext[1][0]           # ROI (0, 0) in image pixels
-    m = np.array(m, dtype=bool, copy=True)              # skeletonize needs a writable array
+    m = np.ascontiguousarray(m)                          # sampled below: one contiguous copy
 
-    skel = skeletonize(m)
-    half_width = 0.5 * float(m.sum()) / max(float(skel.sum()), 1.0)   # mean half-width, px
-    paths = _longest_paths(skel, merge_px=4.0 * half_width + 2.0)
+    sr, sc, n_mask = kernels.skeleton_pixels(m)          # Zhang-Suen thinning (skimage's skeletonize)
+    half_width = 0.5 * float(n_mask) / max(float(len(sr)), 1.0)   # mean half-width, px
+    paths = _longest_paths(sr, sc, m.shape, merge_px=4.0 * half_width + 2.0)
     if not paths:
         return _failed("no skeleton piece of the mask is long enough to be a guidewire")
     path_rc, n_bridges = _bridge(paths, float(max_gap_px))
@@ -615,7 +630,7 @@ def ordered_wire(mask, *, image=None, proximal_hint_uv=None, max_gap_px: float =
     raw_len = float(np.linalg.norm(np.diff(path_rc, axis=0), axis=1).sum())
     if raw_len < MIN_WIRE_LENGTH_PX:
         return _failed(f"longest wire path is {raw_len:.1f} px (< {MIN_WIRE_LENGTH_PX:.0f} px): no guidewire")
-    comp_area = float(m.sum())
+    comp_area = float(n_mask)
     if comp_area / max(raw_len, 1.0) > MAX_MEAN_WIDTH_PX:
         return _failed(f"mask is blob-like (area / length = {comp_area / raw_len:.1f} px): not a guidewire")
 
@@ -645,7 +660,6 @@ def ordered_wire(mask, *, image=None, proximal_hint_uv=None, max_gap_px: float =
     # Is the curve a guidewire at all (a frame without a wire: a vessel, a tree, an edge)?
     presence = None
     if img is not None and check_presence:
-        sr, sc = np.nonzero(skel)
         skel_uv = np.column_stack([sc + o_c, sr + o_r])     # with the mask's extension beyond the border
         presence = presence_of_curve(img, uv, skel_uv)
         if not presence:
