@@ -167,6 +167,25 @@ class OrderedWire:
         return self.points_uv_px[-1].copy() if len(self.points_uv_px) else np.full(2, np.nan)
 
 
+def _percentiles_1_99(values: np.ndarray) -> tuple[float, float]:
+    """``np.percentile(values, [1, 99])`` (method "linear") of finite float64 values, to the last
+    bit: the same order statistics (one ``np.partition``) and numpy's interpolation (``_lerp``),
+    without ``np.percentile``'s overhead (~10 x the partition's cost on a 128 x 128 frame)."""
+    a = values.ravel()
+    n = a.size
+    virtual = (n - 1) * (np.array([1.0, 99.0]) / 100)
+    prev = np.floor(virtual).astype(np.intp)
+    nxt = prev + 1
+    last = virtual >= n - 1                              # numpy: the maximum
+    prev[last] = nxt[last] = n - 1
+    part = np.partition(a, np.unique(np.r_[prev, nxt]))
+    lo_v, hi_v = part[prev], part[nxt]
+    gamma = virtual - prev
+    diff = hi_v - lo_v
+    out = np.where(gamma >= 0.5, hi_v - diff * (1 - gamma), lo_v + diff * gamma)
+    return float(out[0]), float(out[1])
+
+
 def _failed(msg: str) -> OrderedWire:
     return OrderedWire(points_uv_px=np.zeros((0, 2)), success=False, message=msg)
 
@@ -442,10 +461,12 @@ def _refine(p_rc: np.ndarray, maskf: np.ndarray, image: np.ndarray | None, half_
     float64."""
     nrm = polyline_normals(p_rc)
     offs = np.arange(-half_px, half_px + 1e-9, PROFILE_STEP_PX)
-    samp = p_rc[:, None, :] + offs[None, :, None] * nrm[:, None, :]          # (N, K, 2)
-    w = kernels.sample_bilinear(maskf, samp[..., 0], samp[..., 1], mode="constant")
+    # (N, K) sample rows and columns (each its own contiguous array: faster than (N, K, 2))
+    rows = p_rc[:, 0:1] + offs[None, :] * nrm[:, 0:1]
+    cols = p_rc[:, 1:2] + offs[None, :] * nrm[:, 1:2]
+    w = kernels.sample_bilinear(maskf, rows, cols, mode="constant")
     if image is not None:
-        dk = -kernels.sample_bilinear(image, samp[..., 0], samp[..., 1], mode="nearest")
+        dk = -kernels.sample_bilinear(image, rows, cols, mode="nearest")
         w = w * np.clip(dk - dk.min(axis=1, keepdims=True), 0, None)
     sw = w.sum(axis=1)
     ok = sw > 1e-6
@@ -593,7 +614,7 @@ def ordered_wire(mask, *, image=None, proximal_hint_uv=None, max_gap_px: float =
         raise InputError(f"max_gap_px: expected a finite value >= 0, got {max_gap_px}")
     if img is not None:
         sub = img[::4, ::4].astype(np.float64)
-        lo, hi = np.percentile(sub, [1, 99])
+        lo, hi = _percentiles_1_99(sub)
         if hi - lo <= BLANK_REL_SPREAD * max(abs(lo), abs(hi), 1e-12):
             return _failed("image is blank or saturated (no intensity contrast)")
         at_max = float(np.mean(sub >= sub.max()))
