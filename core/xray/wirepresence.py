@@ -41,7 +41,6 @@ from dataclasses import dataclass
 import numpy as np
 from guidewire3d import kernels
 from guidewire3d.errors import InputError
-from scipy import ndimage as ndi
 
 __all__ = ["WirePresence", "wire_presence", "presence_of_curve"]
 
@@ -220,24 +219,30 @@ def _line_at_centre(half_px: float, prof: np.ndarray, blocks: np.ndarray, counts
 def _other_pieces(skel_uv: np.ndarray, uv: np.ndarray, scale: float) -> tuple[np.ndarray, np.ndarray]:
     """Pieces of the skeleton (pixels ``(u, v)``) farther than ``BAND_PX`` from the curve: their
     lengths (px) and whether each touches the curve's band (a side branch of it)."""
-    from scipy.spatial import cKDTree
-
     if len(skel_uv) == 0:
         return np.zeros(0), np.zeros(0, bool)
     band = BAND_PX * max(scale, 1.0)
-    d, _ = cKDTree(uv).query(skel_uv, distance_upper_bound=band + BRANCH_TOUCH_PX + 1e-6)
-    far_m = d > band
+    upper = band + BRANCH_TOUCH_PX + 1e-6
+    d2 = kernels.nearest_sq_dist(skel_uv, uv, upper)
+    # The distances are cKDTree's sums; only one within rounding of a threshold could compare
+    # differently (after cKDTree's square root): then cKDTree answers.
+    if np.any(np.abs(d2 - band ** 2) <= 1e-9 * band ** 2) or np.any(np.abs(d2 - upper ** 2) <= 1e-9 * upper ** 2):
+        from scipy.spatial import cKDTree
+
+        d, _ = cKDTree(uv).query(skel_uv, distance_upper_bound=upper)
+        far_m, near = d > band, np.isfinite(d)
+    else:
+        far_m, near = d2 > band ** 2, d2 <= upper ** 2
     far = skel_uv[far_m].astype(np.int64)
     if len(far) == 0:
         return np.zeros(0), np.zeros(0, bool)
     cc, rr = far[:, 0] - far[:, 0].min(), far[:, 1] - far[:, 1].min()
-    sub = np.zeros((rr.max() + 1, cc.max() + 1), bool)
-    sub[rr, cc] = True
-    lab, n = ndi.label(sub, structure=np.ones((3, 3), bool))
-    ids = lab[rr, cc]
-    touch = np.zeros(n + 1, bool)
-    touch[ids[np.isfinite(d[far_m])]] = True
-    return np.bincount(ids, minlength=n + 1)[1:].astype(float), touch[1:]
+    # 8-connected pieces (numbered as ndimage.label numbers them when the pixels come row by row)
+    indptr, indices, _ = kernels.pixel_graph(rr, cc, (int(rr.max()) + 1, int(cc.max()) + 1))
+    n, ids = kernels.graph_components(indptr, indices)
+    touch = np.zeros(n, bool)
+    touch[ids[near[far_m]]] = True
+    return np.bincount(ids, minlength=n).astype(float), touch
 
 
 def wire_presence(mask, points_uv_px, image, *, skeleton=None) -> WirePresence:
