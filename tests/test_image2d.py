@@ -227,6 +227,61 @@ def test_ordered_wire_does_not_modify_inputs():
     assert ro and np.allclose(ro.points_uv_px, rw.points_uv_px)
 
 
+def _skeleton_graph_pieces(seed, n):
+    """Skeleton graphs of random masks (blobs, bands, noise) and each piece's first node."""
+    from scipy import ndimage as ndi
+
+    from guidewire3d import kernels
+    from guidewire3d.xray.orderedwire import _pixel_graph
+
+    rng = np.random.default_rng(seed)
+    for i in range(n):
+        shape = tuple(int(x) for x in rng.integers(8, 60, 2))
+        m = rng.random(shape) < 0.3 if i % 3 == 0 else \
+            ndi.gaussian_filter(rng.random(shape), rng.uniform(0.6, 2.5)) > 0.5 + rng.uniform(-0.04, 0.04)
+        rr, cc, _ = kernels.skeleton_pixels(m)
+        if len(rr) == 0:
+            continue
+        graph = _pixel_graph(rr, cc, shape)
+        n_comp, lab = kernels.graph_components(graph.indptr, graph.indices)
+        yield graph, np.unique(lab, return_index=True)[1]
+
+
+def test_diameter_path_is_scipys_double_dijkstra():
+    """The compiled double Dijkstra (with SciPy answering where its path has a tie) gives SciPy's
+    path and length on every skeleton piece, a diamond (a tie on the path) included."""
+    from guidewire3d.xray.orderedwire import _diameter_path, _diameter_path_csgraph, _pixel_graph
+
+    n_pieces = 0
+    for graph, firsts in _skeleton_graph_pieces(5, 150):
+        for node0 in firsts:
+            p, length = _diameter_path(graph, int(node0))
+            p_ref, length_ref = _diameter_path_csgraph(graph.matrix(), graph.rr, graph.cc, int(node0))
+            np.testing.assert_array_equal(p, p_ref)
+            assert length == length_ref
+            n_pieces += 1
+    assert n_pieces > 150
+    rr, cc = np.array([0, 1, 2, 2, 3, 4, 5]), np.array([1, 1, 0, 2, 1, 1, 1])     # stem, diamond, stem
+    graph = _pixel_graph(rr, cc, (6, 3))
+    p, length = _diameter_path(graph, 0)
+    p_ref, length_ref = _diameter_path_csgraph(graph.matrix(), rr, cc, 0)
+    np.testing.assert_array_equal(p, p_ref)
+    assert length == length_ref == 3.0 + 2 * np.sqrt(2.0)
+
+
+def test_blank_test_percentiles_are_numpys():
+    from guidewire3d.xray.orderedwire import _percentiles_1_99
+
+    rng = np.random.default_rng(0)
+    for i in range(3000):
+        n = int(rng.integers(1, 400)) if i % 2 else int(rng.integers(1, 20000))
+        a = rng.normal(size=n) * 10.0 ** rng.uniform(-5, 5)
+        if i % 3 == 0:
+            a = np.round(a)                          # ties
+        ref = np.percentile(a, [1, 99])
+        assert _percentiles_1_99(a) == (ref[0], ref[1])
+
+
 def test_ordered_wire_on_simulated_true_masks(small_case):
     dists, tips = [], []
     root = small_case.tree.points_lps_mm[small_case.tree.root]

@@ -171,3 +171,132 @@ def test_frangi_at_is_the_numpy_formulation():
     flat = np.zeros((5, 5, 5), np.float32)
     flat[2, 2, 2] = -1.0          # a dark point: diagonal Hessian, positive eigenvalues
     assert kernels.frangi_at(flat, np.array([[2, 2, 2]]), np.ones(3), 1.0, alpha=0.5, beta=0.5, gamma=0.15)[0] == 0.0
+
+
+def _random_masks(seed: int, n: int):
+    """Random masks of the shapes a wire segmenter answers: smooth blobs and bands, and noise."""
+    rng = np.random.default_rng(seed)
+    for i in range(n):
+        shape = tuple(int(x) for x in rng.integers(3, 70, 2))
+        if i % 3 == 0:
+            yield rng.random(shape) < rng.uniform(0.1, 0.9)
+        else:
+            yield ndi.gaussian_filter(rng.random(shape), rng.uniform(0.6, 3.0)) > 0.5 + rng.uniform(-0.04, 0.04)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_skeleton_pixels_is_skimage_skeletonize(seed):
+    """The compiled thinning gives scikit-image's skeleton pixel for pixel (its pixels in
+    row-major order) and the mask's area, on blobs, bands and noise."""
+    from skimage.morphology import skeletonize
+
+    for mask in _random_masks(seed, 400):
+        rows, cols, n_on = kernels.skeleton_pixels(mask)
+        ref_r, ref_c = np.nonzero(skeletonize(mask))
+        np.testing.assert_array_equal(rows, ref_r)
+        np.testing.assert_array_equal(cols, ref_c)
+        assert n_on == int(mask.sum())
+
+
+def test_skeleton_pixels_of_a_thick_wire_and_of_other_dtypes():
+    from skimage.morphology import skeletonize
+
+    yy, xx = np.mgrid[0:80, 0:120]
+    band = np.abs(yy - (40 + 25 * np.sin(xx / 15.0))) <= 3.0          # a wavy 7 px wide wire
+    ref = np.nonzero(skeletonize(band))
+    for m in (band, band.astype(np.uint8) * 7, band.astype(np.float32), band[:, ::-1][:, ::-1]):
+        rows, cols, n_on = kernels.skeleton_pixels(m)
+        np.testing.assert_array_equal(rows, ref[0])
+        np.testing.assert_array_equal(cols, ref[1])
+        assert n_on == int(band.sum())
+    assert len(ref[0]) > 100
+    empty = kernels.skeleton_pixels(np.zeros((4, 5), bool))
+    assert len(empty[0]) == 0 and empty[2] == 0
+
+
+def _scipy_pixel_graph(mask):
+    """The SciPy construction the pixel-graph kernel replaced (coo_matrix -> csr of the 8-neighbours)."""
+    from scipy import sparse
+
+    rr, cc = np.nonzero(mask)
+    n = rr.size
+    index = np.full((mask.shape[0] + 2, mask.shape[1] + 2), -1, np.int64)
+    index[rr + 1, cc + 1] = np.arange(n)
+    src, dst, wt = [], [], []
+    for dr, dc in ((0, 1), (1, -1), (1, 0), (1, 1)):
+        j = index[rr + 1 + dr, cc + 1 + dc]
+        ok = j >= 0
+        src.append(np.nonzero(ok)[0])
+        dst.append(j[ok])
+        wt.append(np.full(ok.sum(), np.hypot(dr, dc)))
+    src, dst, wt = np.concatenate(src), np.concatenate(dst), np.concatenate(wt)
+    return rr, cc, sparse.coo_matrix((np.r_[wt, wt], (np.r_[src, dst], np.r_[dst, src])), shape=(n, n)).tocsr()
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_graph_kernels_are_scipy_csgraph(seed):
+    """Pixel graph, induced subgraph, components and Dijkstra against scipy.sparse / csgraph: the
+    same CSR arrays and labels, the same distances to the bit, the same predecessors wherever the
+    kernel reports no tie."""
+    from scipy.sparse import csgraph
+
+    rng = np.random.default_rng(seed)
+    n_ties = 0
+    for mask in _random_masks(seed + 10, 150):
+        rr, cc, g = _scipy_pixel_graph(mask)
+        if len(rr) == 0:
+            continue
+        indptr, indices, w = kernels.pixel_graph(rr, cc, mask.shape)
+        np.testing.assert_array_equal(indptr, g.indptr)
+        np.testing.assert_array_equal(indices, g.indices)
+        np.testing.assert_array_equal(w, g.data)
+        n, lab = kernels.graph_components(indptr, indices)
+        n_ref, lab_ref = csgraph.connected_components(g, directed=False)
+        assert n == n_ref
+        np.testing.assert_array_equal(lab, lab_ref)
+        nodes = np.flatnonzero(rng.random(len(rr)) < 0.6)
+        sub = kernels.induced_subgraph(indptr, indices, w, nodes)
+        g_sub = g[nodes][:, nodes]
+        for a, b in zip(sub, (g_sub.indptr, g_sub.indices, g_sub.data)):
+            np.testing.assert_array_equal(a, b)
+        src = rng.choice(len(rr), size=min(3, len(rr)), replace=False)
+        dist, _, _ = kernels.dijkstra(indptr, indices, w, src)
+        np.testing.assert_array_equal(dist, csgraph.dijkstra(g, directed=False, indices=src, min_only=True))
+        dist, pred, tie = kernels.dijkstra(indptr, indices, w, src[:1])
+        d_ref, p_ref = csgraph.dijkstra(g, directed=False, indices=int(src[0]), return_predecessors=True)
+        np.testing.assert_array_equal(dist, d_ref)
+        np.testing.assert_array_equal(pred[~tie], p_ref[~tie])
+        n_ties += int(tie.sum())
+    assert n_ties > 0                       # the noise masks have tied nodes: the flag is exercised
+
+
+def test_diameter_path_reports_a_tie_on_its_path():
+    """A 4-cycle of diagonal steps (a diamond) between the ends: two paths of the same length."""
+    mask = np.zeros((7, 3), bool)
+    mask[[0, 1, 2, 2, 3, 4, 5, 6], [1, 1, 0, 2, 1, 1, 1, 1]] = True      # stem, diamond at rows 1-3, stem
+    rr, cc, g = _scipy_pixel_graph(mask)
+    seq, length, ambiguous = kernels.diameter_path(*kernels.pixel_graph(rr, cc, mask.shape), 0)
+    assert ambiguous and length == pytest.approx(4.0 + 2 * np.sqrt(2.0))
+    straight = np.zeros((5, 5), bool)
+    straight[2, :] = True
+    rr, cc, _ = _scipy_pixel_graph(straight)
+    seq, length, ambiguous = kernels.diameter_path(*kernels.pixel_graph(rr, cc, straight.shape), 2)
+    assert not ambiguous and length == 4.0 and list(seq) == [0, 1, 2, 3, 4]
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_nearest_sq_dist_is_ckdtree_within_the_radius(seed):
+    from scipy.spatial import cKDTree
+
+    rng = np.random.default_rng(seed)
+    for _ in range(50):
+        pts = rng.integers(-10, 60, (int(rng.integers(0, 300)), 2)).astype(float)
+        t = np.linspace(0.0, 1.0, int(rng.integers(1, 200)))[:, None]
+        curve = rng.uniform(-5, 55, 2) + t * rng.uniform(-60, 60, 2) + rng.normal(0, 0.5, (len(t), 2))
+        radius = float(rng.uniform(0.5, 8.0))
+        d2 = kernels.nearest_sq_dist(pts, curve, radius)
+        d_ref, _ = cKDTree(curve).query(pts) if len(pts) else (np.zeros(0), None)
+        near = d_ref <= radius
+        brute = ((pts[:, None, :] - curve[None]) ** 2).sum(axis=2).min(axis=1) if len(pts) else np.zeros(0)
+        np.testing.assert_array_equal(d2[near], brute[near])
+        assert np.all(d2[~near] > radius ** 2)

@@ -237,3 +237,48 @@ def test_live_path_reports_no_guidewire(small_case):
     assert "no guidewire in the frame" in r1.wire3d.message and "no guidewire in the frame" in r1.message
     assert not r1.wire2d and r1.wire2d.presence is not None and not r1.wire2d.presence
     assert r2 and r2.wire3d.success
+
+
+def _other_pieces_reference(skel_uv, uv, scale):
+    """The formulation the kernels replaced: cKDTree distances and ndimage.label's pieces."""
+    from scipy import ndimage as ndi
+
+    from guidewire3d.xray import wirepresence as wp
+
+    band = wp.BAND_PX * max(scale, 1.0)
+    d, _ = cKDTree(uv).query(skel_uv, distance_upper_bound=band + wp.BRANCH_TOUCH_PX + 1e-6)
+    far_m = d > band
+    far = skel_uv[far_m].astype(np.int64)
+    if len(far) == 0:
+        return np.zeros(0), np.zeros(0, bool)
+    cc, rr = far[:, 0] - far[:, 0].min(), far[:, 1] - far[:, 1].min()
+    sub = np.zeros((rr.max() + 1, cc.max() + 1), bool)
+    sub[rr, cc] = True
+    lab, n = ndi.label(sub, structure=np.ones((3, 3), bool))
+    ids = lab[rr, cc]
+    touch = np.zeros(n + 1, bool)
+    touch[ids[np.isfinite(d[far_m])]] = True
+    return np.bincount(ids, minlength=n + 1)[1:].astype(float), touch[1:]
+
+
+def test_other_pieces_are_those_of_ckdtree_and_ndimage_label():
+    """The skeleton's pieces away from the curve (lengths, side branches) as cKDTree and
+    ndimage.label give them, with curves on the pixel grid (distances exactly at the band's edge)."""
+    from guidewire3d.xray.wirepresence import _other_pieces
+
+    rng = np.random.default_rng(0)
+    n_pieces = 0
+    for i in range(600):
+        rr, cc = np.nonzero(rng.random((40, 50)) < rng.uniform(0.02, 0.3))
+        skel_uv = np.column_stack([cc, rr])
+        t = np.linspace(0.0, 1.0, int(rng.integers(3, 80)))[:, None]
+        uv = rng.uniform(-5, 50, 2) + t * rng.uniform(-60, 60, 2)
+        if i % 4 == 0:
+            uv = np.round(uv)
+        scale = float(rng.choice([0.5, 1.0, 1.5]))
+        lengths, touch = _other_pieces(skel_uv, uv, scale)
+        ref_lengths, ref_touch = _other_pieces_reference(skel_uv, uv, scale)
+        np.testing.assert_array_equal(lengths, ref_lengths)
+        np.testing.assert_array_equal(touch, ref_touch)
+        n_pieces += len(lengths)
+    assert n_pieces > 1000
