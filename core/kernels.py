@@ -501,9 +501,7 @@ def _compile():
                             k = order[e]
                             dx = points[i, 0] - curve[k, 0]
                             dy = points[i, 1] - curve[k, 1]
-                            d2 = dx * dx + dy * dy
-                            if d2 < best:
-                                best = d2
+                            best = min(best, dx * dx + dy * dy)
                 out[i] = best
             return out
 

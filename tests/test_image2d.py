@@ -229,10 +229,9 @@ def test_ordered_wire_does_not_modify_inputs():
 
 def _skeleton_graph_pieces(seed, n):
     """Skeleton graphs of random masks (blobs, bands, noise) and each piece's first node."""
-    from scipy import ndimage as ndi
-
     from guidewire3d import kernels
     from guidewire3d.xray.orderedwire import _pixel_graph
+    from scipy import ndimage as ndi
 
     rng = np.random.default_rng(seed)
     for i in range(n):
@@ -243,14 +242,18 @@ def _skeleton_graph_pieces(seed, n):
         if len(rr) == 0:
             continue
         graph = _pixel_graph(rr, cc, shape)
-        n_comp, lab = kernels.graph_components(graph.indptr, graph.indices)
+        _, lab = kernels.graph_components(graph.indptr, graph.indices)
         yield graph, np.unique(lab, return_index=True)[1]
 
 
 def test_diameter_path_is_scipys_double_dijkstra():
     """The compiled double Dijkstra (with SciPy answering where its path has a tie) gives SciPy's
     path and length on every skeleton piece, a diamond (a tie on the path) included."""
-    from guidewire3d.xray.orderedwire import _diameter_path, _diameter_path_csgraph, _pixel_graph
+    from guidewire3d.xray.orderedwire import (
+        _diameter_path,
+        _diameter_path_csgraph,
+        _pixel_graph,
+    )
 
     n_pieces = 0
     for graph, firsts in _skeleton_graph_pieces(5, 150):

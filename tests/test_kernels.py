@@ -274,7 +274,7 @@ def test_diameter_path_reports_a_tie_on_its_path():
     """A 4-cycle of diagonal steps (a diamond) between the ends: two paths of the same length."""
     mask = np.zeros((7, 3), bool)
     mask[[0, 1, 2, 2, 3, 4, 5, 6], [1, 1, 0, 2, 1, 1, 1, 1]] = True      # stem, diamond at rows 1-3, stem
-    rr, cc, g = _scipy_pixel_graph(mask)
+    rr, cc, _ = _scipy_pixel_graph(mask)
     seq, length, ambiguous = kernels.diameter_path(*kernels.pixel_graph(rr, cc, mask.shape), 0)
     assert ambiguous and length == pytest.approx(4.0 + 2 * np.sqrt(2.0))
     straight = np.zeros((5, 5), bool)

@@ -241,9 +241,8 @@ def test_live_path_reports_no_guidewire(small_case):
 
 def _other_pieces_reference(skel_uv, uv, scale):
     """The formulation the kernels replaced: cKDTree distances and ndimage.label's pieces."""
-    from scipy import ndimage as ndi
-
     from guidewire3d.xray import wirepresence as wp
+    from scipy import ndimage as ndi
 
     band = wp.BAND_PX * max(scale, 1.0)
     d, _ = cKDTree(uv).query(skel_uv, distance_upper_bound=band + wp.BRANCH_TOUCH_PX + 1e-6)
