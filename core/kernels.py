@@ -2,7 +2,11 @@
 
 The per-frame engine (:class:`guidewire3d.live.session.Session`) spends its time in a few loops over small
 arrays: the Viterbi recursion of the 3D reconstruction (one step per anchor of the 2D wire) and the
-bilinear sampling of profiles across the 2D wire (sub-pixel centring, end caps, the presence test).
+bilinear sampling of profiles across the 2D wire (sub-pixel centring, end caps, the presence test);
+and the ordered 2D wire's graph work: the mask's thinning (scikit-image's Zhang-Suen, over the mask's
+pixels instead of its bounding box), the skeleton's 8-connected pixel graph, its components and
+shortest paths (SciPy's csgraph answers where a tie makes its path depend on its heap), and the
+skeleton's distances to the traced curve.
 Each kernel here computes what the numpy / SciPy code it replaces computes, in the same order of
 floating-point operations where that is possible (the tests compare them on random inputs).
 
@@ -17,8 +21,9 @@ import warnings
 
 import numpy as np
 
-__all__ = ["viterbi_forward", "viterbi_backward", "sample_bilinear", "cover_cells", "frangi_at", "skeleton_pixels", "nearest_sq_dist", "pixel_graph",
-           "induced_subgraph", "graph_components", "dijkstra", "diameter_path", "warm_up"]
+__all__ = ["viterbi_forward", "viterbi_backward", "sample_bilinear", "cover_cells", "frangi_at",
+           "skeleton_pixels", "pixel_graph", "induced_subgraph", "graph_components", "dijkstra",
+           "diameter_path", "nearest_sq_dist", "warm_up"]
 
 _LOCK = threading.Lock()
 #: image dtypes sampled as they are (one compiled specialisation each); others are converted to float64
@@ -410,7 +415,6 @@ def _compile():
                 seq[k] = node
                 node = pred[node]
             return seq, d1[b], ambiguous
-
 
         @jit
         def zhang_suen(mask, lut):

@@ -217,8 +217,8 @@ def _line_at_centre(half_px: float, prof: np.ndarray, blocks: np.ndarray, counts
 
 
 def _other_pieces(skel_uv: np.ndarray, uv: np.ndarray, scale: float) -> tuple[np.ndarray, np.ndarray]:
-    """Pieces of the skeleton (pixels ``(u, v)``) farther than ``BAND_PX`` from the curve: their
-    lengths (px) and whether each touches the curve's band (a side branch of it)."""
+    """Pieces of the skeleton (distinct pixels ``(u, v)``) farther than ``BAND_PX`` from the curve:
+    their lengths (px) and whether each touches the curve's band (a side branch of it)."""
     if len(skel_uv) == 0:
         return np.zeros(0), np.zeros(0, bool)
     band = BAND_PX * max(scale, 1.0)
