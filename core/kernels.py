@@ -388,33 +388,20 @@ def _compile():
             return dist, pred, tie
 
         @jit
-        def diameter_path(indptr, indices, weights, node0):
-            src = np.empty(1, np.int64)
-            src[0] = node0
-            d0, _, _ = dijkstra(indptr, indices, weights, src)
-            a = node0
-            for k in range(d0.shape[0]):          # the first farthest node (numpy.argmax)
-                if np.isfinite(d0[k]) and d0[k] > d0[a]:
-                    a = k
-            src[0] = a
-            d1, pred, tie = dijkstra(indptr, indices, weights, src)
-            b = a
-            for k in range(d1.shape[0]):
-                if np.isfinite(d1[k]) and d1[k] > d1[b]:
-                    b = k
+        def walk_predecessors(pred, tie, end):
             n_seq = 0
-            node = b
+            node = end
             ambiguous = False
             while node >= 0:
                 ambiguous = ambiguous or tie[node]
                 n_seq += 1
                 node = pred[node]
             seq = np.empty(n_seq, np.int64)
-            node = b
+            node = end
             for k in range(n_seq - 1, -1, -1):
                 seq[k] = node
                 node = pred[node]
-            return seq, d1[b], ambiguous
+            return seq, ambiguous
 
         @jit
         def zhang_suen(mask, lut):
@@ -512,7 +499,7 @@ def _compile():
         _COMPILED.update(viterbi_forward=viterbi_forward, viterbi_backward=viterbi_backward,
                          sample_bilinear=sample_bilinear, cover_cells=cover_cells,
                          frangi_at=frangi_at, pixel_graph=pixel_graph, induced_subgraph=induced_subgraph,
-                         graph_components=graph_components, dijkstra=dijkstra, diameter_path=diameter_path,
+                         graph_components=graph_components, dijkstra=dijkstra, walk_predecessors=walk_predecessors,
                          zhang_suen=zhang_suen, nearest_sq_dist=nearest_sq_dist)
         return _COMPILED
 
@@ -694,11 +681,15 @@ def diameter_path(indptr: np.ndarray, indices: np.ndarray, weights: np.ndarray,
     """Double Dijkstra from ``node0``: the farthest node ``a`` of its component, then the farthest
     ``b`` from ``a`` (the first on ties, as ``numpy.argmax``); returns the node path ``a -> b``, its
     length and ``ambiguous``: True when a node on the path has two predecessors at the same
-    distance (scipy's path may then differ; see :func:`dijkstra`)."""
-    f = _compile()["diameter_path"]
-    seq, length, ambiguous = f(indptr, indices, weights, int(node0))
-    return seq, float(length), bool(ambiguous)
-
+    distance (scipy's path may then differ; see :func:`dijkstra`). Two calls of the
+    :func:`dijkstra` kernel (a jitted function here never calls another: numba's disk cache
+    misses for a closure that holds another dispatcher)."""
+    d0, _, _ = dijkstra(indptr, indices, weights, [node0])
+    a = int(np.argmax(np.where(np.isfinite(d0), d0, -1.0)))
+    d1, pred, tie = dijkstra(indptr, indices, weights, [a])
+    b = int(np.argmax(np.where(np.isfinite(d1), d1, -1.0)))
+    seq, ambiguous = _compile()["walk_predecessors"](pred, tie, b)
+    return seq, float(d1[b]), bool(ambiguous)
 
 def warm_up() -> None:
     """Compile (or load from the disk cache) every kernel on tiny inputs: the first live frame then
