@@ -36,20 +36,26 @@ def _penalised_banded(ab_data: np.ndarray, lam: float) -> np.ndarray:
     return ab
 
 
-def _pspline_system(x, Y, *, knot: float, weights=None):
-    """The lambda-free part of :func:`fit_pspline`: knots, the design matrix's rows
-    (``kernels.bspline_basis``: values (M, 4) and first column (M,)), ``B^T W B`` in upper banded
-    form (4, nb) and ``B^T W Y`` (nb, D)."""
+def _knots(x, knot: float) -> np.ndarray:
+    """The clamped cubic knot vector of the P-spline over ``x``: ``nint = round(range / knot)``
+    (at least 1) equal intervals, the end knots repeated 3 more times."""
     x0, x1 = float(x[0]), float(x[-1])
     nint = max(int(round((x1 - x0) / knot)), 1)
-    t = np.r_[[x0] * 3, np.linspace(x0, x1, nint + 1), [x1] * 3]
-    D, first = kernels.bspline_basis(np.clip(x, x0, x1), t, 3)
-    nb = len(t) - 4
+    t = np.empty(nint + 7)
+    t[:3], t[3:-3], t[-3:] = x0, np.linspace(x0, x1, nint + 1), x1
+    return t
+
+
+def _pspline_system(x, Y, *, knot: float, weights=None):
+    """The lambda-free part of :func:`fit_pspline`: knots, the design matrix's rows
+    (values (M, 4) and first column (M,)), ``B^T W B`` in upper banded form (4, nb) and ``B^T W Y``
+    (nb, D), from ``kernels.pspline_system``."""
+    t = _knots(x, knot)
     M = len(x)
     # the data weights, summing to 1 (uniform 1/M without weights)
     wn = np.full(M, 1.0 / M) if weights is None else np.asarray(weights, float) / float(np.sum(weights))
     # B^T W B straight into the banded form (each row of B holds 4 consecutive basis functions)
-    ab, BtY = kernels.banded_normal_equations(D, first, wn, Y, nb)
+    D, first, ab, BtY = kernels.pspline_system(np.clip(x, t[0], t[-1]), t, wn, Y)
     return t, D, first, ab, BtY
 
 
@@ -91,16 +97,18 @@ def smooth_wire(ctx, X, uv, *, lam: float, opt):
     The P-spline over the 2D arclength with ``lam`` (:func:`fit_pspline`), halved (at most 8 times)
     until the projection (``ctx.project``) stays within ``opt.max_projection_px`` of ``uv`` (mean)
     and 2.5x that (max); the lambda used is returned with the points. The design matrix and the
-    data part of the normal equations do not depend on lambda: they are built once.
+    data part of the normal equations do not depend on lambda: they are built once; each fit is
+    one compiled call (``kernels.penalised_fit``: the system of ``fit_pspline``, solved by a
+    banded Cholesky factorisation instead of its LAPACK call, the same to rounding).
     """
     x = arclength(uv)
     if len(X) < 5 or x[-1] < 2 * opt.knot_px:
         return X.copy(), lam
     _, D, first, ab, BtY = _pspline_system(x, X, knot=opt.knot_px)
     for _ in range(8):
-        Xs = kernels.banded_apply(D, first, solveh_banded(_penalised_banded(ab, lam), BtY))
-        err = np.linalg.norm(ctx.project(Xs) - uv, axis=1)
-        if err.mean() <= opt.max_projection_px and err.max() <= 2.5 * opt.max_projection_px:
+        Xs, mean_px, max_px = kernels.penalised_fit(D, first, ab, BtY, lam=lam, uv_px=uv, Rc=ctx.Rc, tc=ctx.tc,
+                                                    focal_px=ctx.focal, principal_point_px=ctx.carm.principal_point_px)
+        if mean_px <= opt.max_projection_px and max_px <= 2.5 * opt.max_projection_px:
             return Xs, lam
         lam *= 0.5
     return Xs, lam
