@@ -27,7 +27,6 @@ def viterbi_path(ctx, uv_a, cand, outside, opt, track_tip):
     # keep only the columns that hold a candidate somewhere (the KD query pads with misses)
     keep = (cand >= 0).any(axis=0)
     cand, outside = cand[:, keep], outside[:, keep]
-    A, K = cand.shape
     valid = cand >= 0
     safe = np.maximum(cand, 0)
     U = (outside / opt.sigma_outside_px) ** 2

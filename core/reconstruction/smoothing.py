@@ -40,7 +40,7 @@ def _knots(x, knot: float) -> np.ndarray:
     """The clamped cubic knot vector of the P-spline over ``x``: ``nint = round(range / knot)``
     (at least 1) equal intervals, the end knots repeated 3 more times."""
     x0, x1 = float(x[0]), float(x[-1])
-    nint = max(int(round((x1 - x0) / knot)), 1)
+    nint = max(round((x1 - x0) / knot), 1)
     t = np.empty(nint + 7)
     t[:3], t[3:-3], t[-3:] = x0, np.linspace(x0, x1, nint + 1), x1
     return t

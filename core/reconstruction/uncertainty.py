@@ -115,13 +115,6 @@ def _check_registration_covariance(registration_covariance) -> np.ndarray:
     return C
 
 
-def _cross(a, b) -> np.ndarray:
-    """Row-wise cross product of (M, 3) arrays (faster than np.cross for small M)."""
-    a, b = np.broadcast_arrays(a, b)
-    return np.column_stack([a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1], a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2],
-                            a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]])
-
-
 def _outer(a, b=None):
     return a[:, :, None] * (a if b is None else b)[:, None, :]
 
