@@ -377,6 +377,9 @@ def _compile_reconstruction():
             for m in range(M):
                 d0, d1, d2 = d[m, 0], d[m, 1], d[m, 2]
                 for w in range(width):
+                    if lo[m] + w >= lim[m]:
+                        cost[w] = np.inf  # outside the ray's window
+                        continue
                     g = min(lo[m] + w, S - 1)
                     b = e0[g] * d0 + e1[g] * d1 + e2[g] * d2
                     p = f0[g] * d0 + f1[g] * d1 + f2[g] * d2
@@ -386,7 +389,7 @@ def _compile_reconstruction():
                     s_ = p + u * b
                     dist = np.sqrt(max(s_ * s_ - 2 * s_ * u * b - 2 * s_ * p + u * u * c[g] + 2 * u * q[g] + w2[g], 0.0))
                     along = (g + u - pos[m]) * seg_len[g]
-                    cost[w] = (dist / dist_scale) ** 2 + (along / along_scale) ** 2 if lo[m] + w < lim[m] else np.inf
+                    cost[w] = (dist / dist_scale) ** 2 + (along / along_scale) ** 2
                 # the first minimum (numpy.argmin: a NaN wins, the first segment when none counts)
                 bw = 0
                 for w in range(1, width):
