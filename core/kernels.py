@@ -6,6 +6,13 @@ bilinear sampling of profiles across the 2D wire (sub-pixel centring, end caps, 
 Each kernel here computes what the numpy / SciPy code it replaces computes, in the same order of
 floating-point operations where that is possible (the tests compare them on random inputs).
 
+The single-view 3D reconstruction's per-point and per-candidate loops (``_compile_reconstruction``:
+the Viterbi pairwise costs, the placement on the tree path, the lumen covariance, the P-spline
+system and fit, polyline tangents and curvature, the branch ambiguity) are compiled apart: each is
+one call per frame instead of dozens of small numpy temporaries (tests/test_kernels_reconstruction.py
+compares them with the numpy code they replaced). A jitted function here never calls another one
+(numba's disk cache misses for a closure that holds another dispatcher).
+
 numba is imported on the first call of a kernel, not when this module is imported, so that
 ``import guidewire3d`` stays light; the compiled code is cached on disk (``cache=True``) and
 :func:`warm_up` compiles (or loads) every kernel ahead of the first frame.
