@@ -835,6 +835,16 @@ def frangi_at(image_zyx: np.ndarray, idx_zyx: np.ndarray, spacing: np.ndarray, s
 
 
 # --- the reconstruction's kernels -------------------------------------------------------------------
+def _in(a, dtype) -> np.ndarray:
+    """A C-contiguous, read-only view (or copy, for another dtype / layout) of a kernel's input: the
+    kernels read their inputs only, and one read-only type per argument means one compiled
+    specialisation (the one :func:`warm_up` compiles), whatever the caller's arrays' flags."""
+    a = np.ascontiguousarray(a, dtype)
+    if a.flags.writeable:
+        a = a.view()
+        a.flags.writeable = False
+    return a
+
 def viterbi_pairwise(cand: np.ndarray, s: np.ndarray, point_branch: np.ndarray, branch_lca_s: np.ndarray,
                      points: np.ndarray, uv_tree: np.ndarray, uv_anchor: np.ndarray, *, sigma_step_px: float,
                      sigma_jump_mm: float, sigma_retreat_mm: float) -> np.ndarray:
@@ -856,10 +866,10 @@ def viterbi_pairwise(cand: np.ndarray, s: np.ndarray, point_branch: np.ndarray, 
     points : (N, 3) LPS mm; uv_tree : (N, 2) their projections, px; uv_anchor : (A, 2) px
     """
     f = _compile_reconstruction()["viterbi_pairwise"]
-    return f(np.ascontiguousarray(cand, np.int64), np.ascontiguousarray(s, np.float64),
-             np.ascontiguousarray(point_branch, np.int64), np.ascontiguousarray(branch_lca_s, np.float64),
-             np.ascontiguousarray(points, np.float64), np.ascontiguousarray(uv_tree, np.float64),
-             np.ascontiguousarray(uv_anchor, np.float64), float(sigma_step_px) ** 2, float(sigma_jump_mm),
+    return f(_in(cand, np.int64), _in(s, np.float64),
+             _in(point_branch, np.int64), _in(branch_lca_s, np.float64),
+             _in(points, np.float64), _in(uv_tree, np.float64),
+             _in(uv_anchor, np.float64), float(sigma_step_px) ** 2, float(sigma_jump_mm),
              float(sigma_retreat_mm))
 
 
@@ -883,10 +893,9 @@ def place_on_path(source: np.ndarray, rays: np.ndarray, path_ids: np.ndarray, po
     ray-axis distance and ``r(u)``.
     """
     f = _compile_reconstruction()["place_on_path"]
-    c64 = np.ascontiguousarray
-    return f(c64(source, np.float64), c64(rays, np.float64), c64(path_ids, np.int64), c64(points, np.float64),
-             c64(radius, np.float64), c64(offset, np.float64), c64(lo, np.int64), c64(lim, np.int64), int(width),
-             c64(pos, np.float64), float(dist_scale_mm), float(along_scale_mm))
+    return f(_in(source, np.float64), _in(rays, np.float64), _in(path_ids, np.int64), _in(points, np.float64),
+             _in(radius, np.float64), _in(offset, np.float64), _in(lo, np.int64), _in(lim, np.int64), int(width),
+             _in(pos, np.float64), float(dist_scale_mm), float(along_scale_mm))
 
 
 def lumen_covariance(rays, tangents, points_lps_mm, *, Rc, tc, focal_px, pose_R, pose_t, sigma_geo_px,
@@ -901,15 +910,14 @@ def lumen_covariance(rays, tangents, points_lps_mm, *, Rc, tc, focal_px, pose_R,
     M = len(rays)
     has_img, has_reg, has_amb = image_gradient is not None, registration_covariance is not None, \
         ambiguity_mm2 is not None
-    g = np.ascontiguousarray(image_gradient, np.float64) if has_img else np.zeros((1, 2))
-    C = np.ascontiguousarray(registration_covariance, np.float64) if has_reg else np.zeros((6, 6))
-    amb = np.ascontiguousarray(ambiguity_mm2, np.float64) if has_amb else np.zeros((1, 3, 3))
+    g = _in(image_gradient if has_img else np.zeros((1, 2)), np.float64)
+    C = _in(registration_covariance if has_reg else np.zeros((6, 6)), np.float64)
+    amb = _in(ambiguity_mm2 if has_amb else np.zeros((1, 3, 3)), np.float64)
     f = _compile_reconstruction()["lumen_covariance"]
-    c64 = np.ascontiguousarray
-    return f(c64(rays, np.float64), c64(tangents, np.float64), c64(points_lps_mm, np.float64).reshape(M, 3),
-             c64(Rc, np.float64), c64(tc, np.float64), float(focal_px), c64(pose_R, np.float64),
-             c64(pose_t, np.float64), float(sigma_geo_px) ** 2, g, float(sigma_img) ** 2, has_img, C, has_reg,
-             c64(half_width_mm, np.float64), c64(miss_mm, np.float64), amb, has_amb, float(k2),
+    return f(_in(rays, np.float64), _in(tangents, np.float64), _in(points_lps_mm, np.float64).reshape(M, 3),
+             _in(Rc, np.float64), _in(tc, np.float64), float(focal_px), _in(pose_R, np.float64),
+             _in(pose_t, np.float64), float(sigma_geo_px) ** 2, g, float(sigma_img) ** 2, has_img, C, has_reg,
+             _in(half_width_mm, np.float64), _in(miss_mm, np.float64), amb, has_amb, float(k2),
              float(lumen_spread), float(sigma_centerline_mm) ** 2)
 
 
@@ -925,9 +933,8 @@ def pspline_system(x: np.ndarray, knots: np.ndarray, weights: np.ndarray, Y: np.
     accumulated in the order of the former ``numpy.bincount`` formulation.
     """
     f = _compile_reconstruction()["pspline_system"]
-    c64 = np.ascontiguousarray
-    return f(c64(x, np.float64), c64(knots, np.float64), c64(weights, np.float64),
-             c64(Y, np.float64).reshape(len(Y), -1))
+    return f(_in(x, np.float64), _in(knots, np.float64), _in(weights, np.float64),
+             _in(Y, np.float64).reshape(len(Y), -1))
 
 
 def penalised_fit(values: np.ndarray, first: np.ndarray, ab: np.ndarray, BtY: np.ndarray, *, lam: float,
@@ -942,10 +949,9 @@ def penalised_fit(values: np.ndarray, first: np.ndarray, ab: np.ndarray, BtY: np
     principal_point_px``) and compared with ``uv_px`` (M, 2).
     """
     f = _compile_reconstruction()["penalised_fit"]
-    c64 = np.ascontiguousarray
-    Xs, mean_px, max_px = f(c64(values, np.float64), c64(first, np.int64), c64(ab, np.float64),
-                            c64(BtY, np.float64), float(lam), c64(uv_px, np.float64), c64(Rc, np.float64),
-                            c64(tc, np.float64), float(focal_px), c64(principal_point_px, np.float64))
+    Xs, mean_px, max_px = f(_in(values, np.float64), _in(first, np.int64), _in(ab, np.float64),
+                            _in(BtY, np.float64), float(lam), _in(uv_px, np.float64), _in(Rc, np.float64),
+                            _in(tc, np.float64), float(focal_px), _in(principal_point_px, np.float64))
     return Xs, float(mean_px), float(max_px)
 
 
@@ -954,7 +960,7 @@ def polyline_measures(points: np.ndarray):
     (``numpy.gradient`` twice): ``T = X' / max(|X'|, 1e-12)``, ``kappa = |X' x X''| / max(|X'|^3, 1e-12)``
     (the formulas of ``reconstruction.smoothing.tangents`` and ``curvature``)."""
     f = _compile_reconstruction()["polyline_measures"]
-    return f(np.ascontiguousarray(points, np.float64))
+    return f(_in(points, np.float64))
 
 
 def branch_ambiguity(cand: np.ndarray, excess: np.ndarray, nodes: np.ndarray, points: np.ndarray, s: np.ndarray,
@@ -967,9 +973,8 @@ def branch_ambiguity(cand: np.ndarray, excess: np.ndarray, nodes: np.ndarray, po
     lowest common ancestor, the ``lca_s`` tables) minus Euclidean distance to the chosen point is
     not above ``sigma_jump_mm`` count with no displacement."""
     f = _compile_reconstruction()["branch_ambiguity"]
-    c64 = np.ascontiguousarray
-    return f(c64(cand, np.int64), c64(excess, np.float64), c64(nodes, np.int64), c64(points, np.float64),
-             c64(s, np.float64), c64(point_branch, np.int64), c64(branch_lca_s, np.float64), float(scale),
+    return f(_in(cand, np.int64), _in(excess, np.float64), _in(nodes, np.int64), _in(points, np.float64),
+             _in(s, np.float64), _in(point_branch, np.int64), _in(branch_lca_s, np.float64), float(scale),
              float(sigma_jump_mm))
 
 

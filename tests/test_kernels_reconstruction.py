@@ -370,3 +370,23 @@ def test_branch_ambiguity_is_the_numpy_formulation(seed):
     ref = np.einsum("ak,aki,akj->aij", w * other, D, D)
     got = kernels.branch_ambiguity(cand, excess, nodes, points, s, pb, lca, scale=2.0, sigma_jump_mm=0.5)
     np.testing.assert_allclose(got, ref, rtol=1e-11, atol=1e-12)
+
+
+def test_warm_up_compiles_the_one_specialisation_the_reconstruction_uses():
+    """Whatever the callers' arrays (writable here, read-only tree tables in a context), each kernel
+    has the one compiled specialisation warm_up made: the first live frame compiles nothing."""
+    kernels.warm_up()
+    compiled = kernels._compile_reconstruction()
+    before = {name: len(f.signatures) for name, f in compiled.items()}
+    assert set(before.values()) == {1}
+    test_viterbi_pairwise_is_the_numpy_formulation(0)
+    test_place_on_path_kernel_is_the_numpy_formulation(1)
+    test_lumen_covariance_kernel_is_the_numpy_formulation((True, True, True))
+    test_lumen_covariance_kernel_is_the_numpy_formulation((False, False, False))
+    test_pspline_kernels_are_scipy_and_lapack(7)
+    test_polyline_measures_are_numpy_gradient_and_cross(50)
+    test_branch_ambiguity_is_the_numpy_formulation(0)
+    ro = np.arange(9.0).reshape(3, 3)
+    ro.flags.writeable = False
+    kernels.polyline_measures(ro)
+    assert {name: len(f.signatures) for name, f in compiled.items()} == before
