@@ -10,6 +10,13 @@ skeleton's distances to the traced curve.
 Each kernel here computes what the numpy / SciPy code it replaces computes, in the same order of
 floating-point operations where that is possible (the tests compare them on random inputs).
 
+The single-view 3D reconstruction's per-point and per-candidate loops (``_compile_reconstruction``:
+the Viterbi pairwise costs, the placement on the tree path, the lumen covariance, the P-spline
+system and fit, polyline tangents and curvature, the branch ambiguity) are compiled apart: each is
+one call per frame instead of dozens of small numpy temporaries (tests/test_kernels_reconstruction.py
+compares them with the numpy code they replaced). A jitted function here never calls another one
+(numba's disk cache misses for a closure that holds another dispatcher).
+
 numba is imported on the first call of a kernel, not when this module is imported, so that
 ``import guidewire3d`` stays light; the compiled code is cached on disk (``cache=True``) and
 :func:`warm_up` compiles (or loads) every kernel ahead of the first frame.
@@ -23,7 +30,9 @@ import numpy as np
 
 __all__ = ["viterbi_forward", "viterbi_backward", "sample_bilinear", "cover_cells", "frangi_at",
            "skeleton_pixels", "pixel_graph", "induced_subgraph", "graph_components", "dijkstra",
-           "diameter_path", "nearest_sq_dist", "warm_up"]
+           "diameter_path", "nearest_sq_dist", "warm_up",
+           "viterbi_pairwise", "place_on_path", "lumen_covariance", "pspline_system", "penalised_fit",
+           "polyline_measures", "branch_ambiguity"]
 
 _LOCK = threading.Lock()
 #: image dtypes sampled as they are (one compiled specialisation each); others are converted to float64
@@ -504,6 +513,460 @@ def _compile():
         return _COMPILED
 
 
+#: the reconstruction's kernels (``guidewire3d.reconstruction``), compiled apart from the others
+_COMPILED_RECON: dict = {}
+
+
+def _compile_reconstruction():
+    """The jitted kernels of the single-view reconstruction (one frame's path, placement, smoothing
+    and covariance), compiled once per process (loaded from numba's disk cache when present)."""
+    with _LOCK:
+        if _COMPILED_RECON:
+            return _COMPILED_RECON
+        import numba
+
+        def jit(f):
+            try:
+                return numba.njit(cache=True, nogil=True)(f)
+            except RuntimeError:
+                return numba.njit(cache=False, nogil=True)(f)
+
+        @jit
+        def viterbi_pairwise(cand, s, point_branch, branch_lca_s, points, uv_tree, uv_anchor, ss2, sj, sr):
+            A, K = cand.shape
+            C = np.empty((max(A - 1, 0), K, K))
+            # the candidates' data gathered once, one contiguous row per anchor
+            cs = np.empty((A, K))
+            cb = np.empty((A, K), np.int64)
+            X0, X1, X2 = np.empty((A, K)), np.empty((A, K)), np.empty((A, K))
+            V0, V1 = np.empty((A, K)), np.empty((A, K))
+            n2 = np.empty((A, K))
+            u2 = np.empty((A, K))
+            for a in range(A):
+                for k in range(K):
+                    c = cand[a, k]
+                    cs[a, k], cb[a, k] = s[c], point_branch[c]
+                    X0[a, k], X1[a, k], X2[a, k] = points[c, 0], points[c, 1], points[c, 2]
+                    V0[a, k], V1[a, k] = uv_tree[c, 0], uv_tree[c, 1]
+                    n2[a, k] = X0[a, k] * X0[a, k] + X1[a, k] * X1[a, k] + X2[a, k] * X2[a, k]
+                    u2[a, k] = V0[a, k] * V0[a, k] + V1[a, k] * V1[a, k]
+            a0, a1, a2 = np.empty(K), np.empty(K), np.empty(K)
+            lrow = np.empty(K)
+            for t in range(A - 1):
+                du = uv_anchor[t + 1, 0] - uv_anchor[t, 0]
+                dv = uv_anchor[t + 1, 1] - uv_anchor[t, 1]
+                for j in range(K):
+                    a0[j] = V0[t + 1, j] - du
+                    a1[j] = V1[t + 1, j] - dv
+                    a2[j] = a0[j] * a0[j] + a1[j] * a1[j]
+                for i in range(K):
+                    si = cs[t, i]
+                    bi = cb[t, i]
+                    for j in range(K):
+                        lrow[j] = branch_lca_s[bi, cb[t + 1, j]]
+                    x0, x1, x2 = 2.0 * X0[t, i], 2.0 * X1[t, i], 2.0 * X2[t, i]
+                    w0, w1 = 2.0 * V0[t, i], 2.0 * V1[t, i]
+                    n2i, u2i = n2[t, i], u2[t, i]
+                    Ct = C[t, i]
+                    for j in range(K):
+                        sj_ = cs[t + 1, j]
+                        slca = min(min(si, sj_), lrow[j])
+                        up = si - slca
+                        geo = up + (sj_ - slca)
+                        dot = x0 * X0[t + 1, j] + x1 * X1[t + 1, j] + x2 * X2[t + 1, j]
+                        e3 = np.sqrt(max(n2i + n2[t + 1, j] - dot, 0.0))
+                        m2 = u2i + a2[j] - (w0 * a0[j] + w1 * a1[j])
+                        Ct[j] = 2.0 * (np.sqrt(1.0 + max(m2, 0.0) / ss2) - 1.0) + max(geo - e3, 0.0) / sj + up / sr
+            return C
+
+        @jit
+        def place_on_path(o, d, P, points, radius, offset, lo, lim, width, pos, dist_scale, along_scale):
+            S = P.shape[0] - 1
+            M = d.shape[0]
+            # per segment (structure of arrays): e = B - A, w0 = A - o, c = e.e, q = e.w0, w2 = w0.w0
+            e0, e1, e2 = np.empty(S), np.empty(S), np.empty(S)
+            f0, f1, f2 = np.empty(S), np.empty(S), np.empty(S)
+            c, q, w2, seg_len = np.empty(S), np.empty(S), np.empty(S), np.empty(S)
+            for g in range(S):
+                ia, ib = P[g], P[g + 1]
+                e0[g], e1[g], e2[g] = points[ib, 0] - points[ia, 0], points[ib, 1] - points[ia, 1], \
+                    points[ib, 2] - points[ia, 2]
+                f0[g], f1[g], f2[g] = points[ia, 0] - o[0], points[ia, 1] - o[1], points[ia, 2] - o[2]
+                c[g] = e0[g] * e0[g] + e1[g] * e1[g] + e2[g] * e2[g]
+                q[g] = e0[g] * f0[g] + e1[g] * f1[g] + e2[g] * f2[g]
+                w2[g] = f0[g] * f0[g] + f1[g] * f1[g] + f2[g] * f2[g]
+                seg_len[g] = np.sqrt(c[g])
+            X = np.empty((M, 3))
+            tid = np.empty(M, np.int64)
+            out_dist, out_half, out_r = np.empty(M), np.empty(M), np.empty(M)
+            cost = np.empty(width)
+            for m in range(M):
+                d0, d1, d2 = d[m, 0], d[m, 1], d[m, 2]
+                for w in range(width):
+                    if lo[m] + w >= lim[m]:
+                        cost[w] = np.inf  # outside the ray's window
+                        continue
+                    g = min(lo[m] + w, S - 1)
+                    b = e0[g] * d0 + e1[g] * d1 + e2[g] * d2
+                    p = f0[g] * d0 + f1[g] * d1 + f2[g] * d2
+                    den = c[g] - b * b
+                    u = (p * b - q[g]) / den if den > 1e-12 else 0.5
+                    u = min(max(u, 0.0), 1.0)
+                    s_ = p + u * b
+                    dist = np.sqrt(max(s_ * s_ - 2 * s_ * u * b - 2 * s_ * p + u * u * c[g] + 2 * u * q[g] + w2[g], 0.0))
+                    along = (g + u - pos[m]) * seg_len[g]
+                    cost[w] = (dist / dist_scale) ** 2 + (along / along_scale) ** 2
+                # the first minimum (numpy.argmin: a NaN wins, the first segment when none counts)
+                bw = 0
+                for w in range(1, width):
+                    if cost[bw] != cost[bw]:
+                        break
+                    if cost[w] < cost[bw] or cost[w] != cost[w]:
+                        bw = w
+                g = min(lo[m] + bw, S - 1)
+                b = e0[g] * d0 + e1[g] * d1 + e2[g] * d2
+                p = f0[g] * d0 + f1[g] * d1 + f2[g] * d2
+                den = c[g] - b * b
+                u = (p * b - q[g]) / den if den > 1e-12 else 0.5
+                u = min(max(u, 0.0), 1.0)
+                s_ = p + u * b
+                dist = np.sqrt(max(s_ * s_ - 2 * s_ * u * b - 2 * s_ * p + u * u * c[g] + 2 * u * q[g] + w2[g], 0.0))
+                ia, ib = P[g], P[g + 1]
+                r = radius[ia] + u * (radius[ib] - radius[ia])
+                sin2 = min(max(1.0 - b * b / max(c[g], 1e-24), 1e-6), 1.0)
+                half = min(np.sqrt(max(r * r - dist * dist, 0.0) / sin2), 0.5 * abs(b) + r)
+                # within the chord, the depth of the expected wire position Y
+                sy = 0.0
+                for k in range(3):
+                    off = offset[ia, k] + u * (offset[ib, k] - offset[ia, k])
+                    y = points[ia, k] + u * (points[ib, k] - points[ia, k]) + off
+                    sy += (y - o[k]) * d[m, k]
+                sy = min(max(sy, s_ - half), s_ + half)
+                for k in range(3):
+                    X[m, k] = o[k] + sy * d[m, k]
+                tid[m] = ia if u < 0.5 else ib
+                out_dist[m], out_half[m], out_r[m] = dist, half, r
+            return X, tid, out_half, out_dist, out_r
+
+        @jit
+        def lumen_covariance(d, t, X, Rc, tc, focal, R, tp, sg2, g, si2, has_img, C, has_reg, hw, miss, amb,
+                             has_amb, k2, spread, scl2):
+            M = d.shape[0]
+            cov = np.empty((M, 3, 3))
+            n = np.empty(3)
+            tt = np.empty(3)
+            q = np.empty(3)
+            mv = np.empty(3)
+            J = np.empty((2, 3))
+            Jn = np.empty(2)
+            Jm = np.empty(2)
+            bn = np.empty(6)
+            bm = np.empty(6)
+            xr = np.empty(3)
+            vn = np.empty(3)
+            vm = np.empty(3)
+            for i in range(M):
+                d0, d1, d2 = d[i, 0], d[i, 1], d[i, 2]
+                n[0] = d1 * t[i, 2] - d2 * t[i, 1]
+                n[1] = d2 * t[i, 0] - d0 * t[i, 2]
+                n[2] = d0 * t[i, 1] - d1 * t[i, 0]
+                sin = np.sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2])
+                tt[0], tt[1], tt[2] = t[i, 0], t[i, 1], t[i, 2]
+                if sin <= 1e-6:  # a ray (nearly) along the vessel: any direction normal to the ray
+                    if abs(d0) < 0.9:
+                        n[0], n[1], n[2] = 0.0, d2, -d1
+                    else:
+                        n[0], n[1], n[2] = -d2, 0.0, d0
+                nn = np.sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2])
+                n[0], n[1], n[2] = n[0] / nn, n[1] / nn, n[2] / nn
+                if sin <= 1e-6:
+                    tt[0] = n[1] * d2 - n[2] * d1
+                    tt[1] = n[2] * d0 - n[0] * d2
+                    tt[2] = n[0] * d1 - n[1] * d0
+                cos = abs(d0 * tt[0] + d1 * tt[1] + d2 * tt[2])
+                q[0] = tt[1] * n[2] - tt[2] * n[1]
+                q[1] = tt[2] * n[0] - tt[0] * n[2]
+                q[2] = tt[0] * n[1] - tt[1] * n[0]
+                mv[0] = n[1] * d2 - n[2] * d1
+                mv[1] = n[2] * d0 - n[0] * d2
+                mv[2] = n[0] * d1 - n[1] * d0
+                gain = cos / max(cos * cos + k2 * (sin * sin), 1e-12)
+                # projection Jacobian J (2 x 3) and J+^T v = (J J^T)^-1 J v
+                xc0 = X[i, 0] * Rc[0, 0] + X[i, 1] * Rc[0, 1] + X[i, 2] * Rc[0, 2] + tc[0]
+                xc1 = X[i, 0] * Rc[1, 0] + X[i, 1] * Rc[1, 1] + X[i, 2] * Rc[1, 2] + tc[1]
+                z = X[i, 0] * Rc[2, 0] + X[i, 1] * Rc[2, 1] + X[i, 2] * Rc[2, 2] + tc[2]
+                fz = focal / z
+                j02 = -focal * xc0 / z ** 2
+                j12 = -focal * xc1 / z ** 2
+                for k in range(3):
+                    J[0, k] = fz * Rc[0, k] + j02 * Rc[2, k]
+                    J[1, k] = fz * Rc[1, k] + j12 * Rc[2, k]
+                a00 = J[0, 0] * J[0, 0] + J[0, 1] * J[0, 1] + J[0, 2] * J[0, 2]
+                a01 = J[0, 0] * J[1, 0] + J[0, 1] * J[1, 1] + J[0, 2] * J[1, 2]
+                a11 = J[1, 0] * J[1, 0] + J[1, 1] * J[1, 1] + J[1, 2] * J[1, 2]
+                det = a00 * a11 - a01 * a01
+                jn0 = J[0, 0] * n[0] + J[0, 1] * n[1] + J[0, 2] * n[2]
+                jn1 = J[1, 0] * n[0] + J[1, 1] * n[1] + J[1, 2] * n[2]
+                jm0 = J[0, 0] * mv[0] + J[0, 1] * mv[1] + J[0, 2] * mv[2]
+                jm1 = J[1, 0] * mv[0] + J[1, 1] * mv[1] + J[1, 2] * mv[2]
+                Jn[0] = (a11 * jn0 - a01 * jn1) / det
+                Jn[1] = (-a01 * jn0 + a00 * jn1) / det
+                Jm[0] = (a11 * jm0 - a01 * jm1) / det
+                Jm[1] = (-a01 * jm0 + a00 * jm1) / det
+                s_nn = sg2 * (Jn[0] * Jn[0] + Jn[1] * Jn[1])
+                s_nm = sg2 * (Jn[0] * Jm[0] + Jn[1] * Jm[1])
+                s_mm = sg2 * (Jm[0] * Jm[0] + Jm[1] * Jm[1])
+                if has_img:
+                    gn = g[i, 0] * Jn[0] + g[i, 1] * Jn[1]
+                    gm = g[i, 0] * Jm[0] + g[i, 1] * Jm[1]
+                    s_nn = s_nn + si2 * gn * gn
+                    s_nm = s_nm + si2 * gn * gm
+                    s_mm = s_mm + si2 * gm * gm
+                if has_reg:
+                    # G = R^T [-I | [x]x]  =>  G^T v = -(R v, x x R v), x the point in room coordinates
+                    for k in range(3):
+                        xr[k] = X[i, 0] * R[k, 0] + X[i, 1] * R[k, 1] + X[i, 2] * R[k, 2] + tp[k]
+                        vn[k] = n[0] * R[k, 0] + n[1] * R[k, 1] + n[2] * R[k, 2]
+                        vm[k] = mv[0] * R[k, 0] + mv[1] * R[k, 1] + mv[2] * R[k, 2]
+                    bn[0], bn[1], bn[2] = vn[0], vn[1], vn[2]
+                    bn[3] = xr[1] * vn[2] - xr[2] * vn[1]
+                    bn[4] = xr[2] * vn[0] - xr[0] * vn[2]
+                    bn[5] = xr[0] * vn[1] - xr[1] * vn[0]
+                    bm[0], bm[1], bm[2] = vm[0], vm[1], vm[2]
+                    bm[3] = xr[1] * vm[2] - xr[2] * vm[1]
+                    bm[4] = xr[2] * vm[0] - xr[0] * vm[2]
+                    bm[5] = xr[0] * vm[1] - xr[1] * vm[0]
+                    r_nn = 0.0
+                    r_nm = 0.0
+                    r_mm = 0.0
+                    for a in range(6):
+                        cbn = 0.0
+                        cbm = 0.0
+                        for b in range(6):
+                            cbn += bn[b] * C[b, a]
+                            cbm += bm[b] * C[b, a]
+                        r_nn += cbn * bn[a]
+                        r_nm += cbn * bm[a]
+                        r_mm += cbm * bm[a]
+                    s_nn = s_nn + r_nn
+                    s_nm = s_nm + r_nm
+                    s_mm = s_mm + r_mm
+                miss2 = miss[i] * miss[i]
+                aa = s_nn + miss2
+                bb = gain * s_nm
+                cc = gain * gain * s_mm + (spread * hw[i]) ** 2 + scl2 + miss2
+                if has_amb:
+                    an = 0.0
+                    aq = 0.0
+                    qq = 0.0
+                    for r in range(3):
+                        bnr = amb[i, r, 0] * n[0] + amb[i, r, 1] * n[1] + amb[i, r, 2] * n[2]
+                        an += bnr * n[r]
+                        aq += bnr * q[r]
+                        qq += q[r] * (amb[i, r, 0] * q[0] + amb[i, r, 1] * q[1] + amb[i, r, 2] * q[2])
+                    aa = aa + an
+                    bb = bb + aq
+                    cc = cc + qq
+                for r in range(3):
+                    for k in range(3):
+                        cov[i, r, k] = aa * (n[r] * n[k]) + bb * (n[r] * q[k] + q[r] * n[k]) + cc * (q[r] * q[k])
+            return cov
+
+        @jit
+        def pspline_system(x, t, wn, Y):
+            k = 3
+            M = x.shape[0]
+            n = t.shape[0] - k - 1
+            # the design matrix's rows: basis functions first[m] .. first[m] + 3 at x[m]
+            D = np.empty((M, k + 1))
+            first = np.empty(M, np.int64)
+            h = np.empty(k + 1)
+            hh = np.empty(k + 1)
+            ell = k
+            for m in range(M):
+                xv = x[m]
+                # the knot interval t[ell] <= x < t[ell + 1] (the last one closed), from the previous
+                if not k < ell < n:
+                    ell = k
+                while xv < t[ell] and ell != k:
+                    ell -= 1
+                ell += 1
+                while xv >= t[ell] and ell != n:
+                    ell += 1
+                ell -= 1
+                # de Boor - Cox recursion (Dierckx's fpbspl)
+                h[0] = 1.0
+                for j in range(1, k + 1):
+                    for i in range(j):
+                        hh[i] = h[i]
+                    h[0] = 0.0
+                    for i in range(1, j + 1):
+                        xb = t[ell + i]
+                        xa = t[ell + i - j]
+                        if xb == xa:
+                            h[i] = 0.0
+                            continue
+                        w = hh[i - 1] / (xb - xa)
+                        h[i - 1] += w * (xb - xv)
+                        h[i] = w * (xv - xa)
+                for i in range(k + 1):
+                    D[m, i] = h[i]
+                first[m] = ell - k
+            # B^T W B (upper banded, ab[3 + i - j, j]) and B^T W Y, in numpy.bincount's order
+            ab = np.zeros((k + 1, n))
+            tmp = np.empty(n)
+            for a in range(k + 1):
+                for b in range(a, k + 1):
+                    tmp[:] = 0.0
+                    for m in range(M):
+                        tmp[first[m] + b] += wn[m] * D[m, a] * D[m, b]
+                    for j in range(n):
+                        ab[k - (b - a), j] += tmp[j]
+            nd = Y.shape[1]
+            BtY = np.zeros((n, nd))
+            for dd in range(nd):
+                for m in range(M):
+                    for a in range(k + 1):
+                        BtY[first[m] + a, dd] += wn[m] * D[m, a] * Y[m, dd]
+            return D, first, ab, BtY
+
+        @jit
+        def penalised_fit(D, first, ab_data, BtY, lam, uv, Rc, tc, focal, pp):
+            # ab = B^T W B + lam / (nb - 2) D^T D (+ 1e-12 I), upper banded (4, nb), as smoothing.fit_pspline
+            nb = ab_data.shape[1]
+            ab = ab_data.copy()
+            w = lam / max(nb - 2, 1)
+            if nb >= 3:
+                for j in range(nb):
+                    p0 = 6.0
+                    if j == 0 or j == nb - 1:
+                        p0 = 1.0
+                    elif j == 1 or j == nb - 2:
+                        p0 = 5.0
+                    ab[3, j] += w * p0
+                for j in range(1, nb):
+                    ab[2, j] += w * (-2.0 if (j - 1 == 0 or j - 1 == nb - 2) else -4.0)
+                for j in range(2, nb):
+                    ab[1, j] += w * 1.0
+            for j in range(nb):
+                ab[3, j] += 1e-12
+            # banded Cholesky U^T U (LAPACK dpbtf2's order); not positive definite: NaN
+            kd = 3
+            M, nd = D.shape[0], BtY.shape[1]
+            for j in range(nb):
+                ajj = ab[kd, j]
+                if not ajj > 0.0:
+                    return np.full((M, nd), np.nan), np.nan, np.nan
+                ajj = np.sqrt(ajj)
+                ab[kd, j] = ajj
+                kn = min(kd, nb - 1 - j)
+                for i in range(1, kn + 1):
+                    ab[kd - i, j + i] /= ajj
+                for i in range(1, kn + 1):
+                    ui = ab[kd - i, j + i]
+                    for l in range(i, kn + 1):
+                        ab[kd - (l - i), j + l] -= ui * ab[kd - l, j + l]
+            coef = BtY.copy()
+            for dd in range(nd):
+                for j in range(nb):  # U^T y = b
+                    v = coef[j, dd]
+                    for i in range(max(0, j - kd), j):
+                        v -= ab[kd + i - j, j] * coef[i, dd]
+                    coef[j, dd] = v / ab[kd, j]
+                for j in range(nb - 1, -1, -1):  # U x = y
+                    v = coef[j, dd]
+                    for i in range(j + 1, min(nb, j + kd + 1)):
+                        v -= ab[kd + j - i, i] * coef[i, dd]
+                    coef[j, dd] = v / ab[kd, j]
+            # the fitted points B coef (scipy's CSR product order) and their projection error
+            Xs = np.zeros((M, nd))
+            for m in range(M):
+                for a in range(4):
+                    for dd in range(nd):
+                        Xs[m, dd] += D[m, a] * coef[first[m] + a, dd]
+            tot = 0.0
+            worst = 0.0
+            nan = False
+            for m in range(M):
+                xc0 = Xs[m, 0] * Rc[0, 0] + Xs[m, 1] * Rc[0, 1] + Xs[m, 2] * Rc[0, 2] + tc[0]
+                xc1 = Xs[m, 0] * Rc[1, 0] + Xs[m, 1] * Rc[1, 1] + Xs[m, 2] * Rc[1, 2] + tc[1]
+                z = Xs[m, 0] * Rc[2, 0] + Xs[m, 1] * Rc[2, 1] + Xs[m, 2] * Rc[2, 2] + tc[2]
+                du = focal * xc0 / z + pp[0] - uv[m, 0]
+                dv = focal * xc1 / z + pp[1] - uv[m, 1]
+                e = np.sqrt(du * du + dv * dv)
+                tot += e
+                if np.isnan(e):
+                    nan = True
+                elif e > worst:
+                    worst = e
+            return Xs, tot / M, np.nan if nan else worst
+
+        @jit
+        def polyline_measures(X):
+            n = X.shape[0]
+            G = np.empty((3, n, 3))  # X, X' and X'' (numpy.gradient: central inside, one-sided at the ends)
+            G[0] = X
+            for lev in range(2):
+                for c in range(3):
+                    G[lev + 1, 0, c] = G[lev, 1, c] - G[lev, 0, c]
+                    G[lev + 1, n - 1, c] = G[lev, n - 1, c] - G[lev, n - 2, c]
+                    for i in range(1, n - 1):
+                        G[lev + 1, i, c] = (G[lev, i + 1, c] - G[lev, i - 1, c]) / 2.0
+            T = np.empty((n, 3))
+            kappa = np.empty(n)
+            for i in range(n):
+                a0, a1, a2 = G[1, i, 0], G[1, i, 1], G[1, i, 2]
+                b0, b1, b2 = G[2, i, 0], G[2, i, 1], G[2, i, 2]
+                nd = np.sqrt(a0 * a0 + a1 * a1 + a2 * a2)
+                sc = max(nd, 1e-12)
+                T[i, 0], T[i, 1], T[i, 2] = a0 / sc, a1 / sc, a2 / sc
+                c0 = a1 * b2 - a2 * b1
+                c1 = a2 * b0 - a0 * b2
+                c2 = a0 * b1 - a1 * b0
+                kappa[i] = np.sqrt(c0 * c0 + c1 * c1 + c2 * c2) / max(nd ** 3.0, 1e-12)
+            return T, kappa
+
+        @jit
+        def branch_ambiguity(cand, excess, nodes, points, s, point_branch, branch_lca_s, scale, sigma_jump):
+            A, K = cand.shape
+            out = np.zeros((A, 3, 3))
+            w = np.empty(K)
+            for a in range(A):
+                nd = nodes[a]
+                tot = 0.0
+                for k in range(K):
+                    ok = cand[a, k] >= 0 and np.isfinite(excess[a, k])
+                    w[k] = np.exp(-excess[a, k] / scale) if ok else 0.0
+                    tot += w[k]
+                tot = max(tot, 1e-300)
+                for k in range(K):
+                    c = max(cand[a, k], 0)
+                    D0 = points[c, 0] - points[nd, 0]
+                    D1 = points[c, 1] - points[nd, 1]
+                    D2 = points[c, 2] - points[nd, 2]
+                    lca = min(min(s[c], s[nd]), branch_lca_s[point_branch[c], point_branch[nd]])
+                    geo = s[c] + s[nd] - 2.0 * lca
+                    if not geo - np.sqrt(D0 * D0 + D1 * D1 + D2 * D2) > sigma_jump:
+                        continue  # the same hypothesis moved along the vessel: no displacement
+                    wk = w[k] / tot
+                    out[a, 0, 0] += wk * D0 * D0
+                    out[a, 0, 1] += wk * D0 * D1
+                    out[a, 0, 2] += wk * D0 * D2
+                    out[a, 1, 1] += wk * D1 * D1
+                    out[a, 1, 2] += wk * D1 * D2
+                    out[a, 2, 2] += wk * D2 * D2
+                out[a, 1, 0] = out[a, 0, 1]
+                out[a, 2, 0] = out[a, 0, 2]
+                out[a, 2, 1] = out[a, 1, 2]
+            return out
+
+        _COMPILED_RECON.update(viterbi_pairwise=viterbi_pairwise, place_on_path=place_on_path,
+                               lumen_covariance=lumen_covariance, pspline_system=pspline_system,
+                               penalised_fit=penalised_fit, polyline_measures=polyline_measures,
+                               branch_ambiguity=branch_ambiguity)
+        return _COMPILED_RECON
+
+
 def viterbi_forward(acc0: np.ndarray, U: np.ndarray, C: np.ndarray, skip_cost: float):
     """Min-sum forward pass of the reconstruction's Viterbi with an early end.
 
@@ -623,7 +1086,8 @@ def skeleton_pixels(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
     elif m.dtype != np.uint8:
         m = (m != 0).view(np.uint8)
     f = _compile()["zhang_suen"]
-    rows, cols, n_on = f(np.ascontiguousarray(m), _ZHANG_SUEN_LUT)
+    # C-contiguous and writeable (a read-only input would compile a second specialisation)
+    rows, cols, n_on = f(np.require(m, requirements=["C", "W"]), _ZHANG_SUEN_LUT)
     return rows, cols, int(n_on)
 
 
@@ -634,8 +1098,9 @@ def nearest_sq_dist(points, curve, radius: float) -> np.ndarray:
     (``inf`` when no curve point is within about 2 ``radius``). A grid of cells of about ``radius``
     instead of a tree: for a few hundred points, no build cost."""
     f = _compile()["nearest_sq_dist"]
-    return f(np.ascontiguousarray(points, np.float64).reshape(-1, 2),
-             np.ascontiguousarray(curve, np.float64).reshape(-1, 2), float(radius) + 1.0)
+    # C-contiguous and writeable (a read-only input would compile a second specialisation)
+    return f(np.require(np.asarray(points, np.float64).reshape(-1, 2), requirements=["C", "W"]),
+             np.require(np.asarray(curve, np.float64).reshape(-1, 2), requirements=["C", "W"]), float(radius) + 1.0)
 
 
 def pixel_graph(rows, cols, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -691,6 +1156,151 @@ def diameter_path(indptr: np.ndarray, indices: np.ndarray, weights: np.ndarray,
     seq, ambiguous = _compile()["walk_predecessors"](pred, tie, b)
     return seq, float(d1[b]), bool(ambiguous)
 
+
+# --- the reconstruction's kernels -------------------------------------------------------------------
+def _in(a, dtype) -> np.ndarray:
+    """A C-contiguous, read-only view (or copy, for another dtype / layout) of a kernel's input: the
+    kernels read their inputs only, and one read-only type per argument means one compiled
+    specialisation (the one :func:`warm_up` compiles), whatever the caller's arrays' flags."""
+    a = np.ascontiguousarray(a, dtype)
+    if a.flags.writeable:
+        a = a.view()
+        a.flags.writeable = False
+    return a
+
+def viterbi_pairwise(cand: np.ndarray, s: np.ndarray, point_branch: np.ndarray, branch_lca_s: np.ndarray,
+                     points: np.ndarray, uv_tree: np.ndarray, uv_anchor: np.ndarray, *, sigma_step_px: float,
+                     sigma_jump_mm: float, sigma_retreat_mm: float) -> np.ndarray:
+    """Pairwise costs ``C (A - 1, K, K)`` of the reconstruction's Viterbi
+    (:func:`guidewire3d.reconstruction.path.viterbi_path`), in one pass without temporaries.
+
+    ``C[t, i, j]`` joins candidate ``i`` of anchor ``t`` to candidate ``j`` of anchor ``t + 1``:
+    ``2 (sqrt(1 + m2 / sigma_step_px^2) - 1) + max(geo - e3, 0) / sigma_jump_mm + up / sigma_retreat_mm``
+    with ``m2`` the squared mismatch of the tree point's 2D step and the anchors' (pseudo-Huber),
+    ``e3`` their 3D distance, ``geo`` the geodesic distance through the lowest common ancestor and
+    ``up`` its part towards the root. The squared distances are expanded
+    (``|a|^2 + |b|^2 - 2 a.b``) as the numpy formulation did.
+
+    Parameters
+    ----------
+    cand : (A, K) int64 dense tree point ids (no -1: the caller passes ``max(cand, 0)``)
+    s : (N,) arclength from the root, mm; point_branch : (N,) int64; branch_lca_s : (B, B) mm
+        (the ``ReconstructionContext`` tables of ``lca_s``)
+    points : (N, 3) LPS mm; uv_tree : (N, 2) their projections, px; uv_anchor : (A, 2) px
+    """
+    f = _compile_reconstruction()["viterbi_pairwise"]
+    return f(_in(cand, np.int64), _in(s, np.float64),
+             _in(point_branch, np.int64), _in(branch_lca_s, np.float64),
+             _in(points, np.float64), _in(uv_tree, np.float64),
+             _in(uv_anchor, np.float64), float(sigma_step_px) ** 2, float(sigma_jump_mm),
+             float(sigma_retreat_mm))
+
+
+def place_on_path(source: np.ndarray, rays: np.ndarray, path_ids: np.ndarray, points: np.ndarray, radius: np.ndarray,
+                  offset: np.ndarray, lo: np.ndarray, lim: np.ndarray, width: int, pos: np.ndarray, *,
+                  dist_scale_mm: float, along_scale_mm: float):
+    """The 3D point on each ray near a tree path: the loop of
+    :func:`guidewire3d.reconstruction.placement.place_on_path` (see there), compiled.
+
+    Ray ``m`` (``source + s rays[m]``, unit ``rays`` (M, 3)) tries the segments
+    ``path_ids[g] -> path_ids[g + 1]`` (of ``points`` (N, 3), radii ``radius`` (N,)) for
+    ``g = min(lo[m] + w, S - 1)``, ``w < width``, ``S = len(path_ids) - 1 >= 1``; those with
+    ``lo[m] + w < lim[m]`` count, at the cost ``(dist / dist_scale_mm)^2 + (along / along_scale_mm)^2``
+    of the ray-segment closest approach (``dist`` the ray-axis distance, ``along =
+    (g + u - pos[m]) * length`` the distance along the path from the interpolated position ``pos``);
+    the first minimum wins (``numpy.argmin``; the first segment when none counts). On it, the depth
+    is that of the expected wire position (the centerline plus ``offset`` (N, 3), interpolated) within
+    the ray's half chord through the tube of radius ``r(u)``.
+
+    Returns the points (M, 3), the nearer segment end (M,) and, each (M,), the half chord, the
+    ray-axis distance and ``r(u)``.
+    """
+    f = _compile_reconstruction()["place_on_path"]
+    return f(_in(source, np.float64), _in(rays, np.float64), _in(path_ids, np.int64), _in(points, np.float64),
+             _in(radius, np.float64), _in(offset, np.float64), _in(lo, np.int64), _in(lim, np.int64), int(width),
+             _in(pos, np.float64), float(dist_scale_mm), float(along_scale_mm))
+
+
+def lumen_covariance(rays, tangents, points_lps_mm, *, Rc, tc, focal_px, pose_R, pose_t, sigma_geo_px,
+                     image_gradient, sigma_img, registration_covariance, half_width_mm, miss_mm, ambiguity_mm2,
+                     k2, lumen_spread, sigma_centerline_mm) -> np.ndarray:
+    """(M, 3, 3) covariance of points placed in the lumen: the per-point formula of
+    :func:`guidewire3d.reconstruction.uncertainty.covariance_lumen` (see there) in one loop.
+
+    ``image_gradient`` (M, 2), ``registration_covariance`` (6, 6) and ``ambiguity_mm2`` (M, 3, 3)
+    may each be None (their term is left out).
+    """
+    M = len(rays)
+    has_img, has_reg, has_amb = image_gradient is not None, registration_covariance is not None, \
+        ambiguity_mm2 is not None
+    g = _in(image_gradient if has_img else np.zeros((1, 2)), np.float64)
+    C = _in(registration_covariance if has_reg else np.zeros((6, 6)), np.float64)
+    amb = _in(ambiguity_mm2 if has_amb else np.zeros((1, 3, 3)), np.float64)
+    f = _compile_reconstruction()["lumen_covariance"]
+    return f(_in(rays, np.float64), _in(tangents, np.float64), _in(points_lps_mm, np.float64).reshape(M, 3),
+             _in(Rc, np.float64), _in(tc, np.float64), float(focal_px), _in(pose_R, np.float64),
+             _in(pose_t, np.float64), float(sigma_geo_px) ** 2, g, float(sigma_img) ** 2, has_img, C, has_reg,
+             _in(half_width_mm, np.float64), _in(miss_mm, np.float64), amb, has_amb, float(k2),
+             float(lumen_spread), float(sigma_centerline_mm) ** 2)
+
+
+def pspline_system(x: np.ndarray, knots: np.ndarray, weights: np.ndarray, Y: np.ndarray):
+    """The lambda-free part of a cubic P-spline fit (``reconstruction.smoothing.fit_pspline``):
+    ``(values (M, 4), first (M,), ab (4, nb), BtY (nb, D))``.
+
+    ``values``, ``first``: the design matrix ``B`` at ``x`` (M,) (within ``[knots[3], knots[-4]]``)
+    as its dense rows, row ``m`` holding basis functions ``first[m] .. first[m] + 3``: what
+    ``scipy.interpolate.BSpline.design_matrix(x, knots, 3)`` stores (same interval search and de
+    Boor - Cox recursion). ``ab``: ``B^T W B`` in LAPACK's upper banded form (``ab[3 + i - j, j] =
+    A[i, j]``) and ``BtY``: ``B^T W Y`` for the data weights ``weights`` (M,) and data ``Y`` (M, D),
+    accumulated in the order of the former ``numpy.bincount`` formulation.
+    """
+    f = _compile_reconstruction()["pspline_system"]
+    return f(_in(x, np.float64), _in(knots, np.float64), _in(weights, np.float64),
+             _in(Y, np.float64).reshape(len(Y), -1))
+
+
+def penalised_fit(values: np.ndarray, first: np.ndarray, ab: np.ndarray, BtY: np.ndarray, *, lam: float,
+                  uv_px: np.ndarray, Rc: np.ndarray, tc: np.ndarray, focal_px: float, principal_point_px: np.ndarray):
+    """One P-spline fit of 3D points from :func:`pspline_system` and its projection error:
+    ``(fitted points (M, 3), mean error px, max error px)``.
+
+    The system ``ab`` plus ``lam / (nb - 2)`` times the second-difference penalty ``D^T D`` (and
+    1e-12 on the diagonal; as ``reconstruction.smoothing.fit_pspline``) is solved by a banded
+    Cholesky factorisation (LAPACK dpbtf2's order; NaN when it is not positive definite); the
+    fitted points ``B coef`` are projected (``x_cam = Rc X + tc``, ``focal_px x_cam[:2] / x_cam[2] +
+    principal_point_px``) and compared with ``uv_px`` (M, 2).
+    """
+    f = _compile_reconstruction()["penalised_fit"]
+    Xs, mean_px, max_px = f(_in(values, np.float64), _in(first, np.int64), _in(ab, np.float64),
+                            _in(BtY, np.float64), float(lam), _in(uv_px, np.float64), _in(Rc, np.float64),
+                            _in(tc, np.float64), float(focal_px), _in(principal_point_px, np.float64))
+    return Xs, float(mean_px), float(max_px)
+
+
+def polyline_measures(points: np.ndarray):
+    """Unit tangents (N, 3) and curvature (N,) of a 3D polyline (N >= 2 points) by central differences
+    (``numpy.gradient`` twice): ``T = X' / max(|X'|, 1e-12)``, ``kappa = |X' x X''| / max(|X'|^3, 1e-12)``
+    (the formulas of ``reconstruction.smoothing.tangents`` and ``curvature``)."""
+    f = _compile_reconstruction()["polyline_measures"]
+    return f(_in(points, np.float64))
+
+
+def branch_ambiguity(cand: np.ndarray, excess: np.ndarray, nodes: np.ndarray, points: np.ndarray, s: np.ndarray,
+                     point_branch: np.ndarray, branch_lca_s: np.ndarray, *, scale: float,
+                     sigma_jump_mm: float) -> np.ndarray:
+    """(A, 3, 3) weighted second moment, per anchor, of its candidates' positions about the chosen
+    tree point ``nodes[a]``: the loop of :func:`guidewire3d.reconstruction.path.ambiguity_mm2` (see
+    there). ``cand`` (A, K) candidate ids (-1 none), ``excess`` (A, K) their min-marginal excess cost;
+    weights ``exp(-excess / scale)`` normalised per anchor; candidates whose geodesic (through the
+    lowest common ancestor, the ``lca_s`` tables) minus Euclidean distance to the chosen point is
+    not above ``sigma_jump_mm`` count with no displacement."""
+    f = _compile_reconstruction()["branch_ambiguity"]
+    return f(_in(cand, np.int64), _in(excess, np.float64), _in(nodes, np.int64), _in(points, np.float64),
+             _in(s, np.float64), _in(point_branch, np.int64), _in(branch_lca_s, np.float64), float(scale),
+             float(sigma_jump_mm))
+
+
 def warm_up() -> None:
     """Compile (or load from the disk cache) every kernel on tiny inputs: the first live frame then
     pays no compilation."""
@@ -710,3 +1320,31 @@ def warm_up() -> None:
         diameter_path(*g, 0)
         skeleton_pixels(np.eye(3, dtype=bool))
         nearest_sq_dist(np.zeros((1, 2)), np.ones((2, 2)), 1.0)
+        _warm_up_reconstruction()
+
+
+def _warm_up_reconstruction() -> None:
+    """Compile (or load) the reconstruction's kernels on tiny inputs."""
+    pts = np.array([[0.0, 0.0, 100.0], [1.0, 0.0, 100.0], [2.0, 0.5, 100.0]])
+    ids = np.array([[0, 1], [1, 2]])
+    viterbi_pairwise(ids, np.arange(3.0), np.zeros(3, np.int64), np.full((1, 1), np.inf), pts, pts[:, :2],
+                     pts[:2, :2], sigma_step_px=1.0, sigma_jump_mm=1.0, sigma_retreat_mm=1.0)
+    d = np.array([[0.0, 0.0, 1.0], [0.0, 0.1, 0.99]])
+    place_on_path(np.zeros(3), d, np.arange(3), pts, np.ones(3), np.zeros((3, 3)), np.zeros(2, np.int64),
+                  np.ones(2, np.int64), 2, np.zeros(2), dist_scale_mm=1.0, along_scale_mm=1.0)
+    for opt in (None, 1):
+        lumen_covariance(d, pts[:2] / 100.0, pts[:2], Rc=np.eye(3), tc=np.zeros(3), focal_px=1000.0, pose_R=np.eye(3),
+                         pose_t=np.zeros(3), sigma_geo_px=1.0, image_gradient=None if opt is None else np.ones((2, 2)),
+                         sigma_img=0.1, registration_covariance=None if opt is None else np.eye(6),
+                         half_width_mm=np.ones(2), miss_mm=np.zeros(2),
+                         ambiguity_mm2=None if opt is None else np.zeros((2, 3, 3)), k2=1.0, lumen_spread=0.3,
+                         sigma_centerline_mm=0.2)
+    x = np.linspace(0.0, 1.0, 9)
+    knots = np.r_[[0.0] * 3, np.linspace(0.0, 1.0, 3), [1.0] * 3]
+    X = np.column_stack([x, x, x + 10.0])
+    D, first, ab, BtY = pspline_system(x, knots, np.full(9, 1 / 9), X)
+    penalised_fit(D, first, ab, BtY, lam=0.1, uv_px=X[:, :2], Rc=np.eye(3), tc=np.zeros(3), focal_px=1.0,
+                  principal_point_px=np.zeros(2))
+    polyline_measures(pts)
+    branch_ambiguity(ids, np.zeros((2, 2)), np.array([0, 1]), pts, np.arange(3.0), np.zeros(3, np.int64),
+                     np.full((1, 1), np.inf), scale=2.0, sigma_jump_mm=0.5)

@@ -269,6 +269,59 @@ def flush_tiny(model, abs_min=1e-12):
     return n
 
 
+def prune_unet(model, channels):
+    """A copy of ``model`` narrowed to ``channels`` per level (each no wider than the model's), keeping
+    at every convolution the output channels with the largest batch-norm scale (a transposed
+    convolution, which has none: the largest weight norm), and the matching input channels of the
+    layers that read them. The start of a fine-tuning that makes a leaner network from a trained one.
+    """
+    import torch
+
+    from guidewire3d.xray.segmentation import UNetConfig, build_unet
+
+    old = model.config
+    new_ch = tuple(int(c) for c in channels)
+    if len(new_ch) != len(old.channels) or any(n > o for n, o in zip(new_ch, old.channels)):
+        raise SystemExit(f"--channels: {new_ch} must have {len(old.channels)} levels, none wider than {old.channels}")
+    config = UNetConfig(channels=new_ch, level0_convs=old.level0_convs, threshold=old.threshold)
+    student = build_unet(config)
+    src, dst = model.state_dict(), student.state_dict()
+
+    def keep(score, n):
+        return torch.sort(torch.argsort(score.abs(), descending=True)[:n]).values
+
+    def conv_bn(prefix_conv, prefix_bn, idx_in, n_out):
+        w = src[prefix_conv + ".weight"][:, idx_in]
+        idx = keep(src[prefix_bn + ".weight"], n_out)
+        dst[prefix_conv + ".weight"].copy_(w[idx])
+        for name in ("weight", "bias", "running_mean", "running_var"):
+            dst[f"{prefix_bn}.{name}"].copy_(src[f"{prefix_bn}.{name}"][idx])
+        return idx
+
+    def block(name, idx_in, n_out, n_convs):
+        for j in range(n_convs):
+            idx_in = conv_bn(f"{name}.{3 * j}", f"{name}.{3 * j + 1}", idx_in, n_out)
+        return idx_in
+
+    n_levels = len(new_ch)
+    enc_out = []
+    idx = torch.arange(int(getattr(old, "in_channels", 1)))
+    for k in range(n_levels):
+        idx = block(f"enc.{k}", idx, new_ch[k], old.level0_convs if k == 0 else 2)
+        enc_out.append(idx)
+    for k in reversed(range(n_levels - 1)):
+        w = src[f"up.{k}.weight"][idx]                      # (in, out, 2, 2)
+        up_idx = keep(w.flatten(2).norm(dim=(0, 2)), new_ch[k])
+        dst[f"up.{k}.weight"].copy_(w[:, up_idx])
+        dst[f"up.{k}.bias"].copy_(src[f"up.{k}.bias"][up_idx])
+        cat_idx = torch.cat([up_idx, old.channels[k] + enc_out[k]])
+        idx = block(f"dec.{k}", cat_idx, new_ch[k], old.level0_convs if k == 0 else 2)
+    dst["head.weight"].copy_(src["head.weight"][:, idx])
+    dst["head.bias"].copy_(src["head.bias"])
+    student.load_state_dict(dst)
+    return student
+
+
 def dice_np(p, t):
     s = p.sum() + t.sum()
     return 1.0 if s == 0 else 2.0 * np.logical_and(p, t).sum() / s
@@ -294,6 +347,13 @@ def main(argv=None):
     ap.add_argument("--max-minutes", type=float, default=30.0, help="safety stop (the schedule is by steps)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--init", default=None, help="start from these safetensors weights")
+    ap.add_argument("--channels", default=None,
+                    help="channels per level, e.g. 4,8,16,24 (default: the shipped architecture, or --init's); "
+                         "narrower than --init's: the init is pruned to it (prune_unet)")
+    ap.add_argument("--teacher", default=None,
+                    help="distillation: a trained UNet whose probabilities are also a target")
+    ap.add_argument("--distill", type=float, default=0.5,
+                    help="with --teacher, the weight of the teacher's target in the loss (the truth gets the rest)")
     ap.add_argument("--cache", default=None, help="npz cache of the normalised training frames")
     ap.add_argument("--out", default=str(ROOT / "resources" / "guidewire_unet.safetensors"))
     ap.add_argument("--log", default=None)
@@ -346,7 +406,17 @@ def main(argv=None):
         log(f"data: {thin.sum()} thin-wire train frames ({vthin.sum()} val), sampled at {args.thin_fraction:.0%}")
 
     config = UNetConfig()
+    if args.channels:
+        config = UNetConfig(channels=tuple(int(c) for c in args.channels.split(",")), level0_convs=config.level0_convs)
     model = load_unet(args.init) if args.init else build_unet(config)
+    if args.init and tuple(model.config.channels) != tuple(config.channels) and args.channels:
+        model = prune_unet(model, config.channels)
+        log(f"model: {args.init} pruned to channels {config.channels}")
+    config = model.config
+    teacher = None
+    if args.teacher:
+        teacher = load_unet(args.teacher).to(memory_format=torch.channels_last).eval()
+        log(f"distillation: teacher {args.teacher} (channels {teacher.config.channels}), weight {args.distill}")
     model = model.to(memory_format=torch.channels_last)  # about 2x faster on CPU
     model.train()
     n_par = sum(p.numel() for p in model.parameters())
@@ -368,6 +438,10 @@ def main(argv=None):
         den = p.sum(dim=(1, 2, 3)) + y.sum(dim=(1, 2, 3))
         soft_dice = (2 * inter + 1) / (den + 1)
         loss = bce(logits, y) + (1 - soft_dice).mean()
+        if teacher is not None:
+            with torch.no_grad():
+                target = torch.sigmoid(teacher(x))
+            loss = (1 - args.distill) * loss + args.distill * bce(logits, target)
         opt.zero_grad()
         loss.backward()
         opt.step()

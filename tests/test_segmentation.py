@@ -267,3 +267,71 @@ def test_the_registry_gives_the_same_mask_as_guidewire_mask(cases, method):
                                 context_px=UNET_CONTEXT_PX)
     assert m.shape == a.shape and m.dtype == bool and m.any()
     assert np.array_equal(m, guidewire_mask(frames[0], method=method))
+
+
+# --- the live path's shortcuts against the plain code they replace ------------------------------------
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64, np.uint16, np.uint8])
+def test_frame_stats_are_numpys_percentiles(dtype):
+    from guidewire3d.xray import segmentation as S
+
+    rng = np.random.default_rng(3)
+    for shape in [(512, 512), (37, 61), (8, 9)]:
+        a = (rng.gamma(2.0, 300.0, shape) + (rng.random(shape) < 0.05) * 2000).astype(dtype)
+        sub = np.asarray(a[::S.STATS_STEP, ::S.STATS_STEP], np.float32)
+        p0, p1, p50, p99, p100 = np.percentile(sub, [0.1, 1.0, 50.0, 99.0, 99.9])
+        med, spread, degenerate, dark = S._frame_stats_dark(a)
+        assert med == float(p50) and spread == max(float(p99 - p1), 1e-6 * max(abs(float(p50)), float(sub.max())))
+        assert dark == float(np.mean(a[::S.STATS_STEP, ::S.STATS_STEP] < S.COLLIMATOR_DARK_FRACTION * med))
+        assert not degenerate
+    assert S._frame_stats(np.full((32, 32), 7, dtype))[2]                    # blank
+    nan = rng.random((64, 64)).astype(np.float32)
+    nan[::3, ::5] = np.nan
+    fixed = np.nan_to_num(np.asarray(nan[::S.STATS_STEP, ::S.STATS_STEP]), nan=0.0)
+    assert S._frame_stats(nan)[0] == float(np.percentile(fixed, 50.0))
+
+
+def test_band_cells_are_the_cells_of_the_dilated_mask():
+    import cv2
+
+    from guidewire3d.xray import segmentation as S
+
+    rng = np.random.default_rng(5)
+    for shape in [(512, 512), (100, 131), (9, 17)]:
+        for margin in (0, 5, 8, 12, 24, 72):
+            m = np.zeros(shape, bool)
+            for _ in range(rng.integers(1, 4)):
+                v, u = rng.integers(0, shape[0]), rng.integers(0, shape[1])
+                m[v:v + rng.integers(1, 30), u:u + rng.integers(1, 4)] = True
+            k = cv2.getStructuringElement(cv2.MORPH_RECT, (2 * margin + 1, 2 * margin + 1))
+            band = cv2.dilate(m.astype(np.uint8), k) > 0
+            np.testing.assert_array_equal(S.band_cells(m, margin, 8), S._cells_of(band, 8))
+    assert not S.band_cells(np.zeros((64, 64), bool), 24).any()
+
+
+def test_crop_reflect_is_the_crop_of_the_reflect_padded_frame():
+    from guidewire3d.xray import segmentation as S
+
+    a = np.arange(40 * 53, dtype=np.float32).reshape(40, 53)
+    c = 16
+    padded = np.pad(a, c, mode="reflect")
+    for v0, v1, u0, u1 in [(0, 40, 0, 53), (-16, 10, -16, 69), (30, 56, 40, 69), (5, 20, 7, 30), (-3, 2, 50, 60)]:
+        np.testing.assert_array_equal(S._crop_reflect(a, v0, v1, u0, u1), padded[v0 + c:v1 + c, u0 + c:u1 + c])
+
+
+def test_inner_border_test_on_the_boxes_union():
+    from guidewire3d.xray import segmentation as S
+
+    boxes = [(0, 0, 40, 24), (32, 16, 64, 64)]
+    m = np.zeros((64, 100), bool)
+    m[10, 0] = True                        # the frame's left border: not an inner border
+    assert not S._touches_inner_border(m, boxes)
+    m[10, 39] = True                       # box 1's right border, outside box 2
+    assert S._touches_inner_border(m, boxes)
+    m[10, 39] = False
+    m[20, 39] = True                       # inside the union (box 2 covers it)
+    assert not S._touches_inner_border(m, boxes)
+    m[63, 50] = True                       # the frame's bottom border
+    assert not S._touches_inner_border(m, boxes)
+    m[40, 63] = True                       # box 2's right border, inside the frame
+    assert S._touches_inner_border(m, boxes)

@@ -14,7 +14,8 @@ def anchor_indices(uv, step_px) -> np.ndarray:
     s = arclength(uv)
     n = max(int(np.ceil(s[-1] / step_px)), 1)
     idx = np.searchsorted(s, np.linspace(0.0, s[-1], n + 1))
-    idx = np.unique(np.clip(idx, 0, len(uv) - 1))
+    idx = np.clip(idx, 0, len(uv) - 1)
+    idx = idx[np.r_[True, idx[1:] != idx[:-1]]]  # np.unique of the (sorted) indices
     if idx[-1] != len(uv) - 1:
         idx = np.r_[idx, len(uv) - 1]
     return idx

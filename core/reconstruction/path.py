@@ -27,7 +27,6 @@ def viterbi_path(ctx, uv_a, cand, outside, opt, track_tip):
     # keep only the columns that hold a candidate somewhere (the KD query pads with misses)
     keep = (cand >= 0).any(axis=0)
     cand, outside = cand[:, keep], outside[:, keep]
-    A, K = cand.shape
     valid = cand >= 0
     safe = np.maximum(cand, 0)
     U = (outside / opt.sigma_outside_px) ** 2
@@ -38,25 +37,15 @@ def viterbi_path(ctx, uv_a, cand, outside, opt, track_tip):
         off = np.where(lca >= ctx.s[track_tip] - 1e-9, 0.0, ctx.s[safe] - lca)
         U = U + np.maximum(off - opt.track_tolerance_mm, 0.0) / opt.sigma_track_mm
     U = np.where(valid, U, np.inf)
-    # pairwise costs for all steps at once: (A-1, K, K)
-    i, j = safe[:-1, :, None], safe[1:, None, :]
-    slca = ctx.lca_s(i, j)
-    up = ctx.s[i] - slca
-    geo = up + (ctx.s[j] - slca)
-    # |X_j - X_i| and |(uv_j - uv_i) - (w_t - w_t-1)|^2 through batched dot products
-    Xc, Uc = ctx.points[safe], ctx.uv[safe]
-    n2 = np.einsum("akx,akx->ak", Xc, Xc)
-    e3 = np.sqrt(np.maximum(n2[:-1, :, None] + n2[1:, None, :] - 2.0 * Xc[:-1] @ np.transpose(Xc[1:], (0, 2, 1)), 0.0))
-    a = Uc[1:] - (uv_a[1:] - uv_a[:-1])[:, None, :]
-    m2 = (np.einsum("akx,akx->ak", Uc[:-1], Uc[:-1])[:, :, None] + np.einsum("akx,akx->ak", a, a)[:, None, :]
-          - 2.0 * Uc[:-1] @ np.transpose(a, (0, 2, 1)))
-    # pseudo-Huber on the 2D step mismatch: quadratic up to sigma_step_px, then linear (a wire
-    # cutting the corner of a bifurcation leaves the centerline's candidates for a few anchors)
-    C = (
-        2.0 * (np.sqrt(1.0 + np.maximum(m2, 0.0) / opt.sigma_step_px**2) - 1.0)
-        + np.maximum(geo - e3, 0.0) / opt.sigma_jump_mm
-        + up / opt.sigma_retreat_mm
-    )
+    # pairwise costs for all steps at once: (A-1, K, K), compiled (kernels.viterbi_pairwise):
+    # C[t, i, j] = 2 (sqrt(1 + m2 / sigma_step_px^2) - 1) + max(geo - e3, 0) / sigma_jump_mm + up / sigma_retreat_mm
+    # with e3 = |X_j - X_i|, m2 = |(uv_j - uv_i) - (w_t - w_t-1)|^2 and geo, up the tree move through
+    # the lowest common ancestor (up: its part towards the root). The pseudo-Huber on the 2D step
+    # mismatch is quadratic up to sigma_step_px, then linear (a wire cutting the corner of a
+    # bifurcation leaves the centerline's candidates for a few anchors)
+    C = kernels.viterbi_pairwise(safe, ctx.s, ctx.point_branch, ctx.branch_lca_s, ctx.points, ctx.uv, uv_a,
+                                 sigma_step_px=opt.sigma_step_px, sigma_jump_mm=opt.sigma_jump_mm,
+                                 sigma_retreat_mm=opt.sigma_retreat_mm)
     acc = U[0] + opt.start_cost_per_mm * ctx.s[safe[0]]
     # the path may end before the last anchor, paying skip_cost per anchor left unexplained (a
     # distal part outside every lumen, e.g. a missing or mis-registered end branch, is then not
@@ -87,13 +76,8 @@ def ambiguity_mm2(ctx, nodes, marginals, opt) -> np.ndarray:
     and count with no displacement.
     """
     cand, excess = marginals
-    safe = np.maximum(cand, 0)
-    w = np.where((cand >= 0) & np.isfinite(excess), np.exp(-excess / opt.ambiguity_scale), 0.0)
-    w /= np.maximum(w.sum(axis=1, keepdims=True), 1e-300)
-    D = ctx.points[safe] - ctx.points[nodes][:, None, :]
-    geo = ctx.s[safe] + ctx.s[nodes][:, None] - 2.0 * ctx.lca_s(safe, nodes[:, None])
-    other = geo - np.linalg.norm(D, axis=2) > opt.sigma_jump_mm
-    return np.einsum("ak,aki,akj->aij", w * other, D, D)
+    return kernels.branch_ambiguity(cand, excess, nodes, ctx.points, ctx.s, ctx.point_branch, ctx.branch_lca_s,
+                                    scale=opt.ambiguity_scale, sigma_jump_mm=opt.sigma_jump_mm)
 
 
 def tracking_tip(ctx, previous):

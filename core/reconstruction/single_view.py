@@ -47,7 +47,7 @@ steps 5 and 6, with the unconstrained uncertainty. This module joins the steps:
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import numpy as np
 from guidewire3d.errors import InputError
@@ -163,7 +163,7 @@ def _validate_uv(wire_uv_px) -> np.ndarray:
 
 
 def _finish(ctx, X, uv, tid, depth_std, extra, *, image, registration_covariance, opt, method, t0, message,
-            lumen=None):
+            lumen=None, reversed_input=False, tree_rise_mm=float("nan")):
     Xs, lam = smooth_wire(ctx, X, uv, lam=opt.smoothing_lambda, opt=opt)
     proj = ctx.project(Xs)
     perr = float(np.linalg.norm(proj - uv, axis=1).mean())
@@ -183,7 +183,7 @@ def _finish(ctx, X, uv, tid, depth_std, extra, *, image, registration_covariance
         msg += f"; smoothing lambda reduced to {lam:.3g} to keep the projection"
     tree_ids = np.where(tid >= 0, ctx.orig_id[np.maximum(tid, 0)], -1)
     return Wire3D(Xs, unc, float(arc[-1]), perr, ok, msg, tree_ids, arc, curvature(Xs), time.perf_counter() - t0,
-                  method.value, cov)
+                  method.value, cov, reversed_input, tree_rise_mm)
 
 
 def _reconstruct_vessel(ctx, uv, *, track_tip, image, registration_covariance, opt, t0):
@@ -229,9 +229,9 @@ def _reconstruct_vessel(ctx, uv, *, track_tip, image, registration_covariance, o
     if n_skipped:
         msg += f"; the last {n_skipped} anchors fit no lumen (placed beyond the path's end)"
     ids = np.where(miss > 0, -1, tid)
-    w = _finish(ctx, X, uv, ids, depth_std, miss**2, image=image, registration_covariance=registration_covariance,
-                opt=opt, method=ReconMethod.VESSEL, t0=t0, message=msg, lumen=(half_width, miss, amb))
-    return replace(w, reversed_input=bool(reversed_note), tree_rise_mm=float(ctx.s[nodes[-1]] - ctx.s[nodes[0]]))
+    return _finish(ctx, X, uv, ids, depth_std, miss**2, image=image, registration_covariance=registration_covariance,
+                   opt=opt, method=ReconMethod.VESSEL, t0=t0, message=msg, lumen=(half_width, miss, amb),
+                   reversed_input=bool(reversed_note), tree_rise_mm=float(ctx.s[nodes[-1]] - ctx.s[nodes[0]]))
 
 
 def _reconstruct_paper(ctx, uv, *, image, registration_covariance, opt, t0):

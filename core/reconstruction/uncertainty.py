@@ -49,6 +49,7 @@ for a distance outside the projected lumen.
 from __future__ import annotations
 
 import numpy as np
+from guidewire3d import kernels
 from guidewire3d.errors import InputError
 from guidewire3d.reconstruction.placement import ALONG_SCALE_MM, DIST_SCALE_MM
 
@@ -114,13 +115,6 @@ def _check_registration_covariance(registration_covariance) -> np.ndarray:
     return C
 
 
-def _cross(a, b) -> np.ndarray:
-    """Row-wise cross product of (M, 3) arrays (faster than np.cross for small M)."""
-    a, b = np.broadcast_arrays(a, b)
-    return np.column_stack([a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1], a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2],
-                            a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]])
-
-
 def _outer(a, b=None):
     return a[:, :, None] * (a if b is None else b)[:, None, :]
 
@@ -149,14 +143,11 @@ def _image_gradient(image, uv) -> np.ndarray:
     ui = np.clip(np.rint(uv[:, 0]).astype(int), 1, Wd - 2)
     vi = np.clip(np.rint(uv[:, 1]).astype(int), 1, H - 2)
 
-    def at(v, u):
-        return img[v, u].astype(float)
-
-    g = 0.5 * np.column_stack([at(vi, ui + 1) - at(vi, ui - 1), at(vi + 1, ui) - at(vi - 1, ui)])
-    if img.dtype.kind == "f":
+    vals = img[np.stack([vi, vi, vi + 1, vi - 1]), np.stack([ui + 1, ui - 1, ui, ui])].astype(float)
+    g = 0.5 * np.column_stack([vals[0] - vals[1], vals[2] - vals[3]])
+    lo, hi = float(img.min()), float(img.max())
+    if img.dtype.kind == "f" and (np.isnan(lo) or np.isnan(hi)):  # (min and max are faster than nanmin, nanmax)
         lo, hi = float(np.nanmin(img)), float(np.nanmax(img))
-    else:
-        lo, hi = float(img.min()), float(img.max())
     return g / (hi - lo) if hi > lo else np.zeros_like(g)  # intensities normalised to [0, 1] (paper)
 
 
@@ -169,64 +160,22 @@ def covariance_lumen(ctx, X, uv, *, tangent, half_width_mm, miss_mm, image, regi
     (``sqrt(rho^2 - dist^2)``); ``miss_mm`` (M,): how far the ray passes outside that room (0 inside).
     ``A S A^T`` is evaluated through the three scalars ``n^T S n``, ``n^T S m``, ``m^T S m``.
     """
-    M = len(X)
     d = ctx.rays(uv)
-    t = tangent
-    n = _cross(d, t)
-    sin = np.linalg.norm(n, axis=1)
-    # a ray (nearly) along the vessel: any direction normal to the ray
-    alt = _cross(d, np.where(np.abs(d[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]]))
-    along = sin <= 1e-6
-    n = np.where(along[:, None], alt, n)
-    n /= np.linalg.norm(n, axis=1, keepdims=True)
-    t = np.where(along[:, None], _cross(n, d), t)
-    cos = np.abs(np.einsum("mk,mk->m", d, t))
-    q = _cross(t, n)  # across the vessel, in the plane of the ray and the vessel
-    m = _cross(n, d)  # normal to the ray, in the plane of the ray and the vessel
-    # a sideways ray shift along m slides the point along the vessel (no error across the wire)
-    # as long as the placement can follow it: the weighted closest approach of place_on_path
-    # leaves the fraction cos / (cos^2 + k^2 sin^2) of it across the vessel, k = along / dist scale
-    k2 = (ALONG_SCALE_MM / DIST_SCALE_MM) ** 2
-    gain = cos / np.maximum(cos**2 + k2 * sin**2, 1e-12)
-    # ray shift S = J+ S2 J+^T (+ G C G^T): v^T S w = (J+^T v)^T S2 (J+^T w) (+ (G^T v)^T C (G^T w))
-    J = _projection_jacobian(ctx, X)
-    JJt = J @ np.transpose(J, (0, 2, 1))
-    det = JJt[:, 0, 0] * JJt[:, 1, 1] - JJt[:, 0, 1] * JJt[:, 1, 0]
-    inv = np.stack([np.stack([JJt[:, 1, 1], -JJt[:, 0, 1]], -1), np.stack([-JJt[:, 1, 0], JJt[:, 0, 0]], -1)], 1)
-    inv /= det[:, None, None]
-    Jn = np.einsum("mij,mjk,mk->mi", inv, J, n)  # J+^T n (M, 2)
-    Jm = np.einsum("mij,mjk,mk->mi", inv, J, m)
-    s_nn = opt.sigma_geo_px**2 * np.einsum("mi,mi->m", Jn, Jn)
-    s_nm = opt.sigma_geo_px**2 * np.einsum("mi,mi->m", Jn, Jm)
-    s_mm = opt.sigma_geo_px**2 * np.einsum("mi,mi->m", Jm, Jm)
-    if image is not None:
-        g = _image_gradient(image, uv)
-        gn, gm = np.einsum("mi,mi->m", g, Jn), np.einsum("mi,mi->m", g, Jm)
-        s_nn, s_nm, s_mm = s_nn + opt.sigma_img**2 * gn * gn, s_nm + opt.sigma_img**2 * gn * gm, \
-            s_mm + opt.sigma_img**2 * gm * gm
-    if registration_covariance is not None:
-        C = _check_registration_covariance(registration_covariance)
-        x_room = ctx.pose.apply(X)
-        # G = R^T [-I | [x]x]  =>  G^T v = -(R v, x x R v)
-        vn, vm = n @ ctx.pose.R.T, m @ ctx.pose.R.T
-        bn = np.hstack([vn, _cross(x_room, vn)])
-        bm = np.hstack([vm, _cross(x_room, vm)])
-        Cbn, Cbm = bn @ C, bm @ C
-        s_nn = s_nn + np.einsum("mi,mi->m", Cbn, bn)
-        s_nm = s_nm + np.einsum("mi,mi->m", Cbn, bm)
-        s_mm = s_mm + np.einsum("mi,mi->m", Cbm, bm)
-    # where the wire sits in the lumen (across the vessel, along q) and the CTA centerline error;
-    # off the lumen (a ray that misses the path's tube by miss_mm): that much more across the wire
-    miss2 = miss_mm**2
-    a = s_nn + miss2
-    b = gain * s_nm
-    c = gain**2 * s_mm + (opt.lumen_spread * half_width_mm) ** 2 + opt.sigma_centerline_mm**2 + miss2
-    if ambiguity_mm2 is not None:  # another branch at another depth: its part across the wire
-        Bn = np.einsum("mij,mj->mi", ambiguity_mm2, n)
-        a = a + np.einsum("mi,mi->m", Bn, n)
-        b = b + np.einsum("mi,mi->m", Bn, q)
-        c = c + np.einsum("mi,mj,mij->m", q, q, ambiguity_mm2)
-    nq = _outer(n, q)
-    cov = a[:, None, None] * _outer(n) + b[:, None, None] * (nq + np.transpose(nq, (0, 2, 1))) \
-        + c[:, None, None] * _outer(q)
-    return cov.reshape(M, 3, 3)
+    g = _image_gradient(image, uv) if image is not None else None
+    C = _check_registration_covariance(registration_covariance) if registration_covariance is not None else None
+    # per point (compiled, kernels.lumen_covariance): n = d x t / |d x t| (any normal to the ray where
+    # the ray runs along the vessel), q = t x n, m = n x d; v^T S w = (J+^T v)^T S2 (J+^T w)
+    # (+ (G^T v)^T C (G^T w), G^T v = -(R v, x x R v)); a sideways ray shift along m slides the point
+    # along the vessel as long as the placement can follow it: the weighted closest approach of
+    # place_on_path leaves the fraction gain = cos / (cos^2 + k^2 sin^2) of it across the vessel,
+    # k = along / dist scale. Then a = s_nn + miss^2, b = gain s_nm (+ the ambiguity's n^T B n,
+    # n^T B q), c = gain^2 s_mm + (lumen_spread w)^2 + sigma_centerline^2 + miss^2 (+ q^T B q) and
+    # Sigma = a n n^T + b (n q^T + q n^T) + c q q^T: where the wire sits in the lumen (across the
+    # vessel, along q), the CTA centerline error, a ray that misses the path's tube by miss_mm
+    # (that much more across the wire) and another branch at another depth (its part across the wire)
+    return kernels.lumen_covariance(
+        d, tangent, X, Rc=ctx.Rc, tc=ctx.tc, focal_px=ctx.focal, pose_R=ctx.pose.R, pose_t=ctx.pose.t,
+        sigma_geo_px=opt.sigma_geo_px, image_gradient=g, sigma_img=opt.sigma_img, registration_covariance=C,
+        half_width_mm=half_width_mm, miss_mm=miss_mm, ambiguity_mm2=ambiguity_mm2,
+        k2=(ALONG_SCALE_MM / DIST_SCALE_MM) ** 2, lumen_spread=opt.lumen_spread,
+        sigma_centerline_mm=opt.sigma_centerline_mm)

@@ -152,21 +152,46 @@ def _as_frame(frame, name: str = "frame") -> np.ndarray:
     return a
 
 
+_STATS_PERCENTILES = np.array([0.1, 1.0, 50.0, 99.0, 99.9])
+
+
 def _frame_stats(frame: np.ndarray) -> tuple[float, float, bool]:
     """(median, 1-99 percentile spread, degenerate) of a frame, from a sub-sampled copy."""
-    sub = np.asarray(frame[::STATS_STEP, ::STATS_STEP], dtype=np.float32)
-    if not np.isfinite(sub).all():
+    return _frame_stats_dark(frame)[:3]
+
+
+def _frame_stats_dark(frame: np.ndarray) -> tuple[float, float, bool, float]:
+    """:func:`_frame_stats` and the fraction of the sub-sampled pixels darker than
+    ``COLLIMATOR_DARK_FRACTION`` x the median (:func:`_collimator_fov`'s test), from one pass.
+
+    The percentiles are ``np.percentile``'s (linear), bit for bit, from one partition of the
+    sub-sample at the order statistics they need (the minimum and maximum included).
+    """
+    sub = np.asarray(frame[::STATS_STEP, ::STATS_STEP], dtype=np.float32).ravel()
+    n = sub.size
+    index = (n - 1) * (_STATS_PERCENTILES / 100.0)
+    below = np.floor(index).astype(np.intp)
+    above = np.minimum(below + 1, n - 1)
+    part = np.partition(sub, np.unique(np.concatenate([[0, n - 1], below, above])))
+    lo, hi = float(part[0]), float(part[-1])      # NaN sorts last, -inf first: both finite <=> all finite
+    raw = sub
+    if not (np.isfinite(lo) and np.isfinite(hi)):
         sub = np.nan_to_num(sub, nan=0.0, posinf=0.0, neginf=0.0)
-    p0, p1, p50, p99, p100 = np.percentile(sub, [0.1, 1.0, 50.0, 99.0, 99.9])
-    lo, hi = float(sub.min()), float(sub.max())
+        part = np.partition(sub, np.unique(np.concatenate([[0, n - 1], below, above])))
+        lo, hi = float(part[0]), float(part[-1])
+    t = index - below
+    a, b = part[below].astype(np.float64), part[above].astype(np.float64)
+    d = b - a
+    p0, p1, p50, p99, p100 = np.where(t >= 0.5, b - d * (1 - t), a + d * t)   # numpy's own lerp
     spread = float(p99 - p1)
     level = max(abs(float(p50)), abs(hi), 1e-6)
     degenerate = bool(
         (p100 - p0) <= BLANK_REL_SPREAD * level
-        or np.mean(sub >= hi) > SATURATED_FRACTION
-        or np.mean(sub <= lo) > SATURATED_FRACTION
+        or np.count_nonzero(sub >= hi) / n > SATURATED_FRACTION
+        or np.count_nonzero(sub <= lo) / n > SATURATED_FRACTION
     )
-    return float(p50), max(spread, 1e-6 * level, 1e-12), degenerate
+    dark = float(np.count_nonzero(raw < COLLIMATOR_DARK_FRACTION * float(p50)) / n)
+    return float(p50), max(spread, 1e-6 * level, 1e-12), degenerate, dark
 
 
 def collimator_field_of_view(frame) -> np.ndarray | None:
@@ -176,9 +201,13 @@ def collimator_field_of_view(frame) -> np.ndarray | None:
     return _collimator_fov(a, _frame_stats(a)[0])
 
 
-def _collimator_fov(a: np.ndarray, median: float) -> np.ndarray | None:
+def _collimator_fov(a: np.ndarray, median: float, dark_fraction: float | None = None) -> np.ndarray | None:
+    """``dark_fraction``: the sub-sample's fraction below the dark level when already known
+    (:func:`_frame_stats_dark`)."""
     level = COLLIMATOR_DARK_FRACTION * median
-    if median <= 0 or np.mean(a[::STATS_STEP, ::STATS_STEP] < level) < COLLIMATOR_MIN_AREA:
+    if dark_fraction is None and median > 0:
+        dark_fraction = float(np.mean(a[::STATS_STEP, ::STATS_STEP] < level))
+    if median <= 0 or dark_fraction < COLLIMATOR_MIN_AREA:
         return None
     import cv2
 
@@ -189,8 +218,8 @@ def _collimator_fov(a: np.ndarray, median: float) -> np.ndarray | None:
     return inside.astype(bool)
 
 
-def _clear_collimated(mask: np.ndarray, a: np.ndarray, median: float) -> np.ndarray:
-    fov = _collimator_fov(a, median)
+def _clear_collimated(mask: np.ndarray, a: np.ndarray, median: float, dark_fraction: float | None = None) -> np.ndarray:
+    fov = _collimator_fov(a, median, dark_fraction)
     return mask if fov is None else mask & fov
 
 
@@ -249,6 +278,8 @@ def _remove_small(mask: np.ndarray, min_px: int = MIN_COMPONENT_PX) -> np.ndarra
     n, lab, st, _ = cv2.connectedComponentsWithStats(mask[box].astype(np.uint8), connectivity=8)
     keep = np.zeros(n, bool)
     keep[1:] = st[1:, cv2.CC_STAT_AREA] >= min_px
+    if keep[1:].all():
+        return mask.copy()
     out = np.zeros_like(mask)
     out[box] = keep[lab]
     return out
@@ -479,14 +510,25 @@ def _sigmoid(x: np.ndarray) -> np.ndarray:
 
 
 def _pad_reflect(frame: np.ndarray, c: int) -> np.ndarray:
-    """``np.pad(frame, c, mode="reflect")`` (OpenCV's BORDER_REFLECT_101 where it takes the dtype)."""
+    """``np.pad(frame, c, mode="reflect")`` (a frame smaller than the context: reflected more than once)."""
     if c <= 0:
         return frame
-    if frame.dtype in (np.uint8, np.uint16, np.int16, np.float32, np.float64) and min(frame.shape) > c:
-        import cv2
-
-        return cv2.copyMakeBorder(np.ascontiguousarray(frame), c, c, c, c, cv2.BORDER_REFLECT_101)
     return np.pad(frame, c, mode="reflect")
+
+
+def _crop_reflect(frame: np.ndarray, v0: int, v1: int, u0: int, u1: int) -> np.ndarray:
+    """``frame[v0:v1, u0:u1]`` where the box may reach up to ``min(H, W) - 1`` px beyond the frame,
+    reflected there without repeating the border pixel (``np.pad(mode="reflect")``, OpenCV's
+    BORDER_REFLECT_101): the crop of the padded frame, without padding the whole frame."""
+    h, w = frame.shape
+    if v0 >= 0 and u0 >= 0 and v1 <= h and u1 <= w:
+        return frame[v0:v1, u0:u1]
+
+    def reflect(i, n):
+        i = np.abs(i)
+        return np.where(i >= n, 2 * (n - 1) - i, i)
+
+    return frame[np.ix_(reflect(np.arange(v0, v1), h), reflect(np.arange(u0, u1), w))]
 
 
 def _run_unet_boxes(frame: np.ndarray, stats, boxes, runner, *, context_px: int,
@@ -507,13 +549,20 @@ def _run_unet_boxes(frame: np.ndarray, stats, boxes, runner, *, context_px: int,
         t = float(threshold)
         logit_t = np.inf if t >= 1.0 else (-np.inf if t <= 0.0 else float(np.log(t / (1.0 - t))))
     c = int(context_px)
-    fp = _pad_reflect(frame, c)
+    if c < min(h, w):
+        def crop(v0, v1, u0, u1):
+            return _crop_reflect(frame, v0 - c, v1 + c, u0 - c, u1 + c)
+    else:                       # a frame smaller than the context: reflected more than once
+        fp = _pad_reflect(frame, c)
+
+        def crop(v0, v1, u0, u1):
+            return fp[v0:v1 + 2 * c, u0:u1 + 2 * c]
     groups: dict = {}
     for box in boxes:
         u0, v0, u1, v1 = box
         groups.setdefault((v1 - v0, u1 - u0), []).append(box)
     batches = [_pad_to_multiple(normalize_frame_stack(
-        np.stack([fp[v0:v1 + 2 * c, u0:u1 + 2 * c] for (u0, v0, u1, v1) in bxs]), stats))[:, None]
+        np.stack([crop(v0, v1, u0, u1) for (u0, v0, u1, v1) in bxs]), stats))[:, None]
         for bxs in groups.values()]
     run_many = getattr(runner, "run_many", None)
     outs = run_many(batches) if run_many is not None else [runner(b) for b in batches]
@@ -794,13 +843,13 @@ def guidewire_mask(frame, *, method="unet", roi_uv=None, backend="auto", wire_mo
     m = _method(method)
     radius = _check_radius(wire_radius_px)
     roi = None if roi_uv is None else _check_roi(roi_uv, a.shape)
-    med, spread, degenerate = _frame_stats(a)
+    med, spread, degenerate, dark = _frame_stats_dark(a)
     if degenerate:
         return np.zeros(a.shape, bool)
     mask = SEGMENTERS[m].mask(a, (med, spread), None if roi is None else [roi], backend=_backend(backend),
                               num_threads=None, context_px=UNET_CONTEXT_PX)
     if mask.any():
-        mask = _clear_collimated(mask, a, med)
+        mask = _clear_collimated(mask, a, med, dark)
     if wire_model:
         mask = _wire_model_mask(a, mask, radius)
         if roi is not None:
@@ -827,17 +876,80 @@ def cover_boxes(band: np.ndarray, *, cell_px: int = UNET_MULTIPLE, context_px: i
     lowers the cost most, recursively, until no cut helps (:func:`guidewire3d.kernels.cover_cells`):
     a wire's band is covered by boxes that follow it instead of full-width strips.
     """
+    return _cover_cells(_cells_of(band, int(cell_px)), band.shape, int(cell_px), context_px, call_cost_px)
+
+
+def _cells_of(band: np.ndarray, g: int) -> np.ndarray:
+    """(ceil(H / g), ceil(W / g)) bool: the ``g`` x ``g`` cells that hold a True pixel of ``band``."""
     h, w = band.shape
-    g = int(cell_px)
     nh, nw = -(-h // g), -(-w // g)
-    padded = np.zeros((nh * g, nw * g), np.uint8)
-    padded[:h, :w] = band
-    if g == 8:      # a cell row of 8 bytes is one uint64: much faster than any() over (1, 3)
-        cells = (padded.view(np.uint64).reshape(nh, g, nw) != 0).any(axis=1)
+    if (h, w) != (nh * g, nw * g) or band.dtype != np.uint8 and band.dtype != bool or not band.flags.c_contiguous:
+        padded = np.zeros((nh * g, nw * g), np.uint8)
+        padded[:h, :w] = band
     else:
-        cells = padded.reshape(nh, g, nw, g).any(axis=(1, 3))
+        padded = band.view(np.uint8)
+    if g == 8:      # a cell row of 8 bytes is one uint64: much faster than any() over (1, 3)
+        return (padded.view(np.uint64).reshape(nh, g, nw) != 0).any(axis=1)
+    return padded.reshape(nh, g, nw, g).any(axis=(1, 3))
+
+
+def band_cells(mask: np.ndarray, margin_px: int, g: int = UNET_MULTIPLE) -> np.ndarray:
+    """``_cells_of(dilate(mask, (2 margin + 1)^2 square), g)``, dilating only the mask's bounding box
+    grown by the margin (aligned to the cell grid) instead of the whole frame."""
+    import cv2
+
+    h, w = mask.shape
+    nh, nw = -(-h // g), -(-w // g)
+    cells = np.zeros((nh, nw), bool)
+    rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
+    if len(rows) == 0:
+        return cells
+    r = int(margin_px)
+    i0, j0 = max(rows[0] - r, 0) // g, max(cols[0] - r, 0) // g
+    i1, j1 = min(-(-(rows[-1] + r + 1) // g), nh), min(-(-(cols[-1] + r + 1) // g), nw)
+    crop = np.zeros(((i1 - i0) * g, (j1 - j0) * g), np.uint8)
+    v1, u1 = min(i1 * g, h), min(j1 * g, w)
+    crop[:v1 - i0 * g, :u1 - j0 * g] = mask[i0 * g:v1, j0 * g:u1]
+    if r > 0:
+        crop = cv2.dilate(crop, cv2.getStructuringElement(cv2.MORPH_RECT, (2 * r + 1, 2 * r + 1)))
+        crop[v1 - i0 * g:, :] = 0       # beyond the frame (a frame not a multiple of the cell)
+        crop[:, u1 - j0 * g:] = 0
+    cells[i0:i1, j0:j1] = _cells_of(crop, g)
+    return cells
+
+
+def _cover_cells(cells: np.ndarray, shape, g: int, context_px: int, call_cost_px: int):
+    h, w = shape
     return [(int(j0) * g, int(i0) * g, min(int(j1) * g, w), min(int(i1) * g, h))
             for i0, i1, j0, j1 in kernels.cover_cells(cells, g, context_px, call_cost_px)]
+
+
+def _touches_inner_border(mask: np.ndarray, boxes) -> bool:
+    """Whether ``mask`` has a pixel on the border of the boxes' union that is not the frame border
+    (the wire left the boxes there), computed on the union's bounding box only."""
+    h, w = mask.shape
+    v0 = max(min(b[1] for b in boxes) - 1, 0)
+    u0 = max(min(b[0] for b in boxes) - 1, 0)
+    v1 = min(max(b[3] for b in boxes) + 1, h)
+    u1 = min(max(b[2] for b in boxes) + 1, w)
+    covered = np.zeros((v1 - v0, u1 - u0), bool)
+    for a0, b0, a1, b1 in boxes:
+        covered[b0 - v0:b1 - v0, a0 - u0:a1 - u0] = True
+    inner = covered.copy()
+    inner[1:, :] &= covered[:-1, :]
+    inner[:-1, :] &= covered[1:, :]
+    inner[:, 1:] &= covered[:, :-1]
+    inner[:, :-1] &= covered[:, 1:]
+    edge = covered & ~inner
+    if v0 == 0:
+        edge[0, :] = False
+    if v1 == h:
+        edge[-1, :] = False
+    if u0 == 0:
+        edge[:, 0] = False
+    if u1 == w:
+        edge[:, -1] = False
+    return bool((mask[v0:v1, u0:u1] & edge).any())
 
 
 @dataclass(kw_only=True)
@@ -904,12 +1016,9 @@ class GuidewireSegmenter:
 
     # --- boxes ------------------------------------------------------------------------------------
     def _boxes(self, prev: np.ndarray, margin_px: int) -> list[tuple[int, int, int, int]]:
-        import cv2
-
-        r = int(margin_px)
-        k = cv2.getStructuringElement(cv2.MORPH_RECT, (2 * r + 1, 2 * r + 1))
-        band = cv2.dilate(prev.astype(np.uint8), k) > 0 if r > 0 else prev
-        return cover_boxes(band, cell_px=UNET_MULTIPLE, context_px=self.context_px)
+        """:func:`cover_boxes` of ``prev`` dilated by ``margin_px`` (:func:`band_cells`)."""
+        return _cover_cells(band_cells(prev, margin_px, UNET_MULTIPLE), prev.shape, UNET_MULTIPLE,
+                            self.context_px, CALL_COST_PX)
 
     def _full(self, a: np.ndarray, stats) -> np.ndarray:
         self.last_mode = "full"
@@ -939,23 +1048,12 @@ class GuidewireSegmenter:
             return None
         if sum((v1 - v0) * (u1 - u0) for u0, v0, u1, v1 in boxes) > ROI_MAX_FRACTION * a.size:
             return None
-        covered = np.zeros(a.shape, bool)
-        for u0, v0, u1, v1 in boxes:
-            covered[v0:v1, u0:u1] = True
         mask = SEGMENTERS[self.method].mask(a, stats, boxes, backend=self.backend, num_threads=self.num_threads,
                                             context_px=self.context_px)
         if not mask.any():
             return False
         # the wire must not reach a box border that is inside the frame
-        inner = covered.copy()
-        inner[1:, :] &= covered[:-1, :]
-        inner[:-1, :] &= covered[1:, :]
-        inner[:, 1:] &= covered[:, :-1]
-        inner[:, :-1] &= covered[:, 1:]
-        edge = covered & ~inner
-        edge[0, :] = edge[-1, :] = False
-        edge[:, 0] = edge[:, -1] = False
-        if (mask & edge).any():
+        if _touches_inner_border(mask, boxes):
             self._touch = mask
             return True
         return mask
@@ -963,7 +1061,7 @@ class GuidewireSegmenter:
     def segment(self, frame) -> np.ndarray:
         """Segment the next frame; returns an (H, W) bool mask (empty when no wire is seen)."""
         a = _as_frame(frame)
-        med, spread, degenerate = _frame_stats(a)
+        med, spread, degenerate, dark = _frame_stats_dark(a)
         if degenerate:
             self._prev = None
             self.last_mode = "degenerate"
@@ -976,7 +1074,7 @@ class GuidewireSegmenter:
         if mask is None:
             mask = self._full(a, (med, spread))
         if mask.any():
-            mask = _clear_collimated(mask, a, med)
+            mask = _clear_collimated(mask, a, med, dark)
         self._prev = mask if mask.any() else None
         self._count += 1
         if self.wire_model:
