@@ -335,3 +335,40 @@ def test_inner_border_test_on_the_boxes_union():
     assert not S._touches_inner_border(m, boxes)
     m[40, 63] = True                       # box 2's right border, inside the frame
     assert S._touches_inner_border(m, boxes)
+
+
+def _touches_inner_border_plain(mask, boxes):
+    """The inner-border test as it was first written: on whole-frame arrays."""
+    covered = np.zeros(mask.shape, bool)
+    for u0, v0, u1, v1 in boxes:
+        covered[v0:v1, u0:u1] = True
+    inner = covered.copy()
+    inner[1:, :] &= covered[:-1, :]
+    inner[:-1, :] &= covered[1:, :]
+    inner[:, 1:] &= covered[:, :-1]
+    inner[:, :-1] &= covered[:, 1:]
+    edge = covered & ~inner
+    edge[0, :] = edge[-1, :] = False
+    edge[:, 0] = edge[:, -1] = False
+    return bool((mask & edge).any())
+
+
+def test_inner_border_test_is_the_whole_frame_one():
+    from guidewire3d.xray import segmentation as S
+
+    rng = np.random.default_rng(11)
+    agree = {True: 0, False: 0}
+    for _ in range(400):
+        h, w = int(rng.integers(9, 60)), int(rng.integers(9, 60))
+        boxes = []
+        for _ in range(int(rng.integers(1, 5))):
+            u0, v0 = int(rng.integers(0, w - 1)), int(rng.integers(0, h - 1))
+            boxes.append((u0, v0, int(rng.integers(u0 + 1, w + 1)), int(rng.integers(v0 + 1, h + 1))))
+        covered = np.zeros((h, w), bool)
+        for u0, v0, u1, v1 in boxes:
+            covered[v0:v1, u0:u1] = True
+        mask = covered & (rng.random((h, w)) < rng.choice([0.002, 0.02, 0.2]))
+        want = _touches_inner_border_plain(mask, boxes)
+        assert S._touches_inner_border(mask, boxes) == want, (boxes, np.argwhere(mask))
+        agree[want] += 1
+    assert min(agree.values()) > 50          # both answers exercised
