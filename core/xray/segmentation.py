@@ -101,6 +101,7 @@ UNET_MULTIPLE = 8
 # of the margin before falling back to full frame; boxes covering more than this fraction of
 # the frame are not worth it (full frame is then as cheap).
 ROI_GROW_FACTOR = 3
+ROI_GROW_MIN_PX = 72               # ... and to at least this margin (a wire advancing fast outruns 3 x 16 px)
 ROI_MAX_FRACTION = 0.6
 UNET_CONTEXT_PX = 16               # image context around a one-off box (guidewire_mask, unet_probability)
 
@@ -979,7 +980,8 @@ class GuidewireSegmenter:
     inference thread); each box gets ``context_px`` of surrounding image as network context.
     If the result touches a box border that is not the frame border (the wire moved or advanced
     beyond the boxes), the boxes are grown once around the previous and the new mask by
-    ``ROI_GROW_FACTOR`` x ``roi_margin_px`` and the frame is segmented again inside them; if that
+    ``ROI_GROW_FACTOR`` x ``roi_margin_px`` (at least ``ROI_GROW_MIN_PX``) and the frame is segmented
+    again inside them; if that
     still touches a border, or the result is empty, the frame is re-segmented full-frame. Every
     ``full_frame_every`` frames a full-frame pass is forced. ``last_mode`` says which pass gave
     the mask (``"roi"``, ``"roi-grown"``, ``"full"`` or ``"degenerate"``).
@@ -1045,7 +1047,8 @@ class GuidewireSegmenter:
     def _tracked(self, a: np.ndarray, prev: np.ndarray, stats):
         first = self._in_boxes(a, prev, stats, self.roi_margin_px)
         if first is True:                             # touched a box border: grow once
-            grown = self._in_boxes(a, prev, stats, ROI_GROW_FACTOR * self.roi_margin_px, seed_extra=self._touch)
+            grown = self._in_boxes(a, prev, stats, max(ROI_GROW_FACTOR * self.roi_margin_px, ROI_GROW_MIN_PX),
+                                   seed_extra=self._touch)
             if isinstance(grown, np.ndarray):
                 self.last_mode = "roi-grown"
                 return grown
