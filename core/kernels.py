@@ -27,7 +27,7 @@ import numpy as np
 __all__ = ["viterbi_forward", "viterbi_backward", "sample_bilinear", "cover_cells", "frangi_at", "warm_up",
            "viterbi_pairwise", "place_on_path", "lumen_covariance", "pspline_system", "penalised_fit",
            "polyline_measures", "branch_ambiguity", "epipolar_candidates", "triangulate_dlt", "two_view_viterbi",
-           "NearestGrid"]
+           "NearestGrid", "resample_polyline", "two_view_covariance"]
 
 _LOCK = threading.Lock()
 #: image dtypes sampled as they are (one compiled specialisation each); others are converted to float64
@@ -1042,8 +1042,15 @@ def _compile_triangulation():
                 # shells of cells around the query's (Chebyshev distance ``ring``), until no unseen cell
                 # can hold a nearer point: a cell ``ring`` away is at least ``(ring - 1) cell`` away
                 for ring in range(ring_max + 1):
-                    if bp >= 0 and ring >= 1 and ((ring - 1) * cell) ** 2 > best2:
-                        break
+                    if bp >= 0 and ring >= 1:
+                        # the distance from the query to the cells not yet seen: outside the box of
+                        # the shells 0 .. ring - 1
+                        gap = np.inf
+                        for d in range(D):
+                            gap = min(gap, Q[q, d] - (lo[d] + (cq[d] - ring + 1) * cell),
+                                      (lo[d] + (cq[d] + ring) * cell) - Q[q, d])
+                        if gap > 0.0 and gap * gap > best2:
+                            break
                     empty = False
                     for d in range(D):
                         cmin[d] = max(cq[d] - ring, 0)
@@ -1082,8 +1089,160 @@ def _compile_triangulation():
                 nearest[q] = bp
             return dist, nearest
 
+        @jit
+        def resample_polyline(uv, step):
+            N, D = uv.shape
+            s = np.zeros(N)
+            for p in range(1, N):
+                v = 0.0
+                for d in range(D):
+                    e = uv[p, d] - uv[p - 1, d]
+                    v += e * e
+                s[p] = s[p - 1] + np.sqrt(v)
+            L = s[N - 1]
+            n = max(int(np.ceil(L / step)), 1)
+            t = np.empty(n + 1)
+            dt = L / n
+            for k in range(n + 1):
+                t[k] = k * dt if dt != 0.0 else k / n * L
+            t[n] = L
+            out = np.empty((n + 1, D))
+            j = 0
+            for k in range(n + 1):
+                x = t[k]
+                # numpy.interp: the segment [s[j], s[j + 1]) holding x (the last point at its end)
+                while j < N - 2 and s[j + 1] <= x:
+                    j += 1
+                for d in range(D):
+                    if N == 1:
+                        out[k, d] = uv[0, d]
+                    elif x >= s[N - 1]:
+                        out[k, d] = uv[N - 1, d]
+                    else:
+                        slope = (uv[j + 1, d] - uv[j, d]) / (s[j + 1] - s[j]) if s[j + 1] != s[j] else np.nan
+                        y = slope * (x - s[j]) + uv[j, d]
+                        if np.isnan(y):
+                            y = slope * (x - s[j + 1]) + uv[j + 1, d]
+                            if np.isnan(y) and uv[j, d] == uv[j + 1, d]:
+                                y = uv[j, d]
+                        out[k, d] = y
+            return out, t
+
+        @jit
+        def two_view_covariance(X, T, Rc_a, tc_a, f_a, Rc_b, tc_b, f_b, s2, G, C, has_reg):
+            N = X.shape[0]
+            cov = np.empty((N, 3, 3))
+            unc = np.empty(N)
+            H = np.empty((3, 3))
+            J = np.empty((2, 3))
+            Jc = np.empty((2, 3))
+            jn = np.empty(3)
+            Pp = np.empty((3, 3))
+            A = np.empty((3, 6))
+            Mi = np.empty((3, 3))
+            W = np.empty((3, 3))
+            GC = np.empty((3, 6))
+            for n in range(N):
+                for i in range(3):
+                    for j in range(3):
+                        H[i, j] = 0.0
+                t0, t1, t2 = T[n, 0], T[n, 1], T[n, 2]
+                for k in range(2):
+                    Rc = Rc_a if k == 0 else Rc_b
+                    tc = tc_a if k == 0 else tc_b
+                    f = f_a if k == 0 else f_b
+                    x0 = X[n, 0] * Rc[0, 0] + X[n, 1] * Rc[0, 1] + X[n, 2] * Rc[0, 2] + tc[0]
+                    x1 = X[n, 0] * Rc[1, 0] + X[n, 1] * Rc[1, 1] + X[n, 2] * Rc[1, 2] + tc[1]
+                    z = X[n, 0] * Rc[2, 0] + X[n, 1] * Rc[2, 1] + X[n, 2] * Rc[2, 2] + tc[2]
+                    Jc[0, 0], Jc[0, 1], Jc[0, 2] = f / z, 0.0, -f * x0 / z ** 2
+                    Jc[1, 0], Jc[1, 1], Jc[1, 2] = 0.0, f / z, -f * x1 / z ** 2
+                    for r in range(2):
+                        for c in range(3):
+                            J[r, c] = Jc[r, 0] * Rc[0, c] + Jc[r, 1] * Rc[1, c] + Jc[r, 2] * Rc[2, c]
+                    u = J[0, 0] * t0 + J[0, 1] * t1 + J[0, 2] * t2
+                    v = J[1, 0] * t0 + J[1, 1] * t1 + J[1, 2] * t2
+                    nr = max(np.sqrt(u * u + v * v), 1e-12)
+                    u /= nr
+                    v /= nr
+                    for c in range(3):
+                        jn[c] = -v * J[0, c] + u * J[1, c]
+                    for i in range(3):
+                        for j in range(3):
+                            H[i, j] += jn[i] * jn[j] / s2
+                # across the 3D wire: the inverse of H + 1e6 t t^T (Gauss-Jordan, partial pivoting),
+                # projected by I - t t^T on both sides
+                for i in range(3):
+                    for j in range(3):
+                        tt = T[n, i] * T[n, j]
+                        Pp[i, j] = (1.0 if i == j else 0.0) - tt
+                        A[i, j] = H[i, j] + 1e6 * tt
+                        A[i, 3 + j] = 1.0 if i == j else 0.0
+                for c in range(3):
+                    p = c
+                    for r in range(c + 1, 3):
+                        if abs(A[r, c]) > abs(A[p, c]):
+                            p = r
+                    if p != c:
+                        for q in range(6):
+                            A[c, q], A[p, q] = A[p, q], A[c, q]
+                    d = A[c, c]
+                    for q in range(6):
+                        A[c, q] /= d
+                    for r in range(3):
+                        if r != c:
+                            fr = A[r, c]
+                            for q in range(6):
+                                A[r, q] -= fr * A[c, q]
+                for i in range(3):
+                    for j in range(3):
+                        Mi[i, j] = A[i, 3 + j]
+                if has_reg:  # + the registration covariance pushed through the pose: G C G^T
+                    for i in range(3):
+                        for j in range(6):
+                            sacc = 0.0
+                            for q in range(6):
+                                sacc += G[n, i, q] * C[q, j]
+                            GC[i, j] = sacc
+                for i in range(3):
+                    for j in range(3):
+                        sacc = 0.0
+                        for q in range(3):
+                            sacc += Mi[i, q] * Pp[q, j]
+                        W[i, j] = sacc
+                tr = 0.0
+                for i in range(3):
+                    for j in range(3):
+                        sacc = 0.0
+                        for q in range(3):
+                            sacc += Pp[i, q] * W[q, j]
+                        cov[n, i, j] = sacc
+                if has_reg:
+                    for i in range(3):
+                        for j in range(3):
+                            sacc = 0.0
+                            for q in range(6):
+                                sacc += GC[i, q] * G[n, j, q]
+                            Mi[i, j] = sacc
+                    for i in range(3):
+                        for j in range(3):
+                            sacc = 0.0
+                            for q in range(3):
+                                sacc += Mi[i, q] * Pp[q, j]
+                            W[i, j] = sacc
+                    for i in range(3):
+                        for j in range(3):
+                            sacc = 0.0
+                            for q in range(3):
+                                sacc += Pp[i, q] * W[q, j]
+                            cov[n, i, j] += sacc
+                for i in range(3):
+                    tr += cov[n, i, i]
+                unc[n] = np.sqrt(max(tr, 0.0))
+            return cov, unc
+
         _COMPILED_TRI.update(epipolar_candidates=epipolar_candidates, triangulate_dlt=triangulate_dlt,
-                             two_view_viterbi=two_view_viterbi, grid_build=grid_build, grid_nearest=grid_nearest)
+                             two_view_viterbi=two_view_viterbi, grid_build=grid_build, grid_nearest=grid_nearest,
+                             resample_polyline=resample_polyline, two_view_covariance=two_view_covariance)
         return _COMPILED_TRI
 
 
@@ -1367,6 +1526,39 @@ def two_view_viterbi(n: int, ia: np.ndarray, jb: np.ndarray, X: np.ndarray, unar
     return chosen, float(cost)
 
 
+def resample_polyline(points: np.ndarray, step: float) -> tuple[np.ndarray, np.ndarray]:
+    """A polyline (N, D) resampled at equal arclength: ``n + 1`` points, ``n = max(ceil(L / step), 1)``
+    (``L`` its length), and their arclengths ``t`` (``numpy.linspace(0, L, n + 1)``): what
+    ``numpy.interp`` of each coordinate over the cumulative segment lengths gives (the same
+    formula; a zero-length segment takes its end value)."""
+    f = _compile_triangulation()["resample_polyline"]
+    P = _in(points, np.float64)
+    return f(P.reshape(len(P), -1), float(step))
+
+
+def two_view_covariance(points_lps_mm: np.ndarray, tangents: np.ndarray, cameras, *, sigma_2d_px: float,
+                        pose_jacobians=None, registration_covariance=None) -> tuple[np.ndarray, np.ndarray]:
+    """``(covariance (N, 3, 3), uncertainty (N,))`` of a two-view wire's points (the formula of
+    ``reconstruction.triangulation.triangulate_wire``'s step 5, per point in one loop).
+
+    Per plane ``(Rc, tc, focal_px)`` of ``cameras`` (two; ``x_cam = Rc X + tc``), the projection's
+    Jacobian ``J`` (2, 3) at ``X``, the 2D wire's normal ``n`` (the projected unit tangent turned
+    by 90 deg) and ``j = n^T J``: ``H = sum j j^T / sigma_2d_px^2``; the covariance is
+    ``P (H + 1e6 t t^T)^-1 P`` with ``P = I - t t^T`` (the unit tangent ``t``: a slide along the
+    wire is not an error), plus ``P G C G^T P`` when ``pose_jacobians`` ``G`` (N, 3, 6) and the
+    ``registration_covariance`` ``C`` (6, 6) are given; the uncertainty is ``sqrt(max(trace, 0))``.
+    The 3 x 3 inverse is a Gauss-Jordan elimination with partial pivoting (LAPACK's to rounding).
+    """
+    f = _compile_triangulation()["two_view_covariance"]
+    (Ra, ta, fa), (Rb, tb, fb) = ((c[0], c[1], c[2]) for c in cameras)
+    X = _in(points_lps_mm, np.float64).reshape(-1, 3)
+    has_reg = pose_jacobians is not None and registration_covariance is not None
+    G = _in(pose_jacobians if has_reg else np.zeros((1, 3, 6)), np.float64)
+    C = _in(registration_covariance if has_reg else np.zeros((6, 6)), np.float64)
+    return f(X, _in(tangents, np.float64).reshape(-1, 3), _in(Ra, np.float64), _in(ta, np.float64), float(fa),
+             _in(Rb, np.float64), _in(tb, np.float64), float(fb), float(sigma_2d_px) ** 2, G, C, has_reg)
+
+
 class NearestGrid:
     """Exact nearest-neighbour queries among fixed points (2D or 3D) through a uniform grid of
     cells of ``cell`` (the points' units): what ``scipy.spatial.cKDTree(points).query(q)`` answers
@@ -1443,3 +1635,9 @@ def _warm_up_triangulation() -> None:
                      px_other_mm=0.2, spread=1.0)
     for pts in (X, a):
         NearestGrid(pts, 2.0).query(pts)
+        resample_polyline(pts, 0.5)
+    cams = ((np.eye(3), np.array([0.0, 0.0, 700.0]), 1000.0), (np.eye(3)[[2, 1, 0]], np.array([0.0, 0.0, 700.0]), 1000.0))
+    T = np.tile([1.0, 0.0, 0.0], (3, 1))
+    for reg in (None, np.eye(6)):
+        two_view_covariance(X, T, cams, sigma_2d_px=0.5, pose_jacobians=None if reg is None else np.zeros((3, 3, 6)),
+                            registration_covariance=reg)

@@ -6,6 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from guidewire3d import kernels
+from guidewire3d.geometry import Pose
+from guidewire3d.reconstruction.uncertainty import pose_jacobian
 from scipy.spatial import cKDTree
 
 _INF = 1e18
@@ -213,8 +215,8 @@ def test_two_view_viterbi_is_the_numpy_recursion(seed):
     n = int(rng.integers(1, 60))
     K, G = int(rng.integers(1, 7)), int(rng.integers(1, 6))
     ia, jb, X, unary, _ = _viterbi_case(rng, n, K, G)
-    kw = dict(step_mm=0.6, dense_px=1.0, tol=0.2, sigma_step=0.3, back_px=1.0, skip_cost=float(rng.choice([2.0, 8.0])),
-              px_other_mm=0.25, spread=1.2)
+    kw = {"step_mm": 0.6, "dense_px": 1.0, "tol": 0.2, "sigma_step": 0.3, "back_px": 1.0,
+          "skip_cost": float(rng.choice([2.0, 8.0])), "px_other_mm": 0.25, "spread": 1.2}
     for direction in (1, -1):
         ref = _viterbi_numpy(n, ia, jb, X, unary, kw["step_mm"], direction, K, G, kw["dense_px"], kw["tol"],
                              kw["sigma_step"], kw["back_px"], kw["skip_cost"], kw["px_other_mm"], kw["spread"])
@@ -261,3 +263,78 @@ def test_nearest_grid_ties_and_errors():
     assert list(i) == [1, 0] and d[0] == pytest.approx(0.1) and d[1] == 0.5  # exact ties: the lower index
     with pytest.raises(ValueError):
         kernels.NearestGrid(np.zeros((0, 3)), 1.0)
+
+
+def _resample_numpy(uv, step):
+    seg = np.linalg.norm(np.diff(uv, axis=0), axis=1)
+    s = np.r_[0.0, np.cumsum(seg)]
+    n = max(int(np.ceil(s[-1] / step)), 1)
+    t = np.linspace(0.0, s[-1], n + 1)
+    return np.column_stack([np.interp(t, s, uv[:, d]) for d in range(uv.shape[1])]), t
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_resample_polyline_is_numpy_interp(seed):
+    rng = np.random.default_rng(seed)
+    for _ in range(30):
+        uv = np.cumsum(rng.normal(0.0, 2.0, (int(rng.integers(2, 300)), int(rng.integers(2, 4)))), axis=0)
+        if len(uv) > 8:
+            uv[4:7] = uv[4]  # repeated points: zero-length segments
+        for step in (0.25, 1.0, 3.0, 1e4):
+            ref, t_ref = _resample_numpy(uv, step)
+            got, t = kernels.resample_polyline(uv, step)
+            np.testing.assert_array_equal(t, t_ref)
+            np.testing.assert_allclose(got, ref, rtol=0, atol=1e-12)
+    # ground truth: a straight line resampled is evenly spaced on it
+    got, t = kernels.resample_polyline(np.array([[0.0, 0.0], [10.0, 0.0]]), 3.0)
+    np.testing.assert_allclose(got[:, 0], np.linspace(0.0, 10.0, 5))
+    np.testing.assert_allclose(t, got[:, 0])
+
+
+def _covariance_numpy(X, tan3, cams, s2d, pose, C):
+    H = np.zeros((len(X), 3, 3))
+    for Rc, tc, f in cams:
+        xc = X @ Rc.T + tc
+        z = xc[:, 2]
+        J = np.zeros((len(X), 2, 3))
+        J[:, 0, 0] = J[:, 1, 1] = f / z
+        J[:, 0, 2] = -f * xc[:, 0] / z**2
+        J[:, 1, 2] = -f * xc[:, 1] / z**2
+        J = J @ Rc
+        t2 = np.einsum("nij,nj->ni", J, tan3)
+        t2 /= np.maximum(np.linalg.norm(t2, axis=1, keepdims=True), 1e-12)
+        nrm = np.column_stack([-t2[:, 1], t2[:, 0]])
+        jn = np.einsum("ni,nij->nj", nrm, J)
+        H += jn[:, :, None] * jn[:, None, :] / s2d**2
+    Pperp = np.eye(3)[None] - tan3[:, :, None] * tan3[:, None, :]
+    big = 1e6 * tan3[:, :, None] * tan3[:, None, :]
+    cov = Pperp @ np.linalg.inv(H + big) @ Pperp
+    if C is not None:
+        G = pose_jacobian(pose, X)
+        cov = cov + Pperp @ (G @ C @ np.transpose(G, (0, 2, 1))) @ Pperp
+    return cov, np.sqrt(np.clip(np.trace(cov, axis1=1, axis2=2), 0.0, None))
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_two_view_covariance_is_the_numpy_formula(seed):
+    rng = np.random.default_rng(seed)
+    X = _wire3d(rng, 120)
+    tan3 = np.gradient(X, axis=0)
+    tan3 /= np.linalg.norm(tan3, axis=1, keepdims=True)
+    cams = []
+    for ang in (0.2, 1.6):
+        c, s = np.cos(ang), np.sin(ang)
+        cams.append((np.array([[c, 0.0, -s], [0.0, 1.0, 0.0], [s, 0.0, c]]), np.array([1.0, -2.0, 700.0]), 1100.0))
+    pose = Pose.from_rotvec_about([0.05, -0.08, 0.1], [10.0, -20.0, 30.0])
+    L = rng.normal(0.0, 0.1, (6, 6))
+    for C in (None, L @ L.T):
+        ref_cov, ref_unc = _covariance_numpy(X, tan3, cams, 0.5, pose, C)
+        G = None if C is None else pose_jacobian(pose, X)
+        cov, unc = kernels.two_view_covariance(X, tan3, cams, sigma_2d_px=0.5, pose_jacobians=G,
+                                               registration_covariance=C)
+        # the inverse of H + 1e6 t t^T loses digits (condition up to ~1e8 where a plane sees the wire
+        # along its epipolar line): the same to 1e-6 relative
+        np.testing.assert_allclose(cov, ref_cov, rtol=1e-6, atol=1e-9)
+        np.testing.assert_allclose(unc, ref_unc, rtol=1e-7, atol=1e-9)
+        # ground truth: nothing along the wire (the tangent is in the null space)
+        np.testing.assert_allclose(np.einsum("nij,nj->ni", cov, tan3), 0.0, atol=1e-9)

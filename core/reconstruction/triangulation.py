@@ -35,7 +35,7 @@ from guidewire3d import kernels
 from guidewire3d.errors import InputError
 from guidewire3d.geometry import CArm, Pose
 from guidewire3d.reconstruction.single_view import Wire3D
-from guidewire3d.reconstruction.smoothing import arclength, curvature, fit_pspline, tangents
+from guidewire3d.reconstruction.smoothing import _pspline_system, arclength, curvature, tangents
 from guidewire3d.reconstruction.uncertainty import pose_jacobian
 from scipy.spatial import cKDTree
 
@@ -113,11 +113,8 @@ def triangulate_points(uv_a_px, uv_b_px, P_a, P_b) -> np.ndarray:
 
 
 def _resample(uv: np.ndarray, step: float) -> tuple[np.ndarray, np.ndarray]:
-    seg = np.linalg.norm(np.diff(uv, axis=0), axis=1)
-    s = np.r_[0.0, np.cumsum(seg)]
-    n = max(int(np.ceil(s[-1] / step)), 1)
-    t = np.linspace(0.0, s[-1], n + 1)
-    return np.column_stack([np.interp(t, s, uv[:, 0]), np.interp(t, s, uv[:, 1])]), t
+    """``uv`` resampled every ~``step`` along its arclength, and the arclengths (compiled)."""
+    return kernels.resample_polyline(uv, step)
 
 
 class TwoViewContext:
@@ -221,16 +218,21 @@ def _viterbi(n: int, ia, jb, X, unary, step_mm: float, direction: int, opt: TwoV
                                     spread=spread)
 
 
-def _weighted_pspline(x, Y, w, lam: float, knot: float) -> np.ndarray:
+def _weighted_pspline(x, Y, w, lam: float, knot: float, camera) -> np.ndarray:
     """The single-view reconstruction's P-spline (``smoothing.fit_pspline``) with weights ``w``:
-    the fitted values of ``Y (M, D)`` at ``x (M,)``."""
-    spl, Bm = fit_pspline(x, Y, lam=lam, knot=knot, weights=w)
-    return Bm @ spl.c
+    the fitted values of ``Y (M, 3)`` at ``x (M,)``, in two compiled calls (the system, then
+    ``kernels.penalised_fit``'s banded Cholesky solve; its projection error into ``camera``, one
+    plane's ``(Rc, tc, focal_px, principal_point_px)``, is not used)."""
+    _, D, first, ab, BtY = _pspline_system(x, Y, knot=knot, weights=w)
+    Rc, tc, f, c = camera
+    Xs, _, _ = kernels.penalised_fit(D, first, ab, BtY, lam=lam, uv_px=np.zeros((len(x), 2)), Rc=Rc, tc=tc,
+                                     focal_px=f, principal_point_px=c)
+    return Xs
 
 
 def _polyline_distance_px(uv: np.ndarray, curve: np.ndarray) -> np.ndarray:
     dense, _ = _resample(curve, 0.25) if len(curve) > 1 else (curve, None)
-    return kernels.NearestGrid(dense, 4.0).query(uv)[0]
+    return kernels.NearestGrid(dense, 2.0).query(uv)[0]
 
 
 def projection_error_px(ctx: "TwoViewContext", k: int, points_lps_mm, wire_uv_px) -> float:
@@ -352,7 +354,7 @@ def triangulate_wire(wire_a_uv_px, wire_b_uv_px, ctx: TwoViewContext) -> TwoView
     n_outliers = 0
     if len(key) >= 5 and key[-1] - key[0] > 4 * opt.knot_px:
         lam = opt.smoothing_lambda
-        Xs = _weighted_pspline(key, X, w, lam, opt.knot_px)
+        Xs = _weighted_pspline(key, X, w, lam, opt.knot_px, ctx.cams[0])
         # one robust pass: matches far from the smooth curve (a wrong crossing that the Viterbi's
         # skip did not catch) are dropped and the curve fitted again
         r = np.linalg.norm(X - Xs, axis=1)
@@ -360,7 +362,7 @@ def triangulate_wire(wire_a_uv_px, wire_b_uv_px, ctx: TwoViewContext) -> TwoView
         n_outliers = int(out.sum())
         if 0 < n_outliers <= 0.3 * len(key) and len(key) - n_outliers >= 5:
             key, X, w, s_a, s_b = key[~out], X[~out], w[~out], s_a[~out], s_b[~out]
-            Xs = _weighted_pspline(key, X, w, lam, opt.knot_px)
+            Xs = _weighted_pspline(key, X, w, lam, opt.knot_px, ctx.cams[0])
     else:
         Xs = X.copy()
     # resample the output along the 3D arclength (~ step_px at the isocentre)
@@ -372,21 +374,10 @@ def triangulate_wire(wire_a_uv_px, wire_b_uv_px, ctx: TwoViewContext) -> TwoView
         Xs = np.column_stack([np.interp(sa, arc, Xs[:, d]) for d in range(3)])
     tan3 = tangents(Xs)
     # uncertainty: both views' information across their 2D wires, summed; inverted across the 3D wire
-    H = np.zeros((len(Xs), 3, 3))
-    for k in range(2):
-        J = ctx.jacobian(k, Xs)
-        t2 = np.einsum("nij,nj->ni", J, tan3)
-        t2 /= np.maximum(np.linalg.norm(t2, axis=1, keepdims=True), 1e-12)
-        nrm = np.column_stack([-t2[:, 1], t2[:, 0]])
-        jn = np.einsum("ni,nij->nj", nrm, J)  # (N, 3): d(across-wire px)/dX
-        H += jn[:, :, None] * jn[:, None, :] / opt.sigma_2d_px**2
-    Pperp = np.eye(3)[None] - tan3[:, :, None] * tan3[:, None, :]
-    big = 1e6 * tan3[:, :, None] * tan3[:, None, :]
-    cov = Pperp @ np.linalg.inv(H + big) @ Pperp
-    if ctx.cov is not None:
-        G = pose_jacobian(ctx.pose, Xs)
-        cov = cov + Pperp @ (G @ ctx.cov @ np.transpose(G, (0, 2, 1))) @ Pperp
-    unc = np.sqrt(np.clip(np.trace(cov, axis1=1, axis2=2), 0.0, None))
+    # (plus the registration covariance through the pose), compiled
+    G = pose_jacobian(ctx.pose, Xs) if ctx.cov is not None else None
+    cov, unc = kernels.two_view_covariance(Xs, tan3, ctx.cams, sigma_2d_px=opt.sigma_2d_px, pose_jacobians=G,
+                                           registration_covariance=ctx.cov)
     perr = tuple(projection_error_px(ctx, k, Xs, u) for k, u in ((0, ua), (1, ub)))
     arc = arclength(Xs)
     _, i = ctx.kd.query(Xs)
