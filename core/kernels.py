@@ -32,7 +32,8 @@ __all__ = ["viterbi_forward", "viterbi_backward", "sample_bilinear", "cover_cell
            "skeleton_pixels", "pixel_graph", "induced_subgraph", "graph_components", "dijkstra",
            "diameter_path", "nearest_sq_dist", "warm_up",
            "viterbi_pairwise", "place_on_path", "lumen_covariance", "pspline_system", "penalised_fit",
-           "polyline_measures", "branch_ambiguity"]
+           "polyline_measures", "branch_ambiguity", "epipolar_candidates", "triangulate_dlt", "two_view_viterbi",
+           "NearestGrid", "resample_polyline", "two_view_covariance"]
 
 _LOCK = threading.Lock()
 #: image dtypes sampled as they are (one compiled specialisation each); others are converted to float64
@@ -967,6 +968,503 @@ def _compile_reconstruction():
         return _COMPILED_RECON
 
 
+#: the two-view triangulation's kernels (``guidewire3d.reconstruction.triangulation``), compiled apart
+_COMPILED_TRI: dict = {}
+
+
+def _compile_triangulation():
+    """The jitted kernels of the two-view (biplane) wire: the epipolar candidates, their
+    triangulation, the Viterbi over the master plane's samples and the nearest-point queries,
+    compiled once per process (loaded from numba's disk cache when present)."""
+    with _LOCK:
+        if _COMPILED_TRI:
+            return _COMPILED_TRI
+        import numba
+
+        def jit(f):
+            try:
+                return numba.njit(cache=True, nogil=True)(f)
+            except RuntimeError:
+                return numba.njit(cache=False, nogil=True)(f)
+
+        @jit
+        def epipolar_candidates(F, a, b, touch):
+            n, m = a.shape[0], b.shape[0]
+            lines = np.empty((n, 3))
+            for i in range(n):
+                for r in range(3):
+                    lines[i, r] = a[i, 0] * F[r, 0] + a[i, 1] * F[r, 1] + F[r, 2]
+                nr = max(np.sqrt(lines[i, 0] * lines[i, 0] + lines[i, 1] * lines[i, 1]), 1e-12)
+                for r in range(3):
+                    lines[i, r] /= nr
+            cap = n * max(m - 1, 0)
+            c_i = np.empty(cap, np.int64)
+            c_j = np.empty(cap)
+            t_i = np.empty(n * max(m - 2, 0), np.int64)
+            t_j = np.empty(n * max(m - 2, 0))
+            nc = 0
+            nt = 0
+            d = np.empty(m)
+            cross = np.empty(max(m - 1, 0), np.bool_)
+            for i in range(n):
+                l0, l1, l2 = lines[i, 0], lines[i, 1], lines[i, 2]
+                for jj in range(m):
+                    d[jj] = (l0 * b[jj, 0] + l1 * b[jj, 1]) + l2
+                for jj in range(m - 1):
+                    cross[jj] = (d[jj] >= 0) != (d[jj + 1] >= 0)
+                    if cross[jj]:
+                        d0, d1 = d[jj], d[jj + 1]
+                        den = d0 - d1
+                        frac = d0 / (den if abs(den) > 1e-12 else 1.0)
+                        c_i[nc] = i
+                        c_j[nc] = jj + min(max(frac, 0.0), 1.0)
+                        nc += 1
+                if m >= 3:
+                    for jj in range(1, m - 1):
+                        v = abs(d[jj])
+                        if (v <= abs(d[jj - 1]) and v <= abs(d[jj + 1]) and v < touch
+                                and not cross[jj - 1] and not cross[jj]):
+                            t_i[nt] = i
+                            t_j[nt] = float(jj)
+                            nt += 1
+            N = nc + nt
+            ia = np.empty(N, np.int64)
+            jo = np.empty(N)
+            ia[:nc] = c_i[:nc]
+            jo[:nc] = c_j[:nc]
+            ia[nc:] = t_i[:nt]
+            jo[nc:] = t_j[:nt]
+            # b's unit tangents (numpy.gradient: one-sided at the ends)
+            tb = np.empty((m, 2))
+            for jj in range(m):
+                if m == 1:
+                    tb[jj, 0] = 0.0
+                    tb[jj, 1] = 0.0
+                elif jj == 0:
+                    tb[jj, 0] = b[1, 0] - b[0, 0]
+                    tb[jj, 1] = b[1, 1] - b[0, 1]
+                elif jj == m - 1:
+                    tb[jj, 0] = b[m - 1, 0] - b[m - 2, 0]
+                    tb[jj, 1] = b[m - 1, 1] - b[m - 2, 1]
+                else:
+                    tb[jj, 0] = (b[jj + 1, 0] - b[jj - 1, 0]) / 2.0
+                    tb[jj, 1] = (b[jj + 1, 1] - b[jj - 1, 1]) / 2.0
+                nr = max(np.sqrt(tb[jj, 0] * tb[jj, 0] + tb[jj, 1] * tb[jj, 1]), 1e-12)
+                tb[jj, 0] /= nr
+                tb[jj, 1] /= nr
+            sin = np.empty(N)
+            for q in range(N):
+                jr = min(max(int(np.rint(jo[q])), 0), m - 1)
+                i = ia[q]
+                sin[q] = abs(tb[jr, 0] * lines[i, 0] + tb[jr, 1] * lines[i, 1])
+            return ia, jo, sin
+
+        @jit
+        def triangulate_dlt(ua, ub, Pa, Pb):
+            N = ua.shape[0]
+            out = np.empty((N, 3))
+            A = np.empty((4, 4))
+            M = np.empty((3, 4))
+            for n in range(N):
+                for r in range(4):
+                    P = Pa if r < 2 else Pb
+                    u = ua[n, r] if r < 2 else ub[n, r - 2]
+                    row = r % 2
+                    for c in range(4):
+                        A[r, c] = u * P[2, c] - P[row, c]
+                    nr = np.sqrt(A[r, 0] * A[r, 0] + A[r, 1] * A[r, 1] + A[r, 2] * A[r, 2])
+                    for c in range(4):
+                        A[r, c] /= nr
+                # normal equations [MtM | Mtr] (3 x 4), solved by Gaussian elimination with partial pivoting
+                for i in range(3):
+                    for j in range(3):
+                        s = 0.0
+                        for k in range(4):
+                            s += A[k, i] * A[k, j]
+                        M[i, j] = s
+                    s = 0.0
+                    for k in range(4):
+                        s += A[k, i] * -A[k, 3]
+                    M[i, 3] = s
+                for c in range(3):
+                    p = c
+                    for r in range(c + 1, 3):
+                        if abs(M[r, c]) > abs(M[p, c]):
+                            p = r
+                    if p != c:
+                        for q in range(4):
+                            M[c, q], M[p, q] = M[p, q], M[c, q]
+                    for r in range(c + 1, 3):
+                        f = M[r, c] / M[c, c]
+                        for q in range(c, 4):
+                            M[r, q] -= f * M[c, q]
+                for c in range(2, -1, -1):
+                    s = M[c, 3]
+                    for q in range(c + 1, 3):
+                        s -= M[c, q] * out[n, q]
+                    out[n, c] = s / M[c, c]
+            return out
+
+        @jit
+        def two_view_viterbi(n, ia, jb, X, unary, step_mm, direction, K, G, dense_px, tol, sigma_step, back_px,
+                             skip, px_other_mm, spread):
+            INF = 1e18
+            N = ia.shape[0]
+            # per master sample its K most plausible candidates (lowest unary; stable: the lower index on ties)
+            idx = -np.ones((n, K), np.int64)
+            cnt = np.zeros(n, np.int64)
+            for q in range(N):
+                i = ia[q]
+                c = cnt[i]
+                # insertion into the sorted row (kept to K): after every equal or lower unary
+                if c == K and not (unary[q] < unary[idx[i, K - 1]]):
+                    continue
+                p = min(c, K - 1)
+                while p > 0 and unary[q] < unary[idx[i, p - 1]]:
+                    if p < K:
+                        idx[i, p] = idx[i, p - 1]
+                    p -= 1
+                idx[i, p] = q
+                if c < K:
+                    cnt[i] = c + 1
+            Xp = np.full((n, K, 3), np.nan)
+            jp = np.full((n, K), np.nan)
+            U = np.full((n, K), INF)
+            for i in range(n):
+                for k in range(K):
+                    q = idx[i, k]
+                    if q >= 0:
+                        Xp[i, k, 0], Xp[i, k, 1], Xp[i, k, 2] = X[q, 0], X[q, 1], X[q, 2]
+                        jp[i, k] = jb[q]
+                        U[i, k] = unary[q]
+            # Tin[i, g - 1, j, k]: from candidate j of sample i - g to candidate k of sample i
+            Tin = np.full((n, G, K, K), INF)
+            ss2 = sigma_step * sigma_step
+            for g in range(1, min(G, n - 1) + 1):
+                m_mm = g * step_mm
+                gap = (g - 1) * skip
+                for i in range(g, n):
+                    for j in range(K):
+                        if idx[i - g, j] < 0:
+                            continue
+                        for k in range(K):
+                            if idx[i, k] < 0:
+                                continue
+                            e0 = Xp[i - g, j, 0] - Xp[i, k, 0]
+                            e1 = Xp[i - g, j, 1] - Xp[i, k, 1]
+                            e2 = Xp[i - g, j, 2] - Xp[i, k, 2]
+                            dX = np.sqrt(e0 * e0 + e1 * e1 + e2 * e2)
+                            dj = (jp[i, k] - jp[i - g, j]) * direction * dense_px
+                            o_mm = abs(dj) * px_other_mm
+                            over = max(dX - np.sqrt(m_mm ** 2 + o_mm ** 2) * spread - tol, 0.0)
+                            jump = max(o_mm - dX - tol, 0.0)
+                            if dj < -back_px:
+                                pen = INF
+                            else:
+                                pen = (over ** 2 + jump ** 2) / ss2
+                            if np.isfinite(pen):
+                                Tin[i, g - 1, j, k] = pen + gap
+            # forward pass (rows of cp: G rows of INF, then one per sample)
+            cp = np.full((n + G, K), INF)
+            for k in range(K):
+                cp[G, k] = U[0, k]
+            for i in range(1, n):
+                for k in range(K):
+                    best = np.inf
+                    for gg in range(G):
+                        r = i + G - 1 - gg
+                        for j in range(K):
+                            best = min(best, cp[r, j] + Tin[i, gg, j, k])
+                    cp[i + G, k] = min(best, i * skip) + U[i, k]
+            bi = 0
+            bk = 0
+            best = np.inf
+            for i in range(n):
+                for k in range(K):
+                    v = cp[i + G, k] + (n - 1 - i) * skip
+                    if v < best:
+                        best, bi, bk = v, i, k
+            chosen = -np.ones(n, np.int64)
+            i, k = bi, bk
+            while True:
+                chosen[i] = idx[i, k]
+                if i == 0:
+                    break
+                m = np.inf
+                mg = 0
+                mj = 0
+                for gg in range(G):
+                    r = i + G - 1 - gg
+                    for j in range(K):
+                        v = cp[r, j] + Tin[i, gg, j, k]
+                        if v < m:
+                            m, mg, mj = v, gg, j
+                if i * skip <= m:
+                    break
+                k = mj
+                i = i - 1 - mg
+            return chosen, best
+
+        @jit
+        def grid_build(P, cell):
+            N, D = P.shape
+            lo = np.empty(D)
+            dims = np.empty(D, np.int64)
+            for d in range(D):
+                lo[d] = P[0, d] if N else 0.0
+                hi = lo[d]
+                for p in range(N):
+                    lo[d] = min(lo[d], P[p, d])
+                    hi = max(hi, P[p, d])
+                dims[d] = int((hi - lo[d]) / cell) + 1
+            ncell = 1
+            for d in range(D):
+                ncell *= dims[d]
+            cid = np.empty(N, np.int64)
+            for p in range(N):
+                c = 0
+                for d in range(D):
+                    c = c * dims[d] + min(int((P[p, d] - lo[d]) / cell), dims[d] - 1)
+                cid[p] = c
+            start = np.zeros(ncell + 1, np.int64)
+            for p in range(N):
+                start[cid[p] + 1] += 1
+            for c in range(ncell):
+                start[c + 1] += start[c]
+            fill = start[:-1].copy()
+            order = np.empty(N, np.int64)
+            for p in range(N):  # within a cell, by point index
+                order[fill[cid[p]]] = p
+                fill[cid[p]] += 1
+            return lo, dims, start, order
+
+        @jit
+        def grid_nearest(P, lo, dims, start, order, cell, Q):
+            D = P.shape[1]
+            M = Q.shape[0]
+            dist = np.empty(M)
+            nearest = np.empty(M, np.int64)
+            cq = np.empty(D, np.int64)
+            cmin = np.empty(D, np.int64)
+            cmax = np.empty(D, np.int64)
+            nmax = 0
+            for d in range(D):
+                nmax = max(nmax, dims[d])
+            for q in range(M):
+                for d in range(D):
+                    cq[d] = int(np.floor((Q[q, d] - lo[d]) / cell))
+                best2 = np.inf
+                bp = -1
+                ring_max = 0
+                for d in range(D):
+                    ring_max = max(ring_max, abs(cq[d]), abs(dims[d] - 1 - cq[d]))
+                # shells of cells around the query's (Chebyshev distance ``ring``), until no unseen cell
+                # can hold a nearer point: a cell ``ring`` away is at least ``(ring - 1) cell`` away
+                for ring in range(ring_max + 1):
+                    if bp >= 0 and ring >= 1:
+                        # the distance from the query to the cells not yet seen: outside the box of
+                        # the shells 0 .. ring - 1
+                        gap = np.inf
+                        for d in range(D):
+                            gap = min(gap, Q[q, d] - (lo[d] + (cq[d] - ring + 1) * cell),
+                                      (lo[d] + (cq[d] + ring) * cell) - Q[q, d])
+                        if gap > 0.0 and gap * gap > best2:
+                            break
+                    empty = False
+                    for d in range(D):
+                        cmin[d] = max(cq[d] - ring, 0)
+                        cmax[d] = min(cq[d] + ring, dims[d] - 1)
+                        if cmin[d] > cmax[d]:
+                            empty = True
+                    if empty:
+                        continue
+                    for c0 in range(cmin[0], cmax[0] + 1):
+                        for c1 in range(cmin[1], cmax[1] + 1):
+                            edge = abs(c0 - cq[0]) == ring or abs(c1 - cq[1]) == ring
+                            if D == 2:
+                                if not edge:
+                                    continue
+                                c2a, c2b, c2s = 0, 1, 1
+                            elif edge:
+                                c2a, c2b, c2s = cmin[2], cmax[2] + 1, 1
+                            else:  # inside the shell's side faces: only its two caps along the last axis
+                                c2a, c2b, c2s = cq[2] - ring, cq[2] + ring + 1, 2 * ring
+                            for c2 in range(c2a, c2b, max(c2s, 1)):
+                                if D == 3:
+                                    if c2 < 0 or c2 >= dims[2]:
+                                        continue
+                                    c = (c0 * dims[1] + c1) * dims[2] + c2
+                                else:
+                                    c = c0 * dims[1] + c1
+                                for s in range(start[c], start[c + 1]):
+                                    p = order[s]
+                                    v = 0.0
+                                    for d in range(D):
+                                        e = Q[q, d] - P[p, d]
+                                        v += e * e
+                                    if v < best2 or (v == best2 and p < bp):
+                                        best2, bp = v, p
+                dist[q] = np.sqrt(best2)
+                nearest[q] = bp
+            return dist, nearest
+
+        @jit
+        def resample_polyline(uv, step):
+            N, D = uv.shape
+            s = np.zeros(N)
+            for p in range(1, N):
+                v = 0.0
+                for d in range(D):
+                    e = uv[p, d] - uv[p - 1, d]
+                    v += e * e
+                s[p] = s[p - 1] + np.sqrt(v)
+            L = s[N - 1]
+            n = max(int(np.ceil(L / step)), 1)
+            t = np.empty(n + 1)
+            dt = L / n
+            for k in range(n + 1):
+                t[k] = k * dt if dt != 0.0 else k / n * L
+            t[n] = L
+            out = np.empty((n + 1, D))
+            j = 0
+            for k in range(n + 1):
+                x = t[k]
+                # numpy.interp: the segment [s[j], s[j + 1]) holding x (the last point at its end)
+                while j < N - 2 and s[j + 1] <= x:
+                    j += 1
+                for d in range(D):
+                    if N == 1:
+                        out[k, d] = uv[0, d]
+                    elif x >= s[N - 1]:
+                        out[k, d] = uv[N - 1, d]
+                    else:
+                        slope = (uv[j + 1, d] - uv[j, d]) / (s[j + 1] - s[j]) if s[j + 1] != s[j] else np.nan
+                        y = slope * (x - s[j]) + uv[j, d]
+                        if np.isnan(y):
+                            y = slope * (x - s[j + 1]) + uv[j + 1, d]
+                            if np.isnan(y) and uv[j, d] == uv[j + 1, d]:
+                                y = uv[j, d]
+                        out[k, d] = y
+            return out, t
+
+        @jit
+        def two_view_covariance(X, T, Rc_a, tc_a, f_a, Rc_b, tc_b, f_b, s2, G, C, has_reg):
+            N = X.shape[0]
+            cov = np.empty((N, 3, 3))
+            unc = np.empty(N)
+            H = np.empty((3, 3))
+            J = np.empty((2, 3))
+            Jc = np.empty((2, 3))
+            jn = np.empty(3)
+            Pp = np.empty((3, 3))
+            A = np.empty((3, 6))
+            Mi = np.empty((3, 3))
+            W = np.empty((3, 3))
+            GC = np.empty((3, 6))
+            for n in range(N):
+                for i in range(3):
+                    for j in range(3):
+                        H[i, j] = 0.0
+                t0, t1, t2 = T[n, 0], T[n, 1], T[n, 2]
+                for k in range(2):
+                    Rc = Rc_a if k == 0 else Rc_b
+                    tc = tc_a if k == 0 else tc_b
+                    f = f_a if k == 0 else f_b
+                    x0 = X[n, 0] * Rc[0, 0] + X[n, 1] * Rc[0, 1] + X[n, 2] * Rc[0, 2] + tc[0]
+                    x1 = X[n, 0] * Rc[1, 0] + X[n, 1] * Rc[1, 1] + X[n, 2] * Rc[1, 2] + tc[1]
+                    z = X[n, 0] * Rc[2, 0] + X[n, 1] * Rc[2, 1] + X[n, 2] * Rc[2, 2] + tc[2]
+                    Jc[0, 0], Jc[0, 1], Jc[0, 2] = f / z, 0.0, -f * x0 / z ** 2
+                    Jc[1, 0], Jc[1, 1], Jc[1, 2] = 0.0, f / z, -f * x1 / z ** 2
+                    for r in range(2):
+                        for c in range(3):
+                            J[r, c] = Jc[r, 0] * Rc[0, c] + Jc[r, 1] * Rc[1, c] + Jc[r, 2] * Rc[2, c]
+                    u = J[0, 0] * t0 + J[0, 1] * t1 + J[0, 2] * t2
+                    v = J[1, 0] * t0 + J[1, 1] * t1 + J[1, 2] * t2
+                    nr = max(np.sqrt(u * u + v * v), 1e-12)
+                    u /= nr
+                    v /= nr
+                    for c in range(3):
+                        jn[c] = -v * J[0, c] + u * J[1, c]
+                    for i in range(3):
+                        for j in range(3):
+                            H[i, j] += jn[i] * jn[j] / s2
+                # across the 3D wire: the inverse of H + 1e6 t t^T (Gauss-Jordan, partial pivoting),
+                # projected by I - t t^T on both sides
+                for i in range(3):
+                    for j in range(3):
+                        tt = T[n, i] * T[n, j]
+                        Pp[i, j] = (1.0 if i == j else 0.0) - tt
+                        A[i, j] = H[i, j] + 1e6 * tt
+                        A[i, 3 + j] = 1.0 if i == j else 0.0
+                for c in range(3):
+                    p = c
+                    for r in range(c + 1, 3):
+                        if abs(A[r, c]) > abs(A[p, c]):
+                            p = r
+                    if p != c:
+                        for q in range(6):
+                            A[c, q], A[p, q] = A[p, q], A[c, q]
+                    d = A[c, c]
+                    for q in range(6):
+                        A[c, q] /= d
+                    for r in range(3):
+                        if r != c:
+                            fr = A[r, c]
+                            for q in range(6):
+                                A[r, q] -= fr * A[c, q]
+                for i in range(3):
+                    for j in range(3):
+                        Mi[i, j] = A[i, 3 + j]
+                if has_reg:  # + the registration covariance pushed through the pose: G C G^T
+                    for i in range(3):
+                        for j in range(6):
+                            sacc = 0.0
+                            for q in range(6):
+                                sacc += G[n, i, q] * C[q, j]
+                            GC[i, j] = sacc
+                for i in range(3):
+                    for j in range(3):
+                        sacc = 0.0
+                        for q in range(3):
+                            sacc += Mi[i, q] * Pp[q, j]
+                        W[i, j] = sacc
+                tr = 0.0
+                for i in range(3):
+                    for j in range(3):
+                        sacc = 0.0
+                        for q in range(3):
+                            sacc += Pp[i, q] * W[q, j]
+                        cov[n, i, j] = sacc
+                if has_reg:
+                    for i in range(3):
+                        for j in range(3):
+                            sacc = 0.0
+                            for q in range(6):
+                                sacc += GC[i, q] * G[n, j, q]
+                            Mi[i, j] = sacc
+                    for i in range(3):
+                        for j in range(3):
+                            sacc = 0.0
+                            for q in range(3):
+                                sacc += Mi[i, q] * Pp[q, j]
+                            W[i, j] = sacc
+                    for i in range(3):
+                        for j in range(3):
+                            sacc = 0.0
+                            for q in range(3):
+                                sacc += Pp[i, q] * W[q, j]
+                            cov[n, i, j] += sacc
+                for i in range(3):
+                    tr += cov[n, i, i]
+                unc[n] = np.sqrt(max(tr, 0.0))
+            return cov, unc
+
+        _COMPILED_TRI.update(epipolar_candidates=epipolar_candidates, triangulate_dlt=triangulate_dlt,
+                             two_view_viterbi=two_view_viterbi, grid_build=grid_build, grid_nearest=grid_nearest,
+                             resample_polyline=resample_polyline, two_view_covariance=two_view_covariance)
+        return _COMPILED_TRI
+
+
 def viterbi_forward(acc0: np.ndarray, U: np.ndarray, C: np.ndarray, skip_cost: float):
     """Min-sum forward pass of the reconstruction's Viterbi with an early end.
 
@@ -1301,6 +1799,114 @@ def branch_ambiguity(cand: np.ndarray, excess: np.ndarray, nodes: np.ndarray, po
              float(sigma_jump_mm))
 
 
+# --- the two-view triangulation's kernels -----------------------------------------------------------
+def epipolar_candidates(F: np.ndarray, a_px: np.ndarray, b_px: np.ndarray, *, touch_px: float):
+    """Where the epipolar lines of the master samples ``a_px`` (n, 2) cross or touch the other plane's
+    wire ``b_px`` (m, 2): the loop of ``reconstruction.triangulation._candidates`` (see there) in
+    one pass, without the (n, m) distance matrix.
+
+    The line of ``a_i`` is ``F (a_i, 1)`` scaled to a unit normal; a crossing between ``b_j`` and
+    ``b_{j+1}`` (a sign change of the signed distance, ``>= 0`` counting as positive) is at
+    ``j + clip(d_j / (d_j - d_{j+1}), 0, 1)``; a touch is an interior local minimum of ``|d|``
+    below ``touch_px`` with no crossing beside it, at ``j``. Returns flat ``(i (N,) int64, j (N,),
+    sin (N,))``: all the crossings (by ``i``, then ``j``), then all the touches (same order), and
+    ``|sin|`` of the angle between ``b``'s unit tangent (``numpy.gradient``) at ``rint(j)`` and the line.
+    """
+    f = _compile_triangulation()["epipolar_candidates"]
+    return f(_in(F, np.float64), _in(a_px, np.float64).reshape(-1, 2), _in(b_px, np.float64).reshape(-1, 2),
+             float(touch_px))
+
+
+def triangulate_dlt(uv_a_px: np.ndarray, uv_b_px: np.ndarray, P_a: np.ndarray, P_b: np.ndarray) -> np.ndarray:
+    """(N, 3) points from corresponding pixels of two views (``P_a``, ``P_b`` (3, 4)): the linear
+    least squares of ``reconstruction.triangulation.triangulate_points`` (the four DLT rows
+    ``u P[2] - P[0]``, ``v P[2] - P[1]`` scaled to unit norm over their first three columns, normal
+    equations), solved per point by Gaussian elimination with partial pivoting instead of LAPACK
+    (the same to rounding)."""
+    f = _compile_triangulation()["triangulate_dlt"]
+    return f(_in(uv_a_px, np.float64).reshape(-1, 2), _in(uv_b_px, np.float64).reshape(-1, 2),
+             _in(P_a, np.float64), _in(P_b, np.float64))
+
+
+def two_view_viterbi(n: int, ia: np.ndarray, jb: np.ndarray, X: np.ndarray, unary: np.ndarray, *, step_mm: float,
+                     direction: int, max_candidates: int, max_gap: int, dense_px: float, step_tolerance_mm: float,
+                     sigma_step_mm: float, back_px: float, skip_cost: float, px_other_mm: float, spread: float):
+    """The two-view matching's Viterbi over ``n`` master samples: ``reconstruction.triangulation._viterbi``
+    (see there for the model), compiled: ``(chosen (n,) int64 candidate index or -1, cost)``.
+
+    Candidates ``q`` (``ia[q]`` the master sample, ``jb[q]`` the position along the other wire,
+    ``X[q]`` the 3D point, ``unary[q]``): per sample the ``max_candidates`` lowest ``unary`` (the
+    lower ``q`` on ties, as ``numpy.lexsort``). The pairwise cost from sample ``i - g`` to ``i``
+    (``g <= max_gap``) is ``(over^2 + jump^2) / sigma_step_mm^2 + (g - 1) skip_cost`` (1e18 when
+    the other wire's position moves back more than ``back_px``); a chain may start and end
+    anywhere at ``skip_cost`` per sample left out. Ties go to the first minimum in the numpy
+    code's order (``numpy.argmin`` over (gap, candidate))."""
+    f = _compile_triangulation()["two_view_viterbi"]
+    chosen, cost = f(int(n), _in(ia, np.int64), _in(jb, np.float64), _in(X, np.float64).reshape(-1, 3),
+                     _in(unary, np.float64), float(step_mm), float(direction), int(max_candidates), int(max_gap),
+                     float(dense_px), float(step_tolerance_mm), float(sigma_step_mm), float(back_px),
+                     float(skip_cost), float(px_other_mm), float(spread))
+    return chosen, float(cost)
+
+
+def resample_polyline(points: np.ndarray, step: float) -> tuple[np.ndarray, np.ndarray]:
+    """A polyline (N, D) resampled at equal arclength: ``n + 1`` points, ``n = max(ceil(L / step), 1)``
+    (``L`` its length), and their arclengths ``t`` (``numpy.linspace(0, L, n + 1)``): what
+    ``numpy.interp`` of each coordinate over the cumulative segment lengths gives (the same
+    formula; a zero-length segment takes its end value)."""
+    f = _compile_triangulation()["resample_polyline"]
+    P = _in(points, np.float64)
+    return f(P.reshape(len(P), -1), float(step))
+
+
+def two_view_covariance(points_lps_mm: np.ndarray, tangents: np.ndarray, cameras, *, sigma_2d_px: float,
+                        pose_jacobians=None, registration_covariance=None) -> tuple[np.ndarray, np.ndarray]:
+    """``(covariance (N, 3, 3), uncertainty (N,))`` of a two-view wire's points (the formula of
+    ``reconstruction.triangulation.triangulate_wire``'s step 5, per point in one loop).
+
+    Per plane ``(Rc, tc, focal_px)`` of ``cameras`` (two; ``x_cam = Rc X + tc``), the projection's
+    Jacobian ``J`` (2, 3) at ``X``, the 2D wire's normal ``n`` (the projected unit tangent turned
+    by 90 deg) and ``j = n^T J``: ``H = sum j j^T / sigma_2d_px^2``; the covariance is
+    ``P (H + 1e6 t t^T)^-1 P`` with ``P = I - t t^T`` (the unit tangent ``t``: a slide along the
+    wire is not an error), plus ``P G C G^T P`` when ``pose_jacobians`` ``G`` (N, 3, 6) and the
+    ``registration_covariance`` ``C`` (6, 6) are given; the uncertainty is ``sqrt(max(trace, 0))``.
+    The 3 x 3 inverse is a Gauss-Jordan elimination with partial pivoting. Where a plane sees the
+    wire along its epipolar line the matrix's condition reaches ~1e12 (the uncertainty there is tens
+    to hundreds of mm) and the result depends on the rounding of every step (of the points too: a
+    1e-12 mm change of the points moves it by ~1e-6 relative): there this loop and the numpy
+    formulation agree to ~1e-6 relative; elsewhere to ~1e-9 mm.
+    """
+    f = _compile_triangulation()["two_view_covariance"]
+    (Ra, ta, fa), (Rb, tb, fb) = ((c[0], c[1], c[2]) for c in cameras)
+    X = _in(points_lps_mm, np.float64).reshape(-1, 3)
+    has_reg = pose_jacobians is not None and registration_covariance is not None
+    G = _in(pose_jacobians if has_reg else np.zeros((1, 3, 6)), np.float64)
+    C = _in(registration_covariance if has_reg else np.zeros((6, 6)), np.float64)
+    return f(X, _in(tangents, np.float64).reshape(-1, 3), _in(Ra, np.float64), _in(ta, np.float64), float(fa),
+             _in(Rb, np.float64), _in(tb, np.float64), float(fb), float(sigma_2d_px) ** 2, G, C, has_reg)
+
+
+class NearestGrid:
+    """Exact nearest-neighbour queries among fixed points (2D or 3D) through a uniform grid of
+    cells of ``cell`` (the points' units): what ``scipy.spatial.cKDTree(points).query(q)`` answers
+    (distance, index; the lower index on an exact tie), without its per-call overhead, for
+    queries near the points (a far query visits more shells of cells)."""
+
+    def __init__(self, points: np.ndarray, cell: float):
+        P = np.ascontiguousarray(points, np.float64)
+        if P.ndim != 2 or P.shape[1] not in (2, 3) or len(P) == 0 or not np.all(np.isfinite(P)):
+            raise ValueError("NearestGrid: points must be a non-empty finite (N, 2) or (N, 3) array")
+        self.cell = float(cell)
+        self.points = _in(P, np.float64)
+        self._grid = _compile_triangulation()["grid_build"](self.points, self.cell)
+
+    def query(self, queries: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(distance (M,), index (M,) int64)`` of each query's nearest point."""
+        Q = _in(queries, np.float64).reshape(-1, self.points.shape[1])
+        lo, dims, start, order = self._grid
+        return _compile_triangulation()["grid_nearest"](self.points, lo, dims, start, order, self.cell, Q)
+
+
 def warm_up() -> None:
     """Compile (or load from the disk cache) every kernel on tiny inputs: the first live frame then
     pays no compilation."""
@@ -1321,6 +1927,7 @@ def warm_up() -> None:
         skeleton_pixels(np.eye(3, dtype=bool))
         nearest_sq_dist(np.zeros((1, 2)), np.ones((2, 2)), 1.0)
         _warm_up_reconstruction()
+        _warm_up_triangulation()
 
 
 def _warm_up_reconstruction() -> None:
@@ -1348,3 +1955,23 @@ def _warm_up_reconstruction() -> None:
     polyline_measures(pts)
     branch_ambiguity(ids, np.zeros((2, 2)), np.array([0, 1]), pts, np.arange(3.0), np.zeros(3, np.int64),
                      np.full((1, 1), np.inf), scale=2.0, sigma_jump_mm=0.5)
+
+
+def _warm_up_triangulation() -> None:
+    """Compile (or load) the two-view triangulation's kernels on tiny inputs."""
+    P_a = np.array([[1000.0, 0.0, 256.0, 0.0], [0.0, 1000.0, 256.0, 0.0], [0.0, 0.0, 1.0, 1000.0]])
+    P_b = np.array([[256.0, 0.0, -1000.0, 0.0], [0.0, 1000.0, 256.0, 0.0], [1.0, 0.0, 0.0, 1000.0]])
+    a = np.array([[250.0, 250.0], [260.0, 255.0], [270.0, 262.0]])
+    epipolar_candidates(np.eye(3), a, a[::-1], touch_px=0.7)
+    X = triangulate_dlt(a, a, P_a, P_b)
+    two_view_viterbi(3, np.arange(3), np.arange(3.0), X, np.zeros(3), step_mm=1.0, direction=1, max_candidates=2,
+                     max_gap=2, dense_px=1.0, step_tolerance_mm=0.2, sigma_step_mm=0.3, back_px=1.0, skip_cost=8.0,
+                     px_other_mm=0.2, spread=1.0)
+    for pts in (X, a):
+        NearestGrid(pts, 2.0).query(pts)
+        resample_polyline(pts, 0.5)
+    cams = ((np.eye(3), np.array([0.0, 0.0, 700.0]), 1000.0), (np.eye(3)[[2, 1, 0]], np.array([0.0, 0.0, 700.0]), 1000.0))
+    T = np.tile([1.0, 0.0, 0.0], (3, 1))
+    for reg in (None, np.eye(6)):
+        two_view_covariance(X, T, cams, sigma_2d_px=0.5, pose_jacobians=None if reg is None else np.zeros((3, 3, 6)),
+                            registration_covariance=reg)

@@ -31,10 +31,11 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
+from guidewire3d import kernels
 from guidewire3d.errors import InputError
 from guidewire3d.geometry import CArm, Pose
 from guidewire3d.reconstruction.single_view import Wire3D
-from guidewire3d.reconstruction.smoothing import arclength, curvature, fit_pspline, tangents
+from guidewire3d.reconstruction.smoothing import _pspline_system, arclength, curvature, tangents
 from guidewire3d.reconstruction.uncertainty import pose_jacobian
 from scipy.spatial import cKDTree
 
@@ -105,27 +106,15 @@ def fundamental_matrix(P_a, P_b) -> np.ndarray:
 
 
 def triangulate_points(uv_a_px, uv_b_px, P_a, P_b) -> np.ndarray:
-    """(N, 3) points (LPS mm) from corresponding pixels of two views: linear least squares (DLT)."""
-    a = np.asarray(uv_a_px, float).reshape(-1, 2)
-    b = np.asarray(uv_b_px, float).reshape(-1, 2)
-    P_a, P_b = np.asarray(P_a, float), np.asarray(P_b, float)
-    # rows u P[2] - P[0], v P[2] - P[1]: (N, 4, 4); inhomogeneous solve (X, 1)
-    A = np.stack([a[:, :1] * P_a[2] - P_a[0], a[:, 1:] * P_a[2] - P_a[1],
-                  b[:, :1] * P_b[2] - P_b[0], b[:, 1:] * P_b[2] - P_b[1]], axis=1)
-    # scale rows (pixels x depth) to comparable size
-    A = A / np.linalg.norm(A[:, :, :3], axis=2, keepdims=True)
-    M, r = A[:, :, :3], -A[:, :, 3]
-    MtM = np.einsum("nki,nkj->nij", M, M)
-    Mtr = np.einsum("nki,nk->ni", M, r)
-    return np.linalg.solve(MtM, Mtr[..., None])[..., 0]
+    """(N, 3) points (LPS mm) from corresponding pixels of two views: linear least squares (DLT: the
+    rows ``u P[2] - P[0]``, ``v P[2] - P[1]`` of both views, each scaled to unit norm over its first
+    three columns; the normal equations solved per point, compiled: ``kernels.triangulate_dlt``)."""
+    return kernels.triangulate_dlt(uv_a_px, uv_b_px, P_a, P_b)
 
 
 def _resample(uv: np.ndarray, step: float) -> tuple[np.ndarray, np.ndarray]:
-    seg = np.linalg.norm(np.diff(uv, axis=0), axis=1)
-    s = np.r_[0.0, np.cumsum(seg)]
-    n = max(int(np.ceil(s[-1] / step)), 1)
-    t = np.linspace(0.0, s[-1], n + 1)
-    return np.column_stack([np.interp(t, s, uv[:, 0]), np.interp(t, s, uv[:, 1])]), t
+    """``uv`` resampled every ~``step`` along its arclength, and the arclengths (compiled)."""
+    return kernels.resample_polyline(uv, step)
 
 
 class TwoViewContext:
@@ -141,7 +130,7 @@ class TwoViewContext:
         self.dense_pts = dense.points_lps_mm
         self.dense_rad = dense.radius_mm
         self.dense_orig = orig
-        self.kd = cKDTree(self.dense_pts)
+        self.kd = kernels.NearestGrid(self.dense_pts, 4.0)  # the nearest dense tree point (exact)
         self.s_root = tree.arclength_from_root_mm
         self.cov = None if registration_covariance is None else np.asarray(registration_covariance, float)
         # each plane's camera: R_c (rows e_u, e_v, d) and t_c of x_cam = R_c X + t_c (camera frame, mm)
@@ -190,30 +179,10 @@ class TwoViewContext:
 def _candidates(F: np.ndarray, a: np.ndarray, b: np.ndarray, opt: TwoViewOptions):
     """Per master sample ``a_i``: the positions along the other plane's wire ``b`` (fractional
     sample index) where its epipolar line ``F a_i`` crosses or touches it, and ``|sin|`` of the
-    angle between ``b`` and the line there. Returns flat arrays ``(i, j, sin)``."""
-    ah = np.column_stack([a, np.ones(len(a))])
-    lines = ah @ F.T
-    lines /= np.maximum(np.linalg.norm(lines[:, :2], axis=1, keepdims=True), 1e-12)
-    d = lines[:, :2] @ b.T + lines[:, 2:3]  # (n, m) signed distance (px) of b's samples to each line
-    s = d >= 0
-    cross = s[:, :-1] != s[:, 1:]
-    ia, jb = np.nonzero(cross)
-    d0, d1 = d[ia, jb], d[ia, jb + 1]
-    den = d0 - d1
-    frac = d0 / np.where(np.abs(den) > 1e-12, den, 1.0)
-    j = jb + np.clip(frac, 0.0, 1.0)
-    ad = np.abs(d)
-    if ad.shape[1] >= 3:  # touches: local minima of |d| below touch_px without a crossing beside them
-        mid = (ad[:, 1:-1] <= ad[:, :-2]) & (ad[:, 1:-1] <= ad[:, 2:]) & (ad[:, 1:-1] < opt.touch_px)
-        mid &= ~cross[:, :-1] & ~cross[:, 1:]
-        ti, tj = np.nonzero(mid)
-        ia = np.r_[ia, ti]
-        j = np.r_[j, tj + 1.0]
-    tb = np.gradient(b, axis=0)
-    tb /= np.maximum(np.linalg.norm(tb, axis=1, keepdims=True), 1e-12)
-    jr = np.clip(np.rint(j).astype(int), 0, len(b) - 1)
-    sin_ang = np.abs(np.sum(tb[jr] * lines[ia, :2], axis=1))
-    return ia, j, sin_ang
+    angle between ``b`` and the line there. Returns flat arrays ``(i, j, sin)``: the crossings (sign
+    changes of the signed distance along ``b``, interpolated), then the touches (local minima of
+    ``|d|`` below ``touch_px`` without a crossing beside them), compiled (``kernels.epipolar_candidates``)."""
+    return kernels.epipolar_candidates(F, a, b, touch_px=opt.touch_px)
 
 
 def _interp(b: np.ndarray, j: np.ndarray) -> np.ndarray:
@@ -222,8 +191,6 @@ def _interp(b: np.ndarray, j: np.ndarray) -> np.ndarray:
     f = (j - j0)[:, None]
     return (1 - f) * b[j0] + f * b[j1]
 
-
-_INF = 1e18
 
 
 def _viterbi(n: int, ia, jb, X, unary, step_mm: float, direction: int, opt: TwoViewOptions, *,
@@ -235,69 +202,37 @@ def _viterbi(n: int, ia, jb, X, unary, step_mm: float, direction: int, opt: TwoV
     the last matched sample (its pairwise term spans the gap), so a wrong stretch cannot hide
     behind one.
 
+    The pairwise cost from sample ``i - g`` to ``i`` (a gap of ``g - 1``): a 3D step and its two
+    projections must agree: the step along the other plane's wire cannot exceed the 3D step (a
+    jump to another part of that wire does), and the 3D step cannot exceed what both projections
+    allow (steps in mm at the isocentre, times ``spread``); beyond ``step_tolerance_mm`` it costs
+    ``(excess / sigma_step_mm)^2``; moving back along the other wire by more than ``back_px`` is
+    forbidden. Per sample the ``max_candidates`` lowest unary costs compete. Compiled
+    (``kernels.two_view_viterbi``).
+
     Returns ``(chosen, cost)``: the candidate index per sample (-1: left out) and the chain's cost."""
-    K, G = int(opt.max_candidates), int(opt.max_gap)
-    order = np.lexsort((unary, ia))
-    ia_s = ia[order]
-    starts = np.searchsorted(ia_s, np.arange(n + 1))
-    rank = np.arange(len(ia_s)) - starts[ia_s]
-    ok = rank < K
-    idx = -np.ones((n, K), int)
-    idx[ia_s[ok], rank[ok]] = order[ok]
-    has = idx >= 0
-    Xp = np.where(has[..., None], X[np.maximum(idx, 0)], np.nan)
-    jp = np.where(has, jb[np.maximum(idx, 0)], np.nan)
-    U = np.where(has, unary[np.maximum(idx, 0)], _INF)
-    # Tin[i, g - 1] (K, K): pairwise cost from sample i - g to sample i (a gap of g - 1 samples)
-    Tin = np.full((n, G, K, K), _INF)
-    for g in range(1, min(G, n - 1) + 1):
-        dX = np.linalg.norm(Xp[:-g, :, None, :] - Xp[g:, None, :, :], axis=3)
-        dj = (jp[g:, None, :] - jp[:-g, :, None]) * direction * opt.dense_px
-        # a 3D step and its two projections must agree: the step along the other plane's wire
-        # cannot exceed the 3D step (a jump to another part of that wire does), and the 3D step
-        # cannot exceed what both projections allow (steps in mm at the isocentre)
-        m_mm, o_mm = g * step_mm, np.abs(dj) * px_other_mm
-        over = np.maximum(dX - np.sqrt(m_mm**2 + o_mm**2) * spread - opt.step_tolerance_mm, 0.0)
-        jump = np.maximum(o_mm - dX - opt.step_tolerance_mm, 0.0)
-        with np.errstate(invalid="ignore"):
-            pen = np.where(dj < -opt.back_px, _INF, (over**2 + jump**2) / opt.sigma_step_mm**2)
-        Tin[g:, g - 1] = np.where(np.isfinite(pen), pen + (g - 1) * opt.skip_cost, _INF)
-    # forward pass: cost of the best chain ending at (i, k); a chain may start at i (i samples
-    # left out). costs of sample i are row i + G (G rows of INF before: no predecessor)
-    cp = np.full((n + G, K), _INF)
-    skip = float(opt.skip_cost)
-    cp[G] = U[0]
-    for i in range(1, n):
-        tot = cp[i:i + G][::-1, :, None] + Tin[i]  # (G, K, K): from (i - g, j) to (i, k)
-        cp[i + G] = np.minimum(tot.min(axis=(0, 1)), i * skip) + U[i]
-    costs = cp[G:]
-    end = costs + (n - 1 - np.arange(n))[:, None] * skip
-    i, k = np.unravel_index(int(end.argmin()), end.shape)
-    best = float(end[i, k])
-    chosen = -np.ones(n, int)
-    while True:
-        chosen[i] = idx[i, k]
-        if i == 0:
-            break
-        tot = cp[i:i + G][::-1] + Tin[i][:, :, k]  # (G, K)
-        m = float(tot.min())
-        if i * skip <= m:  # the chain starts here
-            break
-        gi, k = np.unravel_index(int(tot.argmin()), tot.shape)
-        i = int(i - 1 - gi)
-    return chosen, best
+    return kernels.two_view_viterbi(n, ia, jb, X, unary, step_mm=step_mm, direction=direction,
+                                    max_candidates=opt.max_candidates, max_gap=opt.max_gap, dense_px=opt.dense_px,
+                                    step_tolerance_mm=opt.step_tolerance_mm, sigma_step_mm=opt.sigma_step_mm,
+                                    back_px=opt.back_px, skip_cost=opt.skip_cost, px_other_mm=px_other_mm,
+                                    spread=spread)
 
 
-def _weighted_pspline(x, Y, w, lam: float, knot: float) -> np.ndarray:
+def _weighted_pspline(x, Y, w, lam: float, knot: float, camera) -> np.ndarray:
     """The single-view reconstruction's P-spline (``smoothing.fit_pspline``) with weights ``w``:
-    the fitted values of ``Y (M, D)`` at ``x (M,)``."""
-    spl, Bm = fit_pspline(x, Y, lam=lam, knot=knot, weights=w)
-    return Bm @ spl.c
+    the fitted values of ``Y (M, 3)`` at ``x (M,)``, in two compiled calls (the system, then
+    ``kernels.penalised_fit``'s banded Cholesky solve; its projection error into ``camera``, one
+    plane's ``(Rc, tc, focal_px, principal_point_px)``, is not used)."""
+    _, D, first, ab, BtY = _pspline_system(x, Y, knot=knot, weights=w)
+    Rc, tc, f, c = camera
+    Xs, _, _ = kernels.penalised_fit(D, first, ab, BtY, lam=lam, uv_px=np.zeros((len(x), 2)), Rc=Rc, tc=tc,
+                                     focal_px=f, principal_point_px=c)
+    return Xs
 
 
 def _polyline_distance_px(uv: np.ndarray, curve: np.ndarray) -> np.ndarray:
     dense, _ = _resample(curve, 0.25) if len(curve) > 1 else (curve, None)
-    return cKDTree(dense).query(uv)[0]
+    return kernels.NearestGrid(dense, 2.0).query(uv)[0]
 
 
 def projection_error_px(ctx: "TwoViewContext", k: int, points_lps_mm, wire_uv_px) -> float:
@@ -419,7 +354,7 @@ def triangulate_wire(wire_a_uv_px, wire_b_uv_px, ctx: TwoViewContext) -> TwoView
     n_outliers = 0
     if len(key) >= 5 and key[-1] - key[0] > 4 * opt.knot_px:
         lam = opt.smoothing_lambda
-        Xs = _weighted_pspline(key, X, w, lam, opt.knot_px)
+        Xs = _weighted_pspline(key, X, w, lam, opt.knot_px, ctx.cams[0])
         # one robust pass: matches far from the smooth curve (a wrong crossing that the Viterbi's
         # skip did not catch) are dropped and the curve fitted again
         r = np.linalg.norm(X - Xs, axis=1)
@@ -427,7 +362,7 @@ def triangulate_wire(wire_a_uv_px, wire_b_uv_px, ctx: TwoViewContext) -> TwoView
         n_outliers = int(out.sum())
         if 0 < n_outliers <= 0.3 * len(key) and len(key) - n_outliers >= 5:
             key, X, w, s_a, s_b = key[~out], X[~out], w[~out], s_a[~out], s_b[~out]
-            Xs = _weighted_pspline(key, X, w, lam, opt.knot_px)
+            Xs = _weighted_pspline(key, X, w, lam, opt.knot_px, ctx.cams[0])
     else:
         Xs = X.copy()
     # resample the output along the 3D arclength (~ step_px at the isocentre)
@@ -439,21 +374,10 @@ def triangulate_wire(wire_a_uv_px, wire_b_uv_px, ctx: TwoViewContext) -> TwoView
         Xs = np.column_stack([np.interp(sa, arc, Xs[:, d]) for d in range(3)])
     tan3 = tangents(Xs)
     # uncertainty: both views' information across their 2D wires, summed; inverted across the 3D wire
-    H = np.zeros((len(Xs), 3, 3))
-    for k in range(2):
-        J = ctx.jacobian(k, Xs)
-        t2 = np.einsum("nij,nj->ni", J, tan3)
-        t2 /= np.maximum(np.linalg.norm(t2, axis=1, keepdims=True), 1e-12)
-        nrm = np.column_stack([-t2[:, 1], t2[:, 0]])
-        jn = np.einsum("ni,nij->nj", nrm, J)  # (N, 3): d(across-wire px)/dX
-        H += jn[:, :, None] * jn[:, None, :] / opt.sigma_2d_px**2
-    Pperp = np.eye(3)[None] - tan3[:, :, None] * tan3[:, None, :]
-    big = 1e6 * tan3[:, :, None] * tan3[:, None, :]
-    cov = Pperp @ np.linalg.inv(H + big) @ Pperp
-    if ctx.cov is not None:
-        G = pose_jacobian(ctx.pose, Xs)
-        cov = cov + Pperp @ (G @ ctx.cov @ np.transpose(G, (0, 2, 1))) @ Pperp
-    unc = np.sqrt(np.clip(np.trace(cov, axis1=1, axis2=2), 0.0, None))
+    # (plus the registration covariance through the pose), compiled
+    G = pose_jacobian(ctx.pose, Xs) if ctx.cov is not None else None
+    cov, unc = kernels.two_view_covariance(Xs, tan3, ctx.cams, sigma_2d_px=opt.sigma_2d_px, pose_jacobians=G,
+                                           registration_covariance=ctx.cov)
     perr = tuple(projection_error_px(ctx, k, Xs, u) for k, u in ((0, ua), (1, ub)))
     arc = arclength(Xs)
     _, i = ctx.kd.query(Xs)
