@@ -42,6 +42,17 @@ _WARM = (np.float64, np.float32, np.uint8, np.uint16)
 _COMPILED: dict = {}
 
 
+def _jit(f):
+    """numba's ``njit`` (nogil), cached on disk beside the module or in the user's cache folder; with no
+    writable cache location, compiled in memory once per process."""
+    import numba
+
+    try:
+        return numba.njit(cache=True, nogil=True)(f)
+    except RuntimeError:
+        return numba.njit(cache=False, nogil=True)(f)
+
+
 def _compile():
     """The jitted functions (compiled once per process; loaded from numba's disk cache when present)."""
     with _LOCK:
@@ -49,13 +60,7 @@ def _compile():
             return _COMPILED
         import heapq
 
-        import numba
-
-        def jit(f):
-            try:  # cached on disk beside the module, or in the user's cache folder
-                return numba.njit(cache=True, nogil=True)(f)
-            except RuntimeError:  # no writable cache location: compiled in memory, once per process
-                return numba.njit(cache=False, nogil=True)(f)
+        jit = _jit
 
         @jit
         def viterbi_forward(acc0, U, C, skip_cost):
@@ -524,13 +529,7 @@ def _compile_reconstruction():
     with _LOCK:
         if _COMPILED_RECON:
             return _COMPILED_RECON
-        import numba
-
-        def jit(f):
-            try:
-                return numba.njit(cache=True, nogil=True)(f)
-            except RuntimeError:
-                return numba.njit(cache=False, nogil=True)(f)
+        jit = _jit
 
         @jit
         def viterbi_pairwise(cand, s, point_branch, branch_lca_s, points, uv_tree, uv_anchor, ss2, sj, sr):
@@ -979,13 +978,7 @@ def _compile_triangulation():
     with _LOCK:
         if _COMPILED_TRI:
             return _COMPILED_TRI
-        import numba
-
-        def jit(f):
-            try:
-                return numba.njit(cache=True, nogil=True)(f)
-            except RuntimeError:
-                return numba.njit(cache=False, nogil=True)(f)
+        jit = _jit
 
         @jit
         def epipolar_candidates(F, a, b, touch):
