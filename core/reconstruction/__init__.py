@@ -41,6 +41,7 @@ from guidewire3d.reconstruction.smoothing import (  # noqa: F401
     arclength,
     curvature,
     fit_pspline,
+    pspline_system,
     smooth_wire,
     tangents,
 )

@@ -12,7 +12,7 @@ from scipy.interpolate import BSpline
 from scipy.linalg import solveh_banded
 from scipy.sparse import csr_array
 
-__all__ = ["fit_pspline", "smooth_wire", "arclength", "tangents", "curvature"]
+__all__ = ["fit_pspline", "pspline_system", "smooth_wire", "arclength", "tangents", "curvature"]
 
 
 def _penalised_banded(ab_data: np.ndarray, lam: float) -> np.ndarray:
@@ -46,7 +46,7 @@ def _knots(x, knot: float) -> np.ndarray:
     return t
 
 
-def _pspline_system(x, Y, *, knot: float, weights=None):
+def pspline_system(x, Y, *, knot: float, weights=None):
     """The lambda-free part of :func:`fit_pspline`: knots, the design matrix's rows
     (values (M, 4) and first column (M,)), ``B^T W B`` in upper banded form (4, nb) and ``B^T W Y``
     (nb, D), from ``kernels.pspline_system``."""
@@ -83,7 +83,7 @@ def fit_pspline(x, Y, *, lam: float, knot: float, weights=None):
     design : (M, n_basis) sparse matrix
         The basis at ``x``: ``design @ spline.c`` are the fitted values at ``x``.
     """
-    t, D, first, ab, BtY = _pspline_system(x, Y, knot=knot, weights=weights)
+    t, D, first, ab, BtY = pspline_system(x, Y, knot=knot, weights=weights)
     coef = solveh_banded(_penalised_banded(ab, lam), BtY)
     M, nb = len(x), ab.shape[1]
     design = csr_array((D.ravel(), (first[:, None] + np.arange(4)).ravel(), np.arange(0, 4 * M + 1, 4)),
@@ -104,7 +104,7 @@ def smooth_wire(ctx, X, uv, *, lam: float, opt):
     x = arclength(uv)
     if len(X) < 5 or x[-1] < 2 * opt.knot_px:
         return X.copy(), lam
-    _, D, first, ab, BtY = _pspline_system(x, X, knot=opt.knot_px)
+    _, D, first, ab, BtY = pspline_system(x, X, knot=opt.knot_px)
     for _ in range(8):
         Xs, mean_px, max_px = kernels.penalised_fit(D, first, ab, BtY, lam=lam, uv_px=uv, Rc=ctx.Rc, tc=ctx.tc,
                                                     focal_px=ctx.focal, principal_point_px=ctx.carm.principal_point_px)

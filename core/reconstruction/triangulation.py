@@ -35,7 +35,7 @@ from guidewire3d import kernels
 from guidewire3d.errors import InputError
 from guidewire3d.geometry import CArm, Pose
 from guidewire3d.reconstruction.single_view import Wire3D
-from guidewire3d.reconstruction.smoothing import _pspline_system, arclength, curvature, tangents
+from guidewire3d.reconstruction.smoothing import arclength, curvature, pspline_system, tangents
 from guidewire3d.reconstruction.uncertainty import pose_jacobian
 from scipy.spatial import cKDTree
 
@@ -223,7 +223,7 @@ def _weighted_pspline(x, Y, w, lam: float, knot: float, camera) -> np.ndarray:
     the fitted values of ``Y (M, 3)`` at ``x (M,)``, in two compiled calls (the system, then
     ``kernels.penalised_fit``'s banded Cholesky solve; its projection error into ``camera``, one
     plane's ``(Rc, tc, focal_px, principal_point_px)``, is not used)."""
-    _, D, first, ab, BtY = _pspline_system(x, Y, knot=knot, weights=w)
+    _, D, first, ab, BtY = pspline_system(x, Y, knot=knot, weights=w)
     Rc, tc, f, c = camera
     Xs, _, _ = kernels.penalised_fit(D, first, ab, BtY, lam=lam, uv_px=np.zeros((len(x), 2)), Rc=Rc, tc=tc,
                                      focal_px=f, principal_point_px=c)
