@@ -600,11 +600,14 @@ def _compile_reconstruction():
             tid = np.empty(M, np.int64)
             out_dist, out_half, out_r = np.empty(M), np.empty(M), np.empty(M)
             cost = np.empty(width)
+            # each window segment's closest approach, kept for the chosen one
+            cb, cu, cs, cdist = np.empty(width), np.empty(width), np.empty(width), np.empty(width)
             for m in range(M):
                 d0, d1, d2 = d[m, 0], d[m, 1], d[m, 2]
                 for w in range(width):
-                    if lo[m] + w >= lim[m]:
-                        cost[w] = np.inf  # outside the ray's window
+                    inside = lo[m] + w < lim[m]
+                    if not inside and w > 0:
+                        cost[w] = np.inf  # outside the ray's window (segment 0 is the fallback choice)
                         continue
                     g = min(lo[m] + w, S - 1)
                     b = e0[g] * d0 + e1[g] * d1 + e2[g] * d2
@@ -614,6 +617,10 @@ def _compile_reconstruction():
                     u = min(max(u, 0.0), 1.0)
                     s_ = p + u * b
                     dist = np.sqrt(max(s_ * s_ - 2 * s_ * u * b - 2 * s_ * p + u * u * c[g] + 2 * u * q[g] + w2[g], 0.0))
+                    cb[w], cu[w], cs[w], cdist[w] = b, u, s_, dist
+                    if not inside:
+                        cost[w] = np.inf
+                        continue
                     along = (g + u - pos[m]) * seg_len[g]
                     cost[w] = (dist / dist_scale) ** 2 + (along / along_scale) ** 2
                 # the first minimum (numpy.argmin: a NaN wins, the first segment when none counts)
@@ -624,13 +631,7 @@ def _compile_reconstruction():
                     if cost[w] < cost[bw] or cost[w] != cost[w]:
                         bw = w
                 g = min(lo[m] + bw, S - 1)
-                b = e0[g] * d0 + e1[g] * d1 + e2[g] * d2
-                p = f0[g] * d0 + f1[g] * d1 + f2[g] * d2
-                den = c[g] - b * b
-                u = (p * b - q[g]) / den if den > 1e-12 else 0.5
-                u = min(max(u, 0.0), 1.0)
-                s_ = p + u * b
-                dist = np.sqrt(max(s_ * s_ - 2 * s_ * u * b - 2 * s_ * p + u * u * c[g] + 2 * u * q[g] + w2[g], 0.0))
+                b, u, s_, dist = cb[bw], cu[bw], cs[bw], cdist[bw]
                 ia, ib = P[g], P[g + 1]
                 r = radius[ia] + u * (radius[ib] - radius[ia])
                 sin2 = min(max(1.0 - b * b / max(c[g], 1e-24), 1e-6), 1.0)

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 from guidewire3d import kernels
 from guidewire3d.reconstruction.placement import ALONG_SCALE_MM, DIST_SCALE_MM
+from guidewire3d.reconstruction.smoothing import _penalised_banded  # the penalty fit_pspline adds (LAPACK path)
 from scipy.interpolate import BSpline
 from scipy.linalg import solveh_banded
 
@@ -271,24 +272,6 @@ def _normal_equations_reference(x, t, wn, Y):
     return Bm, D, J[:, 0], ab, BtY
 
 
-def _penalty(ab, lam):
-    ab = ab.copy()
-    nb = ab.shape[1]
-    w = lam / max(nb - 2, 1)
-    p0 = np.full(nb, 6.0)
-    p0[[0, -1]] = 1.0
-    if nb > 2:
-        p0[[1, -2]] = 5.0
-    p1 = np.full(nb - 1, -4.0)
-    p1[[0, -1]] = -2.0
-    if nb >= 3:
-        ab[3] += w * p0
-        ab[2, 1:] += w * p1
-        ab[1, 2:] += w * 1.0
-    ab[3] += 1e-12
-    return ab
-
-
 @pytest.mark.parametrize("nint", [1, 2, 7, 40])
 def test_pspline_kernels_are_scipy_and_lapack(nint):
     """The design rows equal SciPy's design matrix (data points on knots and at both ends
@@ -311,7 +294,7 @@ def test_pspline_kernels_are_scipy_and_lapack(nint):
     np.testing.assert_allclose(BtY, BtY_ref, rtol=RTOL, atol=1e-15)
     Rc, tc, focal, pp = _rotation(rng), np.array([1.0, 2.0, 700.0]), 3000.0, np.array([256.0, 256.0])
     for lam in (0.1, 1e-3):
-        coef = solveh_banded(_penalty(ab_ref, lam), BtY_ref)
+        coef = solveh_banded(_penalised_banded(ab_ref, lam), BtY_ref)
         Xs_ref = Bm @ coef
         xc = Xs_ref @ Rc.T + tc
         uv = focal * xc[:, :2] / xc[:, 2:3] + pp + rng.normal(0.0, 0.5, (M, 2))
