@@ -105,19 +105,51 @@ def test_roi_tracking_matches_full_frame(cases, method):
     assert seg.last_mode == "full"
 
 
-def test_roi_tracking_grows_the_boxes_when_the_wire_moved_beyond_them():
+@pytest.mark.parametrize("margin_px", [24, 16])
+def test_roi_tracking_grows_the_boxes_when_the_wire_moved_beyond_them(monkeypatch, margin_px):
     """In a sequence whose wire advances tens of px per frame (6 frames over the whole insertion),
-    the wire leaves the 24 px boxes; the grown boxes find it without a full-frame pass, and
-    every tracked mask equals the full-frame one."""
+    the wire leaves the boxes; boxes added where it left them find it without a full-frame pass,
+    every tracked mask equals the full-frame one, and the added boxes are a local extension (the
+    network is not run again over the whole band)."""
+    from guidewire3d.xray import segmentation as S
+
     sim = simulate(PhantomOptions(seed=GROW_SEED, n_frames=6, wire_diameter_mm=0.36), make_ct=False)
-    seg = GuidewireSegmenter(method="unet", roi_margin_px=24)
+    calls = []
+    unet = S.SEGMENTERS[SegMethod.UNET]
+    original = type(unet).mask
+
+    def recording(self, frame, stats, boxes, **kw):
+        calls.append(None if boxes is None else sum((v1 - v0) * (u1 - u0) for u0, v0, u1, v1 in boxes))
+        return original(self, frame, stats, boxes, **kw)
+
+    monkeypatch.setattr(type(unet), "mask", recording)
+    seg = GuidewireSegmenter(method="unet", roi_margin_px=margin_px)
+    modes = []
+    for f in sim.frames:
+        calls.clear()
+        tracked = seg.segment(f)
+        modes.append(seg.last_mode)
+        if seg.last_mode == "roi-grown":
+            first, *added = calls
+            assert 1 <= len(added) <= S.ROI_GROW_ROUNDS and sum(added) < first, calls
+        assert dice(tracked, guidewire_mask(f)) >= ROI_VS_FULL_MIN_DICE
+    assert modes[0] == "full" and "full" not in modes[1:], modes
+    assert "roi-grown" in modes, modes
+
+
+def test_roi_tracking_falls_back_to_full_frame_when_growing_does_not_catch_the_wire(cases, monkeypatch):
+    """With no growth rounds allowed, a wire that leaves its boxes is segmented full-frame."""
+    from guidewire3d.xray import segmentation as S
+
+    sim = simulate(PhantomOptions(seed=GROW_SEED, n_frames=6, wire_diameter_mm=0.36), make_ct=False)
+    monkeypatch.setattr(S, "ROI_GROW_ROUNDS", 0)
+    seg = GuidewireSegmenter(method="unet", roi_margin_px=16)
     modes = []
     for f in sim.frames:
         tracked = seg.segment(f)
         modes.append(seg.last_mode)
         assert dice(tracked, guidewire_mask(f)) >= ROI_VS_FULL_MIN_DICE
-    assert modes[0] == "full" and "full" not in modes[1:], modes
-    assert "roi-grown" in modes, modes
+    assert "roi-grown" not in modes and modes.count("full") >= 2, modes
 
 
 def test_roi_restricts_the_mask(cases):
@@ -339,6 +371,11 @@ def test_inner_border_test_on_the_boxes_union():
 
 def _touches_inner_border_plain(mask, boxes):
     """The inner-border test as it was first written: on whole-frame arrays."""
+    return bool(_inner_border_pixels_plain(mask, boxes).any())
+
+
+def _inner_border_pixels_plain(mask, boxes):
+    """The mask's pixels on the inner border of the boxes' union, on whole-frame arrays."""
     covered = np.zeros(mask.shape, bool)
     for u0, v0, u1, v1 in boxes:
         covered[v0:v1, u0:u1] = True
@@ -350,7 +387,7 @@ def _touches_inner_border_plain(mask, boxes):
     edge = covered & ~inner
     edge[0, :] = edge[-1, :] = False
     edge[:, 0] = edge[:, -1] = False
-    return bool((mask & edge).any())
+    return mask & edge
 
 
 def test_inner_border_test_is_the_whole_frame_one():
@@ -370,5 +407,8 @@ def test_inner_border_test_is_the_whole_frame_one():
         mask = covered & (rng.random((h, w)) < rng.choice([0.002, 0.02, 0.2]))
         want = _touches_inner_border_plain(mask, boxes)
         assert S._touches_inner_border(mask, boxes) == want, (boxes, np.argwhere(mask))
+        touches = S._inner_border_touches(mask, boxes)
+        np.testing.assert_array_equal(np.zeros_like(mask) if touches is None else touches,
+                                      _inner_border_pixels_plain(mask, boxes))
         agree[want] += 1
     assert min(agree.values()) > 50          # both answers exercised

@@ -97,11 +97,12 @@ COLLIMATOR_MIN_AREA = 0.01
 COLLIMATOR_MARGIN_PX = 5.0
 # The network downsamples 3 times: spatial sizes must be multiples of this.
 UNET_MULTIPLE = 8
-# ROI tracking: when the wire reaches a box border, the boxes are grown once by this factor
-# of the margin before falling back to full frame; boxes covering more than this fraction of
-# the frame are not worth it (full frame is then as cheap).
-ROI_GROW_FACTOR = 3
-ROI_GROW_MIN_PX = 72               # ... and to at least this margin (a wire advancing fast outruns 3 x 16 px)
+# ROI tracking: where the wire reaches a box border inside the frame, boxes are added over the
+# cells within ROI_GROW_PX of the pixels that reach it, up to ROI_GROW_ROUNDS times (a wire
+# advancing 140 px in a frame is still followed) before falling back to full frame; boxes
+# covering more than ROI_MAX_FRACTION of the frame are not worth it (full frame is then as cheap).
+ROI_GROW_PX = 32
+ROI_GROW_ROUNDS = 4
 ROI_MAX_FRACTION = 0.6
 UNET_CONTEXT_PX = 16               # image context around a one-off box (guidewire_mask, unet_probability)
 
@@ -725,7 +726,7 @@ def _ridge_mask(frame_a: np.ndarray, sigmas_px, roi) -> np.ndarray:
         box = np.zeros_like(out)
         box[v0:v1, u0:u1] = True
         out &= box
-    return _remove_small(out, 3 * MIN_COMPONENT_PX)
+    return out
 
 
 # --------------------------------------------------------------------------------------------------
@@ -736,36 +737,47 @@ class Segmenter(Protocol):
     """A guidewire pixel classifier: what :func:`guidewire_mask` and :class:`GuidewireSegmenter`
     run for a :class:`SegMethod` (:data:`SEGMENTERS`)."""
 
+    #: connected components smaller than this (pixels) are dropped from a mask
+    min_component_px: int
+
     def mask(self, frame: np.ndarray, stats: tuple[float, float], boxes, *, backend: Backend,
-             num_threads: int | None, context_px: int) -> np.ndarray:
+             num_threads: int | None, context_px: int, clean: bool = True) -> np.ndarray:
         """The (H, W) bool wire mask of a raw, non-degenerate frame inside ``boxes``
         (``(u0, v0, u1, v1)`` px, end-exclusive; ``None``: the whole frame), False outside.
-        ``stats`` is the frame's ``(median, spread)`` (:func:`normalize_frame`)."""
+        ``stats`` is the frame's ``(median, spread)`` (:func:`normalize_frame`). With ``clean=False``
+        components smaller than ``min_component_px`` are kept (the caller joins masks of several
+        calls and drops them from the union: a piece cut by a box border is not small)."""
         ...
 
 
 class UNetSegmenter:
     """The shipped UNet (onnxruntime or torch); boxes of equal size are batched."""
 
-    def mask(self, frame, stats, boxes, *, backend, num_threads, context_px):
+    min_component_px = MIN_COMPONENT_PX
+
+    def mask(self, frame, stats, boxes, *, backend, num_threads, context_px, clean=True):
         runner, config = _get_runner(backend, None, num_threads)
         boxes = [(0, 0, frame.shape[1], frame.shape[0])] if boxes is None else boxes
         m = _run_unet_boxes(frame, stats, boxes, runner, context_px=context_px, threshold=config.threshold)
-        return _remove_small(m) if m.any() else m
+        return _remove_small(m, self.min_component_px) if clean and m.any() else m
 
 
 class RidgeSegmenter:
     """The classical multi-scale Hessian ridge detector (no network), on the boxes' bounding box."""
 
-    def mask(self, frame, stats, boxes, *, backend, num_threads, context_px):
+    min_component_px = 3 * MIN_COMPONENT_PX
+
+    def mask(self, frame, stats, boxes, *, backend, num_threads, context_px, clean=True):
         if boxes is None:
-            return _ridge_mask(frame, RIDGE_SIGMAS_PX, None)
-        covered = np.zeros(frame.shape, bool)
-        for u0, v0, u1, v1 in boxes:
-            covered[v0:v1, u0:u1] = True
-        vv, uu = np.nonzero(covered.any(axis=1))[0], np.nonzero(covered.any(axis=0))[0]
-        bbox = (int(uu[0]), int(vv[0]), int(uu[-1]) + 1, int(vv[-1]) + 1)
-        return _ridge_mask(frame, RIDGE_SIGMAS_PX, bbox) & covered
+            m = _ridge_mask(frame, RIDGE_SIGMAS_PX, None)
+        else:
+            covered = np.zeros(frame.shape, bool)
+            for u0, v0, u1, v1 in boxes:
+                covered[v0:v1, u0:u1] = True
+            vv, uu = np.nonzero(covered.any(axis=1))[0], np.nonzero(covered.any(axis=0))[0]
+            bbox = (int(uu[0]), int(vv[0]), int(uu[-1]) + 1, int(vv[-1]) + 1)
+            m = _ridge_mask(frame, RIDGE_SIGMAS_PX, bbox) & covered
+        return _remove_small(m, self.min_component_px) if clean and m.any() else m
 
 
 #: The segmenter of each :class:`SegMethod` (a test checks that every member has one).
@@ -936,11 +948,13 @@ def _cover_cells(cells: np.ndarray, shape, g: int, context_px: int, call_cost_px
             for i0, i1, j0, j1 in kernels.cover_cells(cells, g, context_px, call_cost_px)]
 
 
-def _touches_inner_border(mask: np.ndarray, boxes) -> bool:
-    """Whether ``mask`` has a pixel on the border of the boxes' union that is not the frame border
-    (the wire left the boxes there): a pixel of a box's side whose outward 4-neighbour no box
-    covers, pixels of the frame's first and last rows and columns excepted."""
+def _inner_border_touches(mask: np.ndarray, boxes) -> np.ndarray | None:
+    """The pixels of ``mask`` on the border of the boxes' union that is not the frame border (where
+    the wire left the boxes), as an (H, W) bool image, or ``None`` when there are none: pixels of a
+    box's side whose outward 4-neighbour no box covers, the frame's first and last rows and
+    columns excepted."""
     h, w = mask.shape
+    touches = None
 
     def uncovered(v0, v1, u0, u1):
         """Pixels of the one-pixel-thick strip [v0:v1, u0:u1] that no box covers."""
@@ -959,15 +973,41 @@ def _touches_inner_border(mask: np.ndarray, boxes) -> bool:
         for row, out in ((v0, v0 - 1), (v1 - 1, v1)):
             if 0 < row < h - 1 and a < b:
                 m = mask[row, a:b]
-                if m.any() and (m & uncovered(out, out + 1, a, b)).any():
-                    return True
+                if m.any():
+                    hit = m & uncovered(out, out + 1, a, b)
+                    if hit.any():
+                        touches = np.zeros((h, w), bool) if touches is None else touches
+                        touches[row, a:b] |= hit
         a, b = max(v0, 1), min(v1, h - 1)
         for col, out in ((u0, u0 - 1), (u1 - 1, u1)):
             if 0 < col < w - 1 and a < b:
                 m = mask[a:b, col]
-                if m.any() and (m & uncovered(a, b, out, out + 1)).any():
-                    return True
-    return False
+                if m.any():
+                    hit = m & uncovered(a, b, out, out + 1)
+                    if hit.any():
+                        touches = np.zeros((h, w), bool) if touches is None else touches
+                        touches[a:b, col] |= hit
+    return touches
+
+
+def _touches_inner_border(mask: np.ndarray, boxes) -> bool:
+    """Whether ``mask`` reaches the border of the boxes' union inside the frame (:func:`_inner_border_touches`)."""
+    return _inner_border_touches(mask, boxes) is not None
+
+
+def _boxes_cells(boxes, shape, g: int) -> np.ndarray:
+    """(ceil(H / g), ceil(W / g)) bool: the ``g`` x ``g`` cells the cell-aligned ``boxes`` cover."""
+    h, w = shape
+    cells = np.zeros((-(-h // g), -(-w // g)), bool)
+    for u0, v0, u1, v1 in boxes:
+        cells[v0 // g:-(-v1 // g), u0 // g:-(-u1 // g)] = True
+    return cells
+
+
+def _cells_pixels(cells: np.ndarray, shape, g: int) -> np.ndarray:
+    """(H, W) bool: the pixels of the True ``g`` x ``g`` cells."""
+    h, w = shape
+    return np.repeat(np.repeat(cells, g, axis=0), g, axis=1)[:h, :w]
 
 
 @dataclass(kw_only=True)
@@ -978,11 +1018,12 @@ class GuidewireSegmenter:
     are segmented only inside boxes covering the previous mask dilated by ``roi_margin_px``
     (:func:`cover_boxes`: a few boxes that follow the wire; several run in parallel, one per
     inference thread); each box gets ``context_px`` of surrounding image as network context.
-    If the result touches a box border that is not the frame border (the wire moved or advanced
-    beyond the boxes), the boxes are grown once around the previous and the new mask by
-    ``ROI_GROW_FACTOR`` x ``roi_margin_px`` (at least ``ROI_GROW_MIN_PX``) and the frame is segmented
-    again inside them; if that
-    still touches a border, or the result is empty, the frame is re-segmented full-frame. Every
+    Where the result touches a box border that is not the frame border (the wire moved or advanced
+    beyond the boxes), boxes are added over the cells within ``ROI_GROW_PX`` of the touching pixels
+    that no box covered yet, and only they are
+    segmented (the boxes already seen keep their answer), up to ``ROI_GROW_ROUNDS`` times; if the
+    wire still touches a border then, or the result is empty, or the boxes would cover more than
+    ``ROI_MAX_FRACTION`` of the frame, the frame is re-segmented full-frame. Every
     ``full_frame_every`` frames a full-frame pass is forced. ``last_mode`` says which pass gave
     the mask (``"roi"``, ``"roi-grown"``, ``"full"`` or ``"degenerate"``).
 
@@ -1016,7 +1057,6 @@ class GuidewireSegmenter:
     wire_radius_px: float | None = None
     _prev: np.ndarray | None = field(default=None, init=False, repr=False)
     _count: int = field(default=0, init=False, repr=False)
-    _touch: np.ndarray | None = field(default=None, init=False, repr=False)
     last_mode: str = field(default="", init=False)
 
     def __post_init__(self):
@@ -1034,49 +1074,51 @@ class GuidewireSegmenter:
         self.last_mode = ""
 
     # --- boxes ------------------------------------------------------------------------------------
-    def _boxes(self, prev: np.ndarray, margin_px: int) -> list[tuple[int, int, int, int]]:
-        """:func:`cover_boxes` of ``prev`` dilated by ``margin_px`` (:func:`band_cells`)."""
-        return _cover_cells(band_cells(prev, margin_px, UNET_MULTIPLE), prev.shape, UNET_MULTIPLE,
-                            self.context_px, CALL_COST_PX)
+    def _cover(self, cells: np.ndarray, shape) -> list[tuple[int, int, int, int]]:
+        """:func:`cover_boxes` of a cell grid."""
+        return _cover_cells(cells, shape, UNET_MULTIPLE, self.context_px, CALL_COST_PX)
 
     def _full(self, a: np.ndarray, stats) -> np.ndarray:
         self.last_mode = "full"
         return SEGMENTERS[self.method].mask(a, stats, None, backend=self.backend, num_threads=self.num_threads,
                                             context_px=self.context_px)
 
-    def _tracked(self, a: np.ndarray, prev: np.ndarray, stats):
-        first = self._in_boxes(a, prev, stats, self.roi_margin_px)
-        if first is True:                             # touched a box border: grow once
-            grown = self._in_boxes(a, prev, stats, max(ROI_GROW_FACTOR * self.roi_margin_px, ROI_GROW_MIN_PX),
-                                   seed_extra=self._touch)
-            if isinstance(grown, np.ndarray):
-                self.last_mode = "roi-grown"
-                return grown
+    def _tracked(self, a: np.ndarray, prev: np.ndarray, stats) -> np.ndarray | None:
+        """The mask in boxes around ``prev`` (grown where the wire leaves them), or ``None`` when
+        the frame must be segmented full-frame."""
+        g, seg = UNET_MULTIPLE, SEGMENTERS[self.method]
+        limit_px = ROI_MAX_FRACTION * a.size
+        covered = band_cells(prev, self.roi_margin_px, g)
+        boxes = self._cover(covered, a.shape)
+        area_px = sum((v1 - v0) * (u1 - u0) for u0, v0, u1, v1 in boxes)
+        if not boxes or area_px > limit_px:
             return None
-        if isinstance(first, np.ndarray):
-            self.last_mode = "roi"
-            return first
+        raw = seg.mask(a, stats, boxes, backend=self.backend, num_threads=self.num_threads,
+                       context_px=self.context_px, clean=False)
+        covered = _boxes_cells(boxes, a.shape, g)
+        for grown in range(ROI_GROW_ROUNDS + 1):
+            if not raw.any():
+                return None
+            mask = _remove_small(raw, seg.min_component_px)
+            if not mask.any():
+                return None
+            touches = _inner_border_touches(mask, boxes)
+            if touches is None:
+                self.last_mode = "roi-grown" if grown else "roi"
+                return mask
+            if grown == ROI_GROW_ROUNDS:
+                return None
+            new_cells = band_cells(touches, ROI_GROW_PX, g) & ~covered
+            new_boxes = self._cover(new_cells, a.shape)
+            area_px += sum((v1 - v0) * (u1 - u0) for u0, v0, u1, v1 in new_boxes)
+            if not new_boxes or area_px > limit_px:
+                return None
+            more = seg.mask(a, stats, new_boxes, backend=self.backend, num_threads=self.num_threads,
+                            context_px=self.context_px, clean=False)
+            raw = raw | (more & ~_cells_pixels(covered, a.shape, g))      # a pixel seen already keeps its answer
+            boxes = boxes + new_boxes
+            covered = covered | _boxes_cells(new_boxes, a.shape, g)
         return None
-
-    def _in_boxes(self, a: np.ndarray, prev: np.ndarray, stats, margin_px: int, seed_extra=None):
-        """Mask inside the boxes around ``prev`` (| ``seed_extra``): the mask, ``False`` when it is
-        empty, ``True`` when it touches an inner box border (kept in ``self._touch``), ``None``
-        when there are no boxes or they cover most of the frame (full frame is then cheaper)."""
-        seed = prev if seed_extra is None else (prev | seed_extra)
-        boxes = self._boxes(seed, margin_px)
-        if not boxes:
-            return None
-        if sum((v1 - v0) * (u1 - u0) for u0, v0, u1, v1 in boxes) > ROI_MAX_FRACTION * a.size:
-            return None
-        mask = SEGMENTERS[self.method].mask(a, stats, boxes, backend=self.backend, num_threads=self.num_threads,
-                                            context_px=self.context_px)
-        if not mask.any():
-            return False
-        # the wire must not reach a box border that is inside the frame
-        if _touches_inner_border(mask, boxes):
-            self._touch = mask
-            return True
-        return mask
 
     def segment(self, frame) -> np.ndarray:
         """Segment the next frame; returns an (H, W) bool mask (empty when no wire is seen)."""
