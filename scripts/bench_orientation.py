@@ -1,10 +1,14 @@
-"""Which end is the tip: frame verdicts against the truth when the CTA misses the proximal vessels.
+"""Which end is the tip, and is it the tip: frame verdicts against the truth.
 
 The simulated tree is cut ``--cut`` mm below its root along the wire's path (the wire's proximal
 part then runs beyond the segmented tree and projects over other branches); each frame goes
-through ``live.Session`` at the true pose. A tip at the wrong end must never be ``ok``.
+through ``live.Session`` at the true pose. A tip at the wrong end must never be ``ok``; nor should
+a tip far short of the true one (a stretch of the wire lost by the segmenter before its tip):
+the last columns count the ``ok`` frames whose tip is more than ``--tip-mm`` from the true
+(visible) tip, and the frames made ``uncertain`` by a piece of the wire beyond the traced tip.
 
     nice .venv/bin/python scripts/bench_orientation.py --seeds 20 --cut 0 25 40
+    nice .venv/bin/python scripts/bench_orientation.py --seeds 20 --frames 6 --cut 0 --wire-diameter 0.25
 """
 from __future__ import annotations
 
@@ -32,13 +36,18 @@ def main() -> int:
     ap.add_argument("--seeds", type=int, default=20)
     ap.add_argument("--frames", type=int, default=3)
     ap.add_argument("--cut", type=float, nargs="+", default=[0.0, 25.0, 40.0])
+    ap.add_argument("--seed0", type=int, default=0)
+    ap.add_argument("--wire-diameter", type=float, default=None, help="mm (default: the simulator's, per seed)")
+    ap.add_argument("--tip-mm", type=float, default=5.0, help="a right-end tip farther than this from the true one is off")
     args = ap.parse_args()
 
     from guidewire3d.app import bench
     from guidewire3d.live import session as live
     from guidewire3d.phantom import PhantomOptions, simulate
 
-    cases = [simulate(PhantomOptions(seed=s, n_frames=args.frames), make_ct=False) for s in range(args.seeds)]
+    seeds = range(args.seed0, args.seed0 + args.seeds)
+    cases = [simulate(PhantomOptions(seed=s, n_frames=args.frames, wire_diameter_mm=args.wire_diameter), make_ct=False)
+             for s in seeds]
     rows = []
     for cut in args.cut:
         n = collections.Counter()
@@ -53,12 +62,23 @@ def main() -> int:
                          < np.linalg.norm(fr.wire3d.points_lps_mm[-1] - true_tip))
                 n["n"] += 1
                 n[(fr.verdict.value, wrong)] += 1
+                visible_tip = case.wire_lps_mm[t][np.asarray(case.wire_visible[t], bool)][-1]
+                tip_mm = float(np.linalg.norm(fr.tip_lps_mm - visible_tip))
+                if fr.verdict.value == "ok" and not wrong:
+                    n["ok_tip_off"] += tip_mm > args.tip_mm
+                    n["ok_tip_max"] = max(n["ok_tip_max"], tip_mm)
+                if getattr(fr.wire2d, "beyond_tip", None) is not None:
+                    n["beyond"] += 1
+                    n["beyond_off"] += tip_mm > args.tip_mm
         rows.append(["whole tree" if cut <= 0 else f"cut {cut:g} mm below the root", n["n"], n[("ok", False)],
-                     n[("uncertain", False)], n[("uncertain", True)], n[("ok", True)]])
-    print(f"seeds 0-{args.seeds - 1}, {args.frames} frames each, true pose; machine: {bench.machine_line()}, "
-          f"load average {os.getloadavg()[0]:.1f}")
+                     n[("uncertain", False)], n[("uncertain", True)], n[("ok", True)],
+                     n["ok_tip_off"], f"{n['ok_tip_max']:.1f}", f"{n['beyond']} ({n['beyond_off']})"])
+    wire = "simulator's" if args.wire_diameter is None else f"{args.wire_diameter:g} mm"
+    print(f"seeds {seeds[0]}-{seeds[-1]}, {args.frames} frames each, true pose, {wire} wire; machine: "
+          f"{bench.machine_line()}, load average {os.getloadavg()[0]:.1f}")
     print(bench._table(["tree", "frames reconstructed", "ok, right end", "uncertain, right end", "uncertain, wrong end",
-                        "ok, WRONG end"], rows))
+                        "ok, WRONG end", f"ok, right end, tip > {args.tip_mm:g} mm off", "largest ok tip error mm",
+                        f"wire beyond the tip: uncertain (tip > {args.tip_mm:g} mm off)"], rows))
     return 0
 
 

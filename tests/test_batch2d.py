@@ -44,7 +44,9 @@ def test_segment_xa_frames_against_the_truth(small_case, small_case_dir, tmp_pat
         truth = np.asarray(small_case.wire_uv_px[t])[np.asarray(small_case.wire_visible[t])]
         assert rec["wire"]["success"]
         tips.append(np.linalg.norm(uv[-1] - truth[-1]))
-        np.testing.assert_allclose(uv, np.asarray(ordered_wire(mask, image=frame)), atol=0.01)
+        ow = ordered_wire(mask, image=frame)
+        np.testing.assert_allclose(uv, np.asarray(ow), atol=0.01)
+        assert (rec["wire"]["beyond_tip"] is None) == (ow.beyond_tip is None)
     assert np.median(tips) <= TIP_MEDIAN_TOL_PX
     # The overlay draws that wire in yellow.
     from scipy.spatial import cKDTree

@@ -557,3 +557,35 @@ def test_wire_graph_spectrum_bad_input():
         wire_graph_spectrum(np.zeros((1, 2)), np.zeros((16, 16)))
     with pytest.raises(InputError, match="sigma_g"):
         wire_graph_spectrum(np.zeros((3, 2)), np.zeros((16, 16)), sigma_g=0.0)
+
+
+def test_a_piece_beyond_the_tip_makes_the_tip_uncertain():
+    """A stretch of the wire lost by the segmenter leaves a piece beyond the traced tip, in line
+    with it and too far to bridge: the ordered wire says so; a piece off to the side, one beyond
+    the proximal end, one too short or one too far does not count."""
+    from guidewire3d.xray.orderedwire import BEYOND_TIP_MAX_GAP_PX, BEYOND_TIP_MIN_LENGTH_PX
+
+    shape, hint = (200, 320), (0.0, 100.0)
+    wire = np.column_stack([np.linspace(60, 160, 200), np.full(200, 100.0)])        # tip at u = 160
+
+    def traced(*pieces):
+        m = _rasterise(wire, shape, 1.5)
+        for p in pieces:
+            m |= _rasterise(p, shape, 1.5)
+        ow = ordered_wire(m, proximal_hint_uv=hint)
+        assert ow and np.linalg.norm(ow.points_uv_px[-1] - wire[-1]) <= TIP_TOL   # the tip traced is the same
+        return ow
+
+    assert traced().beyond_tip is None
+    lost = np.column_stack([np.linspace(200, 240, 80), np.linspace(100, 108, 80)])  # 40 px beyond, in line
+    ow = traced(lost)
+    assert ow.beyond_tip is not None
+    assert ow.beyond_tip.gap_px == pytest.approx(40.0, abs=3.0)
+    assert ow.beyond_tip.length_px == pytest.approx(np.hypot(40, 8), abs=6.0)
+    assert "tip uncertain" in ow.beyond_tip.explain()
+    side = np.column_stack([np.full(80, 180.0), np.linspace(130, 170, 80)])         # off to the side (about 60 deg)
+    before = np.column_stack([np.linspace(5, 45, 80), np.full(80, 100.0)])          # beyond the proximal end
+    short = np.column_stack([np.linspace(200, 200 + BEYOND_TIP_MIN_LENGTH_PX - 6, 20), np.full(20, 100.0)])
+    far = np.column_stack([np.linspace(165 + BEYOND_TIP_MAX_GAP_PX, 305, 40), np.full(40, 100.0)])
+    for other in (side, before, short, far):
+        assert traced(other).beyond_tip is None, other[[0, -1]]

@@ -12,7 +12,8 @@ vessel mask (:func:`guidewire3d.xray.roadmap.vessel_mask`), the guidewire mask
 - ``segment.json``: the options and, per image, its source, frame, shape, the vessel-mask
   fraction and the ordered wire (``success``, ``message``, ``length_px``, ``points_uv_px``, and
   ``presence``: the evidence of :func:`guidewire3d.xray.wirepresence.wire_presence`; a frame without a
-  wire has ``success: false`` and ``message`` "no guidewire in the frame: <why>").
+  wire has ``success: false`` and ``message`` "no guidewire in the frame: <why>"; ``beyond_tip``: a
+  piece of the wire mask beyond the traced tip and in line with it, so the tip is not settled, or null).
 
 ``<name>`` is the file's stem, with ``_fNNNN`` for the frames of a multi-frame file. Every input
 is read and checked before anything is computed, and the folder appears only when complete.
@@ -146,6 +147,10 @@ def analyse(image: InputImage, *, what: str = "both", segmenter: str = "unet", w
             "points_uv_px": np.round(np.asarray(ow), 3).tolist() if ow else [],
             # issue #20: is the traced curve a guidewire (False: "no guidewire in the frame: <why>")
             "presence": ow.presence.as_dict() if ow.presence is not None else None,
+            # a piece of the mask beyond the tip, in line with the wire: the tip is not settled
+            "beyond_tip": None if ow.beyond_tip is None else {
+                "length_px": round(ow.beyond_tip.length_px, 1), "gap_px": round(ow.beyond_tip.gap_px, 1),
+                "angle_deg": round(ow.beyond_tip.angle_deg, 1), "message": ow.beyond_tip.explain()},
         }
     return rec, masks
 

@@ -8,7 +8,8 @@ the viewer's *apply*, the Slicer logic and, for streaming, ``guidewire3d live``.
 3. 3D wire inside the vessel tree (``reconstruction.WireTracker``: the previous frame's path is a
    prior, a failed frame does not replace it);
 4. the frame's verdict: ``ok``, ``uncertain`` (a 3D wire exists but something about it is not
-   settled: which end is the tip) or ``failed``, with the reason.
+   settled: which end is the tip, or whether the wire goes on beyond its tip through a stretch the
+   segmenter lost) or ``failed``, with the reason.
 
 Which end is the tip rests on two independent cues. In 2D, the proximal end is the one nearer the
 projected root of the vessel tree (``hint_margin``: how much nearer, relative). In 3D, a wire
@@ -344,6 +345,10 @@ class Session:
         verdict, message = Verdict.OK, w3.message
         if ori is not None and (ori.conflict or not ori.determined):
             verdict, message = Verdict.UNCERTAIN, ori.explain()
+        beyond = getattr(wire2d, "beyond_tip", None)
+        if beyond is not None:          # the segmenter may have lost a stretch of the wire before its tip
+            message = beyond.explain() + (f"; {message}" if verdict is not Verdict.OK else "")
+            verdict = Verdict.UNCERTAIN
         if motion is not None and not motion.success:
             message = f"motion: {motion.message}" + (f"; {message}" if verdict is not Verdict.OK else "")
             verdict = Verdict.UNCERTAIN

@@ -40,6 +40,7 @@ from scipy import sparse
 from scipy.sparse import csgraph
 
 __all__ = [
+    "BeyondTip",
     "OrderedWire",
     "ordered_wire",
     "WireSpectrum",
@@ -58,6 +59,12 @@ BRIDGE_MAX_ANGLE_DEG = 50.0       # gap vector vs each end's outward tangent
 TURN_PENALTY_PX = 4.0            # trail score: length - this x (1 - cos turn) at each junction
 TRACE_MAX_STEPS = 5000            # search budget of the trail search
 BRIDGE_FREE_PX = 2.5              # gaps up to this length are bridged regardless of direction
+# A piece of the mask left out of the wire that lies beyond the tip, in line with it, makes the tip
+# uncertain (the wire may continue there, through a stretch the segmenter lost): a piece whose
+# traced length is at least this ...
+BEYOND_TIP_MIN_LENGTH_PX = 15.0
+BEYOND_TIP_MAX_GAP_PX = 80.0      # ... whose nearer end is at most this far from the tip ...
+BEYOND_TIP_MAX_ANGLE_DEG = 40.0   # ... and within this angle of the tip's outward tangent
 TIP_CAP_FRACTION = 0.25          # mask end cap beyond the tip, x local width (flat 0 .. round 0.5)
 PROFILE_STEP_PX = 0.5            # sampling step across the normal (centring)
 REFINE_STEP_PX = 0.25             # sampling step along the tangent (end extension)
@@ -106,6 +113,19 @@ def _pixel_graph(rr: np.ndarray, cc: np.ndarray, shape: tuple[int, int]) -> _Pix
 # Ordered guidewire
 # --------------------------------------------------------------------------------------------
 
+@dataclass(frozen=True)
+class BeyondTip:
+    """A piece of the wire mask beyond an ordered wire's tip (see ``OrderedWire.beyond_tip``)."""
+
+    length_px: float     #: the piece's traced length
+    gap_px: float        #: from the tip to the piece's nearer end
+    angle_deg: float     #: between the tip's outward tangent and the direction to that end
+
+    def explain(self) -> str:
+        return (f"tip uncertain: a wire-like piece of {self.length_px:.0f} px lies {self.gap_px:.0f} px beyond the "
+                f"tip, in line with the wire ({self.angle_deg:.0f} deg); the wire may continue there")
+
+
 @dataclass(frozen=True, eq=False)
 class OrderedWire:
     """Ordered 2D guidewire polyline (falsy when extraction failed).
@@ -125,6 +145,10 @@ class OrderedWire:
         Polyline length, px.
     n_gaps_bridged : int
         Number of breaks in the mask that were bridged.
+    beyond_tip : BeyondTip or None
+        A piece of the mask that the wire does not include, lying beyond its tip and in line with
+        it (``BEYOND_TIP_*``): the wire may continue there, so the tip is not settled. None when
+        there is none.
     presence : WirePresence or None
         The presence test of the traced curve (:func:`guidewire3d.xray.wirepresence.wire_presence`;
         None when it did not run: no image, ``check_presence=False``, or no curve was traced).
@@ -138,6 +162,7 @@ class OrderedWire:
     length_px: float = 0.0
     n_gaps_bridged: int = 0
     presence: WirePresence | None = None
+    beyond_tip: "BeyondTip | None" = None
 
     def __bool__(self) -> bool:
         return bool(self.success)
@@ -377,10 +402,10 @@ def _end_tangent(path: np.ndarray, at_end: bool) -> np.ndarray:
 
 def _bridge(paths, max_gap_px: float):
     """Join path ends that are close and whose directions agree; return the longest chain as one
-    ordered (row, col) array and the number of bridges on it."""
+    ordered (row, col) array, the number of bridges on it and the indices of its pieces."""
     n = len(paths)
     if n == 1 or max_gap_px <= 0:
-        return paths[0][0], 0
+        return paths[0][0], 0, {0}
     ends = []                                      # (piece, at_end, point, outward tangent)
     for i, (p, _) in enumerate(paths):
         ends.append((i, False, p[0], _end_tangent(p, False)))
@@ -419,15 +444,16 @@ def _bridge(paths, max_gap_px: float):
         used[i] = used[j] = True
         link[i], link[j] = j, i
     # Walk the chains: start from a piece end with no link (every chain is acyclic).
-    best, best_len, best_bridges = None, -1.0, 0
+    best, best_len, best_bridges, best_pieces = None, -1.0, 0, set()
     seen = np.zeros(n, bool)
     for start in range(len(ends)):
         if start in link or seen[piece[start]]:
             continue
-        seq, total, bridges, e = [], 0.0, 0, start
+        seq, total, bridges, e, pieces = [], 0.0, 0, start, set()
         while True:
             i = piece[e]
             seen[i] = True
+            pieces.add(int(i))
             p, length = paths[i]
             forward = not ends[e][1]               # entering at the first point: keep the order
             seq.append(p if forward else p[::-1])
@@ -440,8 +466,33 @@ def _bridge(paths, max_gap_px: float):
             bridges += 1
             e = nxt
         if total > best_len:
-            best, best_len, best_bridges = np.vstack(seq), total, bridges
-    return best, best_bridges
+            best, best_len, best_bridges, best_pieces = np.vstack(seq), total, bridges, pieces
+    return best, best_bridges, best_pieces
+
+
+def _beyond_tip(uv: np.ndarray, paths, used: set, offset_uv: np.ndarray) -> BeyondTip | None:
+    """The piece (of ``paths``, (row, col) arrays in the ROI whose origin is ``offset_uv``) not in
+    ``used`` that lies beyond the tip ``uv[-1]`` of the ordered wire and in line with it
+    (``BEYOND_TIP_*``), the nearest if several; None if there is none."""
+    k = min(TANGENT_BACK_PX, len(uv) - 1)
+    t = uv[-1] - uv[-1 - k]
+    if k < 1 or not np.linalg.norm(t) > 0:
+        return None
+    t = t / np.linalg.norm(t)
+    cmin = np.cos(np.radians(BEYOND_TIP_MAX_ANGLE_DEG))
+    best = None
+    for i, (p, length) in enumerate(paths):
+        if i in used or length < BEYOND_TIP_MIN_LENGTH_PX:
+            continue
+        for end in (p[0], p[-1]):
+            d = end[::-1] + offset_uv - uv[-1]
+            gap = float(np.linalg.norm(d))
+            if gap > BEYOND_TIP_MAX_GAP_PX or gap <= 0:
+                continue
+            c = float(d @ t) / gap
+            if c >= cmin and (best is None or gap < best.gap_px):
+                best = BeyondTip(float(length), gap, float(np.degrees(np.arccos(min(c, 1.0)))))
+    return best
 
 
 def _smooth_polyline(p: np.ndarray, sigma_px: float) -> np.ndarray:
@@ -645,7 +696,7 @@ def ordered_wire(mask, *, image=None, proximal_hint_uv=None, max_gap_px: float =
     paths = _longest_paths(sr, sc, m.shape, merge_px=4.0 * half_width + 2.0)
     if not paths:
         return _failed("no skeleton piece of the mask is long enough to be a guidewire")
-    path_rc, n_bridges = _bridge(paths, float(max_gap_px))
+    path_rc, n_bridges, used = _bridge(paths, float(max_gap_px))
     if len(path_rc) < 2:
         return _failed("no skeleton piece of the mask is long enough to be a guidewire")
     raw_len = float(np.linalg.norm(np.diff(path_rc, axis=0), axis=1).sum())
@@ -703,8 +754,9 @@ def ordered_wire(mask, *, image=None, proximal_hint_uv=None, max_gap_px: float =
     if flip:
         uv = uv[::-1].copy()
     length = float(np.linalg.norm(np.diff(uv, axis=0), axis=1).sum())
+    beyond = _beyond_tip(uv, paths, used, np.array([o_c, o_r], float)) if len(paths) > 1 else None
     return OrderedWire(points_uv_px=uv, success=True, message="ok", length_px=length,
-                       n_gaps_bridged=int(n_bridges), presence=presence)
+                       n_gaps_bridged=int(n_bridges), presence=presence, beyond_tip=beyond)
 
 
 # --------------------------------------------------------------------------------------------
