@@ -67,16 +67,19 @@ def main() -> int:
                 if fr.verdict.value == "ok" and not wrong:
                     n["ok_tip_off"] += tip_mm > args.tip_mm
                     n["ok_tip_max"] = max(n["ok_tip_max"], tip_mm)
+                if fr.verdict.value == "uncertain" and not wrong:
+                    n["unc_tip_off"] += tip_mm > args.tip_mm
                 if getattr(fr.wire2d, "beyond_tip", None) is not None:
                     n["beyond"] += 1
                     n["beyond_off"] += tip_mm > args.tip_mm
         rows.append(["whole tree" if cut <= 0 else f"cut {cut:g} mm below the root", n["n"], n[("ok", False)],
-                     n[("uncertain", False)], n[("uncertain", True)], n[("ok", True)],
+                     f"{n[('uncertain', False)]} ({n['unc_tip_off']})", n[("uncertain", True)], n[("ok", True)],
                      n["ok_tip_off"], f"{n['ok_tip_max']:.1f}", f"{n['beyond']} ({n['beyond_off']})"])
     wire = "simulator's" if args.wire_diameter is None else f"{args.wire_diameter:g} mm"
     print(f"seeds {seeds[0]}-{seeds[-1]}, {args.frames} frames each, true pose, {wire} wire; machine: "
           f"{bench.machine_line()}, load average {os.getloadavg()[0]:.1f}")
-    print(bench._table(["tree", "frames reconstructed", "ok, right end", "uncertain, right end", "uncertain, wrong end",
+    print(bench._table(["tree", "frames reconstructed", "ok, right end", f"uncertain, right end (tip > {args.tip_mm:g} mm off)",
+                        "uncertain, wrong end",
                         "ok, WRONG end", f"ok, right end, tip > {args.tip_mm:g} mm off", "largest ok tip error mm",
                         f"wire beyond the tip: uncertain (tip > {args.tip_mm:g} mm off)"], rows))
     return 0

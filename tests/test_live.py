@@ -216,3 +216,64 @@ def test_a_wire_lost_before_its_tip_is_not_reported_ok():
         if tip_error_mm > 10.0:
             assert fr.verdict is not Verdict.OK, (t, tip_error_mm, fr.message)
     assert n_flagged >= 2
+
+
+def _cut_distal(tree, path_ids, keep_mm: float):
+    """The tree without the subtree below the wire path's point ``keep_mm`` short of the path's
+    end (a CTA that misses the distal vessel the wire has entered)."""
+    s = tree.arclength_from_root_mm
+    node = path_ids[np.searchsorted(s[path_ids], s[path_ids[-1]] - keep_mm)]
+    drop = np.zeros(tree.n_points, bool)
+    for i in tree.order:  # root first
+        drop[i] = i == node or (tree.parent[i] >= 0 and drop[tree.parent[i]])
+    return tree.subtree(~drop)
+
+
+def test_a_tip_beyond_the_tree_is_not_reported_ok():
+    """The CTA tree misses the distal vessel: the wire's distal part is placed beyond the tree by
+    extrapolation, its tip uncertainty grows, and a frame whose tip is more than 5 mm off is not
+    ``ok`` (the message says the tip is uncertain and by how much)."""
+    case = simulate(PhantomOptions(seed=1, n_frames=4), make_ct=False)
+    tree = _cut_distal(case.tree, case.wire_path_point_ids, 25.0)
+    session = live.Session(tree, case.carm, case.pose)
+    n_off = 0
+    for t, frame in enumerate(case.frames):
+        fr = session.process(frame)
+        if not fr:
+            continue
+        visible = np.asarray(case.wire_visible[t], bool)
+        tip_error_mm = np.linalg.norm(fr.tip_lps_mm - case.wire_lps_mm[t][visible][-1])
+        if tip_error_mm > 5.0:
+            n_off += 1
+            assert fr.verdict is Verdict.UNCERTAIN, (t, tip_error_mm, fr.message)
+            assert "tip uncertain" in fr.message
+        if fr.verdict is Verdict.OK:
+            assert fr.wire3d.uncertainty_mm[-1] <= live.TIP_MAX_UNCERTAINTY_MM
+    assert n_off >= 1
+
+
+def test_frame_verdict_lists_every_reason():
+    """The verdict of a frame with a 3D wire: ok, or uncertain with each reason that applies."""
+    from types import SimpleNamespace
+
+    from guidewire3d.xray.orderedwire import BeyondTip
+
+    uv = np.column_stack([np.linspace(100, 300, 50), np.full(50, 200.0)])
+    w3 = SimpleNamespace(uncertainty_mm=np.full(50, 0.5), message="ok: 50 points", reversed_input=False)
+    assert live.frame_verdict(w3, uv, None, image_shape=(512, 512)) == (Verdict.OK, "ok: 50 points")
+    verdict, message = live.frame_verdict(w3, uv, None, beyond_tip=BeyondTip(40.0, 30.0, 5.0), image_shape=(512, 512))
+    assert verdict is Verdict.UNCERTAIN and message.startswith("tip uncertain: a wire-like piece of 40 px")
+    at_border = uv.copy()
+    at_border[-1] = (511.0, 200.0)
+    verdict, message = live.frame_verdict(w3, at_border, None, image_shape=(512, 512))
+    assert verdict is Verdict.UNCERTAIN and message.startswith("tip not in view")
+    # the reconstruction reversed the 2D order: the 2D start is the output's tip
+    rev = SimpleNamespace(**{**vars(w3), "reversed_input": True})
+    assert live.frame_verdict(rev, at_border, None, image_shape=(512, 512))[0] is Verdict.OK
+    assert live.frame_verdict(rev, at_border[::-1], None, image_shape=(512, 512))[0] is Verdict.UNCERTAIN
+    wide = SimpleNamespace(**{**vars(w3), "uncertainty_mm": np.r_[np.full(49, 0.5), live.TIP_MAX_UNCERTAINTY_MM + 1]})
+    verdict, message = live.frame_verdict(wide, at_border, None, image_shape=(512, 512),
+                                          motion=SimpleNamespace(success=False, message="the curve does not fit"))
+    assert verdict is Verdict.UNCERTAIN
+    assert [m.split(":")[0] for m in message.split("; ") if m.split(":")[0] in ("tip not in view", "tip uncertain", "motion")] \
+        == ["tip not in view", "tip uncertain", "motion"]

@@ -8,8 +8,9 @@ the viewer's *apply*, the Slicer logic and, for streaming, ``guidewire3d live``.
 3. 3D wire inside the vessel tree (``reconstruction.WireTracker``: the previous frame's path is a
    prior, a failed frame does not replace it);
 4. the frame's verdict: ``ok``, ``uncertain`` (a 3D wire exists but something about it is not
-   settled: which end is the tip, or whether the wire goes on beyond its tip through a stretch the
-   segmenter lost) or ``failed``, with the reason.
+   settled: which end is the tip, whether the wire goes on beyond its tip through a stretch the
+   segmenter lost, where the tip is (``TIP_MAX_UNCERTAINTY_MM``), or whether it is in view at all) or
+   ``failed``, with the reason.
 
 Which end is the tip rests on two independent cues. In 2D, the proximal end is the one nearer the
 projected root of the vessel tree (``hint_margin``: how much nearer, relative). In 3D, a wire
@@ -35,7 +36,7 @@ from guidewire3d.vesseltree import VesselTree
 from guidewire3d.xray import segmentation
 from guidewire3d.xray.orderedwire import OrderedWire, ordered_wire
 
-__all__ = ["Orientation", "FrameResult", "Session", "orientation_of"]
+__all__ = ["Orientation", "FrameResult", "Session", "orientation_of", "frame_verdict"]
 
 log = logging.getLogger(__name__)
 
@@ -49,6 +50,14 @@ HINT_MARGIN_ALONE = 0.5
 #: the 3D cue speaks when the path through the tree rises (or falls) by at least this much (mm);
 #: the same as ``ReconOptions.reverse_mm``, the reconstruction's own reversal trigger
 TREE_RISE_MIN_MM = 5.0
+#: a tip whose own uncertainty (``Wire3D.uncertainty_mm[-1]``, 1 sigma) is larger than this is not
+#: reported ``ok``: it was placed beyond the end of the vessel tree's path by extrapolation, or
+#: another branch explains the wire's distal part about as well (on simulated frames with the
+#: true tree, correct tips stay below 2 mm)
+TIP_MAX_UNCERTAINTY_MM = 3.0
+#: a 2D wire whose distal end is this close to the image border (px) runs out of the view there:
+#: its tip is not seen (it may re-enter the image elsewhere)
+TIP_BORDER_PX = 1.5
 
 
 @dataclass(frozen=True, eq=False)
@@ -342,16 +351,8 @@ class Session:
             return FrameResult(index, wire2d, w3, Verdict.FAILED, w3.message, None, time.perf_counter() - t0,
                                timestamp, self.pose, motion, stages)
         ori = orientation_of(w3, uv, root_uv_px=self.root_uv_px) if self.method == "vessel" else None
-        verdict, message = Verdict.OK, w3.message
-        if ori is not None and (ori.conflict or not ori.determined):
-            verdict, message = Verdict.UNCERTAIN, ori.explain()
-        beyond = getattr(wire2d, "beyond_tip", None)
-        if beyond is not None:          # the segmenter may have lost a stretch of the wire before its tip
-            message = beyond.explain() + (f"; {message}" if verdict is not Verdict.OK else "")
-            verdict = Verdict.UNCERTAIN
-        if motion is not None and not motion.success:
-            message = f"motion: {motion.message}" + (f"; {message}" if verdict is not Verdict.OK else "")
-            verdict = Verdict.UNCERTAIN
+        verdict, message = frame_verdict(w3, uv, ori, beyond_tip=getattr(wire2d, "beyond_tip", None),
+                                         motion=motion, image_shape=self.carm.shape)
         return FrameResult(index, wire2d, w3, verdict, message, ori, time.perf_counter() - t0, timestamp,
                            self.pose, motion, stages)
 
@@ -359,6 +360,45 @@ class Session:
         """Yield a :class:`FrameResult` for each frame of an iterable, in order."""
         for k, frame in enumerate(frames):
             yield self.process(frame, index=start_index + k)
+
+
+def frame_verdict(wire3d, wire_uv_px, orientation, *, beyond_tip=None, motion=None, image_shape=None):
+    """``(Verdict, message)`` of a frame with a 3D wire: ``OK`` with the reconstruction's message,
+    or ``UNCERTAIN`` with every reason that applies, the first first:
+
+    * which end is the tip is not settled (``orientation``: :class:`Orientation`, or None);
+    * a piece of the wire mask lies beyond the traced tip (``beyond_tip``: ``orderedwire.BeyondTip``);
+    * the wire runs out of the image (``image_shape``, rows and cols) at its distal end;
+    * the tip's uncertainty exceeds ``TIP_MAX_UNCERTAINTY_MM``;
+    * the frame's motion update did not fit (``motion``: its ``RegistrationResult``).
+    """
+    uv = np.asarray(wire_uv_px, float).reshape(-1, 2)
+    reversed_ = bool(getattr(wire3d, "reversed_input", False))
+    why = []
+    if orientation is not None and (orientation.conflict or not orientation.determined):
+        why.append(orientation.explain())
+    if beyond_tip is not None and not reversed_:      # the segmenter may have lost a stretch before the tip
+        why.append(beyond_tip.explain())
+    distal_uv = uv[0] if reversed_ else uv[-1]         # the output's tip, in 2D
+    if image_shape is not None and len(uv) and _at_border(distal_uv, image_shape):
+        why.append(f"tip not in view: the wire runs out of the image at its distal end "
+                   f"(u {distal_uv[0]:.0f}, v {distal_uv[1]:.0f} px)")
+    tip_sigma_mm = float(wire3d.uncertainty_mm[-1]) if len(wire3d.uncertainty_mm) else 0.0
+    if tip_sigma_mm > TIP_MAX_UNCERTAINTY_MM:
+        why.append(f"tip uncertain: its position is known to {tip_sigma_mm:.1f} mm (1 sigma, limit "
+                   f"{TIP_MAX_UNCERTAINTY_MM:g} mm); {wire3d.message}")
+    if motion is not None and not motion.success:
+        why.append(f"motion: {motion.message}")
+    if not why:
+        return Verdict.OK, wire3d.message
+    return Verdict.UNCERTAIN, "; ".join(why)
+
+
+def _at_border(uv_px, shape) -> bool:
+    """Whether a point ``(u, v)`` lies within ``TIP_BORDER_PX`` of the border of an image of ``shape`` (rows, cols)."""
+    u, v = float(uv_px[0]), float(uv_px[1])
+    rows, cols = shape
+    return min(u, v, cols - 1 - u, rows - 1 - v) <= TIP_BORDER_PX
 
 
 def _finite_or_none(x):
