@@ -1684,7 +1684,6 @@ def _compile_cta():
                         u, w = node, nb
                         path_ids[m] = u
                         m += 1
-                        length = 0.0
                         while True:
                             euw = -1
                             for f in range(indptr[u], indptr[u + 1]):
@@ -1703,15 +1702,25 @@ def _compile_cta():
                                     break
                             path_ids[m] = w
                             m += 1
-                            length += data[euw]
                             if degrees[w] != 2 or w == start:
                                 break
                             a, b = indices[indptr[w]], indices[indptr[w] + 1]
                             nxt = a if a != u else b
                             u, w = w, nxt
-                        lengths[n_paths] = length
                         n_paths += 1
                         path_ptr[n_paths] = m
+            # lengths as skan's _path_distance: the weight of each consecutive pair's edge (0 if none)
+            for k in range(n_paths):
+                length = 0.0
+                for i in range(path_ptr[k], path_ptr[k + 1] - 1):
+                    u, w = path_ids[i], path_ids[i + 1]
+                    d = 0.0
+                    for f in range(indptr[u], indptr[u + 1]):
+                        if indices[f] == w:
+                            d = data[f]
+                            break
+                    length += d
+                lengths[k] = length
             return path_ptr[:n_paths + 1], path_ids[:m], lengths[:n_paths]
 
         _COMPILED_CTA.update(frangi_at=frangi_at, dilate_ball=dilate_ball, skeleton_paths=skeleton_paths)

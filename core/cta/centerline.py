@@ -12,6 +12,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from guidewire3d import kernels
 from guidewire3d.cta.grid import affine_zyx, bbox, check_grid, derivs_at, edt_mm, progress_bar, seeds_to_index
 from guidewire3d.errors import SegmentationError
 from guidewire3d.vesseltree import VesselTree
@@ -286,7 +287,6 @@ def centerline_from_mask(mask_zyx, *, spacing_mm, origin_lps_mm, direction=None,
        median-filtered along the branch. (Sampling ``D`` at voxel centres, off the axis,
        underestimates the radius by up to half a voxel.)
     """
-    from skan import Skeleton
     from skimage.morphology import skeletonize
 
     opt = options or CenterlineOptions()
@@ -342,12 +342,12 @@ def centerline_from_mask(mask_zyx, *, spacing_mm, origin_lps_mm, direction=None,
     if skel.sum() < 2:
         raise SegmentationError("centerline_from_mask: no vessels found (the mask is too small for a centerline)")
     for _ in range(50):
-        sk = Skeleton(skel, spacing=tuple(sp_zyx))
+        sk = _SkeletonPaths.of(skel, sp_zyx)
         n_paths = sk.n_paths
         if n_paths <= 1:
             break
         deg = sk.degrees
-        lengths = sk.path_lengths()
+        lengths = sk.lengths
         prune = []
         for k in range(n_paths):
             ids = sk.path(k)
@@ -376,7 +376,7 @@ def centerline_from_mask(mask_zyx, *, spacing_mm, origin_lps_mm, direction=None,
             prune.extend(k for _, k in lst)
         if not prune:
             break
-        skel = _skeleton_image(sk.prune_paths(prune), mp.shape)
+        skel = sk.pruned(skel, prune)
         skel = skeletonize(skel).astype(bool) if skel.any() else skel
         if skel.sum() < 2:
             raise SegmentationError("centerline_from_mask: no vessels found (only spurs)")
@@ -397,11 +397,48 @@ def centerline_from_mask(mask_zyx, *, spacing_mm, origin_lps_mm, direction=None,
     return VesselTree(pts_lps, rad, par)
 
 
-def _skeleton_image(sk, shape) -> np.ndarray:
-    img = np.zeros(shape, bool)
-    c = np.round(sk.coordinates).astype(int)
-    img[tuple(c.T)] = True
-    return img
+@dataclass(frozen=True)
+class _SkeletonPaths:
+    """A voxel skeleton's paths between end points and junctions: what skan's ``Skeleton`` gave this
+    module (``n_paths``, ``degrees``, ``path(k)``, ``path_lengths()``, ``coordinates``,
+    ``prune_paths``), the same numbers in the same order, from skan's pixel graph
+    (``skeleton_to_csgraph``: 26-neighbours, edges weighted by their length in mm, junction clusters
+    reduced to their minimum spanning tree) and skan's walk compiled in :mod:`guidewire3d.kernels`
+    (skan's own walk runs on numba jitclasses, compiled anew in every process: ~5 s).
+    """
+
+    degrees: np.ndarray  # (N,) graph degree of each skeleton voxel
+    coordinates: np.ndarray  # (N, 3) int voxel indices
+    path_ptr: np.ndarray  # (P + 1,)
+    path_ids: np.ndarray  # node ids of path k: path_ids[path_ptr[k]:path_ptr[k + 1]]
+    lengths: np.ndarray  # (P,) mm
+
+    @classmethod
+    def of(cls, skel: np.ndarray, sp_zyx: np.ndarray) -> "_SkeletonPaths":
+        from skan.csr import skeleton_to_csgraph
+
+        graph, coords = skeleton_to_csgraph(skel, spacing=tuple(sp_zyx))
+        ptr, ids, lengths = kernels.skeleton_paths(graph.indptr, graph.indices, graph.data)
+        return cls(np.diff(graph.indptr), np.transpose(coords), ptr, ids, lengths)
+
+    @property
+    def n_paths(self) -> int:
+        return len(self.path_ptr) - 1
+
+    def path(self, k: int) -> np.ndarray:
+        return self.path_ids[self.path_ptr[k]:self.path_ptr[k + 1]]
+
+    def pruned(self, skel: np.ndarray, paths) -> np.ndarray:
+        """``skel`` without the voxels of ``paths`` other than junctions, thinned again (skan's
+        ``Skeleton.prune_paths``)."""
+        from skimage.morphology import skeletonize
+
+        img = skel.copy()
+        for k in paths:
+            ids = self.path(k)
+            ids = ids[~(self.degrees[ids] > 2)]
+            img[tuple(self.coordinates[ids].T)] = False
+        return (skeletonize(img) * img).astype(bool)
 
 
 def _voxel_tree(vox: np.ndarray, D_mm: np.ndarray, sp_zyx: np.ndarray, seed_zyx):

