@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 from guidewire3d import kernels
 from guidewire3d.cta import segment
-from guidewire3d.cta.grid import edt_mm
 from guidewire3d.cta.centerline import _SkeletonPaths
+from guidewire3d.cta.grid import edt_mm
 from scipy import ndimage as ndi
 
 SPACINGS = [np.array([2.5, 0.703125, 0.703125]), np.array([0.5, 0.5, 0.5]), np.array([1.0, 0.8, 0.6])]

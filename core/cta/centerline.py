@@ -414,7 +414,7 @@ class _SkeletonPaths:
     lengths: np.ndarray  # (P,) mm
 
     @classmethod
-    def of(cls, skel: np.ndarray, sp_zyx: np.ndarray) -> "_SkeletonPaths":
+    def of(cls, skel: np.ndarray, sp_zyx: np.ndarray) -> _SkeletonPaths:
         from skan.csr import skeleton_to_csgraph
 
         graph, coords = skeleton_to_csgraph(skel, spacing=tuple(sp_zyx))
