@@ -473,14 +473,54 @@ def centerline_from_mask(mask_zyx, *, spacing_mm, origin_lps_mm, direction=None,
     return VesselTree(pts_lps, rad, par)
 
 
+def _skeleton_graph(skel: np.ndarray, sp_zyx):
+    """skan's ``skeleton_to_csgraph(skel, spacing=sp_zyx)`` (0.13), the same calls in the same order:
+    the 26-neighbour graph of the skeleton's voxels (``nodes``: their raveled indices, in order),
+    edges weighted by their length (mm), each cluster of junction voxels (degree > 2) reduced to its
+    minimum spanning tree. Importing skan (pandas, networkx) took 1-2 s a process.
+    """
+    from scipy import sparse
+    from scipy.sparse import csgraph
+
+    spacing = np.ones(3, dtype=float) * np.asarray(sp_zyx, dtype=float)
+    padded = np.pad(skel, 1, mode="constant", constant_values=False)
+    nodes_padded = np.flatnonzero(padded)
+    # neighbour offsets sorted by length (skan.nputil._raveled_offsets_and_distances)
+    fp = ndi.generate_binary_structure(rank=3, connectivity=3)
+    offsets = np.stack(np.nonzero(fp), axis=-1) - np.array(fp.shape) // 2
+    ravel_factors = np.cumprod((padded.shape[1:] + (1,))[::-1])[::-1]
+    raveled = (offsets * ravel_factors).sum(axis=1)
+    distances = np.sqrt(np.sum((offsets * spacing) ** 2, axis=1))
+    raveled, distances = raveled[np.argsort(distances)], np.sort(distances)
+    neighbors_padded = nodes_padded[:, np.newaxis] + raveled
+    nodes = np.flatnonzero(skel)
+    neighbors_mask = padded.reshape(-1)[neighbors_padded]
+    rows = np.repeat(np.arange(nodes.size), np.sum(neighbors_mask, axis=1))
+    cols = np.searchsorted(nodes_padded, neighbors_padded[neighbors_mask])  # padded index -> node number
+    data = np.broadcast_to(distances, neighbors_padded.shape)[neighbors_mask]
+    csmat = sparse.coo_matrix((data, (rows, cols)), shape=(nodes.size, nodes.size)).tocsr()
+    # skan.csr._mst_junctions
+    csc_graph = csmat.tocsc()
+    degrees = np.asarray(csmat.astype(bool).astype(int).sum(axis=0))
+    non_junction = np.flatnonzero(degrees < 3)
+    for start, end in zip(csc_graph.indptr[non_junction], csc_graph.indptr[non_junction + 1]):
+        csc_graph.data[start:end] = 0
+    csr_graph = csc_graph.tocsr()
+    for start, end in zip(csr_graph.indptr[non_junction], csr_graph.indptr[non_junction + 1]):
+        csr_graph.data[start:end] = 0
+    csr_graph.eliminate_zeros()
+    mst = csgraph.minimum_spanning_tree(csr_graph)
+    non_tree_edges = csr_graph - (mst + mst.T)
+    return csmat - non_tree_edges, nodes
+
+
 @dataclass(frozen=True)
 class _SkeletonPaths:
     """A voxel skeleton's paths between end points and junctions: what skan's ``Skeleton`` gave this
     module (``n_paths``, ``degrees``, ``path(k)``, ``path_lengths()``, ``coordinates``,
     ``prune_paths``), the same numbers in the same order, from skan's pixel graph
-    (``skeleton_to_csgraph``: 26-neighbours, edges weighted by their length in mm, junction clusters
-    reduced to their minimum spanning tree) and skan's walk compiled in :mod:`guidewire3d.kernels`
-    (skan's own walk runs on numba jitclasses, compiled anew in every process: ~5 s).
+    (:func:`_skeleton_graph`) and skan's walk compiled in :mod:`guidewire3d.kernels` (skan's own
+    walk runs on numba jitclasses, compiled anew in every process: ~5 s).
     """
 
     degrees: np.ndarray  # (N,) graph degree of each skeleton voxel
@@ -491,11 +531,9 @@ class _SkeletonPaths:
 
     @classmethod
     def of(cls, skel: np.ndarray, sp_zyx: np.ndarray) -> _SkeletonPaths:
-        from skan.csr import skeleton_to_csgraph
-
-        graph, coords = skeleton_to_csgraph(skel, spacing=tuple(sp_zyx))
+        graph, nodes = _skeleton_graph(skel, sp_zyx)
         ptr, ids, lengths = kernels.skeleton_paths(graph.indptr, graph.indices, graph.data)
-        return cls(np.diff(graph.indptr), np.transpose(coords), ptr, ids, lengths)
+        return cls(np.diff(graph.indptr), np.transpose(np.unravel_index(nodes, skel.shape)), ptr, ids, lengths)
 
     @property
     def n_paths(self) -> int:
