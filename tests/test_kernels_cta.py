@@ -110,3 +110,14 @@ def test_frangi_at_equals_first_kernel():
         b = kernels.frangi_at(F, idx, sp, s, alpha=0.5, beta=0.5, gamma=0.15)
         assert (a > 0).mean() > 0.05
         assert np.array_equal(a, b)
+
+
+def test_frangi_at_threads_same_values():
+    rng = np.random.default_rng(4)
+    F = ndi.gaussian_filter(rng.random((40, 60, 60)), 1.5).astype(np.float32)
+    idx = np.argwhere(np.ones((38, 58, 58), bool)) + 1
+    sp = np.array([2.5, 0.7, 0.7])
+    one = kernels.frangi_at(F, idx, sp, 1.6, alpha=0.5, beta=0.5, gamma=0.15)
+    two = kernels.frangi_at(F, idx, sp, 1.6, alpha=0.5, beta=0.5, gamma=0.15, threads=2)
+    assert len(idx) > 2 * 50_000 and (one > 0).mean() > 0.05
+    assert np.array_equal(one, two)

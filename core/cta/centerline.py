@@ -101,6 +101,12 @@ def _ridge_from(m, D_vox, sp_rel, eps, delta) -> np.ndarray:
     return out
 
 
+def _dilate_cube(m: np.ndarray) -> np.ndarray:
+    """``ndi.binary_dilation(m, structure=np.ones((3, 3, 3)))`` as a separable maximum filter (the
+    same voxels, a few times faster)."""
+    return ndi.maximum_filter(np.asarray(m, dtype=bool).view(np.uint8), size=3, mode="constant", cval=0).view(bool)
+
+
 def _smooth_polyline(p: np.ndarray, sigma_pts: float, fix_ends: bool = True) -> np.ndarray:
     if len(p) < 3 or sigma_pts <= 0:
         return p.copy()
@@ -404,7 +410,7 @@ def centerline_from_mask(mask_zyx, *, spacing_mm, origin_lps_mm, direction=None,
     D = D_mm / np.float32(h)
     ridge = _ridge_from(mp, _smoothed(D, sp_rel, opt.ridge_sigma_vox), sp_rel, opt.ridge_eps, opt.ridge_delta)
     Ds = _smoothed(D, sp_rel, opt.refine_sigma_vox)
-    support = ndi.binary_dilation(ridge, structure=np.ones((3, 3, 3)))
+    support = _dilate_cube(ridge)
     bar.update()
 
     # -- skeleton + skan pruning
@@ -621,14 +627,19 @@ def _branches_to_points(par, root, vox, pos, Ds, D_mm, mp, sp_zyx, sp_rel, h, op
         br = runs()
         changed = False
         has_child = {pb for _, pb in br if pb >= 0}
+        # the leaf runs' lengths, and those of the leaves starting at each node (in run order)
+        leaf_len, leaves_at = {}, {}
+        for k2, (i2, _) in enumerate(br):
+            if k2 not in has_child:
+                leaf_len[k2] = np.linalg.norm(np.diff(vox[i2] * sp_zyx, axis=0), axis=1).sum()
+                leaves_at.setdefault(i2[0], []).append(leaf_len[k2])
         for k, (ids, pb) in enumerate(br):
             if k in has_child or pb < 0 and len(br) == 1:
                 continue
             if len(children[ids[0]]) < 2 and ids[0] != root:
                 continue
-            length = np.linalg.norm(np.diff(vox[ids] * sp_zyx, axis=0), axis=1).sum()
-            sibling_leaves = [np.linalg.norm(np.diff(vox[i2] * sp_zyx, axis=0), axis=1).sum()
-                              for k2, (i2, _) in enumerate(br) if i2[0] == ids[0] and k2 not in has_child]
+            length = leaf_len[k]
+            sibling_leaves = leaves_at[ids[0]]
             n_other = len(children[ids[0]]) + (0 if ids[0] == root else 1) - 1
             if len(sibling_leaves) >= n_other and length >= max(sibling_leaves):
                 continue  # the node would become an end: keep its longest spur
@@ -661,7 +672,7 @@ def _branches_to_points(par, root, vox, pos, Ds, D_mm, mp, sp_zyx, sp_rel, h, op
 
     from scipy.spatial import cKDTree
 
-    bnd = ~mp & ndi.binary_dilation(mp, structure=np.ones((3, 3, 3)))
+    bnd = ~mp & _dilate_cube(mp)
     bg_tree = cKDTree(np.argwhere(bnd) * sp_zyx)
     h_mean = float(np.prod(sp_zyx) ** (1 / 3))
     occ = mp.astype(np.float32)

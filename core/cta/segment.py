@@ -122,7 +122,7 @@ def frangi_at(img_zyx: np.ndarray, idx_zyx: np.ndarray, spacing_zyx, scales_mm, 
         sm = sitk.GetArrayFromImage(sitk.SmoothingRecursiveGaussian(im, sigma=float(s)))
         # Hessian (derivs_at's stencils) x s^2, its eigenvalues sorted by magnitude, Frangi's formula:
         # one compiled pass (kernels.frangi_at; was numpy's eigvalsh, argsort and a dozen array passes)
-        v = kernels.frangi_at(sm, idx[inner], sp, float(s), alpha=alpha, beta=beta, gamma=gamma)
+        v = kernels.frangi_at(sm, idx[inner], sp, float(s), alpha=alpha, beta=beta, gamma=gamma, threads=2)
         del sm
         if return_scale:
             better = np.zeros(len(idx), bool)
