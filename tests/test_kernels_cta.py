@@ -97,6 +97,10 @@ def test_skeleton_paths_equal_skan():
         img = np.zeros(skel.shape, bool)
         img[tuple(np.round(pr.coordinates).astype(int).T)] = True
         assert np.array_equal(got.pruned(skel, term), img)
+        # Lee's thinning is idempotent (the centerline thins a pruned skeleton once, not twice)
+        from skimage.morphology import skeletonize
+
+        assert np.array_equal(skeletonize(img).astype(bool), img)
 
 
 def test_frangi_at_equals_first_kernel():

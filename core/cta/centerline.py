@@ -458,8 +458,9 @@ def centerline_from_mask(mask_zyx, *, spacing_mm, origin_lps_mm, direction=None,
             prune.extend(k for _, k in lst)
         if not prune:
             break
+        # (thinned once: Lee's thinning stops after a sweep of its six directions that removes
+        # nothing, so thinning its output again, as this loop did, returns it unchanged)
         skel = sk.pruned(skel, prune)
-        skel = skeletonize(skel).astype(bool) if skel.any() else skel
         if skel.sum() < 2:
             raise SegmentationError("centerline_from_mask: no vessels found (only spurs)")
     bar.update()
