@@ -217,6 +217,39 @@ def test_quadratic_smoothing_keeps_circles():
     assert err(qn) < 0.6 * err(noisy)
 
 
+def test_batched_smoothing_and_centring_equal_one_by_one():
+    """The centerline smooths and centres all branches in one pass: the same numbers as branch by branch."""
+    from guidewire3d.cta.centerline import (
+        _cross_section_centres,
+        _cross_section_centres_many,
+        _smooth_polyline_quadratic,
+        _smooth_polylines_quadratic,
+    )
+
+    rng = np.random.default_rng(11)
+    lines = []
+    for n in (1, 2, 3, 4, 5, 9, 40, 130, 7, 300):
+        ang = np.sort(rng.uniform(0.0, 2.0, n))  # uneven steps
+        lines.append(np.column_stack([20 + 8 * np.cos(ang), 20 + 8 * np.sin(ang), 0.3 * np.arange(n)])
+                     + rng.normal(0, 0.05, (n, 3)))
+    lines.append(np.repeat(lines[-1][:1], 6, axis=0))  # a degenerate one (all points equal)
+    got = _smooth_polylines_quadratic(lines, 1.0)
+    for p, q in zip(lines, got):
+        assert np.array_equal(q, _smooth_polyline_quadratic(p, 1.0))
+    assert [q.shape for q in _smooth_polylines_quadratic(lines, 0.0)] == [p.shape for p in lines]
+    # centring in a tube mask (z, y, x) = a ring of radius 8 mm, 3 mm thick, around (20, 20) in (z, y)
+    sp = np.array([0.5, 0.5, 0.5])
+    zz, yy, xx = np.mgrid[:90, :90, :40] * 0.5
+    occ = ((np.hypot(zz - 20, yy - 20) - 8) ** 2 + (xx - 10) ** 2 <= 9).astype(np.float32)
+    qs = [np.column_stack([20 + 8 * np.cos(a), 20 + 8 * np.sin(a), 10 + 0.2 * np.sin(3 * a)])
+          for a in (np.linspace(0, 1.5, 31), np.linspace(2, 2.1, 2), np.linspace(3, 4.5, 50))]
+    rs = [np.full(len(q), 3.0) for q in qs]
+    many = _cross_section_centres_many(qs, rs, occ, sp, chunk=17)  # chunks across polylines
+    for q, r, c in zip(qs, rs, many):
+        assert np.array_equal(c, _cross_section_centres(q, r, occ, sp)[0])
+    assert not np.array_equal(many[0], qs[0])
+
+
 def test_centerline_errors():
     with pytest.raises(SegmentationError, match="no vessels found"):
         centerline_from_mask(np.zeros((10, 10, 10), bool), spacing_mm=(1, 1, 1), origin_lps_mm=(0, 0, 0))

@@ -12,6 +12,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from guidewire3d import kernels
 from guidewire3d.cta.grid import affine_zyx, bbox, check_grid, derivs_at, edt_mm, progress_bar, seeds_to_index
 from guidewire3d.errors import SegmentationError
 from guidewire3d.vesseltree import VesselTree
@@ -100,6 +101,12 @@ def _ridge_from(m, D_vox, sp_rel, eps, delta) -> np.ndarray:
     return out
 
 
+def _dilate_cube(m: np.ndarray) -> np.ndarray:
+    """``ndi.binary_dilation(m, structure=np.ones((3, 3, 3)))`` as a separable maximum filter (the
+    same voxels, a few times faster)."""
+    return ndi.maximum_filter(np.asarray(m, dtype=bool).view(np.uint8), size=3, mode="constant", cval=0).view(bool)
+
+
 def _smooth_polyline(p: np.ndarray, sigma_pts: float, fix_ends: bool = True) -> np.ndarray:
     if len(p) < 3 or sigma_pts <= 0:
         return p.copy()
@@ -152,9 +159,82 @@ def _smooth_polyline_quadratic(p: np.ndarray, sigma: float, fix_ends: bool = Tru
     return q
 
 
+def _smooth_polylines_quadratic(ps: list, sigma: float, fix_ends: bool = True) -> list:
+    """:func:`_smooth_polyline_quadratic` of every polyline of ``ps``, in one pass over all of them.
+
+    The same sums in the same order for each point (its window never leaves its polyline), so the
+    same numbers; one numpy pass per window offset instead of one per offset and polyline (the
+    centerline of a chest CTA has ~900 polylines).
+    """
+    out = [np.array(p, dtype=float, copy=True) for p in ps]
+    sel = [k for k, p in enumerate(ps) if len(p) >= 4] if sigma > 0 else []
+    if not sel:
+        return out
+    lens = np.array([len(ps[k]) for k in sel])
+    P = np.vstack([np.asarray(ps[k], dtype=float) for k in sel])
+    first = np.r_[0, np.cumsum(lens)[:-1]]
+    seg = np.linalg.norm(np.diff(P, axis=0), axis=1)
+    s = np.empty(len(P))
+    for a, n in zip(first, lens):
+        s[a] = 0.0
+        s[a + 1:a + n] = np.cumsum(seg[a:a + n - 1])
+    last = s[first + lens - 1]
+    step = np.maximum(last / (lens - 1), 1e-9)
+    W = np.array([int(np.ceil(3.0 * sigma / st * 1.8)) + 1 for st in step])  # as the single version
+    Wb = np.minimum(W, lens - 1)
+    line = np.repeat(np.arange(len(sel)), lens)
+    pos = np.arange(len(P)) - first[line]
+    n_of, W_of = lens[line], Wb[line]
+    S = np.zeros((len(P), 5))
+    T = np.zeros((len(P), 3, 3))
+    for m in range(-int(Wb.max()), int(Wb.max()) + 1):
+        i = np.flatnonzero((abs(m) <= W_of) & (pos + m >= 0) & (pos + m < n_of))
+        j = i + m
+        d = s[j] - s[i]
+        w = np.exp(-0.5 * (d / sigma) ** 2) * (np.abs(d) <= 3.0 * sigma)
+        for k in range(5):
+            S[i, k] += w * d ** k
+        for k in range(3):
+            T[i, k] += (w * d ** k)[:, None] * P[j]
+    A = np.stack([S[:, 0:3], S[:, 1:4], S[:, 2:5]], axis=1)
+    A = A + np.eye(3)[None] * 1e-9 * (1.0 + S[:, [0]][:, :, None])
+    coef = np.linalg.solve(A, T)
+    q = coef[:, 0, :]
+    if fix_ends:
+        L = last[line]
+        w = np.minimum(s, L - s)
+        w = np.clip(w / (2.0 * sigma), 0, 1)[:, None]
+        q = w * q + (1 - w) * P
+    for k, a, n in zip(sel, first, lens):
+        out[k] = q[a:a + n]
+    return out
+
+
+def _cross_section_centres_many(qs: list, rs: list, occ: np.ndarray, sp_zyx: np.ndarray, *,
+                                chunk: int = 4096) -> list:
+    """:func:`_cross_section_centres` of every polyline of ``qs`` (radii ``rs``) in one pass: the
+    centres only (the same numbers: every step but the tangent is per point)."""
+    out = [np.array(q, dtype=float, copy=True) for q in qs]
+    sel = [k for k, q in enumerate(qs) if len(q) >= 3]
+    if not sel:
+        return out
+    t = np.vstack([np.gradient(qs[k], axis=0) for k in sel])
+    q = np.vstack([qs[k] for k in sel])
+    r = np.concatenate([rs[k] for k in sel])
+    c = np.empty_like(q)
+    for a in range(0, len(q), chunk):  # the rays' samples take ~23 kB a point
+        c[a:a + chunk] = _cross_section_centres(q[a:a + chunk], r[a:a + chunk], occ, sp_zyx,
+                                                tangents=t[a:a + chunk])[0]
+    a = 0
+    for k in sel:
+        out[k] = c[a:a + len(qs[k])]
+        a += len(qs[k])
+    return out
+
+
 def _cross_section_centres(q_mm: np.ndarray, r_mm: np.ndarray, occ: np.ndarray, sp_zyx: np.ndarray, *,
                            n_rays: int = 24, n_samples: int = 40,
-                           max_ecc: float = 1.6) -> tuple[np.ndarray, np.ndarray]:
+                           max_ecc: float = 1.6, tangents: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Centroids of the lumen cross-sections of a polyline (sub-voxel centring).
 
     At each point the lumen boundary is traced along ``n_rays`` rays in the plane perpendicular
@@ -183,11 +263,14 @@ def _cross_section_centres(q_mm: np.ndarray, r_mm: np.ndarray, occ: np.ndarray, 
         (bifurcations, vessel ends, neighbouring vessels).
     ok : (N,) bool
         Where the centroid was used.
+
+    ``tangents`` (N, 3), when given, are the polyline's ``np.gradient`` (``q_mm`` may then hold many
+    polylines one after the other, see :func:`_cross_section_centres_many`).
     """
     n = len(q_mm)
-    if n < 3:
+    if n < 3 and tangents is None:
         return q_mm.copy(), np.zeros(n, bool)
-    t = np.gradient(q_mm, axis=0)
+    t = np.gradient(q_mm, axis=0) if tangents is None else np.array(tangents, dtype=float, copy=True)
     t /= np.maximum(np.linalg.norm(t, axis=1, keepdims=True), 1e-12)
     a = np.where(np.abs(t[:, [0]]) < 0.9, np.array([[1.0, 0, 0]]), np.array([[0, 1.0, 0]]))
     u = np.cross(t, a)
@@ -286,7 +369,6 @@ def centerline_from_mask(mask_zyx, *, spacing_mm, origin_lps_mm, direction=None,
        median-filtered along the branch. (Sampling ``D`` at voxel centres, off the axis,
        underestimates the radius by up to half a voxel.)
     """
-    from skan import Skeleton
     from skimage.morphology import skeletonize
 
     opt = options or CenterlineOptions()
@@ -328,7 +410,7 @@ def centerline_from_mask(mask_zyx, *, spacing_mm, origin_lps_mm, direction=None,
     D = D_mm / np.float32(h)
     ridge = _ridge_from(mp, _smoothed(D, sp_rel, opt.ridge_sigma_vox), sp_rel, opt.ridge_eps, opt.ridge_delta)
     Ds = _smoothed(D, sp_rel, opt.refine_sigma_vox)
-    support = ndi.binary_dilation(ridge, structure=np.ones((3, 3, 3)))
+    support = _dilate_cube(ridge)
     bar.update()
 
     # -- skeleton + skan pruning
@@ -342,12 +424,12 @@ def centerline_from_mask(mask_zyx, *, spacing_mm, origin_lps_mm, direction=None,
     if skel.sum() < 2:
         raise SegmentationError("centerline_from_mask: no vessels found (the mask is too small for a centerline)")
     for _ in range(50):
-        sk = Skeleton(skel, spacing=tuple(sp_zyx))
+        sk = _SkeletonPaths.of(skel, sp_zyx)
         n_paths = sk.n_paths
         if n_paths <= 1:
             break
         deg = sk.degrees
-        lengths = sk.path_lengths()
+        lengths = sk.lengths
         prune = []
         for k in range(n_paths):
             ids = sk.path(k)
@@ -376,8 +458,9 @@ def centerline_from_mask(mask_zyx, *, spacing_mm, origin_lps_mm, direction=None,
             prune.extend(k for _, k in lst)
         if not prune:
             break
-        skel = _skeleton_image(sk.prune_paths(prune), mp.shape)
-        skel = skeletonize(skel).astype(bool) if skel.any() else skel
+        # (thinned once: Lee's thinning stops after a sweep of its six directions that removes
+        # nothing, so thinning its output again, as this loop did, returns it unchanged)
+        skel = sk.pruned(skel, prune)
         if skel.sum() < 2:
             raise SegmentationError("centerline_from_mask: no vessels found (only spurs)")
     bar.update()
@@ -397,11 +480,86 @@ def centerline_from_mask(mask_zyx, *, spacing_mm, origin_lps_mm, direction=None,
     return VesselTree(pts_lps, rad, par)
 
 
-def _skeleton_image(sk, shape) -> np.ndarray:
-    img = np.zeros(shape, bool)
-    c = np.round(sk.coordinates).astype(int)
-    img[tuple(c.T)] = True
-    return img
+def _skeleton_graph(skel: np.ndarray, sp_zyx):
+    """skan's ``skeleton_to_csgraph(skel, spacing=sp_zyx)`` (0.13), the same calls in the same order:
+    the 26-neighbour graph of the skeleton's voxels (``nodes``: their raveled indices, in order),
+    edges weighted by their length (mm), each cluster of junction voxels (degree > 2) reduced to its
+    minimum spanning tree. Importing skan (pandas, networkx) took 1-2 s a process.
+    """
+    from scipy import sparse
+    from scipy.sparse import csgraph
+
+    spacing = np.ones(3, dtype=float) * np.asarray(sp_zyx, dtype=float)
+    padded = np.pad(skel, 1, mode="constant", constant_values=False)
+    nodes_padded = np.flatnonzero(padded)
+    # neighbour offsets sorted by length (skan.nputil._raveled_offsets_and_distances)
+    fp = ndi.generate_binary_structure(rank=3, connectivity=3)
+    offsets = np.stack(np.nonzero(fp), axis=-1) - np.array(fp.shape) // 2
+    ravel_factors = np.cumprod((padded.shape[1:] + (1,))[::-1])[::-1]
+    raveled = (offsets * ravel_factors).sum(axis=1)
+    distances = np.sqrt(np.sum((offsets * spacing) ** 2, axis=1))
+    raveled, distances = raveled[np.argsort(distances)], np.sort(distances)
+    neighbors_padded = nodes_padded[:, np.newaxis] + raveled
+    nodes = np.flatnonzero(skel)
+    neighbors_mask = padded.reshape(-1)[neighbors_padded]
+    rows = np.repeat(np.arange(nodes.size), np.sum(neighbors_mask, axis=1))
+    cols = np.searchsorted(nodes_padded, neighbors_padded[neighbors_mask])  # padded index -> node number
+    data = np.broadcast_to(distances, neighbors_padded.shape)[neighbors_mask]
+    csmat = sparse.coo_matrix((data, (rows, cols)), shape=(nodes.size, nodes.size)).tocsr()
+    # skan.csr._mst_junctions
+    csc_graph = csmat.tocsc()
+    degrees = np.asarray(csmat.astype(bool).astype(int).sum(axis=0))
+    non_junction = np.flatnonzero(degrees < 3)
+    for start, end in zip(csc_graph.indptr[non_junction], csc_graph.indptr[non_junction + 1]):
+        csc_graph.data[start:end] = 0
+    csr_graph = csc_graph.tocsr()
+    for start, end in zip(csr_graph.indptr[non_junction], csr_graph.indptr[non_junction + 1]):
+        csr_graph.data[start:end] = 0
+    csr_graph.eliminate_zeros()
+    mst = csgraph.minimum_spanning_tree(csr_graph)
+    non_tree_edges = csr_graph - (mst + mst.T)
+    return csmat - non_tree_edges, nodes
+
+
+@dataclass(frozen=True)
+class _SkeletonPaths:
+    """A voxel skeleton's paths between end points and junctions: what skan's ``Skeleton`` gave this
+    module (``n_paths``, ``degrees``, ``path(k)``, ``path_lengths()``, ``coordinates``,
+    ``prune_paths``), the same numbers in the same order, from skan's pixel graph
+    (:func:`_skeleton_graph`) and skan's walk compiled in :mod:`guidewire3d.kernels` (skan's own
+    walk runs on numba jitclasses, compiled anew in every process: ~5 s).
+    """
+
+    degrees: np.ndarray  # (N,) graph degree of each skeleton voxel
+    coordinates: np.ndarray  # (N, 3) int voxel indices
+    path_ptr: np.ndarray  # (P + 1,)
+    path_ids: np.ndarray  # node ids of path k: path_ids[path_ptr[k]:path_ptr[k + 1]]
+    lengths: np.ndarray  # (P,) mm
+
+    @classmethod
+    def of(cls, skel: np.ndarray, sp_zyx: np.ndarray) -> _SkeletonPaths:
+        graph, nodes = _skeleton_graph(skel, sp_zyx)
+        ptr, ids, lengths = kernels.skeleton_paths(graph.indptr, graph.indices, graph.data)
+        return cls(np.diff(graph.indptr), np.transpose(np.unravel_index(nodes, skel.shape)), ptr, ids, lengths)
+
+    @property
+    def n_paths(self) -> int:
+        return len(self.path_ptr) - 1
+
+    def path(self, k: int) -> np.ndarray:
+        return self.path_ids[self.path_ptr[k]:self.path_ptr[k + 1]]
+
+    def pruned(self, skel: np.ndarray, paths) -> np.ndarray:
+        """``skel`` without the voxels of ``paths`` other than junctions, thinned again (skan's
+        ``Skeleton.prune_paths``)."""
+        from skimage.morphology import skeletonize
+
+        img = skel.copy()
+        for k in paths:
+            ids = self.path(k)
+            ids = ids[~(self.degrees[ids] > 2)]
+            img[tuple(self.coordinates[ids].T)] = False
+        return (skeletonize(img) * img).astype(bool)
 
 
 def _voxel_tree(vox: np.ndarray, D_mm: np.ndarray, sp_zyx: np.ndarray, seed_zyx):
@@ -470,14 +628,19 @@ def _branches_to_points(par, root, vox, pos, Ds, D_mm, mp, sp_zyx, sp_rel, h, op
         br = runs()
         changed = False
         has_child = {pb for _, pb in br if pb >= 0}
+        # the leaf runs' lengths, and those of the leaves starting at each node (in run order)
+        leaf_len, leaves_at = {}, {}
+        for k2, (i2, _) in enumerate(br):
+            if k2 not in has_child:
+                leaf_len[k2] = np.linalg.norm(np.diff(vox[i2] * sp_zyx, axis=0), axis=1).sum()
+                leaves_at.setdefault(i2[0], []).append(leaf_len[k2])
         for k, (ids, pb) in enumerate(br):
             if k in has_child or pb < 0 and len(br) == 1:
                 continue
             if len(children[ids[0]]) < 2 and ids[0] != root:
                 continue
-            length = np.linalg.norm(np.diff(vox[ids] * sp_zyx, axis=0), axis=1).sum()
-            sibling_leaves = [np.linalg.norm(np.diff(vox[i2] * sp_zyx, axis=0), axis=1).sum()
-                              for k2, (i2, _) in enumerate(br) if i2[0] == ids[0] and k2 not in has_child]
+            length = leaf_len[k]
+            sibling_leaves = leaves_at[ids[0]]
             n_other = len(children[ids[0]]) + (0 if ids[0] == root else 1) - 1
             if len(sibling_leaves) >= n_other and length >= max(sibling_leaves):
                 continue  # the node would become an end: keep its longest spur
@@ -510,27 +673,34 @@ def _branches_to_points(par, root, vox, pos, Ds, D_mm, mp, sp_zyx, sp_rel, h, op
 
     from scipy.spatial import cKDTree
 
-    bnd = ~mp & ndi.binary_dilation(mp, structure=np.ones((3, 3, 3)))
+    bnd = ~mp & _dilate_cube(mp)
     bg_tree = cKDTree(np.argwhere(bnd) * sp_zyx)
     h_mean = float(np.prod(sp_zyx) ** (1 / 3))
     occ = mp.astype(np.float32)
     pts_all, rad_all, par_all = [], [], []
     end_index = {}  # skeleton voxel id of a run end -> output point index
     count = 0
-    for ids, pb in br:
-        ids = np.asarray(ids)
-        p_mm = refined[ids] * sp_zyx
-        p_mm = _smooth_polyline_quadratic(p_mm, opt.smooth_mm)
+    # every branch at once (the same numbers as branch by branch): smoothing, resampling, then the
+    # sub-voxel centring: each point moves to the centroid of its lumen cross-section, and the
+    # branch is smoothed again without shrinkage (the centroids carry the boundary's voxel quantisation)
+    p_all = _smooth_polylines_quadratic([refined[np.asarray(ids)] * sp_zyx for ids, _ in br], opt.smooth_mm)
+    qu = []
+    for p_mm in p_all:
         if len(p_mm) >= 2 and np.linalg.norm(p_mm[-1] - p_mm[0]) > 0 or len(p_mm) > 2:
-            q_mm, u = _resample_by_arclength(p_mm, opt.step_mm)
+            qu.append(_resample_by_arclength(p_mm, opt.step_mm))
         else:
-            q_mm, u = p_mm, np.arange(len(p_mm), dtype=float)
-        # sub-voxel centring: move each point to the centroid of its lumen cross-section, then
-        # smooth again without shrinkage (the centroids carry the boundary's voxel quantisation)
-        if opt.centre_cross_sections and len(q_mm) >= 3:
-            r0 = bg_tree.query(q_mm)[0]
-            c_mm, _ = _cross_section_centres(q_mm, r0, occ, sp_zyx)
-            q_mm = _smooth_polyline_quadratic(c_mm, opt.smooth_mm)
+            qu.append((p_mm, np.arange(len(p_mm), dtype=float)))
+    q_all = [q_mm for q_mm, _ in qu]
+    if opt.centre_cross_sections:
+        cen = [k for k, q_mm in enumerate(q_all) if len(q_mm) >= 3]
+        if cen:
+            r0 = bg_tree.query(np.vstack([q_all[k] for k in cen]))[0]
+            r0 = np.split(r0, np.cumsum([len(q_all[k]) for k in cen])[:-1])
+            c_all = _cross_section_centres_many([q_all[k] for k in cen], r0, occ, sp_zyx)
+            for k, q_mm in zip(cen, _smooth_polylines_quadratic(c_all, opt.smooth_mm)):
+                q_all[k] = q_mm
+    for (ids, pb), q_mm, (_, u) in zip(br, q_all, qu):
+        ids = np.asarray(ids)
         q = q_mm / sp_zyx
         # keep points inside the mask: fall back to the voxel centre where smoothing left it
         ui = np.clip(np.round(u).astype(int), 0, len(ids) - 1)

