@@ -239,70 +239,6 @@ def _compile():
             return out[:n_out]
 
         @jit
-        def frangi_at(F, idx, sp, s2, alpha, beta, gamma):
-            n = idx.shape[0]
-            out = np.zeros(n, np.float32)
-            H = np.empty((3, 3))
-            lam = np.empty(3)
-            two_pi_3 = 2.0943951023931957
-            for k in range(n):
-                z, y, x = idx[k, 0], idx[k, 1], idx[k, 2]
-                c = np.float64(F[z, y, x])
-                for i in range(3):
-                    di = np.zeros(3, np.int64)
-                    di[i] = 1
-                    pp = np.float64(F[z + di[0], y + di[1], x + di[2]])
-                    mm = np.float64(F[z - di[0], y - di[1], x - di[2]])
-                    H[i, i] = (pp - 2 * c + mm) / sp[i] ** 2
-                    for j in range(i + 1, 3):
-                        dj = np.zeros(3, np.int64)
-                        dj[j] = 1
-                        a = np.float64(F[z + di[0] + dj[0], y + di[1] + dj[1], x + di[2] + dj[2]])
-                        b = np.float64(F[z + di[0] - dj[0], y + di[1] - dj[1], x + di[2] - dj[2]])
-                        cc = np.float64(F[z - di[0] + dj[0], y - di[1] + dj[1], x - di[2] + dj[2]])
-                        d = np.float64(F[z - di[0] - dj[0], y - di[1] - dj[1], x - di[2] - dj[2]])
-                        v = (a - b - cc + d) / (4 * sp[i] * sp[j])
-                        H[i, j] = v
-                        H[j, i] = v
-                for i in range(3):
-                    for j in range(3):
-                        H[i, j] *= s2
-                # eigenvalues of the symmetric 3 x 3 (trigonometric method)
-                p1 = H[0, 1] ** 2 + H[0, 2] ** 2 + H[1, 2] ** 2
-                q = (H[0, 0] + H[1, 1] + H[2, 2]) / 3.0
-                if p1 == 0.0:
-                    lam[0], lam[1], lam[2] = H[0, 0], H[1, 1], H[2, 2]
-                else:
-                    p2 = (H[0, 0] - q) ** 2 + (H[1, 1] - q) ** 2 + (H[2, 2] - q) ** 2 + 2.0 * p1
-                    p = np.sqrt(p2 / 6.0)
-                    b00, b11, b22 = (H[0, 0] - q) / p, (H[1, 1] - q) / p, (H[2, 2] - q) / p
-                    b01, b02, b12 = H[0, 1] / p, H[0, 2] / p, H[1, 2] / p
-                    r = 0.5 * (b00 * (b11 * b22 - b12 * b12) - b01 * (b01 * b22 - b12 * b02)
-                               + b02 * (b01 * b12 - b11 * b02))
-                    r = min(max(r, -1.0), 1.0)
-                    phi = np.arccos(r) / 3.0
-                    lam[0] = q + 2.0 * p * np.cos(phi)
-                    lam[2] = q + 2.0 * p * np.cos(phi + two_pi_3)
-                    lam[1] = 3.0 * q - lam[0] - lam[2]
-                # |l1| <= |l2| <= |l3|
-                for i in range(1, 3):
-                    v = lam[i]
-                    j = i - 1
-                    while j >= 0 and abs(lam[j]) > abs(v):
-                        lam[j + 1] = lam[j]
-                        j -= 1
-                    lam[j + 1] = v
-                l1, l2, l3 = lam[0], lam[1], lam[2]
-                if not (l2 < 0 and l3 < 0):
-                    continue
-                ra = abs(l2) / max(abs(l3), 1e-12)
-                rb = abs(l1) / np.sqrt(max(abs(l2 * l3), 1e-24))
-                S2 = l1 * l1 + l2 * l2 + l3 * l3
-                out[k] = ((1 - np.exp(-ra * ra / (2 * alpha ** 2))) * np.exp(-rb * rb / (2 * beta ** 2))
-                          * (1 - np.exp(-S2 / (2 * gamma ** 2))))
-            return out
-
-        @jit
         def pixel_graph(rows, cols, h, w, diag_px):
             n = rows.shape[0]
             index = np.full((h + 2, w + 2), -1, np.int32)
@@ -513,7 +449,7 @@ def _compile():
 
         _COMPILED.update(viterbi_forward=viterbi_forward, viterbi_backward=viterbi_backward,
                          sample_bilinear=sample_bilinear, cover_cells=cover_cells,
-                         frangi_at=frangi_at, pixel_graph=pixel_graph, induced_subgraph=induced_subgraph,
+                         pixel_graph=pixel_graph, induced_subgraph=induced_subgraph,
                          graph_components=graph_components, dijkstra=dijkstra, walk_predecessors=walk_predecessors,
                          zhang_suen=zhang_suen, nearest_sq_dist=nearest_sq_dist)
         return _COMPILED
@@ -1538,8 +1474,9 @@ def frangi_at(image_zyx: np.ndarray, idx_zyx: np.ndarray, spacing: np.ndarray, s
     from the border.
 
     The CTA stage's kernel (``_compile_cta``): the same operations in the same order as the first
-    version (``_compile()["frangi_at"]``, kept for comparison), without the small arrays that version
-    allocated per voxel and axis (2-4x faster). ``threads`` > 1 splits the voxels among that many
+    version (bit-identical output), without the small arrays that version allocated per voxel and
+    axis (2-4x faster; ``tests/test_kernels.py`` checks it against the numpy formulation).
+    ``threads`` > 1 splits the voxels among that many
     threads (the kernel releases the GIL; each voxel's value is the same).
     """
     f = _compile_cta()["frangi_at"]

@@ -103,19 +103,6 @@ def test_skeleton_paths_equal_skan():
         assert np.array_equal(skeletonize(img).astype(bool), img)
 
 
-def test_frangi_at_equals_first_kernel():
-    rng = np.random.default_rng(3)
-    F = ndi.gaussian_filter(rng.random((20, 30, 30)), 1.5).astype(np.float32)
-    idx = np.argwhere(np.ones((18, 28, 28), bool)) + 1
-    sp = np.array([2.5, 0.7, 0.7])
-    first = kernels._compile()["frangi_at"]
-    for s in (0.8, 2.8):
-        a = first(F, idx, sp, s * s, 0.5, 0.5, 0.15)
-        b = kernels.frangi_at(F, idx, sp, s, alpha=0.5, beta=0.5, gamma=0.15)
-        assert (a > 0).mean() > 0.05
-        assert np.array_equal(a, b)
-
-
 def test_frangi_at_threads_same_values():
     rng = np.random.default_rng(4)
     F = ndi.gaussian_filter(rng.random((40, 60, 60)), 1.5).astype(np.float32)

@@ -217,12 +217,42 @@ def test_quadratic_smoothing_keeps_circles():
     assert err(qn) < 0.6 * err(noisy)
 
 
+def _smooth_polyline_quadratic_plain(p, sigma, fix_ends=True):
+    """The local quadratic smoothing of one polyline as first written (the reference of the batched one)."""
+    n = len(p)
+    if n < 4 or sigma <= 0:
+        return p.copy()
+    s = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(p, axis=0), axis=1))]
+    step = max(s[-1] / (n - 1), 1e-9)
+    W = int(np.ceil(3.0 * sigma / step * 1.8)) + 1  # skeleton steps are >= 0.55 x the mean
+    S = np.zeros((n, 5))
+    T = np.zeros((n, 3, 3))
+    for m in range(-min(W, n - 1), min(W, n - 1) + 1):
+        i = np.arange(max(0, -m), min(n, n - m))
+        j = i + m
+        d = s[j] - s[i]
+        w = np.exp(-0.5 * (d / sigma) ** 2) * (np.abs(d) <= 3.0 * sigma)
+        for k in range(5):
+            S[i, k] += w * d ** k
+        for k in range(3):
+            T[i, k] += (w * d ** k)[:, None] * p[j]
+    A = np.stack([S[:, 0:3], S[:, 1:4], S[:, 2:5]], axis=1)  # (n, 3, 3) normal matrix
+    # regularise the quadratic term where the window holds too few distinct points
+    A = A + np.eye(3)[None] * 1e-9 * (1.0 + S[:, [0]][:, :, None])
+    coef = np.linalg.solve(A, T)  # (n, 3 coeffs, 3 dims)
+    q = coef[:, 0, :]
+    if fix_ends:
+        w = np.minimum(s, s[-1] - s)
+        w = np.clip(w / (2.0 * sigma), 0, 1)[:, None]
+        q = w * q + (1 - w) * p
+    return q
+
+
 def test_batched_smoothing_and_centring_equal_one_by_one():
     """The centerline smooths and centres all branches in one pass: the same numbers as branch by branch."""
     from guidewire3d.cta.centerline import (
         _cross_section_centres,
         _cross_section_centres_many,
-        _smooth_polyline_quadratic,
         _smooth_polylines_quadratic,
     )
 
@@ -235,7 +265,7 @@ def test_batched_smoothing_and_centring_equal_one_by_one():
     lines.append(np.repeat(lines[-1][:1], 6, axis=0))  # a degenerate one (all points equal)
     got = _smooth_polylines_quadratic(lines, 1.0)
     for p, q in zip(lines, got):
-        assert np.array_equal(q, _smooth_polyline_quadratic(p, 1.0))
+        assert np.array_equal(q, _smooth_polyline_quadratic_plain(p, 1.0))
     assert [q.shape for q in _smooth_polylines_quadratic(lines, 0.0)] == [p.shape for p in lines]
     # centring in a tube mask (z, y, x) = a ring of radius 8 mm, 3 mm thick, around (20, 20) in (z, y)
     sp = np.array([0.5, 0.5, 0.5])

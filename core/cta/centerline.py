@@ -130,33 +130,7 @@ def _smooth_polyline_quadratic(p: np.ndarray, sigma: float, fix_ends: bool = Tru
     arclength exactly: smoothing without shrinkage. ``sigma`` is in the units of ``p``; the ends are
     blended back to the input as in :func:`_smooth_polyline` so that nodes stay shared.
     """
-    n = len(p)
-    if n < 4 or sigma <= 0:
-        return p.copy()
-    s = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(p, axis=0), axis=1))]
-    step = max(s[-1] / (n - 1), 1e-9)
-    W = int(np.ceil(3.0 * sigma / step * 1.8)) + 1  # skeleton steps are >= 0.55 x the mean
-    S = np.zeros((n, 5))
-    T = np.zeros((n, 3, 3))
-    for m in range(-min(W, n - 1), min(W, n - 1) + 1):
-        i = np.arange(max(0, -m), min(n, n - m))
-        j = i + m
-        d = s[j] - s[i]
-        w = np.exp(-0.5 * (d / sigma) ** 2) * (np.abs(d) <= 3.0 * sigma)
-        for k in range(5):
-            S[i, k] += w * d ** k
-        for k in range(3):
-            T[i, k] += (w * d ** k)[:, None] * p[j]
-    A = np.stack([S[:, 0:3], S[:, 1:4], S[:, 2:5]], axis=1)  # (n, 3, 3) normal matrix
-    # regularise the quadratic term where the window holds too few distinct points
-    A = A + np.eye(3)[None] * 1e-9 * (1.0 + S[:, [0]][:, :, None])
-    coef = np.linalg.solve(A, T)  # (n, 3 coeffs, 3 dims)
-    q = coef[:, 0, :]
-    if fix_ends:
-        w = np.minimum(s, s[-1] - s)
-        w = np.clip(w / (2.0 * sigma), 0, 1)[:, None]
-        q = w * q + (1 - w) * p
-    return q
+    return _smooth_polylines_quadratic([p], sigma, fix_ends)[0]
 
 
 def _smooth_polylines_quadratic(ps: list, sigma: float, fix_ends: bool = True) -> list:
