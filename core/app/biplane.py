@@ -37,7 +37,7 @@ from guidewire3d.cta import vessels3d
 from guidewire3d.errors import Guidewire3DError, InputError
 from guidewire3d.geometry import CArm, Pose, nominal_pose
 from guidewire3d.live import session as live
-from guidewire3d.live.session import FrameResult, _no_wire, orientation_of
+from guidewire3d.live.session import FrameResult, _no_wire, frame_verdict, orientation_of
 from guidewire3d.reconstruction.triangulation import (
     TwoViewContext,
     extend_distal,
@@ -46,7 +46,7 @@ from guidewire3d.reconstruction.triangulation import (
 )
 from guidewire3d.reconstruction import reconstruct_wire
 from guidewire3d.registration import model, problem, search, solve, verdict
-from guidewire3d.registration.result import RegistrationResult, Verdict, _failed
+from guidewire3d.registration.result import RegistrationResult, _failed
 from guidewire3d.xray.orderedwire import ordered_wire
 
 __all__ = ["ViewFit", "BiplaneRegistration", "register_biplane", "BiplaneFrame", "BiplaneSession",
@@ -556,9 +556,10 @@ class BiplaneSession:
                 w3 = tv.wire3d
                 s_a = self.sessions[0]
                 ori = orientation_of(w3, uv[0], root_uv_px=s_a.root_uv_px)
-                verdict, message = Verdict.OK, w3.message
-                if ori.conflict or not ori.determined:
-                    verdict, message = Verdict.UNCERTAIN, ori.explain()
+                # a piece of wire beyond the tip in either plane; the tip's own uncertainty (whether
+                # the tip is in view is left to the two views: one may see it where the other does not)
+                beyond = next((b for b in (getattr(w, "beyond_tip", None) for w in wires) if b is not None), None)
+                verdict, message = frame_verdict(w3, uv[0], ori, beyond_tip=beyond)
                 fr = FrameResult(index, wires[0], w3, verdict, message, ori, time.perf_counter() - t0, float("nan"),
                                  self.pose)
                 return BiplaneFrame(fr, "AB", "", wires[1], tv.projection_error_px, index_b, fr.seconds)
