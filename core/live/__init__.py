@@ -5,10 +5,13 @@ The public names of the modules below, importable from ``guidewire3d.live``.
 from guidewire3d.live.session import (  # noqa: F401
     HINT_MARGIN_ALONE,
     HINT_MARGIN_MIN,
+    TIP_BORDER_PX,
+    TIP_MAX_UNCERTAINTY_MM,
     TREE_RISE_MIN_MM,
     FrameResult,
     Orientation,
     Session,
+    frame_verdict,
     log,
     orientation_of,
 )
