@@ -448,10 +448,32 @@ def test_cli_help_documents_every_option():
     sub = build_parser()._subparsers._group_actions[0].choices["phantom"]
     text = sub.format_help()
     for opt in ("--out", "--seed", "--frames", "--wire-diameter", "--distractors", "--detector", "--volume",
-                "--no-background", "--no-catheter", "--motion", "--dose"):
+                "--no-background", "--no-catheter", "--motion", "--dose", "--breathing", "--breathing-period",
+                "--cardiac", "--heart-rate", "--fps"):
         assert opt in text
     for action in sub._actions:
         assert action.help, action.option_strings
+
+
+def test_cli_writes_breathing_and_cardiac_motion_with_per_frame_truth(tmp_path, capsys):
+    """``phantom --breathing --cardiac`` (issue 18): the options reach the case, each frame has its own
+    true pose (breathing moves it mostly cranio-caudally), and a value out of range names its option."""
+    out = tmp_path / "case"
+    assert main(["phantom", "--out", str(out), "--seed", "5", "--frames", "4", "--no-ct", "--breathing", "15",
+                 "--breathing-period", "3", "--cardiac", "2", "--heart-rate", "90", "--fps", "10"]) == 0
+    truth = load_truth(out)
+    o = truth.options
+    assert (o["breathing_mm"], o["breathing_period_s"], o["cardiac_mm"], o["heart_rate_bpm"], o["frame_rate_fps"]) \
+        == (15.0, 3.0, 2.0, 90.0, 10.0)
+    shifts = np.asarray(truth.motion_lps_mm)
+    assert shifts.shape == (4, 3) and np.ptp(shifts[:, 2]) > 1.0          # S (cranio-caudal) moves
+    assert np.abs(shifts[:, 2]).max() <= 15.0
+    capsys.readouterr()
+    bad = tmp_path / "bad"
+    assert main(["phantom", "--out", str(bad), "--breathing", "40", "--no-ct"]) == 2
+    err = capsys.readouterr().err
+    assert "--breathing" in err and "PhantomOptions" not in err and len(err.strip().splitlines()) == 1
+    assert not bad.exists()
 
 
 def test_cli_writes_a_case_and_refuses_non_empty_out(tmp_path, capsys):

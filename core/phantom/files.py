@@ -270,6 +270,15 @@ def add_cli_options(p) -> None:
     p.add_argument("--no-catheter", action="store_true", help="no guiding catheter over the proximal wire")
     p.add_argument("--motion", type=float, default=0.0, metavar="MM",
                    help="amplitude of per-frame rigid breathing motion in mm (default 0)")
+    p.add_argument("--breathing", type=float, default=0.0, metavar="MM",
+                   help="respiratory motion, peak-to-peak mm (mostly cranio-caudal, a small rotation; 0..25, "
+                        "default 0); the truth has each frame's pose")
+    p.add_argument("--breathing-period", type=float, default=4.0, metavar="S",
+                   help="breathing period in seconds (1..20, default 4)")
+    p.add_argument("--cardiac", type=float, default=0.0, metavar="MM",
+                   help="cardiac contraction of the vessel tree, mm (a periodic non-rigid deformation; 0..6, default 0)")
+    p.add_argument("--heart-rate", type=float, default=75.0, metavar="BPM", help="heart rate (30..200, default 75)")
+    p.add_argument("--fps", type=float, default=15.0, help="live frame rate for the motion's timing (1..60, default 15)")
     p.add_argument("--dose", type=float, default=1.0, metavar="X",
                    help="relative fluoroscopy dose; lower is noisier (default 1)")
     p.add_argument("--no-ct", action="store_true", help="skip the CT series (2D data and truth only)")
@@ -283,7 +292,9 @@ def add_cli_options(p) -> None:
 
 _CLI_OPTION_OF_FIELD = {"seed": "--seed", "n_frames": "--frames", "wire_diameter_mm": "--wire-diameter",
                         "detector_px": "--detector", "volume": "--volume", "motion_mm": "--motion", "dose": "--dose",
-                        "plane_b_angles_deg": "--plane-b-angles-deg"}
+                        "plane_b_angles_deg": "--plane-b-angles-deg", "breathing_mm": "--breathing",
+                        "breathing_period_s": "--breathing-period", "cardiac_mm": "--cardiac",
+                        "heart_rate_bpm": "--heart-rate", "frame_rate_fps": "--fps"}
 
 
 def cli_main(args) -> int:
@@ -295,6 +306,8 @@ def cli_main(args) -> int:
             seed=args.seed, n_frames=args.frames, wire_diameter_mm=args.wire_diameter, distractors=args.distractors,
             detector_px=args.detector, volume=args.volume, background=not args.no_background,
             catheter=not args.no_catheter, motion_mm=args.motion, dose=args.dose,
+            breathing_mm=args.breathing, breathing_period_s=args.breathing_period, cardiac_mm=args.cardiac,
+            heart_rate_bpm=args.heart_rate, frame_rate_fps=args.fps,
             **({"biplane": True, "plane_b_angles_deg": getattr(args, "plane_b_angles_deg", None)}
                if getattr(args, "biplane", False) else {}),
         )
