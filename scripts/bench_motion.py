@@ -57,7 +57,9 @@ def simulated(args) -> list[list[str]]:
                     true = case.wire_lps_mm[t]
                     a["err"].append(float(cKDTree(true).query(fr.wire3d.points_lps_mm)[0].mean()))
                     a["tip"].append(float(np.linalg.norm(fr.tip_lps_mm - true[-1])))
-                    a["ok_tip_off"] += fr.verdict.value == "ok" and a["tip"][-1] > TIP_OFF_MM
+                    # the tip that can be seen: the last in-image point of the true wire
+                    seen_tip = true[np.asarray(case.wire_visible[t], bool)][-1]
+                    a["ok_tip_off"] += fr.verdict.value == "ok" and np.linalg.norm(fr.tip_lps_mm - seen_tip) > TIP_OFF_MM
         print(f"  case {k + 1}/{args.cases} (seed {args.seed0 + k})", file=sys.stderr, flush=True)
     rows = []
     for track, name in ((False, "static roadmap pose"), (True, "tracked (track_motion)")):
@@ -127,7 +129,7 @@ def main() -> int:
         print(f"\nsimulator: {args.cases} sequences x {args.frames} frames at 15 fps, breathing {args.breathing:g} mm, "
               f"cardiac {args.cardiac:g} mm (seeds {args.seed0}-{args.seed0 + args.cases - 1})")
         print(bench._table(["pose", "3D wire mean mm", "median mm", "tip median mm", "tip p90 mm", "pose mTRE mean mm",
-                            "median mm", "frames OK", f"OK, tip > {TIP_OFF_MM:g} mm off", "tracking ms/frame"], rows))
+                            "median mm", "frames OK", f"OK, seen tip > {TIP_OFF_MM:g} mm off", "tracking ms/frame"], rows))
     return 0
 
 

@@ -700,7 +700,13 @@ _DRIVER = r"""
 set -u
 "$PY" -m guidewire3d.app.cli view "$OUT" --size 800x500 > "$LOG" 2>&1 &
 APP=$!
-WID=$(timeout 30 xdotool search --sync --name "guidewire3d" | head -1)
+# (a search can hit a window that is destroyed while it looks, an X BadWindow error: search again)
+WID=""
+for i in 1 2 3; do
+  WID=$(timeout 30 xdotool search --sync --name "guidewire3d" 2>/dev/null | head -1)
+  [ -n "$WID" ] && break
+  sleep 1
+done
 if [ -z "$WID" ]; then echo "no window" >&2; kill $APP; exit 3; fi
 sleep 1.5
 xdotool windowfocus --sync "$WID" 2>/dev/null || true
