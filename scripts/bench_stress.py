@@ -1,0 +1,124 @@
+"""Never silently wrong, end to end: random simulated cases through the command line, every frame
+reported ``ok`` scored against the truth.
+
+For each seed, ``guidewire3d phantom`` writes a case with options drawn from the seed (frames,
+rigid motion, distractors, dose, no catheter, wire diameter 0.25 / 0.36 / 0.89 mm), then
+``guidewire3d reconstruct`` runs on its DICOM files as a user would (``--track-motion`` when the
+case moves). A frame reported ``ok`` is *silently wrong* when its 3D wire is more than
+``--mean-mm`` from the true wire on average, or its tip more than ``--tip-mm`` from the true tip
+in view. Also counted: exit codes, tracebacks (there must be none), and the verdicts.
+
+    nice .venv/bin/python scripts/bench_stress.py --seed0 3000 --cases 12
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import random
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+
+def options_of(seed: int) -> list[str]:
+    """The ``phantom`` options of a seed (the same draw on every host)."""
+    rng = random.Random(seed)
+    opts = ["--seed", str(seed), "--frames", str(rng.choice([4, 6, 8]))]
+    if rng.random() < 0.3:
+        opts += ["--motion", str(rng.choice([3, 8, 10]))]
+    if rng.random() < 0.3:
+        opts += ["--distractors"]
+    if rng.random() < 0.3:
+        opts += ["--dose", str(rng.choice([0.5, 2]))]
+    if rng.random() < 0.2:
+        opts += ["--no-catheter"]
+    if rng.random() < 0.2:
+        opts += ["--wire-diameter", str(rng.choice([0.25, 0.36, 0.89]))]
+    return opts
+
+
+def run_case(seed: int, work: Path, args) -> dict:
+    from guidewire3d.metrics import wire_errors_mm
+    from guidewire3d.phantom import load_truth
+
+    exe = [sys.executable, "-m", "guidewire3d.app.cli"]
+    opts = options_of(seed)
+    case, out = work / f"case{seed}", work / f"out{seed}"
+    t0 = time.perf_counter()
+    p = subprocess.run(exe + ["phantom", "--out", str(case)] + opts, capture_output=True, text=True)
+    rec = dict(seed=seed, options=" ".join(opts[2:]), phantom_exit=p.returncode, exit=None, traceback=False,
+               frames=0, ok=0, uncertain=0, failed=0, wrong=[], max_ok_tip_mm=0.0)
+    if p.returncode:
+        rec["error"] = p.stderr.strip().splitlines()[-1] if p.stderr.strip() else ""
+        return rec
+    extra = ["--track-motion"] if "--motion" in opts else []
+    r = subprocess.run(exe + ["reconstruct", "--cta", str(case / "ct"), "--roadmap", str(case / "roadmap.dcm"),
+                              "--frames", str(case / "frames.dcm"), "--out", str(out), "--no-images"] + extra,
+                       capture_output=True, text=True)
+    rec["exit"], rec["traceback"] = r.returncode, "Traceback" in r.stderr
+    rec["seconds"] = time.perf_counter() - t0
+    report = out / "report.json"
+    if report.exists():
+        rj = json.loads(report.read_text())
+        rec["registration"] = rj.get("registration", {}).get("verdict")
+        truth = load_truth(case)
+        for fr in rj["frames"]:
+            rec["frames"] += 1
+            verdict = fr.get("verdict") or ("ok" if fr.get("success") else "failed")
+            rec[verdict if verdict in ("ok", "uncertain", "failed") else "failed"] += 1
+            if verdict != "ok":
+                continue
+            k = fr["index"]
+            seen = np.asarray(truth.wire_visible[k], bool)
+            e = wire_errors_mm(np.asarray(fr["points_lps_mm"]), np.asarray(truth.wire_lps_mm[k])[seen])
+            rec["max_ok_tip_mm"] = max(rec["max_ok_tip_mm"], e["tip_error_mm"])
+            if e["mean_error_mm"] > args.mean_mm or e["tip_error_mm"] > args.tip_mm:
+                rec["wrong"].append((k, round(e["mean_error_mm"], 2), round(e["tip_error_mm"], 1)))
+    shutil.rmtree(case, ignore_errors=True)
+    shutil.rmtree(out, ignore_errors=True)
+    return rec
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--seed0", type=int, default=3000)
+    ap.add_argument("--cases", type=int, default=12)
+    ap.add_argument("--mean-mm", type=float, default=2.0, help="an ok frame farther than this on average is wrong")
+    ap.add_argument("--tip-mm", type=float, default=5.0, help="an ok frame whose tip is farther than this is wrong")
+    args = ap.parse_args(argv)
+
+    from guidewire3d.app import bench
+
+    rows, recs = [], []
+    with tempfile.TemporaryDirectory(prefix="gw3d-stress-") as tmp:
+        for seed in range(args.seed0, args.seed0 + args.cases):
+            rec = run_case(seed, Path(tmp), args)
+            recs.append(rec)
+            wrong = ", ".join(f"f{k}: {m} / {t} mm" for k, m, t in rec["wrong"]) or "-"
+            rows.append([seed, rec["options"] or "-", rec["exit"] if rec["phantom_exit"] == 0 else
+                         f"phantom {rec['phantom_exit']}", "YES" if rec["traceback"] else "no",
+                         rec.get("registration", "-"), f"{rec['ok']} / {rec['uncertain']} / {rec['failed']}",
+                         f"{rec['max_ok_tip_mm']:.1f}" if rec["ok"] else "-", wrong])
+            print(f"  seed {seed}: {rows[-1][5]} ok/uncertain/failed, silently wrong: {wrong}", file=sys.stderr,
+                  flush=True)
+    print(f"seeds {args.seed0}-{args.seed0 + args.cases - 1}; silently wrong = an ok frame more than "
+          f"{args.mean_mm:g} mm off on average or its tip more than {args.tip_mm:g} mm off; machine: "
+          f"{bench.machine_line()}, load average {os.getloadavg()[0]:.1f}")
+    print(bench._table(["seed", "phantom options", "exit", "traceback", "registration", "frames ok / uncertain / failed",
+                        "largest ok tip error mm", "silently wrong frames (mean / tip mm)"], rows))
+    n_ok = sum(r["ok"] for r in recs)
+    n_wrong = sum(len(r["wrong"]) for r in recs)
+    n_frames = sum(r["frames"] for r in recs)
+    print(f"total: {n_frames} frames, {n_ok} ok, {n_wrong} silently wrong; tracebacks: "
+          f"{sum(r['traceback'] for r in recs)}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
