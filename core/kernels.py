@@ -1352,6 +1352,13 @@ def _compile_triangulation():
                             for q in range(6):
                                 sacc += G[n, i, q] * C[q, j]
                             GC[i, j] = sacc
+                    for i in range(3):
+                        for j in range(3):
+                            sacc = 0.0
+                            for q in range(6):
+                                sacc += GC[i, q] * G[n, j, q]
+                            Mi[i, j] += sacc
+                # both terms projected across the wire at once: (I - t t^T) Mi (I - t t^T)
                 for i in range(3):
                     for j in range(3):
                         sacc = 0.0
@@ -1365,25 +1372,6 @@ def _compile_triangulation():
                         for q in range(3):
                             sacc += Pp[i, q] * W[q, j]
                         cov[n, i, j] = sacc
-                if has_reg:
-                    for i in range(3):
-                        for j in range(3):
-                            sacc = 0.0
-                            for q in range(6):
-                                sacc += GC[i, q] * G[n, j, q]
-                            Mi[i, j] = sacc
-                    for i in range(3):
-                        for j in range(3):
-                            sacc = 0.0
-                            for q in range(3):
-                                sacc += Mi[i, q] * Pp[q, j]
-                            W[i, j] = sacc
-                    for i in range(3):
-                        for j in range(3):
-                            sacc = 0.0
-                            for q in range(3):
-                                sacc += Pp[i, q] * W[q, j]
-                            cov[n, i, j] += sacc
                 for i in range(3):
                     tr += cov[n, i, i]
                 unc[n] = np.sqrt(max(tr, 0.0))
