@@ -3,6 +3,7 @@ import json
 
 import numpy as np
 import pytest
+from scipy.spatial import cKDTree
 
 from guidewire3d import metrics
 from guidewire3d.app import biplane
@@ -310,6 +311,13 @@ def test_cli_biplane_end_to_end(bcase_dir, tmp_path, capsys):
 
     ctl, handles = open_viewer(out, size_px=(320, 240), off_screen=True, persist=False)
     try:
+        # the output folder keeps plane B's roadmap centerline (in the pose, on plane B's vessels):
+        # the viewer's refine fits both planes
+        assert ctl.refines_both_planes
+        cl_b = ctl.plane_b.centerline_uv_px
+        assert len(ctl.plane_b.centerline_radius_px) == len(cl_b) >= 10
+        proj_b = truth.heldout_carm.project(P, pose)
+        assert np.median(cKDTree(proj_b).query(cl_b)[0]) < 3.0
         actors = handles.plotter.renderers[0].actors
         assert "detector" in actors and "detector_b" in actors
         corners = truth.heldout_carm.detector_corners_lps_mm(pose)

@@ -343,6 +343,54 @@ def test_biplane_nudge_moves_plane_b_and_apply_uses_both_planes(bviewer, bsynth)
                                    carm_b.project(ctl.wire.points_lps_mm, ctl.pose) * [1, -1], atol=1e-6)
 
 
+def test_biplane_refine_fits_both_roadmaps(bviewer, bsynth, monkeypatch):
+    """Dragged 6 mm along plane A's beam (the depth one view barely sees) and turned 1-2 deg, the
+    refine fits both planes' roadmap centerlines (the joint problem, from the current pose) and
+    comes back to the true pose."""
+    from guidewire3d.app import biplane
+
+    calls = []
+    joint = biplane.register_biplane
+    monkeypatch.setattr(biplane, "register_biplane", lambda *a, **k: (calls.append((a, k)), joint(*a, **k))[1])
+    ctl, h = bviewer
+    assert ctl.refines_both_planes and len(ctl.plane_b.centerline_uv_px) >= 10
+    assert ctl.plane_b.centerline_radius_px is not None
+    beam = ctl.view_carm.beam_direction
+    moved = Pose(np.eye(3), 6.0 * beam) @ Pose.exp([0, 0, 0, *np.radians([1.0, -1.5, 0.5])]) @ bsynth.pose
+    P = bsynth.tree.points_lps_mm
+    assert mtre_mm(moved, bsynth.pose, P) > 5.0
+    ctl._set_pose(moved, "manual", "dragged")
+    res = ctl.refine()
+    assert res.success, res.message
+    assert mtre_mm(ctl.pose, bsynth.pose, P) < 0.5
+    (args, kw), = calls
+    assert len(args[1]) == 2 and kw["global_search"] is False and kw["init_pose"] is moved
+    from viewer_fixture import _dense_centerline
+
+    np.testing.assert_allclose(args[1][1], bsynth.carm_b.project(_dense_centerline(bsynth.tree, 0.5)[0], bsynth.pose),
+                               atol=1e-9)
+    assert "refined on both planes" in ctl.status or "from both planes" in ctl.status
+
+
+def test_biplane_refine_without_plane_b_centerline_says_plane_a_alone(bsynth, tmp_path):
+    dst = tmp_path / "out"
+    shutil.copytree(bsynth.out_dir, dst)
+    with np.load(dst / "registration_inputs.npz") as zf:
+        arrays = {k: zf[k] for k in zf.files if not k.startswith("centerline_b")}
+    np.savez(dst / "registration_inputs.npz", **arrays)
+    ctl, h = open_viewer(dst, size_px=(600, 400), off_screen=True, persist=False)
+    try:
+        assert not ctl.refines_both_planes and len(ctl.plane_b.centerline_uv_px) == 0
+        ctl._set_pose(ctl.pose, "manual", "unchanged")
+        texts = []
+        orig = ctl._say
+        ctl._say = lambda t: (texts.append(t), orig(t))[1]
+        ctl.refine()
+        assert any("plane A's roadmap alone" in t for t in texts)
+    finally:
+        h.plotter.close()
+
+
 def test_single_view_output_keeps_two_viewports(viewer):
     ctl, h = viewer
     assert len(h.plotter.renderers) == 2 and ctl.plane_b is None and ctl.plane_b_scene is None

@@ -221,6 +221,12 @@ def write_synthetic_outdir(root, *, n_frames: int = 4, shape=(240, 320), primary
             for p, c in (("A", carm), ("B", carm_b))], "n_pairs": n_frames, "two_view_pairs": n_frames,
             "fallback_pairs": 0}
         uv_b = tuple(carm_b.project(w, pose) for w in wires)
+        # plane B's roadmap centerline beside plane A's (what a biplane reconstruct keeps for refine)
+        cl_b_uv, z_b = carm_b.project(pts, pose, return_depth=True)
+        with np.load(out / "registration_inputs.npz") as zf:
+            arrays = dict(zf)
+        np.savez(out / "registration_inputs.npz", **arrays, centerline_b_uv_px=cl_b_uv,
+                 centerline_b_radius_px=rad * carm_b.focal_px / z_b)
         ea, eb = PLANE_B_PROJECTION_ERRORS_PX
         for k, fr in enumerate(report["frames"]):
             fr["biplane"] = {"views": "AB", "fallback": "", "index_b": k + 1, "projection_error_px_a": ea,

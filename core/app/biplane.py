@@ -757,6 +757,8 @@ def write_outdir(result: BiplaneResult, out_dir: Path, *, inputs: dict, images: 
     for fr, p in zip(rep["frames"], result.pairs):
         fr["biplane"] = p.to_dict()
     io.atomic_write_text(rep_path, json.dumps(rep, indent=1))
+    # plane B's roadmap centerline beside plane A's: the viewer refines on both (the joint problem)
+    export.write_registration_inputs(out_dir, result.plane_a.tree, result.plane_a.centerline2d, result.centerline2d_b)
     if images:
         pose = result.registration.pose
         cl_uv = result.carm_b.project(result.plane_a.tree.points_lps_mm, pose)

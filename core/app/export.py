@@ -241,18 +241,24 @@ def write_registration(out_dir, *, pose, automatic_pose, carm, reg_record: dict,
     return atomic_write_text(Path(out_dir) / "registration.json", json.dumps(rec, indent=1))
 
 
-def write_registration_inputs(out_dir, tree, centerline2d) -> Path:
+def write_registration_inputs(out_dir, tree, centerline2d, centerline2d_b=None) -> Path:
+    """``registration_inputs.npz``: the 3D tree and the roadmap's 2D centerline the registration used
+    (and, for a biplane run, plane B's roadmap centerline: ``centerline_b_uv_px``,
+    ``centerline_b_radius_px``), so that the viewer and the plugin can score and refine the pose."""
     import io as _io
 
-    buf = _io.BytesIO()
-    np.savez_compressed(
-        buf,
+    arrays = dict(
         tree_points_lps_mm=tree.points_lps_mm,
         tree_radius_mm=tree.radius_mm,
         tree_parent=tree.parent,
         centerline_uv_px=np.asarray(centerline2d.points_uv_px, float),
         centerline_radius_px=np.asarray(centerline2d.radius_px, float),
     )
+    if centerline2d_b is not None:
+        arrays["centerline_b_uv_px"] = np.asarray(centerline2d_b.points_uv_px, float)
+        arrays["centerline_b_radius_px"] = np.asarray(centerline2d_b.radius_px, float)
+    buf = _io.BytesIO()
+    np.savez_compressed(buf, **arrays)
     return atomic_write_bytes(Path(out_dir) / "registration_inputs.npz", buf.getvalue())
 
 

@@ -7,7 +7,7 @@ Nothing here draws or imports pyvista; ``load_outdir`` returns frozen dataclasse
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -101,6 +101,8 @@ class ViewerCase:
         The registered 3D centerline graph (``registration_inputs.npz``), None if absent.
     centerline_uv_px : (M, 2) ndarray of float
         The 2D roadmap centerline the registration used (empty if absent).
+    centerline_radius_px : (M,) ndarray of float or None
+        The vessel radius at each of those points (None if the file does not hold it).
     wires : tuple of WireFrame
         One per live frame, in frame order.
     images : (T, rows, cols) ndarray of float32 or None
@@ -128,6 +130,7 @@ class ViewerCase:
     inputs: dict
     messages: tuple[str, ...] = ()
     roadmap_image: np.ndarray | None = None
+    centerline_radius_px: np.ndarray | None = None
 
     @property
     def frame_indices(self) -> tuple[int, ...]:
@@ -258,12 +261,14 @@ def load_outdir(out_dir, *, load_images: bool = True) -> ViewerCase:
 
     tree = None
     cl_uv = np.zeros((0, 2))
+    cl_r = None
     npz_path = out / "registration_inputs.npz"
     if npz_path.exists():
         try:
             with np.load(npz_path, allow_pickle=False) as z:
                 tree = VesselTree(z["tree_points_lps_mm"], z["tree_radius_mm"], z["tree_parent"])
                 cl_uv = np.asarray(z["centerline_uv_px"], dtype=float).reshape(-1, 2)
+                cl_r = _radius_of(z, "centerline_radius_px", len(cl_uv))
         except (KeyError, ValueError, OSError) as e:
             raise InputError(f"{npz_path}: unreadable registration inputs ({e})") from None
     else:
@@ -322,7 +327,19 @@ def load_outdir(out_dir, *, load_images: bool = True) -> ViewerCase:
         inputs=inputs,
         messages=tuple(msgs),
         roadmap_image=roadmap_image,
+        centerline_radius_px=cl_r,
     )
+
+
+def _radius_of(z, key: str, n: int) -> np.ndarray | None:
+    """The per-point radius array ``key`` of an npz, None when absent or not one value per point."""
+    if key not in z.files:
+        return None
+    r = np.asarray(z[key], dtype=float).ravel()
+    if len(r) != n:
+        return None
+    r.setflags(write=False)
+    return r
 
 
 @dataclass(frozen=True, eq=False)
@@ -363,12 +380,19 @@ class PlaneB:
         Plane B's live frames, None if the file is unavailable.
     frames : dict of int -> PlaneBFrame
         Plane A frame index -> plane B's side of that pair.
+    centerline_uv_px : (M, 2) ndarray of float
+        Plane B's roadmap centerline (``registration_inputs.npz`` ``centerline_b_uv_px``; empty for
+        an output folder written before it was kept): with plane A's, the joint refinement's input.
+    centerline_radius_px : (M,) ndarray of float or None
+        The vessel radius at each of those points.
     """
 
     carm: CArm
     frames_carm: CArm
     images: np.ndarray | None
     frames: dict
+    centerline_uv_px: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    centerline_radius_px: np.ndarray | None = None
 
     def frame_for(self, index: int) -> PlaneBFrame | None:
         return self.frames.get(int(index))
@@ -419,7 +443,18 @@ def load_plane_b(out_dir, *, load_images: bool = True) -> PlaneB | None:
             raise InputError(f"{fpath}: frame size {run.frames.shape[1:]} differs from plane B's frames_carm "
                              f"{frames_carm.shape}")
         images = run.frames
-    return PlaneB(carm, frames_carm, images, frames)
+    cl_uv, cl_r = np.zeros((0, 2)), None
+    npz_path = Path(out_dir) / "registration_inputs.npz"
+    if npz_path.exists():
+        try:
+            with np.load(npz_path, allow_pickle=False) as z:
+                if "centerline_b_uv_px" in z.files:
+                    cl_uv = np.asarray(z["centerline_b_uv_px"], dtype=float).reshape(-1, 2)
+                    cl_r = _radius_of(z, "centerline_b_radius_px", len(cl_uv))
+        except (ValueError, OSError) as e:
+            raise InputError(f"{npz_path}: unreadable registration inputs ({e})") from None
+    cl_uv.setflags(write=False)
+    return PlaneB(carm, frames_carm, images, frames, cl_uv, cl_r)
 
 
 def save_registration(out_dir, pose: Pose, *, source: str, carm: CArm, automatic_pose: Pose,

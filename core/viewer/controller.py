@@ -362,26 +362,47 @@ class ViewerController:
         self._inlier_cache = (self.pose, val)
         return val
 
+    @property
+    def refines_both_planes(self) -> bool:
+        """True when :meth:`refine` fits both roadmaps (a biplane case whose output folder keeps
+        plane B's roadmap centerline)."""
+        pb = self._plane_b
+        return pb is not None and len(pb.centerline_uv_px) >= 10
+
     def refine(self):
         """Run the LM refinement from the current pose; adopt it and re-reconstruct unless it failed
         (a pose the overlay fits but the roadmap leaves uncertain is adopted with a warning).
+        A biplane case is refined on both roadmaps at once (the joint problem of
+        ``biplane.register_biplane``, from the current pose, as the Slicer module does), when the
+        output folder keeps plane B's roadmap centerline; otherwise on plane A's, and it says so.
 
         Returns
         -------
         RegistrationResult
-            As returned by ``registration.refine`` (its ``success``/``message`` say how it went).
+            As returned by ``registration.refine`` or the joint refinement (its ``success`` /
+            ``message`` say how it went).
         """
         self._require_registration_inputs("refine")
         t0 = time.perf_counter()
-        res = registration.refine(self._case.tree, self._case.centerline_uv_px, self._case.carm, self.pose)
+        case, pb = self._case, self._plane_b
+        if self.refines_both_planes:
+            res = bp.register_biplane(case.tree, [case.centerline_uv_px, pb.centerline_uv_px], [case.carm, pb.carm],
+                                      centerline_radius_px=(case.centerline_radius_px, pb.centerline_radius_px),
+                                      init_pose=self.pose, global_search=False).result
+        else:
+            res = registration.refine(case.tree, case.centerline_uv_px, case.carm, self.pose,
+                                      centerline_radius_px=case.centerline_radius_px)
+        note = ("" if pb is None or self.refines_both_planes else
+                "; plane A's roadmap alone (this output folder does not keep plane B's roadmap centerline)")
         dt = time.perf_counter() - t0
         if res.verdict is registration.Verdict.FAILED:
-            self._say(f"refine failed: {res.message} (pose kept)")
+            self._say(f"refine failed: {res.message} (pose kept){note}")
             return res
         # "uncertain": the overlay fits best there, but the roadmap leaves the pose open (e.g. the
         # depth of a single vessel path): adopt it and say so
         self._covariance_pose, self._covariance = res.pose, res.covariance_6x6
-        self._set_pose(res.pose, "manual", f"refined in {dt:.2f} s: {res.mean_residual_px:.2f} px")
+        what = "both planes" if self.refines_both_planes else "the roadmap"
+        self._set_pose(res.pose, "manual", f"refined on {what} in {dt:.2f} s: {res.mean_residual_px:.2f} px{note}")
         self.apply()
         if not res.success:
             self._say(f"{self.status}; refined, but the roadmap does not settle the pose, check it: {res.message}")
