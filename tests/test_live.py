@@ -176,6 +176,22 @@ def test_real_catheter_frames_never_crash_the_reconstruction():
     assert np.linalg.norm(tip_uv - d.curves_uv_px[60][-1]) < 15.0
 
 
+def test_real_catheter_frames_ok_only_with_the_tip_at_the_real_tip():
+    """Real data (issue 20, "the tip at the wrong end"): the 74 catheter curves through the live
+    engine, given tip last and tip first (the engine finds the tip from the vessel tree), with
+    per-frame pose tracking. No frame is ok with its tip at the catheter's proximal end, and most are ok."""
+    d = _dataset1()
+    from bench_real_catheter import run
+
+    for reverse in (False, True):
+        rows = run(d, reverse=reverse, track=True, wrong_px=20.0)["rows"]
+        ok = [r for r in rows if r["verdict"] == "ok"]
+        assert not [r["k"] for r in ok if r["wrong_end"]]
+        assert all(r["tip_px"] < 5.0 for r in ok)
+        assert len(ok) >= 0.7 * len(rows)
+        assert all(r["verdict"] != "ok" or r["proj_px"] < 1.0 for r in rows)
+
+
 def test_session_reports_a_broken_frame_and_goes_on(small_case, monkeypatch):
     case = small_case
     session = live.Session(case.tree, case.carm, case.pose)
