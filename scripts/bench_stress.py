@@ -6,7 +6,9 @@ rigid motion, distractors, dose, no catheter, wire diameter 0.25 / 0.36 / 0.89 m
 ``guidewire3d reconstruct`` runs on its DICOM files as a user would (``--track-motion`` when the
 case moves). A frame reported ``ok`` is *silently wrong* when its 3D wire is more than
 ``--mean-mm`` from the true wire on average, or its tip more than ``--tip-mm`` from the true tip
-in view. Also counted: exit codes, tracebacks (there must be none), and the verdicts.
+in view. Also counted: exit codes, tracebacks (there must be none), the verdicts, the reasons of the
+``uncertain`` ones (``REASONS``: a frame may have several) and the frames whose tracking prior was
+dropped (the wire fitted another path much better).
 
     nice .venv/bin/python scripts/bench_stress.py --seed0 3000 --cases 12
 """
@@ -24,6 +26,11 @@ import time
 from pathlib import Path
 
 import numpy as np
+
+#: the reasons of ``live.frame_verdict``, by the words that start them
+REASONS = {"tip end": "tip end uncertain", "beyond tip": "tip uncertain: a wire-like piece",
+           "not in view": "tip not in view", "tip sigma": "tip uncertain: its position",
+           "trace doubtful": "2D trace doubtful", "branch ambiguous": "branch ambiguous", "motion": "motion:"}
 
 
 def options_of(seed: int) -> list[str]:
@@ -53,7 +60,7 @@ def run_case(seed: int, work: Path, args) -> dict:
     t0 = time.perf_counter()
     p = subprocess.run(exe + ["phantom", "--out", str(case)] + opts, capture_output=True, text=True)
     rec = dict(seed=seed, options=" ".join(opts[2:]), phantom_exit=p.returncode, exit=None, traceback=False,
-               frames=0, ok=0, uncertain=0, failed=0, wrong=[], max_ok_tip_mm=0.0)
+               frames=0, ok=0, uncertain=0, failed=0, wrong=[], max_ok_tip_mm=0.0, reasons={}, prior_dropped=0)
     if p.returncode:
         rec["error"] = p.stderr.strip().splitlines()[-1] if p.stderr.strip() else ""
         return rec
@@ -72,6 +79,12 @@ def run_case(seed: int, work: Path, args) -> dict:
             rec["frames"] += 1
             verdict = fr.get("verdict") or ("ok" if fr.get("success") else "failed")
             rec[verdict if verdict in ("ok", "uncertain", "failed") else "failed"] += 1
+            rec["prior_dropped"] += "dropped as a prior" in (fr.get("message") or "")
+            if verdict == "uncertain":
+                why = fr.get("verdict_message") or ""
+                for name, words in REASONS.items():
+                    if words in why:
+                        rec["reasons"][name] = rec["reasons"].get(name, 0) + 1
             if verdict != "ok":
                 continue
             k = fr["index"]
@@ -117,6 +130,10 @@ def main(argv=None) -> int:
     n_frames = sum(r["frames"] for r in recs)
     print(f"total: {n_frames} frames, {n_ok} ok, {n_wrong} silently wrong; tracebacks: "
           f"{sum(r['traceback'] for r in recs)}")
+    reasons = {name: sum(r["reasons"].get(name, 0) for r in recs) for name in REASONS}
+    print("uncertain frames by reason (a frame may have several): "
+          + ", ".join(f"{name} {n}" for name, n in reasons.items())
+          + f"; frames whose tracking prior was dropped: {sum(r['prior_dropped'] for r in recs)}")
     return 0
 
 

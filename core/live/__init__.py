@@ -3,10 +3,13 @@
 The public names of the modules below, importable from ``guidewire3d.live``.
 """
 from guidewire3d.live.session import (  # noqa: F401
+    BRANCH_EXTRA_MAX,
+    BRANCH_SHIFT_MIN_MM,
     HINT_MARGIN_ALONE,
     HINT_MARGIN_MIN,
     TIP_BORDER_PX,
     TIP_MAX_UNCERTAINTY_MM,
+    TREE_RETREAT_MAX_MM,
     TREE_RISE_MIN_MM,
     FrameResult,
     Orientation,

@@ -55,6 +55,15 @@ TREE_RISE_MIN_MM = 5.0
 #: another branch explains the wire's distal part about as well (on simulated frames with the
 #: true tree, correct tips stay below 2 mm)
 TIP_MAX_UNCERTAINTY_MM = 3.0
+#: a path through the vessel tree that walks back towards the root by more than this (mm) along the
+#: wire (``Wire3D.tree_retreat_mm``) does not follow the wire: the 2D trace took the wrong way at a
+#: crossing (on simulated frames with the true tree, right paths stay below 3 mm)
+TREE_RETREAT_MAX_MM = 6.0
+#: a path through another branch (``Wire3D.branch_extra_cost``: its extra cost, in the Viterbi's
+#: units of 2 x log-likelihood) below this, whose end lies more than ``BRANCH_SHIFT_MIN_MM`` from
+#: the chosen end, makes the branch ambiguous
+BRANCH_EXTRA_MAX = 4.0
+BRANCH_SHIFT_MIN_MM = 10.0
 #: a 2D wire whose distal end is this close to the image border (px) runs out of the view there:
 #: its tip is not seen (it may re-enter the image elsewhere)
 TIP_BORDER_PX = 1.5
@@ -370,6 +379,8 @@ def frame_verdict(wire3d, wire_uv_px, orientation, *, beyond_tip=None, motion=No
     * a piece of the wire mask lies beyond the traced tip (``beyond_tip``: ``orderedwire.BeyondTip``);
     * the wire runs out of the image (``image_shape``, rows and cols) at its distal end;
     * the tip's uncertainty exceeds ``TIP_MAX_UNCERTAINTY_MM``;
+    * the path through the tree walks back towards the root (``TREE_RETREAT_MAX_MM``);
+    * a path through another branch explains the wire about as well (``BRANCH_EXTRA_MAX``);
     * the frame's motion update did not fit (``motion``: its ``RegistrationResult``).
     """
     uv = np.asarray(wire_uv_px, float).reshape(-1, 2)
@@ -387,6 +398,16 @@ def frame_verdict(wire3d, wire_uv_px, orientation, *, beyond_tip=None, motion=No
     if tip_sigma_mm > TIP_MAX_UNCERTAINTY_MM:
         why.append(f"tip uncertain: its position is known to {tip_sigma_mm:.1f} mm (1 sigma, limit "
                    f"{TIP_MAX_UNCERTAINTY_MM:g} mm); {wire3d.message}")
+    retreat_mm = float(getattr(wire3d, "tree_retreat_mm", float("nan")))
+    if retreat_mm > TREE_RETREAT_MAX_MM:
+        why.append(f"2D trace doubtful: along the wire, its path through the vessel tree walks {retreat_mm:.0f} mm "
+                   f"back towards the root (a wire advanced from the root does not; the trace may have taken the "
+                   f"wrong way where the wire crosses itself)")
+    extra = float(getattr(wire3d, "branch_extra_cost", float("nan")))
+    shift_mm = float(getattr(wire3d, "branch_tip_shift_mm", float("nan")))
+    if extra < BRANCH_EXTRA_MAX and shift_mm > BRANCH_SHIFT_MIN_MM:
+        why.append(f"branch ambiguous: a path through another branch of the vessel tree explains the 2D wire about as "
+                   f"well (extra cost {extra:.1f}, limit {BRANCH_EXTRA_MAX:g}) and ends {shift_mm:.0f} mm away")
     if motion is not None and not motion.success:
         why.append(f"motion: {motion.message}")
     if not why:

@@ -23,8 +23,12 @@ from guidewire3d.reconstruction.context import (  # noqa: F401
     build_context,
 )
 from guidewire3d.reconstruction.path import (  # noqa: F401
+    PathCosts,
     ambiguity_mm2,
+    branch_alternative,
+    path_retreat_mm,
     tracking_tip,
+    viterbi_costs,
     viterbi_path,
 )
 from guidewire3d.reconstruction.placement import (  # noqa: F401
@@ -33,6 +37,7 @@ from guidewire3d.reconstruction.placement import (  # noqa: F401
     place_on_path,
 )
 from guidewire3d.reconstruction.single_view import (  # noqa: F401
+    RETREAT_STEP_ANCHORS,
     Wire3D,
     WireTracker,
     reconstruct_wire,

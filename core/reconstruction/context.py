@@ -42,6 +42,7 @@ class ReconOptions:
     track_tolerance_mm: float = 1.0  #: tracking: free distance off the previous root->tip path
     track_confirm_mm: float = 10.0  #: tracking: the last this-many mm of the previous path are not a prior
     sigma_track_mm: float = 2.0  #: tracking: cost per this many mm further off it
+    track_override_cost: float = 50.0  #: tracking: the prior is dropped when the path without it costs this much less
     outer_bend_prior: bool = True  #: place the depth towards the outer side of bends (wire rides it)
     outer_bend_mm: float = 20.0  #: full hug where the radius of curvature is below this
     outer_bend_fraction: float = 0.7  #: ... of this fraction of the room the wire has
@@ -129,6 +130,8 @@ class ReconstructionContext:
         lca_s[anc | anc.T] = np.inf
         np.fill_diagonal(lca_s, np.inf)
         self.branch_lca_s = lca_s
+        # branch_in_subtree[a, b]: b is a or a descendant of a
+        self.branch_in_subtree = anc | np.eye(B, dtype=bool)
         # root paths per branch, index-aligned by depth
         self.rootpath = []
         for b in range(B):

@@ -4,33 +4,53 @@ The unary cost is how far the anchor lies outside the projected lumen; the pairw
 tree move between consecutive choices to be connected (geodesic ~ Euclidean distance), to
 reproduce the 2D step and to be distal. In tracking mode an extra unary cost keeps the choices on
 the previous frame's root -> tip path. The recursions run compiled (``guidewire3d.kernels``); the
-min-marginals give the branch ambiguity that enters the uncertainty.
+min-marginals give the branch ambiguity that enters the uncertainty. Path-level checks reuse the
+costs (:class:`PathCosts`): re-runs without the tracking prior or with a branch's subtree forbidden
+(:func:`branch_alternative`), and how far the path walks back towards the root
+(:func:`path_retreat_mm`).
 """
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 from guidewire3d import kernels
 
-__all__ = ["viterbi_path", "ambiguity_mm2", "tracking_tip"]
+__all__ = ["PathCosts", "viterbi_costs", "viterbi_path", "path_retreat_mm", "branch_alternative", "ambiguity_mm2",
+           "tracking_tip"]
 
 
-def viterbi_path(ctx, uv_a, cand, outside, opt, track_tip):
-    """The chosen tree point per anchor (A',), the path's total cost and its min-marginals.
+@dataclass(frozen=True, eq=False)
+class PathCosts:
+    """The Viterbi's costs over the anchors (:func:`viterbi_costs`), kept for constrained re-runs.
 
-    ``cand``, ``outside`` (A, K): the candidates of the anchors ``uv_a`` (A, 2) and their distance
-    outside the projected lumen (``candidates.tree_candidates``); ``track_tip``: the tracking prior
-    (:func:`tracking_tip`, a dense tree point) or None. The path may end before the last anchor.
-
-    The min-marginals are ``(cand, excess)``, each (A', K): the candidates of the anchors on the
-    path and, for each, how much more the best path through it costs (0 for the chosen one).
+    ``cand`` (A, K) dense tree point ids (-1 none), ``U`` (A, K) unary costs (inf where no
+    candidate), ``C`` (A - 1, K, K) pairwise costs, ``start`` (K,) the first anchor's extra cost;
+    ``U_untracked`` (A, K) the unary costs without the tracking prior (None without one).
     """
+
+    cand: np.ndarray
+    U: np.ndarray
+    C: np.ndarray
+    start: np.ndarray
+    U_untracked: np.ndarray | None = None
+
+    def untracked(self) -> PathCosts:
+        """The same costs without the tracking prior (itself when there is none)."""
+        return self if self.U_untracked is None else PathCosts(self.cand, self.U_untracked, self.C, self.start)
+
+
+def viterbi_costs(ctx, uv_a, cand, outside, opt, track_tip) -> PathCosts:
+    """The unary and pairwise costs of :func:`viterbi_path` (see there for the arguments)."""
     # keep only the columns that hold a candidate somewhere (the KD query pads with misses)
     keep = (cand >= 0).any(axis=0)
     cand, outside = cand[:, keep], outside[:, keep]
     valid = cand >= 0
     safe = np.maximum(cand, 0)
     U = (outside / opt.sigma_outside_px) ** 2
+    U_untracked = None
     if track_tip is not None:
+        U_untracked = np.where(valid, U, np.inf)
         # distance off the previous frame's root -> tip path into a side branch; advancing beyond
         # the previous tip (into its subtree) or retracting along the path is free
         lca = ctx.lca_s(safe, track_tip)
@@ -46,22 +66,117 @@ def viterbi_path(ctx, uv_a, cand, outside, opt, track_tip):
     C = kernels.viterbi_pairwise(safe, ctx.s, ctx.point_branch, ctx.branch_lca_s, ctx.points, ctx.uv, uv_a,
                                  sigma_step_px=opt.sigma_step_px, sigma_jump_mm=opt.sigma_jump_mm,
                                  sigma_retreat_mm=opt.sigma_retreat_mm)
-    acc = U[0] + opt.start_cost_per_mm * ctx.s[safe[0]]
-    # the path may end before the last anchor, paying skip_cost per anchor left unexplained (a
-    # distal part outside every lumen, e.g. a missing or mis-registered end branch, is then not
-    # forced onto a far branch by a long jump); the recursions run compiled (kernels)
-    alpha, back, end_t, end_k, end_cost = kernels.viterbi_forward(acc, U, C, opt.skip_cost)
+    return PathCosts(cand, U, C, opt.start_cost_per_mm * ctx.s[safe[0]], U_untracked)
+
+
+def _best_path(costs: PathCosts, U, skip_cost):
+    """Forward pass and backtrack: the chosen column per anchor (end_t + 1,), the end cost, the
+    forward costs and ``(end_t, end_k)``."""
+    alpha, back, end_t, end_k, end_cost = kernels.viterbi_forward(U[0] + costs.start, U, costs.C, skip_cost)
     end_t, end_k, end_cost = int(end_t), int(end_k), float(end_cost)
     best = np.empty(end_t + 1, np.int64)
     best[-1] = end_k
     for t in range(end_t - 1, -1, -1):
         best[t] = back[t, best[t + 1]]
+    return best, end_cost, alpha, (end_t, end_k)
+
+
+def viterbi_path(ctx, uv_a, cand, outside, opt, track_tip, *, costs: PathCosts | None = None):
+    """The chosen tree point per anchor (A',), the path's total cost and its min-marginals.
+
+    ``cand``, ``outside`` (A, K): the candidates of the anchors ``uv_a`` (A, 2) and their distance
+    outside the projected lumen (``candidates.tree_candidates``); ``track_tip``: the tracking prior
+    (:func:`tracking_tip`, a dense tree point) or None. The path may end before the last anchor.
+    ``costs``: the :func:`viterbi_costs` of these arguments, when the caller keeps them.
+
+    The min-marginals are ``(cand, excess)``, each (A', K): the candidates of the anchors on the
+    path and, for each, how much more the best path through it costs (0 for the chosen one).
+    """
+    costs = viterbi_costs(ctx, uv_a, cand, outside, opt, track_tip) if costs is None else costs
+    cand, U, C = costs.cand, costs.U, costs.C
+    # the path may end before the last anchor, paying skip_cost per anchor left unexplained (a
+    # distal part outside every lumen, e.g. a missing or mis-registered end branch, is then not
+    # forced onto a far branch by a long jump); the recursions run compiled (kernels)
+    best, end_cost, alpha, (end_t, end_k) = _best_path(costs, U, opt.skip_cost)
     # min-marginals of the path ending at end_t: forward + backward min-sum costs
     beta = kernels.viterbi_backward(C, U, end_t)
     with np.errstate(invalid="ignore"):
         excess = alpha[: end_t + 1] + beta - (alpha[end_t, end_k])
     excess = np.where(np.isfinite(excess), np.maximum(excess, 0.0), np.inf)
     return cand[np.arange(end_t + 1), best], end_cost, (cand[: end_t + 1], excess)
+
+
+def path_retreat_mm(ctx, nodes, *, max_step_mm: float) -> float:
+    """How far the path through ``nodes`` (A',) walks back towards the tree's root, mm.
+
+    Each step between consecutive anchors moves through the tree by ``up`` towards the root (to
+    the lowest common ancestor) and then ``down`` away from it. Over runs of steps whose tree move
+    ``up + down`` is at most ``max_step_mm`` (a walk along the vessels, not a jump to an
+    overlapping one), the walked-back distance accumulates ``up - down`` and restarts at 0 when
+    it turns negative; a jump adds nothing. The largest value is returned.
+
+    A wire advanced from the root runs away from it, so along its 2D order the chosen tree points
+    do not walk back towards the root beyond the few mm of a sibling switch where the wire cuts a
+    bifurcation's corner. A path that reaches a point and then walks a long way back along the
+    vessels means the 2D order is not the wire's: a trace that took the wrong way where the wire
+    crosses itself and so reached the tip in its middle. A short detour over an overlapping
+    vessel (a jump there and a jump back) does not count.
+    """
+    nodes = np.asarray(nodes, np.int64)
+    if len(nodes) < 2:
+        return 0.0
+    a, b = nodes[:-1], nodes[1:]
+    lca = ctx.lca_s(a, b)
+    up, down = ctx.s[a] - lca, ctx.s[b] - lca
+    walk = up + down <= max_step_mm
+    run, worst = 0.0, 0.0
+    for u, d, w in zip(up.tolist(), down.tolist(), walk.tolist()):
+        run = max(run + u - d, 0.0) if w else run
+        worst = max(worst, run)
+    return float(worst)
+
+
+def branch_alternative(ctx, costs: PathCosts, nodes, total, opt):
+    """The best path that avoids the chosen path's distal subtree, as a rival to it.
+
+    For each branch the chosen path ``nodes`` (A',) enters after its first (a bifurcation passed
+    on the way to the tip), the Viterbi runs again with every candidate in that branch's subtree
+    forbidden (the same costs, ``costs``; the path may end early, as always). Of these
+    constrained paths, the one nearest in cost to the chosen one (``total``) is returned as
+    ``(extra_cost, tip_shift_mm)``: how much more it costs (in the Viterbi's units: squared
+    residuals, so 2 x the log-likelihood ratio) and how far its last tree point lies from the
+    chosen path's at the same anchor, mm (its distal end if it stops earlier; the chosen tip
+    when it goes on further). ``(inf, 0.0)`` when the path enters no branch after its first.
+
+    A small extra cost with a large tip shift is a branch choice the 2D wire does not settle (a
+    sibling that projects onto the wire's distal part about as well): the per-anchor
+    min-marginals (:func:`ambiguity_mm2`) see it at the anchors where both branches have
+    candidates, but the tip's own anchor may have none on the sibling.
+    """
+    nodes = np.asarray(nodes, np.int64)
+    br = ctx.point_branch[nodes]
+    entered = [int(b) for k, b in enumerate(br) if k > 0 and b != br[k - 1] and b not in br[:k]]
+    if not entered:
+        return float("inf"), 0.0
+    cand = costs.cand
+    safe = np.maximum(cand, 0)
+    cbr = ctx.point_branch[safe]
+    best_extra, best_shift = float("inf"), 0.0
+    for b in entered:
+        forbid = ctx.branch_in_subtree[b][cbr] & (cand >= 0)
+        if not forbid.any():
+            continue
+        U = np.where(forbid, np.inf, costs.U)
+        alt, alt_cost, _, (end_t, _) = _best_path(costs, U, opt.skip_cost)
+        extra = alt_cost - float(total)
+        if not np.isfinite(extra):
+            continue
+        alt_nodes = cand[np.arange(end_t + 1), alt]
+        t = min(end_t, len(nodes) - 1)
+        shift = float(np.linalg.norm(ctx.points[alt_nodes[t]] - ctx.points[nodes[t]]))
+        if extra < best_extra:
+            best_extra, best_shift = extra, shift
+    return max(best_extra, 0.0), best_shift
 
 
 def ambiguity_mm2(ctx, nodes, marginals, opt) -> np.ndarray:

@@ -20,7 +20,13 @@ Default method (``ReconMethod.VESSEL``), one module of this package per step:
        the choices on the previous frame's root -> tip path: advancing beyond the old tip or
        retracting is free, entering a side branch costs in proportion to the distance into it. A
        path that ends nearer the root than it starts triggers a try on the reversed 2D wire (the
-       output is always proximal -> distal).
+       output is always proximal -> distal). Path-level checks on the result: in tracking mode the
+       Viterbi also runs without the prior, and the prior is dropped when that path explains the
+       wire much better (``track_override_cost``: the previous frame's path was a wrong branch, or
+       the wire went elsewhere); how far the path walks back towards the root along the wire
+       (``Wire3D.tree_retreat_mm``: a 2D trace that took the wrong way at a crossing); and the best
+       rival path that avoids a branch the path entered (``Wire3D.branch_extra_cost``,
+       ``branch_tip_shift_mm``). The frame verdict (``live.frame_verdict``) reads the last two.
     4. ``placement``: the chosen nodes are joined along the tree into one path. Each 2D wire
        point's ray is intersected with the nearby path segments (ray-segment closest approach,
        preferring the path position interpolated between the anchors). The feasible depths are the
@@ -56,13 +62,24 @@ from guidewire3d.methods import ReconMethod
 from guidewire3d.reconstruction.baselines import bspline_points, paper_points
 from guidewire3d.reconstruction.candidates import anchor_indices, tree_candidates
 from guidewire3d.reconstruction.context import ReconOptions, build_context
-from guidewire3d.reconstruction.path import ambiguity_mm2, tracking_tip, viterbi_path
+from guidewire3d.reconstruction.path import (
+    ambiguity_mm2,
+    branch_alternative,
+    path_retreat_mm,
+    tracking_tip,
+    viterbi_costs,
+    viterbi_path,
+)
 from guidewire3d.reconstruction.placement import place_on_path
 from guidewire3d.reconstruction.smoothing import arclength, curvature, smooth_wire, tangents
 from guidewire3d.reconstruction.uncertainty import covariance_lumen, covariance_unconstrained
 from guidewire3d.vesseltree import VesselTree
 
 __all__ = ["Wire3D", "reconstruct_wire", "WireTracker"]
+
+#: ``Wire3D.tree_retreat_mm``: a move through the tree between consecutive anchors longer than this
+#: many anchor steps (``dp_step_px`` at the tree's depth) is a jump, not a walk along the vessels
+RETREAT_STEP_ANCHORS = 4.0
 
 
 def _ro(a, dtype=float) -> np.ndarray:
@@ -92,6 +109,12 @@ class Wire3D:
     tree_rise_mm : float, vessel method: arclength from the tree's root gained from the first to
         the last tree point of the path (positive: the output runs away from the root, as a wire
         advanced from the root does); NaN for the other methods.
+    tree_retreat_mm : float, vessel method: how far the path through the tree runs back towards
+        the root along the wire (``path.path_retreat_mm``; a wire advanced from the root does not,
+        a 2D trace that took the wrong way at a crossing does); NaN for the other methods.
+    branch_extra_cost, branch_tip_shift_mm : float, vessel method: the best path that avoids a
+        branch the chosen one entered (``path.branch_alternative``): its extra cost (0: as good;
+        inf: none) and how far its end lies from the chosen path's, mm; NaN for the other methods.
     """
 
     points_lps_mm: np.ndarray
@@ -108,6 +131,9 @@ class Wire3D:
     covariance_mm2: np.ndarray = field(default_factory=lambda: np.zeros((0, 3, 3)))
     reversed_input: bool = False
     tree_rise_mm: float = float("nan")
+    tree_retreat_mm: float = float("nan")
+    branch_extra_cost: float = float("nan")
+    branch_tip_shift_mm: float = float("nan")
 
     def __post_init__(self):
         object.__setattr__(self, "points_lps_mm", _ro(np.reshape(self.points_lps_mm, (-1, 3))))
@@ -147,6 +173,9 @@ class Wire3D:
             "seconds": f(self.seconds),
             "reversed_input": bool(self.reversed_input),
             "tree_rise_mm": f(self.tree_rise_mm),
+            "tree_retreat_mm": f(self.tree_retreat_mm),
+            "branch_extra_cost": f(self.branch_extra_cost),
+            "branch_tip_shift_mm": f(self.branch_tip_shift_mm),
         }
 
 
@@ -163,7 +192,7 @@ def _validate_uv(wire_uv_px) -> np.ndarray:
 
 
 def _finish(ctx, X, uv, tid, depth_std, extra, *, image, registration_covariance, opt, method, t0, message,
-            lumen=None, reversed_input=False, tree_rise_mm=float("nan")):
+            lumen=None, reversed_input=False, tree_rise_mm=float("nan"), path_checks=(float("nan"),) * 3):
     Xs, lam = smooth_wire(ctx, X, uv, lam=opt.smoothing_lambda, opt=opt)
     proj = ctx.project(Xs)
     perr = float(np.linalg.norm(proj - uv, axis=1).mean())
@@ -183,7 +212,7 @@ def _finish(ctx, X, uv, tid, depth_std, extra, *, image, registration_covariance
         msg += f"; smoothing lambda reduced to {lam:.3g} to keep the projection"
     tree_ids = np.where(tid >= 0, ctx.orig_id[np.maximum(tid, 0)], -1)
     return Wire3D(Xs, unc, float(arc[-1]), perr, ok, msg, tree_ids, arc, curvature(Xs), time.perf_counter() - t0,
-                  method.value, cov, reversed_input, tree_rise_mm)
+                  method.value, cov, reversed_input, tree_rise_mm, *path_checks)
 
 
 def _reconstruct_vessel(ctx, uv, *, track_tip, image, registration_covariance, opt, t0):
@@ -196,7 +225,19 @@ def _reconstruct_vessel(ctx, uv, *, track_tip, image, registration_covariance, o
             f"the 2D wire misses the projected vessel tree ({100 * coverage:.0f}% of anchors inside, "
             f"need {100 * opt.min_coverage:.0f}%)", seconds=time.perf_counter() - t0)
     aidx, cand, outside = aidx[has], cand[has], outside[has]
-    nodes, total, marg = viterbi_path(ctx, uv[aidx], cand, outside, opt, track_tip)
+    costs = viterbi_costs(ctx, uv[aidx], cand, outside, opt, track_tip)
+    nodes, total, marg = viterbi_path(ctx, uv[aidx], cand, outside, opt, track_tip, costs=costs)
+    prior_note = ""
+    if costs.U_untracked is not None:
+        # the tracking prior may only settle what the 2D wire leaves open: when the best path
+        # without it explains the wire much better, the previous frame's path is not this one's
+        # (its distal part was a wrong branch, or the wire was pulled back and went elsewhere)
+        free = costs.untracked()
+        f_nodes, f_total, f_marg = viterbi_path(ctx, uv[aidx], cand, outside, opt, None, costs=free)
+        if total - f_total > opt.track_override_cost and len(f_nodes) >= 2:
+            prior_note = (f"; the previous frame's path dropped as a prior (the wire fits another path better by "
+                          f"{total - f_total:.0f})")
+            nodes, total, marg, costs, track_tip = f_nodes, f_total, f_marg, free, None
     n_skipped = len(aidx) - len(nodes)
     aidx_all, aidx = aidx, aidx[: len(nodes)]
     if not np.isfinite(total) or len(nodes) < 2:
@@ -207,9 +248,12 @@ def _reconstruct_vessel(ctx, uv, *, track_tip, image, registration_covariance, o
         # the path runs towards the root: the 2D wire was probably given distal -> proximal. The
         # retry runs over every anchor with a candidate (the forward path may have ended early)
         r_aidx = len(uv) - 1 - aidx_all[::-1]
-        r_nodes, r_total, r_marg = viterbi_path(ctx, uv[::-1][r_aidx], cand[::-1], outside[::-1], opt, track_tip)
+        r_costs = viterbi_costs(ctx, uv[::-1][r_aidx], cand[::-1], outside[::-1], opt, track_tip)
+        r_nodes, r_total, r_marg = viterbi_path(ctx, uv[::-1][r_aidx], cand[::-1], outside[::-1], opt, track_tip,
+                                                costs=r_costs)
         if r_total < total and len(r_nodes) >= 2:
             uv, aidx, nodes, total, marg = uv[::-1].copy(), r_aidx[: len(r_nodes)], r_nodes, r_total, r_marg
+            costs = r_costs
             n_skipped = len(r_aidx) - len(r_nodes)
             reversed_note = "; the 2D wire looked distal -> proximal: output reversed to proximal -> distal"
     X, tid, half, dist, r = place_on_path(ctx, uv, aidx, nodes)
@@ -223,15 +267,18 @@ def _reconstruct_vessel(ctx, uv, *, track_tip, image, registration_covariance, o
         km = np.clip(k - 1, 0, len(aidx) - 1)
         k = np.where(np.abs(aidx[km] - np.arange(len(uv))) < np.abs(aidx[k] - np.arange(len(uv))), km, k)
         amb = ambiguity_mm2(ctx, nodes, marg, opt)[k]
-    msg = f"ok: {len(uv)} points, {100 * coverage:.0f}% of anchors on the tree, path cost {total:.1f}" + reversed_note
+    msg = (f"ok: {len(uv)} points, {100 * coverage:.0f}% of anchors on the tree, path cost {total:.1f}" + reversed_note
+           + prior_note)
     if coverage < 1.0:
         msg += " (gaps bridged)"
     if n_skipped:
         msg += f"; the last {n_skipped} anchors fit no lumen (placed beyond the path's end)"
     ids = np.where(miss > 0, -1, tid)
+    retreat_mm = path_retreat_mm(ctx, nodes, max_step_mm=RETREAT_STEP_ANCHORS * opt.dp_step_px * ctx.px_mm)
     return _finish(ctx, X, uv, ids, depth_std, miss**2, image=image, registration_covariance=registration_covariance,
                    opt=opt, method=ReconMethod.VESSEL, t0=t0, message=msg, lumen=(half_width, miss, amb),
-                   reversed_input=bool(reversed_note), tree_rise_mm=float(ctx.s[nodes[-1]] - ctx.s[nodes[0]]))
+                   reversed_input=bool(reversed_note), tree_rise_mm=float(ctx.s[nodes[-1]] - ctx.s[nodes[0]]),
+                   path_checks=(retreat_mm, *branch_alternative(ctx, costs, nodes, total, opt)))
 
 
 def _reconstruct_paper(ctx, uv, *, image, registration_covariance, opt, t0):
