@@ -495,9 +495,11 @@ def _client(workers: int | None, scheduler: str | None, log):
     # one thread per worker process: a study is CPU-bound, and torch/OpenMP threads stay at 1
     # (the nanny sets OMP_NUM_THREADS=1); memory is not limited (a study's peak is in the README)
     # (the statistical profiler, which samples the task's stack every 10 ms, is off: nobody reads it here)
+    # (the scheduler's HTTP server, /health and /metrics, listens on a free port of 127.0.0.1: with
+    # dashboard_address=None it still takes 8787, and a second cluster on the host then warns and moves)
     with dask.config.set({"distributed.worker.profile.enabled": False}):
         cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, host="127.0.0.1",
-                               dashboard_address=None, memory_limit=0, silence_logs=50)
+                               dashboard_address="127.0.0.1:0", memory_limit=0, silence_logs=50)
     if log is not None:
         log(f"local Dask cluster: {n} worker process{'es' if n > 1 else ''} at {cluster.scheduler_address}")
     return Client(cluster), cluster
