@@ -7,6 +7,8 @@ from guidewire3d.motion.tracking import (  # noqa: F401
     CROP_MARGIN_PX,
     MAX_CURVE_POINTS,
     MIN_CC_IN_PLANE,
+    SETTLE_CURVE_POINTS,
+    SETTLE_STARTS,
     STEP_TOL_MM,
     STEP_TOL_RAD,
     MotionOptions,
