@@ -8,6 +8,7 @@ from guidewire3d.motion.tracking import (  # noqa: F401
     MAX_CURVE_POINTS,
     MIN_CC_IN_PLANE,
     SETTLE_CURVE_POINTS,
+    SETTLE_ITERATIONS,
     SETTLE_STARTS,
     STEP_TOL_MM,
     STEP_TOL_RAD,

@@ -53,6 +53,7 @@ MAX_CURVE_POINTS = 128
 #: (it is compared with a limit of millimetres) from this many of the best cranio-caudal shifts
 SETTLE_CURVE_POINTS = 32
 SETTLE_STARTS = 2
+SETTLE_ITERATIONS = 4
 #: Gauss-Newton stops when a step moves less than this (mm, rad): 0.01 mm is 0.05 px at the isocentre
 STEP_TOL_MM = 0.01
 STEP_TOL_RAD = 1e-5
@@ -111,7 +112,8 @@ class MotionOptions:
     #: frame is also solved alone, as a frame with no predecessor is (from the roadmap pose and the
     #: best cranio-caudal shifts, no temporal prior). A curve that lies in the lumen in two poses
     #: does not tell which: where the alone solution moves the wire's tree samples more than
-    #: ``max_unsettled_mm`` from the tracked one, the tracked pose is not settled (UNCERTAIN)
+    #: ``max_unsettled_mm`` from the tracked one, the tracked pose is not settled (UNCERTAIN).
+    #: A check costs about three frames' tracking; 0 turns it off
     settle_every: int = 5
     max_unsettled_mm: float = 3.0
 
@@ -126,8 +128,9 @@ class MotionOptions:
                 raise InputError(f"MotionOptions.{name}: expected a positive number, got {v!r}")
         if int(self.iterations) < 1:
             raise InputError(f"MotionOptions.iterations: expected >= 1, got {self.iterations!r}")
-        if int(self.settle_every) < 1:
-            raise InputError(f"MotionOptions.settle_every: expected >= 1, got {self.settle_every!r}")
+        if int(self.settle_every) < 0:
+            raise InputError(f"MotionOptions.settle_every: expected >= 0 (0: no second opinion), got "
+                             f"{self.settle_every!r}")
 
 
 def _samples(tree: VesselTree, step_mm: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -193,6 +196,8 @@ class MotionTracker:
         P_cal[:3, :3] += np.diag([0.0, 0.0, opt.cov_sigma_depth_mm**2 - opt.sigma_depth_mm**2])
         P_cal[3:, 3:] = np.diag(np.array([opt.cov_sigma_tilt_deg * deg, opt.cov_sigma_tilt_deg * deg,
                                           opt.cov_sigma_spin_deg * deg]) ** 2)
+        self._A = self._tangent_to_delta
+        self._A_inv = np.linalg.inv(self._A)
         if covariance is not None:
             C_cam = self._camera_covariance(covariance)
             P0, P_cal = P0 + C_cam, P_cal + C_cam
@@ -223,8 +228,7 @@ class MotionTracker:
         C = np.asarray(covariance, float)
         if C.shape != (6, 6) or not np.all(np.isfinite(C)):
             raise InputError(f"covariance: expected a finite (6, 6) matrix, got shape {C.shape}")
-        A = self._tangent_to_delta
-        return A @ C @ A.T
+        return self._A @ C @ self._A.T
 
     @property
     def _tangent_to_delta(self) -> np.ndarray:
@@ -309,7 +313,7 @@ class MotionTracker:
                    f"{np.linalg.norm(delta[:2]):.1f} mm in the image plane, {depth_shift:+.1f} mm in depth")
             if not ok:
                 msg += f" (depth moved more than {opt.max_depth_shift_mm:g} mm from the roadmap's)"
-            if tracked:
+            if tracked and opt.settle_every > 0:
                 self._since_check += 1
                 if self._since_check >= int(opt.settle_every) or self.unsettled_mm > opt.max_unsettled_mm:
                     self._since_check = 0
@@ -329,9 +333,9 @@ class MotionTracker:
         if not fits:
             cov = self._reported_covariance(None, None, None, None)
             std_mm = self._tree_std_mm(cov)
-        Ai = np.linalg.inv(self._tangent_to_delta)
         return RegistrationResult(pose, self.carm.projection_matrix(pose), bool(ok), msg, mean_res, frac, it,
-                                  time.perf_counter() - t0, covariance_6x6=Ai @ cov @ Ai.T, pose_std_mm=std_mm,
+                                  time.perf_counter() - t0, covariance_6x6=self._A_inv @ cov @ self._A_inv.T,
+                                  pose_std_mm=std_mm,
                                   fits_2d=bool(fits))
 
     def _second_opinion_mm(self, c, delta, j) -> float:
@@ -344,7 +348,7 @@ class MotionTracker:
             c = c[np.linspace(0, len(c) - 1, SETTLE_CURVE_POINTS).round().astype(int)]
         starts = self._acquire(c, zero)
         for start in (starts[1:1 + SETTLE_STARTS] if len(starts) > 1 else starts):
-            sol = self._solve(c, start, zero, np.zeros((6, 6)))
+            sol = self._solve(c, start, zero, np.zeros((6, 6)), iterations=SETTLE_ITERATIONS)
             if sol is not None and (best is None or sol[0] < best[0]):
                 best = sol
         if best is None:
@@ -375,7 +379,7 @@ class MotionTracker:
         return float(np.sqrt(max(np.trace(cov[:3, :3]) + np.trace(cov[3:, 3:]) * self._r2
                                  - np.trace(cov[3:, 3:] @ self._M2), 0.0)))
 
-    def _solve(self, c, start, prev, Lt):
+    def _solve(self, c, start, prev, Lt, *, iterations: int | None = None):
         """Gauss-Newton from ``start``: ``(robust cost, delta, H, iterations, inlier fraction,
         mean px outside the lumen)``, or None when no tree sample projects near the curve."""
         opt = self.options
@@ -390,7 +394,7 @@ class MotionTracker:
         H = np.eye(6)
         it = 0
         j = None
-        for it in range(1, int(opt.iterations) + 1):
+        for it in range(1, int(opt.iterations if iterations is None else iterations) + 1):
             # correspondences: found at the start and again every other iteration (a frame's
             # motion is a few px, so point-to-line steps with fixed pairs converge in between)
             r, J, w, j = self._residuals(c, delta, with_jacobian=True, pairs=None if it % 2 else j)
