@@ -231,7 +231,9 @@ class Session:
     track_motion : bool
         Follow breathing and heartbeat: each frame's 2D wire updates the pose
         (``motion.MotionTracker``, with the roadmap pose as its prior) before the frame is
-        reconstructed in it. Off by default: with a static patient it only adds noise.
+        reconstructed in it, with the tracked pose's covariance in place of
+        ``registration_covariance`` (the tracker's prior holds the latter). Off by default: with a
+        static patient it only adds noise.
     """
 
     def __init__(self, tree: VesselTree, carm: CArm, pose: Pose, *, registration_covariance=None,
@@ -344,6 +346,8 @@ class Session:
             motion = self.motion_tracker.update(uv)
             if not self.pose.allclose(motion.pose, atol_mm=1e-6, atol_rad=1e-9):
                 self._use_pose(motion.pose, self.registration_covariance)
+            # the tracked pose's own covariance (it holds the registration's) enters each point's uncertainty
+            self.tracker.registration_covariance = motion.covariance_6x6
             stages["motion"] = time.perf_counter() - t1
         try:
             t1 = time.perf_counter()

@@ -19,7 +19,12 @@ written in the C-arm's camera axes about the tree's centroid
 
 Gauss-Newton with correspondences found again at each iteration (the nearest projected tree
 sample and its local 2D tangent), a few iterations per frame. Each frame gets its pose, residual
-and verdict as a ``registration.RegistrationResult``.
+and verdict as a ``registration.RegistrationResult``, with a pose covariance (``covariance_6x6``,
+in the registration's convention; ``pose_std_mm``) that describes what one frame does not see
+rather than the estimate's own Hessian (``MotionOptions.cov_*``; ``live.Session`` puts it in
+each point's uncertainty), and a second opinion every few frames: the frame solved alone, as
+if it had no predecessor. Where that puts the wire's vessels elsewhere, the curve lies in the
+lumen in two poses and the tracked one is not settled (``MotionOptions.settle_every``).
 """
 from __future__ import annotations
 
@@ -44,6 +49,11 @@ MIN_CC_IN_PLANE = 0.3
 ACQUIRE_STARTS = 3
 #: the curve is thinned to at most this many evenly spaced points (cost per frame)
 MAX_CURVE_POINTS = 128
+#: the second opinion (``MotionOptions.settle_every``) solves with at most this many curve points
+#: (it is compared with a limit of millimetres) from this many of the best cranio-caudal shifts
+SETTLE_CURVE_POINTS = 32
+SETTLE_STARTS = 2
+SETTLE_ITERATIONS = 4
 #: Gauss-Newton stops when a step moves less than this (mm, rad): 0.01 mm is 0.05 px at the isocentre
 STEP_TOL_MM = 0.01
 STEP_TOL_RAD = 1e-5
@@ -85,16 +95,42 @@ class MotionOptions:
     min_inlier_fraction: float = 0.5
     #: a fitted frame whose depth moved more than this from the roadmap's is UNCERTAIN
     max_depth_shift_mm: float = 5.0
+    #: the reported pose covariance (``covariance_6x6``, ``pose_std_mm``): not the estimate's own
+    #: inverse Hessian, which counts every curve point as an independent 1.5 px measurement and
+    #: trusts the priors above (tuned to regularise, not to describe the motion). A curve point
+    #: tells where the lumen is to ``cov_lumen_spread`` times the projected radius (the wire rides
+    #: anywhere inside it) plus ``sigma_px``; neighbouring points err together, so the curve counts
+    #: as one measurement per ``cov_correlation_mm`` of its length; what one frame does not see
+    #: (depth, tilt out of the image plane, rotation about the beam) is known to the 1 sigma below
+    #: (the simulator's breathing: up to 17 deg off the patient's axis, 0.1 deg/mm of rotation)
+    cov_lumen_spread: float = 0.5
+    cov_correlation_mm: float = 10.0
+    cov_sigma_depth_mm: float = 2.0
+    cov_sigma_tilt_deg: float = 1.5
+    cov_sigma_spin_deg: float = 2.0
+    #: second opinion: every ``settle_every`` frames (and every frame while it disagrees), the
+    #: frame is also solved alone, as a frame with no predecessor is (from the roadmap pose and the
+    #: best cranio-caudal shifts, no temporal prior). A curve that lies in the lumen in two poses
+    #: does not tell which: where the alone solution moves the wire's tree samples more than
+    #: ``max_unsettled_mm`` from the tracked one, the tracked pose is not settled (UNCERTAIN).
+    #: A check costs about three frames' tracking; 0 turns it off
+    settle_every: int = 5
+    max_unsettled_mm: float = 3.0
 
     def __post_init__(self):
         for name in ("sigma_cc_mm", "sigma_across_mm", "sigma_depth_mm", "sigma_tilt_deg", "sigma_spin_deg",
                      "sigma_step_inplane_mm", "acquire_range_mm", "sigma_px", "huber_px",
-                     "gate_px", "sample_mm", "inlier_px", "max_mean_residual_px", "max_depth_shift_mm"):
+                     "gate_px", "sample_mm", "inlier_px", "max_mean_residual_px", "max_depth_shift_mm",
+                     "cov_lumen_spread", "cov_correlation_mm", "cov_sigma_depth_mm", "cov_sigma_tilt_deg",
+                     "cov_sigma_spin_deg", "max_unsettled_mm"):
             v = getattr(self, name)
             if not (np.isfinite(v) and v > 0):
                 raise InputError(f"MotionOptions.{name}: expected a positive number, got {v!r}")
         if int(self.iterations) < 1:
             raise InputError(f"MotionOptions.iterations: expected >= 1, got {self.iterations!r}")
+        if int(self.settle_every) < 0:
+            raise InputError(f"MotionOptions.settle_every: expected >= 0 (0: no second opinion), got "
+                             f"{self.settle_every!r}")
 
 
 def _samples(tree: VesselTree, step_mm: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -134,6 +170,9 @@ class MotionTracker:
         self._Rc_room = carm.axes  # camera axes in the room frame (rows)
         self._Y0 = pts @ Rc.T + tc
         self._c = self._Y0.mean(axis=0)
+        p = self._Y0 - self._c
+        self._M2 = p.T @ p / len(p)
+        self._r2 = float(np.trace(self._M2))
         self._f = carm.focal_px
         self._pp = carm.principal_point_px
         deg = np.pi / 180.0
@@ -152,9 +191,18 @@ class MotionTracker:
             P0[:2, :2] = opt.sigma_cc_mm**2 * np.eye(2)
         P0[3:, 3:] = np.diag(np.array([opt.sigma_tilt_deg * deg, opt.sigma_tilt_deg * deg,
                                        opt.sigma_spin_deg * deg]) ** 2)
+        # the reported covariance's prior: the same structure with what one frame does not see
+        P_cal = P0.copy()
+        P_cal[:3, :3] += np.diag([0.0, 0.0, opt.cov_sigma_depth_mm**2 - opt.sigma_depth_mm**2])
+        P_cal[3:, 3:] = np.diag(np.array([opt.cov_sigma_tilt_deg * deg, opt.cov_sigma_tilt_deg * deg,
+                                          opt.cov_sigma_spin_deg * deg]) ** 2)
+        self._A = self._tangent_to_delta
+        self._A_inv = np.linalg.inv(self._A)
         if covariance is not None:
-            P0 = P0 + self._camera_covariance(covariance)
+            C_cam = self._camera_covariance(covariance)
+            P0, P_cal = P0 + C_cam, P_cal + C_cam
         self._Lambda0 = np.linalg.inv(P0)
+        self._Lambda_cal = np.linalg.inv(P_cal)
         # depth is not seen in one view, and an image-plane scaling (the heart contracting, a
         # vessel straightened by the wire) would pass for it: the depth may differ from what the
         # cranio-caudal shift implies by ``sigma_depth_mm`` only
@@ -162,6 +210,7 @@ class MotionTracker:
             k = a[2] * a[:2] / float(a[:2] @ a[:2])
             wz = np.array([-k[0], -k[1], 1.0, 0.0, 0.0, 0.0])
             self._Lambda0 += np.outer(wz, wz) / opt.sigma_depth_mm**2
+            self._Lambda_cal += np.outer(wz, wz) / opt.cov_sigma_depth_mm**2
         self._Lambda_t = np.zeros((6, 6))
         self._Lambda_t[:3, :3] = np.eye(3) / opt.sigma_step_inplane_mm**2
         self.reset()
@@ -170,6 +219,8 @@ class MotionTracker:
         """Back to the roadmap pose, no temporal history."""
         self.delta = np.zeros(6)
         self._has_previous = False
+        self._since_check = 0
+        self.unsettled_mm = 0.0  # the last second opinion's disagreement (see ``MotionOptions.settle_every``)
 
     def _camera_covariance(self, covariance) -> np.ndarray:
         """The registration covariance (about the iso origin, room axes) in this tracker's
@@ -177,15 +228,22 @@ class MotionTracker:
         C = np.asarray(covariance, float)
         if C.shape != (6, 6) or not np.all(np.isfinite(C)):
             raise InputError(f"covariance: expected a finite (6, 6) matrix, got shape {C.shape}")
+        return self._A @ C @ self._A.T
+
+    @property
+    def _tangent_to_delta(self) -> np.ndarray:
+        """(6, 6) ``d delta / d xi``: a left perturbation ``xi = (t, phi)`` of the pose (room axes,
+        about the iso origin, ``T' = exp(xi) T``) as this tracker's ``delta`` (camera axes, about the
+        tree centroid). A room point moves by ``t + phi x x``, so the centroid ``c`` by
+        ``t + phi x c``; the camera axes are left-handed (det -1), so a rotation ``phi`` in the
+        room is ``-Rc phi`` in them."""
         Rc = self._Rc_room
-        # camera coordinates of the centroid in the room frame (iso origin): x_room = Rc^T x_cam + S
         c_room = Rc.T @ self._c + self.carm.source_room_mm
-        # about the centroid: t_c = t_0 - [c]x phi... (t0 = t_c + (I - R) c  =>  t_c ~ t_0 + [c]x phi)
         A = np.zeros((6, 6))
         A[:3, :3] = Rc
-        A[:3, 3:] = Rc @ hat(c_room)
-        A[3:, 3:] = Rc
-        return A @ C @ A.T
+        A[:3, 3:] = -Rc @ hat(c_room)
+        A[3:, 3:] = float(np.linalg.det(Rc)) * Rc
+        return A
 
     # --- pose <-> delta ------------------------------------------------------------------------
     def pose_of(self, delta) -> Pose:
@@ -227,25 +285,25 @@ class MotionTracker:
             return RegistrationResult(pose, self.carm.projection_matrix(pose), False,
                                       "no curve in the frame: pose held from the previous frame",
                                       float("nan"), 0.0, 0, time.perf_counter() - t0)
-        Lt = self._Lambda_t if self._has_previous else np.zeros((6, 6))
-        starts = [prev] if self._has_previous else self._acquire(c, prev)
+        tracked = self._has_previous
+        Lt = self._Lambda_t if tracked else np.zeros((6, 6))
+        starts = [prev] if tracked else self._acquire(c, prev)
         best = None
         for start in starts:
             sol = self._solve(c, start, prev, Lt)
             if sol is not None and (best is None or sol[0] < best[0]):
-                best = sol
+                best, fit = sol, self._last_fit
         if best is None:
             pose = self.pose_of(prev)
             return RegistrationResult(pose, self.carm.projection_matrix(pose), False,
                                       "the curve lies away from the projected tree: pose held from the previous "
                                       "frame", float("inf"), 0.0, 0, time.perf_counter() - t0)
-        _, delta, H, it, frac, mean_res = best
-        cov = np.linalg.inv(H)
+        _, delta, _, it, frac, mean_res = best
         fits = frac >= opt.min_inlier_fraction and mean_res <= opt.max_mean_residual_px
         depth_shift = float(delta[2])
         pose = self.pose_of(delta)
-        std_mm = float(np.sqrt(np.trace(cov[:3, :3]) + np.trace(cov[3:, 3:]) * float(
-            np.mean(np.sum((self._Y0 - self._c) ** 2, axis=1)))))
+        cov = self._reported_covariance(*fit[:4])
+        std_mm = self._tree_std_mm(cov)
         if fits:
             self.delta = delta
             self._has_previous = True
@@ -255,17 +313,73 @@ class MotionTracker:
                    f"{np.linalg.norm(delta[:2]):.1f} mm in the image plane, {depth_shift:+.1f} mm in depth")
             if not ok:
                 msg += f" (depth moved more than {opt.max_depth_shift_mm:g} mm from the roadmap's)"
+            if tracked and opt.settle_every > 0:
+                self._since_check += 1
+                if self._since_check >= int(opt.settle_every) or self.unsettled_mm > opt.max_unsettled_mm:
+                    self._since_check = 0
+                    self.unsettled_mm = self._second_opinion_mm(c, delta, fit[4])
+                if self.unsettled_mm > opt.max_unsettled_mm:
+                    ok = False
+                    msg += (f"; tracked pose not settled: this frame's curve alone puts the wire's vessels "
+                            f"{self.unsettled_mm:.1f} mm elsewhere (limit {opt.max_unsettled_mm:g} mm)")
+            else:
+                self.unsettled_mm = 0.0
         else:
             # keep the previous estimate: a curve that does not lie on the tree does not move it
             pose = self.pose_of(prev)
             ok = False
             msg = (f"the curve does not fit the projected tree ({100 * frac:.0f}% within {opt.inlier_px:g} px of the "
                    f"lumen, {mean_res:.2f} px outside on average): pose held from the previous frame")
+        if not fits:
+            cov = self._reported_covariance(None, None, None, None)
+            std_mm = self._tree_std_mm(cov)
         return RegistrationResult(pose, self.carm.projection_matrix(pose), bool(ok), msg, mean_res, frac, it,
-                                  time.perf_counter() - t0, covariance_6x6=None, pose_std_mm=std_mm,
+                                  time.perf_counter() - t0, covariance_6x6=self._A_inv @ cov @ self._A_inv.T,
+                                  pose_std_mm=std_mm,
                                   fits_2d=bool(fits))
 
-    def _solve(self, c, start, prev, Lt):
+    def _second_opinion_mm(self, c, delta, j) -> float:
+        """How far (mm, the largest over the curve's tree samples ``j``) the frame solved alone
+        (from the ``SETTLE_STARTS`` best cranio-caudal shifts of the roadmap pose, no temporal prior;
+        the best fit kept) puts the tree from where ``delta`` puts it."""
+        best = None
+        zero = np.zeros(6)
+        if len(c) > SETTLE_CURVE_POINTS:  # a coarse answer suffices (it is compared with a limit of mm)
+            c = c[np.linspace(0, len(c) - 1, SETTLE_CURVE_POINTS).round().astype(int)]
+        starts = self._acquire(c, zero)
+        for start in (starts[1:1 + SETTLE_STARTS] if len(starts) > 1 else starts):
+            sol = self._solve(c, start, zero, np.zeros((6, 6)), iterations=SETTLE_ITERATIONS)
+            if sol is not None and (best is None or sol[0] < best[0]):
+                best = sol
+        if best is None:
+            return 0.0
+        idx = np.unique(j)
+        return float(np.max(np.linalg.norm(self._moved_subset(best[1], idx) - self._moved_subset(delta, idx), axis=1)))
+
+    def _reported_covariance(self, c, J, w, lumen_px) -> np.ndarray:
+        """(6, 6) covariance of ``delta`` (see ``MotionOptions.cov_*``): the curve's points inside
+        the gate tell where the lumen is to ``sigma_px`` plus ``cov_lumen_spread`` projected radii,
+        counted once per ``cov_correlation_mm`` of the curve's length, on top of what the roadmap
+        tells (``cov_sigma_*``); no curve (``J`` None): the roadmap's alone."""
+        opt = self.options
+        L = self._Lambda_cal
+        if J is not None:
+            inl = w > 0
+            n = int(inl.sum())
+            if n:
+                wi = inl / (opt.sigma_px**2 + (opt.cov_lumen_spread * lumen_px) ** 2)
+                length_mm = float(np.sum(np.linalg.norm(np.diff(c, axis=0), axis=1))) * self._c[2] / self._f
+                kappa = min(1.0, max(1.0, length_mm / opt.cov_correlation_mm) / n)
+                L = L + kappa * (J.T @ (J * wi[:, None]))
+        return np.linalg.inv(L)
+
+    def _tree_std_mm(self, cov) -> float:
+        """RMS over the tree of the 1-sigma displacement implied by ``cov`` (of ``delta``), mm:
+        ``tr C_t + tr C_r mean|p|^2 - tr(C_r mean p p^T)`` with ``p`` about the centroid."""
+        return float(np.sqrt(max(np.trace(cov[:3, :3]) + np.trace(cov[3:, 3:]) * self._r2
+                                 - np.trace(cov[3:, 3:] @ self._M2), 0.0)))
+
+    def _solve(self, c, start, prev, Lt, *, iterations: int | None = None):
         """Gauss-Newton from ``start``: ``(robust cost, delta, H, iterations, inlier fraction,
         mean px outside the lumen)``, or None when no tree sample projects near the curve."""
         opt = self.options
@@ -280,7 +394,7 @@ class MotionTracker:
         H = np.eye(6)
         it = 0
         j = None
-        for it in range(1, int(opt.iterations) + 1):
+        for it in range(1, int(opt.iterations if iterations is None else iterations) + 1):
             # correspondences: found at the start and again every other iteration (a frame's
             # motion is a few px, so point-to-line steps with fixed pairs converge in between)
             r, J, w, j = self._residuals(c, delta, with_jacobian=True, pairs=None if it % 2 else j)
@@ -290,7 +404,7 @@ class MotionTracker:
             delta = delta + step
             if np.abs(step[:3]).max() < STEP_TOL_MM and np.abs(step[3:]).max() < STEP_TOL_RAD:
                 break
-        r, _, _, j = self._residuals(c, delta, with_jacobian=False)
+        r, J, w, j = self._residuals(c, delta, with_jacobian=True)
         lumen_px = self._f * self._radius_mm[j] / self._moved_subset(delta, j)[:, 2]
         outside = np.maximum(np.abs(r) - lumen_px, 0.0)
         inl = outside <= opt.inlier_px
@@ -301,6 +415,7 @@ class MotionTracker:
         h = opt.huber_px / opt.sigma_px
         cost = float(np.sum(2.0 * h * h * (np.sqrt(1.0 + (a / h) ** 2) - 1.0))
                      + delta @ self._Lambda0 @ delta + (delta - prev) @ Lt @ (delta - prev))
+        self._last_fit = (c, J, w, lumen_px, j)
         return cost, delta, H, it, frac, mean_res
 
     def _acquire(self, c, delta) -> list:
