@@ -77,6 +77,13 @@ closing note); to reproduce them::
         --max-minutes 18 --init resources/guidewire_unet.safetensors --cache /tmp/rb/ph_train200.npz \
         --out /tmp/rb/ft4.safetensors
 
+Outcome (shipped network / ft1 / ft2 / ft4): validation Dice on seeds 1192-1199 0.9340 (threshold 0.2;
+0.9319 at its 0.4) / 0.9265 / 0.9273 / 0.9319; Table I UNet Dice 93.70 / 92.97 / 93.25 / 92.28 %; false wires
+on the 40 real angiograms (bench_wire_presence) 0 / 1 / 2 / 1; bench_wire_realbg detected on angiograms
+21-40 51.7 / 53.3 / 51.7 / 35.0 %, on DRRs with simulator wires 3.3 / 23.3 / 20.0 / 23.3 %, with the
+CT's wire 3.3 / 10.0 / 10.0 / 6.7 %. The false wires are the angiograms' own thin contrast-filled
+vessels at their 300 x 300 scale (angiogram 24 in all three, 4 in ft2).
+
 (The simulator-frame cache, built seed by seed, was made with the shipped weights as ``--init``, which
 does not affect it; ``--real-cache`` holds the composites of ``--real-seed`` 20, built by the first
 run that uses it.)
