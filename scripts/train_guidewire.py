@@ -222,8 +222,6 @@ def phantom_frames(seed, n_frames, options):
 
 
 def build_dataset(args, seeds, log):
-    from guidewire3d.xray.segmentation import _frame_stats, normalize_frame
-
     zs, ms = [], []
     t0 = time.time()
     for i, seed in enumerate(seeds):
@@ -236,14 +234,26 @@ def build_dataset(args, seeds, log):
                 masks.append(m)
         else:
             frames, masks = phantom_frames(seed, args.frames_per_seed, phantom_options(seed, i))
-        for f, m in zip(frames, masks):
-            med, spread, degenerate = _frame_stats(f)
-            if degenerate:
-                continue
-            zs.append(normalize_frame(f, stats=(med, spread)).astype(np.float16))
-            ms.append(m)
+        z, m = _normalised(frames, masks)
+        zs += z
+        ms += m
         if (i + 1) % 10 == 0:
             log(f"data: {i + 1}/{len(seeds)} seeds, {len(zs)} frames, {time.time() - t0:.0f} s")
+    return zs, ms
+
+
+def _normalised(frames, masks) -> tuple[list, list]:
+    """The frames normalised as the network sees them (float16), with their masks; degenerate
+    (blank or saturated) frames left out."""
+    from guidewire3d.xray.segmentation import _frame_stats, normalize_frame
+
+    zs, ms = [], []
+    for f, m in zip(frames, masks):
+        med, spread, degenerate = _frame_stats(f)
+        if degenerate:
+            continue
+        zs.append(normalize_frame(f, stats=(med, spread)).astype(np.float16))
+        ms.append(m)
     return zs, ms
 
 
@@ -255,7 +265,6 @@ def build_real_dataset(args, log):
     ``--real-scenes`` and ``--real-negatives`` frames without a wire."""
     sys.path.insert(0, str(ROOT / "scripts"))
     import realbg
-    from guidewire3d.xray.segmentation import _frame_stats, normalize_frame
 
     t0 = time.time()
     a, b = (int(x) for x in args.real_scenes.split(":"))
@@ -281,13 +290,7 @@ def build_real_dataset(args, log):
     rng = np.random.default_rng([args.real_seed, 0x5EA1])
     frames, masks = realbg.training_composites(rng, backgrounds, scenes, per_background=args.real_wires,
                                                negatives_per_background=args.real_negatives)
-    zs, ms = [], []
-    for f, m in zip(frames, masks):
-        med, spread, degenerate = _frame_stats(f)
-        if degenerate:
-            continue
-        zs.append(normalize_frame(f, stats=(med, spread)).astype(np.float16))
-        ms.append(m)
+    zs, ms = _normalised(frames, masks)
     log(f"real: {len(zs)} composites ({sum(m.any() for m in ms)} with a wire) on {len(backgrounds)} backgrounds, "
         f"{time.time() - t0:.0f} s")
     return zs, ms
