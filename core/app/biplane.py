@@ -747,8 +747,10 @@ def write_outdir(result: BiplaneResult, out_dir: Path, *, inputs: dict, images: 
     """The single-view output folder of plane A (the joint pose, the pairs' 3D wires) plus plane B:
     ``report.json`` gets ``biplane`` (with each plane's projection-error summary) and each frame's
     ``biplane`` record; ``overlay_b_NNNN.png``; ``metrics.png`` plots both planes' projection errors."""
+    # plane B's roadmap centerline is kept beside plane A's: the viewer refines on both (the joint problem)
     export.write_outdir(result.plane_a, out_dir, inputs=inputs, images=images, screenshot=screenshot,
-                        plane_errors_px=[p.projection_error_px for p in result.pairs])
+                        plane_errors_px=[p.projection_error_px for p in result.pairs],
+                        centerline2d_b=result.centerline2d_b)
     rep_path = Path(out_dir) / "report.json"
     rep = json.loads(rep_path.read_text())
     add = report_additions(result, inputs)
@@ -757,8 +759,6 @@ def write_outdir(result: BiplaneResult, out_dir: Path, *, inputs: dict, images: 
     for fr, p in zip(rep["frames"], result.pairs):
         fr["biplane"] = p.to_dict()
     io.atomic_write_text(rep_path, json.dumps(rep, indent=1))
-    # plane B's roadmap centerline beside plane A's: the viewer refines on both (the joint problem)
-    export.write_registration_inputs(out_dir, result.plane_a.tree, result.plane_a.centerline2d, result.centerline2d_b)
     if images:
         pose = result.registration.pose
         cl_uv = result.carm_b.project(result.plane_a.tree.points_lps_mm, pose)

@@ -382,11 +382,12 @@ def metrics_figure(result, path, *, plane_errors_px=None) -> Path:
 # the whole folder
 # --------------------------------------------------------------------------------------
 def write_outdir(result, out_dir, *, inputs: dict, images: bool = True, truth=None, screenshot=None,
-                 plane_errors_px=None) -> Path:
+                 plane_errors_px=None, centerline2d_b=None) -> Path:
     """Write every file of the output folder (see the README, "Output folder").
 
     ``plane_errors_px`` ((T, 2), a biplane run's per-plane projection errors): ``overlay_NNNN.png``
-    states plane A's and ``metrics.png`` plots both planes'.
+    states plane A's and ``metrics.png`` plots both planes'. ``centerline2d_b``: a biplane run's
+    plane B roadmap centerline, kept in ``registration_inputs.npz`` beside plane A's.
     """
     out_dir = Path(out_dir)
     tree = result.tree
@@ -396,7 +397,7 @@ def write_outdir(result, out_dir, *, inputs: dict, images: bool = True, truth=No
     reg = result.registration
     write_registration(out_dir, pose=reg.pose, automatic_pose=reg.pose, carm=result.carm,
                        reg_record=registration_record(reg))
-    write_registration_inputs(out_dir, tree, result.centerline2d)
+    write_registration_inputs(out_dir, tree, result.centerline2d, centerline2d_b)
     for idx, w3 in zip(result.frame_indices, result.wires3d):
         if not w3.success:
             continue

@@ -384,15 +384,15 @@ class ViewerController:
         """
         self._require_registration_inputs("refine")
         t0 = time.perf_counter()
-        case, pb = self._case, self._plane_b
-        if self.refines_both_planes:
+        case, pb, both = self._case, self._plane_b, self.refines_both_planes
+        if both:
             res = bp.register_biplane(case.tree, [case.centerline_uv_px, pb.centerline_uv_px], [case.carm, pb.carm],
                                       centerline_radius_px=(case.centerline_radius_px, pb.centerline_radius_px),
                                       init_pose=self.pose, global_search=False).result
         else:
             res = registration.refine(case.tree, case.centerline_uv_px, case.carm, self.pose,
                                       centerline_radius_px=case.centerline_radius_px)
-        note = ("" if pb is None or self.refines_both_planes else
+        note = ("" if pb is None or both else
                 "; plane A's roadmap alone (this output folder does not keep plane B's roadmap centerline)")
         dt = time.perf_counter() - t0
         if res.verdict is registration.Verdict.FAILED:
@@ -401,7 +401,7 @@ class ViewerController:
         # "uncertain": the overlay fits best there, but the roadmap leaves the pose open (e.g. the
         # depth of a single vessel path): adopt it and say so
         self._covariance_pose, self._covariance = res.pose, res.covariance_6x6
-        what = "both planes" if self.refines_both_planes else "the roadmap"
+        what = "both planes" if both else "the roadmap"
         self._set_pose(res.pose, "manual", f"refined on {what} in {dt:.2f} s: {res.mean_residual_px:.2f} px{note}")
         self.apply()
         if not res.success:
