@@ -29,6 +29,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from guidewire3d import kernels, reconstruction
 from guidewire3d.errors import Guidewire3DError
+from guidewire3d.live.continuation import wire_continuation
 from guidewire3d.geometry import CArm, Pose
 from guidewire3d.motion.tracking import MotionTracker
 from guidewire3d.registration import Verdict
@@ -185,7 +186,7 @@ class FrameResult:
     pose: Pose | None = None  # the pose the frame was reconstructed in
     motion: object = None  # registration.RegistrationResult of the frame's pose update (track_motion), or None
     #: seconds per stage of this frame: "segmentation", "ordered_wire", "motion", "reconstruction"
-    #: (those that ran)
+    #: (those that ran; "reconstruction" includes the check of the image beyond the tip)
     stage_seconds: dict = field(default_factory=dict)
 
     def __bool__(self) -> bool:
@@ -364,8 +365,14 @@ class Session:
             return FrameResult(index, wire2d, w3, Verdict.FAILED, w3.message, None, time.perf_counter() - t0,
                                timestamp, self.pose, motion, stages)
         ori = orientation_of(w3, uv, root_uv_px=self.root_uv_px) if self.method == "vessel" else None
+        continuation = None
+        if image is not None and self.method == "vessel" and len(w3.tree_point_ids):
+            t1 = time.perf_counter()
+            continuation = wire_continuation(image, self.tree, self.carm, self.pose, int(w3.tree_point_ids[-1]),
+                                             uv[::-1] if w3.reversed_input else uv)
+            stages["reconstruction"] = stages.get("reconstruction", 0.0) + time.perf_counter() - t1
         verdict, message = frame_verdict(w3, uv, ori, beyond_tip=getattr(wire2d, "beyond_tip", None),
-                                         motion=motion, image_shape=self.carm.shape)
+                                         motion=motion, image_shape=self.carm.shape, continuation=continuation)
         return FrameResult(index, wire2d, w3, verdict, message, ori, time.perf_counter() - t0, timestamp,
                            self.pose, motion, stages)
 
@@ -375,12 +382,15 @@ class Session:
             yield self.process(frame, index=start_index + k)
 
 
-def frame_verdict(wire3d, wire_uv_px, orientation, *, beyond_tip=None, motion=None, image_shape=None):
+def frame_verdict(wire3d, wire_uv_px, orientation, *, beyond_tip=None, motion=None, image_shape=None,
+                  continuation=None):
     """``(Verdict, message)`` of a frame with a 3D wire: ``OK`` with the reconstruction's message,
     or ``UNCERTAIN`` with every reason that applies, the first first:
 
     * which end is the tip is not settled (``orientation``: :class:`Orientation`, or None);
     * a piece of the wire mask lies beyond the traced tip (``beyond_tip``: ``orderedwire.BeyondTip``);
+    * the image shows a dark line going on along the vessel beyond the tip (``continuation``:
+      :class:`guidewire3d.live.continuation.WireContinuation`);
     * the wire runs out of the image (``image_shape``, rows and cols) at its distal end;
     * the tip's uncertainty exceeds ``TIP_MAX_UNCERTAINTY_MM``;
     * the path through the tree walks back towards the root (``TREE_RETREAT_MAX_MM``);
@@ -394,6 +404,8 @@ def frame_verdict(wire3d, wire_uv_px, orientation, *, beyond_tip=None, motion=No
         why.append(orientation.explain())
     if beyond_tip is not None and not reversed_:      # the segmenter may have lost a stretch before the tip
         why.append(beyond_tip.explain())
+    elif continuation is not None and continuation.wire_goes_on:
+        why.append(continuation.explain())
     distal_uv = uv[0] if reversed_ else uv[-1]         # the output's tip, in 2D
     if image_shape is not None and len(uv) and _at_border(distal_uv, image_shape):
         why.append(f"tip not in view: the wire runs out of the image at its distal end "
