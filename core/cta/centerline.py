@@ -51,8 +51,9 @@ class CenterlineOptions:
     ridge_delta: float = 1.0
     ridge_sigma_vox: float = 0.0  # smoothing of D for the ridge test (0: the raw transform)
     refine_sigma_vox: float = 1.0  # smoothing of D for the sub-voxel ridge position
-    spur_factor: float = 2.0  # terminal branches shorter than this x local radius are spurs
-    min_ridge_support: float = 0.25  # short terminal branches with fewer ridge points are spurs
+    spur_protrusion: float = 2.0  # terminal branches reaching less than this x their radius out of their junction's ball are spurs
+    spur_factor: float = 0.0  # > 0: also terminal branches shorter than this x the radius at their junction
+    min_ridge_support: float = 0.0  # > 0: also short terminal branches with fewer ridge points (see Notes)
     step_mm: float = 0.5  # resampling step
     smooth_mm: float = 1.0  # local quadratic smoothing along each branch (Gaussian weights, sigma, mm)
     centre_cross_sections: bool = True  # move points to the centroid of their lumen cross-section
@@ -414,10 +415,14 @@ def centerline_from_mask(mask_zyx, *, spacing_mm, origin_lps_mm, direction=None,
             jc = np.round(sk.coordinates[junction]).astype(int)
             r_j = D_mm[tuple(jc)]
             coords = np.round(sk.coordinates[ids]).astype(int)
-            sup = support[tuple(coords.T)].mean()
             length = lengths[k]
-            short = length < opt.spur_factor * r_j
-            if short or (sup < opt.min_ridge_support and length < 3 * opt.spur_factor * r_j):
+            spur = _is_spur(coords * sp_zyx, D_mm[tuple(coords.T)], jc * sp_zyx, r_j, h, opt.spur_protrusion)
+            if opt.spur_factor > 0:
+                spur |= length < opt.spur_factor * r_j
+                if opt.min_ridge_support > 0:
+                    sup = support[tuple(coords.T)].mean()
+                    spur |= sup < opt.min_ridge_support and length < 3 * opt.spur_factor * r_j
+            if spur:
                 prune.append((k, int(junction), length))
         # a junction that would lose all but one of its paths is a vessel end that forks into
         # the corners of its cap: keep its longest spur so that the vessel keeps its length
@@ -452,6 +457,32 @@ def centerline_from_mask(mask_zyx, *, spacing_mm, origin_lps_mm, direction=None,
         raise SegmentationError("centerline_from_mask: no vessels found (the mask is too small for a centerline)")
     pts_lps = (pts + off) @ M.T + o
     return VesselTree(pts_lps, rad, par)
+
+
+def _is_spur(path_mm: np.ndarray, D_path_mm: np.ndarray, centre_mm: np.ndarray, R_mm: float, h: float,
+             factor: float) -> bool:
+    """Whether a terminal skeleton path is a spur of its junction's lumen rather than a vessel.
+
+    ``path_mm`` (n, 3) runs from the junction (centre ``centre_mm``, maximal ball radius ``R_mm``) to
+    the free end, with the distance transform ``D_path_mm`` (n,) at its points. The union of the
+    path's maximal balls reaches ``protrusion = max |p - centre| + D(p) - R`` beyond the junction's
+    ball; the branch's own radius ``r`` is the median of ``D`` over its points outside that ball (or ``D`` at
+    its point farthest from the centre when none is outside).
+    A vessel leaving its parent reaches out by its length beyond the wall plus its radius; a spur
+    (a bump of the surface, a corner of a vessel end, the rim of a wide lumen) stays within about
+    its own radius of the parent's ball. So: a spur when ``protrusion < factor * max(r, h / 2)`` or
+    ``protrusion < h`` (``h`` the finest spacing). Both sides are lengths measured in the same mm,
+    independent of how the path's voxels fall on the grid (unlike the fraction of a path on
+    ridge points) and of the junction's calibre (unlike a path length against the junction's
+    radius, which prunes the trunk of a volume with thick slices).
+    """
+    p = np.asarray(path_mm, dtype=float)
+    dist = np.linalg.norm(p - np.asarray(centre_mm, dtype=float), axis=1)
+    D = np.asarray(D_path_mm, dtype=float)
+    protrusion = float(np.max(dist + D)) - float(R_mm)
+    out = dist > R_mm
+    r = float(np.median(D[out])) if out.any() else float(D[np.argmax(dist)])
+    return bool(protrusion < max(factor * max(r, 0.5 * h), h))
 
 
 def _skeleton_graph(skel: np.ndarray, sp_zyx):
@@ -618,7 +649,12 @@ def _branches_to_points(par, root, vox, pos, Ds, D_mm, mp, sp_zyx, sp_rel, h, op
             n_other = len(children[ids[0]]) + (0 if ids[0] == root else 1) - 1
             if len(sibling_leaves) >= n_other and length >= max(sibling_leaves):
                 continue  # the node would become an end: keep its longest spur
-            if length < opt.spur_factor * r_vox[ids[0]] and len(br) > 1:
+            ids_a = np.asarray(ids)
+            spur = _is_spur(vox[ids_a] * sp_zyx, r_vox[ids_a], vox[ids[0]] * sp_zyx, r_vox[ids[0]], h,
+                            opt.spur_protrusion)
+            if opt.spur_factor > 0:
+                spur |= length < opt.spur_factor * r_vox[ids[0]]
+            if spur and len(br) > 1:
                 for i in ids[1:]:
                     children[par[i]].remove(i) if i in children[par[i]] else None
                     par[i] = -2
