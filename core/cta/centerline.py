@@ -51,9 +51,9 @@ class CenterlineOptions:
     ridge_delta: float = 1.0
     ridge_sigma_vox: float = 0.0  # smoothing of D for the ridge test (0: the raw transform)
     refine_sigma_vox: float = 1.0  # smoothing of D for the sub-voxel ridge position
-    spur_protrusion: float = 2.0  # terminal branches reaching less than this x their radius out of their junction's ball are spurs
+    spur_protrusion: float = 2.0  # a terminal branch reaching < this x its radius out of its parent's balls is a spur
     spur_factor: float = 0.0  # > 0: also terminal branches shorter than this x the radius at their junction
-    min_ridge_support: float = 0.0  # > 0: also short terminal branches with fewer ridge points (see Notes)
+    min_ridge_support: float = 0.0  # > 0 (with spur_factor): also those < 3 spur_factor r with fewer ridge points
     step_mm: float = 0.5  # resampling step
     smooth_mm: float = 1.0  # local quadratic smoothing along each branch (Gaussian weights, sigma, mm)
     centre_cross_sections: bool = True  # move points to the centroid of their lumen cross-section
