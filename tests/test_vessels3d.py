@@ -459,3 +459,42 @@ def test_edt_mm_is_scipys_distance_transform(seed):
     np.testing.assert_allclose(got, ref, rtol=0, atol=1e-4)
     for const in (np.ones(shape, bool), np.zeros(shape, bool)):
         np.testing.assert_allclose(edt_mm(const, sp), ndi.distance_transform_edt(const, sampling=sp), atol=1e-4)
+
+
+# --------------------------------------------------------------------------------------
+# spur pruning: a scale-aware rule, independent of where an axis falls between voxels
+# --------------------------------------------------------------------------------------
+SPUR_SP = (0.8, 0.8, 0.8)
+SPUR_SHAPE = (76, 60, 76)
+
+
+@pytest.mark.parametrize("shift_vox", [0.0, 0.25, 0.5])
+def test_side_branch_of_a_wide_trunk_is_kept_wherever_its_axis_falls(shift_vox):
+    """A 3 mm branch off a 9 mm trunk (issue 17's 3DRA-like and bias-field MRA volumes lost it
+    when its axis fell between voxels: the old rule pruned a terminal path under 6 x the trunk's
+    radius when under a quarter of it lay next to a ridge point)."""
+    s = shift_vox * SPUR_SP[0]
+    trunk = (np.array([4.0, 24.0, 24.0]), np.array([56.0, 24.0, 24.0]), 9.0, 9.0)
+    branch = (np.array([30.0, 24.0 + s, 32.0]), np.array([30.0, 24.0 + s, 52.0]), 3.0, 3.0)
+    m = tube_mask(SPUR_SHAPE, np.array(SPUR_SP), [trunk, branch])
+    tree = centerline_from_mask(m, spacing_mm=SPUR_SP, origin_lps_mm=(0, 0, 0))
+    check_tree_invariants(tree, m, SPUR_SP, np.zeros(3))
+    a, b = branch[0][::-1], branch[1][::-1]  # (x, y, z) = LPS here
+    inner = a + np.linspace(0.4, 0.8, 20)[:, None] * (b - a)  # the part outside the trunk
+    d = np.min(np.linalg.norm(inner[:, None] - tree.points_lps_mm[None], axis=2), axis=1)
+    assert d.max() < 1.0
+    assert len(tree.branches) == 3
+
+
+@pytest.mark.parametrize("bump_mm", [1.2, 2.0])
+def test_bump_on_a_wide_trunk_is_a_spur(bump_mm):
+    """A hemispherical bump on the wall of a 9 mm trunk (a lumen's irregular surface) gives no
+    branch: what a terminal path reaches beyond its junction's ball is no more than its radius."""
+    trunk = (np.array([4.0, 24.0, 24.0]), np.array([56.0, 24.0, 24.0]), 9.0, 9.0)
+    c = np.array([30.0, 24.0, 33.0])  # on the wall (x = 24 + 9)
+    bump = (c, c + np.array([0.0, 0.0, 1e-3]), bump_mm, bump_mm)
+    m = tube_mask(SPUR_SHAPE, np.array(SPUR_SP), [trunk, bump])
+    tree = centerline_from_mask(m, spacing_mm=SPUR_SP, origin_lps_mm=(0, 0, 0))
+    assert len(tree.branches) == 1
+    p = tree.points_lps_mm
+    assert np.abs(p[:, 0] - 24.0).max() < 1.0  # x: on the trunk's axis, nothing toward the bump

@@ -51,8 +51,9 @@ class CenterlineOptions:
     ridge_delta: float = 1.0
     ridge_sigma_vox: float = 0.0  # smoothing of D for the ridge test (0: the raw transform)
     refine_sigma_vox: float = 1.0  # smoothing of D for the sub-voxel ridge position
-    spur_factor: float = 2.0  # terminal branches shorter than this x local radius are spurs
-    min_ridge_support: float = 0.25  # short terminal branches with fewer ridge points are spurs
+    spur_protrusion: float = 2.0  # a terminal branch reaching < this x its radius out of its parent's balls is a spur
+    spur_factor: float = 0.0  # > 0: also terminal branches shorter than this x the radius at their junction
+    min_ridge_support: float = 0.0  # > 0 (with spur_factor): also those < 3 spur_factor r with fewer ridge points
     step_mm: float = 0.5  # resampling step
     smooth_mm: float = 1.0  # local quadratic smoothing along each branch (Gaussian weights, sigma, mm)
     centre_cross_sections: bool = True  # move points to the centroid of their lumen cross-section
@@ -320,10 +321,17 @@ def centerline_from_mask(mask_zyx, *, spacing_mm, origin_lps_mm, direction=None,
        units of the finest spacing ``h``; ridge points are ``|grad D| < eps`` and
        ``lambda_min(H(D)) < -delta`` (see :class:`CenterlineOptions` for the scaling).
     2. The mask is skeletonised (scikit-image, Lee 1994) to connect the ridge points; skan splits
-       the skeleton into paths between junctions and endpoints. Terminal paths shorter than
-       ``spur_factor`` x the radius at their junction, or shorter than three times that and with
-       less than ``min_ridge_support`` of their voxels on (26-neighbours of) ridge points, are
-       spurs and pruned (repeatedly).
+       the skeleton into paths between junctions and endpoints. A terminal path is a spur, and
+       pruned (repeatedly), when the union of its maximal balls reaches less than
+       ``spur_protrusion`` x its own radius beyond the maximal balls of its junction and of the
+       skeleton not on terminal paths (or less than a voxel; :func:`_is_spur`): lengths in mm on both sides, so the rule does not depend on where
+       a branch's axis falls between voxels nor on the junction's calibre. The same rule prunes the
+       leaf runs of the tree after loop cutting. (The former rules, a terminal path shorter than
+       ``spur_factor`` x the radius at its junction, or shorter than three times that with less
+       than ``min_ridge_support`` of its voxels next to ridge points, are off by default: the
+       second lost a 3 mm branch of a 9 mm trunk when its axis fell between voxels, the first
+       pruned the trunk of a CT with 2.4 mm slices and kept the rim spurs of an aorta.)
+       A junction that would lose all but one of its paths keeps its longest.
        Loops are cut at their thinnest edge (maximum spanning tree on ``D``).
     3. Each skeleton voxel moves to the sub-voxel ridge of the smoothed ``D`` by one Newton step
        in the cross-section plane (the two most negative Hessian eigenvectors); branches are
@@ -405,19 +413,38 @@ def centerline_from_mask(mask_zyx, *, spacing_mm, origin_lps_mm, direction=None,
         deg = sk.degrees
         lengths = sk.lengths
         prune = []
-        for k in range(n_paths):
+        # the maximal balls of the skeleton that is not on a terminal path (junctions included): a
+        # terminal path inside their union (the rim of a wide lumen) is a spur of that lumen
+        terminal = [k for k in range(n_paths) if (deg[sk.path(k)[0]] == 1) ^ (deg[sk.path(k)[-1]] == 1)]
+        on_terminal = np.zeros(len(deg), bool)
+        for k in terminal:
+            ids = sk.path(k)
+            on_terminal[ids[deg[ids] <= 2]] = True
+        inner = np.flatnonzero(~on_terminal)
+        inner_mm = sk.coordinates[inner] * sp_zyx
+        inner_r = D_mm[tuple(np.round(sk.coordinates[inner]).astype(int).T)]
+        inner_kd = _kdtree(inner_mm) if len(inner) else None
+        for k in terminal:
             ids = sk.path(k)
             ends = deg[ids[[0, -1]]]
-            if not ((ends[0] == 1) ^ (ends[1] == 1)):
-                continue  # not a terminal path (junction-junction or isolated)
             junction = ids[0] if ends[0] != 1 else ids[-1]
             jc = np.round(sk.coordinates[junction]).astype(int)
             r_j = D_mm[tuple(jc)]
             coords = np.round(sk.coordinates[ids]).astype(int)
-            sup = support[tuple(coords.T)].mean()
             length = lengths[k]
-            short = length < opt.spur_factor * r_j
-            if short or (sup < opt.min_ridge_support and length < 3 * opt.spur_factor * r_j):
+            path_mm = coords * sp_zyx
+            gap = _ball_gap(path_mm, jc * sp_zyx, r_j)
+            if inner_kd is not None:
+                d_nn, nn = inner_kd.query(path_mm, k=min(_CONTAINER_K, len(inner)))
+                d_nn, nn = d_nn.reshape(len(path_mm), -1), nn.reshape(len(path_mm), -1)
+                gap = np.minimum(gap, np.min(d_nn - inner_r[nn], axis=1))
+            spur = _is_spur(gap, D_mm[tuple(coords.T)], h, opt.spur_protrusion)
+            if opt.spur_factor > 0:
+                spur |= length < opt.spur_factor * r_j
+                if opt.min_ridge_support > 0:
+                    sup = support[tuple(coords.T)].mean()
+                    spur |= sup < opt.min_ridge_support and length < 3 * opt.spur_factor * r_j
+            if spur:
                 prune.append((k, int(junction), length))
         # a junction that would lose all but one of its paths is a vessel end that forks into
         # the corners of its cap: keep its longest spur so that the vessel keeps its length
@@ -452,6 +479,47 @@ def centerline_from_mask(mask_zyx, *, spacing_mm, origin_lps_mm, direction=None,
         raise SegmentationError("centerline_from_mask: no vessels found (the mask is too small for a centerline)")
     pts_lps = (pts + off) @ M.T + o
     return VesselTree(pts_lps, rad, par)
+
+
+#: A terminal path's containing balls are looked for among this many nearest inner skeleton voxels
+#: of each of its points.
+_CONTAINER_K = 16
+
+
+def _kdtree(points):
+    from scipy.spatial import cKDTree
+
+    return cKDTree(points)
+
+
+def _ball_gap(path_mm: np.ndarray, centre_mm: np.ndarray, R_mm: float) -> np.ndarray:
+    """How far each point of ``path_mm`` (n, 3) lies outside the ball (``centre_mm``, ``R_mm``)."""
+    return np.linalg.norm(np.asarray(path_mm, dtype=float) - np.asarray(centre_mm, dtype=float), axis=1) - float(R_mm)
+
+
+def _is_spur(gap_mm: np.ndarray, D_path_mm: np.ndarray, h: float, factor: float) -> bool:
+    """Whether a terminal skeleton path is a spur of the lumen it starts in rather than a vessel.
+
+    ``gap_mm`` (n,) is how far each point of the path lies outside the union of the maximal balls
+    it is judged against (its junction's, and those of the skeleton that is not on a terminal path:
+    the parent lumen), negative inside; ``D_path_mm`` (n,) the distance transform at the points.
+    The path's own balls reach ``protrusion = max(gap + D)`` beyond that union; its radius ``r`` is
+    the median of ``D`` over its points outside the union (or ``D`` where it reaches farthest when
+    none is). A vessel leaving its parent reaches out by its length beyond the wall plus its
+    radius; a spur (a bump of the surface, a corner of a vessel end, a strand along the rim of a
+    wide lumen) stays within about its own radius of the parent's balls. So: a spur when
+    ``protrusion < factor * max(r, h / 2)`` or ``protrusion < h`` (``h`` the finest spacing). Both
+    sides are lengths in mm, independent of how the path's voxels fall on the grid (unlike the
+    fraction of a path on ridge points) and of the parent's calibre (unlike a path length against
+    the junction's radius, which prunes the trunk of a volume with thick slices).
+    """
+    gap = np.asarray(gap_mm, dtype=float)
+    D = np.asarray(D_path_mm, dtype=float)
+    reach = gap + D
+    protrusion = float(np.max(reach))
+    out = gap > 0
+    r = float(np.median(D[out])) if out.any() else float(D[np.argmax(reach)])
+    return bool(protrusion < max(factor * max(r, 0.5 * h), h))
 
 
 def _skeleton_graph(skel: np.ndarray, sp_zyx):
@@ -597,10 +665,11 @@ def _branches_to_points(par, root, vox, pos, Ds, D_mm, mp, sp_zyx, sp_rel, h, op
                 stack.append((ids[-1], c, k))
         return out
 
-    # prune leaf runs shorter than spur_factor x radius at their node (after loop cutting), repeatedly
+    # prune the leaf runs that are spurs (after loop cutting, which makes new leaves), repeatedly: the
+    # same rule as on the skeleton's terminal paths, against the balls of the leaf's node and of
+    # the runs that are not leaves
     for _ in range(50):
         br = runs()
-        changed = False
         has_child = {pb for _, pb in br if pb >= 0}
         # the leaf runs' lengths, and those of the leaves starting at each node (in run order)
         leaf_len, leaves_at = {}, {}
@@ -608,6 +677,10 @@ def _branches_to_points(par, root, vox, pos, Ds, D_mm, mp, sp_zyx, sp_rel, h, op
             if k2 not in has_child:
                 leaf_len[k2] = np.linalg.norm(np.diff(vox[i2] * sp_zyx, axis=0), axis=1).sum()
                 leaves_at.setdefault(i2[0], []).append(leaf_len[k2])
+        inner = [np.asarray(i2) for k2, (i2, _) in enumerate(br) if k2 in has_child]
+        inner = np.unique(np.concatenate(inner)) if inner else np.zeros(0, np.int64)
+        inner_kd = _kdtree(vox[inner] * sp_zyx) if len(inner) else None
+        spurs = []
         for k, (ids, pb) in enumerate(br):
             if k in has_child or pb < 0 and len(br) == 1:
                 continue
@@ -618,13 +691,23 @@ def _branches_to_points(par, root, vox, pos, Ds, D_mm, mp, sp_zyx, sp_rel, h, op
             n_other = len(children[ids[0]]) + (0 if ids[0] == root else 1) - 1
             if len(sibling_leaves) >= n_other and length >= max(sibling_leaves):
                 continue  # the node would become an end: keep its longest spur
-            if length < opt.spur_factor * r_vox[ids[0]] and len(br) > 1:
-                for i in ids[1:]:
-                    children[par[i]].remove(i) if i in children[par[i]] else None
-                    par[i] = -2
-                changed = True
-                break
-        if not changed:
+            ids_a = np.asarray(ids)
+            path_mm = vox[ids_a] * sp_zyx
+            gap = _ball_gap(path_mm, vox[ids[0]] * sp_zyx, r_vox[ids[0]])
+            if inner_kd is not None:
+                d_nn, nn = inner_kd.query(path_mm, k=min(_CONTAINER_K, len(inner)))
+                d_nn, nn = d_nn.reshape(len(path_mm), -1), nn.reshape(len(path_mm), -1)
+                gap = np.minimum(gap, np.min(d_nn - r_vox[inner][nn], axis=1))
+            spur = _is_spur(gap, r_vox[ids_a], h, opt.spur_protrusion)
+            if opt.spur_factor > 0:
+                spur |= length < opt.spur_factor * r_vox[ids[0]]
+            if spur and len(br) > 1:
+                spurs.append(ids)
+        for ids in spurs:
+            for i in ids[1:]:
+                children[par[i]].remove(i) if i in children[par[i]] else None
+                par[i] = -2
+        if not spurs:
             break
 
     br = runs()
