@@ -286,3 +286,27 @@ def test_vessels_help_and_seed_option():
     out = subprocess.run([sys.executable, "-m", "guidewire3d.app.cli", "vessels", "--help"], capture_output=True,
                          text=True, check=True).stdout
     assert "--seed-lps" in out and "vessels.json" in out
+
+
+def test_a_ct_whose_tubular_bone_outweighs_its_vessels_is_ambiguous_and_a_seed_decides(tmp_path, capsys):
+    """The simulator's CT with bone distractors: bright tubular bone outweighs the coronaries 3.7-20x,
+    which the 3DRA rule (above 3x) took for intra-arterial contrast, and `vessels` wrote a tree of
+    bone (1 branch of 4.4 mm radius) with exit 0. Now it is refused as ambiguous (exit 2, nothing
+    written), and a seed in a coronary gives the coronary tree."""
+    from guidewire3d.phantom import PhantomOptions, simulate
+
+    case = simulate(PhantomOptions(seed=3206, n_frames=1, distractors=True))
+    with pytest.raises(SegmentationError, match="ambiguous"):
+        vesselmodel.estimate_intensity_model(case.volume)
+    f = io.write_volume(case.volume, tmp_path / "ct.nii.gz")
+    out = tmp_path / "out"
+    rc = cli.main(["vessels", "--cta", str(f), "--out", str(out)])
+    err = capsys.readouterr().err
+    assert rc == 2 and err.count("\n") == 1 and "ambiguous" in err and "--seed-lps" in err
+    assert not out.exists()
+    seed = case.tree.points_lps_mm[case.wire_path_point_ids[len(case.wire_path_point_ids) // 3]]
+    r = vesselmodel.extract_vessels_auto(case.volume, seeds_lps_mm=seed[None])
+    assert not r.model.rotational and r.model.lumen < vesselmodel.HU_LUMEN_MAX
+    d, _ = cKDTree(r.vessels.tree.points_lps_mm).query(case.tree.points_lps_mm[case.wire_path_point_ids])
+    assert np.median(d) < 1.0, np.median(d)
+

