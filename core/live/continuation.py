@@ -139,7 +139,9 @@ def wire_continuation(image, tree, carm, pose, tip_point_id: int, wire_uv_px) ->
     if img.ndim != 2:
         return None
     wire = np.asarray(wire_uv_px, float).reshape(-1, 2)
-    distal = _resample_1px(wire[::-1])[:WINDOW_PX]
+    # the last WINDOW_PX px of the wire (a trace is about 1 px per point: a tail of a few times that suffices)
+    tail = wire[-4 * WINDOW_PX:]
+    distal = _resample_1px(tail[::-1])[:WINDOW_PX]
     if len(distal) < MIN_SAMPLES:
         return None
     wire_contrast = float(_line_contrast(img, distal, np.array([-1.0, 0.0, 1.0])).mean(axis=1).max())
