@@ -43,6 +43,9 @@ class ReconOptions:
     track_confirm_mm: float = 10.0  #: tracking: the last this-many mm of the previous path are not a prior
     sigma_track_mm: float = 2.0  #: tracking: cost per this many mm further off it
     track_override_cost: float = 50.0  #: tracking: the prior is dropped when the path without it costs this much less
+    #: ... and only for a rival path that is connected: none of its steps between anchors costs more than this
+    #: (a jump through the tree, e.g. a 25 mm detour; a right path's costliest step is below 42 on bench_motion)
+    track_override_max_step: float = 50.0
     outer_bend_prior: bool = True  #: place the depth towards the outer side of bends (wire rides it)
     outer_bend_mm: float = 20.0  #: full hug where the radius of curvature is below this
     outer_bend_fraction: float = 0.7  #: ... of this fraction of the room the wire has
