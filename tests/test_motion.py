@@ -83,6 +83,8 @@ def test_bad_options_are_refused():
         motion.MotionOptions(cov_correlation_mm=-1.0)
     with pytest.raises(InputError, match="fit_correlation_mm"):
         motion.MotionOptions(fit_correlation_mm=0.0)
+    with pytest.raises(InputError, match="settle_rival_cost"):
+        motion.MotionOptions(settle_rival_cost=-1.0)
 
 
 def test_breathing_truth_renders_the_wire_at_the_frame_pose(tmp_path):

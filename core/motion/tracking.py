@@ -26,7 +26,8 @@ in the registration's convention; ``pose_std_mm``) that describes what one frame
 rather than the estimate's own Hessian (``MotionOptions.cov_*``; ``live.Session`` puts it in
 each point's uncertainty), and a second opinion every few frames: the frame solved alone, as
 if it had no predecessor. Where that puts the wire's vessels elsewhere, the curve lies in the
-lumen in two poses and the tracked one is not settled (``MotionOptions.settle_every``).
+lumen in two poses and the tracked one is not settled (``MotionOptions.settle_every``); so too
+where two fits almost as good (``settle_rival_cost``) part, the first frame's own starts included.
 """
 from __future__ import annotations
 
@@ -118,6 +119,14 @@ class MotionOptions:
     #: A check costs about three frames' tracking; 0 turns it off
     settle_every: int = 5
     max_unsettled_mm: float = 3.0
+    #: ... and the alone solutions count when their cost is within ``settle_rival_cost`` of the best
+    #: one (the fit's units: squared residuals in ``sigma_px``, one point per
+    #: ``fit_correlation_mm``), as do the first frame's own starts: two fits almost as good that put
+    #: the wire's vessels apart do not say which is right. 0: the best alone solution only. On
+    #: bench_motion's simulator 10 turns 12 ok frames with the tip or wire off uncertain and keeps the
+    #: right ok ones (a first frame acquired in a neighbouring vessel stays uncertain until the
+    #: rival fits part)
+    settle_rival_cost: float = 10.0
     #: in the fit, neighbouring curve points err together (the wire's offset inside the lumen varies
     #: slowly along it): the curve counts as one point per ``fit_correlation_mm`` of its length (at
     #: most one per point). Counted as independent, a short curve's offset in the lumen tilts and
@@ -139,6 +148,8 @@ class MotionOptions:
                 raise InputError(f"MotionOptions.{name}: expected a positive number, got {v!r}")
         if int(self.iterations) < 1:
             raise InputError(f"MotionOptions.iterations: expected >= 1, got {self.iterations!r}")
+        if not (np.isfinite(self.settle_rival_cost) and self.settle_rival_cost >= 0):
+            raise InputError(f"MotionOptions.settle_rival_cost: expected a number >= 0, got {self.settle_rival_cost!r}")
         if int(self.settle_every) < 0:
             raise InputError(f"MotionOptions.settle_every: expected >= 0 (0: no second opinion), got "
                              f"{self.settle_every!r}")
@@ -301,10 +312,13 @@ class MotionTracker:
         Lt = self._Lambda_t if tracked else np.zeros((6, 6))
         starts = [prev] if tracked else self._acquire(c, prev)
         best = None
+        sols = []
         for start in starts:
             sol = self._solve(c, start, prev, Lt)
-            if sol is not None and (best is None or sol[0] < best[0]):
-                best, fit = sol, self._last_fit
+            if sol is not None:
+                sols.append(sol)
+                if best is None or sol[0] < best[0]:
+                    best, fit = sol, self._last_fit
         if best is None:
             pose = self.pose_of(prev)
             return RegistrationResult(pose, self.carm.projection_matrix(pose), False,
@@ -334,6 +348,14 @@ class MotionTracker:
                     ok = False
                     msg += (f"; tracked pose not settled: this frame's curve alone puts the wire's vessels "
                             f"{self.unsettled_mm:.1f} mm elsewhere (limit {opt.max_unsettled_mm:g} mm)")
+            elif opt.settle_every > 0:
+                # a first frame: its other starts' fits are the second opinion
+                self._since_check = 0
+                self.unsettled_mm = self._rivals_mm(sols, delta, fit[4])
+                if self.unsettled_mm > opt.max_unsettled_mm:
+                    ok = False
+                    msg += (f"; acquired pose not settled: another fit almost as good puts the wire's vessels "
+                            f"{self.unsettled_mm:.1f} mm elsewhere (limit {opt.max_unsettled_mm:g} mm)")
             else:
                 self.unsettled_mm = 0.0
         else:
@@ -353,20 +375,27 @@ class MotionTracker:
     def _second_opinion_mm(self, c, delta, j) -> float:
         """How far (mm, the largest over the curve's tree samples ``j``) the frame solved alone
         (from the ``SETTLE_STARTS`` best cranio-caudal shifts of the roadmap pose, no temporal prior;
-        the best fit kept) puts the tree from where ``delta`` puts it."""
-        best = None
+        the best fit and those within ``settle_rival_cost`` of it) puts the tree from where
+        ``delta`` puts it."""
         zero = np.zeros(6)
         if len(c) > SETTLE_CURVE_POINTS:  # a coarse answer suffices (it is compared with a limit of mm)
             c = c[np.linspace(0, len(c) - 1, SETTLE_CURVE_POINTS).round().astype(int)]
         starts = self._acquire(c, zero)
-        for start in (starts[1:1 + SETTLE_STARTS] if len(starts) > 1 else starts):
-            sol = self._solve(c, start, zero, np.zeros((6, 6)), iterations=SETTLE_ITERATIONS)
-            if sol is not None and (best is None or sol[0] < best[0]):
-                best = sol
-        if best is None:
+        sols = [self._solve(c, start, zero, np.zeros((6, 6)), iterations=SETTLE_ITERATIONS)
+                for start in (starts[1:1 + SETTLE_STARTS] if len(starts) > 1 else starts)]
+        return self._rivals_mm([s for s in sols if s is not None], delta, j)
+
+    def _rivals_mm(self, sols, delta, j) -> float:
+        """The largest distance (mm, over the tree samples ``j``) between where ``delta`` puts the
+        tree and where the fits ``sols`` (``_solve`` results) do, of those whose cost is within
+        ``settle_rival_cost`` of the best; 0 without any."""
+        if not sols:
             return 0.0
+        limit = min(s[0] for s in sols) + self.options.settle_rival_cost
         idx = np.unique(j)
-        return float(np.max(np.linalg.norm(self._moved_subset(best[1], idx) - self._moved_subset(delta, idx), axis=1)))
+        here = self._moved_subset(delta, idx)
+        return max(float(np.max(np.linalg.norm(self._moved_subset(s[1], idx) - here, axis=1)))
+                   for s in sols if s[0] <= limit)
 
     def _reported_covariance(self, c, J, w, lumen_px) -> np.ndarray:
         """(6, 6) covariance of ``delta`` (see ``MotionOptions.cov_*``): the curve's points inside
