@@ -7,7 +7,8 @@ from guidewire3d.live import session as live
 from guidewire3d.live.session import Verdict, frame_verdict
 from guidewire3d.reconstruction import ReconOptions, WireTracker, reconstruct_wire
 from scipy.spatial import cKDTree
-from test_reconstruction import AP, _loop_tree, _overlap_tree, _pose, _wire_on
+from guidewire3d.vesseltree import VesselTree
+from test_reconstruction import AP, _chain, _loop_tree, _overlap_tree, _pose, _wire_on
 
 CROSSING_PX = 2.0  # two passes of the projected loop this close are its self-crossing
 RIGHT_TIP_MM = 1.0  # a wire on the right path: its tip within this of the true tip
@@ -94,6 +95,38 @@ def test_a_tracking_prior_the_wire_contradicts_is_dropped():
     on_a = np.zeros(tree.n_points, bool)
     on_a[path_a] = True
     assert on_a[dropped.tree_point_ids[dropped.tree_point_ids >= 0]].all()
+
+
+def test_a_rival_path_that_jumps_between_vessels_does_not_drop_the_prior():
+    """The wire runs down a trunk into branch A; vessel C leaves the trunk at its top, 20 mm away in
+    depth, and projects 4 mm beside A. The next frame's wire is A's shifted 4 mm along the trunk
+    (a breathing shift the pose did not follow): its horizontal part lies on C's projection, outside
+    A's lumen. Without the prior the best path reaches C by a jump through the tree (C is 80 mm
+    from A along the vessels) and is far cheaper than the prior's path, which ends early. That jump
+    is no evidence that the wire went elsewhere: the prior is kept, and the wire stays on A."""
+    trunk = _chain([0, 0, 40], [0, 0, 0])
+    a = _chain([0, 0, 0], [40, 0, 0])
+    c = _chain([0, 0, 40], [-15, 20, 40], [5, 20, 4], [45, 20, 4])
+    tree = VesselTree.from_polylines([trunk, a, c], [np.full(len(trunk), 3.0), np.full(len(a), 1.5),
+                                                     np.full(len(c), 1.5)], [None, (0, len(trunk) - 1), (0, 0)])
+    pose = _pose(tree)
+    leaf_a = next(int(k) for k in tree.leaves if abs(tree.points_lps_mm[k][0] - 40.0) < 1e-9)
+    WA, path_a = _wire_on(tree, leaf_a)
+    on_a = np.zeros(tree.n_points, bool)
+    on_a[path_a] = True
+    shifted_uv = AP.project(WA + [0.0, 0.0, 4.0], pose)
+    results = {}
+    for name, opt in (("any rival", ReconOptions(track_override_max_step=1e9)), ("default", ReconOptions())):
+        tracker = WireTracker(pose, AP, tree, options=opt)
+        assert tracker.update(AP.project(WA, pose))
+        results[name] = tracker.update(shifted_uv)
+    jumped, kept = results["any rival"], results["default"]
+    # the truth: the wire is in A, 4 mm from where the shifted frame puts it
+    assert jumped.success and "dropped as a prior" in jumped.message
+    assert cKDTree(WA).query(jumped.points_lps_mm)[0].mean() > 10.0  # the rival path put it in C
+    assert kept.success and "dropped as a prior" not in kept.message
+    assert on_a[kept.tree_point_ids[kept.tree_point_ids >= 0]].all()
+    assert cKDTree(WA).query(kept.points_lps_mm)[0].mean() < 4.0 + RIGHT_TIP_MM
 
 
 def test_simulated_loop_crossing_trace_is_not_reported_ok():

@@ -27,6 +27,7 @@ from guidewire3d.reconstruction.path import (  # noqa: F401
     ambiguity_mm2,
     branch_alternative,
     path_retreat_mm,
+    path_step_costs,
     tracking_tip,
     viterbi_costs,
     viterbi_path,

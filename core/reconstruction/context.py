@@ -43,6 +43,11 @@ class ReconOptions:
     track_confirm_mm: float = 10.0  #: tracking: the last this-many mm of the previous path are not a prior
     sigma_track_mm: float = 2.0  #: tracking: cost per this many mm further off it
     track_override_cost: float = 50.0  #: tracking: the prior is dropped when the path without it costs this much less
+    #: ... and only for a rival path that does not jump through the tree: none of its steps between anchors
+    #: costs more than this (a 50 mm geodesic detour). Measured: the right rival paths' costliest step is at
+    #: most 42 on bench_motion and 74 in bench_reconstruction (a perturbed tree); the wrong ones that
+    #: dropped a right prior on bench_motion (seed 1, a pose 3.5 mm off) jumped by 136-140
+    track_override_max_step: float = 100.0
     outer_bend_prior: bool = True  #: place the depth towards the outer side of bends (wire rides it)
     outer_bend_mm: float = 20.0  #: full hug where the radius of curvature is below this
     outer_bend_fraction: float = 0.7  #: ... of this fraction of the room the wire has

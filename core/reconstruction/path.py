@@ -16,8 +16,8 @@ from dataclasses import dataclass
 import numpy as np
 from guidewire3d import kernels
 
-__all__ = ["PathCosts", "viterbi_costs", "viterbi_path", "path_retreat_mm", "branch_alternative", "ambiguity_mm2",
-           "tracking_tip"]
+__all__ = ["PathCosts", "viterbi_costs", "viterbi_path", "path_step_costs", "path_retreat_mm", "branch_alternative",
+           "ambiguity_mm2", "tracking_tip"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -104,6 +104,19 @@ def viterbi_path(ctx, uv_a, cand, outside, opt, track_tip, *, costs: PathCosts |
         excess = alpha[: end_t + 1] + beta - (alpha[end_t, end_k])
     excess = np.where(np.isfinite(excess), np.maximum(excess, 0.0), np.inf)
     return cand[np.arange(end_t + 1), best], end_cost, (cand[: end_t + 1], excess)
+
+
+def path_step_costs(costs: PathCosts, nodes) -> np.ndarray:
+    """The pairwise cost (``costs.C``) of each step of the path through ``nodes`` (A',), the chosen
+    tree point of the first A' anchors: (A' - 1,), or ``[0.0]`` for a path of one anchor.
+
+    A step that costs tens is a jump through the tree (a geodesic detour of
+    ``cost x sigma_jump_mm`` between neighbouring anchors): the path hops between vessels that
+    project onto the wire but are not one route along them.
+    """
+    nodes = np.asarray(nodes, np.int64)
+    cols = np.argmax(costs.cand[: len(nodes)] == nodes[:, None], axis=1)
+    return costs.C[np.arange(len(nodes) - 1), cols[:-1], cols[1:]] if len(nodes) > 1 else np.zeros(1)
 
 
 def path_retreat_mm(ctx, nodes, *, max_step_mm: float) -> float:

@@ -23,8 +23,9 @@ Default method (``ReconMethod.VESSEL``), one module of this package per step:
        output is always proximal -> distal). Path-level checks on the result: in tracking mode the
        Viterbi also runs without the prior, and the prior is dropped when that path explains the
        wire much better (``track_override_cost``: the previous frame's path was a wrong branch, or
-       the wire went elsewhere); how far the path walks back towards the root along the wire
-       (``Wire3D.tree_retreat_mm``: a 2D trace that took the wrong way at a crossing); and the best
+       the wire went elsewhere) along one connected route (``track_override_max_step``: a path that
+       jumps between vessels is no evidence); how far the path walks back towards the root along the
+       wire (``Wire3D.tree_retreat_mm``: a 2D trace that took the wrong way at a crossing); and the best
        rival path that avoids a branch the path entered (``Wire3D.branch_extra_cost``,
        ``branch_tip_shift_mm``). The frame verdict (``live.frame_verdict``) reads the last two.
     4. ``placement``: the chosen nodes are joined along the tree into one path. Each 2D wire
@@ -66,6 +67,7 @@ from guidewire3d.reconstruction.path import (
     ambiguity_mm2,
     branch_alternative,
     path_retreat_mm,
+    path_step_costs,
     tracking_tip,
     viterbi_costs,
     viterbi_path,
@@ -231,10 +233,15 @@ def _reconstruct_vessel(ctx, uv, *, track_tip, image, registration_covariance, o
     if costs.U_untracked is not None:
         # the tracking prior may only settle what the 2D wire leaves open: when the best path
         # without it explains the wire much better, the previous frame's path is not this one's
-        # (its distal part was a wrong branch, or the wire was pulled back and went elsewhere)
+        # (its distal part was a wrong branch, or the wire was pulled back and went elsewhere).
+        # That path must be one route along the vessels: when it jumps between vessels that only
+        # project onto the wire (a step costing more than track_override_max_step), the tree does
+        # not fit the wire at this pose (a pose off by a few mm, a non-rigid motion), neither path
+        # is evidence against the other, and the prior, the last path that did fit, is kept
         free = costs.untracked()
         f_nodes, f_total, f_marg = viterbi_path(ctx, uv[aidx], cand, outside, opt, None, costs=free)
-        if total - f_total > opt.track_override_cost and len(f_nodes) >= 2:
+        if (total - f_total > opt.track_override_cost and len(f_nodes) >= 2
+                and path_step_costs(free, f_nodes).max() <= opt.track_override_max_step):
             prior_note = (f"; the previous frame's path dropped as a prior (the wire fits another path better by "
                           f"{total - f_total:.0f})")
             nodes, total, marg, costs, track_tip = f_nodes, f_total, f_marg, free, None
