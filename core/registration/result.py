@@ -83,8 +83,9 @@ class RegistrationResult:
         ``DEPTH_SCAN_FAR_MM`` or more from the result along the beam, the rest of the pose re-fitted, in units
         of the rise the covariance predicts at its depth 1-sigma. ``success`` needs it at least
         ``DEPTH_SCAN_RISE`` (no second minimum along the beam) and no scanned depth fitting better. It is
-        computed on a pose the first checks accept, and on one whose covariance is too wide along the beam
-        only: then the scan, not the covariance, settles the depth (the message says so).
+        computed on a pose the first checks accept (and, with ``DEPTH_SCAN_SCREEN_FACTOR`` > 0, on one
+        whose covariance is too wide along the beam only: then the scan, not the covariance, settles the
+        depth and the message says so).
     """
 
     pose: Pose
