@@ -20,10 +20,9 @@ bifurcations matched with ``match_bifurcations`` at the same start) is in the sa
     nice .venv/bin/python scripts/bench_registration.py --verdict --cases 100 --seed0 100  # held out
 
 ``--verdict`` counts false refusals (mTRE <= 2 mm, verdict not OK) and false acceptances (mTRE > 2 mm,
-OK) of four verdicts computed from the same results (``legacy_ok``: before issue 20; ``sigma_ok``: the
-covariance's limit alone; ``jackknife_ok``: that and the jackknife second opinion; the shipped one, with
-the depth profile) on
-end-to-end inputs, five roadmaps per seed (see ``load_verdict_cases``; preparing a seed takes
+OK) of five verdicts computed from the same results (``legacy_ok``: before issue 20; ``sigma_ok``: the
+covariance's limit alone; ``jackknife_ok``: that and the jackknife second opinion; ``profile_ok``: and the
+two-point depth profile; the shipped one, with the wide depth scan) on end-to-end inputs, five roadmaps per seed (see ``load_verdict_cases``; preparing a seed takes
 ~20 s, cached under ``--cache``).
 
 ``--e2e`` uses the inputs of ``guidewire3d bench`` (seeds 100.., same ``PhantomOptions``, DICOM
@@ -83,6 +82,29 @@ def jackknife_ok(r) -> bool:
     from guidewire3d.registration import verdict
 
     return bool(sigma_ok(r) and not (r.jackknife_std_mm > verdict.JACKKNIFE_FACTOR * _limit_2026_11(r)))
+def profile_ok(r) -> bool:
+    """The verdict's OK before the depth scan (2026-12-02: the 2026-11 limit, the jackknife and the two-point
+    depth profile), from the same result: the profile ran whenever those passed and its refusal is in the message."""
+    return bool(jackknife_ok(r) and "the roadmap does not settle the depth along the beam" not in r.message)
+
+
+REASONS = (("mean residual", "residual"), ("of the 2D centerline explained", "inliers"),
+           ("one vessel path is explained", "1-sigma (single path)"), ("do not determine the pose", "1-sigma"),
+           ("jackknife 1-sigma", "jackknife"), ("does not settle the depth along the beam", "depth profile"),
+           ("depth scan finds another depth", "depth scan"))
+
+
+def refusal_reasons(message: str) -> str:
+    """Which checks refused a registration, from its message (``-`` when OK)."""
+    if not message.startswith("untrustworthy"):
+        return "-"
+    why = message.split(" | ")[0]
+    got = [name for key, name in REASONS if key in why]
+    if "and the depth scan does not settle the depth" in why:
+        got.append("depth scan")
+    return " + ".join(got) if got else "?"
+
+
 CACHE_VERSION = 2  # cached: simulator outputs (roadmap image, tree, geometry), not the 2D centerline
 
 
@@ -378,7 +400,7 @@ def run_verdict(cases, log):
         return wrapper
 
     rows = []
-    originals = {n: getattr(verdict, n) for n in ("_jackknife_pose_std_mm", "_depth_profile_mm")}
+    originals = {n: getattr(verdict, n) for n in ("_jackknife_pose_std_mm", "_depth_profile_mm", "_depth_scan")}
     for n, fn in originals.items():
         setattr(verdict, n, timed(n, fn))
     try:
@@ -402,30 +424,39 @@ def _verdict_row(c, spent) -> dict:
     return dict(seed=c["seed"], variant=c["variant"], mtre=mtre_mm(r.pose, c["true_pose"], c["true_pts"]),
                 depth=float(np.mean(d @ c["carm"].beam_direction)), verdict=r.verdict.value,
                 ok=bool(r.success), ok_before=legacy_ok(r), ok_sigma=sigma_ok(r), ok_jk=jackknife_ok(r),
+                ok_profile=profile_ok(r), scan=r.depth_scan_rise, reasons=refusal_reasons(r.message),
                 jk=r.jackknife_std_mm, fits=bool(r.fits_2d), single=bool(r.single_path),
                 std=r.pose_std_mm, limit=r.max_pose_std_mm, explained=r.explained_fraction,
                 res=r.mean_residual_px, inl=r.inlier_fraction, wall=wall, cpu=cpu, pose=r.pose, message=r.message,
-                jk_cpu=spent.get("_jackknife_pose_std_mm", 0.0), profile_cpu=spent.get("_depth_profile_mm", 0.0))
+                cov=r.covariance_6x6, energy=r.energy,
+                jk_cpu=spent.get("_jackknife_pose_std_mm", 0.0), profile_cpu=spent.get("_depth_profile_mm", 0.0),
+                scan_cpu=spent.get("_depth_scan", 0.0))
+
+
+VERDICT_COLUMNS = (("ok_before", "legacy"), ("ok_sigma", "1-sigma"), ("ok_jk", "jackknife"), ("ok_profile", "profile"),
+                   ("ok", "scan"))
 
 
 def verdict_table(rows, out, seeds):
-    """False refusals (right: mTRE <= SUCCESS_MM, not OK) and false acceptances (wrong, OK) of four
+    """False refusals (right: mTRE <= SUCCESS_MM, not OK) and false acceptances (wrong, OK) of five
     verdicts on the same registrations: before issue 20 (``legacy_ok``), the covariance's 1-sigma
-    alone (``sigma_ok``), 1-sigma and the jackknife second opinion (``jackknife_ok``) and the shipped
-    one (the covariance limit, the jackknife and the depth profile)."""
+    alone (``sigma_ok``), 1-sigma and the jackknife second opinion (``jackknife_ok``), and the depth
+    profile (``profile_ok``), and the shipped one (with the depth scan); then which checks refused the
+    right registrations and which accepted wrong ones."""
+    names = " / ".join(n for _, n in VERDICT_COLUMNS)
     out(f"\n### Verdict vs truth: {len(rows)} registrations from the DICOM start (seeds {seeds}), "
         f"right = mTRE <= {SUCCESS_MM} mm")
     out("verdicts: *legacy* = before issue 20; *1-sigma* = the pose covariance's limit alone; "
-        "*jackknife* = 1-sigma and the jackknife second opinion; *profile* (shipped) = the covariance "
-        "limit, the jackknife and the depth profile")
-    out("| roadmap | n | right | false refusals legacy / 1-sigma / jackknife / profile | false acceptances legacy / "
-        "1-sigma / jackknife / profile | largest mTRE flagged OK legacy / 1-sigma / jackknife / profile (mm) |")
+        "*jackknife* = 1-sigma and the jackknife second opinion; *profile* = and the two-point depth profile; "
+        "*scan* (shipped) = and the wide depth scan, which also settles a depth the covariance leaves too wide")
+    out(f"| roadmap | n | right | false refusals {names} | false acceptances {names} | largest mTRE flagged OK "
+        f"{names} (mm) |")
     out("|---|---|---|---|---|---|")
 
     def line(name, R):
         m = np.array([r["mtre"] for r in R])
         right = m <= SUCCESS_MM
-        verdicts = [np.array([r[k] for r in R]) for k in ("ok_before", "ok_sigma", "ok_jk", "ok")]
+        verdicts = [np.array([r[k] for r in R]) for k, _ in VERDICT_COLUMNS]
         fr = " / ".join(str(int(np.sum(right & ~v))) for v in verdicts)
         fa = " / ".join(str(int(np.sum(~right & v))) for v in verdicts)
         worst = " / ".join(f"{m[v].max():.1f}" if v.any() else "-" for v in verdicts)
@@ -438,16 +469,36 @@ def verdict_table(rows, out, seeds):
     line("**all**", rows)
     m = np.array([r["mtre"] for r in rows])
     for lim in (2.5, 3.0, 5.0):
-        out(f"flagged OK with mTRE > {lim} mm: legacy {sum(r['ok_before'] and r['mtre'] > lim for r in rows)}, "
-            f"1-sigma {sum(r['ok_sigma'] and r['mtre'] > lim for r in rows)}, "
-            f"jackknife {sum(r['ok_jk'] and r['mtre'] > lim for r in rows)}, "
-            f"profile {sum(r['ok'] and r['mtre'] > lim for r in rows)}")
+        out(f"flagged OK with mTRE > {lim} mm: " + ", ".join(f"{n} {sum(r[k] and r['mtre'] > lim for r in rows)}"
+                                                           for k, n in VERDICT_COLUMNS))
+    from collections import Counter
+
+    out("\nWhy (shipped verdict): the checks that refused right registrations, and the wrong ones accepted")
+    out("| roadmap | refused right: reasons (count) | accepted wrong: mTRE mm |")
+    out("|---|---|---|")
+    for v in VERDICT_VARIANTS + ("**all**",):
+        R = rows if v == "**all**" else [r for r in rows if r["variant"] == v]
+        if not R:
+            continue
+        fr = Counter(r["reasons"] for r in R if r["mtre"] <= SUCCESS_MM and not r["ok"])
+        fa = sorted(r["mtre"] for r in R if r["mtre"] > SUCCESS_MM and r["ok"])
+        out(f"| {v} | {', '.join(f'{k} {n}' for k, n in fr.most_common()) or '-'} | "
+            f"{', '.join(f'{x:.1f}' for x in fa) or '-'} |")
+    wrong_refused = Counter(r["reasons"] for r in rows if r["mtre"] > SUCCESS_MM and not r["ok"])
+    out("refused wrong (all roadmaps): " + ", ".join(f"{k} {n}" for k, n in wrong_refused.most_common()))
+    by_scan = [r for r in rows if r["ok"] and "settled by the scan" in r["message"]]
+    out(f"OK through the depth scan (covariance too wide along the beam): {len(by_scan)}, of them right "
+        f"{sum(r['mtre'] <= SUCCESS_MM for r in by_scan)}, largest mTRE "
+        f"{max((r['mtre'] for r in by_scan), default=float('nan')):.2f} mm")
     prof = np.array([r["profile_cpu"] for r in rows])
     jk = np.array([r["jk_cpu"] for r in rows])
+    scan = np.array([r["scan_cpu"] for r in rows])
     out(f"CPU of the second opinions: depth profile run in {np.sum(prof > 0)} of {len(rows)} registrations, "
         f"median {1e3 * np.median(prof[prof > 0]) if (prof > 0).any() else 0:.0f} ms there "
         f"(mean {1e3 * prof.mean():.0f} ms per registration); jackknife in {np.sum(jk > 0)}, median "
-        f"{1e3 * np.median(jk[jk > 0]) if (jk > 0).any() else 0:.0f} ms there (mean {1e3 * jk.mean():.0f} ms)")
+        f"{1e3 * np.median(jk[jk > 0]) if (jk > 0).any() else 0:.0f} ms there (mean {1e3 * jk.mean():.0f} ms); "
+        f"depth scan in {np.sum(scan > 0)}, median {1e3 * np.median(scan[scan > 0]) if (scan > 0).any() else 0:.0f} ms "
+        f"there (mean {1e3 * scan.mean():.0f} ms)")
     out(f"time per registration (incl. global search and the second opinions): median CPU "
         f"{1e3 * np.median([r['cpu'] for r in rows]):.0f} ms, median wall {1e3 * np.median([r['wall'] for r in rows]):.0f} ms; "
         f"median mTRE {np.median(m):.2f} mm")

@@ -78,6 +78,14 @@ class RegistrationResult:
         ``JACKKNIFE_TILES`` spatial tiles of the 2D centerline left out in turn and the pose refined
         without it. ``success`` needs it within ``JACKKNIFE_FACTOR x max_pose_std_mm``: a pose that
         rests on one part of the roadmap (a wrong branch match, a segment off as a whole) moves.
+    depth_scan_rise : float
+        The fourth opinion (NaN when not computed): the depth scan's smallest rise of the energy at depths
+        ``DEPTH_SCAN_FAR_MM`` or more from the result along the beam, the rest of the pose re-fitted, in units
+        of the rise the covariance predicts at its depth 1-sigma. ``success`` needs it at least
+        ``DEPTH_SCAN_RISE`` (no second minimum along the beam) and no scanned depth fitting better. It is
+        computed on a pose the first checks accept (and, with ``DEPTH_SCAN_SCREEN_FACTOR`` > 0, on one
+        whose covariance is too wide along the beam only: then the scan, not the covariance, settles the
+        depth and the message says so).
     """
 
     pose: Pose
@@ -96,6 +104,7 @@ class RegistrationResult:
     explained_fraction: float = float("nan")
     max_pose_std_mm: float = float("nan")
     jackknife_std_mm: float = float("nan")
+    depth_scan_rise: float = float("nan")
 
     def __bool__(self) -> bool:
         return bool(self.success)
@@ -124,6 +133,7 @@ class RegistrationResult:
             "explained_fraction": _json_float(self.explained_fraction),
             "max_pose_std_mm": _json_float(self.max_pose_std_mm),
             "jackknife_std_mm": _json_float(self.jackknife_std_mm),
+            "depth_scan_rise": _json_float(self.depth_scan_rise),
         }
 
 
