@@ -162,6 +162,7 @@ def registration_record(reg, *, source: str = "automatic") -> dict:
         "inlier_fraction": _f(reg.inlier_fraction),
         "pose_std_mm": _f(reg.pose_std_mm),
         "jackknife_std_mm": _f(getattr(reg, "jackknife_std_mm", float("nan"))),
+        "depth_scan_rise": _f(getattr(reg, "depth_scan_rise", float("nan"))),
         "single_path": bool(reg.single_path),
         "covariance_6x6": (np.asarray(reg.covariance_6x6, float).tolist()
                            if reg.covariance_6x6 is not None and np.all(np.isfinite(reg.covariance_6x6)) else None),

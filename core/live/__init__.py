@@ -2,6 +2,20 @@
 
 The public names of the modules below, importable from ``guidewire3d.live``.
 """
+from guidewire3d.live.continuation import (  # noqa: F401
+    BACKGROUND_PX,
+    BEYOND_MM,
+    MIN_CONTRAST_RATIO,
+    MIN_SAMPLES,
+    MIN_Z,
+    NEAR_WIRE_PX,
+    OFFSET_PX,
+    SKIP_PX,
+    WINDOW_PX,
+    WireContinuation,
+    downstream_paths,
+    wire_continuation,
+)
 from guidewire3d.live.session import (  # noqa: F401
     BRANCH_EXTRA_MAX,
     BRANCH_SHIFT_MIN_MM,
