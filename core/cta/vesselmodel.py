@@ -435,9 +435,10 @@ def estimate_intensity_model(volume: io.Volume, *, seeds_lps_mm=None) -> Intensi
     rotational = False
     if hu:  # calibrated CT: contrast lumen is below cortical bone, unless it is a 3D rotational angiogram
         above = tub & (vals > HU_LUMEN_MAX)
-        rotational = bool(ves[above].sum() > ROTATIONAL_WEIGHT_RATIO * ves[tub & ~above].sum())
         low = tub & ~above
-        ratio = float(ves[above].sum()) / max(float(ves[low].sum()), 1e-12)
+        w_above, w_low = float(ves[above].sum()), float(ves[low].sum())
+        rotational = w_above > ROTATIONAL_WEIGHT_RATIO * w_low
+        ratio = w_above / max(w_low, 1e-12)
         if rotational and ratio < ROTATIONAL_CLEAR_RATIO:
             w = max(noise, 0.004 * (top - bg))
             raise SegmentationError(

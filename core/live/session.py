@@ -366,12 +366,16 @@ class Session:
                                timestamp, self.pose, motion, stages)
         ori = orientation_of(w3, uv, root_uv_px=self.root_uv_px) if self.method == "vessel" else None
         continuation = None
-        if image is not None and self.method == "vessel" and len(w3.tree_point_ids):
+        beyond_tip = getattr(wire2d, "beyond_tip", None)
+        # the image beyond the tip is read only where frame_verdict would use it: not when a piece of
+        # the mask beyond the tip already makes the tip uncertain
+        if (image is not None and self.method == "vessel" and len(w3.tree_point_ids)
+                and (beyond_tip is None or w3.reversed_input)):
             t1 = time.perf_counter()
             continuation = wire_continuation(image, self.tree, self.carm, self.pose, int(w3.tree_point_ids[-1]),
                                              uv[::-1] if w3.reversed_input else uv)
             stages["reconstruction"] = stages.get("reconstruction", 0.0) + time.perf_counter() - t1
-        verdict, message = frame_verdict(w3, uv, ori, beyond_tip=getattr(wire2d, "beyond_tip", None),
+        verdict, message = frame_verdict(w3, uv, ori, beyond_tip=beyond_tip,
                                          motion=motion, image_shape=self.carm.shape, continuation=continuation)
         return FrameResult(index, wire2d, w3, verdict, message, ori, time.perf_counter() - t0, timestamp,
                            self.pose, motion, stages)
