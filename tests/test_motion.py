@@ -391,3 +391,19 @@ def test_the_compiled_acquisition_search_is_the_kd_tree_one(seed):
     beyond = [np.isinf(kd.query(c - s * step, distance_upper_bound=gate)[0]).any() for s in shifts]
     assert any(beyond) and not all(beyond)  # some shifts put curve points beyond the gate, some not
     np.testing.assert_allclose(got, ref, rtol=1e-9)
+
+
+def test_the_tracker_compiles_nothing_after_its_construction(still_case):
+    """The tracker's constructor warms its kernels (``kernels.warm_up_motion``): each has the one compiled
+    specialisation, and tracking frames (first frame, tracked ones, the second opinion) adds none."""
+    from guidewire3d import kernels
+
+    case = still_case
+    tracker = motion.MotionTracker(case.tree, case.carm, case.pose, options=motion.MotionOptions(settle_every=1))
+    compiled = kernels._compile_motion()
+    before = {name: len(f.signatures) for name, f in compiled.items()}
+    assert set(before.values()) == {1}
+    uv = case.carm.project(case.wire_lps_mm[0], case.pose)
+    res = [tracker.update(uv) for _ in range(3)]
+    assert all(r.verdict is Verdict.OK for r in res), [r.message for r in res]
+    assert {name: len(f.signatures) for name, f in compiled.items()} == before
