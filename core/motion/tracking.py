@@ -421,9 +421,18 @@ class MotionTracker:
                                  - np.trace(cov[3:, 3:] @ self._M2), 0.0)))
 
     def _solve(self, c, start, prev, Lt, *, iterations: int | None = None):
-        """Gauss-Newton from ``start`` (compiled: ``kernels.motion_solve``; tests/test_motion.py
-        holds the numpy code it replaced): ``(robust cost, delta, H, iterations, inlier fraction,
-        mean px outside the lumen)``, or None when no tree sample projects near the curve."""
+        """Gauss-Newton from ``start``: ``(robust cost, delta, H, iterations, inlier fraction,
+        mean px outside the lumen)``, or None when no tree sample projects near the curve.
+
+        Only the tree samples projected (at the start) within the gate plus ``CROP_MARGIN_PX`` of
+        the curve's bounding box are looked at. Correspondences (each curve point's nearest
+        projected sample and its tangent) are found at the start and again every other iteration (a
+        frame's motion is a few px, so point-to-line steps with fixed pairs converge in between),
+        and once more at the solution, which is scored: the MAP objective (pseudo-Huber of the
+        gated distances, one point per ``fit_correlation_mm`` of the curve, plus the priors), the
+        fraction of the curve within ``inlier_px`` of the projected lumen and how far outside it.
+        One compiled call (``kernels.motion_solve``; tests/test_motion.py holds the numpy code it
+        replaced, and checks that they agree)."""
         opt = self.options
         found, cost, delta, H, it, frac, mean_res, J, w, j, lumen_px = kernels.motion_solve(
             c, self._Y0, self._c, self._nbr, self._radius_mm, focal_px=self._f, principal_point_px=self._pp,
