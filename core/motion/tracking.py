@@ -235,6 +235,14 @@ class MotionTracker:
             self._Lambda_cal += np.outer(wz, wz) / opt.cov_sigma_depth_mm**2
         self._Lambda_t = np.zeros((6, 6))
         self._Lambda_t[:3, :3] = np.eye(3) / opt.sigma_step_inplane_mm**2
+        self._source_room_mm = carm.source_room_mm  # (pose_of, per frame)
+        # the compiled solve's inputs, read-only once here (kernels._in then passes them as they are)
+        for name in ("_Y0", "_c", "_nbr", "_radius_mm", "_pp", "_Lambda0", "_Lambda_t"):
+            a = np.ascontiguousarray(getattr(self, name), np.int64 if name == "_nbr" else np.float64)
+            a.flags.writeable = False
+            setattr(self, name, a)
+        self._no_Lt = np.zeros((6, 6))
+        self._no_Lt.flags.writeable = False
         kernels.warm_up_motion()  # compiled (or loaded from numba's disk cache) before the first frame
         self.reset()
 
@@ -273,7 +281,7 @@ class MotionTracker:
         """``T_iso_from_lps`` of the tree moved by ``delta`` (camera axes, about the centroid)."""
         d = np.asarray(delta, float)
         Rd = so3_exp(d[3:])
-        Rc, S = self._Rc_room, self.carm.source_room_mm
+        Rc, S = self._Rc_room, self._source_room_mm
         T0 = self.initial_pose
         # x_cam' = Rd (x_cam - c) + c + t,  x_cam = Rc (T0 x - S),  T x = Rc^T x_cam' + S
         R = Rc.T @ Rd @ Rc @ T0.R
@@ -309,7 +317,7 @@ class MotionTracker:
                                       "no curve in the frame: pose held from the previous frame",
                                       float("nan"), 0.0, 0, time.perf_counter() - t0)
         tracked = self._has_previous
-        Lt = self._Lambda_t if tracked else np.zeros((6, 6))
+        Lt = self._Lambda_t if tracked else self._no_Lt
         starts = [prev] if tracked else self._acquire(c, prev)
         best = None
         sols = []
@@ -381,7 +389,7 @@ class MotionTracker:
         if len(c) > SETTLE_CURVE_POINTS:  # a coarse answer suffices (it is compared with a limit of mm)
             c = c[np.linspace(0, len(c) - 1, SETTLE_CURVE_POINTS).round().astype(int)]
         starts = self._acquire(c, zero)
-        sols = [self._solve(c, start, zero, np.zeros((6, 6)), iterations=SETTLE_ITERATIONS)
+        sols = [self._solve(c, start, zero, self._no_Lt, iterations=SETTLE_ITERATIONS)
                 for start in (starts[1:1 + SETTLE_STARTS] if len(starts) > 1 else starts)]
         return self._rivals_mm([s for s in sols if s is not None], delta, j)
 
