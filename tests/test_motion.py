@@ -374,12 +374,13 @@ def test_the_compiled_solve_is_the_numpy_solve():
     assert tracker._solve(far, np.zeros(6), np.zeros(6), z6) is None
 
 
-@pytest.mark.parametrize("seed", [0, 1, 2])
-def test_the_compiled_acquisition_search_is_the_kd_tree_one(seed):
+@pytest.mark.parametrize("seed, n_points", [(0, 60), (1, 60), (2, 60), (3, 2000), (4, 2000)])
+def test_the_compiled_acquisition_search_is_the_kd_tree_one(seed, n_points):
     from guidewire3d import kernels
 
     rng = np.random.default_rng(seed)
-    pts = rng.uniform(0, 300, size=(60, 2))  # sparse: some curve points lie beyond the gate
+    # sparse (some curve points lie beyond the gate) or dense (the nearest lies in the query's cell)
+    pts = rng.uniform(0, 300, size=(n_points, 2))
     c = np.cumsum(rng.normal(scale=3.0, size=(60, 2)), axis=0) + 150.0
     step = rng.normal(size=2) * 4.0
     shifts = np.arange(-25.0, 25.5, 1.0)
@@ -389,7 +390,8 @@ def test_the_compiled_acquisition_search_is_the_kd_tree_one(seed):
                     for s in shifts])
     got = kernels.motion_acquire_costs(pts, c, step, shifts, gate_px=gate)
     beyond = [np.isinf(kd.query(c - s * step, distance_upper_bound=gate)[0]).any() for s in shifts]
-    assert any(beyond) and not all(beyond)  # some shifts put curve points beyond the gate, some not
+    if n_points < 100:  # some shifts put curve points beyond the gate, some not
+        assert any(beyond) and not all(beyond)
     np.testing.assert_allclose(got, ref, rtol=1e-9)
 
 
