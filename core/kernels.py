@@ -2121,3 +2121,279 @@ def _warm_up_triangulation() -> None:
     for reg in (None, np.eye(6)):
         two_view_covariance(X, T, cams, sigma_2d_px=0.5, pose_jacobians=None if reg is None else np.zeros((3, 3, 6)),
                             registration_covariance=reg)
+
+
+# --- motion tracking (guidewire3d.motion.tracking) ----------------------------------------------------------------
+__all__ += ["motion_solve", "motion_acquire_costs"]
+_COMPILED_MOTION: dict = {}
+
+
+def _compile_motion():
+    """The pose tracker's Gauss-Newton solve (``MotionTracker._solve``) as one compiled call: the numpy code it
+    replaces spent its time in dozens of small temporaries per iteration (a frame's curve has at most 128
+    points, the tree a few hundred samples near it)."""
+    with _LOCK:
+        if _COMPILED_MOTION:
+            return _COMPILED_MOTION
+        jit = _jit
+
+        @jit
+        def motion_solve(c, Y0, centroid, nbr, radius, focal, pp, start, prev, Lambda0, Lt, sigma_px, huber_px,
+                         gate_px, inlier_px, crop_px, fit_correlation_mm, iterations, step_tol_mm, step_tol_rad):
+            n = c.shape[0]
+            K = Y0.shape[0]
+            delta = start.copy()
+            # the rotation of delta (Rodrigues, as geometry.so3_exp)
+            R = np.empty((3, 3))
+
+            def _rot(phi, R):
+                th = np.sqrt(phi[0] * phi[0] + phi[1] * phi[1] + phi[2] * phi[2])
+                Km = np.array([[0.0, -phi[2], phi[1]], [phi[2], 0.0, -phi[0]], [-phi[1], phi[0], 0.0]])
+                KK = Km @ Km
+                if th < 1e-8:
+                    a, b = 1.0, 0.5
+                else:
+                    a, b = np.sin(th) / th, (1.0 - np.cos(th)) / th ** 2
+                for p in range(3):
+                    for q in range(3):
+                        R[p, q] = (1.0 if p == q else 0.0) + a * Km[p, q] + b * KK[p, q]
+
+            def _move(k, R, delta, out):
+                p0 = Y0[k, 0] - centroid[0]
+                p1 = Y0[k, 1] - centroid[1]
+                p2 = Y0[k, 2] - centroid[2]
+                for q in range(3):
+                    out[q] = p0 * R[q, 0] + p1 * R[q, 1] + p2 * R[q, 2] + centroid[q] + delta[q]
+
+            y = np.empty(3)
+            _rot(delta[3:], R)
+            # the tree samples that can matter: projected (at the start pose) near the curve
+            lo0, lo1, hi0, hi1 = np.inf, np.inf, -np.inf, -np.inf
+            for i in range(n):
+                lo0 = min(lo0, c[i, 0])
+                lo1 = min(lo1, c[i, 1])
+                hi0 = max(hi0, c[i, 0])
+                hi1 = max(hi1, c[i, 1])
+            lo0 -= crop_px
+            lo1 -= crop_px
+            hi0 += crop_px
+            hi1 += crop_px
+            sel = np.empty(K, np.int64)
+            m = 0
+            for k in range(K):
+                _move(k, R, delta, y)
+                u = focal * y[0] / y[2] + pp[0]
+                v = focal * y[1] / y[2] + pp[1]
+                if u >= lo0 and u <= hi0 and v >= lo1 and v <= hi1:
+                    sel[m] = k
+                    m += 1
+            sel = sel[:m]
+            J = np.zeros((n, 6))
+            r = np.zeros(n)
+            w = np.zeros(n)
+            j = np.zeros(n, np.int64)
+            lumen = np.zeros(n)
+            H = np.eye(6)
+            if m < 2:
+                return False, np.inf, delta, H, 0, 0.0, np.inf, J, w, j, lumen
+            length = 0.0
+            for i in range(1, n):
+                length += np.sqrt((c[i, 0] - c[i - 1, 0]) ** 2 + (c[i, 1] - c[i - 1, 1]) ** 2)
+            length_mm = length * centroid[2] / focal
+            pw = min(1.0, max(1.0, length_mm / fit_correlation_mm) / n)
+            uvs = np.empty((m, 2))
+            yn = np.empty(3)
+            g = np.empty(3)
+            it = 0
+            last = iterations + 1  # the final pass: new pairs at the solution
+            for it_ in range(1, iterations + 2):
+                final = it_ == last
+                _rot(delta[3:], R)
+                if final or it_ % 2 == 1:
+                    # correspondences: the nearest projected tree sample (the lower index on a tie); found at
+                    # the start and again every other iteration
+                    for s in range(m):
+                        _move(sel[s], R, delta, y)
+                        uvs[s, 0] = focal * y[0] / y[2] + pp[0]
+                        uvs[s, 1] = focal * y[1] / y[2] + pp[1]
+                    for i in range(n):
+                        best, bk = np.inf, 0
+                        for s in range(m):
+                            d2 = (uvs[s, 0] - c[i, 0]) ** 2 + (uvs[s, 1] - c[i, 1]) ** 2
+                            if d2 < best:
+                                best, bk = d2, s
+                        j[i] = sel[bk]
+                for i in range(n):
+                    _move(j[i], R, delta, y)
+                    _move(nbr[j[i]], R, delta, yn)
+                    u = focal * y[0] / y[2] + pp[0]
+                    v = focal * y[1] / y[2] + pp[1]
+                    t0 = focal * yn[0] / yn[2] + pp[0] - u
+                    t1 = focal * yn[1] / yn[2] + pp[1] - v
+                    nrm = np.sqrt(t0 * t0 + t1 * t1)
+                    d0 = c[i, 0] - u
+                    d1 = c[i, 1] - v
+                    if nrm > 1e-9:
+                        t0 /= max(nrm, 1e-12)
+                        t1 /= max(nrm, 1e-12)
+                        n0, n1 = -t1, t0
+                    else:
+                        dn = max(np.sqrt(d0 * d0 + d1 * d1), 1e-12)
+                        n0, n1 = d0 / dn, d1 / dn
+                    r[i] = -(n0 * d0 + n1 * d1)
+                    a = abs(r[i])
+                    w[i] = (1.0 / np.sqrt(1.0 + (a / huber_px) ** 2) if a <= gate_px else 0.0) * (pw / sigma_px ** 2)
+                    z = y[2]
+                    g[0] = n0 * (focal / z)
+                    g[1] = n1 * (focal / z)
+                    g[2] = -(g[0] * y[0] + g[1] * y[1]) / z
+                    e0, e1, e2 = y[0] - centroid[0], y[1] - centroid[1], y[2] - centroid[2]
+                    J[i, 0], J[i, 1], J[i, 2] = g[0], g[1], g[2]
+                    J[i, 3] = e1 * g[2] - e2 * g[1]
+                    J[i, 4] = e2 * g[0] - e0 * g[2]
+                    J[i, 5] = e0 * g[1] - e1 * g[0]
+                    lumen[i] = focal * radius[j[i]] / z
+                if final:
+                    break
+                it = it_
+                # Gauss-Newton step with the priors
+                Hn = Lambda0 + Lt
+                gr = Lambda0 @ delta + Lt @ (delta - prev)
+                for p in range(6):
+                    for q in range(6):
+                        s_ = 0.0
+                        for i in range(n):
+                            s_ += J[i, p] * w[i] * J[i, q]
+                        Hn[p, q] += s_
+                    s_ = 0.0
+                    for i in range(n):
+                        s_ += J[i, p] * w[i] * r[i]
+                    gr[p] += s_
+                H = Hn
+                step = -np.linalg.solve(H, gr)
+                delta = delta + step
+                small = True
+                for p in range(3):
+                    if abs(step[p]) >= step_tol_mm or abs(step[3 + p]) >= step_tol_rad:
+                        small = False
+                if small:
+                    last = it_ + 1
+            ninl = 0
+            out_sum = 0.0
+            rob = 0.0
+            h = huber_px / sigma_px
+            for i in range(n):
+                outside = max(abs(r[i]) - lumen[i], 0.0)
+                if outside <= inlier_px:
+                    ninl += 1
+                    out_sum += outside
+                a = min(abs(r[i]), gate_px) / sigma_px
+                rob += 2.0 * h * h * (np.sqrt(1.0 + (a / h) ** 2) - 1.0)
+            frac = ninl / n
+            mean_res = out_sum / ninl if ninl > 0 else np.inf
+            dp = delta - prev
+            cost = pw * rob + delta @ (Lambda0 @ delta) + dp @ (Lt @ dp)
+            return True, cost, delta, H, it, frac, mean_res, J, w, j, lumen
+
+        @jit
+        def motion_acquire_costs(points_uv, c, step_uv, shifts, gate_px):
+            # for each shift, the sum over the curve of min(distance to the nearest point, gate)^2: the points
+            # binned in cells of the gate, so a query looks at its 3 x 3 cells only
+            n = c.shape[0]
+            K = points_uv.shape[0]
+            out = np.empty(shifts.shape[0])
+            g2 = gate_px * gate_px
+            lo0, lo1, hi0, hi1 = np.inf, np.inf, -np.inf, -np.inf
+            for k in range(K):
+                lo0 = min(lo0, points_uv[k, 0])
+                lo1 = min(lo1, points_uv[k, 1])
+                hi0 = max(hi0, points_uv[k, 0])
+                hi1 = max(hi1, points_uv[k, 1])
+            n0 = int((hi0 - lo0) / gate_px) + 1
+            n1 = int((hi1 - lo1) / gate_px) + 1
+            cell = np.empty(K, np.int64)
+            start = np.zeros(n0 * n1 + 1, np.int64)
+            for k in range(K):
+                a = min(int((points_uv[k, 0] - lo0) / gate_px), n0 - 1)
+                b = min(int((points_uv[k, 1] - lo1) / gate_px), n1 - 1)
+                cell[k] = a * n1 + b
+                start[cell[k] + 1] += 1
+            for q in range(n0 * n1):
+                start[q + 1] += start[q]
+            fill = start[:-1].copy()
+            order = np.empty(K, np.int64)
+            for k in range(K):
+                order[fill[cell[k]]] = k
+                fill[cell[k]] += 1
+            for s in range(shifts.shape[0]):
+                tot = 0.0
+                for i in range(n):
+                    q0 = c[i, 0] - shifts[s] * step_uv[0]
+                    q1 = c[i, 1] - shifts[s] * step_uv[1]
+                    best = g2
+                    fa = (q0 - lo0) / gate_px
+                    fb = (q1 - lo1) / gate_px
+                    if fa >= -1.0 and fa < n0 + 1.0 and fb >= -1.0 and fb < n1 + 1.0:
+                        ca = int(np.floor(fa))
+                        cb = int(np.floor(fb))
+                        for a in range(max(ca - 1, 0), min(ca + 2, n0)):
+                            for b in range(max(cb - 1, 0), min(cb + 2, n1)):
+                                q = a * n1 + b
+                                for e in range(start[q], start[q + 1]):
+                                    k = order[e]
+                                    d2 = (points_uv[k, 0] - q0) ** 2 + (points_uv[k, 1] - q1) ** 2
+                                    if d2 < best:
+                                        best = d2
+                    tot += best
+                out[s] = tot
+            return out
+
+        _COMPILED_MOTION.update(motion_solve=motion_solve, motion_acquire_costs=motion_acquire_costs)
+        return _COMPILED_MOTION
+
+
+def motion_solve(c, Y0, centroid, nbr, radius, *, focal_px: float, principal_point_px, start, prev, Lambda0, Lt,
+                 sigma_px: float, huber_px: float, gate_px: float, inlier_px: float, crop_px: float,
+                 fit_correlation_mm: float, iterations: int, step_tol_mm: float, step_tol_rad: float):
+    """The tracker's Gauss-Newton solve (``motion.tracking.MotionTracker._solve``, see there for the model).
+
+    Parameters
+    ----------
+    c : (N, 2) curve points, px; Y0 : (K, 3) tree samples in the initial pose's camera frame, mm;
+    centroid : (3,) their centroid; nbr : (K,) int, a neighbour along the tree of each sample (its tangent);
+    radius : (K,) mm; start, prev : (6,) delta at the start and the previous frame's; Lambda0, Lt : (6, 6)
+    the roadmap and temporal prior precisions.
+
+    Returns
+    -------
+    ``(found, cost, delta (6,), H (6, 6), iterations, inlier fraction, mean px outside the lumen,
+    J (N, 6), w (N,), pairs (N,) int, lumen px (N,))``; ``found`` is False when fewer than two tree samples
+    project within ``crop_px`` of the curve's bounding box (at the start pose).
+    """
+    f = _compile_motion()["motion_solve"]
+    return f(_in(c, np.float64), _in(Y0, np.float64), _in(centroid, np.float64), _in(nbr, np.int64),
+             _in(radius, np.float64), float(focal_px), _in(principal_point_px, np.float64), _in(start, np.float64),
+             _in(prev, np.float64), _in(Lambda0, np.float64), _in(Lt, np.float64), float(sigma_px), float(huber_px),
+             float(gate_px), float(inlier_px), float(crop_px), float(fit_correlation_mm), int(iterations),
+             float(step_tol_mm), float(step_tol_rad))
+
+
+def motion_acquire_costs(points_uv_px, c, step_uv_px, shifts, *, gate_px: float) -> np.ndarray:
+    """For each shift ``s`` (M,), ``sum_i min(d_i, gate_px)^2`` with ``d_i`` the distance of the curve point
+    ``c[i] - s * step_uv_px`` to the nearest of ``points_uv_px`` (K, 2): the tracker's cranio-caudal search."""
+    f = _compile_motion()["motion_acquire_costs"]
+    return f(_in(points_uv_px, np.float64), _in(c, np.float64), _in(step_uv_px, np.float64), _in(shifts, np.float64),
+             float(gate_px))
+
+
+def warm_up_motion() -> None:
+    """Compile (or load from the disk cache) the tracker's kernels on tiny inputs."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        Y0 = np.array([[0.0, 0.0, 700.0], [1.0, 0.0, 700.0], [2.0, 0.5, 700.0]])
+        c = np.array([[0.0, 0.0], [1.0, 0.5], [2.0, 1.0]])
+        motion_solve(c, Y0, Y0.mean(axis=0), np.array([1, 0, 1]), np.ones(3), focal_px=1000.0,
+                     principal_point_px=np.zeros(2), start=np.zeros(6), prev=np.zeros(6), Lambda0=np.eye(6),
+                     Lt=np.zeros((6, 6)), sigma_px=1.5, huber_px=3.0, gate_px=40.0, inlier_px=3.0, crop_px=70.0,
+                     fit_correlation_mm=3.0, iterations=2, step_tol_mm=0.01, step_tol_rad=1e-5)
+        motion_acquire_costs(c, c, np.ones(2), np.arange(3.0), gate_px=40.0)

@@ -271,3 +271,141 @@ def test_the_wires_offset_in_the_lumen_does_not_rotate_the_tree(still_case):
         rot[name] = _rotation_deg(res.pose, case.pose)
     assert rot["default"] < 1.0  # deg; the priors: 0.5 deg tilt, 1 deg spin (1 sigma)
     assert rot["default"] < rot["every point"]
+
+
+# --- the compiled solve and search (kernels.motion_solve, motion_acquire_costs) against the numpy code they replaced
+
+
+def _residuals_numpy(tr, c, delta, sel, point_weight, pairs=None):
+    """The numpy residuals the tracker used before ``kernels.motion_solve``: signed point-to-projected-
+    tangent distances (px), their Jacobian, IRLS weights and the tree sample paired with each point."""
+    opt = tr.options
+    if pairs is None:
+        uv_sel = tr._project(tr._moved_subset(delta, sel))
+        j = sel[cKDTree(uv_sel).query(c)[1]]
+    else:
+        j = pairs
+    Y = tr._moved_subset(delta, np.concatenate([j, tr._nbr[j]]))
+    uv2 = tr._project(Y)
+    Y, uv, uvn = Y[: len(j)], uv2[: len(j)], uv2[len(j):]
+    tan = uvn - uv
+    nrm = np.linalg.norm(tan, axis=1, keepdims=True)
+    tan = np.where(nrm > 1e-9, tan / np.maximum(nrm, 1e-12), 0.0)
+    d = c - uv
+    n = np.stack([-tan[:, 1], tan[:, 0]], axis=1)
+    n = np.where(nrm > 1e-9, n, d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12))
+    r = -np.einsum("ij,ij->i", n, d)
+    a = np.abs(r)
+    w = (np.where(a <= opt.gate_px, 1.0 / np.sqrt(1.0 + (a / opt.huber_px) ** 2), 0.0)
+         * (point_weight / opt.sigma_px**2))
+    z = Y[:, 2]
+    g = np.empty((len(r), 3))
+    g[:, 0] = n[:, 0] * (tr._f / z)
+    g[:, 1] = n[:, 1] * (tr._f / z)
+    g[:, 2] = -(g[:, 0] * Y[:, 0] + g[:, 1] * Y[:, 1]) / z
+    J = np.hstack([g, np.cross(Y - tr._c, g)])
+    return r, J, w, j
+
+
+def _solve_numpy(tr, c, start, prev, Lt, iterations):
+    """The numpy Gauss-Newton the tracker used before ``kernels.motion_solve``."""
+    opt = tr.options
+    delta = np.array(start, float)
+    uv = tr._project(tr._moved(delta))
+    m = opt.gate_px + motion.CROP_MARGIN_PX
+    lo, hi = c.min(axis=0) - m, c.max(axis=0) + m
+    sel = np.flatnonzero((uv[:, 0] >= lo[0]) & (uv[:, 0] <= hi[0]) & (uv[:, 1] >= lo[1]) & (uv[:, 1] <= hi[1]))
+    if len(sel) < 2:
+        return None
+    length_mm = float(np.sum(np.linalg.norm(np.diff(c, axis=0), axis=1))) * tr._c[2] / tr._f
+    pw = min(1.0, max(1.0, length_mm / opt.fit_correlation_mm) / len(c))
+    it, j = 0, None
+    for it in range(1, iterations + 1):
+        r, J, w, j = _residuals_numpy(tr, c, delta, sel, pw, pairs=None if it % 2 else j)
+        H = J.T @ (J * w[:, None]) + tr._Lambda0 + Lt
+        g = J.T @ (w * r) + tr._Lambda0 @ delta + Lt @ (delta - prev)
+        step = -np.linalg.solve(H, g)
+        delta = delta + step
+        if np.abs(step[:3]).max() < motion.STEP_TOL_MM and np.abs(step[3:]).max() < motion.STEP_TOL_RAD:
+            break
+    r, J, w, j = _residuals_numpy(tr, c, delta, sel, pw)
+    lumen_px = tr._f * tr._radius_mm[j] / tr._moved_subset(delta, j)[:, 2]
+    outside = np.maximum(np.abs(r) - lumen_px, 0.0)
+    inl = outside <= opt.inlier_px
+    a = np.minimum(np.abs(r), opt.gate_px) / opt.sigma_px
+    h = opt.huber_px / opt.sigma_px
+    cost = float(pw * np.sum(2.0 * h * h * (np.sqrt(1.0 + (a / h) ** 2) - 1.0))
+                 + delta @ tr._Lambda0 @ delta + (delta - prev) @ Lt @ (delta - prev))
+    return (cost, delta, it, float(inl.mean()), float(outside[inl].mean()) if inl.any() else np.inf,
+            J, w, j, lumen_px)
+
+
+#: the compiled code sums in another order than numpy: relative agreement required
+KERNEL_RTOL = 1e-8
+
+
+def test_the_compiled_solve_is_the_numpy_solve():
+    case = simulate(PhantomOptions(seed=4, n_frames=6, breathing_mm=15.0, cardiac_mm=2.0), make_ct=False)
+    tracker = motion.MotionTracker(case.tree, case.carm, case.pose)
+    rng = np.random.default_rng(1)
+    z6, n_cmp = np.zeros((6, 6)), 0
+    for t in range(case.options.n_frames):
+        vis = np.asarray(case.wire_visible[t], bool)
+        c = case.wire_uv_px[t][vis][::3] + rng.normal(scale=0.5, size=(len(case.wire_uv_px[t][vis][::3]), 2))
+        prev = np.r_[rng.normal(scale=2.0, size=3) * [1, 1, 0.1], rng.normal(scale=3e-3, size=3)]
+        for start, Lt, iters in ((np.zeros(6), z6, 4), (prev, tracker._Lambda_t, 4), (prev, tracker._Lambda_t, 3),
+                                 (np.r_[6.0 * tracker.cc_cam, 0, 0, 0], z6, 2)):
+            ref = _solve_numpy(tracker, c, start, prev, Lt, iters)
+            got = tracker._solve(c, start, prev, Lt, iterations=iters)
+            assert ref is not None and got is not None
+            cost, delta, _, it, frac, mean_res = got
+            _, J, w, lumen_px, j = tracker._last_fit
+            assert it == ref[2] and frac == ref[3] and np.array_equal(j, ref[7])
+            np.testing.assert_allclose(cost, ref[0], rtol=KERNEL_RTOL)
+            np.testing.assert_allclose(delta, ref[1], rtol=KERNEL_RTOL, atol=1e-10)
+            np.testing.assert_allclose(mean_res, ref[4], rtol=KERNEL_RTOL, atol=1e-10)
+            for a, b in ((J, ref[5]), (w, ref[6]), (lumen_px, ref[8])):
+                np.testing.assert_allclose(a, b, rtol=KERNEL_RTOL, atol=1e-12)
+            n_cmp += 1
+    assert n_cmp == 4 * case.options.n_frames
+    # a curve that no tree sample projects near: no solve, in both
+    far = c + 5000.0
+    assert _solve_numpy(tracker, far, np.zeros(6), np.zeros(6), z6, 4) is None
+    assert tracker._solve(far, np.zeros(6), np.zeros(6), z6) is None
+
+
+@pytest.mark.parametrize("seed, n_points", [(0, 60), (1, 60), (2, 60), (3, 2000), (4, 2000)])
+def test_the_compiled_acquisition_search_is_the_kd_tree_one(seed, n_points):
+    from guidewire3d import kernels
+
+    rng = np.random.default_rng(seed)
+    # sparse (some curve points lie beyond the gate) or dense (the nearest lies in the query's cell)
+    pts = rng.uniform(0, 300, size=(n_points, 2))
+    c = np.cumsum(rng.normal(scale=3.0, size=(60, 2)), axis=0) + 150.0
+    step = rng.normal(size=2) * 4.0
+    shifts = np.arange(-25.0, 25.5, 1.0)
+    gate = 40.0
+    kd = cKDTree(pts)
+    ref = np.array([np.sum(np.minimum(kd.query(c - s * step, distance_upper_bound=gate)[0], gate) ** 2)
+                    for s in shifts])
+    got = kernels.motion_acquire_costs(pts, c, step, shifts, gate_px=gate)
+    beyond = [np.isinf(kd.query(c - s * step, distance_upper_bound=gate)[0]).any() for s in shifts]
+    if n_points < 100:  # some shifts put curve points beyond the gate, some not
+        assert any(beyond) and not all(beyond)
+    np.testing.assert_allclose(got, ref, rtol=1e-9)
+
+
+def test_the_tracker_compiles_nothing_after_its_construction(still_case):
+    """The tracker's constructor warms its kernels (``kernels.warm_up_motion``): each has the one compiled
+    specialisation, and tracking frames (first frame, tracked ones, the second opinion) adds none."""
+    from guidewire3d import kernels
+
+    case = still_case
+    tracker = motion.MotionTracker(case.tree, case.carm, case.pose, options=motion.MotionOptions(settle_every=1))
+    compiled = kernels._compile_motion()
+    before = {name: len(f.signatures) for name, f in compiled.items()}
+    assert set(before.values()) == {1}
+    uv = case.carm.project(case.wire_lps_mm[0], case.pose)
+    res = [tracker.update(uv) for _ in range(3)]
+    assert all(r.verdict is Verdict.OK for r in res), [r.message for r in res]
+    assert {name: len(f.signatures) for name, f in compiled.items()} == before

@@ -35,11 +35,11 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
+from guidewire3d import kernels
 from guidewire3d.errors import InputError
 from guidewire3d.geometry import CArm, Pose, hat, so3_exp
 from guidewire3d.registration import RegistrationResult
 from guidewire3d.vesseltree import VesselTree
-from scipy.spatial import cKDTree
 
 __all__ = ["MotionOptions", "MotionTracker", "track_poses", "curve_to_tree_distance_px"]
 
@@ -235,7 +235,15 @@ class MotionTracker:
             self._Lambda_cal += np.outer(wz, wz) / opt.cov_sigma_depth_mm**2
         self._Lambda_t = np.zeros((6, 6))
         self._Lambda_t[:3, :3] = np.eye(3) / opt.sigma_step_inplane_mm**2
-        self._point_weight = 1.0  # set per curve by _solve (MotionOptions.fit_correlation_mm)
+        self._source_room_mm = carm.source_room_mm  # (pose_of, per frame)
+        # the compiled solve's inputs, read-only once here (kernels._in then passes them as they are)
+        for name in ("_Y0", "_c", "_nbr", "_radius_mm", "_pp", "_Lambda0", "_Lambda_t"):
+            a = np.ascontiguousarray(getattr(self, name), np.int64 if name == "_nbr" else np.float64)
+            a.flags.writeable = False
+            setattr(self, name, a)
+        self._no_Lt = np.zeros((6, 6))
+        self._no_Lt.flags.writeable = False
+        kernels.warm_up_motion()  # compiled (or loaded from numba's disk cache) before the first frame
         self.reset()
 
     def reset(self) -> None:
@@ -273,7 +281,7 @@ class MotionTracker:
         """``T_iso_from_lps`` of the tree moved by ``delta`` (camera axes, about the centroid)."""
         d = np.asarray(delta, float)
         Rd = so3_exp(d[3:])
-        Rc, S = self._Rc_room, self.carm.source_room_mm
+        Rc, S = self._Rc_room, self._source_room_mm
         T0 = self.initial_pose
         # x_cam' = Rd (x_cam - c) + c + t,  x_cam = Rc (T0 x - S),  T x = Rc^T x_cam' + S
         R = Rc.T @ Rd @ Rc @ T0.R
@@ -309,7 +317,7 @@ class MotionTracker:
                                       "no curve in the frame: pose held from the previous frame",
                                       float("nan"), 0.0, 0, time.perf_counter() - t0)
         tracked = self._has_previous
-        Lt = self._Lambda_t if tracked else np.zeros((6, 6))
+        Lt = self._Lambda_t if tracked else self._no_Lt
         starts = [prev] if tracked else self._acquire(c, prev)
         best = None
         sols = []
@@ -381,7 +389,7 @@ class MotionTracker:
         if len(c) > SETTLE_CURVE_POINTS:  # a coarse answer suffices (it is compared with a limit of mm)
             c = c[np.linspace(0, len(c) - 1, SETTLE_CURVE_POINTS).round().astype(int)]
         starts = self._acquire(c, zero)
-        sols = [self._solve(c, start, zero, np.zeros((6, 6)), iterations=SETTLE_ITERATIONS)
+        sols = [self._solve(c, start, zero, self._no_Lt, iterations=SETTLE_ITERATIONS)
                 for start in (starts[1:1 + SETTLE_STARTS] if len(starts) > 1 else starts)]
         return self._rivals_mm([s for s in sols if s is not None], delta, j)
 
@@ -422,46 +430,29 @@ class MotionTracker:
 
     def _solve(self, c, start, prev, Lt, *, iterations: int | None = None):
         """Gauss-Newton from ``start``: ``(robust cost, delta, H, iterations, inlier fraction,
-        mean px outside the lumen)``, or None when no tree sample projects near the curve."""
+        mean px outside the lumen)``, or None when no tree sample projects near the curve.
+
+        Only the tree samples projected (at the start) within the gate plus ``CROP_MARGIN_PX`` of
+        the curve's bounding box are looked at. Correspondences (each curve point's nearest
+        projected sample and its tangent) are found at the start and again every other iteration (a
+        frame's motion is a few px, so point-to-line steps with fixed pairs converge in between),
+        and once more at the solution, which is scored: the MAP objective (pseudo-Huber of the
+        gated distances, one point per ``fit_correlation_mm`` of the curve, plus the priors), the
+        fraction of the curve within ``inlier_px`` of the projected lumen and how far outside it.
+        One compiled call (``kernels.motion_solve``; tests/test_motion.py holds the numpy code it
+        replaced, and checks that they agree)."""
         opt = self.options
-        delta = np.array(start, float)
-        # the tree samples that can matter: projected (at the start pose) near the curve
-        uv = self._project(self._moved(delta))
-        lo, hi = c.min(axis=0) - (opt.gate_px + CROP_MARGIN_PX), c.max(axis=0) + (opt.gate_px + CROP_MARGIN_PX)
-        sel = np.flatnonzero((uv[:, 0] >= lo[0]) & (uv[:, 0] <= hi[0]) & (uv[:, 1] >= lo[1]) & (uv[:, 1] <= hi[1]))
-        if len(sel) < 2:
+        found, cost, delta, H, it, frac, mean_res, J, w, j, lumen_px = kernels.motion_solve(
+            c, self._Y0, self._c, self._nbr, self._radius_mm, focal_px=self._f, principal_point_px=self._pp,
+            start=start, prev=prev, Lambda0=self._Lambda0, Lt=Lt, sigma_px=opt.sigma_px, huber_px=opt.huber_px,
+            gate_px=opt.gate_px, inlier_px=opt.inlier_px, crop_px=opt.gate_px + CROP_MARGIN_PX,
+            fit_correlation_mm=opt.fit_correlation_mm,
+            iterations=int(opt.iterations if iterations is None else iterations), step_tol_mm=STEP_TOL_MM,
+            step_tol_rad=STEP_TOL_RAD)
+        if not found:
             return None
-        self._sel = sel
-        # the weight of a curve point: one per fit_correlation_mm of the curve's length
-        length_mm = float(np.sum(np.linalg.norm(np.diff(c, axis=0), axis=1))) * self._c[2] / self._f
-        self._point_weight = min(1.0, max(1.0, length_mm / opt.fit_correlation_mm) / len(c))
-        H = np.eye(6)
-        it = 0
-        j = None
-        for it in range(1, int(opt.iterations if iterations is None else iterations) + 1):
-            # correspondences: found at the start and again every other iteration (a frame's
-            # motion is a few px, so point-to-line steps with fixed pairs converge in between)
-            r, J, w, j = self._residuals(c, delta, with_jacobian=True, pairs=None if it % 2 else j)
-            H = J.T @ (J * w[:, None]) + self._Lambda0 + Lt
-            g = J.T @ (w * r) + self._Lambda0 @ delta + Lt @ (delta - prev)
-            step = -np.linalg.solve(H, g)
-            delta = delta + step
-            if np.abs(step[:3]).max() < STEP_TOL_MM and np.abs(step[3:]).max() < STEP_TOL_RAD:
-                break
-        r, J, w, j = self._residuals(c, delta, with_jacobian=True)
-        lumen_px = self._f * self._radius_mm[j] / self._moved_subset(delta, j)[:, 2]
-        outside = np.maximum(np.abs(r) - lumen_px, 0.0)
-        inl = outside <= opt.inlier_px
-        frac = float(inl.mean())
-        mean_res = float(outside[inl].mean()) if inl.any() else float("inf")
-        # the MAP objective: pseudo-Huber of the centerline distances (gated; one point per
-        # fit_correlation_mm of the curve) plus the priors
-        a = np.minimum(np.abs(r), opt.gate_px) / opt.sigma_px
-        h = opt.huber_px / opt.sigma_px
-        cost = float(self._point_weight * np.sum(2.0 * h * h * (np.sqrt(1.0 + (a / h) ** 2) - 1.0))
-                     + delta @ self._Lambda0 @ delta + (delta - prev) @ Lt @ (delta - prev))
         self._last_fit = (c, J, w, lumen_px, j)
-        return cost, delta, H, it, frac, mean_res
+        return float(cost), delta, H, int(it), float(frac), float(mean_res)
 
     def _acquire(self, c, delta) -> list:
         """Starts for a frame without a fitted predecessor: ``delta`` and the cranio-caudal shifts
@@ -473,13 +464,10 @@ class MotionTracker:
         if np.linalg.norm(a[:2]) <= MIN_CC_IN_PLANE:
             return [delta]
         uv = self._project(self._moved(delta))
-        kd = cKDTree(uv)
         step_px = self._f / self._c[2] * a[:2]  # image shift of 1 mm along the axis, at the centroid
         shifts = np.arange(-opt.acquire_range_mm, opt.acquire_range_mm + 0.5, 1.0)
-        cost = np.empty(len(shifts))
-        for k, sh in enumerate(shifts):
-            d, _ = kd.query(c - sh * step_px, distance_upper_bound=opt.gate_px)
-            cost[k] = np.sum(np.minimum(d, opt.gate_px) ** 2)
+        # per shift, sum over the curve of min(distance to the projected tree samples, gate)^2
+        cost = kernels.motion_acquire_costs(uv, c, step_px, shifts, gate_px=opt.gate_px)
         interior = (cost[1:-1] <= cost[:-2]) & (cost[1:-1] <= cost[2:])
         minima = np.r_[cost[0] <= cost[1], interior, cost[-1] <= cost[-2]]
         order = [k for k in np.argsort(cost) if minima[k]][:ACQUIRE_STARTS]
@@ -489,43 +477,6 @@ class MotionTracker:
             out[:3] += shifts[k] * a
             starts.append(out)
         return starts
-
-    def _residuals(self, c, delta, *, with_jacobian: bool, pairs=None):
-        """Signed point-to-projected-tangent distances (px), their Jacobian, IRLS weights (times the
-        point weight set by ``_solve``) and the tree sample paired with each curve point (``pairs``:
-        reuse these instead of searching)."""
-        opt = self.options
-        if pairs is None:
-            sel = self._sel
-            uv_sel = self._project(self._moved_subset(delta, sel))
-            j = sel[cKDTree(uv_sel).query(c)[1]]
-        else:
-            j = pairs
-        Y = self._moved_subset(delta, np.concatenate([j, self._nbr[j]]))
-        uv2 = self._project(Y)
-        Y, uv, uvn = Y[: len(j)], uv2[: len(j)], uv2[len(j):]
-        tan = uvn - uv
-        nrm = np.linalg.norm(tan, axis=1, keepdims=True)
-        tan = np.where(nrm > 1e-9, tan / np.maximum(nrm, 1e-12), 0.0)
-        d = c - uv
-        # signed distance to the local tangent line (the projected segment), px
-        n = np.stack([-tan[:, 1], tan[:, 0]], axis=1)
-        n = np.where(nrm > 1e-9, n, d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12))
-        r = -np.einsum("ij,ij->i", n, d)  # n . (uv_j - c)
-        a = np.abs(r)
-        w = (np.where(a <= opt.gate_px, 1.0 / np.sqrt(1.0 + (a / opt.huber_px) ** 2), 0.0)
-             * (self._point_weight / opt.sigma_px**2))
-        if not with_jacobian:
-            return r, None, w, j
-        # d r / d delta = n^T (d uv / d Y) (d Y / d delta), with d Y / d delta = [I, -[Y - c]x]
-        z = Y[:, 2]
-        g = np.empty((len(r), 3))
-        g[:, 0] = n[:, 0] * (self._f / z)
-        g[:, 1] = n[:, 1] * (self._f / z)
-        g[:, 2] = -(g[:, 0] * Y[:, 0] + g[:, 1] * Y[:, 1]) / z
-        J = np.hstack([g, np.cross(Y - self._c, g)])
-        return r, J, w, j
-
 
 def track_poses(tree: VesselTree, curves_uv_px, carm: CArm, initial_pose: Pose, *, covariance=None,
                 options: MotionOptions | None = None) -> list:
