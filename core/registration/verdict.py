@@ -9,7 +9,10 @@ explains essentially one vessel path (``single_path``) gets the stricter
 ``MAX_POSE_STD_MM_SINGLE_PATH`` (one curve fixes its depth only through perspective), and one that
 explains less than ``FULL_LIMIT_EXPLAINED_FRACTION`` of the CTA centerline a proportionally smaller
 one (:func:`pose_std_limit_mm`): the less of the tree the roadmap shows, the longer the
-covariance's tail (a perfect 2D overlay with the tree 2-14 mm off along the beam). The covariance's
+covariance's tail (a perfect 2D overlay with the tree 2-14 mm off along the beam). Both the explained
+fraction and the pose 1-sigma count only the part of the tree that projects into the image at the pose
+(``IN_VIEW_ONLY``): a tree larger than the view (a chest-abdomen tree through an arch view) is judged on
+what the view shows. The covariance's
 1-sigma must be within ``COVARIANCE_SCREEN_FACTOR`` (1) x the limit; a pose that passes gets two more opinions:
 a block jackknife over spatial tiles of the roadmap (``JACKKNIFE_TILES``, ``JACKKNIFE_FACTOR``) and a
 profile of the energy along the beam (:func:`_depth_profile_mm`, ``DEPTH_PROFILE_FACTOR``): the depth
