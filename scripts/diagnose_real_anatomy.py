@@ -111,7 +111,8 @@ def main(argv=None):
         for name, rr in (("nom", r), ("true", rt)):
             m = metrics.mtre_mm(rr.pose, pose, Pv)
             print(f"| {c['k']} | {name} | {rr.verdict.label} | {b.refusal(rr)} | {m:.1f} | {rr.energy:.0f} | "
-                  f"{rr.mean_residual_px:.2f} | {rr.inlier_fraction:.2f} | {rr.pose_std_mm:.2f} / {rr.max_pose_std_mm:.2f} | "
+                  f"{rr.mean_residual_px:.2f} | {rr.inlier_fraction:.2f} | "
+                  f"{rr.pose_std_mm:.2f} / {rr.max_pose_std_mm:.2f} | "
                   f"{rr.explained_fraction:.2f} | {rr.jackknife_std_mm:.2f} |", flush=True)
         m = metrics.mtre_mm(r.pose, pose, Pv)
         n_ok += bool(r.success and m < b.SUCCESS_MM)

@@ -251,7 +251,8 @@ def _finish(prob: _Problem, out: _LMOut, q, carm, iterations, t0, *, radius_px=N
     )
 
 
-def _jackknife_pose_std_mm(prob: _Problem, pose: Pose, q: np.ndarray, radius_px, carm: CArm, points_lps_mm=None) -> float:
+def _jackknife_pose_std_mm(prob: _Problem, pose: Pose, q: np.ndarray, radius_px, carm: CArm,
+                           points_lps_mm=None) -> float:
     """Block-jackknife 1-sigma of the pose (RMS displacement over the tree, mm).
 
     The 2D centerline is cut into ``JACKKNIFE_TILES`` spatial tiles (k-means of the points, a fixed
