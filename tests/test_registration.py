@@ -465,10 +465,9 @@ def test_jackknife_keeps_a_right_pose_ok(case0):
     assert mtre_mm(r.pose, true, tree.points_lps_mm) < RECOVER_MM
 
 
-def test_search_range_covers_a_tree_much_larger_than_the_view():
-    """Issue 17: a tree far larger than the view (a chest-abdomen tree, an arch view) puts its centroid,
-    and the nominal start's isocentre, far from the part in view; the search widens its in-plane range
-    to the tree's projected reach and registration lands on the viewed part."""
+def _large_tree_case():
+    """A 420 mm trunk with 12 side branches seen through a view of its upper end (issue 17's chest-abdomen
+    tree through an arch view): ``(tree, carm, true pose)``."""
     rng = np.random.default_rng(5)
     root = _curve(rng, (0.0, -150.0, 1000.0), (0.0, 0.1, 1.0), 420.0, curl=0.03)   # along the body axis
     polys, radii, parents = [root], [np.full(len(root), 4.0)], [None]
@@ -485,6 +484,14 @@ def test_search_range_covers_a_tree_much_larger_than_the_view():
     viewed = root[340]                                     # 340 mm along a 420 mm trunk
     true = Pose.from_rotvec_about(np.radians([1.0, -2.0, 1.5]), np.zeros(3)) @ Pose(np.eye(3), [4.0, -3.0, 5.0]) \
         @ nominal_pose(viewed)
+    return tree, carm, true
+
+
+def test_search_range_covers_a_tree_much_larger_than_the_view():
+    """Issue 17: a tree far larger than the view (a chest-abdomen tree, an arch view) puts its centroid,
+    and the nominal start's isocentre, far from the part in view; the search widens its in-plane range
+    to the tree's projected reach and registration lands on the viewed part."""
+    tree, carm, true = _large_tree_case()
     P = tree.points_lps_mm
     in_view = carm.in_image(carm.project(P, true))
     start = nominal_pose(tree.centroid_lps_mm)
@@ -498,6 +505,35 @@ def test_search_range_covers_a_tree_much_larger_than_the_view():
                                  nominal_pose(small.centroid_lps_mm)) == (search.SEARCH_SHIFT_MM,) * 2  # view-sized
     r = reg.register(tree, _centerline(tree, carm, true), carm)
     assert mtre_mm(r.pose, true, P[in_view]) < RECOVER_MM
+
+
+def test_in_view_points_are_those_projecting_into_the_image():
+    tree, carm, true = _large_tree_case()
+    P = tree.points_lps_mm
+    uv = carm.project(P, true)
+    inside = (uv[:, 0] >= -0.5) & (uv[:, 0] <= carm.cols - 0.5) & (uv[:, 1] >= -0.5) & (uv[:, 1] <= carm.rows - 0.5)
+    got = verdict._in_view(P, carm, true)
+    assert 0 < got.sum() < len(P) and np.array_equal(got, inside)
+    behind = true.inverse().apply(carm.source_room_mm - 50.0 * carm.beam_direction)   # 50 mm behind the source
+    assert not verdict._in_view(behind[None], carm, true)[0]
+
+
+def test_explained_fraction_and_limit_count_the_tree_in_view(monkeypatch):
+    """Issue 17: a roadmap of everything in view explains the tree in view, whatever the tree holds outside
+    the view; the whole-tree fraction (the old rule) is the in-view share of the tree, and its 1-sigma limit
+    proportionally stricter. The pose 1-sigma is over the in-view points: at most the whole tree's."""
+    tree, carm, true = _large_tree_case()
+    P = tree.points_lps_mm
+    share = verdict._in_view(P, carm, true).mean()
+    uv = _centerline(tree, carm, true)
+    r = reg.refine(tree, uv, carm, true)
+    assert mtre_mm(r.pose, true, P[verdict._in_view(P, carm, true)]) < RECOVER_MM
+    assert r.explained_fraction > 0.85 and share < 0.5
+    assert r.max_pose_std_mm == reg.pose_std_limit_mm(r.explained_fraction, r.single_path)
+    monkeypatch.setattr(verdict, "IN_VIEW_ONLY", False)
+    whole = reg.refine(tree, uv, carm, true)
+    assert whole.explained_fraction == pytest.approx(share * r.explained_fraction, abs=0.05)
+    assert whole.pose_std_mm >= r.pose_std_mm
 
 
 def _verdict_case(name):

@@ -54,6 +54,7 @@ from guidewire3d.registration.search import (  # noqa: F401
     SEARCH_SHIFT_MAX_MM,
     SEARCH_SHIFT_MM,
     SEARCH_TRUNC_CELLS,
+    SEARCH_WEIGHT_3D_LARGE_TREE,
     search_rotvecs,
     shift_range_mm,
 )
@@ -75,6 +76,7 @@ from guidewire3d.registration.verdict import (  # noqa: F401
     DEPTH_SCAN_SCREEN_FACTOR,
     DEPTH_SCAN_TOLERANCE,
     FULL_LIMIT_EXPLAINED_FRACTION,
+    IN_VIEW_ONLY,
     INLIER_PX,
     JACKKNIFE_FACTOR,
     JACKKNIFE_ITERATIONS,

@@ -55,8 +55,9 @@ class RegistrationResult:
     energy : float
         Final value of the robust energy (narrow gate).
     pose_std_mm : float
-        RMS over the tree of the 1-sigma point displacement implied by ``covariance_6x6`` (mm);
-        large when the visible vessels leave a direction undetermined (e.g. a single path).
+        RMS over the tree's points in view (those projecting into the image at ``pose``; all of a tree
+        inside the view) of the 1-sigma point displacement implied by ``covariance_6x6`` (mm); large
+        when the visible vessels leave a direction undetermined (e.g. a single path).
     single_path : bool
         The roadmap explains essentially one root-to-leaf vessel path of the tree (see
         ``SINGLE_PATH_FRACTION``): its depth along the beam rests on perspective alone, so its
@@ -66,7 +67,8 @@ class RegistrationResult:
         ``success`` false this means the overlay fits but the roadmap leaves the pose uncertain
         (:attr:`verdict` ``Verdict.UNCERTAIN``): a refinement from a user's correction may be adopted.
     explained_fraction : float
-        Fraction of the CTA centerline (LM samples) that the roadmap explains (the visible segments).
+        Fraction of the CTA centerline in view (LM samples projecting into the image at ``pose``) that
+        the roadmap explains (the visible segments); ``verdict.IN_VIEW_ONLY`` false: of the whole tree.
     max_pose_std_mm : float
         The pose 1-sigma limit (:func:`pose_std_limit_mm` of ``explained_fraction`` and
         ``single_path``): ``success`` needs ``pose_std_mm`` within ``COVARIANCE_SCREEN_FACTOR`` x it
