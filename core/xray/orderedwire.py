@@ -41,6 +41,7 @@ from scipy.sparse import csgraph
 
 __all__ = [
     "BeyondTip",
+    "DoubledTip",
     "OrderedWire",
     "ordered_wire",
     "WireSpectrum",
@@ -67,6 +68,20 @@ BEYOND_TIP_MAX_GAP_PX = 80.0      # ... whose nearer end is at most this far fro
 BEYOND_TIP_MAX_ANGLE_DEG = 40.0   # ... and within this angle of the tip's outward tangent,
 BEYOND_TIP_NEAR_GAP_PX = 15.0     # ... or at any angle when this near (a wire bent sharply at its tip:
                                   # the segmenter broke the bend, and the piece beyond runs back)
+# A second layer of wire over the traced tip: where the wire bends back over itself just before its
+# tip, or its vessel turns towards the viewer and back, the distal part projects onto the part
+# before it; the mask holds one line there and the trace stops at the turn, short of the true tip
+# (bench_stress seeds 3300 frames 3 and 4, 3302 frame 3: tips 10-45 px short, 9-23 mm in 3D). The
+# image shows two layers: the line's darkness (the image summed across the line, minus its
+# background) over the last ``END_WINDOW_PX`` px, relative to its median over ``END_REFERENCE_PX``
+# back from the tip (the wire's own darkness near its tip, past the longest doubled stretch seen,
+# 45 px, and before a guiding catheter), is near 2 there and below 1 at a free tip (the wire ends
+# inside the window).
+END_WINDOW_PX = 10                # px of each end measured
+END_REFERENCE_PX = (40, 160)      # ... relative to its median this far (px) back from the same end
+END_LINE_HALF_PX = 4.0            # the line's darkness is summed within this of the trace ...
+END_BACKGROUND_PX = (5.0, 8.0)    # ... against the median of the image this far to both sides
+DOUBLED_END_RATIO = 2.2           # an end this many times as dark as the wire: two layers (see above)
 TIP_CAP_FRACTION = 0.25          # mask end cap beyond the tip, x local width (flat 0 .. round 0.5)
 PROFILE_STEP_PX = 0.5            # sampling step across the normal (centring)
 REFINE_STEP_PX = 0.25             # sampling step along the tangent (end extension)
@@ -130,6 +145,18 @@ class BeyondTip:
                 f"tip, {where}; the wire may continue there")
 
 
+@dataclass(frozen=True)
+class DoubledTip:
+    """The traced tip is about twice as dark as the wire: two layers of wire (see ``OrderedWire.end_darkness``)."""
+
+    darkness_ratio: float  #: the tip's last ``END_WINDOW_PX`` px over the wire's median line darkness
+
+    def explain(self) -> str:
+        return (f"tip uncertain: the wire's last {END_WINDOW_PX} px are {self.darkness_ratio:.1f} x as dark as the rest "
+                f"of it (two layers of wire: it may bend back over itself, or run on under its own shadow, before "
+                f"its tip, which would then lie back along the traced wire)")
+
+
 @dataclass(frozen=True, eq=False)
 class OrderedWire:
     """Ordered 2D guidewire polyline (falsy when extraction failed).
@@ -153,6 +180,12 @@ class OrderedWire:
         A piece of the mask that the wire does not include, lying beyond its tip and in line with
         it (``BEYOND_TIP_*``): the wire may continue there, so the tip is not settled. None when
         there is none.
+    end_darkness : (float, float)
+        The line darkness of the first and the last ``END_WINDOW_PX`` px of the polyline relative
+        to its median ``END_REFERENCE_PX`` back from the same end (the image summed across the line within
+        ``END_LINE_HALF_PX`` minus its background at ``END_BACKGROUND_PX``); NaN without an image or
+        for a polyline shorter than 3 windows. At least ``DOUBLED_END_RATIO`` at an end: two
+        layers of wire there (see :meth:`doubled_end`).
     presence : WirePresence or None
         The presence test of the traced curve (:func:`guidewire3d.xray.wirepresence.wire_presence`;
         None when it did not run: no image, ``check_presence=False``, or no curve was traced).
@@ -167,6 +200,14 @@ class OrderedWire:
     n_gaps_bridged: int = 0
     presence: WirePresence | None = None
     beyond_tip: "BeyondTip | None" = None
+    end_darkness: tuple[float, float] = (float("nan"), float("nan"))
+
+    def doubled_end(self, at_tip: bool = True) -> DoubledTip | None:
+        """A :class:`DoubledTip` when the tip (``at_tip``; else the first point's end, for a
+        caller that reversed the order) is at least ``DOUBLED_END_RATIO`` times as dark as the
+        wire, else None."""
+        r = float(self.end_darkness[1 if at_tip else 0])
+        return DoubledTip(r) if r >= DOUBLED_END_RATIO else None
 
     def __bool__(self) -> bool:
         return bool(self.success)
@@ -499,6 +540,36 @@ def _beyond_tip(uv: np.ndarray, paths, used: set, offset_uv: np.ndarray) -> Beyo
     return best
 
 
+def _end_darkness(img: np.ndarray, uv: np.ndarray) -> tuple[float, float]:
+    """``OrderedWire.end_darkness`` of the ordered ``(N, 2)`` polyline ``uv`` (~1 px apart) in
+    ``img``: the line darkness at each end's ``END_WINDOW_PX`` points over its median at every
+    second point of ``END_REFERENCE_PX`` from that end (the background of a point: the median of
+    its samples at ``END_BACKGROUND_PX``)."""
+    n = len(uv)
+    if n < 3 * END_WINDOW_PX:
+        return float("nan"), float("nan")
+    w = END_WINDOW_PX
+    lo, hi = min(END_REFERENCE_PX[0], n // 3), min(END_REFERENCE_PX[1], n)
+    ref = np.arange(lo, hi, 2)
+    idx = np.r_[np.arange(w), ref, n - 1 - ref, np.arange(n - w, n)]
+    tangent = np.gradient(uv, axis=0)[idx]
+    tangent /= np.maximum(np.linalg.norm(tangent, axis=1, keepdims=True), 1e-12)
+    offs = np.arange(-END_BACKGROUND_PX[1], END_BACKGROUND_PX[1] + 1e-9, PROFILE_STEP_PX)
+    p = uv[idx]
+    rows = p[:, 1:2] + offs[None, :] * tangent[:, 0:1]     # the normal (row, col) = (t_u, -t_v)
+    cols = p[:, 0:1] - offs[None, :] * tangent[:, 1:2]
+    v = kernels.sample_bilinear(img, rows, cols, mode="nearest")
+    a = np.abs(offs)
+    background = np.median(v[:, a >= END_BACKGROUND_PX[0]], axis=1)
+    dark = (background[:, None] - v[:, a <= END_LINE_HALF_PX]).sum(axis=1) * PROFILE_STEP_PX
+    k = len(ref)
+    out = []
+    for end, reference in ((dark[:w], dark[w:w + k]), (dark[-w:], dark[w + k:w + 2 * k])):
+        med = float(np.median(reference))
+        out.append(float(end.mean() / med) if med > 0 else float("nan"))
+    return out[0], out[1]
+
+
 def _smooth_polyline(p: np.ndarray, sigma_px: float) -> np.ndarray:
     """Resample at 1 px and Gaussian-smooth along the arc length (ends kept in place)."""
     q = resample_polyline(p, 1.0)
@@ -759,8 +830,9 @@ def ordered_wire(mask, *, image=None, proximal_hint_uv=None, max_gap_px: float =
         uv = uv[::-1].copy()
     length = float(np.linalg.norm(np.diff(uv, axis=0), axis=1).sum())
     beyond = _beyond_tip(uv, paths, used, np.array([o_c, o_r], float)) if len(paths) > 1 else None
+    ends = _end_darkness(img, uv) if img is not None else (float("nan"), float("nan"))
     return OrderedWire(points_uv_px=uv, success=True, message="ok", length_px=length,
-                       n_gaps_bridged=int(n_bridges), presence=presence, beyond_tip=beyond)
+                       n_gaps_bridged=int(n_bridges), presence=presence, beyond_tip=beyond, end_darkness=ends)
 
 
 # --------------------------------------------------------------------------------------------
