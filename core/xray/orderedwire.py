@@ -543,29 +543,32 @@ def _beyond_tip(uv: np.ndarray, paths, used: set, offset_uv: np.ndarray) -> Beyo
 def _end_darkness(img: np.ndarray, uv: np.ndarray) -> tuple[float, float]:
     """``OrderedWire.end_darkness`` of the ordered ``(N, 2)`` polyline ``uv`` (~1 px apart) in
     ``img``: the line darkness at each end's ``END_WINDOW_PX`` points over its median at every
-    second point of ``END_REFERENCE_PX`` from that end (the background of a point: the median of
-    its samples at ``END_BACKGROUND_PX``)."""
+    fourth point of ``END_REFERENCE_PX`` from that end (samples 1 px apart across the line; the
+    background of a point: the median of its samples at ``END_BACKGROUND_PX``)."""
     n = len(uv)
     if n < 3 * END_WINDOW_PX:
         return float("nan"), float("nan")
     w = END_WINDOW_PX
     lo, hi = min(END_REFERENCE_PX[0], n // 3), min(END_REFERENCE_PX[1], n)
-    ref = np.arange(lo, hi, 2)
-    idx = np.r_[np.arange(w), ref, n - 1 - ref, np.arange(n - w, n)]
-    tangent = np.gradient(uv, axis=0)[idx]
-    tangent /= np.maximum(np.linalg.norm(tangent, axis=1, keepdims=True), 1e-12)
-    offs = np.arange(-END_BACKGROUND_PX[1], END_BACKGROUND_PX[1] + 1e-9, PROFILE_STEP_PX)
+    ref = np.arange(lo, hi, 4)
+    k = len(ref)
+    idx = np.concatenate([np.arange(w), ref, n - 1 - ref, np.arange(n - w, n)])
+    tangent = uv[np.minimum(idx + 1, n - 1)] - uv[np.maximum(idx - 1, 0)]
+    tangent /= np.maximum(np.sqrt((tangent ** 2).sum(axis=1)), 1e-12)[:, None]
+    offs = np.arange(-END_BACKGROUND_PX[1], END_BACKGROUND_PX[1] + 1e-9, 1.0)
     p = uv[idx]
     rows = p[:, 1:2] + offs[None, :] * tangent[:, 0:1]     # the normal (row, col) = (t_u, -t_v)
     cols = p[:, 0:1] - offs[None, :] * tangent[:, 1:2]
     v = kernels.sample_bilinear(img, rows, cols, mode="nearest")
     a = np.abs(offs)
-    background = np.median(v[:, a >= END_BACKGROUND_PX[0]], axis=1)
-    dark = (background[:, None] - v[:, a <= END_LINE_HALF_PX]).sum(axis=1) * PROFILE_STEP_PX
-    k = len(ref)
+    band = v[:, a >= END_BACKGROUND_PX[0]]
+    m = band.shape[1]                                       # the band's median: its middle order statistics
+    mid = np.partition(band, [(m - 1) // 2, m // 2], axis=1)
+    background = 0.5 * (mid[:, (m - 1) // 2] + mid[:, m // 2])
+    dark = background * np.count_nonzero(a <= END_LINE_HALF_PX) - v[:, a <= END_LINE_HALF_PX].sum(axis=1)
     out = []
     for end, reference in ((dark[:w], dark[w:w + k]), (dark[-w:], dark[w + k:w + 2 * k])):
-        med = float(np.median(reference))
+        med = float(np.sort(reference)[k // 2])
         out.append(float(end.mean() / med) if med > 0 else float("nan"))
     return out[0], out[1]
 
