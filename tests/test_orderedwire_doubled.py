@@ -1,7 +1,7 @@
 """Two layers of wire at the traced tip (issue 20, item 3): a wire that bends back over itself just
 before its tip projects its distal part onto the part before it; the mask holds one line, the
-trace stops at the bend, and the true tip lies back along the traced wire. The ordered wire
-measures the line's darkness at each end against the wire's own, and the frame's verdict is
+trace stops at the bend, and the true tip lies back along the traced wire. ``tip_darkness``
+measures the line's darkness at the tip against the wire's own, and the frame's verdict is
 ``uncertain`` when the tip is about twice as dark."""
 from __future__ import annotations
 
@@ -12,7 +12,8 @@ import pytest
 from guidewire3d.live import session as live
 from guidewire3d.metrics import resample_polyline
 from guidewire3d.registration import Verdict
-from guidewire3d.xray.orderedwire import DOUBLED_END_RATIO, END_WINDOW_PX, DoubledTip, ordered_wire
+from guidewire3d.xray.orderedwire import (DOUBLED_END_RATIO, END_WINDOW_PX, DoubledTip, doubled_tip, ordered_wire,
+                                          tip_darkness)
 from scipy.spatial import cKDTree
 
 SHAPE = (160, 320)
@@ -54,14 +55,16 @@ def test_a_wire_bent_back_over_itself_before_its_tip_is_flagged():
     assert ow
     true_tip = folded[-1]
     assert np.linalg.norm(ow.tip_uv_px - true_tip) > 25.0                  # the trace stops at the bend ...
-    assert ow.end_darkness[1] == pytest.approx(1 + np.sqrt(2.0), abs=0.4)  # ... where two layers of wire lie
-    assert ow.end_darkness[0] == pytest.approx(1.0, abs=0.3)               # the proximal end: one layer
-    doubled = ow.doubled_end()
+    uv = ow.points_uv_px
+    assert tip_darkness(img, uv) == pytest.approx(1 + np.sqrt(2.0), abs=0.4)      # ... where two layers of wire lie
+    assert tip_darkness(img, uv, at_end=False) == pytest.approx(1.0, abs=0.3)     # the proximal end: one layer
+    assert tip_darkness(img, uv[::-1], at_end=False) == tip_darkness(img, uv)
+    doubled = doubled_tip(img, uv)
     assert doubled is not None and doubled.darkness_ratio >= DOUBLED_END_RATIO
     assert "tip uncertain" in doubled.explain() and f"last {END_WINDOW_PX} px" in doubled.explain()
-    assert ow.doubled_end(at_tip=False) is None
+    assert doubled_tip(img, uv, at_end=False) is None
     in_plane, _ = _frame([SHAFT, folded])
-    ratio = ordered_wire(mask, image=in_plane, proximal_hint_uv=HINT_UV).end_darkness[1]
+    ratio = tip_darkness(in_plane, ordered_wire(mask, image=in_plane, proximal_hint_uv=HINT_UV).points_uv_px)
     assert ratio == pytest.approx(2.0, abs=0.3)
 
 
@@ -76,19 +79,20 @@ def test_a_free_tip_is_not_flagged(seed):
         _, mask = _frame([wire], seed=seed)
         ow = ordered_wire(mask, image=img, proximal_hint_uv=HINT_UV)
         assert ow and np.linalg.norm(ow.tip_uv_px - wire[-1]) < 2.0
-        assert ow.end_darkness[1] < 1.3
-        assert ow.doubled_end() is None
+        assert tip_darkness(img, ow.points_uv_px) < 1.3
+        assert doubled_tip(img, ow.points_uv_px) is None
 
 
-def test_without_an_image_there_is_no_darkness_and_no_flag():
-    _, mask = _frame([SHAFT])
-    ow = ordered_wire(mask, proximal_hint_uv=HINT_UV)
-    assert ow and np.all(np.isnan(ow.end_darkness)) and ow.doubled_end() is None
+def test_too_short_or_without_contrast_there_is_no_measure_and_no_flag():
+    img, _ = _frame([SHAFT])
+    assert np.isnan(tip_darkness(img, SHAFT[:3 * END_WINDOW_PX - 1]))
+    assert np.isnan(tip_darkness(np.full(SHAPE, 1000.0), SHAFT))
+    assert doubled_tip(np.full(SHAPE, 1000.0), SHAFT) is None
 
 
 def test_the_frame_verdict_says_so_at_the_output_tip():
     """A doubled tip makes the frame uncertain with its reason; when the reconstruction reversed the
-    2D order, the 2D start is the output's tip (Session passes ``doubled_end(at_tip=False)``)."""
+    2D order, the 2D start is the output's tip (Session passes ``doubled_tip(..., at_end=False)``)."""
     uv = np.column_stack([np.linspace(100, 300, 50), np.full(50, 200.0)])
     w3 = SimpleNamespace(uncertainty_mm=np.full(50, 0.5), message="ok: 50 points", reversed_input=False)
     assert live.frame_verdict(w3, uv, None, image_shape=(512, 512))[0] is Verdict.OK

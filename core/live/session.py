@@ -36,7 +36,7 @@ from guidewire3d.motion.tracking import MotionTracker
 from guidewire3d.registration import Verdict
 from guidewire3d.vesseltree import VesselTree
 from guidewire3d.xray import segmentation
-from guidewire3d.xray.orderedwire import OrderedWire, ordered_wire
+from guidewire3d.xray.orderedwire import OrderedWire, doubled_tip, ordered_wire
 
 __all__ = ["Orientation", "FrameResult", "Session", "orientation_of", "frame_verdict"]
 
@@ -368,7 +368,6 @@ class Session:
         ori = orientation_of(w3, uv, root_uv_px=self.root_uv_px) if self.method == "vessel" else None
         continuation = None
         beyond_tip = getattr(wire2d, "beyond_tip", None)
-        doubled_tip = wire2d.doubled_end(at_tip=not w3.reversed_input) if hasattr(wire2d, "doubled_end") else None
         # the image beyond the tip is read only where frame_verdict would use it: not when a piece of
         # the mask beyond the tip already makes the tip uncertain
         if (image is not None and self.method == "vessel" and len(w3.tree_point_ids)
@@ -377,7 +376,12 @@ class Session:
             continuation = wire_continuation(image, self.tree, self.carm, self.pose, int(w3.tree_point_ids[-1]),
                                              uv[::-1] if w3.reversed_input else uv)
             stages["reconstruction"] = stages.get("reconstruction", 0.0) + time.perf_counter() - t1
-        verdict, message = frame_verdict(w3, uv, ori, beyond_tip=beyond_tip, doubled_tip=doubled_tip,
+        doubled = None
+        if image is not None and image.ndim == 2:    # two layers of wire at the output's tip (a fold before it)
+            t1 = time.perf_counter()
+            doubled = doubled_tip(image, uv, at_end=not w3.reversed_input)
+            stages["reconstruction"] = stages.get("reconstruction", 0.0) + time.perf_counter() - t1
+        verdict, message = frame_verdict(w3, uv, ori, beyond_tip=beyond_tip, doubled_tip=doubled,
                                          motion=motion, image_shape=self.carm.shape, continuation=continuation)
         return FrameResult(index, wire2d, w3, verdict, message, ori, time.perf_counter() - t0, timestamp,
                            self.pose, motion, stages)

@@ -11,6 +11,9 @@ One stage of the paper's pipeline (DESIGN.md, "The flow of data"), and the paper
   mask's end caps, proximal -> distal ordering and resampling at ~1 px. With the frame, a presence
   test (:mod:`guidewire3d.xray.wirepresence`) fails a curve that is not a guidewire (a vessel, a branch
   of a vessel tree, the collimator's edge: a frame without a wire).
+- :func:`tip_darkness` / :func:`doubled_tip`: whether two layers of wire lie at the traced tip (the
+  wire bends back over itself before its tip, and the trace stops at the bend); the frame's
+  verdict (:mod:`guidewire3d.live.session`) makes such a tip uncertain.
 - :func:`wire_graph_spectrum` builds the paper's gradient-weighted path graph and its Laplacian
   eigenbasis, and projects the wire's discrete curvature onto it.
 
@@ -42,6 +45,8 @@ from scipy.sparse import csgraph
 __all__ = [
     "BeyondTip",
     "DoubledTip",
+    "doubled_tip",
+    "tip_darkness",
     "OrderedWire",
     "ordered_wire",
     "WireSpectrum",
@@ -147,7 +152,7 @@ class BeyondTip:
 
 @dataclass(frozen=True)
 class DoubledTip:
-    """The traced tip is about twice as dark as the wire: two layers of wire (see ``OrderedWire.end_darkness``)."""
+    """The traced tip is about twice as dark as the wire: two layers of wire (see :func:`tip_darkness`)."""
 
     darkness_ratio: float  #: the tip's last ``END_WINDOW_PX`` px over the wire's median line darkness
 
@@ -180,12 +185,6 @@ class OrderedWire:
         A piece of the mask that the wire does not include, lying beyond its tip and in line with
         it (``BEYOND_TIP_*``): the wire may continue there, so the tip is not settled. None when
         there is none.
-    end_darkness : (float, float)
-        The line darkness of the first and the last ``END_WINDOW_PX`` px of the polyline relative
-        to its median ``END_REFERENCE_PX`` back from the same end (the image summed across the line within
-        ``END_LINE_HALF_PX`` minus its background at ``END_BACKGROUND_PX``); NaN without an image or
-        for a polyline shorter than 3 windows. At least ``DOUBLED_END_RATIO`` at an end: two
-        layers of wire there (see :meth:`doubled_end`).
     presence : WirePresence or None
         The presence test of the traced curve (:func:`guidewire3d.xray.wirepresence.wire_presence`;
         None when it did not run: no image, ``check_presence=False``, or no curve was traced).
@@ -200,15 +199,6 @@ class OrderedWire:
     n_gaps_bridged: int = 0
     presence: WirePresence | None = None
     beyond_tip: "BeyondTip | None" = None
-    end_darkness: tuple[float, float] = (float("nan"), float("nan"))
-
-    def doubled_end(self, at_tip: bool = True) -> DoubledTip | None:
-        """A :class:`DoubledTip` when the tip (``at_tip``; else the first point's end, for a
-        caller that reversed the order) is at least ``DOUBLED_END_RATIO`` times as dark as the
-        wire, else None."""
-        r = float(self.end_darkness[1 if at_tip else 0])
-        return DoubledTip(r) if r >= DOUBLED_END_RATIO else None
-
     def __bool__(self) -> bool:
         return bool(self.success)
 
@@ -540,37 +530,62 @@ def _beyond_tip(uv: np.ndarray, paths, used: set, offset_uv: np.ndarray) -> Beyo
     return best
 
 
-def _end_darkness(img: np.ndarray, uv: np.ndarray) -> tuple[float, float]:
-    """``OrderedWire.end_darkness`` of the ordered ``(N, 2)`` polyline ``uv`` (~1 px apart) in
-    ``img``: the line darkness at each end's ``END_WINDOW_PX`` points over its median at every
-    fourth point of ``END_REFERENCE_PX`` from that end (samples 1 px apart across the line; the
-    background of a point: the median of its samples at ``END_BACKGROUND_PX``)."""
+def tip_darkness(image, points_uv_px, *, at_end: bool = True) -> float:
+    """How many times as dark as the wire its tip is: two layers of wire at a traced tip (see
+    ``DOUBLED_END_RATIO``).
+
+    The line darkness (the image summed across the line within ``END_LINE_HALF_PX``, 1 px apart,
+    minus its background: the median of the samples at ``END_BACKGROUND_PX`` to both sides) over
+    the ``END_WINDOW_PX`` points at the tip, over its median at every fourth point of
+    ``END_REFERENCE_PX`` back from the tip.
+
+    Parameters
+    ----------
+    image : (H, W) ndarray
+        The live frame (the wire darker than the background).
+    points_uv_px : (N, 2) array_like of float
+        The ordered wire, ~1 px apart (``OrderedWire.points_uv_px``).
+    at_end : bool
+        The tip is the last point (else the first: a caller that reversed the order).
+
+    Returns
+    -------
+    float
+        Near 1 along a single wire, below 1 at a free tip (the wire ends inside the window), near 2
+        or more where two layers lie; NaN for fewer than ``3 * END_WINDOW_PX`` points or a wire
+        without contrast.
+    """
+    uv = np.asarray(points_uv_px, float).reshape(-1, 2)
     n = len(uv)
     if n < 3 * END_WINDOW_PX:
-        return float("nan"), float("nan")
+        return float("nan")
+    if not at_end:
+        uv = uv[::-1]
     w = END_WINDOW_PX
-    lo, hi = min(END_REFERENCE_PX[0], n // 3), min(END_REFERENCE_PX[1], n)
-    ref = np.arange(lo, hi, 4)
-    k = len(ref)
-    idx = np.concatenate([np.arange(w), ref, n - 1 - ref, np.arange(n - w, n)])
+    ref = n - 1 - np.arange(min(END_REFERENCE_PX[0], n // 3), min(END_REFERENCE_PX[1], n), 4)
+    idx = np.concatenate([ref, np.arange(n - w, n)])
     tangent = uv[np.minimum(idx + 1, n - 1)] - uv[np.maximum(idx - 1, 0)]
     tangent /= np.maximum(np.sqrt((tangent ** 2).sum(axis=1)), 1e-12)[:, None]
     offs = np.arange(-END_BACKGROUND_PX[1], END_BACKGROUND_PX[1] + 1e-9, 1.0)
     p = uv[idx]
     rows = p[:, 1:2] + offs[None, :] * tangent[:, 0:1]     # the normal (row, col) = (t_u, -t_v)
     cols = p[:, 0:1] - offs[None, :] * tangent[:, 1:2]
-    v = kernels.sample_bilinear(img, rows, cols, mode="nearest")
+    v = kernels.sample_bilinear(np.asarray(image), rows, cols, mode="nearest")
     a = np.abs(offs)
     band = v[:, a >= END_BACKGROUND_PX[0]]
     m = band.shape[1]                                       # the band's median: its middle order statistics
     mid = np.partition(band, [(m - 1) // 2, m // 2], axis=1)
     background = 0.5 * (mid[:, (m - 1) // 2] + mid[:, m // 2])
     dark = background * np.count_nonzero(a <= END_LINE_HALF_PX) - v[:, a <= END_LINE_HALF_PX].sum(axis=1)
-    out = []
-    for end, reference in ((dark[:w], dark[w:w + k]), (dark[-w:], dark[w + k:w + 2 * k])):
-        med = float(np.sort(reference)[k // 2])
-        out.append(float(end.mean() / med) if med > 0 else float("nan"))
-    return out[0], out[1]
+    med = float(np.sort(dark[:-w])[(len(dark) - w) // 2])
+    return float(dark[-w:].mean() / med) if med > 0 else float("nan")
+
+
+def doubled_tip(image, points_uv_px, *, at_end: bool = True) -> DoubledTip | None:
+    """A :class:`DoubledTip` when the tip (see :func:`tip_darkness`) is at least
+    ``DOUBLED_END_RATIO`` times as dark as the wire, else None."""
+    r = tip_darkness(image, points_uv_px, at_end=at_end)
+    return DoubledTip(r) if r >= DOUBLED_END_RATIO else None
 
 
 def _smooth_polyline(p: np.ndarray, sigma_px: float) -> np.ndarray:
@@ -833,9 +848,8 @@ def ordered_wire(mask, *, image=None, proximal_hint_uv=None, max_gap_px: float =
         uv = uv[::-1].copy()
     length = float(np.linalg.norm(np.diff(uv, axis=0), axis=1).sum())
     beyond = _beyond_tip(uv, paths, used, np.array([o_c, o_r], float)) if len(paths) > 1 else None
-    ends = _end_darkness(img, uv) if img is not None else (float("nan"), float("nan"))
     return OrderedWire(points_uv_px=uv, success=True, message="ok", length_px=length,
-                       n_gaps_bridged=int(n_bridges), presence=presence, beyond_tip=beyond, end_darkness=ends)
+                       n_gaps_bridged=int(n_bridges), presence=presence, beyond_tip=beyond)
 
 
 # --------------------------------------------------------------------------------------------
