@@ -82,8 +82,8 @@ BEYOND_TIP_NEAR_GAP_PX = 15.0     # ... or at any angle when this near (a wire b
 # back from the tip (the wire's own darkness near its tip, past the longest doubled stretch seen,
 # 45 px, and before a guiding catheter), is near 2 there and below 1 at a free tip (the wire ends
 # inside the window). Calibrated at the true pose on simulated seeds 0-29 (4 frames each, distractors
-# in odd seeds): the one folded tip (12 px short, 7 mm in 3D) measured 2.43, the 99 other frames
-# traced to the tip at most 1.92; a fold within the image plane gives exactly 2 and stays below the
+# in odd seeds): the one folded tip (12 px short, 7 mm in 3D) measured 2.43, the 119 other frames
+# at most 1.92; a fold within the image plane gives exactly 2 and stays below the
 # limit (the folds seen run partly along the ray, foreshortened: 2.4-4.1).
 END_WINDOW_PX = 10                # px at the tip measured ...
 END_REFERENCE_PX = (40, 160)      # ... relative to the median this far (px) back from the tip
