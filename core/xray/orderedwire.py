@@ -83,8 +83,9 @@ BEYOND_TIP_NEAR_GAP_PX = 15.0     # ... or at any angle when this near (a wire b
 # 45 px, and before a guiding catheter), is near 2 there and below 1 at a free tip (the wire ends
 # inside the window). Calibrated at the true pose on simulated seeds 0-29 (4 frames each, distractors
 # in odd seeds): the one folded tip (12 px short, 7 mm in 3D) measured 2.43, the 119 other frames
-# at most 1.92; a fold within the image plane gives exactly 2 and stays below the
-# limit (the folds seen run partly along the ray, foreshortened: 2.4-4.1).
+# at most 1.92. The folds seen measured 2.4-4.1 (more than two layers of a wire lying in the image
+# plane: the turn itself, and a limb running partly along the ray, add darkness); a fold that lies
+# flat in the image plane gives 2.0 and stays below the limit: not flagged.
 END_WINDOW_PX = 10                # px at the tip measured ...
 END_REFERENCE_PX = (40, 160)      # ... relative to the median this far (px) back from the tip
 END_LINE_HALF_PX = 4.0            # the line's darkness is summed within this of the trace ...
