@@ -5,7 +5,8 @@ part then runs beyond the segmented tree and projects over other branches); each
 through ``live.Session`` at the true pose. A tip at the wrong end must never be ``ok``; nor should
 a tip far short of the true one (a stretch of the wire lost by the segmenter before its tip):
 the last columns count the ``ok`` frames whose tip is more than ``--tip-mm`` from the true
-(visible) tip, and the frames made ``uncertain`` by a piece of the wire beyond the traced tip.
+(visible) tip, the frames made ``uncertain`` by a piece of the wire beyond the traced tip, and
+those made ``uncertain`` by two layers of wire at the traced tip (the wire bends back over itself).
 
     nice .venv/bin/python scripts/bench_orientation.py --seeds 20 --cut 0 25 40
     nice .venv/bin/python scripts/bench_orientation.py --seeds 20 --frames 6 --cut 0 --wire-diameter 0.25
@@ -72,16 +73,27 @@ def main() -> int:
                 if getattr(fr.wire2d, "beyond_tip", None) is not None:
                     n["beyond"] += 1
                     n["beyond_off"] += tip_mm > args.tip_mm
+                if "tip uncertain: the wire's last" in fr.message:
+                    n["doubled"] += 1
+                    n["doubled_off"] += tip_mm > args.tip_mm
+                    # the only reason: ok without this check (the reasons of frame_verdict are independent)
+                    if len(fr.message.split("; ")) == 1:
+                        n["doubled_only_wrong_end" if wrong else "doubled_only"] += 1
+                        n["doubled_only_off"] += (tip_mm > args.tip_mm) and not wrong
         rows.append(["whole tree" if cut <= 0 else f"cut {cut:g} mm below the root", n["n"], n[("ok", False)],
                      f"{n[('uncertain', False)]} ({n['unc_tip_off']})", n[("uncertain", True)], n[("ok", True)],
-                     n["ok_tip_off"], f"{n['ok_tip_max']:.1f}", f"{n['beyond']} ({n['beyond_off']})"])
+                     n["ok_tip_off"], f"{n['ok_tip_max']:.1f}", f"{n['beyond']} ({n['beyond_off']})",
+                     f"{n['doubled']} ({n['doubled_off']})",
+                     f"{n['doubled_only']} ({n['doubled_only_off']}), wrong end {n['doubled_only_wrong_end']}"])
     wire = "simulator's" if args.wire_diameter is None else f"{args.wire_diameter:g} mm"
     print(f"seeds {seeds[0]}-{seeds[-1]}, {args.frames} frames each, true pose, {wire} wire; machine: "
           f"{bench.machine_line()}, load average {os.getloadavg()[0]:.1f}")
     print(bench._table(["tree", "frames reconstructed", "ok, right end", f"uncertain, right end (tip > {args.tip_mm:g} mm off)",
                         "uncertain, wrong end",
                         "ok, WRONG end", f"ok, right end, tip > {args.tip_mm:g} mm off", "largest ok tip error mm",
-                        f"wire beyond the tip: uncertain (tip > {args.tip_mm:g} mm off)"], rows))
+                        f"wire beyond the tip: uncertain (tip > {args.tip_mm:g} mm off)",
+                        f"two layers at the tip: uncertain (tip > {args.tip_mm:g} mm off)",
+                        f"of which ok without that check: right end (tip > {args.tip_mm:g} mm off)"], rows))
     return 0
 
 

@@ -9,8 +9,9 @@ the viewer's *apply*, the Slicer logic and, for streaming, ``guidewire3d live``.
    prior, a failed frame does not replace it);
 4. the frame's verdict: ``ok``, ``uncertain`` (a 3D wire exists but something about it is not
    settled: which end is the tip, whether the wire goes on beyond its tip through a stretch the
-   segmenter lost, where the tip is (``TIP_MAX_UNCERTAINTY_MM``), or whether it is in view at all) or
-   ``failed``, with the reason.
+   segmenter lost or bends back over itself before it (two layers of wire at the traced tip),
+   where the tip is (``TIP_MAX_UNCERTAINTY_MM``), or whether it is in view at all) or ``failed``,
+   with the reason.
 
 Which end is the tip rests on two independent cues. In 2D, the proximal end is the one nearer the
 projected root of the vessel tree (``hint_margin``: how much nearer, relative). In 3D, a wire
@@ -35,7 +36,7 @@ from guidewire3d.motion.tracking import MotionTracker
 from guidewire3d.registration import Verdict
 from guidewire3d.vesseltree import VesselTree
 from guidewire3d.xray import segmentation
-from guidewire3d.xray.orderedwire import OrderedWire, ordered_wire
+from guidewire3d.xray.orderedwire import OrderedWire, doubled_tip, ordered_wire
 
 __all__ = ["Orientation", "FrameResult", "Session", "orientation_of", "frame_verdict"]
 
@@ -375,7 +376,12 @@ class Session:
             continuation = wire_continuation(image, self.tree, self.carm, self.pose, int(w3.tree_point_ids[-1]),
                                              uv[::-1] if w3.reversed_input else uv)
             stages["reconstruction"] = stages.get("reconstruction", 0.0) + time.perf_counter() - t1
-        verdict, message = frame_verdict(w3, uv, ori, beyond_tip=beyond_tip,
+        doubled = None
+        if image is not None and image.ndim == 2:    # two layers of wire at the output's tip (a fold before it)
+            t1 = time.perf_counter()
+            doubled = doubled_tip(image, uv, at_end=not w3.reversed_input)
+            stages["reconstruction"] = stages.get("reconstruction", 0.0) + time.perf_counter() - t1
+        verdict, message = frame_verdict(w3, uv, ori, beyond_tip=beyond_tip, doubled_tip=doubled,
                                          motion=motion, image_shape=self.carm.shape, continuation=continuation)
         return FrameResult(index, wire2d, w3, verdict, message, ori, time.perf_counter() - t0, timestamp,
                            self.pose, motion, stages)
@@ -387,7 +393,7 @@ class Session:
 
 
 def frame_verdict(wire3d, wire_uv_px, orientation, *, beyond_tip=None, motion=None, image_shape=None,
-                  continuation=None):
+                  continuation=None, doubled_tip=None):
     """``(Verdict, message)`` of a frame with a 3D wire: ``OK`` with the reconstruction's message,
     or ``UNCERTAIN`` with every reason that applies, the first first:
 
@@ -395,6 +401,9 @@ def frame_verdict(wire3d, wire_uv_px, orientation, *, beyond_tip=None, motion=No
     * a piece of the wire mask lies beyond the traced tip (``beyond_tip``: ``orderedwire.BeyondTip``);
     * the image shows a dark line going on along the vessel beyond the tip (``continuation``:
       :class:`guidewire3d.live.continuation.WireContinuation`);
+    * the traced tip is about twice as dark as the wire: two layers of wire, the wire bends back
+      over itself (or runs on under its own projection) before its true tip (``doubled_tip``:
+      ``orderedwire.DoubledTip``, of the output's tip end);
     * the wire runs out of the image (``image_shape``, rows and cols) at its distal end;
     * the tip's uncertainty exceeds ``TIP_MAX_UNCERTAINTY_MM``;
     * the path through the tree walks back towards the root (``TREE_RETREAT_MAX_MM``);
@@ -410,6 +419,8 @@ def frame_verdict(wire3d, wire_uv_px, orientation, *, beyond_tip=None, motion=No
         why.append(beyond_tip.explain())
     elif continuation is not None and continuation.wire_goes_on:
         why.append(continuation.explain())
+    if doubled_tip is not None:                       # the trace may stop at a bend, short of the tip
+        why.append(doubled_tip.explain())
     distal_uv = uv[0] if reversed_ else uv[-1]         # the output's tip, in 2D
     if image_shape is not None and len(uv) and _at_border(distal_uv, image_shape):
         why.append(f"tip not in view: the wire runs out of the image at its distal end "

@@ -11,6 +11,9 @@ One stage of the paper's pipeline (DESIGN.md, "The flow of data"), and the paper
   mask's end caps, proximal -> distal ordering and resampling at ~1 px. With the frame, a presence
   test (:mod:`guidewire3d.xray.wirepresence`) fails a curve that is not a guidewire (a vessel, a branch
   of a vessel tree, the collimator's edge: a frame without a wire).
+- :func:`tip_darkness` / :func:`doubled_tip`: whether two layers of wire lie at the traced tip (the
+  wire bends back over itself before its tip, and the trace stops at the bend); the frame's
+  verdict (:mod:`guidewire3d.live.session`) makes such a tip uncertain.
 - :func:`wire_graph_spectrum` builds the paper's gradient-weighted path graph and its Laplacian
   eigenbasis, and projects the wire's discrete curvature onto it.
 
@@ -41,6 +44,9 @@ from scipy.sparse import csgraph
 
 __all__ = [
     "BeyondTip",
+    "DoubledTip",
+    "doubled_tip",
+    "tip_darkness",
     "OrderedWire",
     "ordered_wire",
     "WireSpectrum",
@@ -67,6 +73,24 @@ BEYOND_TIP_MAX_GAP_PX = 80.0      # ... whose nearer end is at most this far fro
 BEYOND_TIP_MAX_ANGLE_DEG = 40.0   # ... and within this angle of the tip's outward tangent,
 BEYOND_TIP_NEAR_GAP_PX = 15.0     # ... or at any angle when this near (a wire bent sharply at its tip:
                                   # the segmenter broke the bend, and the piece beyond runs back)
+# A second layer of wire over the traced tip: where the wire bends back over itself just before its
+# tip, or its vessel turns towards the viewer and back, the distal part projects onto the part
+# before it; the mask holds one line there and the trace stops at the turn, short of the true tip
+# (bench_stress seeds 3300 frames 3 and 4, 3302 frame 3: tips 10-45 px short, 9-23 mm in 3D). The
+# image shows two layers: the line's darkness (the image summed across the line, minus its
+# background) over the last ``END_WINDOW_PX`` px, relative to its median over ``END_REFERENCE_PX``
+# back from the tip (the wire's own darkness near its tip, past the longest doubled stretch seen,
+# 45 px, and before a guiding catheter), is near 2 there and below 1 at a free tip (the wire ends
+# inside the window). Calibrated at the true pose on simulated seeds 0-29 (4 frames each, distractors
+# in odd seeds): the one folded tip (12 px short, 7 mm in 3D) measured 2.43, the 119 other frames
+# at most 1.92. The folds seen measured 2.4-4.1 (more than two layers of a wire lying in the image
+# plane: the turn itself, and a limb running partly along the ray, add darkness); a fold that lies
+# flat in the image plane gives 2.0 and stays below the limit: not flagged.
+END_WINDOW_PX = 10                # px at the tip measured ...
+END_REFERENCE_PX = (40, 160)      # ... relative to the median this far (px) back from the tip
+END_LINE_HALF_PX = 4.0            # the line's darkness is summed within this of the trace ...
+END_BACKGROUND_PX = (5.0, 8.0)    # ... against the median of the image this far to both sides
+DOUBLED_END_RATIO = 2.2           # a tip this many times as dark as the wire: two layers (see above)
 TIP_CAP_FRACTION = 0.25          # mask end cap beyond the tip, x local width (flat 0 .. round 0.5)
 PROFILE_STEP_PX = 0.5            # sampling step across the normal (centring)
 REFINE_STEP_PX = 0.25             # sampling step along the tangent (end extension)
@@ -130,6 +154,18 @@ class BeyondTip:
                 f"tip, {where}; the wire may continue there")
 
 
+@dataclass(frozen=True)
+class DoubledTip:
+    """The traced tip is about twice as dark as the wire: two layers of wire (see :func:`tip_darkness`)."""
+
+    darkness_ratio: float  #: the tip's last ``END_WINDOW_PX`` px over the wire's median line darkness
+
+    def explain(self) -> str:
+        return (f"tip uncertain: the wire's last {END_WINDOW_PX} px are {self.darkness_ratio:.1f} x as dark as the rest "
+                f"of it (two layers of wire: it may bend back over itself, or run on under its own shadow, before "
+                f"its tip, which would then lie back along the traced wire)")
+
+
 @dataclass(frozen=True, eq=False)
 class OrderedWire:
     """Ordered 2D guidewire polyline (falsy when extraction failed).
@@ -167,7 +203,6 @@ class OrderedWire:
     n_gaps_bridged: int = 0
     presence: WirePresence | None = None
     beyond_tip: "BeyondTip | None" = None
-
     def __bool__(self) -> bool:
         return bool(self.success)
 
@@ -497,6 +532,64 @@ def _beyond_tip(uv: np.ndarray, paths, used: set, offset_uv: np.ndarray) -> Beyo
             if (c >= cmin or gap <= BEYOND_TIP_NEAR_GAP_PX) and (best is None or gap < best.gap_px):
                 best = BeyondTip(float(length), gap, float(np.degrees(np.arccos(min(c, 1.0)))))
     return best
+
+
+def tip_darkness(image, points_uv_px, *, at_end: bool = True) -> float:
+    """How many times as dark as the wire its tip is: two layers of wire at a traced tip (see
+    ``DOUBLED_END_RATIO``).
+
+    The line darkness (the image summed across the line within ``END_LINE_HALF_PX``, 1 px apart,
+    minus its background: the median of the samples at ``END_BACKGROUND_PX`` to both sides) over
+    the ``END_WINDOW_PX`` points at the tip, over its median at every fourth point of
+    ``END_REFERENCE_PX`` back from the tip.
+
+    Parameters
+    ----------
+    image : (H, W) ndarray
+        The live frame (the wire darker than the background).
+    points_uv_px : (N, 2) array_like of float
+        The ordered wire, ~1 px apart (``OrderedWire.points_uv_px``).
+    at_end : bool
+        The tip is the last point (else the first: a caller that reversed the order).
+
+    Returns
+    -------
+    float
+        Near 1 along a single wire, below 1 at a free tip (the wire ends inside the window), near 2
+        or more where two layers lie; NaN for fewer than ``3 * END_WINDOW_PX`` points or a wire
+        without contrast.
+    """
+    uv = np.asarray(points_uv_px, float).reshape(-1, 2)
+    n = len(uv)
+    if n < 3 * END_WINDOW_PX:
+        return float("nan")
+    if not at_end:
+        uv = uv[::-1]
+    w = END_WINDOW_PX
+    ref = n - 1 - np.arange(min(END_REFERENCE_PX[0], n // 3), min(END_REFERENCE_PX[1], n), 4)
+    idx = np.concatenate([ref, np.arange(n - w, n)])
+    tangent = uv[np.minimum(idx + 1, n - 1)] - uv[np.maximum(idx - 1, 0)]
+    tangent /= np.maximum(np.sqrt((tangent ** 2).sum(axis=1)), 1e-12)[:, None]
+    offs = np.arange(-END_BACKGROUND_PX[1], END_BACKGROUND_PX[1] + 1e-9, 1.0)
+    p = uv[idx]
+    rows = p[:, 1:2] + offs[None, :] * tangent[:, 0:1]     # the normal (row, col) = (t_u, -t_v)
+    cols = p[:, 0:1] - offs[None, :] * tangent[:, 1:2]
+    v = kernels.sample_bilinear(np.asarray(image), rows, cols, mode="nearest")
+    a = np.abs(offs)
+    band = v[:, a >= END_BACKGROUND_PX[0]]
+    m = band.shape[1]                                       # the band's median: its middle order statistics
+    mid = np.partition(band, [(m - 1) // 2, m // 2], axis=1)
+    background = 0.5 * (mid[:, (m - 1) // 2] + mid[:, m // 2])
+    dark = background * np.count_nonzero(a <= END_LINE_HALF_PX) - v[:, a <= END_LINE_HALF_PX].sum(axis=1)
+    med = float(np.sort(dark[:-w])[(len(dark) - w) // 2])
+    return float(dark[-w:].mean() / med) if med > 0 else float("nan")
+
+
+def doubled_tip(image, points_uv_px, *, at_end: bool = True) -> DoubledTip | None:
+    """A :class:`DoubledTip` when the tip (see :func:`tip_darkness`) is at least
+    ``DOUBLED_END_RATIO`` times as dark as the wire, else None."""
+    r = tip_darkness(image, points_uv_px, at_end=at_end)
+    return DoubledTip(r) if r >= DOUBLED_END_RATIO else None
 
 
 def _smooth_polyline(p: np.ndarray, sigma_px: float) -> np.ndarray:
