@@ -123,7 +123,7 @@ def test_roi_tracking_grows_the_boxes_when_the_wire_moved_beyond_them(monkeypatc
         return original(self, frame, stats, boxes, **kw)
 
     monkeypatch.setattr(type(unet), "mask", recording)
-    seg = GuidewireSegmenter(method="unet", roi_margin_px=margin_px)
+    seg = GuidewireSegmenter(method="unet", roi_margin_px=margin_px, predict_advance=False)
     modes = []
     for f in sim.frames:
         calls.clear()
@@ -137,13 +137,33 @@ def test_roi_tracking_grows_the_boxes_when_the_wire_moved_beyond_them(monkeypatc
     assert "roi-grown" in modes, modes
 
 
+def test_roi_tracking_predicts_the_advance_of_a_pushed_wire(monkeypatch):
+    """Where the wire advanced in the last frame, the next frame's first pass already covers the cells
+    ahead (``predict_advance``): on a sequence whose tip advances tens of px per frame, fewer frames
+    need a growth round (an extra network call) and every mask still equals the full-frame one."""
+    from guidewire3d.xray import segmentation as S
+
+    sim = simulate(PhantomOptions(seed=GROW_SEED, n_frames=8, wire_diameter_mm=0.36), make_ct=False)
+    grown = {}
+    for predict in (False, True):
+        seg = GuidewireSegmenter(method="unet", predict_advance=predict)
+        modes = []
+        for f in sim.frames:
+            tracked = seg.segment(f)
+            modes.append(seg.last_mode)
+            assert dice(tracked, guidewire_mask(f)) >= ROI_VS_FULL_MIN_DICE
+        assert modes[0] == "full" and "full" not in modes[1:], modes
+        grown[predict] = modes.count("roi-grown")
+    assert grown[True] < grown[False], grown
+
+
 def test_roi_tracking_falls_back_to_full_frame_when_growing_does_not_catch_the_wire(cases, monkeypatch):
     """With no growth rounds allowed, a wire that leaves its boxes is segmented full-frame."""
     from guidewire3d.xray import segmentation as S
 
     sim = simulate(PhantomOptions(seed=GROW_SEED, n_frames=6, wire_diameter_mm=0.36), make_ct=False)
     monkeypatch.setattr(S, "ROI_GROW_ROUNDS", 0)
-    seg = GuidewireSegmenter(method="unet", roi_margin_px=16)
+    seg = GuidewireSegmenter(method="unet", roi_margin_px=16, predict_advance=False)
     modes = []
     for f in sim.frames:
         tracked = seg.segment(f)

@@ -104,6 +104,10 @@ UNET_MULTIPLE = 8
 ROI_GROW_PX = 32
 ROI_GROW_ROUNDS = 4
 ROI_MAX_FRACTION = 0.6
+# ... and the cells where the wire advanced in the previous frame (at most ADVANCE_MAX_CELLS of them:
+# more is a jump, not an advance), grown by ADVANCE_GROW_PX, are in the next frame's first pass
+ADVANCE_MAX_CELLS = 24
+ADVANCE_GROW_PX = 16
 UNET_CONTEXT_PX = 16               # image context around a one-off box (guidewire_mask, unet_probability)
 
 
@@ -1058,7 +1062,10 @@ class GuidewireSegmenter:
     full_frame_every: int = 0
     wire_model: bool = False
     wire_radius_px: float | None = None
+    predict_advance: bool = True
     _prev: np.ndarray | None = field(default=None, init=False, repr=False)
+    _prev_cells: np.ndarray | None = field(default=None, init=False, repr=False)
+    _advance_cells: np.ndarray | None = field(default=None, init=False, repr=False)
     _count: int = field(default=0, init=False, repr=False)
     last_mode: str = field(default="", init=False)
 
@@ -1073,6 +1080,7 @@ class GuidewireSegmenter:
     def reset(self) -> None:
         """Forget the previous wire: the next frame is segmented full-frame."""
         self._prev = None
+        self._prev_cells = self._advance_cells = None
         self._count = 0
         self.last_mode = ""
 
@@ -1092,6 +1100,8 @@ class GuidewireSegmenter:
         g, seg = UNET_MULTIPLE, SEGMENTERS[self.method]
         limit_px = ROI_MAX_FRACTION * a.size
         covered = band_cells(prev, self.roi_margin_px, g)
+        if self._advance_cells is not None and self._advance_cells.shape == covered.shape:
+            covered = covered | self._advance_cells
         boxes = self._cover(covered, a.shape)
         area_px = sum((v1 - v0) * (u1 - u0) for u0, v0, u1, v1 in boxes)
         if not boxes or area_px > limit_px:
@@ -1123,12 +1133,31 @@ class GuidewireSegmenter:
             covered = covered | _boxes_cells(new_boxes, a.shape, g)
         return None
 
+    def _remember_advance(self, mask: np.ndarray) -> None:
+        """With ``predict_advance``: the cells where the wire advanced in this frame (its cells more
+        than one cell from the previous frame's), grown by ``ROI_GROW_PX``, are segmented in the next
+        frame's first pass too. A wire advancing tens of px per frame (a push) then needs no growth
+        round (an extra network call) in the next frame."""
+        import cv2
+
+        g = UNET_MULTIPLE
+        cells = _cells_of(mask, g) if mask.any() else None
+        adv = None
+        if self.predict_advance and cells is not None and self._prev_cells is not None \
+                and self._prev_cells.shape == cells.shape:
+            near = cv2.dilate(self._prev_cells.view(np.uint8), np.ones((3, 3), np.uint8)).view(bool)
+            new = cells & ~near
+            if new.any() and new.sum() <= ADVANCE_MAX_CELLS:
+                r = 2 * (ADVANCE_GROW_PX // g) + 1
+                adv = cv2.dilate(new.view(np.uint8), np.ones((r, r), np.uint8)).view(bool)
+        self._prev_cells, self._advance_cells = cells, adv
+
     def segment(self, frame) -> np.ndarray:
         """Segment the next frame; returns an (H, W) bool mask (empty when no wire is seen)."""
         a = _as_frame(frame)
         med, spread, degenerate, dark = _frame_stats_dark(a)
         if degenerate:
-            self._prev = None
+            self._prev = self._prev_cells = self._advance_cells = None
             self.last_mode = "degenerate"
             self._count += 1
             return np.zeros(a.shape, bool)
@@ -1141,6 +1170,7 @@ class GuidewireSegmenter:
         if mask.any():
             mask = _clear_collimated(mask, a, med, dark)
         self._prev = mask if mask.any() else None
+        self._remember_advance(mask)
         self._count += 1
         if self.wire_model:
             return _wire_model_mask(a, mask, self.wire_radius_px)
