@@ -1052,6 +1052,9 @@ class GuidewireSegmenter:
         mask, so it leaves this off.
     wire_radius_px : float, optional
         With ``wire_model``: the wire's known radius in px (see :func:`guidewire_mask`).
+    predict_advance : bool
+        Where the wire advanced in the last frame, the next frame's first pass already covers
+        ``ADVANCE_GROW_PX`` ahead, so a pushed wire needs fewer growth rounds (network calls).
     """
 
     method: object = "unet"
@@ -1135,7 +1138,7 @@ class GuidewireSegmenter:
 
     def _remember_advance(self, mask: np.ndarray) -> None:
         """With ``predict_advance``: the cells where the wire advanced in this frame (its cells more
-        than one cell from the previous frame's), grown by ``ROI_GROW_PX``, are segmented in the next
+        than one cell from the previous frame's), grown by ``ADVANCE_GROW_PX``, are segmented in the next
         frame's first pass too. A wire advancing tens of px per frame (a push) then needs no growth
         round (an extra network call) in the next frame."""
         import cv2
