@@ -2295,60 +2295,7 @@ def _compile_motion():
             cost = pw * rob + delta @ (Lambda0 @ delta) + dp @ (Lt @ dp)
             return True, cost, delta, H, it, frac, mean_res, J, w, j, lumen
 
-        @jit
-        def motion_acquire_costs(points_uv, c, step_uv, shifts, gate_px):
-            # for each shift, the sum over the curve of min(distance to the nearest point, gate)^2: the points
-            # binned in cells of the gate, so a query looks at its 3 x 3 cells only
-            n = c.shape[0]
-            K = points_uv.shape[0]
-            out = np.empty(shifts.shape[0])
-            g2 = gate_px * gate_px
-            lo0, lo1, hi0, hi1 = np.inf, np.inf, -np.inf, -np.inf
-            for k in range(K):
-                lo0 = min(lo0, points_uv[k, 0])
-                lo1 = min(lo1, points_uv[k, 1])
-                hi0 = max(hi0, points_uv[k, 0])
-                hi1 = max(hi1, points_uv[k, 1])
-            n0 = int((hi0 - lo0) / gate_px) + 1
-            n1 = int((hi1 - lo1) / gate_px) + 1
-            cell = np.empty(K, np.int64)
-            start = np.zeros(n0 * n1 + 1, np.int64)
-            for k in range(K):
-                a = min(int((points_uv[k, 0] - lo0) / gate_px), n0 - 1)
-                b = min(int((points_uv[k, 1] - lo1) / gate_px), n1 - 1)
-                cell[k] = a * n1 + b
-                start[cell[k] + 1] += 1
-            for q in range(n0 * n1):
-                start[q + 1] += start[q]
-            fill = start[:-1].copy()
-            order = np.empty(K, np.int64)
-            for k in range(K):
-                order[fill[cell[k]]] = k
-                fill[cell[k]] += 1
-            for s in range(shifts.shape[0]):
-                tot = 0.0
-                for i in range(n):
-                    q0 = c[i, 0] - shifts[s] * step_uv[0]
-                    q1 = c[i, 1] - shifts[s] * step_uv[1]
-                    best = g2
-                    fa = (q0 - lo0) / gate_px
-                    fb = (q1 - lo1) / gate_px
-                    if fa >= -1.0 and fa < n0 + 1.0 and fb >= -1.0 and fb < n1 + 1.0:
-                        ca = int(np.floor(fa))
-                        cb = int(np.floor(fb))
-                        for a in range(max(ca - 1, 0), min(ca + 2, n0)):
-                            for b in range(max(cb - 1, 0), min(cb + 2, n1)):
-                                q = a * n1 + b
-                                for e in range(start[q], start[q + 1]):
-                                    k = order[e]
-                                    d2 = (points_uv[k, 0] - q0) ** 2 + (points_uv[k, 1] - q1) ** 2
-                                    if d2 < best:
-                                        best = d2
-                    tot += best
-                out[s] = tot
-            return out
-
-        _COMPILED_MOTION.update(motion_solve=motion_solve, motion_acquire_costs=motion_acquire_costs)
+        _COMPILED_MOTION.update(motion_solve=motion_solve)
         return _COMPILED_MOTION
 
 
@@ -2381,9 +2328,12 @@ def motion_solve(c, Y0, centroid, nbr, radius, *, focal_px: float, principal_poi
 def motion_acquire_costs(points_uv_px, c, step_uv_px, shifts, *, gate_px: float) -> np.ndarray:
     """For each shift ``s`` (M,), ``sum_i min(d_i, gate_px)^2`` with ``d_i`` the distance of the curve point
     ``c[i] - s * step_uv_px`` to the nearest of ``points_uv_px`` (K, 2): the tracker's cranio-caudal search."""
-    f = _compile_motion()["motion_acquire_costs"]
-    return f(_in(points_uv_px, np.float64), _in(c, np.float64), _in(step_uv_px, np.float64), _in(shifts, np.float64),
-             float(gate_px))
+    c = np.asarray(c, np.float64).reshape(-1, 2)
+    shifts = np.asarray(shifts, np.float64).reshape(-1)
+    moved = c[None, :, :] - shifts[:, None, None] * np.asarray(step_uv_px, np.float64).reshape(1, 1, 2)
+    # every shifted curve point at once, against one grid of the tree's points (exact within the gate)
+    d2 = nearest_sq_dist(moved.reshape(-1, 2), points_uv_px, float(gate_px))
+    return np.minimum(d2, float(gate_px) ** 2).reshape(len(shifts), len(c)).sum(axis=1)
 
 
 def warm_up_motion() -> None:
