@@ -261,6 +261,30 @@ def test_implausible_tree_is_named():
     assert "2000 branches" in text and "% of the body" in text and "x the field of view" in text
 
 
+def test_dim_wide_axes_are_not_lumen():
+    """A wide branch whose axis is at a third of the contrast (marrow, spleen) counts as dim; the same
+    branch on a lumen-bright axis, or a thin dim one (partial volume), does not."""
+    from guidewire3d.vesseltree import VesselTree
+
+    bg, lumen = 40.0, 400.0
+    a = np.full(SHAPE, bg, np.float32)
+    a[:, 20:30, 20:30] = bg + 0.3 * (lumen - bg)  # a dim column (y, x 16-24 mm)
+    a[:, 50:60, 50:60] = lumen  # a bright one (y, x 40-48 mm)
+    v = io.Volume(a, (SP,) * 3, (0, 0, 0), np.eye(3), source="columns")
+
+    def line(y_mm, x_mm, r_mm):  # along z, LPS = (x, y, z) for this identity geometry
+        z = np.arange(5.0, 55.0, 0.5)
+        return VesselTree(np.column_stack([np.full_like(z, x_mm), np.full_like(z, y_mm), z]),
+                          np.full(len(z), r_mm), np.r_[-1, np.arange(len(z) - 1)])
+
+    assert vesselmodel.dim_wide_fraction(v, line(20.0, 20.0, 3.0), bg, lumen) == pytest.approx(1.0)
+    assert vesselmodel.dim_wide_fraction(v, line(44.0, 44.0, 3.0), bg, lumen) == 0.0
+    assert vesselmodel.dim_wide_fraction(v, line(20.0, 20.0, 1.0), bg, lumen) == 0.0
+    model = vesselmodel.IntensityModel(bg, lumen, 5.0, None, False, 3.0, 1.0)
+    pl = vesselmodel.check_plausibility(v, np.zeros(SHAPE, bool), line(20.0, 20.0, 3.0), model=model)
+    assert any("axis is below 60%" in p for p in pl.problems)
+
+
 # --------------------------------------------------------------------------------------
 # the command
 # --------------------------------------------------------------------------------------

@@ -45,6 +45,15 @@ class VesselOptions:
     min_peak_hu: float = float("-inf")  # a lumen voxel's local peak must reach this (enhancing organs do not)
     tubular_support_mm: float = 0.0  # > 0: keep only voxels within this of a tubular voxel (organ sponges out)
     tubular_support_min: float = 0.25  # the vesselness of those tubular voxels
+    # True: the half-maximum threshold's tissue level is ``background_hu`` (the intensity model's), not the
+    # median of the crop's darker voxels (which air and lung pull far below the tissue around the vessels)
+    fixed_background: bool = False
+    # > 0: ... and keep only voxels where at least this fraction of the candidates within a Gaussian of
+    # ``tubular_density_mm`` are tubular (marrow, kidney cortex and spleen are sponges with a few tubular
+    # voxels), unless at least ``tubular_density_exempt_hu`` bright (a wide lumen)
+    tubular_density_min: float = 0.0
+    tubular_density_mm: float = 3.0
+    tubular_density_exempt_hu: float = float("inf")
 
 
 def _ball_dilate(mask, radius_mm: float, spacing_zyx) -> np.ndarray:
@@ -238,6 +247,9 @@ def segment_vessels(volume: io.Volume, *, seeds_lps_mm=None, progress: bool = Fa
         bone = _ball_dilate(bone, opt.bone_margin_mm, sp_zyx)
     low = sm < opt.lumen_min_hu
     bg = float(np.median(sm[low & ~bone])) if np.any(low & ~bone) else opt.background_hu
+    window_bg = bg
+    if opt.fixed_background:
+        bg = float(opt.background_hu)
     del low
     peak_size = np.maximum(2 * np.round(opt.local_peak_mm / sp_zyx) + 1, 3).astype(int)
     # local lumen level: max of a more smoothed copy (a max over raw noise would bias it up)
@@ -274,7 +286,7 @@ def segment_vessels(volume: io.Volume, *, seeds_lps_mm=None, progress: bool = Fa
         raise SegmentationError(f"{what}: no vessels found (only blob-like bright regions)")
     vcrop = bbox(cand, pad=int(np.ceil(max(opt.vesselness_scales_mm) / sp_zyx.min())) + 1)
     top = float(np.percentile(sm[cand], 95))
-    win = (np.clip(sm[vcrop], bg, top) - bg) / max(top - bg, 1.0)
+    win = (np.clip(sm[vcrop], window_bg, top) - window_bg) / max(top - window_bg, 1.0)
     candv = cand[vcrop]
     cidx = np.argwhere(candv)
     ves_c, scale_c = frangi_at(win, cidx, sp_zyx, opt.vesselness_scales_mm, return_scale=True)
@@ -321,6 +333,16 @@ def segment_vessels(volume: io.Volume, *, seeds_lps_mm=None, progress: bool = Fa
                 support |= _ball_dilate(tub, max(opt.tubular_support_mm, 1.3 * s_mm), sp_zyx)
         sel &= support
         del support
+        if opt.tubular_density_min > 0:
+            tubf = np.zeros(candv.shape, np.float32)
+            tubf[tuple(cidx[is_tub].T)] = 1.0
+            sig = opt.tubular_density_mm / sp_zyx
+            num = ndi.gaussian_filter(tubf, sig, truncate=2.0)
+            den = ndi.gaussian_filter(candv.astype(np.float32), sig, truncate=2.0)
+            sparse = (num < opt.tubular_density_min * den) & (sm[vcrop] < opt.tubular_density_exempt_hu)
+            del tubf, num, den
+            sel &= ~sparse
+            del sparse
         lab2, n2 = ndi.label(sel, structure=np.ones((3, 3, 3)))
         if n2 > 1:
             keep2 = np.zeros(n2 + 1, bool)

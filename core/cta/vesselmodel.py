@@ -41,6 +41,7 @@ __all__ = [
     "check_geometry",
     "estimate_intensity_model",
     "check_plausibility",
+    "dim_wide_fraction",
     "extract_vessels_auto",
     "MIN_RADIUS_MM",
     "MAX_RADIUS_MM",
@@ -99,6 +100,16 @@ MAX_LENGTH_PER_FOV = 40.0
 MIN_MEAN_BRANCH_MM = 4.0
 MAX_BRANCHES = 1500
 MAX_VOLUME_PER_TUBE = 2.5
+#: A branch of at least this median radius (mm) whose axis is below this fraction of the contrast is
+#: not a contrast-filled lumen (see :func:`dim_wide_fraction`).
+DIM_WIDE_RADIUS_MM = 2.0
+DIM_AXIS_FRACTION = 0.6
+#: ... and a tree with more than this fraction of its length in such branches is implausible.
+MAX_DIM_WIDE_FRACTION = 0.08
+#: The strict second pass (``IntensityModel.vessel_options(strict=True)``): at least this fraction of
+#: the candidates within 3 mm must be tubular, unless brighter than this fraction of the contrast.
+STRICT_TUBULAR_DENSITY = 0.2
+STRICT_EXEMPT_FRACTION = 0.75
 
 
 @dataclass(frozen=True)
@@ -133,9 +144,17 @@ class IntensityModel:
     def cnr(self) -> float:
         return self.contrast / max(self.noise, 1e-6 * max(abs(self.contrast), 1.0))
 
-    def vessel_options(self, base=None, *, max_radius_mm: float = MAX_RADIUS_MM):
-        """:class:`guidewire3d.cta.segment.VesselOptions` in this volume's units."""
+    def vessel_options(self, base=None, *, max_radius_mm: float = MAX_RADIUS_MM, strict: bool = False):
+        """:class:`guidewire3d.cta.segment.VesselOptions` in this volume's units.
+
+        ``strict``: the second pass of :func:`extract_vessels_auto` - the half-maximum threshold
+        against this model's background (not the crop's darker voxels) and only voxels where tubular
+        ones are not rare (``STRICT_TUBULAR_DENSITY``), unless as bright as a lumen.
+        """
         base = base or VesselOptions()
+        if strict:
+            base = replace(base, fixed_background=True, tubular_density_min=STRICT_TUBULAR_DENSITY,
+                           tubular_density_exempt_hu=self.background + STRICT_EXEMPT_FRACTION * self.contrast)
         c = self.contrast
         bone = self.bone if self.bone is not None else self.lumen + 1e3 * max(c, 1.0)
         scales = tuple(sorted(set(base.vesselness_scales_mm) | {5.0, 9.0})) if max_radius_mm > 8 else \
@@ -167,6 +186,7 @@ class Plausibility:
     tube_cm3: float
     max_radius_mm: float
     problems: tuple[str, ...] = ()
+    dim_wide_fraction: float = float("nan")
 
     @property
     def ok(self) -> bool:
@@ -176,7 +196,7 @@ class Plausibility:
         d = asdict(self)
         d["problems"] = list(self.problems)
         d["ok"] = self.ok
-        return {k: (round(v, 3) if isinstance(v, float) else v) for k, v in d.items()}
+        return {k: ((round(v, 3) if np.isfinite(v) else None) if isinstance(v, float) else v) for k, v in d.items()}
 
 
 @dataclass(frozen=True, eq=False)
@@ -187,6 +207,10 @@ class AutoVessels:
     model: IntensityModel
     plausibility: Plausibility
     seconds: dict = field(default_factory=dict)
+    #: "standard", or "strict" when the first tree was implausible and the strict pass's was not
+    segmentation: str = "standard"
+    #: the first pass's problems when the strict pass replaced it
+    first_pass_problems: tuple[str, ...] = ()
 
 
 # --------------------------------------------------------------------------------------
@@ -486,8 +510,39 @@ def _bone_level(ds, bg, L, hu, vox_cm3) -> float | None:
 # --------------------------------------------------------------------------------------
 # plausibility
 # --------------------------------------------------------------------------------------
+def dim_wide_fraction(volume: io.Volume, tree, background: float, lumen: float, *,
+                      wide_radius_mm: float = DIM_WIDE_RADIUS_MM,
+                      dim_fraction: float = DIM_AXIS_FRACTION) -> float:
+    """The fraction of a tree's length in wide branches whose axis is dim: branches with a median
+    radius of at least ``wide_radius_mm`` whose median axis intensity (trilinear, on the volume) is
+    below ``background + dim_fraction (lumen - background)``, over the length of all the branches.
+
+    A contrast-filled vessel at least 3 mm wide has the lumen's intensity on its axis (partial
+    volume only dims thinner ones); the branches a threshold finds in bone marrow, kidney cortex,
+    spleen or unenhanced veins do not.
+    """
+    pts = np.asarray(tree.points_lps_mm, dtype=float)
+    if len(pts) < 2 or lumen <= background:
+        return 0.0
+    idx = volume.lps_to_index_zyx(pts)
+    val = ndi.map_coordinates(np.asarray(volume.array_zyx, dtype=np.float32), idx.T, order=1, mode="nearest")
+    frac = (val - background) / (lumen - background)
+    par = np.asarray(tree.parent)
+    seg = np.where(par >= 0, np.linalg.norm(pts - pts[np.maximum(par, 0)], axis=1), 0.0)
+    pb = np.asarray(tree.point_branch)
+    total = float(seg.sum())
+    if total <= 0:
+        return 0.0
+    dim = 0.0
+    for b in np.unique(pb):
+        s = pb == b
+        if np.median(tree.radius_mm[s]) >= wide_radius_mm and np.median(frac[s]) < dim_fraction:
+            dim += float(seg[s].sum())
+    return dim / total
+
+
 def check_plausibility(volume: io.Volume, mask_zyx: np.ndarray, tree, *, body_cm3: float | None = None,
-                       seeded: bool = False) -> Plausibility:
+                       seeded: bool = False, model: IntensityModel | None = None) -> Plausibility:
     """Judge a vessel tree against its volume: returns the record (``problems`` empty when fine).
 
     Implausible are: a vessel volume above ``MAX_VESSEL_BODY_FRACTION`` of the body; more than
@@ -495,7 +550,10 @@ def check_plausibility(volume: io.Volume, mask_zyx: np.ndarray, tree, *, body_cm
     sponge of noise or tissue); a total length above ``MAX_LENGTH_PER_FOV`` field-of-view
     diagonals; a mask more than ``MAX_VOLUME_PER_TUBE`` times the volume of the tubes its
     centerline describes (``sum pi r^2 ds``: blobs, not tubes); a widest vessel beyond
-    ``MAX_RADIUS_MM`` (or, without seeds, a tree whose widest vessel is under ``MIN_RADIUS_MM``).
+    ``MAX_RADIUS_MM`` (or, without seeds, a tree whose widest vessel is under ``MIN_RADIUS_MM``);
+    with the volume's ``model``, more than ``MAX_DIM_WIDE_FRACTION`` of the length in wide branches
+    whose axis is dimmer than a contrast lumen (:func:`dim_wide_fraction`: bone marrow, enhancing
+    organs).
     """
     sp = np.asarray(volume.spacing_mm, dtype=float)
     vox_cm3 = float(np.prod(sp)) / 1000.0
@@ -527,7 +585,16 @@ def check_plausibility(volume: io.Volume, mask_zyx: np.ndarray, tree, *, body_cm
     if not seeded and tree.radius_mm.max() < MIN_RADIUS_MM:
         probs.append(f"widest vessel of {tree.radius_mm.max():.2f} mm radius (at least {MIN_RADIUS_MM:g} mm "
                      f"expected; check the voxel spacing)")
-    return Plausibility(vessel_cm3, float(body_cm3), nb, total, fov, total / max(nb, 1), tube_cm3, rmax, tuple(probs))
+    dim = float("nan")
+    if model is not None:
+        dim = dim_wide_fraction(volume, tree, model.background, model.lumen)
+        if dim > MAX_DIM_WIDE_FRACTION:
+            probs.append(f"{100 * dim:.0f}% of the centerline runs in vessels over {2 * DIM_WIDE_RADIUS_MM:g} mm wide "
+                         f"whose axis is below {100 * DIM_AXIS_FRACTION:.0f}% of the lumen's contrast (bone marrow "
+                         f"or enhancing organs, not contrast-filled lumen; at most {100 * MAX_DIM_WIDE_FRACTION:.0f}% "
+                         f"expected)")
+    return Plausibility(vessel_cm3, float(body_cm3), nb, total, fov, total / max(nb, 1), tube_cm3, rmax, tuple(probs),
+                        dim)
 
 
 # --------------------------------------------------------------------------------------
@@ -565,26 +632,53 @@ def extract_vessels_auto(volume: io.Volume, *, seeds_lps_mm=None, progress: bool
     InputError, SegmentationError
         The volume is not a plausible angiogram, or the tree found is implausible (the message
         says what was implausible and suggests seeds).
+
+    Notes
+    -----
+    When the first tree is implausible because of dim wide axes (:func:`dim_wide_fraction`: bone
+    marrow, organ parenchyma), the segmentation runs once more in its strict form
+    (:meth:`IntensityModel.vessel_options` with ``strict=True``); its tree is returned when it passes
+    the same checks (``segmentation="strict"``, the first pass's problems kept).
     """
     what = volume.source or "volume"
     secs = {}
     t0 = time.perf_counter()
     model = estimate_intensity_model(volume, seeds_lps_mm=seeds_lps_mm)
     secs["model"] = time.perf_counter() - t0
-    opt = model.vessel_options(options)
-    if seeds_lps_mm is not None:
-        opt = replace(opt, seed_radius_mm=max(opt.seed_radius_mm, 3.0))
-    res = vessels3d.extract_vessels(volume, seeds_lps_mm=seeds_lps_mm, progress=progress, options=opt,
-                                    centerline_options=centerline_options)
+    body_cm3 = _body_cm3(volume)
+
+    def one_pass(strict: bool):
+        opt = model.vessel_options(options, strict=strict)
+        if seeds_lps_mm is not None:
+            opt = replace(opt, seed_radius_mm=max(opt.seed_radius_mm, 3.0))
+        res = vessels3d.extract_vessels(volume, seeds_lps_mm=seeds_lps_mm, progress=progress, options=opt,
+                                        centerline_options=centerline_options)
+        t0 = time.perf_counter()
+        pl = check_plausibility(volume, res.mask_zyx, res.tree, body_cm3=body_cm3,
+                                seeded=seeds_lps_mm is not None, model=model)
+        return res, pl, time.perf_counter() - t0
+
+    res, pl, secs["plausibility"] = one_pass(False)
     secs.update(res.seconds)
-    t0 = time.perf_counter()
-    pl = check_plausibility(volume, res.mask_zyx, res.tree, body_cm3=_body_cm3(volume),
-                            seeded=seeds_lps_mm is not None)
-    secs["plausibility"] = time.perf_counter() - t0
     secs["total"] = secs["model"] + res.seconds.get("total", 0.0) + secs["plausibility"]
-    if not pl.ok:
-        hint = ("the seeds may be outside the lumen or the vessels too faint" if seeds_lps_mm is not None
-                else "give --seed-lps X,Y,Z inside a vessel")
-        raise SegmentationError(f"{what}: implausible vessel tree: {'; '.join(pl.problems)} (lumen estimated at "
-                                f"{model.lumen:.4g}, background {model.background:.4g}); {hint}")
-    return AutoVessels(res, model, pl, secs)
+    if pl.ok:
+        return AutoVessels(res, model, pl, secs)
+    # a tree with dim wide axes (bone marrow, organ parenchyma): once more with the strict pass, which
+    # must pass the same checks. Other implausible trees (a wrong spacing, noise) are refused as they are.
+    first = pl.problems
+    res2 = pl2 = None
+    if pl.dim_wide_fraction > MAX_DIM_WIDE_FRACTION:
+        try:
+            res2, pl2, t_pl2 = one_pass(True)
+        except SegmentationError:
+            res2 = pl2 = None
+    if res2 is not None:
+        secs["strict_pass"] = res2.seconds.get("total", 0.0) + t_pl2
+        secs["total"] += secs["strict_pass"]
+        if pl2.ok:
+            return AutoVessels(res2, model, pl2, secs, segmentation="strict", first_pass_problems=first)
+    hint = ("the seeds may be outside the lumen or the vessels too faint" if seeds_lps_mm is not None
+            else "give --seed-lps X,Y,Z inside a vessel")
+    strict_note = ("" if pl2 is None or pl2.ok else f" (a strict pass too: {'; '.join(pl2.problems)})")
+    raise SegmentationError(f"{what}: implausible vessel tree: {'; '.join(first)}{strict_note} (lumen estimated at "
+                            f"{model.lumen:.4g}, background {model.background:.4g}); {hint}")
