@@ -1,15 +1,20 @@
 """Per-pose diagnosis of registration on ``bench_real_anatomy.py``'s poses (issue 17), registration only.
 
-The benchmark's inputs (the same poses, roadmaps and 2D centerlines: the same ``--seed``, ``make_pose``,
-``render`` and ``roadmap_centerline`` calls) are prepared once and cached (``--cache``; rendering the live
-frames, which the random stream needs, costs ~1 min per pose); then every run registers them in seconds.
-Per pose and per start (``nom``: ``register`` from the nominal start as the product; ``true``: ``refine`` from
-the true pose, i.e. where the energy's minimum near the truth is), it prints the verdict, the check that
+The benchmark's inputs (the same poses and roadmaps: the same ``--seed``, ``make_pose`` and ``render`` calls)
+are prepared once and cached (``--cache``; rendering the live frames, which the random stream needs, costs
+~1 min per pose); the 2D centerlines are computed by this checkout's ``roadmap_centerline`` on every run (with
+the pipeline's ``max_radius_px``), so changes to ``xray.roadmap`` / ``xray.imaging`` count. First a table of the
+2D centerline against the projected truth (``centerline_scores``: the fraction of its points within 3 px of the
+artery labels' reference centerline, ``bench_real_cta.reference_centerline_iso``, projected at the true pose;
+the reference covered; its points within 3 px of the projected 3D tree; radius errors against the labels'
+radius), then per pose and per start (``nom``: ``register`` from the nominal start as the product; ``true``:
+``refine`` from the true pose, i.e. where the energy's minimum near the truth is), the verdict, the check that
 refused it (``bench_real_anatomy.refusal``), mTRE over the tree's in-view points, the narrow-stage energy (the
 true start's lower than the nominal's = the global search missed the right basin), residual, inliers, pose
-1-sigma / limit, the explained fraction and the jackknife 1-sigma.
+1-sigma / limit, the explained fraction and the jackknife 1-sigma; and the counts from both starts.
 
     nice .venv/bin/python scripts/diagnose_real_anatomy.py --poses 20 [--set NAME=VALUE ...] [--tree seeded]
+    nice .venv/bin/python scripts/diagnose_real_anatomy.py --poses 20 --centerline-only
 
 ``--set`` patches a registration module constant (as ``bench_registration.py --set``) in this process only.
 ``--tree seeded``: the tree of ``bench_real_anatomy.py --seed-aorta`` (the planning workflow's seed).
