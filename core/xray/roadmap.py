@@ -33,6 +33,7 @@ from dataclasses import dataclass
 import numpy as np
 from guidewire3d.errors import InputError, SegmentationError
 from guidewire3d.xray.imaging import (
+    BORDER_PX,
     FOV_MARGIN_PX,
     REFERENCE_SIZE_PX,
     WIDE_RADIUS_PX,
@@ -404,6 +405,31 @@ def _prune_spurs(skel: np.ndarray, radius: np.ndarray, *, min_spur_px: float, n_
     return sk
 
 
+def _trim_wide_ends_at_border(skel: np.ndarray, radius: np.ndarray, *, wide_px: float, border_px: int) -> np.ndarray:
+    """Trim the skeleton's ends near the image border on vessels wider than ``wide_px``.
+
+    A wide vessel that leaves the image is cut square by the field of view; the medial axis of a square
+    end bends into one of its corners (a hook up to a radius long, off the vessel's axis). End pixels
+    closer to the image border than the local vessel radius (the largest skeleton radius within
+    ``wide_px`` of the end) plus ``border_px`` are removed, repeatedly, where that radius exceeds
+    ``wide_px``; thinner vessels keep their ends.
+    """
+    H, W = skel.shape
+    rr, cc = np.ogrid[:H, :W]
+    to_border = np.minimum(np.minimum(rr, H - 1 - rr), np.minimum(cc, W - 1 - cc)).astype(float)
+    r_loc = ndi.maximum_filter(np.where(skel, radius, 0.0), size=2 * int(np.ceil(wide_px)) + 1)
+    zone = skel & (r_loc > wide_px) & (to_border < r_loc + border_px)
+    if not zone.any():
+        return skel
+    sk = skel.copy()
+    for _ in range(int(np.ceil(float(r_loc[zone].max()))) + border_px + int(np.ceil(wide_px))):
+        ends = (_neighbour_count(sk) == 1) & sk & zone
+        if not ends.any():
+            break
+        sk &= ~ends
+    return sk
+
+
 # Sub-pixel centring of the roadmap centerline (see _centre_across).
 CENTRE_SMOOTH_PX = 0.7            # Gaussian smoothing of the attenuation image (noise)
 CENTRE_STEP_PX = 0.25             # profile sampling step across the vessel
@@ -581,6 +607,8 @@ def roadmap_centerline(image, *, mask=None, max_radius_px: float | None = None) 
     scale = max(a.shape) / REFERENCE_SIZE_PX
     skel = skeletonize(m)
     skel = _prune_spurs(skel, radius, min_spur_px=max(4.0, 4.0 * scale))
+    skel = _trim_wide_ends_at_border(skel, radius, wide_px=FINE_MAX_RADIUS_PX * scale,
+                                     border_px=BORDER_PX + max(2, int(round(FOV_MARGIN_PX * scale))))
     if not skel.any():
         raise SegmentationError("roadmap_centerline: the vessel mask has an empty skeleton")
     nb = _neighbour_count(skel)
