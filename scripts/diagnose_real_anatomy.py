@@ -1,15 +1,20 @@
 """Per-pose diagnosis of registration on ``bench_real_anatomy.py``'s poses (issue 17), registration only.
 
-The benchmark's inputs (the same poses, roadmaps and 2D centerlines: the same ``--seed``, ``make_pose``,
-``render`` and ``roadmap_centerline`` calls) are prepared once and cached (``--cache``; rendering the live
-frames, which the random stream needs, costs ~1 min per pose); then every run registers them in seconds.
-Per pose and per start (``nom``: ``register`` from the nominal start as the product; ``true``: ``refine`` from
-the true pose, i.e. where the energy's minimum near the truth is), it prints the verdict, the check that
+The benchmark's inputs (the same poses and roadmaps: the same ``--seed``, ``make_pose`` and ``render`` calls)
+are prepared once and cached (``--cache``; rendering the live frames, which the random stream needs, costs
+~1 min per pose); the 2D centerlines are computed by this checkout's ``roadmap_centerline`` on every run (with
+the pipeline's ``max_radius_px``), so changes to ``xray.roadmap`` / ``xray.imaging`` count. First a table of the
+2D centerline against the projected truth (``centerline_scores``: the fraction of its points within 3 px of the
+artery labels' reference centerline, ``bench_real_cta.reference_centerline_iso``, projected at the true pose;
+the reference covered; its points within 3 px of the projected 3D tree; radius errors against the labels'
+radius), then per pose and per start (``nom``: ``register`` from the nominal start as the product; ``true``:
+``refine`` from the true pose, i.e. where the energy's minimum near the truth is), the verdict, the check that
 refused it (``bench_real_anatomy.refusal``), mTRE over the tree's in-view points, the narrow-stage energy (the
 true start's lower than the nominal's = the global search missed the right basin), residual, inliers, pose
-1-sigma / limit, the explained fraction and the jackknife 1-sigma.
+1-sigma / limit, the explained fraction and the jackknife 1-sigma; and the counts from both starts.
 
     nice .venv/bin/python scripts/diagnose_real_anatomy.py --poses 20 [--set NAME=VALUE ...] [--tree seeded]
+    nice .venv/bin/python scripts/diagnose_real_anatomy.py --poses 20 --centerline-only
 
 ``--set`` patches a registration module constant (as ``bench_registration.py --set``) in this process only.
 ``--tree seeded``: the tree of ``bench_real_anatomy.py --seed-aorta`` (the planning workflow's seed).
@@ -31,34 +36,122 @@ import bench_real_anatomy as b  # noqa: E402
 import real_anatomy as ra  # noqa: E402
 
 
-def prepared_cases(n: int, seed: int, cache: Path, log):
-    """The benchmark's registration inputs for poses ``0..n-1`` of ``seed``, cached (one file per seed)."""
+def prepared_cases(n: int, seed: int, cache: Path, log, tree=None):
+    """The benchmark's registration inputs for poses ``0..n-1`` of ``seed``: the roadmaps (cached, one file per
+    seed; they do not depend on the tree) and their 2D centerlines, computed by this checkout's
+    ``roadmap_centerline`` on every run (with the pipeline's ``max_radius_px`` from ``tree``)."""
     from guidewire3d.xray.roadmap import roadmap_centerline
 
-    f = cache / "real_anatomy" / f"diagnose_cases_seed{seed}_{b._cta_digest()}.pkl"
+    f = cache / "real_anatomy" / f"diagnose_roadmaps_seed{seed}_v1.pkl"
     have = pickle.loads(f.read_bytes()) if f.is_file() else []
-    if len(have) >= n:
-        return have[:n]
-    vol, labels, _, _ = ra.load_case(cache)
-    tree = b.cached_tree(vol, cache, log)["tree"]
-    wires = b.cached_wires(vol, labels, cache)
-    iodine, mu_ct = ra.iodine_fraction(vol, labels), ra.anatomy_mu(vol, labels)
-    rng = np.random.default_rng(seed)
+    if len(have) < n:
+        vol, labels, _, _ = ra.load_case(cache)
+        wires = b.cached_wires(vol, labels, cache)
+        iodine, mu_ct = ra.iodine_fraction(vol, labels), ra.anatomy_mu(vol, labels)
+        rng = np.random.default_rng(seed)
+        for k in range(n):
+            t0 = time.perf_counter()
+            target, carm, pose = b.make_pose(rng, k, wires)
+            roadmap, _, _, _ = b.render(rng, carm, pose, wires[target], iodine, mu_ct, vol)  # draws as the benchmark
+            if k < len(have):
+                continue
+            have.append(dict(k=k, target=target, carm=carm, pose=pose, roadmap=np.asarray(roadmap, np.float32)))
+            log(f"pose {k}: roadmap rendered in {time.perf_counter() - t0:.0f} s")
+            f.parent.mkdir(parents=True, exist_ok=True)
+            f.write_bytes(pickle.dumps(have))
     out = []
-    for k in range(n):
-        t0 = time.perf_counter()
-        target, carm, pose = b.make_pose(rng, k, wires)
-        roadmap, _, _, _ = b.render(rng, carm, pose, wires[target], iodine, mu_ct, vol)  # draws as the benchmark
-        if k < len(have):
-            out.append(have[k])
-            continue
-        cl = roadmap_centerline(roadmap, max_radius_px=float(tree.radius_mm.max()) / carm.pixel_at_iso_mm * 1.5)
-        out.append(dict(k=k, target=target, carm=carm, pose=pose, uv=np.asarray(cl.points_uv_px, float),
-                        radius=np.asarray(cl.radius_px, float)))
-        log(f"pose {k}: prepared in {time.perf_counter() - t0:.0f} s")
-        f.parent.mkdir(parents=True, exist_ok=True)
-        f.write_bytes(pickle.dumps(out))
+    for c in have[:n]:
+        c = dict(c)
+        if tree is not None:
+            cl = roadmap_centerline(c["roadmap"], max_radius_px=max_radius_px(tree, c["carm"]))
+            c.update(uv=np.asarray(cl.points_uv_px, float), radius=np.asarray(cl.radius_px, float), centerline=cl)
+        out.append(c)
     return out
+
+
+def max_radius_px(tree, carm) -> float:
+    """The pipeline's ``max_radius_px`` (as ``bench_real_anatomy.run_pose``)."""
+    return float(tree.radius_mm.max()) / carm.pixel_at_iso_mm * 1.5
+
+
+def reference_iso(cache: Path):
+    """The artery labels' reference centerline on an isotropic grid (``bench_real_cta.reference_centerline_iso``)
+    as LPS points ``(K, 3)`` with the labels' radius ``(K,)`` mm at each (distance to the label's wall), cached."""
+    f = cache / "real_anatomy" / "reference_iso_v1.pkl"
+    if f.is_file():
+        return pickle.loads(f.read_bytes())
+    from bench_real_cta import ARTERIES, reference_centerline_iso
+    from scipy import ndimage as ndi
+
+    vol, labels, _, _ = ra.load_case(cache)
+    sp = np.asarray(vol.spacing_mm, float)[::-1]
+    pts_mm, _ = reference_centerline_iso(labels, sp)
+    art = np.isin(labels, list(ARTERIES))
+    edt = ndi.distance_transform_edt(art, sampling=sp)
+    idx = pts_mm / sp
+    r = ndi.map_coordinates(edt, idx.T, order=1, mode="nearest") + 0.5 * float(sp[1:].mean())
+    rec = (vol.index_zyx_to_lps(idx), r)
+    f.parent.mkdir(parents=True, exist_ok=True)
+    f.write_bytes(pickle.dumps(rec))
+    return rec
+
+
+def centerline_scores(c, ref_lps, ref_r_mm, tree_dense_lps, *, near_px: float = 3.0) -> dict:
+    """2D centerline of one case against the projected truth: ``in_ref`` the fraction of its points within
+    ``near_px`` of the projected reference (artery labels) centerline, ``cov_ref`` the fraction of the in-image
+    projected reference within ``near_px`` of it, ``in_tree`` its points within ``near_px`` of the projected 3D
+    tree (what the registration sees); ``r_err`` the median |radius - reference radius| (px) over its points
+    within ``near_px`` of the reference, ``r_rel`` the median of radius / reference radius there, ``r_err_w``
+    the same |error| over the points whose reference radius is >= 15 px (the aorta)."""
+    from scipy.spatial import cKDTree
+
+    carm, pose = c["carm"], c["pose"]
+    uv, rad = c["uv"], c["radius"]
+    ref_uv, depth = carm.project(ref_lps, pose, return_depth=True)
+    ok = carm.in_image(ref_uv)
+    ref_uv, ref_r = ref_uv[ok], (ref_r_mm * carm.focal_px / depth)[ok]
+    t_uv = carm.project(tree_dense_lps, pose)
+    t_uv = t_uv[carm.in_image(t_uv)]
+    out = dict(n=len(uv))
+    if not len(uv) or not len(ref_uv):
+        return out
+    d, j = cKDTree(ref_uv).query(uv)
+    near = d <= near_px
+    out["in_ref"] = float(near.mean())
+    out["cov_ref"] = float(np.mean(cKDTree(uv).query(ref_uv)[0] <= near_px))
+    out["in_tree"] = float(np.mean(cKDTree(t_uv).query(uv)[0] <= near_px)) if len(t_uv) else float("nan")
+    e = rad[near] - ref_r[j[near]]
+    out["r_err"] = float(np.median(np.abs(e))) if near.any() else float("nan")
+    out["r_rel"] = float(np.median(rad[near] / ref_r[j[near]])) if near.any() else float("nan")
+    wide = near & (ref_r[j] >= 15.0)
+    out["r_err_w"] = float(np.median(np.abs(rad[wide] - ref_r[j[wide]]))) if wide.any() else float("nan")
+    out["n_w"] = int(wide.sum())
+    return out
+
+
+def centerline_table(cases, cache: Path, tree):
+    """Print the per-pose 2D centerline scores (:func:`centerline_scores`) and their medians."""
+    from bench_real_cta import _dense
+
+    ref, ref_r = reference_iso(cache)
+    td = _dense(tree, 0.5)
+    print("| pose | points | in 3 px of ref | ref covered | in 3 px of 3D tree | radius err px (all / aorta) "
+          "| radius / ref |")
+    print("|---|---|---|---|---|---|---|")
+    rows = []
+    for c in cases:
+        s = centerline_scores(c, ref, ref_r, td)
+        rows.append(s)
+        print(f"| {c['k']} | {s['n']} | {s.get('in_ref', np.nan):.2f} | {s.get('cov_ref', np.nan):.2f} | "
+              f"{s.get('in_tree', np.nan):.2f} | {s.get('r_err', np.nan):.1f} / {s.get('r_err_w', np.nan):.1f} | "
+              f"{s.get('r_rel', np.nan):.2f} |", flush=True)
+    med = {k: float(np.nanmedian([r.get(k, np.nan) for r in rows])) for k in
+           ("in_ref", "cov_ref", "in_tree", "r_err", "r_err_w", "r_rel")}
+    mn = {k: float(np.nanmin([r.get(k, np.nan) for r in rows])) for k in ("in_ref", "cov_ref", "in_tree")}
+    print(f"| median | | {med['in_ref']:.2f} (min {mn['in_ref']:.2f}) | {med['cov_ref']:.2f} (min {mn['cov_ref']:.2f}) "
+          f"| {med['in_tree']:.2f} (min {mn['in_tree']:.2f}) | {med['r_err']:.1f} / {med['r_err_w']:.1f} "
+          f"| {med['r_rel']:.2f} |")
+    return rows
 
 
 def main(argv=None):
@@ -69,6 +162,8 @@ def main(argv=None):
     ap.add_argument("--cache", default=str(Path.home() / ".cache" / "guidewire3d"))
     ap.add_argument("--tree", choices=("auto", "seeded"), default="auto")
     ap.add_argument("--set", action="append", default=[], metavar="NAME=VALUE")
+    ap.add_argument("--centerline-only", action="store_true",
+                    help="only the 2D centerline table (against the projected artery labels' centerline), no registration")
     a = ap.parse_args(argv)
     from guidewire3d import metrics, registration
     from guidewire3d.registration import problem, search, solve, verdict
@@ -85,7 +180,6 @@ def main(argv=None):
         print(m, file=sys.stderr, flush=True)
 
     cache = Path(a.cache).expanduser()
-    cases = prepared_cases(a.poses, a.seed, cache, log)
     vol, labels, _, _ = ra.load_case(cache) if a.tree == "seeded" else (None,) * 4
     if a.tree == "seeded":
         W = b.cached_wires(vol, labels, cache)[58]
@@ -96,6 +190,11 @@ def main(argv=None):
         if tree is None:
             vol, labels, _, _ = ra.load_case(cache)
             tree = b.cached_tree(vol, cache, log)["tree"]
+    cases = prepared_cases(a.poses, a.seed, cache, log, tree)
+    print(f"cta digest {b._cta_digest()}; 2D centerline: {Path(__file__).resolve().parents[1].name} checkout")
+    centerline_table(cases, cache, tree)
+    if a.centerline_only:
+        return
     P = tree.points_lps_mm
     print(f"load {os.getloadavg()[0]:.1f}; tree {a.tree}: {len(P)} points, {tree.total_length_mm / 1000:.2f} m; "
           f"set: {' '.join(a.set) or '-'}")
@@ -103,6 +202,7 @@ def main(argv=None):
           "| explained (in view) | jackknife mm |")
     print("|---|---|---|---|---|---|---|---|---|---|---|")
     n_ok = n_right = n_wrong = n_near = 0
+    t_ok = t_right = t_wrong = t_near = 0
     for c in cases:
         carm, pose = c["carm"], c["pose"]
         Pv = P[carm.in_image(carm.project(P, pose))]
@@ -119,9 +219,16 @@ def main(argv=None):
         n_wrong += bool(r.success and m >= b.SUCCESS_MM)
         n_right += bool(not r.success and m < b.SUCCESS_MM)
         n_near += bool(m < b.SUCCESS_MM)
+        mt = metrics.mtre_mm(rt.pose, pose, Pv)
+        t_ok += bool(rt.success and mt < b.SUCCESS_MM)
+        t_wrong += bool(rt.success and mt >= b.SUCCESS_MM)
+        t_right += bool(not rt.success and mt < b.SUCCESS_MM)
+        t_near += bool(mt < b.SUCCESS_MM)
     n = len(cases)
     print(f"\nfrom the nominal start: success {n_ok}/{n}, ok but wrong {n_wrong}, refused but right {n_right}, "
           f"within {b.SUCCESS_MM:g} mm {n_near}/{n}")
+    print(f"from the true pose (the energy's minimum near the truth): within {b.SUCCESS_MM:g} mm {t_near}/{n}, "
+          f"ok {t_ok}, ok but wrong {t_wrong}, refused but right {t_right}")
 
 
 def _tree_cached(cache: Path) -> bool:

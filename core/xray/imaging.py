@@ -32,8 +32,12 @@ FOV_DARK_FRACTION = 0.25          # smoothed intensity below this x median = dar
 FOV_SHUTTER_SIDE_FRACTION = 0.2   # a dark region is a collimator shutter only if it runs along an image
                                   # side over at least this fraction of the side's length, ...
 FOV_SHUTTER_DEPTH_RATIO = 0.5     # ... or reaches no farther into the image than this x its border contact
+FOV_FIELD_MIN_FRACTION = 0.01     # bright components at least this fraction of the image span the exposed
+                                  # field (a collimated field is convex: a shutter lies outside their hull)
+FOV_HULL_SHRINK = 2.0             # that hull shrunk by this x the margin (a real field's edge has dents)
 BORDER_PX = 2                     # image border band ignored (edge artefacts)
 FOV_MARGIN_PX = 5.0               # erosion of the field of view (edge responses)
+POLARITY_TAIL_RATIO = 6.0         # dark tail >= this x the bright one: dark vessels (dark_vessels_auto)
 WIDE_RADIUS_PX = 12.0             # wide top-hat radius (polarity test, width completion, search distance)
 
 
@@ -102,7 +106,17 @@ def normalise01(a: np.ndarray) -> tuple[np.ndarray, bool]:
 
 def dark_vessels_auto(im01: np.ndarray, scale: float) -> bool:
     """Polarity: compare the strongest dark and bright line-sized details (black vs white top-hat
-    with a disk wider than the vessels, on a subsampled copy)."""
+    with a disk wider than the vessels, on a subsampled copy).
+
+    Decided first by the intensity distribution when it is one-sided: when the image's dark tail
+    (median - 1st percentile) is at least ``POLARITY_TAIL_RATIO`` x its bright one (99th percentile -
+    median), the vessels are dark (a subtracted aortogram: a flat background near the top of the range
+    and a dense aorta far below it, whose arch encloses bright background that the top-hats would take
+    for a bright vessel)."""
+    sub = im01[:: max(1, im01.shape[0] // 256), :: max(1, im01.shape[1] // 256)]
+    p1, med, p99 = (float(x) for x in np.percentile(sub, [1, 50, 99]))
+    if med - p1 >= POLARITY_TAIL_RATIO * max(p99 - med, 1e-12):
+        return True
     k = max(1, int(round(2.0 * scale)))
     small = ndi.uniform_filter(im01, size=k)[::k, ::k]
     fp = disk(max(2, int(round(WIDE_RADIUS_PX * scale / k))))
@@ -155,16 +169,50 @@ def field_of_view(im01: np.ndarray, margin_px: int) -> np.ndarray:
             depth = np.zeros(n + 1)
             depth[1:] = ndi.maximum(to_border, lab, np.arange(1, n + 1))
             contact_px = along[:2].sum(0) * W + along[2:].sum(0) * H
-            shutter = (along.max(0) >= FOV_SHUTTER_SIDE_FRACTION) | (
-                (contact_px > 0) & (depth <= FOV_SHUTTER_DEPTH_RATIO * contact_px))
-            shutter[0] = False
+            shallow = (contact_px > 0) & (depth <= FOV_SHUTTER_DEPTH_RATIO * contact_px)
+            shutter = (along.max(0) >= FOV_SHUTTER_SIDE_FRACTION) | shallow
+            shutter[0] = shallow[0] = False
             fov = ~shutter[lab]
+            deep = shutter & ~shallow
+            if deep.any():
+                # the exposed field of a collimator (blades, iris) is convex: the pixels of a deep dark
+                # region that lie inside the convex hull of the bright field (a dense aorta leaving the
+                # image between bright areas on both sides of it; a vessel touching a blade) are vessel,
+                # not shutter; shallow regions (blades, iris corners) stay shutters whole
+                fov |= deep[lab] & _bright_field_hull(~dark, shrink_px=int(FOV_HULL_SHRINK * margin_px))
     # Erode away from the shutter edges only; the image border itself loses BORDER_PX.
     fov = ndi.binary_erosion(fov, iterations=margin_px, border_value=1)
     b = BORDER_PX
     fov[:b] = fov[-b:] = False
     fov[:, :b] = fov[:, -b:] = False
     return fov
+
+
+def _bright_field_hull(bright: np.ndarray, *, shrink_px: int) -> np.ndarray:
+    """Convex hull of the bright connected components of at least ``FOV_FIELD_MIN_FRACTION`` of the
+    image (small bright specks in a shutter, burnt-in text, are left out), shrunk by ``shrink_px`` (a
+    real field's edge is not exactly convex: its dents stay shutter); computed on a grid subsampled to
+    at most 256 px a side."""
+    from skimage.morphology import convex_hull_image
+
+    k = max(1, int(np.ceil(max(bright.shape) / 256)))
+    small = bright[::k, ::k]
+    lab, n = ndi.label(small)
+    if n == 0:
+        return np.zeros(bright.shape, bool)
+    size = np.bincount(lab.ravel(), minlength=n + 1)
+    size[0] = 0
+    keep = (size >= FOV_FIELD_MIN_FRACTION * small.size)[lab]
+    if not keep.any():
+        return np.zeros(bright.shape, bool)
+    hull = convex_hull_image(keep)
+    # shrunk (in subsampled px, at least one block: never past the bright field's own edge), then
+    # back to full resolution (nearest: a pixel's value is that of its block)
+    it = max(1 if k > 1 else 0, int(np.ceil(shrink_px / k)))
+    if it:
+        hull = ndi.binary_erosion(hull, iterations=it, border_value=1)
+    full = np.repeat(np.repeat(hull, k, axis=0), k, axis=1)[: bright.shape[0], : bright.shape[1]]
+    return full
 
 
 def polyline_normals(p: np.ndarray) -> np.ndarray:

@@ -33,6 +33,7 @@ from dataclasses import dataclass
 import numpy as np
 from guidewire3d.errors import InputError, SegmentationError
 from guidewire3d.xray.imaging import (
+    BORDER_PX,
     FOV_MARGIN_PX,
     REFERENCE_SIZE_PX,
     WIDE_RADIUS_PX,
@@ -66,6 +67,9 @@ MIN_COMPONENT_OF_LARGEST = 0.1    # ... and those smaller than this fraction of 
 FINE_MAX_RADIUS_PX = 6.0          # widest vessel radius the single-resolution pass covers
 MAX_COARSE_FACTOR = 8             # largest binning of the coarse pass (see max_radius_px)
 HALF_MAX = 0.5                    # fraction of the local vessel contrast at the vessel edge
+WIDE_TOPHAT_FACTOR = 1.2          # wide vessels' top-hat disk: this x max_radius_px (see _wide_vessels)
+WIDE_EDGE_FRACTION = 0.25         # wide vessels' edge: this x the local contrast (a tube's chord there is
+                                  # sqrt(1 - 0.25^2) = 97 % of its diameter; at half maximum 87 %)
 
 
 # --------------------------------------------------------------------------------------------
@@ -219,6 +223,7 @@ def vessel_mask(image, *, dark_vessels: bool | None = None, max_radius_px: float
         if not (np.isfinite(max_radius_px) and max_radius_px > 0):
             raise InputError(f"max_radius_px: expected a positive number of pixels, got {max_radius_px!r}")
         f = int(min(MAX_COARSE_FACTOR, np.ceil(max_radius_px / (FINE_MAX_RADIUS_PX * scale))))
+    wide = None
     if f > 1 and min(a.shape) >= 64 * f:
         # Coarse pass: the same detector on an f-times binned image finds vessels f times wider.
         h, w = (a.shape[0] // f) * f, (a.shape[1] // f) * f
@@ -227,11 +232,75 @@ def vessel_mask(image, *, dark_vessels: bool | None = None, max_radius_px: float
         if mc is not None and mc.any():
             up = np.zeros(a.shape, bool)
             up[:h, :w] = np.repeat(np.repeat(mc, f, axis=0), f, axis=1)
-            m = m | (up & fov)
+            up &= fov
+            wide = _wide_vessels(att, mc, f, float(max_radius_px), fov, FINE_MAX_RADIUS_PX * scale)
+            if wide is not None:
+                # the coarse detections of the wide vessels are replaced by their full-resolution
+                # extent (f x f blocks would fill the bright background an aortic arch encloses,
+                # and a blocky outline puts spurs and a jagged axis in the skeleton)
+                lab, n = ndi.label(up, structure=np.ones((3, 3), bool))
+                hit = np.zeros(n + 1, bool)
+                hit[np.unique(lab[wide])] = True
+                hit[0] = False
+                up &= ~hit[lab]
+                m = m | wide
+            m = m | up
     m = _filter_components(m)
     if m.any():                                  # grow the detections to full width (FWHM)
         m = _complete_width(m, th_l, fov, scale)
+        if wide is not None:
+            m = _filter_components(m | wide)
     return m
+
+
+def _wide_vessels(att: np.ndarray, mc: np.ndarray, f: int, max_radius_px: float, fov: np.ndarray,
+                  min_radius_px: float) -> np.ndarray | None:
+    """Full-resolution mask of the vessels wider than the fine pass covers (an aorta), from the
+    coarse pass's detections ``mc`` on the ``f``-times binned grid; None if there are none.
+
+    The vessel contrast is a white top-hat of the attenuation with a disk of
+    ``WIDE_TOPHAT_FACTOR x max_radius_px`` (wider than the widest vessel, so the top-hat of a wide
+    vessel is not hollow), on the binned grid; a pixel is vessel where that contrast is at least
+    ``WIDE_EDGE_FRACTION`` of the largest contrast of the coarse detections within ``max_radius_px``
+    (a projected tube's chord falls steeply at its edge: that fraction puts the outline at 97 % of
+    the radius, where the half maximum would put it at 87 %; it also keeps a single-layer stretch
+    next to one where the ascending and descending aorta overlap, about twice as dense). The
+    contrast and the threshold are interpolated back to full resolution, so the outline is smooth.
+    Kept: connected pieces that hold a coarse detection and are wider than ``min_radius_px`` (their
+    largest inscribed radius), i.e. what the fine pass cannot resolve.
+    """
+    from skimage.morphology import disk
+
+    H, W = att.shape
+    h, w = mc.shape[0] * f, mc.shape[1] * f
+    small = att[:h, :w].reshape(h // f, f, w // f, f).mean(axis=(1, 3))
+    th = small - ndi.grey_opening(small, footprint=disk(max(2, int(round(WIDE_TOPHAT_FACTOR * max_radius_px / f)))))
+    win = 2 * max(1, int(round(max_radius_px / f))) + 1
+    local = ndi.maximum_filter(np.where(mc, th, 0.0), size=win)
+
+    def full(x):
+        out = np.empty((H, W))
+        out[:h, :w] = ndi.zoom(x, f, order=1, grid_mode=True, mode="nearest")
+        out[h:, :w] = out[h - 1:h, :w]
+        out[:, w:] = out[:, w - 1:w]
+        return out
+
+    thf, locf = full(th), full(local)
+    cand = fov & (locf > 0) & (thf >= WIDE_EDGE_FRACTION * locf)
+    # only what discs wider than the fine pass's range cover (a morphological opening by that disc,
+    # through distance transforms): thin attachments and the narrower branch roots are the fine
+    # pass's business
+    core = ndi.distance_transform_edt(cand) > min_radius_px
+    if not core.any():
+        return None
+    wide = ndi.distance_transform_edt(~core) <= min_radius_px
+    lab, n = ndi.label(wide, structure=np.ones((3, 3), bool))
+    seeds = np.zeros((H, W), bool)
+    seeds[:h, :w] = np.repeat(np.repeat(mc, f, axis=0), f, axis=1)
+    keep = np.zeros(n + 1, bool)
+    keep[np.unique(lab[seeds & wide])] = True
+    keep[0] = False
+    return keep[lab] if keep.any() else None
 
 
 def _wide_tophat(att: np.ndarray, scale: float) -> np.ndarray:
@@ -333,6 +402,31 @@ def _prune_spurs(skel: np.ndarray, radius: np.ndarray, *, min_spur_px: float, n_
             break
         sk = sk & ~spur[lab] & ~stub
         sk = skeletonize(sk)
+    return sk
+
+
+def _trim_wide_ends_at_border(skel: np.ndarray, radius: np.ndarray, *, wide_px: float, border_px: int) -> np.ndarray:
+    """Trim the skeleton's ends near the image border on vessels wider than ``wide_px``.
+
+    A wide vessel that leaves the image is cut square by the field of view; the medial axis of a square
+    end bends into one of its corners (a hook up to a radius long, off the vessel's axis). End pixels
+    closer to the image border than the local vessel radius (the largest skeleton radius within
+    ``wide_px`` of the end) plus ``border_px`` are removed, repeatedly, where that radius exceeds
+    ``wide_px``; thinner vessels keep their ends.
+    """
+    H, W = skel.shape
+    rr, cc = np.ogrid[:H, :W]
+    to_border = np.minimum(np.minimum(rr, H - 1 - rr), np.minimum(cc, W - 1 - cc)).astype(float)
+    r_loc = ndi.maximum_filter(np.where(skel, radius, 0.0), size=2 * int(np.ceil(wide_px)) + 1)
+    zone = skel & (r_loc > wide_px) & (to_border < r_loc + border_px)
+    if not zone.any():
+        return skel
+    sk = skel.copy()
+    for _ in range(int(np.ceil(float(r_loc[zone].max()))) + border_px + int(np.ceil(wide_px))):
+        ends = (_neighbour_count(sk) == 1) & sk & zone
+        if not ends.any():
+            break
+        sk &= ~ends
     return sk
 
 
@@ -513,6 +607,8 @@ def roadmap_centerline(image, *, mask=None, max_radius_px: float | None = None) 
     scale = max(a.shape) / REFERENCE_SIZE_PX
     skel = skeletonize(m)
     skel = _prune_spurs(skel, radius, min_spur_px=max(4.0, 4.0 * scale))
+    skel = _trim_wide_ends_at_border(skel, radius, wide_px=FINE_MAX_RADIUS_PX * scale,
+                                     border_px=BORDER_PX + max(2, int(round(FOV_MARGIN_PX * scale))))
     if not skel.any():
         raise SegmentationError("roadmap_centerline: the vessel mask has an empty skeleton")
     nb = _neighbour_count(skel)
