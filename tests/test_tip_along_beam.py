@@ -147,3 +147,30 @@ def test_a_biplane_pair_with_two_layers_of_wire_at_the_tip_is_uncertain(bcase):
             pair = s.process_wires(ua, wb, images=tuple(imgs), index=t)
             assert pair.views == "AB" and pair.result.verdict is Verdict.UNCERTAIN, (t, plane)
             assert "two layers of wire" in pair.result.message
+
+
+# --------------------------------------------------------------------------------------
+# guidewire3d segment: segment.json reports two layers of wire at the traced tip
+# --------------------------------------------------------------------------------------
+def test_segment_json_reports_a_doubled_tip(monkeypatch):
+    """The folded wire of ``test_orderedwire_doubled`` (its distal 30 px run back alongside the shaft,
+    45 deg out of the image plane; the trace stops at the bend, 30 px short of the true tip): the
+    wire's record says ``doubled_tip`` with the ratio and the reason; the same shaft without the
+    fold: null."""
+    from guidewire3d.app import batch2d
+    from test_orderedwire_doubled import SHAFT, _frame
+
+    folded = np.column_stack([np.linspace(250.0, 220.0, 60), np.full(60, 81.5)])
+    for limbs, weights, expect in (([SHAFT, folded], [1.0, np.sqrt(2.0)], True), ([SHAFT], None, False)):
+        img, mask = _frame(limbs, weights=weights)
+        monkeypatch.setattr(batch2d, "guidewire_mask", lambda *a, _m=mask, **k: _m)
+        rec, _ = batch2d.analyse(batch2d.InputImage("f", "f.png", None, img), what="wire")
+        w = rec["wire"]
+        assert w["success"]
+        tip = np.asarray(w["points_uv_px"])[[0, -1]]          # proximal, distal
+        assert np.linalg.norm(tip[1] - SHAFT[-1]) < 3.0     # the tip (the end farther from the border) is at the bend
+        if expect:
+            assert w["doubled_tip"] is not None and w["doubled_tip"]["darkness_ratio"] >= 2.2
+            assert w["doubled_tip"]["message"].startswith("tip uncertain: the wire's last")
+        else:
+            assert w["doubled_tip"] is None
