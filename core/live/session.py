@@ -24,6 +24,7 @@ with the error, and the session goes on.
 from __future__ import annotations
 
 import logging
+import math
 import time
 from dataclasses import dataclass, field
 
@@ -473,15 +474,17 @@ def tip_stretch_mm(wire3d, wire_uv_px) -> float:
     if len(X) < 2:
         return 0.0
     uv = np.asarray(wire_uv_px, float).reshape(-1, 2)
-    if len(uv) == len(X):
-        if getattr(wire3d, "reversed_input", False):
-            uv = uv[::-1]
-        back_px = np.cumsum(np.sqrt((np.diff(uv[::-1], axis=0) ** 2).sum(axis=1)))   # from the tip, backwards
-        k = int(np.searchsorted(back_px, TIP_STRETCH_PX)) + 1   # segments needed to cover TIP_STRETCH_PX
-    else:
-        k = int(np.ceil(TIP_STRETCH_PX))
-    tail = X[-min(k, len(X) - 1) - 1:]
-    return float(np.sqrt((np.diff(tail, axis=0) ** 2).sum(axis=1)).sum())
+    k = int(np.ceil(TIP_STRETCH_PX))
+    if len(uv) == len(X):                 # walk back from the tip until TIP_STRETCH_PX of the 2D wire (a few points:
+        m = min(len(uv), 4 * k + 1)       # plain floats are faster than array calls here; sampled at about 1 px)
+        tip_first = (uv[:m] if getattr(wire3d, "reversed_input", False) else uv[:-m - 1:-1]).tolist()
+        walked, k = 0.0, 0
+        while walked < TIP_STRETCH_PX and k < m - 1:
+            walked += math.dist(tip_first[k], tip_first[k + 1])
+            k += 1
+    k = min(k, len(X) - 1)
+    tail = X[len(X) - 1 - k:].tolist()
+    return float(sum(math.dist(tail[i], tail[i + 1]) for i in range(k)))
 
 
 def _at_border(uv_px, shape) -> bool:
