@@ -440,8 +440,8 @@ def frame_verdict(wire3d, wire_uv_px, orientation, *, beyond_tip=None, motion=No
                    f"(u {distal_uv[0]:.0f}, v {distal_uv[1]:.0f} px)")
     stretch_mm = tip_stretch_mm(wire3d, uv)
     if stretch_mm > TIP_STRETCH_MAX_MM:
-        why.append(f"tip uncertain: the wire's last {TIP_STRETCH_PX:g} px span {stretch_mm:.1f} mm in 3D (limit "
-                   f"{TIP_STRETCH_MAX_MM:g} mm): its vessel runs along the beam there, and a tip a pixel off in 2D "
+        why.append(f"tip uncertain: its vessel runs along the beam: the 3D wire's last {stretch_mm:.1f} mm project onto "
+                   f"its last {TIP_STRETCH_PX:g} px (limit {TIP_STRETCH_MAX_MM:g} mm), so a tip a pixel off in 2D "
                    f"lies mm off in 3D")
     tip_sigma_mm = float(wire3d.uncertainty_mm[-1]) if len(wire3d.uncertainty_mm) else 0.0
     if tip_sigma_mm > TIP_MAX_UNCERTAINTY_MM:
@@ -469,8 +469,9 @@ def tip_stretch_mm(wire3d, wire_uv_px) -> float:
     ``TIP_STRETCH_MAX_MM``); ``wire_uv_px`` in the order given to the reconstruction (its first point
     is the output's tip when ``wire3d.reversed_input``). Where the 3D wire has one point per 2D point
     (a single-view reconstruction), the 2D arclength picks the points; else its last
-    ``TIP_STRETCH_PX`` segments (the 2D wire is sampled at about 1 px). 0 for fewer than 2 points."""
-    X = np.asarray(wire3d.points_lps_mm, float).reshape(-1, 3)
+    ``TIP_STRETCH_PX`` segments (the 2D wire is sampled at about 1 px). 0 for fewer than 2 points
+    (or an object without ``points_lps_mm``)."""
+    X = np.asarray(getattr(wire3d, "points_lps_mm", np.zeros((0, 3))), float).reshape(-1, 3)
     if len(X) < 2:
         return 0.0
     uv = np.asarray(wire_uv_px, float).reshape(-1, 2)
