@@ -49,6 +49,11 @@ def test_the_tips_stretch_is_the_3d_length_of_the_last_px():
     # a 3D wire without one point per 2D point: its last TIP_STRETCH_PX segments
     assert live.tip_stretch_mm(w, uv[:10]) == pytest.approx(expect)
     assert live.tip_stretch_mm(SimpleNamespace(points_lps_mm=X[:1], reversed_input=False), uv[:1]) == 0.0
+    # a curve sampled every 12 px (the real catheter curves of bench_real_catheter), in the image plane:
+    # measured over the same TIP_STRETCH_PX, not over its last 12 px segment
+    coarse = np.arange(0.0, 240.0, 12.0)
+    w = SimpleNamespace(points_lps_mm=np.column_stack([coarse * 0.2, 0 * coarse, 0 * coarse]), reversed_input=False)
+    assert live.tip_stretch_mm(w, np.column_stack([coarse, 0 * coarse])) == pytest.approx(live.TIP_STRETCH_PX * 0.2)
 
 
 def test_the_frame_verdict_names_the_tip_along_the_beam():
