@@ -10,7 +10,8 @@ the viewer's *apply*, the Slicer logic and, for streaming, ``guidewire3d live``.
 4. the frame's verdict: ``ok``, ``uncertain`` (a 3D wire exists but something about it is not
    settled: which end is the tip, whether the wire goes on beyond its tip through a stretch the
    segmenter lost or bends back over itself before it (two layers of wire at the traced tip),
-   where the tip is (``TIP_MAX_UNCERTAINTY_MM``), or whether it is in view at all) or ``failed``,
+   where the tip is (``TIP_MAX_UNCERTAINTY_MM``; ``TIP_STRETCH_MAX_MM``: its vessel runs along the
+   beam, and a tip right in 2D may lie mm off in 3D), or whether it is in view at all) or ``failed``,
    with the reason.
 
 Which end is the tip rests on two independent cues. In 2D, the proximal end is the one nearer the
