@@ -64,6 +64,9 @@ def test_the_frame_verdict_names_the_tip_along_the_beam():
     assert verdict is Verdict.UNCERTAIN
     assert message.startswith("tip uncertain: its vessel runs along the beam: the 3D wire's last 7.5 mm project "
                               f"onto its last {live.TIP_STRETCH_PX:g} px")
+    # two views (a biplane wire) see the depth: no such ambiguity
+    w.method = "biplane"
+    assert live.frame_verdict(w, uv, None, image_shape=(512, 512)) == (Verdict.OK, "ok: 108 points")
     X, uv = _wire(108, 0)
     w = SimpleNamespace(points_lps_mm=X, uncertainty_mm=np.full(len(X), 0.5), message="ok: 108 points",
                         reversed_input=False)

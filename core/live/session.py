@@ -439,7 +439,8 @@ def frame_verdict(wire3d, wire_uv_px, orientation, *, beyond_tip=None, motion=No
     if image_shape is not None and len(uv) and _at_border(distal_uv, image_shape):
         why.append(f"tip not in view: the wire runs out of the image at its distal end "
                    f"(u {distal_uv[0]:.0f}, v {distal_uv[1]:.0f} px)")
-    stretch_mm = tip_stretch_mm(wire3d, uv)
+    # (one view: a second view, ``method`` "biplane", sees the depth the first does not)
+    stretch_mm = tip_stretch_mm(wire3d, uv) if getattr(wire3d, "method", "") != "biplane" else 0.0
     if stretch_mm > TIP_STRETCH_MAX_MM:
         why.append(f"tip uncertain: its vessel runs along the beam: the 3D wire's last {stretch_mm:.1f} mm project onto "
                    f"its last {TIP_STRETCH_PX:g} px (limit {TIP_STRETCH_MAX_MM:g} mm), so a tip a pixel off in 2D "
