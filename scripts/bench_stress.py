@@ -30,6 +30,7 @@ import numpy as np
 #: the reasons of ``live.frame_verdict``, by the words that start them
 REASONS = {"tip end": "tip end uncertain", "beyond tip": "tip uncertain: a wire-like piece",
            "line goes on": "tip uncertain: a dark line continues", "tip doubled": "tip uncertain: the wire's last",
+           "along beam": "tip uncertain: its vessel runs along the beam",
            "not in view": "tip not in view", "tip sigma": "tip uncertain: its position",
            "trace doubtful": "2D trace doubtful", "branch ambiguous": "branch ambiguous", "motion": "motion:"}
 
@@ -94,8 +95,15 @@ def run_case(seed: int, work: Path, args) -> dict:
             rec["max_ok_tip_mm"] = max(rec["max_ok_tip_mm"], e["tip_error_mm"])
             if e["mean_error_mm"] > args.mean_mm or e["tip_error_mm"] > args.tip_mm:
                 rec["wrong"].append((k, round(e["mean_error_mm"], 2), round(e["tip_error_mm"], 1)))
-    shutil.rmtree(case, ignore_errors=True)
-    shutil.rmtree(out, ignore_errors=True)
+    if args.keep and report.exists():            # every case's report and truth, to score a verdict rule again
+        small = args.keep / "reports" / str(seed)
+        small.mkdir(parents=True, exist_ok=True)
+        for src in (report, case / "truth.json", out / "registration_inputs.npz"):
+            if src.exists():
+                shutil.copy(src, small / src.name)
+    if not (args.keep and rec["wrong"]):
+        shutil.rmtree(case, ignore_errors=True)
+        shutil.rmtree(out, ignore_errors=True)
     return rec
 
 
@@ -105,6 +113,9 @@ def main(argv=None) -> int:
     ap.add_argument("--cases", type=int, default=12)
     ap.add_argument("--mean-mm", type=float, default=2.0, help="an ok frame farther than this on average is wrong")
     ap.add_argument("--tip-mm", type=float, default=5.0, help="an ok frame whose tip is farther than this is wrong")
+    ap.add_argument("--keep", type=Path, default=None,
+                    help="keep the case and output folders of the cases with a silently wrong frame here (and of "
+                         "every case its report.json, truth.json and registration_inputs.npz, under reports/)")
     args = ap.parse_args(argv)
 
     from guidewire3d.app import bench
@@ -112,7 +123,9 @@ def main(argv=None) -> int:
     rows, recs = [], []
     with tempfile.TemporaryDirectory(prefix="gw3d-stress-") as tmp:
         for seed in range(args.seed0, args.seed0 + args.cases):
-            rec = run_case(seed, Path(tmp), args)
+            if args.keep:
+                args.keep.mkdir(parents=True, exist_ok=True)
+            rec = run_case(seed, args.keep or Path(tmp), args)
             recs.append(rec)
             wrong = ", ".join(f"f{k}: {m} / {t} mm" for k, m, t in rec["wrong"]) or "-"
             rows.append([seed, rec["options"] or "-", rec["exit"] if rec["phantom_exit"] == 0 else

@@ -13,7 +13,9 @@ vessel mask (:func:`guidewire3d.xray.roadmap.vessel_mask`), the guidewire mask
   fraction and the ordered wire (``success``, ``message``, ``length_px``, ``points_uv_px``, and
   ``presence``: the evidence of :func:`guidewire3d.xray.wirepresence.wire_presence`; a frame without a
   wire has ``success: false`` and ``message`` "no guidewire in the frame: <why>"; ``beyond_tip``: a
-  piece of the wire mask beyond the traced tip and in line with it, so the tip is not settled, or null).
+  piece of the wire mask beyond the traced tip and in line with it, so the tip is not settled, or null;
+  ``doubled_tip``: the traced tip is about twice as dark as the wire, two layers of wire (it may bend
+  back over itself before its tip: :func:`guidewire3d.xray.orderedwire.doubled_tip`), or null).
 
 ``<name>`` is the file's stem, with ``_fNNNN`` for the frames of a multi-frame file. Every input
 is read and checked before anything is computed, and the folder appears only when complete.
@@ -30,7 +32,7 @@ from guidewire3d import io
 from guidewire3d.app.export import overlay_image, write_png
 from guidewire3d.errors import InputError
 from guidewire3d.methods import SegMethod, choices
-from guidewire3d.xray.orderedwire import ordered_wire
+from guidewire3d.xray.orderedwire import doubled_tip, ordered_wire
 from guidewire3d.xray.roadmap import vessel_mask
 from guidewire3d.xray.imaging import as_image
 from guidewire3d.xray.segmentation import guidewire_mask
@@ -152,6 +154,10 @@ def analyse(image: InputImage, *, what: str = "both", segmenter: str = "unet", w
                 "length_px": round(ow.beyond_tip.length_px, 1), "gap_px": round(ow.beyond_tip.gap_px, 1),
                 "angle_deg": round(ow.beyond_tip.angle_deg, 1), "message": ow.beyond_tip.explain()},
         }
+        # two layers of wire at the traced tip (the wire bends back over itself before it): not settled
+        doubled = doubled_tip(np.asarray(image.image), np.asarray(ow)) if ow and np.ndim(image.image) == 2 else None
+        rec["wire"]["doubled_tip"] = None if doubled is None else {
+            "darkness_ratio": round(doubled.darkness_ratio, 2), "message": doubled.explain()}
     return rec, masks
 
 

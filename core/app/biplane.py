@@ -47,7 +47,7 @@ from guidewire3d.reconstruction.triangulation import (
 from guidewire3d.reconstruction import reconstruct_wire
 from guidewire3d.registration import model, problem, search, solve, verdict
 from guidewire3d.registration.result import RegistrationResult, _failed
-from guidewire3d.xray.orderedwire import ordered_wire
+from guidewire3d.xray.orderedwire import doubled_tip, ordered_wire
 
 __all__ = ["ViewFit", "BiplaneRegistration", "register_biplane", "BiplaneFrame", "BiplaneSession",
            "pair_frames", "check_planes", "check_inputs", "run", "run_to_outdir", "projection_error_summary", "PLANES"]
@@ -559,7 +559,8 @@ class BiplaneSession:
                 # a piece of wire beyond the tip in either plane; the tip's own uncertainty (whether
                 # the tip is in view is left to the two views: one may see it where the other does not)
                 beyond = next((b for b in (getattr(w, "beyond_tip", None) for w in wires) if b is not None), None)
-                verdict, message = frame_verdict(w3, uv[0], ori, beyond_tip=beyond)
+                verdict, message = frame_verdict(w3, uv[0], ori, beyond_tip=beyond,
+                                                 doubled_tip=_doubled_tip_two_view(tv, uv, images))
                 fr = FrameResult(index, wires[0], w3, verdict, message, ori, time.perf_counter() - t0, float("nan"),
                                  self.pose)
                 return BiplaneFrame(fr, "AB", "", wires[1], tv.projection_error_px, index_b, fr.seconds)
@@ -582,6 +583,23 @@ class BiplaneSession:
         fr = FrameResult(index, wires[0], fr_k.wire3d, fr_k.verdict, f"{fallback}. {fr_k.message}".strip(),
                          fr_k.orientation, time.perf_counter() - t0, float("nan"), self.pose)
         return BiplaneFrame(fr, PLANES[k] if fr_k.wire3d else "", fallback, wires[1], tuple(perr), index_b, fr.seconds)
+
+
+def _doubled_tip_two_view(tv, uv, images):
+    """Two layers of wire at the tip (``orderedwire.doubled_tip``) in a plane whose 2D wire ends at the
+    output's tip, or None: where one plane's wire was appended beyond the two-view tip
+    (``extend_distal``), that plane; else both (each plane's tip is then the two-view tip, and a
+    wire folded back over itself just before its tip may show as one line in either)."""
+    gaps = np.nan_to_num(np.asarray(tv.distal_gap_px, float), nan=0.0)
+    planes = [int(np.argmax(gaps))] if tv.single_view_distal_mm > 0 else [0, 1]
+    for k in planes:
+        img = images[k] if k < len(images) else None
+        if img is None or np.ndim(img) != 2:
+            continue
+        d = doubled_tip(np.asarray(img), uv[k], at_end=not (k == 1 and tv.b_reversed))
+        if d is not None:
+            return d
+    return None
 
 
 # ============================================================================================

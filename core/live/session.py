@@ -10,7 +10,8 @@ the viewer's *apply*, the Slicer logic and, for streaming, ``guidewire3d live``.
 4. the frame's verdict: ``ok``, ``uncertain`` (a 3D wire exists but something about it is not
    settled: which end is the tip, whether the wire goes on beyond its tip through a stretch the
    segmenter lost or bends back over itself before it (two layers of wire at the traced tip),
-   where the tip is (``TIP_MAX_UNCERTAINTY_MM``), or whether it is in view at all) or ``failed``,
+   where the tip is (``TIP_MAX_UNCERTAINTY_MM``; ``TIP_STRETCH_MAX_MM``: its vessel runs along the
+   beam, and a tip right in 2D may lie mm off in 3D), or whether it is in view at all) or ``failed``,
    with the reason.
 
 Which end is the tip rests on two independent cues. In 2D, the proximal end is the one nearer the
@@ -24,6 +25,7 @@ with the error, and the session goes on.
 from __future__ import annotations
 
 import logging
+import math
 import time
 from dataclasses import dataclass, field
 
@@ -38,7 +40,7 @@ from guidewire3d.vesseltree import VesselTree
 from guidewire3d.xray import segmentation
 from guidewire3d.xray.orderedwire import OrderedWire, doubled_tip, ordered_wire
 
-__all__ = ["Orientation", "FrameResult", "Session", "orientation_of", "frame_verdict"]
+__all__ = ["Orientation", "FrameResult", "Session", "orientation_of", "frame_verdict", "tip_stretch_mm"]
 
 log = logging.getLogger(__name__)
 
@@ -66,6 +68,16 @@ TREE_RETREAT_MAX_MM = 6.0
 #: the chosen end, makes the branch ambiguous
 BRANCH_EXTRA_MAX = 4.0
 BRANCH_SHIFT_MIN_MM = 10.0
+#: the tip along the beam: the 3D wire's arclength over the last ``TIP_STRETCH_PX`` px of its 2D wire
+#: (``tip_stretch_mm``). Where the tip's vessel runs in the image plane, they span about 5 x the
+#: pixel size at the isocentre (about 1 mm); where it turns along the beam, many mm project onto
+#: those few px, and a 2D tip right to a pixel or two (the trace's end cap, the lumen's width, a pose
+#: a little off) leaves the 3D tip mm off along the vessel: ``bench_stress`` 3504 f3 (9.8 mm over
+#: the last 5 px, the tip 12.1 mm off) and 3505 f1 (6.0 mm, 7.1 mm off), both reported ``ok`` before.
+#: Above ``TIP_STRETCH_MAX_MM`` the tip is not settled (on simulated frames at the true pose and on
+#: the stress cases, ok frames with the tip right stayed below 4 mm)
+TIP_STRETCH_PX = 5.0
+TIP_STRETCH_MAX_MM = 4.5
 #: a 2D wire whose distal end is this close to the image border (px) runs out of the view there:
 #: its tip is not seen (it may re-enter the image elsewhere)
 TIP_BORDER_PX = 1.5
@@ -405,6 +417,8 @@ def frame_verdict(wire3d, wire_uv_px, orientation, *, beyond_tip=None, motion=No
       over itself (or runs on under its own projection) before its true tip (``doubled_tip``:
       ``orderedwire.DoubledTip``, of the output's tip end);
     * the wire runs out of the image (``image_shape``, rows and cols) at its distal end;
+    * the tip's vessel runs along the beam: the wire's last px span many mm in 3D
+      (``TIP_STRETCH_MAX_MM``);
     * the tip's uncertainty exceeds ``TIP_MAX_UNCERTAINTY_MM``;
     * the path through the tree walks back towards the root (``TREE_RETREAT_MAX_MM``);
     * a path through another branch explains the wire about as well (``BRANCH_EXTRA_MAX``);
@@ -425,6 +439,12 @@ def frame_verdict(wire3d, wire_uv_px, orientation, *, beyond_tip=None, motion=No
     if image_shape is not None and len(uv) and _at_border(distal_uv, image_shape):
         why.append(f"tip not in view: the wire runs out of the image at its distal end "
                    f"(u {distal_uv[0]:.0f}, v {distal_uv[1]:.0f} px)")
+    # (one view: a second view, ``method`` "biplane", sees the depth the first does not)
+    stretch_mm = tip_stretch_mm(wire3d, uv) if getattr(wire3d, "method", "") != "biplane" else 0.0
+    if stretch_mm > TIP_STRETCH_MAX_MM:
+        why.append(f"tip uncertain: its vessel runs along the beam: the 3D wire's last {stretch_mm:.1f} mm project onto "
+                   f"its last {TIP_STRETCH_PX:g} px (limit {TIP_STRETCH_MAX_MM:g} mm), so a tip a pixel off in 2D "
+                   f"lies mm off in 3D")
     tip_sigma_mm = float(wire3d.uncertainty_mm[-1]) if len(wire3d.uncertainty_mm) else 0.0
     if tip_sigma_mm > TIP_MAX_UNCERTAINTY_MM:
         why.append(f"tip uncertain: its position is known to {tip_sigma_mm:.1f} mm (1 sigma, limit "
@@ -444,6 +464,35 @@ def frame_verdict(wire3d, wire_uv_px, orientation, *, beyond_tip=None, motion=No
     if not why:
         return Verdict.OK, wire3d.message
     return Verdict.UNCERTAIN, "; ".join(why)
+
+
+def tip_stretch_mm(wire3d, wire_uv_px) -> float:
+    """The 3D wire's arclength (mm) over the last ``TIP_STRETCH_PX`` px of its 2D wire (see
+    ``TIP_STRETCH_MAX_MM``); ``wire_uv_px`` in the order given to the reconstruction (its first point
+    is the output's tip when ``wire3d.reversed_input``). Where the 3D wire has one point per 2D point
+    (a single-view reconstruction), the 2D arclength picks the points (the segment that reaches past
+    ``TIP_STRETCH_PX`` counts in proportion: a coarsely sampled curve, as the real catheter curves of
+    ``bench_real_catheter`` at 12 px, is measured over the same 5 px); else its last
+    ``TIP_STRETCH_PX`` segments (the 2D wire is sampled at about 1 px). 0 for fewer than 2 points
+    (or an object without ``points_lps_mm``)."""
+    X = np.asarray(getattr(wire3d, "points_lps_mm", np.zeros((0, 3))), float).reshape(-1, 3)
+    if len(X) < 2:
+        return 0.0
+    uv = np.asarray(wire_uv_px, float).reshape(-1, 2)
+    k = int(np.ceil(TIP_STRETCH_PX))
+    last = 1.0                            # the fraction of the k-th segment (from the tip) within TIP_STRETCH_PX
+    if len(uv) == len(X):                 # walk back from the tip until TIP_STRETCH_PX of the 2D wire (a few points:
+        m = min(len(uv), 4 * k + 1)       # plain floats are faster than array calls here)
+        tip_first = (uv[:m] if getattr(wire3d, "reversed_input", False) else uv[:-m - 1:-1]).tolist()
+        walked, k = 0.0, 0
+        while walked < TIP_STRETCH_PX and k < m - 1:
+            step = math.dist(tip_first[k], tip_first[k + 1])
+            last = min(1.0, (TIP_STRETCH_PX - walked) / step) if step > 0 else 1.0
+            walked += step
+            k += 1
+    k = min(k, len(X) - 1)
+    tail = X[len(X) - 1 - k:][::-1].tolist()   # tip first
+    return float(sum(math.dist(tail[i], tail[i + 1]) * (last if i == k - 1 else 1.0) for i in range(k)))
 
 
 def _at_border(uv_px, shape) -> bool:
