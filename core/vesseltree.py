@@ -236,6 +236,23 @@ class VesselTree:
         new_par = np.where(par >= 0, new_index[np.maximum(par, 0)], -1)
         return VesselTree(self.points_lps_mm[keep_mask], self.radius_mm[keep_mask], new_par)
 
+    def rerooted(self, new_root: int) -> "VesselTree":
+        """The same points, radii and edges, rooted at point ``new_root`` (the edges on its path to the
+        old root reversed)."""
+        new_root = int(new_root)
+        if not 0 <= new_root < self.n_points:
+            raise InputError(f"VesselTree.rerooted: point {new_root} out of range (0..{self.n_points - 1})")
+        if new_root == self.root:
+            return self
+        par = self.parent.copy()
+        child, p = new_root, int(par[new_root])
+        par[new_root] = -1
+        while p >= 0:  # walk up to the old root, reversing each edge
+            nxt = int(par[p])
+            par[p] = child
+            child, p = p, nxt
+        return VesselTree(self.points_lps_mm, self.radius_mm, par)
+
     def densified(self, step_mm) -> tuple["VesselTree", np.ndarray]:
         """Insert points on edges longer than ``step_mm`` (scalar or per point, taken at the child).
 

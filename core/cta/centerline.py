@@ -21,6 +21,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import (
     breadth_first_order,
     connected_components,
+    dijkstra,
     minimum_spanning_tree,
 )
 
@@ -29,6 +30,12 @@ __all__ = ["CenterlineOptions", "centerline_from_mask", "ridge_points", "GAP_FAC
 #: Expected gap between a lumen surface and the nearest background voxel centre, ``GAP_FACTOR *
 #: h**2 / r`` (h = geometric-mean spacing), measured on digitised straight tubes of radius 0.8-3.2 mm.
 GAP_FACTOR = 0.15
+#: Without a seed the root is the end of the tree whose radius, the median over the first
+#: ``ROOT_RADIUS_SPAN_MM`` along the tree from it, is largest (the inflow vessel is the widest).
+#: Taken on the finished tree, not on the skeleton voxel's distance transform: near the volume's
+#: edge that single value was low and the root went to a distal end (``bench_stress`` 3604 and
+#: 3609: 81 and 93 mm from the true root, the wire's tip then reported at its wrong end).
+ROOT_RADIUS_SPAN_MM = 5.0
 
 
 @dataclass(frozen=True)
@@ -306,7 +313,8 @@ def centerline_from_mask(mask_zyx, *, spacing_mm, origin_lps_mm, direction=None,
     direction : (3, 3) array_like, optional
         Columns are the x, y, z index axes in LPS.
     seed_lps_mm : (3,) array_like of float, optional
-        The root is the skeleton endpoint nearest this point (else the widest endpoint).
+        The root is the skeleton endpoint nearest this point (else the end of the finished tree
+        that is widest over its first ``ROOT_RADIUS_SPAN_MM``).
     options : CenterlineOptions, optional
     progress : bool
 
@@ -478,7 +486,19 @@ def centerline_from_mask(mask_zyx, *, spacing_mm, origin_lps_mm, direction=None,
     if len(pts) < 2:
         raise SegmentationError("centerline_from_mask: no vessels found (the mask is too small for a centerline)")
     pts_lps = (pts + off) @ M.T + o
-    return VesselTree(pts_lps, rad, par)
+    tree = VesselTree(pts_lps, rad, par)
+    return tree if seed_idx is not None else _rooted_at_widest_end(tree)
+
+
+def _rooted_at_widest_end(tree: VesselTree) -> VesselTree:
+    """``tree`` re-rooted at the end (leaf or root) whose median radius over the first
+    ``ROOT_RADIUS_SPAN_MM`` along the tree is largest (ties: the current root)."""
+    ends = np.r_[tree.root, tree.leaves[tree.leaves != tree.root]]
+    d = dijkstra(tree.adjacency, directed=False, indices=ends, limit=ROOT_RADIUS_SPAN_MM)
+    r = tree.radius_mm
+    med = np.array([np.median(r[np.isfinite(row)]) for row in d])
+    best = int(ends[int(np.argmax(med))])  # argmax: the first (the current root) among equals
+    return tree.rerooted(best)
 
 
 #: A terminal path's containing balls are looked for among this many nearest inner skeleton voxels
