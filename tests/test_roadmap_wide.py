@@ -61,8 +61,16 @@ def _outside_branch_roots(axis, aorta, radius_px):
     return axis[d > radius_px + 4.0]
 
 
+@pytest.fixture
+def wide_pass(monkeypatch):
+    """The full-resolution pass for wide vessels, off by default (``roadmap.WIDE_VESSELS``)."""
+    from guidewire3d.xray import roadmap
+
+    monkeypatch.setattr(roadmap, "WIDE_VESSELS", True)
+
+
 @pytest.mark.parametrize("seed, gap_px", [(0, None), (1, 30.0)])
-def test_dense_arch_centerline_on_the_axis_with_the_true_radius(seed, gap_px):
+def test_dense_arch_centerline_on_the_axis_with_the_true_radius(seed, gap_px, wide_pass):
     """The centerline of a dense arch runs along the aorta's axis (not its edges, not across the background
     the arch encloses), with the aorta's radius; the branch on the arch is found as well."""
     rng = np.random.default_rng(seed)

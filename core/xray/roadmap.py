@@ -68,6 +68,10 @@ FINE_MAX_RADIUS_PX = 6.0          # widest vessel radius the single-resolution p
 MAX_COARSE_FACTOR = 8             # largest binning of the coarse pass (see max_radius_px)
 HALF_MAX = 0.5                    # fraction of the local vessel contrast at the vessel edge
 WIDE_TOPHAT_FACTOR = 1.2          # wide vessels' top-hat disk: this x max_radius_px (see _wide_vessels)
+WIDE_VESSELS = False               # the full-resolution pass for vessels wider than the fine pass (_wide_vessels):
+                                  # off by default. It helps a dense aortogram (issue 17's real-anatomy poses), but
+                                  # next to the simulator's thick trunk it dropped the coarse detection of a faint
+                                  # branch, and bench_stress seeds 3606 and 3608 lost their registration (refused)
 WIDE_EDGE_FRACTION = 0.25         # wide vessels' edge: this x the local contrast (a tube's chord there is
                                   # sqrt(1 - 0.25^2) = 97 % of its diameter; at half maximum 87 %)
 
@@ -233,7 +237,8 @@ def vessel_mask(image, *, dark_vessels: bool | None = None, max_radius_px: float
             up = np.zeros(a.shape, bool)
             up[:h, :w] = np.repeat(np.repeat(mc, f, axis=0), f, axis=1)
             up &= fov
-            wide = _wide_vessels(att, mc, f, float(max_radius_px), fov, FINE_MAX_RADIUS_PX * scale)
+            wide = (_wide_vessels(att, mc, f, float(max_radius_px), fov, FINE_MAX_RADIUS_PX * scale)
+                    if WIDE_VESSELS else None)
             if wide is not None:
                 # the coarse detections of the wide vessels are replaced by their full-resolution
                 # extent (f x f blocks would fill the bright background an aortic arch encloses,
