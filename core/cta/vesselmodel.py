@@ -517,7 +517,7 @@ def dim_wide_fraction(volume: io.Volume, tree, background: float, lumen: float, 
     radius of at least ``wide_radius_mm`` whose median axis intensity (trilinear, on the volume) is
     below ``background + dim_fraction (lumen - background)``, over the length of all the branches.
 
-    A contrast-filled vessel at least 3 mm wide has the lumen's intensity on its axis (partial
+    A contrast-filled vessel at least 4 mm wide has the lumen's intensity on its axis (partial
     volume only dims thinner ones); the branches a threshold finds in bone marrow, kidney cortex,
     spleen or unenhanced veins do not.
     """
