@@ -23,6 +23,8 @@ from guidewire3d.live.session import (  # noqa: F401
     HINT_MARGIN_MIN,
     TIP_BORDER_PX,
     TIP_MAX_UNCERTAINTY_MM,
+    TIP_STRETCH_MAX_MM,
+    TIP_STRETCH_PX,
     TREE_RETREAT_MAX_MM,
     TREE_RISE_MIN_MM,
     FrameResult,
@@ -31,4 +33,5 @@ from guidewire3d.live.session import (  # noqa: F401
     frame_verdict,
     log,
     orientation_of,
+    tip_stretch_mm,
 )
