@@ -527,17 +527,17 @@ def dim_wide_fraction(volume: io.Volume, tree, background: float, lumen: float, 
     idx = volume.lps_to_index_zyx(pts)
     val = ndi.map_coordinates(np.asarray(volume.array_zyx, dtype=np.float32), idx.T, order=1, mode="nearest")
     frac = (val - background) / (lumen - background)
-    par = np.asarray(tree.parent)
-    seg = np.where(par >= 0, np.linalg.norm(pts - pts[np.maximum(par, 0)], axis=1), 0.0)
-    pb = np.asarray(tree.point_branch)
+    seg = np.zeros(len(pts))
+    seg[tree.edges[:, 1]] = tree.edge_length_mm  # each edge's length at its child point
     total = float(seg.sum())
     if total <= 0:
         return 0.0
     dim = 0.0
-    for b in np.unique(pb):
-        s = pb == b
-        if np.median(tree.radius_mm[s]) >= wide_radius_mm and np.median(frac[s]) < dim_fraction:
-            dim += float(seg[s].sum())
+    for b in tree.branches:
+        # the branch's points as ``tree.point_branch`` assigns them: after its start node, and the root in branch 0
+        ids = b.point_ids if b.index == 0 else b.point_ids[1:]
+        if np.median(tree.radius_mm[ids]) >= wide_radius_mm and np.median(frac[ids]) < dim_fraction:
+            dim += float(seg[ids].sum())
     return dim / total
 
 
