@@ -45,7 +45,8 @@ def vessels_record(auto, *, inputs: dict) -> dict:
         "inputs": inputs,
         "intensity_model": auto.model.to_dict(),
         "plausibility": auto.plausibility.to_dict(),
-        "segmentation": {"pass": auto.segmentation, "first_pass_problems": list(auto.first_pass_problems)},
+        "segmentation": {"pass": auto.segmentation, "first_pass_problems": list(auto.first_pass_problems),
+                         "pruned": auto.pruned},
         "tree": {
             "n_points": int(tree.n_points),
             "n_branches": len(tree.branches),
@@ -99,9 +100,11 @@ def cli_main(args) -> int:
     auto = run_to_outdir(args.cta, args.out, seeds_lps_mm=args.seed_lps, series_uid=args.series_uid, log=say,
                          progress=sys.stderr.isatty())
     m, t = auto.model, auto.vessels.tree
-    if auto.segmentation == "strict":
-        say(f"note: the first vessel tree was implausible ({'; '.join(auto.first_pass_problems)}); the strict "
-            f"pass's tree is written (check it in the viewer)")
+    if auto.segmentation != "standard":
+        how = "the strict pass's tree" if auto.segmentation.startswith("strict") else "the tree"
+        cut = f", {auto.pruned}" if auto.pruned else ""
+        say(f"note: the first vessel tree was implausible ({'; '.join(auto.first_pass_problems)}); {how} is "
+            f"written{cut} (check it in the viewer)")
     print(f"wrote {args.out}: {len(t.branches)} branches, {t.total_length_mm / 10:.1f} cm of centerline, "
           f"radius {np.median(t.radius_mm):.1f} mm median / {t.radius_mm.max():.1f} mm max, "
           f"{auto.plausibility.vessel_cm3:.1f} cm3; lumen {m.lumen:.4g}, background {m.background:.4g} "

@@ -6,4 +6,5 @@
 - ``centerline``: the centerline graph of the mask (distance-transform ridges, skeleton graph, radii)
 - ``vessels3d``: the three chained (``extract_vessels``), with stage timings
 - ``vesselmodel``: the intensity model taken from the volume itself (HU CTA, MRA, 3DRA) and the plausibility checks
+- ``prune``: a tree without its wide branches whose axis is dim (unenhanced veins, marrow), when only they make it implausible
 """

@@ -490,10 +490,13 @@ def centerline_from_mask(mask_zyx, *, spacing_mm, origin_lps_mm, direction=None,
     return tree if seed_idx is not None else _rooted_at_widest_end(tree)
 
 
-def _rooted_at_widest_end(tree: VesselTree) -> VesselTree:
+def _rooted_at_widest_end(tree: VesselTree, allowed=None) -> VesselTree:
     """``tree`` re-rooted at the end (leaf or root) whose median radius over the first
-    ``ROOT_RADIUS_SPAN_MM`` along the tree is largest (ties: the current root)."""
+    ``ROOT_RADIUS_SPAN_MM`` along the tree is largest (ties: the current root); only among the ends
+    where ``allowed`` (bool per point) is set, when it is given and any is."""
     ends = np.r_[tree.root, tree.leaves[tree.leaves != tree.root]]
+    if allowed is not None and np.asarray(allowed, bool)[ends].any():
+        ends = ends[np.asarray(allowed, bool)[ends]]
     d = dijkstra(tree.adjacency, directed=False, indices=ends, limit=ROOT_RADIUS_SPAN_MM)
     r = tree.radius_mm
     med = np.array([np.median(r[np.isfinite(row)]) for row in d])

@@ -29,7 +29,7 @@ from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 from guidewire3d import io
-from guidewire3d.cta import vessels3d
+from guidewire3d.cta import prune, vessels3d
 from guidewire3d.cta.segment import VesselOptions, frangi_at
 from guidewire3d.errors import InputError, SegmentationError
 from scipy import ndimage as ndi
@@ -106,6 +106,9 @@ DIM_WIDE_RADIUS_MM = 2.0
 DIM_AXIS_FRACTION = 0.6
 #: ... and a tree with more than this fraction of its length in such branches is implausible.
 MAX_DIM_WIDE_FRACTION = 0.08
+#: When only that makes a tree implausible, the branches are cut (:mod:`guidewire3d.cta.prune`) if they
+#: hold at most this fraction of its length: more, and the tree is not mostly vessels.
+MAX_PRUNED_FRACTION = 0.25
 #: The strict second pass (``IntensityModel.vessel_options(strict=True)``): at least this fraction of
 #: the candidates within 3 mm must be tubular, unless brighter than this fraction of the contrast.
 STRICT_TUBULAR_DENSITY = 0.2
@@ -211,6 +214,9 @@ class AutoVessels:
     segmentation: str = "standard"
     #: the first pass's problems when the strict pass replaced it
     first_pass_problems: tuple[str, ...] = ()
+    #: what was cut from the tree when only its dim wide branches made it implausible
+    #: (``prune.DimWidePruning.explain``; ``segmentation`` then ends in "+pruned"), else ""
+    pruned: str = ""
 
 
 # --------------------------------------------------------------------------------------
@@ -521,24 +527,16 @@ def dim_wide_fraction(volume: io.Volume, tree, background: float, lumen: float, 
     volume only dims thinner ones); the branches a threshold finds in bone marrow, kidney cortex,
     spleen or unenhanced veins do not.
     """
-    pts = np.asarray(tree.points_lps_mm, dtype=float)
-    if len(pts) < 2 or lumen <= background:
+    if tree.n_points < 2 or lumen <= background:
         return 0.0
-    idx = volume.lps_to_index_zyx(pts)
-    val = ndi.map_coordinates(np.asarray(volume.array_zyx, dtype=np.float32), idx.T, order=1, mode="nearest")
-    frac = (val - background) / (lumen - background)
-    seg = np.zeros(len(pts))
+    seg = np.zeros(tree.n_points)
     seg[tree.edges[:, 1]] = tree.edge_length_mm  # each edge's length at its child point
     total = float(seg.sum())
     if total <= 0:
         return 0.0
-    dim = 0.0
-    for b in tree.branches:
-        # the branch's points as ``tree.point_branch`` assigns them: after its start node, and the root in branch 0
-        ids = b.point_ids if b.index == 0 else b.point_ids[1:]
-        if np.median(tree.radius_mm[ids]) >= wide_radius_mm and np.median(frac[ids]) < dim_fraction:
-            dim += float(seg[ids].sum())
-    return dim / total
+    dim = prune.dim_wide_points(volume, tree, background, lumen, wide_radius_mm=wide_radius_mm,
+                                dim_fraction=dim_fraction)
+    return float(seg[dim].sum()) / total
 
 
 def check_plausibility(volume: io.Volume, mask_zyx: np.ndarray, tree, *, body_cm3: float | None = None,
@@ -609,6 +607,11 @@ def _body_cm3(volume: io.Volume) -> float:
     return frac * float(np.prod(volume.shape_zyx)) * float(np.prod(volume.spacing_mm)) / 1000.0
 
 
+def _only_dim_wide(pl: Plausibility) -> bool:
+    """Whether the dim wide branches (:func:`dim_wide_fraction`) are a record's only problem."""
+    return pl.dim_wide_fraction > MAX_DIM_WIDE_FRACTION and len(pl.problems) == 1
+
+
 def extract_vessels_auto(volume: io.Volume, *, seeds_lps_mm=None, progress: bool = False, options=None,
                          centerline_options=None) -> AutoVessels:
     """Intensity model, segmentation, surface, centerline and plausibility of any angiographic volume.
@@ -638,7 +641,12 @@ def extract_vessels_auto(volume: io.Volume, *, seeds_lps_mm=None, progress: bool
     When the first tree is implausible because of dim wide axes (:func:`dim_wide_fraction`: bone
     marrow, organ parenchyma), the segmentation runs once more in its strict form
     (:meth:`IntensityModel.vessel_options` with ``strict=True``); its tree is returned when it passes
-    the same checks (``segmentation="strict"``, the first pass's problems kept).
+    the same checks (``segmentation="strict"``, the first pass's problems kept). When that tree (or,
+    failing it, the first) is implausible only through its dim wide branches, and they hold at most
+    ``MAX_PRUNED_FRACTION`` of its length, the tree without them and what lies beyond them
+    (:func:`guidewire3d.cta.prune.without_dim_wide_branches`; the seeds must stay in it) is returned
+    when it passes every check (``segmentation`` "strict+pruned" or "standard+pruned", ``pruned``
+    saying what was cut).
     """
     what = volume.source or "volume"
     secs = {}
@@ -677,6 +685,25 @@ def extract_vessels_auto(volume: io.Volume, *, seeds_lps_mm=None, progress: bool
         secs["total"] += secs["strict_pass"]
         if pl2.ok:
             return AutoVessels(res2, model, pl2, secs, segmentation="strict", first_pass_problems=first)
+    # still implausible only through its dim wide branches (unenhanced veins joined to the arteries, a
+    # little marrow): the tree without them and what lies beyond them, if that passes every check
+    for name, r_, p_ in (("strict", res2, pl2), ("standard", res, pl)):
+        if r_ is None or p_ is None or p_.ok or not _only_dim_wide(p_):
+            continue
+        t0 = time.perf_counter()
+        cut = prune.without_dim_wide_branches(volume, r_, background=model.background, lumen=model.lumen,
+                                              wide_radius_mm=DIM_WIDE_RADIUS_MM, dim_fraction=DIM_AXIS_FRACTION,
+                                              max_fraction=MAX_PRUNED_FRACTION, seeds_lps_mm=seeds_lps_mm)
+        if cut is None:
+            continue
+        pl3 = check_plausibility(volume, cut.vessels.mask_zyx, cut.vessels.tree, body_cm3=body_cm3,
+                                 seeded=seeds_lps_mm is not None, model=model)
+        secs["pruning"] = time.perf_counter() - t0
+        secs["total"] += secs["pruning"]
+        if pl3.ok:
+            return AutoVessels(cut.vessels, model, pl3, secs, segmentation=f"{name}+pruned",
+                               first_pass_problems=first, pruned=cut.explain())
+        break
     hint = ("the seeds may be outside the lumen or the vessels too faint" if seeds_lps_mm is not None
             else "give --seed-lps X,Y,Z inside a vessel")
     strict_note = ("" if pl2 is None or pl2.ok else f" (a strict pass too: {'; '.join(pl2.problems)})")
