@@ -2364,7 +2364,7 @@ def _compile_motion_views():
 
         @jit
         def motion_linearize(c, Y0, centroid, nbr, radius, focal, pp, delta, sel, pairs, find_pairs, sigma_px,
-                             huber_px, gate_px, pw):
+                             huber_px, gate_px, pw, slack):
             n = c.shape[0]
             m = sel.shape[0]
             phi = delta[3:]
@@ -2427,8 +2427,18 @@ def _compile_motion_views():
                     n0, n1 = d0 / dn, d1 / dn
                 r[i] = -(n0 * d0 + n1 * d1)
                 a = abs(r[i])
-                w[i] = (1.0 / np.sqrt(1.0 + (a / huber_px) ** 2) if a <= gate_px else 0.0) * (pw / sigma_px ** 2)
                 z = y[2]
+                lumen[i] = focal * radius[j[i]] / z
+                w[i] = (1.0 / np.sqrt(1.0 + (a / huber_px) ** 2) if a <= gate_px else 0.0) * (pw / sigma_px ** 2)
+                if slack > 0.0:  # the curve anywhere within ``slack`` projected radii of the centerline fits
+                    inside = slack * lumen[i]
+                    if a <= inside:
+                        r[i] = 0.0
+                        w[i] = 0.0
+                    elif a <= gate_px:
+                        r[i] = r[i] - inside if r[i] > 0 else r[i] + inside
+                        a = abs(r[i])
+                        w[i] = (1.0 / np.sqrt(1.0 + (a / huber_px) ** 2)) * (pw / sigma_px ** 2)
                 g[0] = n0 * (focal / z)
                 g[1] = n1 * (focal / z)
                 g[2] = -(g[0] * y[0] + g[1] * y[1]) / z
@@ -2437,7 +2447,6 @@ def _compile_motion_views():
                 J[i, 3] = e1 * g[2] - e2 * g[1]
                 J[i, 4] = e2 * g[0] - e0 * g[2]
                 J[i, 5] = e0 * g[1] - e1 * g[0]
-                lumen[i] = focal * radius[j[i]] / z
             return r, J, w, j, lumen
 
         _COMPILED_MOTION_VIEWS.update(motion_linearize=motion_linearize)
@@ -2445,7 +2454,8 @@ def _compile_motion_views():
 
 
 def motion_linearize(c, Y0, centroid, nbr, radius, *, focal_px: float, principal_point_px, delta, sel, pairs,
-                     find_pairs: bool, sigma_px: float, huber_px: float, gate_px: float, point_weight: float):
+                     find_pairs: bool, sigma_px: float, huber_px: float, gate_px: float, point_weight: float,
+                     lumen_slack: float = 0.0):
     """One view's point-to-tangent residuals of the tracker at ``delta`` (``motion_solve``'s inner loop).
 
     Parameters
@@ -2454,7 +2464,9 @@ def motion_linearize(c, Y0, centroid, nbr, radius, *, focal_px: float, principal
     centroid : (3,); nbr : (K,) int; radius : (K,) mm (as ``motion_solve``); delta : (6,) the view's delta;
     sel : (M,) int, M >= 1, the tree samples a curve point may pair with; pairs : (N,) int, the pairs to use when
     ``find_pairs`` is False (else each curve point's nearest projected sample among ``sel``, the lower index on a
-    tie); point_weight : each point's weight in the fit (one point per ``fit_correlation_mm``).
+    tie); point_weight : each point's weight in the fit (one point per ``fit_correlation_mm``); lumen_slack : a
+    point within this many projected radii of the centerline has no residual (weight 0), one beyond it the
+    distance beyond (0: the distance to the centerline, as ``motion_solve``).
 
     Returns
     -------
@@ -2464,7 +2476,7 @@ def motion_linearize(c, Y0, centroid, nbr, radius, *, focal_px: float, principal
     return f(_in(c, np.float64), _in(Y0, np.float64), _in(centroid, np.float64), _in(nbr, np.int64),
              _in(radius, np.float64), float(focal_px), _in(principal_point_px, np.float64), _in(delta, np.float64),
              _in(sel, np.int64), _in(pairs, np.int64), bool(find_pairs), float(sigma_px), float(huber_px),
-             float(gate_px), float(point_weight))
+             float(gate_px), float(point_weight), float(lumen_slack))
 
 
 def warm_up_motion_views() -> None:
