@@ -548,6 +548,17 @@ def test_biplane_session_tracks_motion_and_reconstructs_each_pair_in_its_pose():
         out[track] = [mtre_mm(f.result.pose, case.frame_pose(t), pts) for t, f in enumerate(frs)]
         if track:
             assert all(f.result.motion.pose.allclose(f.result.pose, atol_mm=1e-6) for f in frs)
+            # the two-view context moved to the tracked pose is the one made there
+            from guidewire3d.reconstruction.triangulation import TwoViewContext
+
+            fresh = TwoViewContext(case.tree, bs.carms, bs.pose)
+            for a, b in zip(bs.context.P, fresh.P):
+                np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-9)
+            np.testing.assert_allclose(bs.context.F / np.linalg.norm(bs.context.F), fresh.F / np.linalg.norm(fresh.F),
+                                       atol=1e-12)
+            for ca, cb in zip(bs.context.cams, fresh.cams):
+                for x, y in zip(ca, cb):
+                    np.testing.assert_allclose(x, y, atol=1e-9)
             w = [cKDTree(case.wire_lps_mm[t]).query(f.result.wire3d.points_lps_mm)[0].mean()
                  for t, f in enumerate(frs) if f]
             assert len(w) == 8 and np.mean(w) < 1.0, w
