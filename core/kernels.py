@@ -2347,3 +2347,143 @@ def warm_up_motion() -> None:
                      Lt=np.zeros((6, 6)), sigma_px=1.5, huber_px=3.0, gate_px=40.0, inlier_px=3.0, crop_px=70.0,
                      fit_correlation_mm=3.0, iterations=2, step_tol_mm=0.01, step_tol_rad=1e-5)
         motion_acquire_costs(c, c, np.ones(2), np.arange(3.0), gate_px=40.0)
+
+
+# --- biplane motion tracking (guidewire3d.motion.tracking.BiplaneMotionTracker) -------------------------------------
+__all__ += ["motion_linearize"]
+_COMPILED_MOTION_VIEWS: dict = {}
+
+
+def _compile_motion_views():
+    """One view's residuals and Jacobian at a pose (the inner loop of ``motion_solve``, without its Gauss-Newton
+    step): the biplane tracker sums two views' normal equations in one solve."""
+    with _LOCK:
+        if _COMPILED_MOTION_VIEWS:
+            return _COMPILED_MOTION_VIEWS
+        jit = _jit
+
+        @jit
+        def motion_linearize(c, Y0, centroid, nbr, radius, focal, pp, delta, sel, pairs, find_pairs, sigma_px,
+                             huber_px, gate_px, pw, slack):
+            n = c.shape[0]
+            m = sel.shape[0]
+            phi = delta[3:]
+            th = np.sqrt(phi[0] * phi[0] + phi[1] * phi[1] + phi[2] * phi[2])
+            Km = np.array([[0.0, -phi[2], phi[1]], [phi[2], 0.0, -phi[0]], [-phi[1], phi[0], 0.0]])
+            KK = Km @ Km
+            if th < 1e-8:
+                a_, b_ = 1.0, 0.5
+            else:
+                a_, b_ = np.sin(th) / th, (1.0 - np.cos(th)) / th ** 2
+            R = np.empty((3, 3))
+            for p in range(3):
+                for q in range(3):
+                    R[p, q] = (1.0 if p == q else 0.0) + a_ * Km[p, q] + b_ * KK[p, q]
+            y = np.empty(3)
+            yn = np.empty(3)
+
+            def _move(k, out):
+                p0 = Y0[k, 0] - centroid[0]
+                p1 = Y0[k, 1] - centroid[1]
+                p2 = Y0[k, 2] - centroid[2]
+                for q in range(3):
+                    out[q] = p0 * R[q, 0] + p1 * R[q, 1] + p2 * R[q, 2] + centroid[q] + delta[q]
+
+            j = pairs.copy()
+            if find_pairs:
+                uvs = np.empty((m, 2))
+                for s in range(m):
+                    _move(sel[s], y)
+                    uvs[s, 0] = focal * y[0] / y[2] + pp[0]
+                    uvs[s, 1] = focal * y[1] / y[2] + pp[1]
+                for i in range(n):
+                    best, bk = np.inf, 0
+                    for s in range(m):
+                        d2 = (uvs[s, 0] - c[i, 0]) ** 2 + (uvs[s, 1] - c[i, 1]) ** 2
+                        if d2 < best:
+                            best, bk = d2, s
+                    j[i] = sel[bk]
+            J = np.zeros((n, 6))
+            r = np.zeros(n)
+            w = np.zeros(n)
+            lumen = np.zeros(n)
+            g = np.empty(3)
+            for i in range(n):
+                _move(j[i], y)
+                _move(nbr[j[i]], yn)
+                u = focal * y[0] / y[2] + pp[0]
+                v = focal * y[1] / y[2] + pp[1]
+                t0 = focal * yn[0] / yn[2] + pp[0] - u
+                t1 = focal * yn[1] / yn[2] + pp[1] - v
+                nrm = np.sqrt(t0 * t0 + t1 * t1)
+                d0 = c[i, 0] - u
+                d1 = c[i, 1] - v
+                if nrm > 1e-9:
+                    t0 /= max(nrm, 1e-12)
+                    t1 /= max(nrm, 1e-12)
+                    n0, n1 = -t1, t0
+                else:
+                    dn = max(np.sqrt(d0 * d0 + d1 * d1), 1e-12)
+                    n0, n1 = d0 / dn, d1 / dn
+                r[i] = -(n0 * d0 + n1 * d1)
+                a = abs(r[i])
+                z = y[2]
+                lumen[i] = focal * radius[j[i]] / z
+                w[i] = (1.0 / np.sqrt(1.0 + (a / huber_px) ** 2) if a <= gate_px else 0.0) * (pw / sigma_px ** 2)
+                if slack > 0.0:  # the curve anywhere within ``slack`` projected radii of the centerline fits
+                    inside = slack * lumen[i]
+                    if a <= inside:
+                        r[i] = 0.0
+                        w[i] = 0.0
+                    elif a <= gate_px:
+                        r[i] = r[i] - inside if r[i] > 0 else r[i] + inside
+                        a = abs(r[i])
+                        w[i] = (1.0 / np.sqrt(1.0 + (a / huber_px) ** 2)) * (pw / sigma_px ** 2)
+                g[0] = n0 * (focal / z)
+                g[1] = n1 * (focal / z)
+                g[2] = -(g[0] * y[0] + g[1] * y[1]) / z
+                e0, e1, e2 = y[0] - centroid[0], y[1] - centroid[1], y[2] - centroid[2]
+                J[i, 0], J[i, 1], J[i, 2] = g[0], g[1], g[2]
+                J[i, 3] = e1 * g[2] - e2 * g[1]
+                J[i, 4] = e2 * g[0] - e0 * g[2]
+                J[i, 5] = e0 * g[1] - e1 * g[0]
+            return r, J, w, j, lumen
+
+        _COMPILED_MOTION_VIEWS.update(motion_linearize=motion_linearize)
+        return _COMPILED_MOTION_VIEWS
+
+
+def motion_linearize(c, Y0, centroid, nbr, radius, *, focal_px: float, principal_point_px, delta, sel, pairs,
+                     find_pairs: bool, sigma_px: float, huber_px: float, gate_px: float, point_weight: float,
+                     lumen_slack: float = 0.0):
+    """One view's point-to-tangent residuals of the tracker at ``delta`` (``motion_solve``'s inner loop).
+
+    Parameters
+    ----------
+    c : (N, 2) curve points, px; Y0 : (K, 3) tree samples in the view's camera frame at the initial pose, mm;
+    centroid : (3,); nbr : (K,) int; radius : (K,) mm (as ``motion_solve``); delta : (6,) the view's delta;
+    sel : (M,) int, M >= 1, the tree samples a curve point may pair with; pairs : (N,) int, the pairs to use when
+    ``find_pairs`` is False (else each curve point's nearest projected sample among ``sel``, the lower index on a
+    tie); point_weight : each point's weight in the fit (one point per ``fit_correlation_mm``); lumen_slack : a
+    point within this many projected radii of the centerline has no residual (weight 0), one beyond it the
+    distance beyond (0: the distance to the centerline, as ``motion_solve``).
+
+    Returns
+    -------
+    ``(r (N,) px, J (N, 6) px per delta unit, w (N,) robust weights / sigma^2, pairs (N,) int, lumen px (N,))``
+    """
+    f = _compile_motion_views()["motion_linearize"]
+    return f(_in(c, np.float64), _in(Y0, np.float64), _in(centroid, np.float64), _in(nbr, np.int64),
+             _in(radius, np.float64), float(focal_px), _in(principal_point_px, np.float64), _in(delta, np.float64),
+             _in(sel, np.int64), _in(pairs, np.int64), bool(find_pairs), float(sigma_px), float(huber_px),
+             float(gate_px), float(point_weight), float(lumen_slack))
+
+
+def warm_up_motion_views() -> None:
+    """Compile (or load from the disk cache) the biplane tracker's kernel on tiny inputs."""
+    Y0 = np.array([[0.0, 0.0, 700.0], [1.0, 0.0, 700.0], [2.0, 0.5, 700.0]])
+    c = np.array([[0.0, 0.0], [1.0, 0.5], [2.0, 1.0]])
+    for find in (True, False):
+        motion_linearize(c, Y0, Y0.mean(axis=0), np.array([1, 0, 1]), np.ones(3), focal_px=1000.0,
+                         principal_point_px=np.zeros(2), delta=np.zeros(6), sel=np.arange(3), pairs=np.zeros(3, np.int64),
+                         find_pairs=find, sigma_px=1.5, huber_px=3.0, gate_px=40.0, point_weight=1.0)

@@ -47,11 +47,9 @@ def _ms(ms) -> str:
 
 def simulated(args) -> list[list[str]]:
     from guidewire3d.live import session as live
-    from guidewire3d.metrics import mtre_mm
     from guidewire3d.phantom import PhantomOptions, simulate
 
-    acc = {track: dict(err=[], tip=[], pose=[], ok=0, n=0, ms=[], ok_tip_off=0, ok_wire_off=0, std=[], pose_t=[])
-           for track in (False, True)}
+    acc = {track: _acc() for track in (False, True)}
     for k in range(args.cases):
         case = simulate(PhantomOptions(seed=args.seed0 + k, n_frames=args.frames, breathing_mm=args.breathing,
                                        cardiac_mm=args.cardiac), make_ct=False)
@@ -60,37 +58,93 @@ def simulated(args) -> list[list[str]]:
             s = live.Session(case.tree, case.carm, case.pose, track_motion=track)
             s.warm_up(case.frames[0])
             for t, frame in enumerate(case.frames):
-                fr = s.process(frame)
-                a["n"] += 1
-                a["ok"] += fr.verdict.value == "ok"
-                a["pose"].append(mtre_mm(fr.pose, case.frame_pose(t), case.tree.points_lps_mm))
-                if fr.motion is not None:
-                    a["ms"].append(fr.motion.seconds * 1000)
-                    a["std"].append(fr.motion.pose_std_mm)
-                    a["pose_t"].append(a["pose"][-1])
-                if fr:
-                    true = case.wire_lps_mm[t]
-                    a["err"].append(float(cKDTree(true).query(fr.wire3d.points_lps_mm)[0].mean()))
-                    a["tip"].append(float(np.linalg.norm(fr.tip_lps_mm - true[-1])))
-                    # the tip that can be seen: the last in-image point of the true wire
-                    seen_tip = true[np.asarray(case.wire_visible[t], bool)][-1]
-                    a["ok_tip_off"] += fr.verdict.value == "ok" and np.linalg.norm(fr.tip_lps_mm - seen_tip) > TIP_OFF_MM
-                    a["ok_wire_off"] += fr.verdict.value == "ok" and a["err"][-1] > WIRE_OFF_MM
+                _score(a, case, t, s.process(frame))
         print(f"  case {k + 1}/{args.cases} (seed {args.seed0 + k})", file=sys.stderr, flush=True)
-    rows = []
-    for track, name in ((False, "static roadmap pose"), (True, "tracked (track_motion)")):
-        a = acc[track]
-        err = np.sort(a["err"])[::-1]
-        worst = max(1, int(round(0.1 * len(err))))
-        rows.append([name, f"{np.mean(a['err']):.2f}", f"{np.median(a['err']):.2f}", f"{np.percentile(err, 90):.2f}",
-                     # the share of the summed 3D error that the worst 10 % of the frames carry
-                     f"{100 * err[:worst].sum() / err.sum():.0f}%", f"{np.median(a['tip']):.2f}",
-                     f"{np.percentile(a['tip'], 90):.1f}", f"{np.mean(a['pose']):.2f}", f"{np.median(a['pose']):.2f}",
-                     f"{a['ok']}/{a['n']}", a["ok_tip_off"], a["ok_wire_off"],
-                     # the tracker's reported 1 sigma against its real error (RMS over frames; 1 is calibrated)
-                     f"{np.sqrt(np.mean(np.square(a['pose_t'])) / np.mean(np.square(a['std']))):.2f}" if a["std"] else "-",
-                     _ms(a["ms"]) if a["ms"] else "-"])
-    return rows
+    return [_row(name, acc[track]) for track, name in ((False, "static roadmap pose"), (True, "tracked (track_motion)"))]
+
+
+def _acc() -> dict:
+    return dict(err=[], tip=[], pose=[], ok=0, n=0, ms=[], ok_tip_off=0, ok_wire_off=0, std=[], pose_t=[], ab=0)
+
+
+def _score(a: dict, case, t: int, fr) -> None:
+    """Add frame ``t``'s outcome (a ``live.FrameResult``) to the accumulator ``a``: errors against the truth."""
+    from guidewire3d.metrics import mtre_mm
+
+    a["n"] += 1
+    a["ok"] += fr.verdict.value == "ok"
+    a["pose"].append(mtre_mm(fr.pose, case.frame_pose(t), case.tree.points_lps_mm))
+    if fr.motion is not None:
+        a["ms"].append(fr.motion.seconds * 1000)
+        a["std"].append(fr.motion.pose_std_mm)
+        a["pose_t"].append(a["pose"][-1])
+    if fr:
+        true = case.wire_lps_mm[t]
+        a["err"].append(float(cKDTree(true).query(fr.wire3d.points_lps_mm)[0].mean()))
+        a["tip"].append(float(np.linalg.norm(fr.tip_lps_mm - true[-1])))
+        # the tip that can be seen: the last in-image point of the true wire
+        seen_tip = true[np.asarray(case.wire_visible[t], bool)][-1]
+        a["ok_tip_off"] += fr.verdict.value == "ok" and np.linalg.norm(fr.tip_lps_mm - seen_tip) > TIP_OFF_MM
+        a["ok_wire_off"] += fr.verdict.value == "ok" and a["err"][-1] > WIRE_OFF_MM
+
+
+def _row(name: str, a: dict) -> list[str]:
+    err = np.sort(a["err"])[::-1]
+    worst = max(1, int(round(0.1 * len(err))))
+    return [name, f"{np.mean(a['err']):.2f}", f"{np.median(a['err']):.2f}", f"{np.percentile(err, 90):.2f}",
+            # the share of the summed 3D error that the worst 10 % of the frames carry
+            f"{100 * err[:worst].sum() / err.sum():.0f}%", f"{np.median(a['tip']):.2f}",
+            f"{np.percentile(a['tip'], 90):.1f}", f"{np.mean(a['pose']):.2f}", f"{np.median(a['pose']):.2f}",
+            f"{a['ok']}/{a['n']}", a["ok_tip_off"], a["ok_wire_off"],
+            # the tracker's reported 1 sigma against its real error (RMS over frames; 1 is calibrated)
+            f"{np.sqrt(np.mean(np.square(a['pose_t'])) / np.mean(np.square(a['std']))):.2f}" if a["std"] else "-",
+            _ms(a["ms"]) if a["ms"] else "-"]
+
+
+def biplane(args) -> tuple[list[list[str]], list[list[str]]]:
+    """The phantom's biplane cases (``biplane=True``: plane A as the monoplane cases of the same seeds, plane B
+    90 deg from it), the same breathing and cardiac motion. Plane A alone (``live.Session``, static and
+    ``track_motion``) beside both planes (``app.biplane.BiplaneSession``: each plane's UNet and ordered wire, the
+    two-view wire; static and ``track_motion``, i.e. ``motion.BiplaneMotionTracker``). Second table: the
+    trackers alone on the true 2D wires (projected, no noise: an upper bound of what the curves allow)."""
+    from guidewire3d.app.biplane import BiplaneSession
+    from guidewire3d.live import session as live
+    from guidewire3d.metrics import mtre_mm
+    from guidewire3d.motion import track_poses, track_poses_biplane
+    from guidewire3d.phantom import PhantomOptions, simulate
+
+    names = ("static roadmap pose, plane A (one view)", "tracked from plane A (one view)",
+             "static roadmap pose, two-view wire (A + B)", "tracked from both planes, two-view wire (A + B)")
+    acc = [_acc() for _ in names]
+    truth = {"one view (plane A)": [], "both planes": []}
+    for k in range(args.cases):
+        case = simulate(PhantomOptions(seed=args.seed0 + k, n_frames=args.frames, breathing_mm=args.breathing,
+                                       cardiac_mm=args.cardiac, biplane=True), make_ct=False)
+        carms = (case.carm, case.heldout_carm)
+        for i, track in enumerate((False, True)):
+            s = live.Session(case.tree, case.carm, case.pose, track_motion=track)
+            s.warm_up(case.frames[0])
+            for t, frame in enumerate(case.frames):
+                _score(acc[i], case, t, s.process(frame))
+            bs = BiplaneSession(case.tree, carms, case.pose, threads=1, track_motion=track)
+            bs.warm_up(case.frames[0], case.heldout_frames[0])
+            for t in range(len(case.frames)):
+                bf = bs.process(case.frames[t], case.heldout_frames[t])
+                _score(acc[2 + i], case, t, bf.result)
+                acc[2 + i]["ab"] += bf.views == "AB"
+            bs.close()
+        pts = case.tree.points_lps_mm
+        mono = track_poses(case.tree, case.wire_uv_px, case.carm, case.pose)
+        bi = track_poses_biplane(case.tree, case.wire_uv_px, case.heldout_wire_uv_px, *carms, case.pose)
+        for key, res in (("one view (plane A)", mono), ("both planes", bi)):
+            truth[key] += [(mtre_mm(r.pose, case.frame_pose(t), pts), r.verdict.value == "ok", r.seconds * 1000)
+                           for t, r in enumerate(res)]
+        print(f"  case {k + 1}/{args.cases} (seed {args.seed0 + k})", file=sys.stderr, flush=True)
+    rows = [_row(name, a) + [f"{a['ab']}/{a['n']}" if i >= 2 else "-"] for i, (name, a) in enumerate(zip(names, acc))]
+    rows_true = [[f"tracked from {key}", f"{np.mean([e for e, _, _ in v]):.2f}", f"{np.median([e for e, _, _ in v]):.2f}",
+                  f"{np.percentile([e for e, _, _ in v], 90):.2f}", f"{sum(o for _, o, _ in v)}/{len(v)}",
+                  _ms([m for _, _, m in v])] for key, v in truth.items()]
+    return rows, rows_true
 
 
 def real(args) -> list[list[str]] | None:
@@ -139,11 +193,27 @@ def main() -> int:
     ap.add_argument("--breathing", type=float, default=15.0, help="mm peak-to-peak (default 15)")
     ap.add_argument("--cardiac", type=float, default=2.0, help="mm (default 2)")
     ap.add_argument("--only", choices=("sim", "real"), default=None)
+    ap.add_argument("--biplane", action="store_true",
+                    help="the simulator's biplane cases: one view (plane A) beside both planes (motion.BiplaneMotionTracker)")
     args = ap.parse_args()
 
     from guidewire3d.app import bench
 
     print(f"machine: {bench.machine_line()}, load average {os.getloadavg()[0]:.1f}")
+    if args.biplane:
+        rows, rows_true = biplane(args)
+        print(f"\nsimulator, biplane: {args.cases} sequences x {args.frames} frame pairs at 15 fps, breathing "
+              f"{args.breathing:g} mm, cardiac {args.cardiac:g} mm (seeds {args.seed0}-{args.seed0 + args.cases - 1}); "
+              f"2D wires from each plane's live path (UNet, ordered wire)")
+        print(bench._table(["pose", "3D wire mean mm", "median mm", "p90 mm", "worst 10% of frames' share",
+                            "tip median mm", "tip p90 mm", "pose mTRE mean mm",
+                            "median mm", "frames OK", f"OK, seen tip > {TIP_OFF_MM:g} mm off",
+                            f"OK, wire > {WIRE_OFF_MM:g} mm off", "pose err / reported 1 sigma",
+                            "tracking ms/frame (median / mean / p95)", "pairs from both planes"], rows))
+        print("\nthe trackers alone on the true 2D wires (projected, no noise: an upper bound), same sequences")
+        print(bench._table(["tracker", "pose mTRE mean mm", "median mm", "p90 mm", "frames OK",
+                            "ms/frame (median / mean / p95)"], rows_true))
+        return 0
     if args.only != "sim":
         rows = real(args)
         if rows:

@@ -85,6 +85,10 @@ def test_bad_options_are_refused():
         motion.MotionOptions(fit_correlation_mm=0.0)
     with pytest.raises(InputError, match="settle_rival_cost"):
         motion.MotionOptions(settle_rival_cost=-1.0)
+    with pytest.raises(InputError, match="biplane_sigma_rotation_deg"):
+        motion.MotionOptions(biplane_sigma_rotation_deg=0.0)
+    with pytest.raises(InputError, match="biplane_lumen_slack"):
+        motion.MotionOptions(biplane_lumen_slack=-0.1)
 
 
 def test_breathing_truth_renders_the_wire_at_the_frame_pose(tmp_path):
@@ -409,3 +413,153 @@ def test_the_tracker_compiles_nothing_after_its_construction(still_case):
     res = [tracker.update(uv) for _ in range(3)]
     assert all(r.verdict is Verdict.OK for r in res), [r.message for r in res]
     assert {name: len(f.signatures) for name, f in compiled.items()} == before
+
+
+# --- biplane: both views in one solve (motion.BiplaneMotionTracker) ------------------------------------------------
+def _moved_along_beam(case, depth_mm, cc_mm):
+    """The roadmap pose with the anatomy moved ``depth_mm`` along plane A's beam (room) and ``cc_mm`` along the
+    patient's axis (LPS +z)."""
+    return Pose(np.eye(3), depth_mm * case.carm.beam_direction) @ case.pose @ Pose(np.eye(3), [0.0, 0.0, cc_mm])
+
+
+def test_biplane_tracking_sees_the_depth_one_view_cannot(still_case):
+    """A rigid shift with 6 mm along plane A's beam (breathing's antero-posterior part): one view holds the depth
+    at the roadmap's (its prior; the shift is invisible in the image), both views recover it."""
+    case = still_case
+    path = case.tree.points_lps_mm[case.wire_path_point_ids]
+    moved = _moved_along_beam(case, 6.0, 5.0)
+    ca = [case.carm.project(path, moved)] * 3
+    cb = [case.heldout_carm.project(path, moved)] * 3
+    mono = motion.track_poses(case.tree, ca, case.carm, case.pose)
+    bi = motion.track_poses_biplane(case.tree, ca, cb, case.carm, case.heldout_carm, case.pose)
+    assert len(bi) == 3 and all(isinstance(r, RegistrationResult) for r in bi)
+    assert all(r.verdict is Verdict.OK and "both planes" in r.message for r in bi), [r.message for r in bi]
+    pts = case.tree.points_lps_mm
+    err_bi = [mtre_mm(r.pose, moved, pts) for r in bi]
+    err_mono = [mtre_mm(r.pose, moved, pts) for r in mono]
+    assert max(err_bi) < 0.5, err_bi
+    assert min(err_mono) > 3.0, err_mono  # the depth is not seen in one view
+    # the depth itself: the tree's centroid along plane A's beam
+    c = pts.mean(axis=0)
+    def depth(pose):
+        return float(case.carm.beam_direction @ (pose.apply(c[None])[0] - case.pose.apply(c[None])[0]))
+
+    assert abs(depth(bi[-1].pose) - depth(moved)) < 0.3, (depth(bi[-1].pose), depth(moved))
+    assert abs(depth(mono[-1].pose) - depth(moved)) > 3.0
+    # the lumen-slack objective (a curve anywhere within 0.3 radii of the centerline fits, so the pose is
+    # determined only to that slack) sees it too
+    slack = motion.track_poses_biplane(case.tree, ca, cb, case.carm, case.heldout_carm, case.pose,
+                                       options=motion.MotionOptions(biplane_lumen_slack=0.3))
+    assert all(r.verdict is Verdict.OK for r in slack)
+    assert mtre_mm(slack[-1].pose, moved, pts) < 0.5 * min(err_mono)
+
+
+def test_biplane_tracking_is_closer_to_breathing_than_one_view():
+    """The simulator's breathing (15 mm, with its antero-posterior part and rotation) plus the cardiac
+    contraction, true 2D wires in both planes: both views track the pose closer than plane A alone."""
+    case = simulate(PhantomOptions(seed=3, n_frames=30, breathing_mm=15.0, cardiac_mm=2.0, biplane=True),
+                    make_ct=False)
+    pts = case.tree.points_lps_mm
+    mono = motion.track_poses(case.tree, case.wire_uv_px, case.carm, case.pose)
+    bi = motion.track_poses_biplane(case.tree, case.wire_uv_px, case.heldout_wire_uv_px, case.carm,
+                                    case.heldout_carm, case.pose)
+    err_mono = np.mean([mtre_mm(r.pose, case.frame_pose(t), pts) for t, r in enumerate(mono)])
+    err_bi = np.mean([mtre_mm(r.pose, case.frame_pose(t), pts) for t, r in enumerate(bi)])
+    assert all(r.verdict is Verdict.OK for r in bi), [r.message for r in bi]
+    assert err_bi < 1.2 and err_bi < 0.75 * err_mono, (err_bi, err_mono)
+
+
+def test_a_pair_without_a_plane_b_curve_falls_back_to_plane_a(still_case):
+    case = still_case
+    path = case.tree.points_lps_mm[case.wire_path_point_ids]
+    moved = _moved_along_beam(case, 0.0, 6.0)
+    ua, ub = case.carm.project(path, moved), case.heldout_carm.project(path, moved)
+    bi = motion.track_poses_biplane(case.tree, [ua, ua, ua, None], [ub, None, np.zeros((0, 2)), None], case.carm,
+                                    case.heldout_carm, case.pose)
+    assert "both planes" in bi[0].message
+    for r in bi[1:3]:  # plane A's one-view update, its verdict and priors
+        assert r.verdict is Verdict.OK and "plane B shows no curve: plane A alone" in r.message, r.message
+        assert mtre_mm(r.pose, moved, path) < SHIFT_TOL_MM
+    assert bi[3].verdict is Verdict.FAILED and "no curve in either plane" in bi[3].message
+    assert bi[3].pose.allclose(bi[2].pose, atol_mm=1e-9)
+    # and plane A missing: plane B alone
+    only_b = motion.track_poses_biplane(case.tree, [None], [ub], case.carm, case.heldout_carm, case.pose)
+    assert "plane A shows no curve: plane B alone" in only_b[0].message
+    assert mtre_mm(only_b[0].pose, moved, path) < 1.0
+
+
+def test_a_plane_whose_curve_does_not_fit_makes_the_pair_uncertain(still_case):
+    case = still_case
+    path = case.tree.points_lps_mm[case.wire_path_point_ids]
+    ua, ub = case.carm.project(path, case.pose), case.heldout_carm.project(path, case.pose)
+    # plane B's curve is a straight stroke across the image that follows no vessel
+    stroke = np.linspace(ub[0], ub[0] + np.array([0.0, 150.0]), 60) + np.array([25.0, 0.0])
+    bi = motion.track_poses_biplane(case.tree, [ua, ua], [ub, stroke], case.carm, case.heldout_carm, case.pose)
+    assert bi[0].verdict is Verdict.OK
+    assert bi[1].verdict is Verdict.UNCERTAIN, bi[1].message
+    assert "plane B's curve does not fit" in bi[1].message and "plane A alone" in bi[1].message
+    assert mtre_mm(bi[1].pose, case.pose, path) < SHIFT_TOL_MM
+
+
+def test_the_two_view_solve_with_one_view_is_the_compiled_one_view_solve(still_case):
+    """``BiplaneMotionTracker._solve`` (per-view ``kernels.motion_linearize``, normal equations summed in numpy)
+    restricted to plane A, with plane A's priors, is ``kernels.motion_solve``."""
+    case = still_case
+    bt = motion.BiplaneMotionTracker(case.tree, case.carm, case.heldout_carm, case.pose)
+    A = bt.planes[0]
+    bt._Lambda0 = A._Lambda0
+    c = motion._prepare_curve(case.carm.project(case.wire_lps_mm[-1], case.pose @ Pose(np.eye(3), [0, 0, 4.0])))
+    start = np.array([0.5, -1.0, 0.2, 0.002, -0.001, 0.003])
+    prev = np.zeros(6)
+    for Lt in (A._no_Lt, A._Lambda_t):
+        one = A._solve(c, start, prev, Lt)
+        two = bt._solve([c, None], start, prev, Lt, views=(0,))
+        assert abs(one[0] - two[0]) < 1e-8 * max(1.0, abs(one[0]))
+        np.testing.assert_allclose(two[1], one[1], atol=1e-10)
+        assert one[3] == two[3]
+        assert (one[4], one[5]) == pytest.approx(two[4][0], abs=1e-9)
+
+
+def test_plane_b_delta_is_the_same_rigid_motion(still_case):
+    case = still_case
+    bt = motion.BiplaneMotionTracker(case.tree, case.carm, case.heldout_carm, case.pose)
+    d = np.array([1.0, -2.0, 3.0, 0.01, -0.02, 0.015])
+    assert bt.planes[0].pose_of(d).allclose(bt.planes[1].pose_of(bt._to_view[1] @ d), atol_mm=1e-9, atol_rad=1e-12)
+
+
+def test_track_poses_biplane_refuses_unpaired_sequences(still_case):
+    case = still_case
+    with pytest.raises(InputError, match="plane-B"):
+        motion.track_poses_biplane(case.tree, [np.zeros((0, 2))] * 2, [None], case.carm, case.heldout_carm, case.pose)
+
+
+def test_biplane_session_tracks_motion_and_reconstructs_each_pair_in_its_pose():
+    from guidewire3d.app.biplane import BiplaneSession
+
+    case = simulate(PhantomOptions(seed=3, n_frames=8, breathing_mm=15.0, biplane=True), make_ct=False)
+    pts = case.tree.points_lps_mm
+    out = {}
+    for track in (False, True):
+        bs = BiplaneSession(case.tree, (case.carm, case.heldout_carm), case.pose, segmenter="ridge", threads=1,
+                            track_motion=track)
+        frs = [bs.process_wires(case.wire_uv_px[t], case.heldout_wire_uv_px[t]) for t in range(8)]
+        bs.close()
+        assert all((f.result.motion is not None) == track for f in frs)
+        out[track] = [mtre_mm(f.result.pose, case.frame_pose(t), pts) for t, f in enumerate(frs)]
+        if track:
+            assert all(f.result.motion.pose.allclose(f.result.pose, atol_mm=1e-6) for f in frs)
+            # the two-view context moved to the tracked pose is the one made there
+            from guidewire3d.reconstruction.triangulation import TwoViewContext
+
+            fresh = TwoViewContext(case.tree, bs.carms, bs.pose)
+            for a, b in zip(bs.context.P, fresh.P):
+                np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-9)
+            np.testing.assert_allclose(bs.context.F / np.linalg.norm(bs.context.F), fresh.F / np.linalg.norm(fresh.F),
+                                       atol=1e-12)
+            for ca, cb in zip(bs.context.cams, fresh.cams):
+                for x, y in zip(ca, cb):
+                    np.testing.assert_allclose(x, y, atol=1e-9)
+            w = [cKDTree(case.wire_lps_mm[t]).query(f.result.wire3d.points_lps_mm)[0].mean()
+                 for t, f in enumerate(frs) if f]
+            assert len(w) == 8 and np.mean(w) < 1.0, w
+    assert np.mean(out[True]) < 1.0 < np.mean(out[False]), out

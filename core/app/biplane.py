@@ -38,15 +38,17 @@ from guidewire3d.errors import Guidewire3DError, InputError
 from guidewire3d.geometry import CArm, Pose, nominal_pose
 from guidewire3d.live import session as live
 from guidewire3d.live.session import FrameResult, _no_wire, frame_verdict, orientation_of
+from guidewire3d.motion.tracking import BiplaneMotionTracker
 from guidewire3d.reconstruction.triangulation import (
     TwoViewContext,
     extend_distal,
+    fundamental_matrix,
     projection_error_px,
     triangulate_wire,
 )
 from guidewire3d.reconstruction import reconstruct_wire
 from guidewire3d.registration import model, problem, search, solve, verdict
-from guidewire3d.registration.result import RegistrationResult, _failed
+from guidewire3d.registration.result import RegistrationResult, Verdict, _failed
 from guidewire3d.xray.orderedwire import doubled_tip, ordered_wire
 
 __all__ = ["ViewFit", "BiplaneRegistration", "register_biplane", "BiplaneFrame", "BiplaneSession",
@@ -453,10 +455,18 @@ class BiplaneSession:
     threads : int
         2: the two planes' 2D analyses (segmentation, ordered wire) run in two threads (the
         network and most of the image code release the GIL); 1: one after the other.
+    track_motion : bool
+        Follow breathing and heartbeat from both planes: each pair's two 2D wires update the pose
+        (``motion.BiplaneMotionTracker``, the joint registration as its prior; a pair with one plane's
+        wire only: that plane's one-view update) before the pair is reconstructed in it, with the
+        tracked pose's covariance in place of ``registration_covariance``. A pair whose pose update
+        is not ``ok`` is at best UNCERTAIN, the motion's message in its own. Off by default.
+    motion_options : motion.MotionOptions, optional
     """
 
     def __init__(self, tree, carms, pose: Pose, *, registration_covariance=None, segmenter="unet",
-                 method="vessel", options=None, two_view_options=None, threads: int = 2):
+                 method="vessel", options=None, two_view_options=None, threads: int = 2,
+                 track_motion: bool = False, motion_options=None):
         if len(carms) != 2:
             raise InputError("BiplaneSession: expected two C-arms (plane A, plane B)")
         self.tree, self.carms, self.pose = tree, tuple(carms), pose
@@ -469,6 +479,11 @@ class BiplaneSession:
                               for c, sg in zip(self.carms, segs))
         self.context = TwoViewContext(tree, self.carms, pose, registration_covariance=registration_covariance,
                                       options=two_view_options)
+        self.registration_covariance = registration_covariance
+        self.motion_tracker = None
+        if track_motion:
+            self.motion_tracker = BiplaneMotionTracker(tree, self.carms[0], self.carms[1], pose,
+                                                       covariance=registration_covariance, options=motion_options)
         self.n_pairs = 0
         if int(threads) not in (1, 2):
             raise InputError(f"BiplaneSession: threads must be 1 or 2, got {threads!r}")
@@ -496,6 +511,43 @@ class BiplaneSession:
     def reset(self) -> None:
         for s in self.sessions:
             s.reset()
+        if self.motion_tracker is not None:
+            self.motion_tracker.reset()
+
+    def _use_pose(self, pose: Pose, covariance) -> None:
+        """Reconstruct the next pairs in ``pose`` (a tracked one): both planes' sessions (their wire's
+        temporal prior kept) and the two-view context (its tree lookup kept: only the projections,
+        ``F`` and the cameras depend on the pose)."""
+        import copy
+
+        self.pose = pose
+        for s in self.sessions:
+            s._use_pose(pose, covariance)
+        ctx = copy.copy(self.context)
+        ctx.pose = pose
+        ctx.P = tuple(c.projection_matrix(pose) for c in ctx.carms)
+        ctx.F = fundamental_matrix(*ctx.P)
+        ctx.cov = None if covariance is None else np.asarray(covariance, float)
+        ctx.cams = [(c.axes @ pose.R, c.axes @ (pose.t - c.source_room_mm), c.focal_px, c.principal_point_px)
+                    for c in ctx.carms]
+        self.context = ctx
+
+    def _track(self, wires, why):
+        """The pair's pose update from the planes' 2D wires (``track_motion``); None without tracking."""
+        if self.motion_tracker is None:
+            return None
+        t1 = time.perf_counter()
+        uv = [None if any(s.startswith(f"plane {PLANES[k]}:") for s in why) else np.asarray(wires[k], float).reshape(-1, 2)
+              for k in range(2)]
+        motion = self.motion_tracker.update(uv[0], uv[1])
+        if not self.pose.allclose(motion.pose, atol_mm=1e-6, atol_rad=1e-9):
+            self._use_pose(motion.pose, motion.covariance_6x6)
+        else:  # the tracked pose's covariance in place of the registration's (as ``live.Session``)
+            for s in self.sessions:
+                s.tracker.registration_covariance = motion.covariance_6x6
+            self.context.cov = None if motion.covariance_6x6 is None else np.asarray(motion.covariance_6x6, float)
+        self.motion_seconds = time.perf_counter() - t1
+        return motion
 
     def _single_view(self, k: int, uv) -> object:
         """Plane k's single-view reconstruction of ``uv`` (no tracking state is changed)."""
@@ -547,6 +599,7 @@ class BiplaneSession:
             elif len(np.asarray(w, float).reshape(-1, 2)) < 2:
                 why.append(f"plane {PLANES[k]}: 2D wire not found (fewer than 2 points)")
         present = [k for k in range(2) if not any(s.startswith(f"plane {PLANES[k]}:") for s in why)]
+        motion = self._track(wires, why)
         tv = None
         if len(present) == 2:
             uv = [np.asarray(w, float).reshape(-1, 2) for w in wires]
@@ -560,9 +613,9 @@ class BiplaneSession:
                 # the tip is in view is left to the two views: one may see it where the other does not)
                 beyond = next((b for b in (getattr(w, "beyond_tip", None) for w in wires) if b is not None), None)
                 verdict, message = frame_verdict(w3, uv[0], ori, beyond_tip=beyond,
-                                                 doubled_tip=_doubled_tip_two_view(tv, uv, images))
+                                                 doubled_tip=_doubled_tip_two_view(tv, uv, images), motion=motion)
                 fr = FrameResult(index, wires[0], w3, verdict, message, ori, time.perf_counter() - t0, float("nan"),
-                                 self.pose)
+                                 self.pose, motion)
                 return BiplaneFrame(fr, "AB", "", wires[1], tv.projection_error_px, index_b, fr.seconds)
             why.append(f"two-view matching failed: {tv.wire3d.message}")
             # the plane whose wire is longer carries the single-view fallback
@@ -580,8 +633,11 @@ class BiplaneSession:
             o = 1 - k  # the plane left out: how far the one-view wire projects from its 2D wire, if it has one
             if not any(s.startswith(f"plane {PLANES[o]}:") for s in why):
                 perr[o] = projection_error_px(self.context, o, fr_k.wire3d.points_lps_mm, wires[o])
-        fr = FrameResult(index, wires[0], fr_k.wire3d, fr_k.verdict, f"{fallback}. {fr_k.message}".strip(),
-                         fr_k.orientation, time.perf_counter() - t0, float("nan"), self.pose)
+        verdict, message = fr_k.verdict, f"{fallback}. {fr_k.message}".strip()
+        if motion is not None and not motion.success and verdict is Verdict.OK:
+            verdict, message = Verdict.UNCERTAIN, f"{message}; motion: {motion.message}"
+        fr = FrameResult(index, wires[0], fr_k.wire3d, verdict, message,
+                         fr_k.orientation, time.perf_counter() - t0, float("nan"), self.pose, motion)
         return BiplaneFrame(fr, PLANES[k] if fr_k.wire3d else "", fallback, wires[1], tuple(perr), index_b, fr.seconds)
 
 
