@@ -61,6 +61,11 @@ class VesselOptions:
     support_gap_mm: float = 0.0
     support_gap_elongation: float = 2.0
     support_gap_max_angle_deg: float = 45.0
+    # > 0: touching lumens are separated at their necks (:func:`_split_at_necks`): a part of the tree whose deep
+    # core meets the rest only through a neck shallower than this fraction of the part's own depth is cut off
+    # with its territory (a heart chamber, a vein or the thyroid touching an artery through partial volume)
+    neck_ratio: float = 0.0
+    neck_min_mm: float = 1.5  # the shallowest neck depth tested (mm; the finest level of the ladder)
 
 
 def _ball_dilate(mask, radius_mm: float, spacing_zyx) -> np.ndarray:
@@ -185,6 +190,75 @@ def _bridge_support_gaps(lab: np.ndarray, keep: np.ndarray, allowed: np.ndarray,
         if not added:
             return sel
         fresh = added
+
+
+def _split_at_necks(sel: np.ndarray, tub: np.ndarray, spacing_zyx, *, ratio: float, min_mm: float,
+                    max_mm: float, seeds_idx: np.ndarray | None = None) -> np.ndarray:
+    """``sel`` without the parts that touch the tree only through a neck: separate lumens, not branches.
+
+    A branch leaves its parent through an ostium about as deep as its own radius (the distance to the wall,
+    ``edt``); two separate lumens that touch through the partial volume of their walls (a heart chamber or a
+    pulmonary vessel against the aorta, a vein beside an artery, an enhancing gland) meet at a neck of a voxel
+    or two, far shallower than either. On a ladder of depths ``t`` (from ``min_mm`` by factors of 1.45 while
+    ``t <= ratio * max_mm``), the deep cores (``edt > t``, 26-connected) are found; the core with the most
+    vesselness (``tub`` summed over it) is the tree's; any other core at least ``t / ratio`` deep meets it
+    only through necks shallower than ``ratio`` times its own depth and is cut off with its territory (the
+    watershed of ``-edt`` from all cores at that level, inside ``sel``), unless a seed lies in that territory.
+    Then the connected part with the most vesselness (or those holding a seed) is kept.
+
+    Parameters
+    ----------
+    sel : (z, y, x) ndarray of bool
+    tub : (z, y, x) ndarray of float
+        Vesselness (0 where not computed).
+    seeds_idx : (K, 3) ndarray of int, optional
+        Seed voxels in ``sel``'s grid.
+    """
+    from skimage.segmentation import watershed
+
+    sp = np.asarray(spacing_zyx, dtype=float)
+    if not sel.any():
+        return sel
+    sl = bbox(sel, pad=1)
+    m = sel[sl].copy()
+    E = edt_mm(m, sp)
+    T = np.asarray(tub[sl], dtype=np.float64)
+    seeds = None
+    if seeds_idx is not None:
+        s_loc = np.atleast_2d(np.asarray(seeds_idx, dtype=int)) - np.array([s.start for s in sl])
+        ok = np.all((s_loc >= 0) & (s_loc < np.array(m.shape)), axis=1)
+        seeds = s_loc[ok]
+    struct = np.ones((3, 3, 3))
+    t = float(min_mm)
+    while t <= ratio * float(E.max()) and t <= ratio * max_mm + 1e-9:
+        lab, n = ndi.label(E > t, structure=struct)
+        if n >= 2:
+            idx = np.arange(1, n + 1)
+            deep = np.asarray(ndi.maximum(E, lab, idx))
+            mass = np.asarray(ndi.sum(T, lab, idx))
+            main = int(np.argmax(mass))
+            flag = [k for k in np.flatnonzero(deep * ratio >= t) if k != main]
+            if flag:
+                ws = watershed(-E, lab, mask=m)
+                for k in flag:
+                    terr = ws == k + 1
+                    if seeds is not None and len(seeds) and terr[tuple(seeds.T)].any():
+                        continue
+                    m &= ~terr
+                E = np.where(m, E, np.float32(0))
+        t *= 1.45
+    lab, n = ndi.label(m, structure=struct)
+    if n > 1:
+        keep = np.zeros(n + 1, bool)
+        if seeds is not None and len(seeds):
+            keep[lab[tuple(seeds.T)]] = True
+            keep[0] = False
+        if not keep.any():
+            keep[1 + int(np.argmax(ndi.sum(T, lab, np.arange(1, n + 1))))] = True
+        m = keep[lab]
+    out = np.zeros_like(sel)
+    out[sl] = m
+    return out
 
 
 def frangi_at(img_zyx: np.ndarray, idx_zyx: np.ndarray, spacing_zyx, scales_mm, *, alpha: float = 0.5,
@@ -445,6 +519,14 @@ def segment_vessels(volume: io.Volume, *, seeds_lps_mm=None, progress: bool = Fa
             else:
                 sel = keep2[lab2]
         del lab2
+    if opt.neck_ratio > 0:
+        tubv = np.zeros(candv.shape, np.float32)
+        tubv[tuple(cidx.T)] = ves_c
+        vofs = off + np.array([s.start for s in vcrop])
+        sel = _split_at_necks(sel, tubv, sp_zyx, ratio=opt.neck_ratio, min_mm=opt.neck_min_mm,
+                              max_mm=opt.max_vessel_radius_mm,
+                              seeds_idx=None if seeds_idx is None else np.rint(seeds_idx - vofs).astype(int))
+        del tubv
     bar.update()
     bar.close()
 

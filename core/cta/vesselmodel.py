@@ -96,6 +96,10 @@ TUBULAR_SUPPORT_MM = 3.0
 #: is elongated and the gap runs along its axis (``VesselOptions.support_gap_mm``): a vessel's vesselness drops
 #: over about a rib's or a clavicle's width where it passes bone (the bone rim is cut) or touches another lumen.
 SUPPORT_GAP_MM = 20.0
+#: Touching lumens are separated where they meet through a neck shallower than this fraction of the deeper
+#: part's own depth (``VesselOptions.neck_ratio``): a branch's ostium is about as deep as its radius, the
+#: partial-volume contact of a heart chamber, a pulmonary vessel or a vein with an artery a voxel or two.
+NECK_RATIO = 0.4
 #: A lumen needs at least this contrast over the background, in noise standard deviations.
 MIN_CNR = 5.0
 #: Plausibility limits of a vessel tree (see :func:`check_plausibility`).
@@ -167,7 +171,8 @@ class IntensityModel:
                        crop_hu=self.background + CROP_FRACTION * c, bone_min_hu=float(bone),
                        max_vessel_radius_mm=float(max_radius_mm), vesselness_scales_mm=scales,
                        background_hu=self.background, min_peak_hu=self.background + PEAK_FRACTION * c,
-                       tubular_support_mm=TUBULAR_SUPPORT_MM, support_gap_mm=SUPPORT_GAP_MM)
+                       tubular_support_mm=TUBULAR_SUPPORT_MM, support_gap_mm=SUPPORT_GAP_MM,
+                       neck_ratio=NECK_RATIO)
 
     def to_dict(self) -> dict:
         d = asdict(self)
