@@ -355,8 +355,11 @@ def segment_vessels(volume: io.Volume, *, seeds_lps_mm=None, progress: bool = Fa
     boundary at the partial-volume midpoint whatever the contrast; at least ``lumen_min_hu``.
     Bone (above ``bone_min_hu``) and its partial-volume rim are rejected first; regions thicker
     than ``max_vessel_radius_mm`` (heart chambers) are cut off; of the remaining components the one
-    with the largest Frangi vesselness mass is kept. Everything runs on the bounding box of the
-    bright candidate voxels, in float32.
+    with the largest Frangi vesselness mass is kept. With ``tubular_support_mm``, only voxels near
+    tubular ones stay, and (``support_gap_mm``) the vessel pieces that step cuts off are joined back
+    across their gap (:func:`_bridge_support_gaps`); with ``neck_ratio``, lumens that touch the tree
+    only through a neck are cut off (:func:`_split_at_necks`). Everything runs on the bounding box of
+    the bright candidate voxels, in float32.
     """
     opt = options or VesselOptions()
     what = volume.source or "volume"
