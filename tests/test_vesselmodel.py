@@ -433,3 +433,28 @@ def test_necks_separate_touching_lumens_and_keep_branches():
     assert out_s[vein].mean() > 0.95 and out_s[blob].mean() < 0.05
     # ratio 0: nothing is cut
     assert np.array_equal(_split_at_necks(sel, tub, sp, ratio=0.0, min_mm=1.5, max_mm=16.0), sel)
+
+
+def test_a_chamber_touching_the_trunk_is_cut_from_the_automatic_tree(monkeypatch):
+    """Through ``extract_vessels_auto``: a compact chamber-like blob (8 mm radius, contrast-filled like the
+    lumen, under the 16 mm blob limit) touching the trunk through a 1 mm bridge of partial volume is in the
+    tree without the neck rule and out of it with it; the trunk and its branches stay (ground truth: the
+    synthetic volume's own tubes and blob)."""
+    segs = [TRUNK, *BRANCHES]
+    centre, r = np.array([15.0, 33.0 - 9.0 - 1.6 - 8.0, 33.0]), 8.0
+    bridge = (np.array([15.0, 33.0 - 9.0 + 0.8, 33.0]), np.array([15.0, 33.0 - 9.0 - 1.6 - 0.8, 33.0]), 1.0)
+    v = _volume(bone=1100.0, segments=[*segs, bridge])
+    g = np.stack(np.meshgrid(*[np.arange(n) * SP for n in SHAPE], indexing="ij"), -1)
+    depth = r - np.linalg.norm(g - centre, axis=-1)
+    frac = np.clip(0.5 + depth / SP, 0, 1)
+    noisy_lumen = 380.0 + np.random.default_rng(1).normal(0.0, 12.0, SHAPE)
+    a = (np.asarray(v.array_zyx) * (1 - frac) + noisy_lumen * frac).astype(np.float32)
+    vol = io.Volume(a, v.spacing_mm, v.origin_lps_mm, v.direction, source="chamber")
+    chamber, tubes = depth > 0, _tubes_depth(SHAPE, segs) > 0
+    cut = vesselmodel.extract_vessels_auto(vol)
+    assert cut.vessels.mask_zyx[chamber].mean() < 0.05
+    assert cut.vessels.mask_zyx[tubes].mean() > 0.97 and cut.plausibility.ok
+    _assert_every_axis_covered(cut.vessels.tree)
+    monkeypatch.setattr(vesselmodel, "NECK_RATIO", 0.0)
+    kept = vesselmodel.extract_vessels_auto(vol)
+    assert kept.vessels.mask_zyx[chamber].mean() > 0.9  # without the rule the chamber is in the tree
