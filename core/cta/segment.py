@@ -54,6 +54,18 @@ class VesselOptions:
     tubular_density_min: float = 0.0
     tubular_density_mm: float = 3.0
     tubular_density_exempt_hu: float = float("inf")
+    # > 0 (with ``tubular_support_mm``): a piece the support step cut off the kept tree is joined back through
+    # the candidate voxels when the geodesic gap is at most this (mm), the piece is elongated (its principal
+    # extent at least ``support_gap_elongation`` x the next) and the gap runs along its axis (within
+    # ``support_gap_max_angle_deg``): a vessel whose vesselness drops where it passes bone or another lumen
+    support_gap_mm: float = 0.0
+    support_gap_elongation: float = 2.0
+    support_gap_max_angle_deg: float = 45.0
+    # > 0: touching lumens are separated at their necks (:func:`_split_at_necks`): a part of the tree whose deep
+    # core meets the rest only through a neck shallower than this fraction of the part's own depth is cut off
+    # with its territory (a heart chamber, a vein or the thyroid touching an artery through partial volume)
+    neck_ratio: float = 0.0
+    neck_min_mm: float = 1.5  # the shallowest neck depth tested (mm; the finest level of the ladder)
 
 
 def _ball_dilate(mask, radius_mm: float, spacing_zyx) -> np.ndarray:
@@ -98,6 +110,154 @@ def _deeper_than(mask, depth_mm: float, spacing_zyx) -> np.ndarray:
         out[sl] = pre[sl]
     else:
         out[sl] = (edt_mm(sub, sp) > depth_mm) & pre[sl]
+    return out
+
+
+def _bridge_support_gaps(lab: np.ndarray, keep: np.ndarray, allowed: np.ndarray, spacing_zyx, *, gap_mm: float,
+                         elongation: float, max_angle_deg: float, min_voxels: int) -> np.ndarray:
+    """The kept components of ``lab`` (``keep[lab]``) with the pieces the tubular-support step cut off them
+    joined back where the cut is a gap in a vessel, not the boundary of parenchyma.
+
+    A component ``P`` of ``lab`` (at least ``min_voxels``) is joined when (1) the geodesic distance from it
+    to the kept voxels through ``allowed`` (the candidate lumen voxels the support step removed) is at most
+    ``gap_mm``; (2) it is elongated: the square root of the ratio of the two largest principal variances of
+    its voxels (mm) is at least ``elongation`` (a tube of length ``l`` and radius ``r``: ``l / (sqrt(3) r)``;
+    a sheet or a blob of parenchyma about 1); (3) the gap runs along its axis: the line from the kept tree's
+    nearest voxel to the piece's nearest voxel is within ``max_angle_deg`` of the piece's principal axis (a
+    vessel continues its course across the gap; the line is that from the tree's end of the shortest path
+    to the piece's end, started at the voxel of the piece's facing end nearest its axis). That path, widened
+    to the piece's radius (its volume over its principal length) inside ``allowed``, joins with it, so the
+    lumen stays connected. Repeated while pieces join (a vessel cut several times).
+    Each piece is handled in its box widened by ``gap_mm``.
+    """
+    import warnings
+
+    from skimage.graph import MCP_Geometric
+
+    sp = np.asarray(spacing_zyx, dtype=float)
+    sel = keep[lab]
+    objs = ndi.find_objects(lab)
+    sizes = np.bincount(lab.ravel())
+    pad = np.ceil(gap_mm / sp).astype(int) + 1
+    todo = [i for i in range(1, len(sizes)) if not keep[i] and sizes[i] >= min_voxels and objs[i - 1] is not None]
+    boxes = {i: tuple(slice(max(s.start - p, 0), min(s.stop + p, n)) for s, p, n in zip(objs[i - 1], pad, lab.shape))
+             for i in todo}
+    cos_min = float(np.cos(np.radians(max_angle_deg)))
+    joined: set[int] = set()
+    fresh = None  # the boxes of the pieces joined in the last round: only pieces near them may join next
+    while True:
+        added = []
+        for i in todo:
+            if i in joined:
+                continue
+            box = boxes[i]
+            if fresh is not None and not any(all(a.start < b.stop and b.start < a.stop for a, b in zip(box, fb))
+                                             for fb in fresh):
+                continue
+            M = sel[box]
+            if not M.any():
+                continue
+            P = lab[box] == i
+            pts = np.argwhere(P) * sp
+            w, V = np.linalg.eigh(np.cov(pts.T))
+            if np.sqrt(w[2] / max(w[1], 1e-12)) < elongation:
+                continue
+            costs = np.where(allowed[box] | P | M, 1.0, np.inf)
+            with warnings.catch_warnings():  # max_cumulative_cost: deprecated in scikit-image 0.26, still the bound
+                warnings.simplefilter("ignore", FutureWarning)
+                dP, _ = MCP_Geometric(costs, sampling=tuple(sp)).find_costs(
+                    np.argwhere(P), max_cumulative_cost=gap_mm + sp.max())
+                g = float(dP[M].min())
+                if not g <= gap_mm:
+                    continue
+                mcp = MCP_Geometric(costs, sampling=tuple(sp))
+                dM, _ = mcp.find_costs(np.argwhere(M), max_cumulative_cost=gap_mm + sp.max())
+            # the piece's end facing the tree (its voxels nearest to it), and of those the one nearest its axis
+            face = np.argwhere(P & (dM <= dM[P].min() + sp.max()))
+            rel = face * sp - pts.mean(axis=0)
+            c_p = face[int(np.argmin(np.linalg.norm(rel - np.outer(rel @ V[:, 2], V[:, 2]), axis=1)))]
+            path = np.asarray(mcp.traceback(tuple(int(v) for v in c_p)))
+            v = (path[-1] - path[0]) * sp
+            if abs(float(v @ V[:, 2])) < cos_min * max(float(np.linalg.norm(v)), 1e-9):
+                continue
+            # that shortest path across the gap, widened to the piece's own radius (its volume over its length)
+            r_mm = float(np.sqrt(len(pts) * np.prod(sp) / (np.pi * np.sqrt(12.0 * w[2]))))
+            on = np.zeros(P.shape, bool)
+            on[tuple(path.T)] = True
+            sel[box] |= P | (_ball_dilate(on, r_mm, sp) & np.isfinite(costs))
+            joined.add(i)
+            added.append(box)
+        if not added:
+            return sel
+        fresh = added
+
+
+def _split_at_necks(sel: np.ndarray, tub: np.ndarray, spacing_zyx, *, ratio: float, min_mm: float,
+                    max_mm: float, seeds_idx: np.ndarray | None = None) -> np.ndarray:
+    """``sel`` without the parts that touch the tree only through a neck: separate lumens, not branches.
+
+    A branch leaves its parent through an ostium about as deep as its own radius (the distance to the wall,
+    ``edt``); two separate lumens that touch through the partial volume of their walls (a heart chamber or a
+    pulmonary vessel against the aorta, a vein beside an artery, an enhancing gland) meet at a neck of a voxel
+    or two, far shallower than either. On a ladder of depths ``t`` (from ``min_mm`` by factors of 1.45 while
+    ``t <= ratio * max_mm``), the deep cores (``edt > t``, 26-connected) are found; the core with the most
+    vesselness (``tub`` summed over it) is the tree's; any other core at least ``t / ratio`` deep meets it
+    only through necks shallower than ``ratio`` times its own depth and is cut off with its territory (the
+    watershed of ``-edt`` from all cores at that level, inside ``sel``), unless a seed lies in that territory.
+    Then the connected part with the most vesselness (or those holding a seed) is kept.
+
+    Parameters
+    ----------
+    sel : (z, y, x) ndarray of bool
+    tub : (z, y, x) ndarray of float
+        Vesselness (0 where not computed).
+    seeds_idx : (K, 3) ndarray of int, optional
+        Seed voxels in ``sel``'s grid.
+    """
+    from skimage.segmentation import watershed
+
+    sp = np.asarray(spacing_zyx, dtype=float)
+    if not sel.any():
+        return sel
+    sl = bbox(sel, pad=1)
+    m = sel[sl].copy()
+    E = edt_mm(m, sp)
+    T = np.asarray(tub[sl], dtype=np.float64)
+    seeds = None
+    if seeds_idx is not None:
+        s_loc = np.atleast_2d(np.asarray(seeds_idx, dtype=int)) - np.array([s.start for s in sl])
+        ok = np.all((s_loc >= 0) & (s_loc < np.array(m.shape)), axis=1)
+        seeds = s_loc[ok]
+    struct = np.ones((3, 3, 3))
+    t = float(min_mm)
+    while t <= ratio * float(E.max()) and t <= ratio * max_mm + 1e-9:
+        lab, n = ndi.label(E > t, structure=struct)
+        if n >= 2:
+            idx = np.arange(1, n + 1)
+            deep = np.asarray(ndi.maximum(E, lab, idx))
+            mass = np.asarray(ndi.sum(T, lab, idx))
+            main = int(np.argmax(mass))
+            flag = [k for k in np.flatnonzero(deep * ratio >= t) if k != main]
+            if flag:
+                ws = watershed(-E, lab, mask=m)
+                for k in flag:
+                    terr = ws == k + 1
+                    if seeds is not None and len(seeds) and terr[tuple(seeds.T)].any():
+                        continue
+                    m &= ~terr
+                E = np.where(m, E, np.float32(0))
+        t *= 1.45
+    lab, n = ndi.label(m, structure=struct)
+    if n > 1:
+        keep = np.zeros(n + 1, bool)
+        if seeds is not None and len(seeds):
+            keep[lab[tuple(seeds.T)]] = True
+            keep[0] = False
+        if not keep.any():
+            keep[1 + int(np.argmax(ndi.sum(T, lab, np.arange(1, n + 1))))] = True
+        m = keep[lab]
+    out = np.zeros_like(sel)
+    out[sl] = m
     return out
 
 
@@ -195,8 +355,11 @@ def segment_vessels(volume: io.Volume, *, seeds_lps_mm=None, progress: bool = Fa
     boundary at the partial-volume midpoint whatever the contrast; at least ``lumen_min_hu``.
     Bone (above ``bone_min_hu``) and its partial-volume rim are rejected first; regions thicker
     than ``max_vessel_radius_mm`` (heart chambers) are cut off; of the remaining components the one
-    with the largest Frangi vesselness mass is kept. Everything runs on the bounding box of the
-    bright candidate voxels, in float32.
+    with the largest Frangi vesselness mass is kept. With ``tubular_support_mm``, only voxels near
+    tubular ones stay, and (``support_gap_mm``) the vessel pieces that step cuts off are joined back
+    across their gap (:func:`_bridge_support_gaps`); with ``neck_ratio``, lumens that touch the tree
+    only through a neck are cut off (:func:`_split_at_necks`). Everything runs on the bounding box of
+    the bright candidate voxels, in float32.
     """
     opt = options or VesselOptions()
     what = volume.source or "volume"
@@ -351,8 +514,22 @@ def segment_vessels(volume: io.Volume, *, seeds_lps_mm=None, progress: bool = Fa
                 keep2[sorted(near)] = True
             else:
                 keep2[1 + int(np.argmax(np.bincount(lab2.ravel())[1:]))] = True
-            sel = keep2[lab2]
+            if opt.support_gap_mm > 0:
+                sel = _bridge_support_gaps(lab2, keep2, keep[lab], sp_zyx, gap_mm=opt.support_gap_mm,
+                                           elongation=opt.support_gap_elongation,
+                                           max_angle_deg=opt.support_gap_max_angle_deg,
+                                           min_voxels=int(np.ceil(opt.min_component_mm3 / voxel_mm3)))
+            else:
+                sel = keep2[lab2]
         del lab2
+    if opt.neck_ratio > 0:
+        tubv = np.zeros(candv.shape, np.float32)
+        tubv[tuple(cidx.T)] = ves_c
+        vofs = off + np.array([s.start for s in vcrop])
+        sel = _split_at_necks(sel, tubv, sp_zyx, ratio=opt.neck_ratio, min_mm=opt.neck_min_mm,
+                              max_mm=opt.max_vessel_radius_mm,
+                              seeds_idx=None if seeds_idx is None else np.rint(seeds_idx - vofs).astype(int))
+        del tubv
     bar.update()
     bar.close()
 

@@ -14,7 +14,12 @@ in which it cannot find a plausible vessel tree instead of returning garbage:
    the same way and the segmentation not at all.
 3. :meth:`IntensityModel.vessel_options` - the segmentation thresholds of
    :class:`guidewire3d.cta.segment.VesselOptions` as fractions of the lumen-background contrast (at a
-   lumen of 400 HU over 40 HU they are the HU defaults of issue 4).
+   lumen of 400 HU over 40 HU they are the HU defaults of issue 4), and two geometric rules of the
+   tree that need no intensity: vessel pieces the tubular-support step cuts off are joined back across
+   a gap of at most ``SUPPORT_GAP_MM`` when they are elongated and continue the vessel's course, and
+   lumens that touch the tree only through a neck shallower than ``NECK_RATIO`` of their own depth
+   (heart chambers, pulmonary vessels, veins, glands touching an artery through partial volume) are
+   cut off.
 4. :func:`check_plausibility` - vessel volume against the body, branch count, total length and
    tubularity against the field of view; an implausible tree is a ``SegmentationError`` that says
    what was implausible and suggests seeds.
@@ -92,6 +97,14 @@ PEAK_FRACTION = 0.4
 #: Only voxels within this distance (mm) of a tubular voxel are vessel (the vessel stage's
 #: ``tubular_support_mm``).
 TUBULAR_SUPPORT_MM = 3.0
+#: A piece the tubular-support step cuts off the tree is joined back across a gap of at most this (mm) when it
+#: is elongated and the gap runs along its axis (``VesselOptions.support_gap_mm``): a vessel's vesselness drops
+#: over about a rib's or a clavicle's width where it passes bone (the bone rim is cut) or touches another lumen.
+SUPPORT_GAP_MM = 20.0
+#: Touching lumens are separated where they meet through a neck shallower than this fraction of the deeper
+#: part's own depth (``VesselOptions.neck_ratio``): a branch's ostium is about as deep as its radius, the
+#: partial-volume contact of a heart chamber, a pulmonary vessel or a vein with an artery a voxel or two.
+NECK_RATIO = 0.4
 #: A lumen needs at least this contrast over the background, in noise standard deviations.
 MIN_CNR = 5.0
 #: Plausibility limits of a vessel tree (see :func:`check_plausibility`).
@@ -166,7 +179,8 @@ class IntensityModel:
                        crop_hu=self.background + CROP_FRACTION * c, bone_min_hu=float(bone),
                        max_vessel_radius_mm=float(max_radius_mm), vesselness_scales_mm=scales,
                        background_hu=self.background, min_peak_hu=self.background + PEAK_FRACTION * c,
-                       tubular_support_mm=TUBULAR_SUPPORT_MM)
+                       tubular_support_mm=TUBULAR_SUPPORT_MM, support_gap_mm=SUPPORT_GAP_MM,
+                       neck_ratio=NECK_RATIO)
 
     def to_dict(self) -> dict:
         d = asdict(self)
