@@ -14,12 +14,11 @@ in which it cannot find a plausible vessel tree instead of returning garbage:
    the same way and the segmentation not at all.
 3. :meth:`IntensityModel.vessel_options` - the segmentation thresholds of
    :class:`guidewire3d.cta.segment.VesselOptions` as fractions of the lumen-background contrast (at a
-   lumen of 400 HU over 40 HU they are the HU defaults of issue 4), and two geometric rules of the
-   tree that need no intensity: vessel pieces the tubular-support step cuts off are joined back across
-   a gap of at most ``SUPPORT_GAP_MM`` when they are elongated and continue the vessel's course, and
-   lumens that touch the tree only through a neck shallower than ``NECK_RATIO`` of their own depth
-   (heart chambers, pulmonary vessels, veins, glands touching an artery through partial volume) are
-   cut off.
+   lumen of 400 HU over 40 HU they are the HU defaults of issue 4), and a geometric rule of the tree
+   that needs no intensity: vessel pieces the tubular-support step cuts off are joined back across a
+   gap of at most ``SUPPORT_GAP_MM`` when they are elongated and continue the vessel's course. (A
+   second one, lumens touching the tree only through a neck shallower than ``NECK_RATIO`` of their own
+   depth cut off, ships off: see ``NECK_RATIO``.)
 4. :func:`check_plausibility` - vessel volume against the body, branch count, total length and
    tubularity against the field of view; an implausible tree is a ``SegmentationError`` that says
    what was implausible and suggests seeds.
