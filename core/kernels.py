@@ -2126,12 +2126,51 @@ def _warm_up_triangulation() -> None:
 # --- motion tracking (guidewire3d.motion.tracking) ----------------------------------------------------------------
 __all__ += ["motion_solve", "motion_acquire_costs"]
 _COMPILED_MOTION: dict = {}
+_MOTION_POINT: list = []
+
+
+def _motion_point_kernel():
+    """The tracker's one curve point (compiled once; ``motion_solve`` and ``motion_linearize`` call it): at the
+    tree sample ``y`` and its neighbour ``yn`` (camera frame, mm), the point-to-tangent residual of curve point
+    ``(c0, c1)`` px, returned, and its Jacobian row ``J[i]`` in the tracker's (t, rotation about ``centroid``)."""
+    with _LOCK:
+        if not _MOTION_POINT:
+            @_jit
+            def motion_point(c0, c1, y, yn, focal, pp, centroid, J, i):
+                u = focal * y[0] / y[2] + pp[0]
+                v = focal * y[1] / y[2] + pp[1]
+                t0 = focal * yn[0] / yn[2] + pp[0] - u
+                t1 = focal * yn[1] / yn[2] + pp[1] - v
+                nrm = np.sqrt(t0 * t0 + t1 * t1)
+                d0 = c0 - u
+                d1 = c1 - v
+                if nrm > 1e-9:
+                    t0 /= max(nrm, 1e-12)
+                    t1 /= max(nrm, 1e-12)
+                    n0, n1 = -t1, t0
+                else:
+                    dn = max(np.sqrt(d0 * d0 + d1 * d1), 1e-12)
+                    n0, n1 = d0 / dn, d1 / dn
+                z = y[2]
+                g0 = n0 * (focal / z)
+                g1 = n1 * (focal / z)
+                g2 = -(g0 * y[0] + g1 * y[1]) / z
+                e0, e1, e2 = y[0] - centroid[0], y[1] - centroid[1], y[2] - centroid[2]
+                J[i, 0], J[i, 1], J[i, 2] = g0, g1, g2
+                J[i, 3] = e1 * g2 - e2 * g1
+                J[i, 4] = e2 * g0 - e0 * g2
+                J[i, 5] = e0 * g1 - e1 * g0
+                return -(n0 * d0 + n1 * d1)
+
+            _MOTION_POINT.append(motion_point)
+        return _MOTION_POINT[0]
 
 
 def _compile_motion():
     """The pose tracker's Gauss-Newton solve (``MotionTracker._solve``) as one compiled call: the numpy code it
     replaces spent its time in dozens of small temporaries per iteration (a frame's curve has at most 128
     points, the tree a few hundred samples near it)."""
+    motion_point = _motion_point_kernel()  # (it takes the lock itself)
     with _LOCK:
         if _COMPILED_MOTION:
             return _COMPILED_MOTION
@@ -2203,7 +2242,6 @@ def _compile_motion():
             pw = min(1.0, max(1.0, length_mm / fit_correlation_mm) / n)
             uvs = np.empty((m, 2))
             yn = np.empty(3)
-            g = np.empty(3)
             it = 0
             last = iterations + 1  # the final pass: new pairs at the solution
             for it_ in range(1, iterations + 2):
@@ -2226,33 +2264,10 @@ def _compile_motion():
                 for i in range(n):
                     _move(j[i], R, delta, y)
                     _move(nbr[j[i]], R, delta, yn)
-                    u = focal * y[0] / y[2] + pp[0]
-                    v = focal * y[1] / y[2] + pp[1]
-                    t0 = focal * yn[0] / yn[2] + pp[0] - u
-                    t1 = focal * yn[1] / yn[2] + pp[1] - v
-                    nrm = np.sqrt(t0 * t0 + t1 * t1)
-                    d0 = c[i, 0] - u
-                    d1 = c[i, 1] - v
-                    if nrm > 1e-9:
-                        t0 /= max(nrm, 1e-12)
-                        t1 /= max(nrm, 1e-12)
-                        n0, n1 = -t1, t0
-                    else:
-                        dn = max(np.sqrt(d0 * d0 + d1 * d1), 1e-12)
-                        n0, n1 = d0 / dn, d1 / dn
-                    r[i] = -(n0 * d0 + n1 * d1)
+                    r[i] = motion_point(c[i, 0], c[i, 1], y, yn, focal, pp, centroid, J, i)
                     a = abs(r[i])
                     w[i] = (1.0 / np.sqrt(1.0 + (a / huber_px) ** 2) if a <= gate_px else 0.0) * (pw / sigma_px ** 2)
-                    z = y[2]
-                    g[0] = n0 * (focal / z)
-                    g[1] = n1 * (focal / z)
-                    g[2] = -(g[0] * y[0] + g[1] * y[1]) / z
-                    e0, e1, e2 = y[0] - centroid[0], y[1] - centroid[1], y[2] - centroid[2]
-                    J[i, 0], J[i, 1], J[i, 2] = g[0], g[1], g[2]
-                    J[i, 3] = e1 * g[2] - e2 * g[1]
-                    J[i, 4] = e2 * g[0] - e0 * g[2]
-                    J[i, 5] = e0 * g[1] - e1 * g[0]
-                    lumen[i] = focal * radius[j[i]] / z
+                    lumen[i] = focal * radius[j[i]] / y[2]
                 if final:
                     break
                 it = it_
@@ -2357,6 +2372,7 @@ _COMPILED_MOTION_VIEWS: dict = {}
 def _compile_motion_views():
     """One view's residuals and Jacobian at a pose (the inner loop of ``motion_solve``, without its Gauss-Newton
     step): the biplane tracker sums two views' normal equations in one solve."""
+    motion_point = _motion_point_kernel()  # (it takes the lock itself)
     with _LOCK:
         if _COMPILED_MOTION_VIEWS:
             return _COMPILED_MOTION_VIEWS
@@ -2407,28 +2423,12 @@ def _compile_motion_views():
             r = np.zeros(n)
             w = np.zeros(n)
             lumen = np.zeros(n)
-            g = np.empty(3)
             for i in range(n):
                 _move(j[i], y)
                 _move(nbr[j[i]], yn)
-                u = focal * y[0] / y[2] + pp[0]
-                v = focal * y[1] / y[2] + pp[1]
-                t0 = focal * yn[0] / yn[2] + pp[0] - u
-                t1 = focal * yn[1] / yn[2] + pp[1] - v
-                nrm = np.sqrt(t0 * t0 + t1 * t1)
-                d0 = c[i, 0] - u
-                d1 = c[i, 1] - v
-                if nrm > 1e-9:
-                    t0 /= max(nrm, 1e-12)
-                    t1 /= max(nrm, 1e-12)
-                    n0, n1 = -t1, t0
-                else:
-                    dn = max(np.sqrt(d0 * d0 + d1 * d1), 1e-12)
-                    n0, n1 = d0 / dn, d1 / dn
-                r[i] = -(n0 * d0 + n1 * d1)
+                r[i] = motion_point(c[i, 0], c[i, 1], y, yn, focal, pp, centroid, J, i)
                 a = abs(r[i])
-                z = y[2]
-                lumen[i] = focal * radius[j[i]] / z
+                lumen[i] = focal * radius[j[i]] / y[2]
                 w[i] = (1.0 / np.sqrt(1.0 + (a / huber_px) ** 2) if a <= gate_px else 0.0) * (pw / sigma_px ** 2)
                 if slack > 0.0:  # the curve anywhere within ``slack`` projected radii of the centerline fits
                     inside = slack * lumen[i]
@@ -2439,14 +2439,6 @@ def _compile_motion_views():
                         r[i] = r[i] - inside if r[i] > 0 else r[i] + inside
                         a = abs(r[i])
                         w[i] = (1.0 / np.sqrt(1.0 + (a / huber_px) ** 2)) * (pw / sigma_px ** 2)
-                g[0] = n0 * (focal / z)
-                g[1] = n1 * (focal / z)
-                g[2] = -(g[0] * y[0] + g[1] * y[1]) / z
-                e0, e1, e2 = y[0] - centroid[0], y[1] - centroid[1], y[2] - centroid[2]
-                J[i, 0], J[i, 1], J[i, 2] = g[0], g[1], g[2]
-                J[i, 3] = e1 * g[2] - e2 * g[1]
-                J[i, 4] = e2 * g[0] - e0 * g[2]
-                J[i, 5] = e0 * g[1] - e1 * g[0]
             return r, J, w, j, lumen
 
         _COMPILED_MOTION_VIEWS.update(motion_linearize=motion_linearize)

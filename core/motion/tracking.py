@@ -188,6 +188,30 @@ def _samples(tree: VesselTree, step_mm: float) -> tuple[np.ndarray, np.ndarray, 
     return dense.points_lps_mm, dense.radius_mm, nbr
 
 
+def _settle(trk, opt: MotionOptions, tracked: bool, second_opinion, rivals, alone: str) -> str:
+    """The second opinion's schedule (``MotionOptions.settle_every``) for a tracker ``trk`` (its
+    ``_since_check`` and ``unsettled_mm`` updated): a tracked frame is solved alone every
+    ``settle_every`` frames, and every frame while that disagrees (``second_opinion()``, mm); a first
+    frame's other starts are its second opinion (``rivals()``, mm). Returns the verdict message's
+    suffix when the pose is not settled (the frame is then not ``ok``), else ""."""
+    if opt.settle_every <= 0:
+        trk.unsettled_mm = 0.0
+        return ""
+    if tracked:
+        trk._since_check += 1
+        if trk._since_check >= int(opt.settle_every) or trk.unsettled_mm > opt.max_unsettled_mm:
+            trk._since_check = 0
+            trk.unsettled_mm = second_opinion()
+        what = f"tracked pose not settled: {alone} the wire's vessels"
+    else:
+        trk._since_check = 0
+        trk.unsettled_mm = rivals()
+        what = "acquired pose not settled: another fit almost as good puts the wire's vessels"
+    if trk.unsettled_mm > opt.max_unsettled_mm:
+        return f"; {what} {trk.unsettled_mm:.1f} mm elsewhere (limit {opt.max_unsettled_mm:g} mm)"
+    return ""
+
+
 class MotionTracker:
     """Per-frame pose tracking against one registration (the roadmap's pose and covariance).
 
@@ -367,25 +391,10 @@ class MotionTracker:
                    f"{np.linalg.norm(delta[:2]):.1f} mm in the image plane, {depth_shift:+.1f} mm in depth")
             if not ok:
                 msg += f" (depth moved more than {opt.max_depth_shift_mm:g} mm from the roadmap's)"
-            if tracked and opt.settle_every > 0:
-                self._since_check += 1
-                if self._since_check >= int(opt.settle_every) or self.unsettled_mm > opt.max_unsettled_mm:
-                    self._since_check = 0
-                    self.unsettled_mm = self._second_opinion_mm(c, delta, fit[4])
-                if self.unsettled_mm > opt.max_unsettled_mm:
-                    ok = False
-                    msg += (f"; tracked pose not settled: this frame's curve alone puts the wire's vessels "
-                            f"{self.unsettled_mm:.1f} mm elsewhere (limit {opt.max_unsettled_mm:g} mm)")
-            elif opt.settle_every > 0:
-                # a first frame: its other starts' fits are the second opinion
-                self._since_check = 0
-                self.unsettled_mm = self._rivals_mm(sols, delta, fit[4])
-                if self.unsettled_mm > opt.max_unsettled_mm:
-                    ok = False
-                    msg += (f"; acquired pose not settled: another fit almost as good puts the wire's vessels "
-                            f"{self.unsettled_mm:.1f} mm elsewhere (limit {opt.max_unsettled_mm:g} mm)")
-            else:
-                self.unsettled_mm = 0.0
+            unsettled = _settle(self, opt, tracked, lambda: self._second_opinion_mm(c, delta, fit[4]),
+                                lambda: self._rivals_mm(sols, delta, fit[4]), "this frame's curve alone puts")
+            ok = ok and not unsettled
+            msg += unsettled
         else:
             # keep the previous estimate: a curve that does not lie on the tree does not move it
             pose = self.pose_of(prev)
@@ -701,7 +710,6 @@ class BiplaneMotionTracker:
             return self._one_view_or_hold(cs, prev, why, t0, [k for k in range(2) if fits[k]])
         self.delta = delta
         self._has_previous = True
-        ok = True
         frac = float(np.mean([p[0] for p in per_view]))
         mean_res = float(np.mean([p[1] for p in per_view]))
         msg = (f"tracked from both planes: {100 * per_view[0][0]:.0f}% / {100 * per_view[1][0]:.0f}% of the curves "
@@ -709,24 +717,10 @@ class BiplaneMotionTracker:
                f"moved {np.linalg.norm(delta[:2]):.1f} mm in plane A's image plane, {delta[2]:+.1f} mm along its beam")
         j = np.unique(np.concatenate([v[4] for v in lin]))
         A = self.planes[0]
-        if tracked and opt.settle_every > 0:
-            self._since_check += 1
-            if self._since_check >= int(opt.settle_every) or self.unsettled_mm > opt.max_unsettled_mm:
-                self._since_check = 0
-                self.unsettled_mm = self._second_opinion_mm(cs, delta, j)
-            if self.unsettled_mm > opt.max_unsettled_mm:
-                ok = False
-                msg += (f"; tracked pose not settled: this pair's curves alone put the wire's vessels "
-                        f"{self.unsettled_mm:.1f} mm elsewhere (limit {opt.max_unsettled_mm:g} mm)")
-        elif opt.settle_every > 0:
-            self._since_check = 0
-            self.unsettled_mm = A._rivals_mm(sols, delta, j)
-            if self.unsettled_mm > opt.max_unsettled_mm:
-                ok = False
-                msg += (f"; acquired pose not settled: another fit almost as good puts the wire's vessels "
-                        f"{self.unsettled_mm:.1f} mm elsewhere (limit {opt.max_unsettled_mm:g} mm)")
-        else:
-            self.unsettled_mm = 0.0
+        unsettled = _settle(self, opt, tracked, lambda: self._second_opinion_mm(cs, delta, j),
+                            lambda: A._rivals_mm(sols, delta, j), "this pair's curves alone put")
+        ok = not unsettled
+        msg += unsettled
         cov = self._reported_covariance(cs, lin)
         pose = self.pose_of(delta)
         return RegistrationResult(pose, A.carm.projection_matrix(pose), ok, msg, mean_res, frac, it,
