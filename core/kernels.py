@@ -2130,7 +2130,8 @@ _MOTION_POINT: list = []
 
 
 def _motion_point_kernel():
-    """The tracker's one curve point (compiled once; ``motion_solve`` and ``motion_linearize`` call it): at the
+    """``(motion_point, motion_rotation, motion_pairs)``, compiled once; ``motion_solve`` and ``motion_linearize``
+    call them. ``motion_point``: the tracker's one curve point: at the
     tree sample ``y`` and its neighbour ``yn`` (camera frame, mm), the point-to-tangent residual of curve point
     ``(c0, c1)`` px, returned, and its Jacobian row ``J[i]`` in the tracker's (t, rotation about ``centroid``)."""
     with _LOCK:
@@ -2162,15 +2163,41 @@ def _motion_point_kernel():
                 J[i, 5] = e0 * g1 - e1 * g0
                 return -(n0 * d0 + n1 * d1)
 
-            _MOTION_POINT.append(motion_point)
-        return _MOTION_POINT[0]
+            @_jit
+            def motion_rotation(phi, R):
+                """``R`` (3, 3) <- the rotation of the vector ``phi`` (Rodrigues, as ``geometry.so3_exp``)."""
+                th = np.sqrt(phi[0] * phi[0] + phi[1] * phi[1] + phi[2] * phi[2])
+                Km = np.array([[0.0, -phi[2], phi[1]], [phi[2], 0.0, -phi[0]], [-phi[1], phi[0], 0.0]])
+                KK = Km @ Km
+                if th < 1e-8:
+                    a, b = 1.0, 0.5
+                else:
+                    a, b = np.sin(th) / th, (1.0 - np.cos(th)) / th ** 2
+                for p in range(3):
+                    for q in range(3):
+                        R[p, q] = (1.0 if p == q else 0.0) + a * Km[p, q] + b * KK[p, q]
+
+            @_jit
+            def motion_pairs(uvs, c, sel, j):
+                """``j[i]`` <- ``sel`` of the projected sample ``uvs`` (M, 2) nearest curve point ``c[i]`` (the
+                lower index on a tie)."""
+                for i in range(c.shape[0]):
+                    best, bk = np.inf, 0
+                    for s in range(uvs.shape[0]):
+                        d2 = (uvs[s, 0] - c[i, 0]) ** 2 + (uvs[s, 1] - c[i, 1]) ** 2
+                        if d2 < best:
+                            best, bk = d2, s
+                    j[i] = sel[bk]
+
+            _MOTION_POINT.extend((motion_point, motion_rotation, motion_pairs))
+        return tuple(_MOTION_POINT)
 
 
 def _compile_motion():
     """The pose tracker's Gauss-Newton solve (``MotionTracker._solve``) as one compiled call: the numpy code it
     replaces spent its time in dozens of small temporaries per iteration (a frame's curve has at most 128
     points, the tree a few hundred samples near it)."""
-    motion_point = _motion_point_kernel()  # (it takes the lock itself)
+    motion_point, _rot, motion_pairs = _motion_point_kernel()  # (it takes the lock itself)
     with _LOCK:
         if _COMPILED_MOTION:
             return _COMPILED_MOTION
@@ -2182,20 +2209,8 @@ def _compile_motion():
             n = c.shape[0]
             K = Y0.shape[0]
             delta = start.copy()
-            # the rotation of delta (Rodrigues, as geometry.so3_exp)
+            # the rotation of delta (Rodrigues, as geometry.so3_exp: _rot)
             R = np.empty((3, 3))
-
-            def _rot(phi, R):
-                th = np.sqrt(phi[0] * phi[0] + phi[1] * phi[1] + phi[2] * phi[2])
-                Km = np.array([[0.0, -phi[2], phi[1]], [phi[2], 0.0, -phi[0]], [-phi[1], phi[0], 0.0]])
-                KK = Km @ Km
-                if th < 1e-8:
-                    a, b = 1.0, 0.5
-                else:
-                    a, b = np.sin(th) / th, (1.0 - np.cos(th)) / th ** 2
-                for p in range(3):
-                    for q in range(3):
-                        R[p, q] = (1.0 if p == q else 0.0) + a * Km[p, q] + b * KK[p, q]
 
             def _move(k, R, delta, out):
                 p0 = Y0[k, 0] - centroid[0]
@@ -2254,13 +2269,7 @@ def _compile_motion():
                         _move(sel[s], R, delta, y)
                         uvs[s, 0] = focal * y[0] / y[2] + pp[0]
                         uvs[s, 1] = focal * y[1] / y[2] + pp[1]
-                    for i in range(n):
-                        best, bk = np.inf, 0
-                        for s in range(m):
-                            d2 = (uvs[s, 0] - c[i, 0]) ** 2 + (uvs[s, 1] - c[i, 1]) ** 2
-                            if d2 < best:
-                                best, bk = d2, s
-                        j[i] = sel[bk]
+                    motion_pairs(uvs, c, sel, j)
                 for i in range(n):
                     _move(j[i], R, delta, y)
                     _move(nbr[j[i]], R, delta, yn)
@@ -2372,7 +2381,7 @@ _COMPILED_MOTION_VIEWS: dict = {}
 def _compile_motion_views():
     """One view's residuals and Jacobian at a pose (the inner loop of ``motion_solve``, without its Gauss-Newton
     step): the biplane tracker sums two views' normal equations in one solve."""
-    motion_point = _motion_point_kernel()  # (it takes the lock itself)
+    motion_point, _rot, motion_pairs = _motion_point_kernel()  # (it takes the lock itself)
     with _LOCK:
         if _COMPILED_MOTION_VIEWS:
             return _COMPILED_MOTION_VIEWS
@@ -2383,18 +2392,8 @@ def _compile_motion_views():
                              huber_px, gate_px, pw, slack):
             n = c.shape[0]
             m = sel.shape[0]
-            phi = delta[3:]
-            th = np.sqrt(phi[0] * phi[0] + phi[1] * phi[1] + phi[2] * phi[2])
-            Km = np.array([[0.0, -phi[2], phi[1]], [phi[2], 0.0, -phi[0]], [-phi[1], phi[0], 0.0]])
-            KK = Km @ Km
-            if th < 1e-8:
-                a_, b_ = 1.0, 0.5
-            else:
-                a_, b_ = np.sin(th) / th, (1.0 - np.cos(th)) / th ** 2
             R = np.empty((3, 3))
-            for p in range(3):
-                for q in range(3):
-                    R[p, q] = (1.0 if p == q else 0.0) + a_ * Km[p, q] + b_ * KK[p, q]
+            _rot(delta[3:], R)
             y = np.empty(3)
             yn = np.empty(3)
 
@@ -2412,13 +2411,7 @@ def _compile_motion_views():
                     _move(sel[s], y)
                     uvs[s, 0] = focal * y[0] / y[2] + pp[0]
                     uvs[s, 1] = focal * y[1] / y[2] + pp[1]
-                for i in range(n):
-                    best, bk = np.inf, 0
-                    for s in range(m):
-                        d2 = (uvs[s, 0] - c[i, 0]) ** 2 + (uvs[s, 1] - c[i, 1]) ** 2
-                        if d2 < best:
-                            best, bk = d2, s
-                    j[i] = sel[bk]
+                motion_pairs(uvs, c, sel, j)
             J = np.zeros((n, 6))
             r = np.zeros(n)
             w = np.zeros(n)
