@@ -65,9 +65,13 @@ TIP_MAX_UNCERTAINTY_MM = 3.0
 TREE_RETREAT_MAX_MM = 6.0
 #: a path through another branch (``Wire3D.branch_extra_cost``: its extra cost, in the Viterbi's
 #: units of 2 x log-likelihood) below this, whose end lies more than ``BRANCH_SHIFT_MIN_MM`` from
-#: the chosen end, makes the branch ambiguous
+#: the chosen end, makes the branch ambiguous. The shift is the tip accuracy a frame reported ``ok``
+#: promises (``scripts/bench_stress.py --tip-mm``, 5 mm): at 10 mm, frames with an equally good path
+#: ending 6-9 mm away were ``ok`` with their tips 5.4-7.6 mm off (true pose, seeds 0-179, 4 frames:
+#: 2 of 601 right-end ``ok`` frames, and ``bench_stress`` seed 3910 frame 0); at 5 mm 8 of the 601, whose
+#: tips were right, become ``uncertain`` as well
 BRANCH_EXTRA_MAX = 4.0
-BRANCH_SHIFT_MIN_MM = 10.0
+BRANCH_SHIFT_MIN_MM = 5.0
 #: the tip along the beam: the 3D wire's arclength over the last ``TIP_STRETCH_PX`` px of its 2D wire
 #: (``tip_stretch_mm``). Where the tip's vessel runs in the image plane, they span about 5 x the
 #: pixel size at the isocentre (about 1 mm); where it turns along the beam, many mm project onto
