@@ -30,6 +30,7 @@ import numpy as np
 #: the reasons of ``live.frame_verdict``, by the words that start them
 REASONS = {"tip end": "tip end uncertain", "beyond tip": "tip uncertain: a wire-like piece",
            "line goes on": "tip uncertain: a dark line continues", "tip doubled": "tip uncertain: the wire's last",
+           "tip bare": "tip uncertain: the trace's last",
            "along beam": "tip uncertain: its vessel runs along the beam",
            "not in view": "tip not in view", "tip sigma": "tip uncertain: its position",
            "trace doubtful": "2D trace doubtful", "branch ambiguous": "branch ambiguous", "motion": "motion:"}

@@ -12,8 +12,8 @@ import pytest
 from guidewire3d.live import session as live
 from guidewire3d.metrics import resample_polyline
 from guidewire3d.registration import Verdict
-from guidewire3d.xray.orderedwire import (DOUBLED_END_RATIO, END_WINDOW_PX, DoubledTip, doubled_tip, ordered_wire,
-                                          tip_darkness)
+from guidewire3d.xray.orderedwire import (BARE_END_RATIO, DOUBLED_END_RATIO, END_WINDOW_PX, BareTip, DoubledTip,
+                                          doubled_tip, ordered_wire, tip_darkness, tip_end_check)
 from scipy.spatial import cKDTree
 
 SHAPE = (160, 320)
@@ -99,3 +99,29 @@ def test_the_frame_verdict_says_so_at_the_output_tip():
     verdict, message = live.frame_verdict(w3, uv, None, doubled_tip=DoubledTip(2.4), image_shape=(512, 512))
     assert verdict is Verdict.UNCERTAIN
     assert message.startswith("tip uncertain: the wire's last") and "2.4 x as dark" in message
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_a_trace_running_past_the_wire_end_over_a_false_mask_is_flagged(seed):
+    """The segmenter's mask goes on 30 px past the wire's end where the image shows no wire (a false
+    stretch, as at a low dose): the trace follows the mask, its last px are background
+    (``tip_end_check`` gives a ``BareTip``), and the frame's verdict says why; the same wire with a
+    right mask is not flagged, nor is a folded tip taken for a bare one."""
+    past = np.vstack([SHAFT, np.column_stack([np.linspace(250.5, 280.0, 60), np.full(60, 80.0)])])
+    img, _ = _frame([SHAFT], seed=seed)
+    _, mask = _frame([past], seed=seed)
+    ow = ordered_wire(mask, image=img, proximal_hint_uv=HINT_UV)
+    assert ow and ow.tip_uv_px[0] > 275.0                                 # the trace runs past the wire's end
+    bare = tip_end_check(img, ow.points_uv_px)
+    assert isinstance(bare, BareTip) and bare.darkness_ratio < BARE_END_RATIO
+    assert tip_darkness(img, ow.points_uv_px) == pytest.approx(0.0, abs=0.15)
+    w3 = SimpleNamespace(uncertainty_mm=np.full(len(ow.points_uv_px), 0.5), message="ok", reversed_input=False)
+    verdict, message = live.frame_verdict(w3, ow.points_uv_px, None, doubled_tip=bare, image_shape=SHAPE)
+    assert verdict is Verdict.UNCERTAIN and message.startswith("tip uncertain: the trace's last")
+    _, right = _frame([SHAFT], seed=seed)
+    ok = ordered_wire(right, image=img, proximal_hint_uv=HINT_UV)
+    assert ok and tip_end_check(img, ok.points_uv_px) is None
+    folded = np.column_stack([np.linspace(250.0, 220.0, 60), np.full(60, 81.5)])
+    img2, mask2 = _frame([SHAFT, folded], weights=[1.0, np.sqrt(2.0)], seed=seed)
+    assert isinstance(tip_end_check(img2, ordered_wire(mask2, image=img2, proximal_hint_uv=HINT_UV).points_uv_px),
+                      DoubledTip)

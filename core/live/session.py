@@ -38,7 +38,7 @@ from guidewire3d.motion.tracking import MotionTracker
 from guidewire3d.registration import Verdict
 from guidewire3d.vesseltree import VesselTree
 from guidewire3d.xray import segmentation
-from guidewire3d.xray.orderedwire import OrderedWire, doubled_tip, ordered_wire
+from guidewire3d.xray.orderedwire import OrderedWire, ordered_wire, tip_end_check
 
 __all__ = ["Orientation", "FrameResult", "Session", "orientation_of", "frame_verdict", "tip_stretch_mm"]
 
@@ -393,9 +393,9 @@ class Session:
                                              uv[::-1] if w3.reversed_input else uv)
             stages["reconstruction"] = stages.get("reconstruction", 0.0) + time.perf_counter() - t1
         doubled = None
-        if image is not None and image.ndim == 2:    # two layers of wire at the output's tip (a fold before it)
-            t1 = time.perf_counter()
-            doubled = doubled_tip(image, uv, at_end=not w3.reversed_input)
+        if image is not None and image.ndim == 2:    # two layers of wire at the output's tip (a fold before
+            t1 = time.perf_counter()                 # it), or none (the trace runs past the wire's end)
+            doubled = tip_end_check(image, uv, at_end=not w3.reversed_input)
             stages["reconstruction"] = stages.get("reconstruction", 0.0) + time.perf_counter() - t1
         verdict, message = frame_verdict(w3, uv, ori, beyond_tip=beyond_tip, doubled_tip=doubled,
                                          motion=motion, image_shape=self.carm.shape, continuation=continuation)
@@ -419,7 +419,8 @@ def frame_verdict(wire3d, wire_uv_px, orientation, *, beyond_tip=None, motion=No
       :class:`guidewire3d.live.continuation.WireContinuation`);
     * the traced tip is about twice as dark as the wire: two layers of wire, the wire bends back
       over itself (or runs on under its own projection) before its true tip (``doubled_tip``:
-      ``orderedwire.DoubledTip``, of the output's tip end);
+      ``orderedwire.DoubledTip``, of the output's tip end); or barely darker than the background, the
+      trace runs past the wire's end (``doubled_tip`` an ``orderedwire.BareTip``);
     * the wire runs out of the image (``image_shape``, rows and cols) at its distal end;
     * the tip's vessel runs along the beam: the wire's last px span many mm in 3D
       (``TIP_STRETCH_MAX_MM``);

@@ -46,6 +46,8 @@ __all__ = [
     "BeyondTip",
     "DoubledTip",
     "doubled_tip",
+    "BareTip",
+    "tip_end_check",
     "tip_darkness",
     "OrderedWire",
     "ordered_wire",
@@ -96,6 +98,14 @@ END_REFERENCE_PX = (40, 160)      # ... relative to the median this far (px) bac
 END_LINE_HALF_PX = 4.0            # the line's darkness is summed within this of the trace ...
 END_BACKGROUND_PX = (5.0, 8.0)    # ... against the median of the image this far to both sides
 DOUBLED_END_RATIO = 2.0           # a tip this many times as dark as the wire: two layers (see above)
+# The other way round: a traced tip whose last ``END_WINDOW_PX`` px are barely darker than the
+# background beside them is not on the wire: the trace ran on past the wire's end, over a false
+# stretch of the mask (bench_stress seed 3913 frame 0, dose 0.5: 28 px past the tip, ratio 0.12).
+# At a right tip the wire ends inside the window and the ratio falls below 1, rarely below 0.4.
+# Set on seeds 0-59 with a 0.25 mm wire at the true pose (below 0.2: 9 frames more than 5 mm off,
+# 6 of them reported ok, and 2 within 5 mm); held out: seeds 100-159, 0.25 mm (10 off, 3 of them ok,
+# 4 within 5 mm); seeds 0-179, the simulator's wires: 1 of 656 tips within 5 mm is below 0.2.
+BARE_END_RATIO = 0.2
 TIP_CAP_FRACTION = 0.25          # mask end cap beyond the tip, x local width (flat 0 .. round 0.5)
 PROFILE_STEP_PX = 0.5            # sampling step across the normal (centring)
 REFINE_STEP_PX = 0.25             # sampling step along the tangent (end extension)
@@ -157,6 +167,19 @@ class BeyondTip:
                  else f"at {self.angle_deg:.0f} deg to the wire (a sharp bend at the tip?)")
         return (f"tip uncertain: a wire-like piece of {self.length_px:.0f} px lies {self.gap_px:.0f} px beyond the "
                 f"tip, {where}; the wire may continue there")
+
+
+@dataclass(frozen=True)
+class BareTip:
+    """The traced tip is barely darker than the background: the trace runs past the wire's end
+    (see ``BARE_END_RATIO``)."""
+
+    darkness_ratio: float  #: the tip's last ``END_WINDOW_PX`` px over the wire's median line darkness
+
+    def explain(self) -> str:
+        return (f"tip uncertain: the trace's last {END_WINDOW_PX} px are only {self.darkness_ratio:.2f} x as dark as the "
+                f"rest of the wire (barely darker than the background beside them): the trace may run past the "
+                f"wire's end, over a false stretch of the mask")
 
 
 @dataclass(frozen=True)
@@ -588,6 +611,18 @@ def tip_darkness(image, points_uv_px, *, at_end: bool = True) -> float:
     dark = background * np.count_nonzero(a <= END_LINE_HALF_PX) - v[:, a <= END_LINE_HALF_PX].sum(axis=1)
     med = float(np.sort(dark[:-w])[(len(dark) - w) // 2])
     return float(dark[-w:].mean() / med) if med > 0 else float("nan")
+
+
+def tip_end_check(image, points_uv_px, *, at_end: bool = True) -> "DoubledTip | BareTip | None":
+    """What the image shows at a traced tip (:func:`tip_darkness`): a :class:`DoubledTip` at
+    ``DOUBLED_END_RATIO`` or more (two layers of wire), a :class:`BareTip` below ``BARE_END_RATIO``
+    (no wire: the trace runs past its end), else None (also when the ratio cannot be measured)."""
+    r = tip_darkness(image, points_uv_px, at_end=at_end)
+    if r >= DOUBLED_END_RATIO:
+        return DoubledTip(r)
+    if r < BARE_END_RATIO:
+        return BareTip(r)
+    return None
 
 
 def doubled_tip(image, points_uv_px, *, at_end: bool = True) -> DoubledTip | None:
