@@ -68,7 +68,14 @@ class CenterlineOptions:
 
 
 def _isotropic_mask(mask_zyx: np.ndarray, sp_zyx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The mask on (nearly) isotropic voxels of the finest spacing, by shape-based interpolation.
+    """The mask on (nearly) isotropic voxels of the finest spacing, by shape-based interpolation
+    (:func:`_isotropic_sdf` ``> 0``): ``(iso_zyx, spacing_zyx)``, the spacing in mm."""
+    f, sp_iso = _isotropic_sdf(mask_zyx, sp_zyx)
+    return f > 0.0, sp_iso
+
+
+def _isotropic_sdf(mask_zyx: np.ndarray, sp_zyx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The mask's signed distance on (nearly) isotropic voxels of the finest spacing.
 
     The signed distance transform (mm, positive inside: distance to the nearest outside voxel
     centre; negative outside) is interpolated trilinearly onto a grid of spacing ``~min(sp_zyx)``
@@ -78,7 +85,9 @@ def _isotropic_mask(mask_zyx: np.ndarray, sp_zyx: np.ndarray) -> tuple[np.ndarra
 
     Returns
     -------
-    iso_zyx : (z', y', x') ndarray of bool
+    sdf_zyx : (z', y', x') ndarray of float32
+        Interpolated signed distance, mm (``> 0``: the isotropic mask; its positive part stands for
+        the mask's distance transform on that grid, exact on the original slices).
     spacing_zyx : (3,) float
         Its exact spacing, mm: ``(n - 1) * sp / (n' - 1)`` per axis.
     """
@@ -102,7 +111,7 @@ def _isotropic_mask(mask_zyx: np.ndarray, sp_zyx: np.ndarray) -> tuple[np.ndarra
         shape[ax] = -1
         w = w.reshape(shape)
         f = np.take(f, i0, axis=ax) * (1 - w) + np.take(f, i1, axis=ax) * w
-    return f > 0.0, (n - 1) * sp / np.maximum(n_iso - 1, 1)
+    return f, (n - 1) * sp / np.maximum(n_iso - 1, 1)
 
 
 def _smoothed(D_vox: np.ndarray, sp_rel: np.ndarray, sigma_vox: float) -> np.ndarray:
@@ -443,7 +452,9 @@ def centerline_from_mask(mask_zyx, *, spacing_mm, origin_lps_mm, direction=None,
         ms, sk_sp = mp, sp_zyx
     sk_rel = sk_sp / h
 
-    # -- distance transform and ridge points (on the skeleton's grid)
+    # -- distance transform and ridge points (on the skeleton's grid). (The interpolated signed
+    # distance in place of the transform of the isotropic mask saved 1 s on a chest CT but kept
+    # 30 more spurs: est->ref 5.23 against 4.93 mm)
     D_mm = edt_mm(ms, sk_sp)
     D = D_mm / np.float32(h)
     support = None
