@@ -7,6 +7,7 @@ from scipy.spatial import cKDTree
 from guidewire3d.cta.centerline import CenterlineOptions, _isotropic_mask, centerline_from_mask
 
 SPACING_XYZ = (0.7, 0.7, 2.5)
+ISO = CenterlineOptions(isotropic_ratio=1.5)
 
 
 def _phantom():
@@ -60,16 +61,31 @@ def test_isotropic_mask_keeps_the_shape(phantom):
     v0 = mask.sum() * np.prod(sp_zyx)
     v1 = iso.sum() * np.prod(sp_iso)
     assert abs(v1 - v0) < 0.03 * v0
-    # on the original slices the interpolated mask is the original
+    # on the original slices the interpolated mask is the original (its level is 0.2 mm outside
+    # the half-way surface: the in-plane boundary voxels stay, no voxel is added there)
     k = np.rint(np.arange(mask.shape[0]) * sp_zyx[0] / sp_iso[0]).astype(int)
     on = np.abs(k * sp_iso[0] - np.arange(mask.shape[0]) * sp_zyx[0]) < 1e-6
     assert on.sum() >= 2
     assert (iso[k[on]] == mask[on]).mean() > 0.999
 
 
+def test_thin_oblique_vessel_stays_connected_on_the_isotropic_copy():
+    """A one-voxel vessel stepping one voxel in y and one in x per 2.5 mm slice touches its
+    neighbours only at voxel corners; its isotropic copy must stay in one piece (else the skeleton
+    keeps a piece). At the half-way level (0) it came apart in 5."""
+    from scipy import ndimage as ndi
+
+    m = np.zeros((12, 24, 24), bool)
+    for k in range(2, 10):
+        m[k, 2 + k, 3 + k] = True
+    assert ndi.label(m, structure=np.ones((3, 3, 3)))[1] == 1
+    iso, _ = _isotropic_mask(m, np.array([2.5, 0.7, 0.7]))
+    assert ndi.label(iso, structure=np.ones((3, 3, 3)))[1] == 1
+
+
 def test_wide_curved_tube_on_thick_slices_is_centred_without_extra_branches(phantom):
     mask, trunk, branch, r_trunk = phantom
-    tree = centerline_from_mask(mask, spacing_mm=SPACING_XYZ, origin_lps_mm=(0, 0, 0))
+    tree = centerline_from_mask(mask, spacing_mm=SPACING_XYZ, origin_lps_mm=(0, 0, 0), options=ISO)
     d_est, d_ref = _axis_errors(tree, trunk, branch, r_trunk)
     # one trunk, one branch: three branches from the junction (the root's run, the rest of the trunk,
     # the side branch), three ends
@@ -84,16 +100,13 @@ def test_wide_curved_tube_on_thick_slices_is_centred_without_extra_branches(phan
     assert np.median(np.abs(tree.radius_mm[on_trunk] - r_trunk[k[on_trunk]])) < 0.5
 
 
-def test_isotropic_ratio_zero_is_the_former_skeleton(phantom):
-    """``isotropic_ratio=0`` thins on the mask's own grid; recorded here so that the gain stays
-    measured: the anisotropic skeleton is worse on this phantom."""
+def test_isotropic_skeleton_is_closer_to_the_axis_than_the_thick_slice_one(phantom):
+    """The default (``isotropic_ratio=0``) thins on the mask's own grid; on this phantom its points
+    lie farther from the axis (p95 1.24 against 0.55 mm when written)."""
     mask, trunk, branch, r_trunk = phantom
-    iso = centerline_from_mask(mask, spacing_mm=SPACING_XYZ, origin_lps_mm=(0, 0, 0))
-    raw = centerline_from_mask(mask, spacing_mm=SPACING_XYZ, origin_lps_mm=(0, 0, 0),
-                               options=CenterlineOptions(isotropic_ratio=0))
+    iso = centerline_from_mask(mask, spacing_mm=SPACING_XYZ, origin_lps_mm=(0, 0, 0), options=ISO)
+    raw = centerline_from_mask(mask, spacing_mm=SPACING_XYZ, origin_lps_mm=(0, 0, 0))
     e_iso = _axis_errors(iso, trunk, branch, r_trunk)[0]
     e_raw = _axis_errors(raw, trunk, branch, r_trunk)[0]
-    print("raw", len(raw.branches), np.median(e_raw), np.percentile(e_raw, 95), e_raw.max())
-    print("iso", len(iso.branches), np.median(e_iso), np.percentile(e_iso, 95), e_iso.max())
     assert len(iso.branches) <= len(raw.branches)
     assert np.percentile(e_iso, 95) <= np.percentile(e_raw, 95)
