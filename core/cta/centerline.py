@@ -401,6 +401,11 @@ def centerline_from_mask(mask_zyx, *, spacing_mm, origin_lps_mm, direction=None,
        pruned the trunk of a CT with 2.4 mm slices and kept the rim spurs of an aorta.)
        A junction that would lose all but one of its paths keeps its longest.
        Loops are cut at their thinnest edge (maximum spanning tree on ``D``).
+    2a. With ``isotropic_ratio > 0`` and slices coarser than that x the in-plane spacing, steps 1-2,
+       the loop cutting and the sub-voxel step of 3 run on an isotropic copy of the component
+       (:func:`_isotropic_mask`: its signed distance interpolated to ``isotropic_mm`` or the finest
+       spacing), and fall back to the mask's own grid when that copy comes apart; the centring (3b)
+       and radii (4) are measured on the mask itself.
     3. Each skeleton voxel moves to the sub-voxel ridge of the smoothed ``D`` by one Newton step
        in the cross-section plane (the two most negative Hessian eigenvectors); branches are
        smoothed (``smooth_mm``, Gaussian-weighted local quadratic regression against arclength,
