@@ -342,6 +342,23 @@ def _body_mask(ds: np.ndarray) -> tuple[np.ndarray, float | None]:
     return body, lo_mode
 
 
+def _deep_valley(values: np.ndarray, t: float, lo_med: float, hi_med: float) -> bool:
+    """Whether the histogram of ``values`` has a valley at ``t`` (within a tenth of ``hi_med - lo_med``)
+    below a quarter of the lower of its two classes' peaks: two classes apart, not one split in two."""
+    gap = hi_med - lo_med
+    if not gap > 0:
+        return False
+    lo, hi = np.percentile(values, [0.5, 99.5])
+    h, e = np.histogram(values, bins=256, range=(lo, hi))
+    h = ndi.gaussian_filter1d(h.astype(float), 1.5)
+    c = 0.5 * (e[:-1] + e[1:])
+    near = np.abs(c - t) <= 0.1 * gap
+    below, above = c < t, c >= t
+    if not near.any() or not below.any() or not above.any():
+        return False
+    return bool(h[near].mean() < 0.25 * min(h[below].max(), h[above].max()))
+
+
 def _body_mask_outside(ds: np.ndarray) -> tuple[np.ndarray, float | None]:
     """The body when :func:`_body_mask`'s spread rule found no air: Otsu's threshold applied repeatedly (at
     most three times) while most of its lower class (``OUTSIDE_CONNECTED_FRACTION``) is connected to the
@@ -349,8 +366,8 @@ def _body_mask_outside(ds: np.ndarray) -> tuple[np.ndarray, float | None]:
     smooth multiplicative field (an MR bias field) spreads until the classes' spreads no longer tell them
     apart, but not their place: the air outside touches the border. Lungs and other dark parts inside go
     with the air's class, as in :func:`_body_mask`. The lower class must also lie more than 4 of its own robust
-    standard deviations below the upper one (the air's spread stays small; a split of the body's own
-    tissue by the field does not). Returns the mask and the median of the last lower class
+    standard deviations below the upper one, or be apart from it by a valley of the histogram (the air's
+    class stays apart; a split of the body's own tissue by the field does not). Returns the mask and the median of the last lower class
     (``None``: no air, the whole volume is body).
     """
     body = np.ones(ds.shape, bool)
@@ -377,8 +394,8 @@ def _body_mask_outside(ds: np.ndarray) -> tuple[np.ndarray, float | None]:
         lo_spread = 1.4826 * float(np.median(np.abs(lo_v - lo_med)))
         hi_med = float(np.median(ds[upper][:: max(1, int(upper.sum()) // 1_000_000)]))
         if connected.sum() < OUTSIDE_CONNECTED_FRACTION * low.sum() or upper.sum() < 0.15 * n \
-                or hi_med - lo_med < 4.0 * lo_spread:  # not a dark class: the body's own darker part
-            break
+                or (hi_med - lo_med < 4.0 * lo_spread and not _deep_valley(sub, t, lo_med, hi_med)):
+            break  # not a dark class apart from the body: the body's own darker part
         body, lo_mode = upper, lo_med
         outside |= connected
     return body, lo_mode
@@ -605,6 +622,13 @@ def _estimate_intensity_model(volume: io.Volume, *, seeds_lps_mm=None):
     tub_cm3 = float(tub.mean()) * n_cand * vox_cm3
     bone = _bone_level(ds, bg, L, hu, vox_cm3)
     model = IntensityModel(bg, L, noise, bone, hu, radius, tub_cm3, rotational=rotational)
+    # -- is one global level enough? the tissue level must not vary across the body like the contrast
+    spread_tissue = _tissue_level_range(ds, body, sp_ds)
+    if spread_tissue > MAX_TISSUE_RANGE_CONTRAST * model.contrast:
+        raise SegmentationError(f"{what}: intensities not uniform: the tissue level varies by {spread_tissue:.4g} across "
+                                f"the body, {spread_tissue / model.contrast:.2f}x the lumen's contrast ({L:.4g} over "
+                                f"{bg:.4g}; at most {MAX_TISSUE_RANGE_CONTRAST:g}x expected): an intensity bias field "
+                                f"(MR coil shading)? correct it (e.g. N4) or give --seed-lps in a vessel")
     _check_consistent(model, what, vals[tub_all], ves[tub_all], med=med, air=lo_mode)
     # -- is it contrast?
     if model.cnr < MIN_CNR:
@@ -618,13 +642,6 @@ def _estimate_intensity_model(volume: io.Volume, *, seeds_lps_mm=None):
     if hu and not rotational and L >= HU_LUMEN_MAX - 3.0 * max(noise, 0.004 * (top - bg)):
         raise SegmentationError(f"{what}: no vessels found (the brightest tubular structures are {L:.0f} HU: bone, "
                                 f"not contrast); give --seed-lps in a vessel if there is one")
-    # -- is one global level enough? the tissue level must not vary across the body like the contrast
-    spread_tissue = _tissue_level_range(ds, body, sp_ds)
-    if spread_tissue > MAX_TISSUE_RANGE_CONTRAST * model.contrast:
-        raise SegmentationError(f"{what}: intensities not uniform: the tissue level varies by {spread_tissue:.4g} across "
-                                f"the body, {spread_tissue / model.contrast:.1f}x the lumen's contrast ({L:.4g} over "
-                                f"{bg:.4g}; at most {MAX_TISSUE_RANGE_CONTRAST:g}x expected): an intensity bias field "
-                                f"(MR coil shading)? correct it (e.g. N4) or give --seed-lps in a vessel")
     # the evidence: where the tubular lumen voxels the level was read from lie (full-resolution voxel index)
     centres = idx[tub] * f + 0.5 * (f - 1)
     return model, (centres, ves[tub].astype(np.float64), vals[tub], arg[tub])
