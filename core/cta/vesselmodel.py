@@ -313,6 +313,13 @@ def _otsu(values: np.ndarray) -> float:
     return float(threshold_otsu(values, nbins=512))
 
 
+def _otsu_sample(ds: np.ndarray, body: np.ndarray) -> tuple[np.ndarray, float]:
+    """A sample of at most about 2 million of ``ds``'s voxels in ``body``, and its Otsu threshold."""
+    v = ds[body]
+    sub = v[:: max(1, v.size // 2_000_000)]
+    return sub, _otsu(sub)
+
+
 def _body_mask(ds: np.ndarray) -> tuple[np.ndarray, float | None]:
     """The body (what is not air, lung or the padding outside a CT's reconstruction circle).
 
@@ -326,9 +333,7 @@ def _body_mask(ds: np.ndarray) -> tuple[np.ndarray, float | None]:
     lo_mode = None
     n = ds.size
     for _ in range(3):
-        v = ds[body]
-        sub = v[:: max(1, v.size // 2_000_000)]
-        t = _otsu(sub)
+        sub, t = _otsu_sample(ds, body)
         low = sub < t
         below = float(np.mean(low))
         if not 0.05 < below < 0.9:
@@ -380,9 +385,7 @@ def _body_mask_outside(ds: np.ndarray) -> tuple[np.ndarray, float | None]:
     lo_mode = None
     n = ds.size
     for _ in range(3):
-        v = ds[body]
-        sub = v[:: max(1, v.size // 2_000_000)]
-        t = _otsu(sub)
+        sub, t = _otsu_sample(ds, body)
         low = body & (ds < t)
         below = float(low.sum()) / max(int(body.sum()), 1)
         if not 0.05 < below < 0.9:
