@@ -654,9 +654,10 @@ def _estimate_intensity_model(volume: io.Volume, *, seeds_lps_mm=None):
     if hu and not rotational and L >= HU_LUMEN_MAX - 3.0 * max(noise, 0.004 * (top - bg)):
         raise SegmentationError(f"{what}: no vessels found (the brightest tubular structures are {L:.0f} HU: bone, "
                                 f"not contrast); give --seed-lps in a vessel if there is one")
-    # the evidence: where the tubular lumen voxels the level was read from lie (full-resolution voxel index)
+    # the evidence: where the tubular lumen voxels the level was read from lie (full-resolution voxel
+    # index) and their vesselness (the weights of lumen_in_tree_fraction)
     centres = idx[tub] * f + 0.5 * (f - 1)
-    return model, (centres, ves[tub].astype(np.float64), vals[tub], arg[tub])
+    return model, (centres, ves[tub].astype(np.float64))
 
 
 def estimate_intensity_model(volume: io.Volume, *, seeds_lps_mm=None) -> IntensityModel:
@@ -907,7 +908,8 @@ def extract_vessels_auto(volume: io.Volume, *, seeds_lps_mm=None, progress: bool
         if evidence is None:
             return av
         sp = np.asarray(volume.spacing_mm, dtype=float)[::-1]
-        frac = lumen_in_tree_fraction(av.vessels.mask_zyx, evidence[0], evidence[1], sp)
+        centres, weights = evidence
+        frac = lumen_in_tree_fraction(av.vessels.mask_zyx, centres, weights, sp)
         if frac < MIN_LUMEN_IN_TREE:
             raise SegmentationError(
                 f"{what}: implausible vessel tree: it holds only {100 * frac:.0f}% of the bright tubular lumen the "
