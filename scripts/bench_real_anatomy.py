@@ -113,15 +113,19 @@ def _arclength(P):
     return np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(P, axis=0), axis=1))]
 
 
+def view_centre(wire):
+    """The centre of the bounding box of the wire's last ``VIEW_MM``: where each view is centred."""
+    s = _arclength(wire)
+    last = wire[s >= s[-1] - VIEW_MM]
+    return 0.5 * (last.min(0) + last.max(0))
+
+
 def make_pose(rng, k, wires):
     from guidewire3d.geometry import CArm
     from guidewire3d.phantom.xray import _sample_pose
 
     target = list(ra.TARGETS)[k % len(ra.TARGETS)]
-    W = wires[target]
-    s = _arclength(W)
-    last = W[s >= s[-1] - VIEW_MM]
-    centre = 0.5 * (last.min(0) + last.max(0))
+    centre = view_centre(wires[target])
     pa, sa = round(float(rng.uniform(-40, 40)), 1), round(float(rng.uniform(-25, 25)), 1)
     sid, sod = round(float(rng.uniform(950, 1200)), 1), round(float(rng.uniform(650, 800)), 1)
     carm = CArm(pa, sa, sid, sod, PIXEL_MM, (DETECTOR_PX, DETECTOR_PX))

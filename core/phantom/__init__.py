@@ -15,7 +15,8 @@ XA live frames, XA held-out view) plus ``truth.json`` and ``truth_masks.npz``;
 * ``case``: :class:`PhantomOptions`, :func:`simulate` (the stages above, each from its own random
   stream) and :class:`PhantomCase`;
 * ``files``: the written case and its :class:`Truth`, the cached default case, and the
-  ``guidewire3d phantom`` command.
+  ``guidewire3d phantom`` command;
+* ``realct``: a case on a real CT and its structure labels (``guidewire3d phantom --anatomy-ct``).
 
 The public names of the modules below, importable from ``guidewire3d.phantom``.
 """
@@ -40,6 +41,20 @@ from guidewire3d.phantom.files import (  # noqa: F401
     write_case,
 )
 from guidewire3d.phantom.motion import BREATHING_DEG_PER_MM  # noqa: F401
+from guidewire3d.phantom.realct import (  # noqa: F401
+    ARTERY_NAME,
+    BLOOD_HU,
+    CONTRAST_NAME,
+    TIP_STEP_MM,
+    VIEW_MM,
+    RealAnatomyOptions,
+    anatomy_mu_zyx,
+    iodine_fraction_zyx,
+    ray_integral,
+    read_labels,
+    simulate_real_anatomy,
+    true_wire_lps_mm,
+)
 from guidewire3d.phantom.xray import (  # noqa: F401
     BIPLANE_DEFAULT_SEPARATION_DEG,
     biplane_plane_b,

