@@ -160,17 +160,23 @@ def main(argv=None):
     ap.add_argument("--poses", type=int, default=20)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--cache", default=str(Path.home() / ".cache" / "guidewire3d"))
-    ap.add_argument("--tree", choices=("auto", "seeded"), default="auto")
+    ap.add_argument("--tree", choices=("auto", "seeded", "labels"), default="auto",
+                    help="auto: the product's automatic tree; seeded: with a seed in the aorta; labels: a control, "
+                         "the centerline of the artery labels (the real-anatomy phantom's true tree)")
     ap.add_argument("--set", action="append", default=[], metavar="NAME=VALUE")
+    ap.add_argument("--start", choices=("nominal", "view-centre"), default="nominal",
+                    help="the product's start: nominal (the isocentre at the tree's centroid) or view-centre (the "
+                         "isocentre at the viewed region's centre, as reconstruct --isocentre-lps gives it: the "
+                         "centre of the wire's last 160 mm, 3-20 mm and 0.5-5 deg from the true pose)")
     ap.add_argument("--centerline-only", action="store_true",
                     help="only the 2D centerline table (against the projected artery labels' centerline), no registration")
     a = ap.parse_args(argv)
     from guidewire3d import metrics, registration
-    from guidewire3d.registration import problem, search, solve, verdict
+    from guidewire3d.registration import model, problem, search, solve, verdict
 
     for kv in a.set:
         name, value = kv.split("=", 1)
-        mod = next((m for m in (verdict, search, solve, problem) if hasattr(m, name)), None)
+        mod = next((m for m in (verdict, search, solve, problem, model) if hasattr(m, name)), None)
         if mod is None:
             ap.error(f"--set: no registration module has a constant {name}")
         kind = type(getattr(mod, name))
@@ -181,7 +187,15 @@ def main(argv=None):
 
     cache = Path(a.cache).expanduser()
     vol, labels, _, _ = ra.load_case(cache) if a.tree == "seeded" else (None,) * 4
-    if a.tree == "seeded":
+    # (the labels control loads the case below)
+    if a.tree == "labels":
+        from bench_real_cta import ARTERIES
+        from guidewire3d.cta.centerline import centerline_from_mask
+
+        vol, labels, _, _ = ra.load_case(cache)
+        tree = centerline_from_mask(np.isin(labels, list(ARTERIES)), spacing_mm=vol.spacing_mm,
+                                    origin_lps_mm=vol.origin_lps_mm, direction=vol.direction)
+    elif a.tree == "seeded":
         W = b.cached_wires(vol, labels, cache)[58]
         seeds = W[np.searchsorted(b._arclength(W), 0.25 * b._arclength(W)[-1])][None]
         tree = b.cached_tree(vol, cache, log, seeds)["tree"]
@@ -201,12 +215,20 @@ def main(argv=None):
     print("| pose | start | verdict | refused by | mTRE view mm | energy | residual px | inliers | 1-sigma / limit mm "
           "| explained (in view) | jackknife mm |")
     print("|---|---|---|---|---|---|---|---|---|---|---|")
+    wires = None
     n_ok = n_right = n_wrong = n_near = 0
     t_ok = t_right = t_wrong = t_near = 0
     for c in cases:
         carm, pose = c["carm"], c["pose"]
         Pv = P[carm.in_image(carm.project(P, pose))]
-        r = registration.register(tree, c["uv"], carm, centerline_radius_px=c["radius"])
+        init = None
+        if a.start == "view-centre":
+            from guidewire3d.geometry import nominal_pose
+
+            if wires is None:
+                wires = b.cached_wires(*ra.load_case(cache)[:2], cache)
+            init = nominal_pose(b.view_centre(wires[c["target"]]))
+        r = registration.register(tree, c["uv"], carm, centerline_radius_px=c["radius"], init_pose=init)
         rt = registration.refine(tree, c["uv"], carm, pose, centerline_radius_px=c["radius"])
         for name, rr in (("nom", r), ("true", rt)):
             m = metrics.mtre_mm(rr.pose, pose, Pv)
@@ -225,7 +247,7 @@ def main(argv=None):
         t_right += bool(not rt.success and mt < b.SUCCESS_MM)
         t_near += bool(mt < b.SUCCESS_MM)
     n = len(cases)
-    print(f"\nfrom the nominal start: success {n_ok}/{n}, ok but wrong {n_wrong}, refused but right {n_right}, "
+    print(f"\nfrom the {a.start} start: success {n_ok}/{n}, ok but wrong {n_wrong}, refused but right {n_right}, "
           f"within {b.SUCCESS_MM:g} mm {n_near}/{n}")
     print(f"from the true pose (the energy's minimum near the truth): within {b.SUCCESS_MM:g} mm {t_near}/{n}, "
           f"ok {t_ok}, ok but wrong {t_wrong}, refused but right {t_right}")
