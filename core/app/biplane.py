@@ -33,7 +33,7 @@ from pathlib import Path
 import numpy as np
 from guidewire3d import io
 from guidewire3d.app import export, pipeline
-from guidewire3d.cta import vessels3d
+from guidewire3d.cta import vesselmodel
 from guidewire3d.errors import Guidewire3DError, InputError
 from guidewire3d.geometry import CArm, Pose, nominal_pose
 from guidewire3d.live import session as live
@@ -743,7 +743,7 @@ def run(volume, roadmaps, frames, *, roadmap_frame=None, seeds_lps_mm=None, meth
     check_planes(roadmaps, frames)
     timing: dict[str, float] = {}
     t0 = time.perf_counter()
-    vessels = vessels3d.extract_vessels(volume, seeds_lps_mm=seeds_lps_mm, progress=progress)
+    vessels = vesselmodel.extract_vessels_any_units(volume, seeds_lps_mm=seeds_lps_mm, progress=progress, log=log)
     timing["cta_vessels"] = time.perf_counter() - t0
     tree = vessels.tree
 

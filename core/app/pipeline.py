@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 from guidewire3d import io, registration
 from guidewire3d.app import export
-from guidewire3d.cta import vessels3d
+from guidewire3d.cta import vesselmodel
 from guidewire3d.cta.segment import VesselOptions
 from guidewire3d.cta.vessels3d import CTAVessels
 from guidewire3d.errors import InputError
@@ -146,15 +146,17 @@ def choose_roadmap_frame(run: io.XARun, roadmap_frame: int | None = None) -> int
 
 
 def check_seeds(volume: io.Volume, seeds_lps_mm, *, option: str = "--seed-lps") -> None:
-    """InputError naming ``option`` if a seed point lies outside the CTA, or has no contrast-filled
-    voxel (``VesselOptions.lumen_min_hu``) within ``VesselOptions.seed_radius_mm``: cheap checks,
-    done before the vessel stage."""
+    """InputError naming ``option`` if a seed point lies outside the CTA, or (a CT in HU) has no
+    contrast-filled voxel (``VesselOptions.lumen_min_hu``) within ``VesselOptions.seed_radius_mm``:
+    cheap checks, done before the vessel stage (which checks a seed in a volume not in HU against its
+    own intensity model)."""
     if seeds_lps_mm is None:
         return
     opt = VesselOptions()
     seeds = np.asarray(seeds_lps_mm, dtype=float).reshape(-1, 3)
     sp_zyx = np.asarray(volume.spacing_mm)[::-1]
     r_vox = np.ceil(opt.seed_radius_mm / sp_zyx).astype(int)
+    hu = vesselmodel.looks_like_hu(volume)
     for s in seeds:
         label = f"{option}={','.join(f'{v:g}' for v in s)}"
         if not np.all(np.isfinite(s)):
@@ -165,6 +167,8 @@ def check_seeds(volume: io.Volume, seeds_lps_mm, *, option: str = "--seed-lps") 
             lo, hi = volume.bounds_lps_mm
             raise InputError(f"{label}: outside the CTA {volume.source} (LPS bounds "
                              f"{np.round(lo, 1).tolist()} .. {np.round(hi, 1).tolist()} mm)")
+        if not hu:  # not in HU: the vessel stage's intensity model checks the seed (extract_vessels_auto)
+            continue
         c = np.rint(idx).astype(int)
         lo_i, hi_i = np.maximum(c - r_vox, 0), np.minimum(c + r_vox + 1, shape)
         win = volume.array_zyx[lo_i[0]:hi_i[0], lo_i[1]:hi_i[1], lo_i[2]:hi_i[2]]
@@ -195,7 +199,7 @@ def run(volume: io.Volume, roadmap: io.XARun, frames: io.XARun, *, roadmap_frame
     """
     timing: dict[str, float] = {}
     t0 = time.perf_counter()
-    vessels = vessels3d.extract_vessels(volume, seeds_lps_mm=seeds_lps_mm, progress=progress)
+    vessels = vesselmodel.extract_vessels_any_units(volume, seeds_lps_mm=seeds_lps_mm, progress=progress, log=log)
     timing["cta_vessels"] = time.perf_counter() - t0
     tree = vessels.tree
 

@@ -50,7 +50,7 @@ from guidewire3d.app.sources import (
     VideoSource,
     check_frame,
 )
-from guidewire3d.cta import vessels3d
+from guidewire3d.cta import vesselmodel
 from guidewire3d.errors import GeometryError, InputError
 from guidewire3d.geometry import CArm
 from guidewire3d.live import session as live
@@ -176,7 +176,7 @@ def setup_from_inputs(cta, roadmap, *, roadmap_frame=None, seeds_lps_mm=None, se
     k = pipeline.choose_roadmap_frame(road, roadmap_frame)
     pipeline.check_seeds(vol, seeds_lps_mm)
     t0 = time.perf_counter()
-    ves = vessels3d.extract_vessels(vol, seeds_lps_mm=seeds_lps_mm)
+    ves = vesselmodel.extract_vessels_any_units(vol, seeds_lps_mm=seeds_lps_mm, log=log)
     tree = ves.tree
     cl = roadmap_centerline(np.asarray(road.frames[k]),
                             max_radius_px=float(tree.radius_mm.max()) / road.carm.pixel_at_iso_mm * 1.5)
@@ -213,7 +213,7 @@ def _setup_biplane_from_inputs(cta, roadmaps, *, roadmap_frame=None, seeds_lps_m
     vol = io.read_volume(cta, series_uid=series_uid, log=log)
     pipeline.check_seeds(vol, seeds_lps_mm)
     t0 = time.perf_counter()
-    tree = vessels3d.extract_vessels(vol, seeds_lps_mm=seeds_lps_mm).tree
+    tree = vesselmodel.extract_vessels_any_units(vol, seeds_lps_mm=seeds_lps_mm, log=log).tree
     ks, _, cls = zip(*(pipeline.roadmap_centerline_of(road, tree, roadmap_frame) for road in roads))
     breg = biplane.register_biplane(tree, [c.points_uv_px for c in cls], [r.carm for r in roads],
                                     centerline_radius_px=[c.radius_px for c in cls])

@@ -47,6 +47,8 @@ __all__ = [
     "check_plausibility",
     "dim_wide_fraction",
     "extract_vessels_auto",
+    "extract_vessels_any_units",
+    "looks_like_hu",
     "MIN_RADIUS_MM",
     "MAX_RADIUS_MM",
 ]
@@ -473,6 +475,31 @@ def _lumen_mode(values: np.ndarray, weights: np.ndarray, bin_width: float) -> fl
     return float(0.5 * (e[k] + e[k + 1]))
 
 
+def _body_levels(volume: io.Volume):
+    """The volume block-averaged to about ``MODEL_VOXEL_MM`` (``ds``: blocks of ``f`` voxels, its
+    spacing ``sp_ds`` z, y, x), its body (above Otsu's threshold: air and lungs below), the air's level (``None`` without air),
+    the body's median, and whether that looks like calibrated CT (tissue at -60..160, air, when
+    there is some, at -1200..-300)."""
+    a = volume.array_zyx
+    sp_zyx = np.asarray(volume.spacing_mm, dtype=float)[::-1]
+    f = np.maximum(np.round(MODEL_VOXEL_MM / sp_zyx), 1).astype(int)
+    f = np.minimum(f, np.maximum(np.array(a.shape) // 8, 1))
+    ds = _block_mean(a, f)
+    body, lo_mode = _body_mask(ds)
+    med = float(np.median(ds[body]))
+    hu = bool(-60.0 <= med <= 160.0 and (lo_mode is None or -1200.0 <= lo_mode <= -300.0))
+    return ds, f, sp_zyx * f, body, lo_mode, med, hu
+
+
+def looks_like_hu(volume: io.Volume) -> bool:
+    """Whether the volume's intensities look like calibrated CT (HU): :func:`_body_levels`.
+
+    An MRA, an uncalibrated CT (a missing rescale) or any volume in arbitrary units does not.
+    """
+    check_geometry(volume)
+    return _body_levels(volume)[-1]
+
+
 def _estimate_intensity_model(volume: io.Volume, *, seeds_lps_mm=None):
     """Background, noise and contrast-lumen level of an angiographic volume, from its voxels.
 
@@ -512,24 +539,16 @@ def _estimate_intensity_model(volume: io.Volume, *, seeds_lps_mm=None):
     check_geometry(volume)
     a = volume.array_zyx
     sp_zyx = np.asarray(volume.spacing_mm, dtype=float)[::-1]
-    f = np.maximum(np.round(MODEL_VOXEL_MM / sp_zyx), 1).astype(int)
-    f = np.minimum(f, np.maximum(np.array(a.shape) // 8, 1))
-    ds = _block_mean(a, f)
-    sp_ds = sp_zyx * f
-    vox_cm3 = float(np.prod(sp_ds)) / 1000.0
-
     # -- body, background, spread, noise
-    body, lo_mode = _body_mask(ds)
-    air_like = lo_mode is not None
+    ds, f, sp_ds, body, lo_mode, med, hu = _body_levels(volume)
+    vox_cm3 = float(np.prod(sp_ds)) / 1000.0
     bvals = ds[body]
-    med = float(np.median(bvals))
     spread = 1.4826 * float(np.median(np.abs(bvals - med)))
     # the tissue level around vessels: the upper quartile of the body (a CT body's median sits
     # between fat and muscle; the lumen threshold must clear enhancing soft tissue)
     bg = float(np.percentile(bvals, BACKGROUND_PERCENTILE))
     noise = _noise_sigma(a, band=(bg - 2.0 * spread, bg + 2.0 * spread))
     noise = max(noise, 1e-6 * max(abs(bg), 1.0))
-    hu = bool(-60.0 <= med <= 160.0 and (not air_like or -1200.0 <= lo_mode <= -300.0))
 
     if seeds_lps_mm is not None:
         seeds = np.atleast_2d(np.asarray(seeds_lps_mm, dtype=float))
@@ -959,3 +978,24 @@ def extract_vessels_auto(volume: io.Volume, *, seeds_lps_mm=None, progress: bool
     strict_note = ("" if pl2 is None or pl2.ok else f" (a strict pass too: {'; '.join(pl2.problems)})")
     raise SegmentationError(f"{what}: implausible vessel tree: {'; '.join(first)}{strict_note} (lumen estimated at "
                             f"{model.lumen:.4g}, background {model.background:.4g}); {hint}")
+
+
+def extract_vessels_any_units(volume: io.Volume, *, seeds_lps_mm=None, progress: bool = False, log=None):
+    """The vessel stage of ``reconstruct``, ``live``, ``listen`` and biplane runs: a ``vessels3d.CTAVessels``.
+
+    A CT in HU (:func:`looks_like_hu`) goes through :func:`guidewire3d.cta.vessels3d.extract_vessels`
+    with its HU defaults, on which the simulator's and the registration's measurements rest. Any other
+    volume (an MRA in arbitrary units, a CT whose rescale is missing) goes through
+    :func:`extract_vessels_auto`: its own intensity model, and a refusal (``SegmentationError``,
+    exit 2) when the model is ambiguous or the tree implausible, instead of HU thresholds applied
+    to numbers that are not HU.
+    """
+    if looks_like_hu(volume):
+        return vessels3d.extract_vessels(volume, seeds_lps_mm=seeds_lps_mm, progress=progress)
+    auto = extract_vessels_auto(volume, seeds_lps_mm=seeds_lps_mm, progress=progress)
+    if log is not None:
+        m = auto.model
+        log(f"{volume.source or 'CTA'}: not in HU; its vessel tree from its own intensity model (lumen {m.lumen:.4g}, "
+            f"background {m.background:.4g}; {auto.vessels.tree.total_length_mm / 10:.0f} cm, "
+            f"{len(auto.vessels.tree.branches)} branches)")
+    return auto.vessels
