@@ -208,10 +208,30 @@ def ambiguity_mm2(ctx, nodes, marginals, opt) -> np.ndarray:
                                     scale=opt.ambiguity_scale, sigma_jump_mm=opt.sigma_jump_mm)
 
 
+#: :func:`tracking_tip`: a previous frame whose best rival path through another branch
+#: (``Wire3D.branch_extra_cost``, ``branch_tip_shift_mm``) costs less than this more and ends more
+#: than ``TRACK_UNSETTLED_SHIFT_MM`` away did not settle its branch, and is no prior (the frame
+#: verdict's branch check, ``live.session.BRANCH_EXTRA_MAX`` and ``BRANCH_SHIFT_MIN_MM``)
+TRACK_UNSETTLED_EXTRA = 4.0
+TRACK_UNSETTLED_SHIFT_MM = 5.0
+
+
+def _branch_unsettled(previous) -> bool:
+    extra = float(getattr(previous, "branch_extra_cost", float("nan")))
+    shift = float(getattr(previous, "branch_tip_shift_mm", float("nan")))
+    return extra < TRACK_UNSETTLED_EXTRA and shift > TRACK_UNSETTLED_SHIFT_MM
+
+
 def tracking_tip(ctx, previous):
     """The tracking prior of :func:`viterbi_path`: a dense tree point on the root -> tip path of the
     ``previous`` frame's ``Wire3D``, or None (no previous frame, or it failed)."""
     if previous is None or not previous.success:
+        return None
+    if _branch_unsettled(previous):
+        # the previous frame's own 2D wire did not settle its branch: a path through another branch
+        # explained it about as well and ended elsewhere. Its path is then no evidence for this
+        # frame's: held as a prior, it would carry a coin toss on to the next frames (true pose,
+        # seeds 113 f2 and 162 f1: the tips 19 and 25 mm off, reported ``ok``)
         return None
     ids = previous.tree_point_ids
     ids = ids[ids >= 0]
