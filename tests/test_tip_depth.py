@@ -61,3 +61,86 @@ def test_a_biplane_trace_past_the_wire_end_is_uncertain(bcase):
     assert metrics.wire_errors_mm(past.result.wire3d.points_lps_mm, truth)["tip_error_mm"] > TIP_OFF_MM
     assert past.result.verdict is Verdict.UNCERTAIN, past.result.message
     assert "tip uncertain: the trace's last" in past.result.message
+
+
+# --------------------------------------------------------------------------------------
+# the tip's depth: another vessel that projects onto the 2D tip, and a prior that did not settle
+# --------------------------------------------------------------------------------------
+from guidewire3d.live import session as live  # noqa: E402
+from guidewire3d.reconstruction import ReconOptions, WireTracker, reconstruct_wire  # noqa: E402
+from guidewire3d.reconstruction import path as recon_path  # noqa: E402
+from guidewire3d.reconstruction.context import build_context  # noqa: E402
+from test_reconstruction import AP, _overlap_tree, _pose, _wire_on  # noqa: E402
+
+DEPTH_TOL_MM = 2.0        # the rival's depth against the geometry's (perspective, the tree's sampling)
+
+
+def _overlap_wires():
+    """The overlap tree, its pose, the true 3D wire along A, and its 2D wire cut inside the overlap
+    (``broken``: its tip could as well be in B) and whole (it leaves the overlap on A)."""
+    tree, _ = _overlap_tree()
+    pose = _pose(tree)
+    W, _ = _wire_on(tree, int(tree.leaves[0]))
+    uv = AP.project(W, pose)
+    s = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(W, axis=0), axis=1))]
+    keep = s < 40.0 + 15.0
+    return tree, pose, W[keep], uv[keep], uv
+
+
+def test_the_tip_rival_is_the_other_vessel_at_the_tips_depth():
+    """At the tip of a wire cut inside the overlap, a path ending in B (the mirror image of A in
+    depth, ``y -> -y``: 2 |y| deeper along about the same ray) costs about nothing more:
+    ``tip_rival`` finds it there, and the verdict names the branch ambiguity; at the tip of the
+    whole wire (A has left B behind in projection) there is none."""
+    tree, pose, W, broken_uv, full_uv = _overlap_wires()
+    opt = ReconOptions(ambiguity_scale=0.0)
+    ctx = build_context(pose, AP, tree, options=opt)
+    for uv, rival in ((broken_uv, True), (full_uv, False)):
+        from guidewire3d.reconstruction.candidates import anchor_indices, tree_candidates
+        aidx = anchor_indices(uv, opt.dp_step_px)
+        cand, outside = tree_candidates(ctx, uv[aidx], opt)
+        has = (cand >= 0).any(axis=1)
+        costs = recon_path.viterbi_costs(ctx, uv[aidx][has], cand[has], outside[has], opt, None)
+        nodes, total, _ = recon_path.viterbi_path(ctx, uv[aidx][has], cand[has], outside[has], opt, None, costs=costs)
+        extra, shift = recon_path.tip_rival(ctx, costs, nodes, opt)
+        if rival:
+            assert extra < 1.0 and shift == pytest.approx(2.0 * abs(W[-1][1]), abs=DEPTH_TOL_MM)
+            assert shift > live.BRANCH_SHIFT_MIN_MM
+        else:
+            assert not extra < 10 * live.BRANCH_EXTRA_MAX
+    broken = reconstruct_wire(broken_uv, pose, AP, tree, options=opt)
+    verdict, why = live.frame_verdict(broken, broken_uv, None)
+    assert verdict is Verdict.UNCERTAIN and "branch ambiguous" in why
+
+
+def test_a_previous_frame_that_did_not_settle_its_branch_is_no_prior():
+    """A frame whose tip could as well be in B (a rival path as good, ending 24 mm away) gives the
+    next frame no tracking prior; a frame whose wire settled its branch (the whole wire on A) does."""
+    tree, pose, W, broken_uv, full_uv = _overlap_wires()
+    opt = ReconOptions(ambiguity_scale=0.0)
+    ctx = build_context(pose, AP, tree, options=opt)
+    broken = reconstruct_wire(broken_uv, pose, AP, tree, options=opt)
+    full = reconstruct_wire(full_uv, pose, AP, tree, options=opt)
+    assert broken.branch_extra_cost < live.BRANCH_EXTRA_MAX < full.branch_extra_cost
+    assert recon_path.tracking_tip(ctx, broken) is None
+    assert recon_path.tracking_tip(ctx, full) is not None
+    tracker = WireTracker(pose, AP, tree, options=opt)
+    assert tracker.update(broken_uv)
+    again = tracker.update(broken_uv)           # the same wire again: still not settled, still said
+    assert live.frame_verdict(again, broken_uv, None)[0] is Verdict.UNCERTAIN
+
+
+def test_a_coin_toss_is_not_carried_on_by_the_tracking_prior():
+    """Simulator truth, ``PhantomOptions(seed=113, n_frames=4)`` at the true pose: frame 1's tip could
+    be in either of two branches (``uncertain``, and it took the wrong one); before, its path held
+    frame 2 in that branch as a prior, and frame 2 was ``ok`` with its tip 18.8 mm off. No frame is
+    ``ok`` with its tip more than ``TIP_OFF_MM`` off now, and frames 0 and 3 stay ``ok`` and right."""
+    case = simulate(PhantomOptions(seed=113, n_frames=4), make_ct=False)
+    session = live.Session(case.tree, case.carm, case.pose)
+    for t, frame in enumerate(case.frames):
+        fr = session.process(frame)
+        vis = np.asarray(case.wire_visible[t], bool)
+        tip_mm = float(np.linalg.norm(fr.tip_lps_mm - case.wire_lps_mm[t][vis][-1]))
+        assert not (fr.verdict is Verdict.OK and tip_mm > TIP_OFF_MM), (t, tip_mm, fr.message)
+        if t in (0, 3):
+            assert fr.verdict is Verdict.OK and tip_mm < 2.0, (t, tip_mm, fr.message)

@@ -149,17 +149,25 @@ def path_retreat_mm(ctx, nodes, *, max_step_mm: float) -> float:
     return float(worst)
 
 
+#: :func:`branch_alternative` reports the best rival ending farther than this from the chosen tip
+#: (mm; the tip accuracy a frame reported ``ok`` promises, ``live.session.BRANCH_SHIFT_MIN_MM``)
+#: when there is one, and :func:`tip_rival` counts only rivals this far away
+RIVAL_MIN_SHIFT_MM = 5.0
+
+
 def branch_alternative(ctx, costs: PathCosts, nodes, total, opt):
     """The best path that avoids the chosen path's distal subtree, as a rival to it.
 
     For each branch the chosen path ``nodes`` (A',) enters after its first (a bifurcation passed
     on the way to the tip), the Viterbi runs again with every candidate in that branch's subtree
-    forbidden (the same costs, ``costs``; the path may end early, as always). Of these
-    constrained paths, the one nearest in cost to the chosen one (``total``) is returned as
-    ``(extra_cost, tip_shift_mm)``: how much more it costs (in the Viterbi's units: squared
-    residuals, so 2 x the log-likelihood ratio) and how far its last tree point lies from the
-    chosen path's at the same anchor, mm (its distal end if it stops earlier; the chosen tip
-    when it goes on further). ``(inf, 0.0)`` when the path enters no branch after its first.
+    forbidden (the same costs, ``costs``; the path may end early, as always). These constrained
+    paths and :func:`tip_rival` (the tip put in another vessel that projects onto the 2D tip) are
+    the rivals; each has ``(extra_cost, tip_shift_mm)``: how much more it costs than the chosen
+    one (``total``; in the Viterbi's units: squared residuals, so 2 x the log-likelihood ratio)
+    and how far its last tree point lies from the chosen path's at the same anchor, mm (its
+    distal end if it stops earlier; the chosen tip when it goes on further). Returned: the rival
+    nearest in cost among those that end more than ``RIVAL_MIN_SHIFT_MM`` away, else the one
+    nearest in cost; ``(inf, 0.0)`` when there is none.
 
     A small extra cost with a large tip shift is a branch choice the 2D wire does not settle (a
     sibling that projects onto the wire's distal part about as well): the per-anchor
@@ -169,12 +177,10 @@ def branch_alternative(ctx, costs: PathCosts, nodes, total, opt):
     nodes = np.asarray(nodes, np.int64)
     br = ctx.point_branch[nodes]
     entered = [int(b) for k, b in enumerate(br) if k > 0 and b != br[k - 1] and b not in br[:k]]
-    if not entered:
-        return float("inf"), 0.0
+    rivals = [tip_rival(ctx, costs, nodes, opt)]
     cand = costs.cand
     safe = np.maximum(cand, 0)
     cbr = ctx.point_branch[safe]
-    best_extra, best_shift = float("inf"), 0.0
     for b in entered:
         forbid = ctx.branch_in_subtree[b][cbr] & (cand >= 0)
         if not forbid.any():
@@ -186,10 +192,52 @@ def branch_alternative(ctx, costs: PathCosts, nodes, total, opt):
             continue
         alt_nodes = cand[np.arange(end_t + 1), alt]
         t = min(end_t, len(nodes) - 1)
-        shift = float(np.linalg.norm(ctx.points[alt_nodes[t]] - ctx.points[nodes[t]]))
-        if extra < best_extra:
-            best_extra, best_shift = extra, shift
+        rivals.append((extra, float(np.linalg.norm(ctx.points[alt_nodes[t]] - ctx.points[nodes[t]]))))
+    # the rival nearest in cost among those that end farther than the tip accuracy an ok frame
+    # promises; when none does, the one nearest in cost
+    far = [r for r in rivals if r[1] > RIVAL_MIN_SHIFT_MM and np.isfinite(r[0])]
+    near = [r for r in rivals if np.isfinite(r[0])]
+    if not (far or near):
+        return float("inf"), 0.0
+    best_extra, best_shift = min(far or near)
     return max(best_extra, 0.0), best_shift
+
+
+def tip_rival(ctx, costs: PathCosts, nodes, opt):
+    """The best path that puts the tip in another vessel at the tip's own anchor: ``(extra_cost,
+    tip_shift_mm)``, or ``(inf, 0.0)`` when there is none.
+
+    The candidates of the chosen path's last anchor (``nodes`` (A',): its tree points) project
+    onto the 2D tip within the lumen; those off the chosen tip's route (neither on its root path nor
+    beyond it in its subtree: another vessel, which may lie at another depth along the same ray)
+    and farther than ``RIVAL_MIN_SHIFT_MM`` from it are the rivals. Each one's extra cost is that of
+    the best path ending there (the forward costs of :func:`viterbi_path`: the min-marginal of
+    the tip anchor) over the chosen one's; the shift is its 3D distance from the chosen tip.
+    :func:`branch_alternative` forbids only the branches the path entered, so a vessel from
+    another subtree that overlaps the tip in projection (entered from a bifurcation the path never
+    passed, e.g. the root's other child) was not among its rivals.
+    """
+    nodes = np.asarray(nodes, np.int64)
+    t = len(nodes) - 1
+    if t < 1:
+        return float("inf"), 0.0
+    alpha = kernels.viterbi_forward(costs.U[0] + costs.start, costs.U[: t + 1], costs.C[:t], opt.skip_cost)[0]
+    a, cand = alpha[t], costs.cand[t]
+    tip = int(nodes[-1])
+    ok = (cand >= 0) & np.isfinite(a)
+    if not ok.any():
+        return float("inf"), 0.0
+    j = np.flatnonzero(ok)
+    pts = cand[j]
+    lca = ctx.lca_s(pts, np.full(len(pts), tip))
+    off_route = lca < np.minimum(ctx.s[pts], ctx.s[tip]) - 1e-6      # neither an ancestor nor a descendant
+    shift = np.linalg.norm(ctx.points[pts] - ctx.points[tip], axis=1)
+    rival = off_route & (shift > RIVAL_MIN_SHIFT_MM)
+    here = np.flatnonzero(cand == tip)
+    if not rival.any() or len(here) == 0:
+        return float("inf"), 0.0
+    k = int(np.argmin(np.where(rival, a[j], np.inf)))
+    return float(a[j[k]] - a[here[0]]), float(shift[k])
 
 
 def ambiguity_mm2(ctx, nodes, marginals, opt) -> np.ndarray:
