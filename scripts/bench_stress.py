@@ -104,11 +104,16 @@ def score(rec: dict, frames: list, truth, args) -> None:
             for name, words in REASONS.items():
                 if words in why:
                     rec["reasons"][name] = rec["reasons"].get(name, 0) + 1
-        if verdict != "ok":
+        if verdict not in ("ok", "uncertain") or len(fr.get("points_lps_mm") or []) < 2:
             continue
         k = fr["index"]
         seen = np.asarray(truth.wire_visible[k], bool)
         e = wire_errors_mm(np.asarray(fr["points_lps_mm"]), np.asarray(truth.wire_lps_mm[k])[seen])
+        right = e["mean_error_mm"] <= args.mean_mm and e["tip_error_mm"] <= args.tip_mm
+        rec.setdefault("detail", []).append((int(k), verdict, round(e["tip_error_mm"], 2), fr.get("verdict_message") or ""))
+        if verdict == "uncertain":                # a false refusal when the wire is right
+            rec["uncertain_right"] = rec.get("uncertain_right", 0) + right
+            continue
         rec["max_ok_tip_mm"] = max(rec["max_ok_tip_mm"], e["tip_error_mm"])
         if e["mean_error_mm"] > args.mean_mm or e["tip_error_mm"] > args.tip_mm:
             rec["wrong"].append((k, round(e["mean_error_mm"], 2), round(e["tip_error_mm"], 1)))
@@ -170,6 +175,8 @@ def main(argv=None) -> int:
     ap.add_argument("--replay", type=Path, default=None, metavar="DIR",
                     help="run the live frames of the cases an earlier --keep DIR run kept again, with this code "
                          "(no phantom, CTA, roadmap or registration: only the frames through live.Session)")
+    ap.add_argument("--records", type=Path, default=None, metavar="FILE",
+                    help="write each case's frames (index, verdict, tip error mm, reason) here, one JSON line a case")
     ap.add_argument("--keep", type=Path, default=None,
                     help="keep the case and output folders of the cases with a silently wrong frame here (and of "
                          "every case its report.json, truth.json and registration_inputs.npz, under reports/)")
@@ -199,8 +206,11 @@ def main(argv=None) -> int:
     n_ok = sum(r["ok"] for r in recs)
     n_wrong = sum(len(r["wrong"]) for r in recs)
     n_frames = sum(r["frames"] for r in recs)
-    print(f"total: {n_frames} frames, {n_ok} ok, {n_wrong} silently wrong; tracebacks: "
-          f"{sum(r['traceback'] for r in recs)}")
+    print(f"total: {n_frames} frames, {n_ok} ok, {n_wrong} silently wrong; uncertain with the wire right (within "
+          f"{args.mean_mm:g} mm on average and the tip within {args.tip_mm:g} mm): "
+          f"{sum(r.get('uncertain_right', 0) for r in recs)}; tracebacks: {sum(r['traceback'] for r in recs)}")
+    if args.records:
+        args.records.write_text("\n".join(json.dumps({"seed": r["seed"], "frames": r.get("detail", [])}) for r in recs))
     reasons = {name: sum(r["reasons"].get(name, 0) for r in recs) for name in REASONS}
     print("uncertain frames by reason (a frame may have several): "
           + ", ".join(f"{name} {n}" for name, n in reasons.items())
