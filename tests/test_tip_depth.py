@@ -144,3 +144,42 @@ def test_a_coin_toss_is_not_carried_on_by_the_tracking_prior():
         assert not (fr.verdict is Verdict.OK and tip_mm > TIP_OFF_MM), (t, tip_mm, fr.message)
         if t in (0, 3):
             assert fr.verdict is Verdict.OK and tip_mm < 2.0, (t, tip_mm, fr.message)
+
+
+def _cut_overlap_tree(cut_mm: float):
+    """``_overlap_tree`` with branch B cut ``cut_mm`` along from the bifurcation (a CTA tree that lost
+    B's distal part); A whole. Returns the tree and B's whole polyline (where the vessel really runs)."""
+    from guidewire3d.vesseltree import VesselTree
+    from test_reconstruction import _chain
+    trunk = _chain([0, 0, 40], [0, 0, 0])
+    a = _chain([0, 0, 0], [20, 12, 0], [35, 12, 12])
+    b = _chain([0, 0, 0], [20, -12, 0], [35, -12, -12])
+    sb = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(b, axis=0), axis=1))]
+    tree = VesselTree.from_polylines([trunk, a, b[sb <= cut_mm]],
+                                     [np.full(len(trunk), 3.0), np.full(len(a), 2.0), np.full(int((sb <= cut_mm).sum()), 2.0)],
+                                     [None, (0, len(trunk) - 1), (0, len(trunk) - 1)])
+    return tree, np.vstack([trunk, b[1:]])
+
+
+def test_a_tip_beyond_the_end_of_its_vessel_in_the_tree_is_uncertain(monkeypatch):
+    """The wire runs down the trunk into B, 19 mm along it; the tree has lost B beyond 15 mm (its
+    distal part, as a CTA extraction does), and A projects onto B 2|y| mm away in depth. The only
+    path that reaches the 2D tip is A's: the tip is put there, about 20 mm off. B explains the wire
+    as well up to its end in the tree, 4 mm before the tip (``tree_end_rival``): the frame is
+    ``uncertain``, not ``ok`` (it was ``ok`` without that rival)."""
+    tree, b_full = _cut_overlap_tree(15.0)
+    pose = _pose(tree)
+    s = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(b_full, axis=0), axis=1))]
+    W = resample_polyline(b_full[s <= 40.0 + 19.0], 0.2)           # the trunk and 19 mm of B
+    uv = AP.project(W, pose)
+    opt = ReconOptions()
+    w3 = reconstruct_wire(uv, pose, AP, tree, options=opt)
+    assert w3.success and np.linalg.norm(w3.points_lps_mm[-1] - W[-1]) > TIP_OFF_MM   # the truth: the tip is wrong
+    verdict, why = live.frame_verdict(w3, uv, None)
+    assert verdict is Verdict.UNCERTAIN and "branch ambiguous" in why, why
+    assert w3.branch_extra_cost < live.BRANCH_EXTRA_MAX and w3.branch_tip_shift_mm > live.BRANCH_SHIFT_MIN_MM
+    monkeypatch.setattr(recon_path, "TREE_END_MAX_PX", 0.0)            # without the rival: silently wrong
+    assert live.frame_verdict(reconstruct_wire(uv, pose, AP, tree, options=opt), uv, None)[0] is Verdict.OK
+    whole, _ = _cut_overlap_tree(100.0)                                  # the whole tree: B reaches the tip
+    right = reconstruct_wire(uv, pose, AP, whole, options=opt)
+    assert np.linalg.norm(right.points_lps_mm[-1] - W[-1]) < 2.0

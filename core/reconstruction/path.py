@@ -177,7 +177,10 @@ def branch_alternative(ctx, costs: PathCosts, nodes, total, opt):
     nodes = np.asarray(nodes, np.int64)
     br = ctx.point_branch[nodes]
     entered = [int(b) for k, b in enumerate(br) if k > 0 and b != br[k - 1] and b not in br[:k]]
-    rivals = [tip_rival(ctx, costs, nodes, opt)]
+    t = len(nodes) - 1
+    alpha = (kernels.viterbi_forward(costs.U[0] + costs.start, costs.U[: t + 1], costs.C[:t], opt.skip_cost)[0]
+             if t >= 1 else None)
+    rivals = [tip_rival(ctx, costs, nodes, opt, alpha=alpha), tree_end_rival(ctx, costs, nodes, opt, alpha=alpha)]
     cand = costs.cand
     safe = np.maximum(cand, 0)
     cbr = ctx.point_branch[safe]
@@ -203,7 +206,7 @@ def branch_alternative(ctx, costs: PathCosts, nodes, total, opt):
     return max(best_extra, 0.0), best_shift
 
 
-def tip_rival(ctx, costs: PathCosts, nodes, opt):
+def tip_rival(ctx, costs: PathCosts, nodes, opt, *, alpha=None):
     """The best path that puts the tip in another vessel at the tip's own anchor: ``(extra_cost,
     tip_shift_mm)``, or ``(inf, 0.0)`` when there is none.
 
@@ -215,13 +218,15 @@ def tip_rival(ctx, costs: PathCosts, nodes, opt):
     the tip anchor) over the chosen one's; the shift is its 3D distance from the chosen tip.
     :func:`branch_alternative` forbids only the branches the path entered, so a vessel from
     another subtree that overlaps the tip in projection (entered from a bifurcation the path never
-    passed, e.g. the root's other child) was not among its rivals.
+    passed, e.g. the root's other child) was not among its rivals. ``alpha``: the forward costs of
+    the first A' anchors when the caller has them.
     """
     nodes = np.asarray(nodes, np.int64)
     t = len(nodes) - 1
     if t < 1:
         return float("inf"), 0.0
-    alpha = kernels.viterbi_forward(costs.U[0] + costs.start, costs.U[: t + 1], costs.C[:t], opt.skip_cost)[0]
+    if alpha is None:
+        alpha = kernels.viterbi_forward(costs.U[0] + costs.start, costs.U[: t + 1], costs.C[:t], opt.skip_cost)[0]
     a, cand = alpha[t], costs.cand[t]
     tip = int(nodes[-1])
     ok = (cand >= 0) & np.isfinite(a)
@@ -291,3 +296,61 @@ def tracking_tip(ctx, previous):
     rp = ctx.root_path(tip)
     k = int(np.searchsorted(ctx.s[rp], ctx.s[tip] - ctx.options.track_confirm_mm, side="right")) - 1
     return int(rp[max(k, 0)])
+
+
+#: :func:`tree_end_rival`: a rival may end this many px (of the 2D wire, in anchors) before the
+#: chosen path's tip, at the end of a leaf branch of the tree (within ``TREE_END_LEAF_MM`` of it).
+#: A CTA tree loses the thin distal end of a vessel (``bench_stress`` 4005 f7: the true tip 4.3 mm
+#: beyond the extracted branch's end, 6 anchors of the 2D wire beyond its projection)
+TREE_END_MAX_PX = 40.0
+TREE_END_LEAF_MM = 2.0
+
+
+def tree_end_rival(ctx, costs: PathCosts, nodes, opt, *, alpha=None):
+    """The best path that ends where the vessel tree does, a little before the 2D wire's tip:
+    ``(extra_cost, tip_shift_mm)`` or ``(inf, 0.0)``.
+
+    The Viterbi lets a path end early, paying ``skip_cost`` per anchor left unexplained; a path
+    that explains the wire as well as the chosen one up to the end of a leaf branch, and leaves the
+    last few anchors beyond it, then loses to any path that reaches the tip, though the two differ
+    only in whether the tree goes on. A CTA tree loses the thin distal ends of vessels, so the wire
+    may go on in that vessel beyond the tree's end, and the chosen path's tip is then a guess
+    between two vessels at different depths. The rivals: candidates of the chosen path's anchors
+    within ``TREE_END_MAX_PX`` of its tip, within ``TREE_END_LEAF_MM`` of the end of a leaf branch,
+    off the chosen tip's route and farther than ``RIVAL_MIN_SHIFT_MM`` from it; each one's extra
+    cost is that of the best path ending there (the forward cost ``alpha``) over the chosen path's
+    own cost up to that anchor (the skipped anchors not counted), its shift its distance from the
+    chosen tip. The rival nearest in cost is returned.
+    """
+    nodes = np.asarray(nodes, np.int64)
+    T = len(nodes) - 1
+    if T < 1:
+        return float("inf"), 0.0
+    if alpha is None:
+        alpha = kernels.viterbi_forward(costs.U[0] + costs.start, costs.U[: T + 1], costs.C[:T], opt.skip_cost)[0]
+    first = max(1, T - int(np.floor(TREE_END_MAX_PX / opt.dp_step_px)))
+    cand = costs.cand[first:T]
+    pts = np.maximum(cand, 0)
+    br = ctx.point_branch[pts]
+    leaf_branch = ctx.branch_in_subtree.sum(axis=1) == 1
+    end_s = np.array([ctx.s[rp[-1]] for rp in ctx.rootpath])
+    at_end = (cand >= 0) & leaf_branch[br] & (end_s[br] - ctx.s[pts] <= TREE_END_LEAF_MM)
+    at_end &= np.isfinite(alpha[first:T])
+    if not at_end.any():
+        return float("inf"), 0.0
+    tt, jj = np.nonzero(at_end)
+    p = pts[tt, jj]
+    tip = int(nodes[-1])
+    lca = ctx.lca_s(p, np.full(len(p), tip))
+    shift = np.linalg.norm(ctx.points[p] - ctx.points[tip], axis=1)
+    keep = (lca < np.minimum(ctx.s[p], ctx.s[tip]) - 1e-6) & (shift > RIVAL_MIN_SHIFT_MM)
+    if not keep.any():
+        return float("inf"), 0.0
+    # the chosen path's own cost up to each anchor: its start, unary and pairwise costs
+    cols = np.argmax(costs.cand[: T + 1] == nodes[:, None], axis=1)
+    steps = np.r_[0.0, costs.C[np.arange(T), cols[:-1], cols[1:]]]
+    prefix = costs.start[cols[0]] + np.cumsum(costs.U[np.arange(T + 1), cols] + steps)
+    extra = alpha[first:T][tt, jj] - prefix[first + tt]
+    extra = np.where(keep, extra, np.inf)
+    k = int(np.argmin(extra))
+    return float(extra[k]), float(shift[k])
