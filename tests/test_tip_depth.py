@@ -146,24 +146,30 @@ def test_a_coin_toss_is_not_carried_on_by_the_tracking_prior():
             assert fr.verdict is Verdict.OK and tip_mm < 2.0, (t, tip_mm, fr.message)
 
 
+A_OFFSET_MM = 2.0  # branch A runs this far beside B in projection (z), B's wire 0.5 mm outside A's lumen
+
+
 def _cut_overlap_tree(cut_mm: float):
-    """``_overlap_tree`` with branch B cut ``cut_mm`` along from the bifurcation (a CTA tree that lost
-    B's distal part); A whole. Returns the tree and B's whole polyline (where the vessel really runs)."""
+    """Like ``_overlap_tree`` (branches A and B at depths y = +12 and -12 mm), with A moved
+    ``A_OFFSET_MM`` aside in the image (a wire in B lies just outside A's projected lumen: B explains
+    it better) and B cut ``cut_mm`` along from the bifurcation (a CTA tree that lost B's distal
+    part). Returns the tree and B's whole polyline with the trunk (where the vessel really runs)."""
     from guidewire3d.vesseltree import VesselTree
     from test_reconstruction import _chain
     trunk = _chain([0, 0, 40], [0, 0, 0])
-    a = _chain([0, 0, 0], [20, 12, 0], [35, 12, 12])
+    a = _chain([0, 0, 0], [5, 3, A_OFFSET_MM], [20, 12, A_OFFSET_MM], [35, 12, 12])
     b = _chain([0, 0, 0], [20, -12, 0], [35, -12, -12])
     sb = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(b, axis=0), axis=1))]
-    tree = VesselTree.from_polylines([trunk, a, b[sb <= cut_mm]],
-                                     [np.full(len(trunk), 3.0), np.full(len(a), 2.0), np.full(int((sb <= cut_mm).sum()), 2.0)],
+    n_b = int((sb <= cut_mm).sum())
+    tree = VesselTree.from_polylines([trunk, a, b[:n_b]],
+                                     [np.full(len(trunk), 3.0), np.full(len(a), 1.5), np.full(n_b, 1.5)],
                                      [None, (0, len(trunk) - 1), (0, len(trunk) - 1)])
     return tree, np.vstack([trunk, b[1:]])
 
 
 def test_a_tip_beyond_the_end_of_its_vessel_in_the_tree_is_uncertain(monkeypatch):
     """The wire runs down the trunk into B, 19 mm along it; the tree has lost B beyond 15 mm (its
-    distal part, as a CTA extraction does), and A projects onto B 2|y| mm away in depth. The only
+    distal part, as a CTA extraction does), and A projects beside B, 2|y| mm away in depth. The only
     path that reaches the 2D tip is A's: the tip is put there, about 20 mm off. B explains the wire
     as well up to its end in the tree, 4 mm before the tip (``tree_end_rival``): the frame is
     ``uncertain``, not ``ok`` (it was ``ok`` without that rival)."""
