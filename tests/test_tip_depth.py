@@ -21,16 +21,7 @@ TIP_OFF_MM = 5.0   # bench_stress: an ok frame whose tip is farther than this fr
 PAST_PX = 30.0     # how far the false stretch runs on past the wire's end, along its vessel
 
 
-@pytest.fixture(scope="module")
-def bcase():
-    return simulate(PhantomOptions(seed=1, n_frames=3, biplane=True), make_ct=False)
-
-
-def _visible(case, t):
-    """Frame t's true 2D wires in view, at 1 px (the spacing of an ordered wire)."""
-    ua, ub = case.wire_uv_px[t], case.heldout_wire_uv_px[t]
-    return (resample_polyline(ua[case.carm.in_image(ua)], 1.0),
-            resample_polyline(ub[case.heldout_carm.in_image(ub)], 1.0))
+from test_tip_along_beam import _visible, bcase  # noqa: E402,F401  (the biplane case of seed 1, its true wires)
 
 
 def _past_the_end(case, t, ua):

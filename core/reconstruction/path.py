@@ -177,9 +177,7 @@ def branch_alternative(ctx, costs: PathCosts, nodes, total, opt):
     nodes = np.asarray(nodes, np.int64)
     br = ctx.point_branch[nodes]
     entered = [int(b) for k, b in enumerate(br) if k > 0 and b != br[k - 1] and b not in br[:k]]
-    t = len(nodes) - 1
-    alpha = (kernels.viterbi_forward(costs.U[0] + costs.start, costs.U[: t + 1], costs.C[:t], opt.skip_cost)[0]
-             if t >= 1 else None)
+    alpha = _forward(costs, len(nodes) - 1, opt)
     rivals = [tip_rival(ctx, costs, nodes, opt, alpha=alpha), tree_end_rival(ctx, costs, nodes, opt, alpha=alpha)]
     cand = costs.cand
     safe = np.maximum(cand, 0)
@@ -206,6 +204,13 @@ def branch_alternative(ctx, costs: PathCosts, nodes, total, opt):
     return max(best_extra, 0.0), best_shift
 
 
+def _forward(costs: PathCosts, t: int, opt):
+    """The Viterbi's forward costs (t + 1, K) of the first t + 1 anchors (None for t < 1)."""
+    if t < 1:
+        return None
+    return kernels.viterbi_forward(costs.U[0] + costs.start, costs.U[: t + 1], costs.C[:t], opt.skip_cost)[0]
+
+
 def tip_rival(ctx, costs: PathCosts, nodes, opt, *, alpha=None):
     """The best path that puts the tip in another vessel at the tip's own anchor: ``(extra_cost,
     tip_shift_mm)``, or ``(inf, 0.0)`` when there is none.
@@ -223,10 +228,9 @@ def tip_rival(ctx, costs: PathCosts, nodes, opt, *, alpha=None):
     """
     nodes = np.asarray(nodes, np.int64)
     t = len(nodes) - 1
-    if t < 1:
-        return float("inf"), 0.0
+    alpha = _forward(costs, t, opt) if alpha is None else alpha
     if alpha is None:
-        alpha = kernels.viterbi_forward(costs.U[0] + costs.start, costs.U[: t + 1], costs.C[:t], opt.skip_cost)[0]
+        return float("inf"), 0.0
     a, cand = alpha[t], costs.cand[t]
     tip = int(nodes[-1])
     ok = (cand >= 0) & np.isfinite(a)
@@ -333,10 +337,9 @@ def tree_end_rival(ctx, costs: PathCosts, nodes, opt, *, alpha=None):
     """
     nodes = np.asarray(nodes, np.int64)
     T = len(nodes) - 1
-    if T < 1:
-        return float("inf"), 0.0
+    alpha = _forward(costs, T, opt) if alpha is None else alpha
     if alpha is None:
-        alpha = kernels.viterbi_forward(costs.U[0] + costs.start, costs.U[: T + 1], costs.C[:T], opt.skip_cost)[0]
+        return float("inf"), 0.0
     first = max(1, T - int(np.floor(TREE_END_MAX_PX / opt.dp_step_px)))
     cand = costs.cand[first:T]
     pts = np.maximum(cand, 0)
