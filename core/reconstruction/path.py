@@ -6,8 +6,11 @@ reproduce the 2D step and to be distal. In tracking mode an extra unary cost kee
 the previous frame's root -> tip path. The recursions run compiled (``guidewire3d.kernels``); the
 min-marginals give the branch ambiguity that enters the uncertainty. Path-level checks reuse the
 costs (:class:`PathCosts`): re-runs without the tracking prior or with a branch's subtree forbidden
-(:func:`branch_alternative`), and how far the path walks back towards the root
-(:func:`path_retreat_mm`).
+(:func:`branch_alternative`), the tip put in another vessel at another depth along the same rays
+(:func:`tip_rival`) or at the end of a leaf of the tree a few px short of the tip
+(:func:`tree_end_rival`), and how far the path walks back towards the root
+(:func:`path_retreat_mm`). A previous frame whose branch was not settled is no tracking prior
+(:func:`tracking_tip`).
 """
 from __future__ import annotations
 
@@ -17,7 +20,7 @@ import numpy as np
 from guidewire3d import kernels
 
 __all__ = ["PathCosts", "viterbi_costs", "viterbi_path", "path_step_costs", "path_retreat_mm", "branch_alternative",
-           "ambiguity_mm2", "tracking_tip"]
+           "tip_rival", "tree_end_rival", "ambiguity_mm2", "tracking_tip"]
 
 
 @dataclass(frozen=True, eq=False)
