@@ -60,6 +60,11 @@ def _tree_of(case, use_cta: bool):
     return vessels3d.extract_vessels(case.volume).tree
 
 
+#: the verdict lines: an ``ok`` frame whose tip is farther than this from the true one is wrong
+TIP_OFF_MM = 5.0
+#: the tip-end reasons of ``live.frame_verdict`` (``orderedwire.tip_end_check``), by their first words
+TIP_END_REASONS = {"two layers at the tip": "tip uncertain: the wire's last", "no wire at the tip": "tip uncertain: the trace's last"}
+
 _SEGMENTERS = {}
 
 
@@ -126,9 +131,11 @@ def run_case(seed: int, args, log) -> dict:
         t1 = time.perf_counter()
         bp = bi.process(case.frames[t], case.heldout_frames[t], index=t)
         dt_b = time.perf_counter() - t1
-        for name, w3, dt, views in (("mono", fr.wire3d, dt_m, "A" if fr else ""),
-                                    ("bi", bp.result.wire3d, dt_b, bp.views)):
-            rec = {"t": t, "seconds": dt, "ok": bool(w3), "views": views}
+        for name, res, dt, views in (("mono", fr, dt_m, "A" if fr else ""),
+                                     ("bi", bp.result, dt_b, bp.views)):
+            w3 = res.wire3d
+            rec = {"t": t, "seconds": dt, "ok": bool(w3), "views": views, "verdict": res.verdict.value,
+                   "message": res.message}
             if w3 and len(truth[t]) >= 2:
                 rec.update(metrics.wire_errors_mm(w3.points_lps_mm, truth[t]))
                 if name == "bi":  # calibration of uncertainty_mm: per point distance to the true wire
@@ -200,6 +207,17 @@ def table(results, args, out=print) -> None:
                for x in [r["reg"][(name, v)]] if not x["success"]]
         if name == "bi" or len(bad) <= 20:
             out(f"\n{name} registrations not successful (seed, roadmap, mTRE, verdict): " + ("; ".join(bad) or "none"))
+    for name in ("mono", "bi"):      # the frame verdicts against the truth (a frame is wrong: its tip > TIP_OFF_MM)
+        frames = [f for r in results for f in r["wires"].get(name, []) if "verdict" in f and "tip_error_mm" in f]
+        if not frames:
+            continue
+        n = {v: sum(f["verdict"] == v for f in frames) for v in ("ok", "uncertain")}
+        off = sum(f["verdict"] == "ok" and f["tip_error_mm"] > TIP_OFF_MM for f in frames)
+        refused = sum(f["verdict"] == "uncertain" and f["tip_error_mm"] <= TIP_OFF_MM for f in frames)
+        why = {k: sum(words in f["message"] for f in frames) for k, words in TIP_END_REASONS.items()}
+        out(f"\n{name} frame verdicts ({len(frames)} frames with a 3D wire): ok {n['ok']}, uncertain {n['uncertain']}; "
+            f"ok with the tip > {TIP_OFF_MM:g} mm off {off}; uncertain with the tip within {TIP_OFF_MM:g} mm {refused}; "
+            + ", ".join(f"{k} {v}" for k, v in why.items()))
     bi = [f for r in results for f in r["wires"]["bi"] if "e_pts" in f]
     if bi:
         e = np.concatenate([f["e_pts"] for f in bi])

@@ -54,7 +54,6 @@ def options_of(seed: int) -> list[str]:
 
 
 def run_case(seed: int, work: Path, args) -> dict:
-    from guidewire3d.metrics import wire_errors_mm
     from guidewire3d.phantom import load_truth
 
     exe = [sys.executable, "-m", "guidewire3d.app.cli"]
@@ -77,34 +76,93 @@ def run_case(seed: int, work: Path, args) -> dict:
     if report.exists():
         rj = json.loads(report.read_text())
         rec["registration"] = rj.get("registration", {}).get("verdict")
-        truth = load_truth(case)
-        for fr in rj["frames"]:
-            rec["frames"] += 1
-            verdict = fr.get("verdict") or ("ok" if fr.get("success") else "failed")
-            rec[verdict if verdict in ("ok", "uncertain", "failed") else "failed"] += 1
-            rec["prior_dropped"] += "dropped as a prior" in (fr.get("message") or "")
-            if verdict == "uncertain":
-                why = fr.get("verdict_message") or ""
-                for name, words in REASONS.items():
-                    if words in why:
-                        rec["reasons"][name] = rec["reasons"].get(name, 0) + 1
-            if verdict != "ok":
-                continue
-            k = fr["index"]
-            seen = np.asarray(truth.wire_visible[k], bool)
-            e = wire_errors_mm(np.asarray(fr["points_lps_mm"]), np.asarray(truth.wire_lps_mm[k])[seen])
-            rec["max_ok_tip_mm"] = max(rec["max_ok_tip_mm"], e["tip_error_mm"])
-            if e["mean_error_mm"] > args.mean_mm or e["tip_error_mm"] > args.tip_mm:
-                rec["wrong"].append((k, round(e["mean_error_mm"], 2), round(e["tip_error_mm"], 1)))
-    if args.keep and report.exists():            # every case's report and truth, to score a verdict rule again
+        score(rec, rj["frames"], load_truth(case), args)
+    if args.keep and report.exists():            # every case's report, truth and frames, to score a verdict rule again
         small = args.keep / "reports" / str(seed)
         small.mkdir(parents=True, exist_ok=True)
-        for src in (report, case / "truth.json", out / "registration_inputs.npz"):
+        for src in (report, case / "truth.json", out / "registration_inputs.npz", case / "frames.dcm"):
             if src.exists():
                 shutil.copy(src, small / src.name)
     if not (args.keep and rec["wrong"]):
         shutil.rmtree(case, ignore_errors=True)
         shutil.rmtree(out, ignore_errors=True)
+    return rec
+
+
+def score(rec: dict, frames: list, truth, args) -> None:
+    """Count the verdicts of a case's frame records (``report.json``'s ``frames``) into ``rec`` and
+    score each ``ok`` one against the truth."""
+    from guidewire3d.metrics import wire_errors_mm
+
+    for fr in frames:
+        rec["frames"] += 1
+        verdict = fr.get("verdict") or ("ok" if fr.get("success") else "failed")
+        rec[verdict if verdict in ("ok", "uncertain", "failed") else "failed"] += 1
+        rec["prior_dropped"] += "dropped as a prior" in (fr.get("message") or "")
+        if verdict == "uncertain":
+            why = fr.get("verdict_message") or ""
+            for name, words in REASONS.items():
+                if words in why:
+                    rec["reasons"][name] = rec["reasons"].get(name, 0) + 1
+        if verdict not in ("ok", "uncertain") or len(fr.get("points_lps_mm") or []) < 2:
+            continue
+        k = fr["index"]
+        seen = np.asarray(truth.wire_visible[k], bool)
+        e = wire_errors_mm(np.asarray(fr["points_lps_mm"]), np.asarray(truth.wire_lps_mm[k])[seen])
+        right = e["mean_error_mm"] <= args.mean_mm and e["tip_error_mm"] <= args.tip_mm
+        rec.setdefault("detail", []).append((int(k), verdict, round(e["tip_error_mm"], 2), fr.get("verdict_message") or ""))
+        if verdict == "uncertain":                # a false refusal when the wire is right
+            rec["uncertain_right"] = rec.get("uncertain_right", 0) + right
+            continue
+        rec["max_ok_tip_mm"] = max(rec["max_ok_tip_mm"], e["tip_error_mm"])
+        if e["mean_error_mm"] > args.mean_mm or e["tip_error_mm"] > args.tip_mm:
+            rec["wrong"].append((k, round(e["mean_error_mm"], 2), round(e["tip_error_mm"], 1)))
+
+
+def replay_case(seed: int, args) -> dict:
+    """A case of an earlier ``--keep`` run, its live frames run again through ``live.Session`` with the
+    code of now: the kept tree (``registration_inputs.npz``), registration (pose, covariance) and
+    frames (``frames.dcm``), the session set up as ``pipeline.run`` sets it up; the CTA, the roadmap
+    and the registration are not redone. Scored as :func:`run_case` scores."""
+    from guidewire3d import io
+    from guidewire3d.geometry import CArm, Pose
+    from guidewire3d.live import Session
+    from guidewire3d.phantom import load_truth
+    from guidewire3d.vesseltree import VesselTree
+
+    small = args.replay / "reports" / str(seed)
+    opts = options_of(seed)
+    rec = dict(seed=seed, options=" ".join(opts[2:]), phantom_exit=0, exit=None, traceback=False, frames=0, ok=0,
+               uncertain=0, failed=0, wrong=[], max_ok_tip_mm=0.0, reasons={}, prior_dropped=0)
+    if not (small / "report.json").exists():
+        rec["exit"] = "not kept"
+        return rec
+    rj = json.loads((small / "report.json").read_text())
+    rec["registration"] = rj.get("registration", {}).get("verdict")
+    rec["exit"] = 0
+    if not rj["frames"]:                         # not reconstructed (the registration refused): nothing to replay
+        return rec
+    t0 = time.perf_counter()
+    z = np.load(small / "registration_inputs.npz")
+    tree = VesselTree(z["tree_points_lps_mm"], z["tree_radius_mm"], z["tree_parent"])
+    reg = rj["registration"]
+    cov = np.asarray(reg["covariance_6x6"], float) if reg.get("covariance_6x6") is not None else None
+    frames = np.asarray(io.read_xa(small / "frames.dcm").frames)
+    inputs = rj.get("inputs", {})
+    session = Session(tree, CArm.from_dict(rj["frames_carm"]), Pose.from_matrix(np.asarray(rj["pose"], float)),
+                      registration_covariance=cov, segmenter=inputs.get("segmenter", "unet"),
+                      method=inputs.get("method", "vessel"), track_motion=bool(inputs.get("track_motion")))
+    session.warm_up(frames[0])
+    ids = [int(fr["index"]) for fr in rj["frames"]]
+    records = []
+    for fr in session.run(frames[ids[0]: ids[-1] + 1], start_index=ids[0]):
+        d = fr.to_dict()
+        d["points_lps_mm"] = fr.wire3d.points_lps_mm.tolist()
+        d["message"] = fr.wire3d.message
+        d["success"] = bool(fr.wire3d)
+        records.append(d)
+    score(rec, records, load_truth(small), args)
+    rec["seconds"] = time.perf_counter() - t0
     return rec
 
 
@@ -114,6 +172,11 @@ def main(argv=None) -> int:
     ap.add_argument("--cases", type=int, default=12)
     ap.add_argument("--mean-mm", type=float, default=2.0, help="an ok frame farther than this on average is wrong")
     ap.add_argument("--tip-mm", type=float, default=5.0, help="an ok frame whose tip is farther than this is wrong")
+    ap.add_argument("--replay", type=Path, default=None, metavar="DIR",
+                    help="run the live frames of the cases an earlier --keep DIR run kept again, with this code "
+                         "(no phantom, CTA, roadmap or registration: only the frames through live.Session)")
+    ap.add_argument("--records", type=Path, default=None, metavar="FILE",
+                    help="write each case's frames (index, verdict, tip error mm, reason) here, one JSON line a case")
     ap.add_argument("--keep", type=Path, default=None,
                     help="keep the case and output folders of the cases with a silently wrong frame here (and of "
                          "every case its report.json, truth.json and registration_inputs.npz, under reports/)")
@@ -126,7 +189,7 @@ def main(argv=None) -> int:
         for seed in range(args.seed0, args.seed0 + args.cases):
             if args.keep:
                 args.keep.mkdir(parents=True, exist_ok=True)
-            rec = run_case(seed, args.keep or Path(tmp), args)
+            rec = replay_case(seed, args) if args.replay else run_case(seed, args.keep or Path(tmp), args)
             recs.append(rec)
             wrong = ", ".join(f"f{k}: {m} / {t} mm" for k, m, t in rec["wrong"]) or "-"
             rows.append([seed, rec["options"] or "-", rec["exit"] if rec["phantom_exit"] == 0 else
@@ -143,8 +206,11 @@ def main(argv=None) -> int:
     n_ok = sum(r["ok"] for r in recs)
     n_wrong = sum(len(r["wrong"]) for r in recs)
     n_frames = sum(r["frames"] for r in recs)
-    print(f"total: {n_frames} frames, {n_ok} ok, {n_wrong} silently wrong; tracebacks: "
-          f"{sum(r['traceback'] for r in recs)}")
+    print(f"total: {n_frames} frames, {n_ok} ok, {n_wrong} silently wrong; uncertain with the wire right (within "
+          f"{args.mean_mm:g} mm on average and the tip within {args.tip_mm:g} mm): "
+          f"{sum(r.get('uncertain_right', 0) for r in recs)}; tracebacks: {sum(r['traceback'] for r in recs)}")
+    if args.records:
+        args.records.write_text("\n".join(json.dumps({"seed": r["seed"], "frames": r.get("detail", [])}) for r in recs))
     reasons = {name: sum(r["reasons"].get(name, 0) for r in recs) for name in REASONS}
     print("uncertain frames by reason (a frame may have several): "
           + ", ".join(f"{name} {n}" for name, n in reasons.items())

@@ -49,7 +49,7 @@ from guidewire3d.reconstruction.triangulation import (
 from guidewire3d.reconstruction import reconstruct_wire
 from guidewire3d.registration import model, problem, search, solve, verdict
 from guidewire3d.registration.result import RegistrationResult, Verdict, _failed
-from guidewire3d.xray.orderedwire import doubled_tip, ordered_wire
+from guidewire3d.xray.orderedwire import ordered_wire, tip_end_check
 
 __all__ = ["ViewFit", "BiplaneRegistration", "register_biplane", "BiplaneFrame", "BiplaneSession",
            "pair_frames", "check_planes", "check_inputs", "run", "run_to_outdir", "projection_error_summary", "PLANES"]
@@ -642,17 +642,20 @@ class BiplaneSession:
 
 
 def _doubled_tip_two_view(tv, uv, images):
-    """Two layers of wire at the tip (``orderedwire.doubled_tip``) in a plane whose 2D wire ends at the
-    output's tip, or None: where one plane's wire was appended beyond the two-view tip
-    (``extend_distal``), that plane; else both (each plane's tip is then the two-view tip, and a
-    wire folded back over itself just before its tip may show as one line in either)."""
+    """What the image shows at the tip (``orderedwire.tip_end_check``, as the one-view path does) in a
+    plane whose 2D wire ends at the output's tip: two layers of wire (``DoubledTip``) or none
+    (``BareTip``: the plane's trace runs past the wire's end), or None. Where one plane's wire was
+    appended beyond the two-view tip (``extend_distal``), that plane; else both (each plane's tip is
+    then the two-view tip, and a wire folded back over itself just before its tip may show as one
+    line in either; a trace that runs past the wire's end in one plane moves the matched tip
+    there too)."""
     gaps = np.nan_to_num(np.asarray(tv.distal_gap_px, float), nan=0.0)
     planes = [int(np.argmax(gaps))] if tv.single_view_distal_mm > 0 else [0, 1]
     for k in planes:
         img = images[k] if k < len(images) else None
         if img is None or np.ndim(img) != 2:
             continue
-        d = doubled_tip(np.asarray(img), uv[k], at_end=not (k == 1 and tv.b_reversed))
+        d = tip_end_check(np.asarray(img), uv[k], at_end=not (k == 1 and tv.b_reversed))
         if d is not None:
             return d
     return None

@@ -426,7 +426,10 @@ def frame_verdict(wire3d, wire_uv_px, orientation, *, beyond_tip=None, motion=No
       (``TIP_STRETCH_MAX_MM``);
     * the tip's uncertainty exceeds ``TIP_MAX_UNCERTAINTY_MM``;
     * the path through the tree walks back towards the root (``TREE_RETREAT_MAX_MM``);
-    * a path through another branch explains the wire about as well (``BRANCH_EXTRA_MAX``);
+    * a path through another branch explains the wire about as well (``BRANCH_EXTRA_MAX``), ending
+      more than ``BRANCH_SHIFT_MIN_MM`` away: a branch the path entered avoided, the tip put in
+      another vessel that projects onto the 2D tip, or a path that ends at a leaf of the tree a few
+      px before the tip (``reconstruction.path.branch_alternative``);
     * the frame's motion update did not fit (``motion``: its ``RegistrationResult``).
     """
     uv = np.asarray(wire_uv_px, float).reshape(-1, 2)
@@ -463,7 +466,9 @@ def frame_verdict(wire3d, wire_uv_px, orientation, *, beyond_tip=None, motion=No
     shift_mm = float(getattr(wire3d, "branch_tip_shift_mm", float("nan")))
     if extra < BRANCH_EXTRA_MAX and shift_mm > BRANCH_SHIFT_MIN_MM:
         why.append(f"branch ambiguous: a path through another branch of the vessel tree explains the 2D wire about as "
-                   f"well (extra cost {extra:.1f}, limit {BRANCH_EXTRA_MAX:g}) and ends {shift_mm:.0f} mm away")
+                   f"well (extra cost {extra:.1f}, limit {BRANCH_EXTRA_MAX:g}; over the whole wire, or up to the end of "
+                   f"that branch a few px before the tip, where the CTA tree may have lost the vessel's distal end) and "
+                   f"ends {shift_mm:.0f} mm away")
     if motion is not None and not motion.success:
         why.append(f"motion: {motion.message}")
     if not why:

@@ -23,12 +23,20 @@ from guidewire3d.reconstruction.context import (  # noqa: F401
     build_context,
 )
 from guidewire3d.reconstruction.path import (  # noqa: F401
+    RIVAL_MIN_SHIFT_MM,
+    TRACK_UNSETTLED_EXTRA,
+    TRACK_UNSETTLED_SHIFT_MM,
+    TREE_END_LEAF_MM,
+    TREE_END_MAX_PX,
+    TREE_END_MIN_GAIN,
     PathCosts,
     ambiguity_mm2,
     branch_alternative,
     path_retreat_mm,
     path_step_costs,
+    tip_rival,
     tracking_tip,
+    tree_end_rival,
     viterbi_costs,
     viterbi_path,
 )
