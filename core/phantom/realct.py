@@ -105,6 +105,11 @@ def read_labels(labels_path, volume, *, artery_labels=None):
     if not np.allclose(img.GetSpacing(), volume.spacing_mm, atol=1e-3):
         raise InputError(f"{path}: label spacing {tuple(round(s, 4) for s in img.GetSpacing())} mm is not the CT's "
                          f"{tuple(round(s, 4) for s in volume.spacing_mm)}")
+    half_voxel = 0.5 * min(volume.spacing_mm)
+    if not np.allclose(img.GetOrigin(), volume.origin_lps_mm, atol=half_voxel) or \
+            not np.allclose(np.asarray(img.GetDirection()).reshape(3, 3), volume.direction, atol=1e-3):
+        raise InputError(f"{path}: label origin / direction {tuple(round(o, 2) for o in img.GetOrigin())} are not the "
+                         f"CT's {tuple(round(float(o), 2) for o in volume.origin_lps_mm)} (the labels must lie on its grid)")
     if np.issubdtype(labels.dtype, np.floating) and not np.all(np.isfinite(labels)):
         raise InputError(f"{path}: non-finite label values")
     labels = labels.astype(np.int32)
