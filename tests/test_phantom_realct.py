@@ -150,7 +150,7 @@ def test_the_seed_picks_an_end_artery_not_one_passed_on_the_way(labelled_ct):
     assert targets == {CAROTID, SUBCLAVIAN}  # the trunk is passed on the way to the carotid
 
 
-@pytest.mark.parametrize("case", ["size", "origin", "no_csv", "biplane", "only_ct", "bad_target", "no_contrast",
+@pytest.mark.parametrize("case", ["2d", "origin", "no_csv", "biplane", "only_ct", "bad_target", "no_contrast",
                                   "artery_ids"])
 def test_bad_real_anatomy_input_is_one_line_exit_2_nothing_written(case, labelled_ct, tmp_path, capsys):
     import shutil
@@ -160,18 +160,18 @@ def test_bad_real_anatomy_input_is_one_line_exit_2_nothing_written(case, labelle
     root, lab = labelled_ct
     ct, labels = root / "ct.nii.gz", root / "labels.nii.gz"
     extra, words = [], []
-    if case == "size":
+    if case == "2d":
         bad = tmp_path / "small.nii.gz"
-        sitk.WriteImage(sitk.GetImageFromArray(lab[:, :32].copy()), str(bad))
-        labels, words = bad, ["small.nii.gz", "size"]
+        sitk.WriteImage(sitk.GetImageFromArray(lab[10].copy()), str(bad))  # one slice: a 2D image
+        labels, words = bad, ["small.nii.gz", "3D"]
     elif case == "origin":
         img = sitk.ReadImage(str(labels))
-        img.SetOrigin(tuple(o + 10.0 for o in img.GetOrigin()))
+        img.SetOrigin(tuple(o + 60.0 for o in img.GetOrigin()))
         (tmp_path / "o").mkdir()
         shutil.copy(root / "structures.csv", tmp_path / "o" / "structures.csv")
         labels = tmp_path / "o" / "labels.nii.gz"
         sitk.WriteImage(img, str(labels))
-        words = ["labels.nii.gz", "origin"]
+        words = ["labels.nii.gz", "outside the CT"]
     elif case == "no_csv":
         (tmp_path / "l").mkdir()
         labels = tmp_path / "l" / "labels.nii.gz"

@@ -98,20 +98,28 @@ def read_labels(labels_path, volume, *, artery_labels=None):
         img = sitk.ReadImage(str(path))
     except RuntimeError:
         raise InputError(f"{path}: not a readable label image (NIfTI, NRRD, MHA)") from None
-    labels = sitk.GetArrayFromImage(img)
-    if labels.shape != tuple(volume.shape_zyx):
-        raise InputError(f"{path}: label image size {labels.shape[::-1]} (x, y, z) is not the CT's "
-                         f"{tuple(volume.shape_zyx)[::-1]}")
-    if not np.allclose(img.GetSpacing(), volume.spacing_mm, atol=1e-3):
-        raise InputError(f"{path}: label spacing {tuple(round(s, 4) for s in img.GetSpacing())} mm is not the CT's "
-                         f"{tuple(round(s, 4) for s in volume.spacing_mm)}")
-    half_voxel = 0.5 * min(volume.spacing_mm)
-    if not np.allclose(img.GetOrigin(), volume.origin_lps_mm, atol=half_voxel) or \
-            not np.allclose(np.asarray(img.GetDirection()).reshape(3, 3), volume.direction, atol=1e-3):
-        raise InputError(f"{path}: label origin / direction {tuple(round(o, 2) for o in img.GetOrigin())} are not the "
-                         f"CT's {tuple(round(float(o), 2) for o in volume.origin_lps_mm)} (the labels must lie on its grid)")
-    if np.issubdtype(labels.dtype, np.floating) and not np.all(np.isfinite(labels)):
+    if img.GetDimension() != 3 or img.GetNumberOfComponentsPerPixel() != 1:
+        raise InputError(f"{path}: not a 3D label image ({img.GetDimension()}D, "
+                         f"{img.GetNumberOfComponentsPerPixel()} components per voxel)")
+    if np.issubdtype(sitk.GetArrayViewFromImage(img).dtype, np.floating) and \
+            not np.all(np.isfinite(sitk.GetArrayViewFromImage(img))):
         raise InputError(f"{path}: non-finite label values")
+    # onto the CT's grid by physical position (nearest label): a DICOM series and a NIfTI of the same
+    # scan may store the slices in opposite orders
+    ref = sitk.Image([int(n) for n in volume.shape_zyx[::-1]], sitk.sitkUInt8)
+    ref.SetSpacing([float(v) for v in volume.spacing_mm])
+    ref.SetOrigin([float(v) for v in volume.origin_lps_mm])
+    ref.SetDirection([float(v) for v in np.asarray(volume.direction, float).ravel()])
+    on_grid = sitk.Resample(sitk.Cast(img, sitk.sitkInt32), ref, sitk.Transform(), sitk.sitkNearestNeighbor, 0,
+                            sitk.sitkInt32)
+    labels = sitk.GetArrayFromImage(on_grid)
+    n_in, n_on = int(np.count_nonzero(sitk.GetArrayViewFromImage(img))), int(np.count_nonzero(labels))
+    if n_in == 0:
+        raise InputError(f"{path}: the label image is empty")
+    vox_ratio = float(np.prod(img.GetSpacing()) / np.prod(volume.spacing_mm))
+    if n_on < 0.9 * n_in * vox_ratio:
+        raise InputError(f"{path}: {100 * (1 - n_on / (n_in * vox_ratio)):.0f}% of the labelled voxels lie outside "
+                         f"the CT {volume.source or ''} (the labels must lie on its grid: origin, direction, spacing)")
     labels = labels.astype(np.int32)
     present = set(int(v) for v in np.unique(labels)) - {0}
     names: dict[int, str] = {}
