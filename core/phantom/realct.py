@@ -82,7 +82,8 @@ class RealAnatomyOptions:
 # labels
 # ======================================================================================
 def read_labels(labels_path, volume, *, artery_labels=None):
-    """``(labels_zyx int32, names {id: name}, artery ids, contrast ids)`` of a label image on ``volume``'s grid.
+    """``(labels_zyx int32, names {id: name}, artery ids, contrast ids)``: a label image resampled onto
+    ``volume``'s grid by position (nearest label).
 
     Names from ``structures.csv`` beside the labels (columns ``structure`` and ``id``) when present.
     The artery labels are ``artery_labels`` or the names matching :data:`ARTERY_NAME`; the
