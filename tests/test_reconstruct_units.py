@@ -103,3 +103,32 @@ def test_an_mra_whose_air_reads_as_tissue_is_not_taken_for_hu():
     assert vesselmodel.looks_like_hu(_body_in_air(-1000.0, 40.0, 400.0, 12.0))
     assert not vesselmodel.looks_like_hu(_body_in_air(20.0, 280.0, 1900.0, 25.0))
     assert not vesselmodel.looks_like_hu(_body_in_air(500.0, 1020.0, 1200.0, 6.0))  # 0.5 x HU + 1000
+
+
+def test_a_3dra_in_hu_gets_its_tree_from_the_model():
+    """A 3D rotational angiogram in HU (contrast ~3000 HU, above bone): the HU defaults find no vessels
+    (the lumen lies above their bone threshold); the vessel stage then reads the volume with its own
+    intensity model, and the tree follows the true axes."""
+    from guidewire3d.cta import vesselmodel, vessels3d
+    from guidewire3d.errors import SegmentationError
+    from scipy.spatial import cKDTree
+    from test_vesselmodel import BRANCHES, CENTRE_TOL_MM, TRUNK, _axes, _volume, _zyx_to_lps
+
+    v = _volume(lumen=3000.0, tissue=0.0, air=0.0, noise=60.0, bone=1200.0, source="synthetic 3DRA")
+    assert vesselmodel.looks_like_hu(v)
+    with pytest.raises(SegmentationError):
+        vessels3d.extract_vessels(v)
+    said = []
+    tree = vesselmodel.extract_vessels_any_units(v, log=said.append).tree
+    assert any("a 3DRA" in s for s in said), said
+    d, _ = cKDTree(_zyx_to_lps(_axes([TRUNK, *BRANCHES]))).query(tree.points_lps_mm)
+    assert d.mean() < CENTRE_TOL_MM
+
+
+def test_no_vessels_either_way_names_both_reasons():
+    from guidewire3d.cta import vesselmodel
+    from guidewire3d.errors import SegmentationError
+    from test_vesselmodel import _volume
+
+    with pytest.raises(SegmentationError, match="read with its own intensity model"):
+        vesselmodel.extract_vessels_any_units(_volume(segments=[]))

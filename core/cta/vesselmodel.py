@@ -1025,14 +1025,26 @@ def extract_vessels_any_units(volume: io.Volume, *, seeds_lps_mm=None, progress:
     volume (an MRA in arbitrary units, a CT whose rescale is missing) goes through
     :func:`extract_vessels_auto`: its own intensity model, and a refusal (``SegmentationError``,
     exit 2) when the model is ambiguous or the tree implausible, instead of HU thresholds applied
-    to numbers that are not HU.
+    to numbers that are not HU. So does a volume in HU where the HU defaults find no vessels (a 3DRA,
+    whose intra-arterial contrast lies far above bone); when the model refuses it too, both reasons
+    are given.
     """
+    why = "not in HU"
     if looks_like_hu(volume):
-        return vessels3d.extract_vessels(volume, seeds_lps_mm=seeds_lps_mm, progress=progress)
-    auto = extract_vessels_auto(volume, seeds_lps_mm=seeds_lps_mm, progress=progress)
+        try:
+            return vessels3d.extract_vessels(volume, seeds_lps_mm=seeds_lps_mm, progress=progress)
+        except SegmentationError as e:
+            # in HU but no vessels at a CTA's levels: a 3DRA (intra-arterial contrast far above bone)?
+            try:
+                auto = extract_vessels_auto(volume, seeds_lps_mm=seeds_lps_mm, progress=progress)
+            except SegmentationError as e2:
+                raise SegmentationError(f"{e}; read with its own intensity model: {e2}") from None
+            why = "no vessels at a CTA's levels in HU"
+    else:
+        auto = extract_vessels_auto(volume, seeds_lps_mm=seeds_lps_mm, progress=progress)
     if log is not None:
         m = auto.model
-        log(f"{volume.source or 'CTA'}: not in HU; its vessel tree from its own intensity model (lumen {m.lumen:.4g}, "
-            f"background {m.background:.4g}; {auto.vessels.tree.total_length_mm / 10:.0f} cm, "
-            f"{len(auto.vessels.tree.branches)} branches)")
+        log(f"{volume.source or 'CTA'}: {why}; its vessel tree from its own intensity model (lumen {m.lumen:.4g}, "
+            f"background {m.background:.4g}{', a 3DRA' if m.rotational else ''}; "
+            f"{auto.vessels.tree.total_length_mm / 10:.0f} cm, {len(auto.vessels.tree.branches)} branches)")
     return auto.vessels
