@@ -137,6 +137,9 @@ class ReconstructionContext:
         self.branch_lca_s = lca_s
         # branch_in_subtree[a, b]: b is a or a descendant of a
         self.branch_in_subtree = anc | np.eye(B, dtype=bool)
+        # the arclength of each branch's last point, and the leaf branches (no descendant)
+        self.branch_end_s = end_s
+        self.leaf_branch = self.branch_in_subtree.sum(axis=1) == 1
         # root paths per branch, index-aligned by depth
         self.rootpath = []
         for b in range(B):

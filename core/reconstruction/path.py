@@ -348,9 +348,7 @@ def tree_end_rival(ctx, costs: PathCosts, nodes, opt, *, alpha=None):
     cand = costs.cand[first:T]
     pts = np.maximum(cand, 0)
     br = ctx.point_branch[pts]
-    leaf_branch = ctx.branch_in_subtree.sum(axis=1) == 1
-    end_s = np.array([ctx.s[rp[-1]] for rp in ctx.rootpath])
-    at_end = (cand >= 0) & leaf_branch[br] & (end_s[br] - ctx.s[pts] <= TREE_END_LEAF_MM)
+    at_end = (cand >= 0) & ctx.leaf_branch[br] & (ctx.branch_end_s[br] - ctx.s[pts] <= TREE_END_LEAF_MM)
     at_end &= np.isfinite(alpha[first:T])
     if not at_end.any():
         return float("inf"), 0.0
