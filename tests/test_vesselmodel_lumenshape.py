@@ -76,4 +76,9 @@ def test_the_rule_reads_the_lumen_class_fraction_where_the_level_may_be_bone(hu,
 def test_the_rule_leaves_levels_that_cannot_be_bone(lumen, med, air, hu):
     model = _model(hu=hu, rotational=False, lumen=lumen, background=med + 20.0)
     empty = np.zeros(0)
-    vesselmodel._check_consistent(model, "v", empty, empty, med=med, air=air, lumen_tubular=0.05)  # no error
+    # a lumen class only 5 % tubular passes outside the bone band (the check returns, refusing nothing) ...
+    assert vesselmodel._check_consistent(model, "v", empty, empty, med=med, air=air, lumen_tubular=0.05) is None
+    # ... while the same fraction at a level where a CT's bone in other units lies (1.6x the rise) is refused
+    bone = _model(hu=False, rotational=False, lumen=1020.0 + 1.6 * 520.0, background=1040.0)
+    with pytest.raises(SegmentationError, match="only 5% of the voxels"):
+        vesselmodel._check_consistent(bone, "v", empty, empty, med=1020.0, air=500.0, lumen_tubular=0.05)
