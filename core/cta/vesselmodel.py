@@ -34,6 +34,7 @@ from dataclasses import asdict, dataclass, field, replace
 import numpy as np
 from guidewire3d import io
 from guidewire3d.cta import prune, segment, vessels3d
+from guidewire3d.cta.grid import canonical_volume
 from guidewire3d.cta.segment import VesselOptions, frangi_at
 from guidewire3d.errors import InputError, SegmentationError
 from scipy import ndimage as ndi
@@ -390,8 +391,10 @@ def _body_mask_outside(ds: np.ndarray) -> tuple[np.ndarray, float | None]:
     apart, but not their place: the air outside touches the border. Lungs and other dark parts inside go
     with the air's class, as in :func:`_body_mask`. The lower class must also lie more than 4 of its own robust
     standard deviations below the upper one, or be apart from it by a valley of the histogram (the air's
-    class stays apart; a split of the body's own tissue by the field does not). Returns the mask and the median of the last lower class
-    (``None``: no air, the whole volume is body).
+    class stays apart; a split of the body's own tissue by the field does not). When the first threshold leaves
+    at least 90 % below it (a small class far brighter than all else: an MR angiogram's lumen, 1900 over tissue at
+    250 and air at 20, where Otsu's threshold falls between lumen and the rest), it is taken again below that
+    class. Returns the mask and the median of the last lower class (``None``: no air, the whole volume is body).
     """
     body = np.ones(ds.shape, bool)
     outside = np.zeros(ds.shape, bool)
@@ -399,10 +402,17 @@ def _body_mask_outside(ds: np.ndarray) -> tuple[np.ndarray, float | None]:
     border[[0, -1], :, :] = border[:, [0, -1], :] = border[:, :, [0, -1]] = True
     lo_mode = None
     n = ds.size
-    for _ in range(3):
+    for it in range(3):
         sub, t = _otsu_sample(ds, body)
         low = body & (ds < t)
         below = float(low.sum()) / max(int(body.sum()), 1)
+        if it == 0 and below >= 0.9:
+            # the upper class is a small bright one far above the rest (an MR angiogram's contrast lumen: 1900
+            # over tissue at 250 and air at 20 splits there, not at the air): the air, if any, is below it
+            sub = sub[sub < t]
+            t = _otsu(sub)
+            low = body & (ds < t)
+            below = float(low.sum()) / max(int(body.sum()), 1)
         if not 0.05 < below < 0.9:
             break
         lab, nlab = ndi.label(low)
@@ -927,7 +937,20 @@ def extract_vessels_auto(volume: io.Volume, *, seeds_lps_mm=None, progress: bool
     (:func:`guidewire3d.cta.prune.without_dim_wide_branches`; the seeds must stay in it) is returned
     when it passes every check (``segmentation`` "strict+pruned" or "standard+pruned", ``pruned``
     saying what was cut).
+
+    Every stage runs on the volume laid out in the canonical (LPS) axis order
+    (:func:`guidewire3d.cta.grid.canonical_volume`): the same physical volume stored in another axis order (a
+    DICOM series against its NIfTI, a RAS NIfTI, a coronal series) gives the same model and tree; the mask is
+    returned on the input's grid.
     """
+    cvol, layout = canonical_volume(volume)
+    if not layout.identity:
+        av = extract_vessels_auto(cvol, seeds_lps_mm=seeds_lps_mm, progress=progress, options=options,
+                                  centerline_options=centerline_options)
+        mask = layout.to_input(av.vessels.mask_zyx)
+        mask.setflags(write=False)
+        return replace(av, vessels=vessels3d.CTAVessels(mask_zyx=mask, surface=av.vessels.surface,
+                                                        tree=av.vessels.tree, seconds=av.vessels.seconds))
     what = volume.source or "volume"
     secs = {}
     t0 = time.perf_counter()
