@@ -20,7 +20,7 @@ Variants (``hu*``: the CT in HU; ``au*``: 0.5 HU + 1000; ``mr*``: an MR contrast
   slice axis (a DICOM series' layout; direction columns L, I, P). ``au_cor_ras``: the same voxels stored as a
   RAS NIfTI would (x right, y anterior, z superior: the coarse 2.5 mm axis is the array's second axis, two
   axes flipped). ``au_obl``: the coronal acquisition tilted 10 degrees about the superior axis and 6 about
-  the left one.
+  the left one. ``au_cor_abd``: its abdominal slab (as ``mr_cor_abd`` below).
 * ``mr``: a contrast-enhanced T1 MR angiogram's intensities on the CT's own grid (see :func:`mr_clean`:
   enhanced arteries ~1900, systemic veins at most 600, fat ~800, muscle ~240, organs 300-500, cortical
   bone ~60 and fatty marrow ~700, air and lungs near 0), then Rician noise (the magnitude of a complex
@@ -39,17 +39,20 @@ are those of ``bench_real_cta.evaluate`` on that grid: ``dice`` (the aorta, in i
 ``aorta_cov`` / ``named_cov`` (the reference centerline of the aorta / the named arteries within 3 mm of
 the estimate), ``in_art`` (fraction of the tree's centerline inside the artery labels dilated 3 mm),
 ``in_other`` (inside other labelled structures dilated 1 mm and not in an artery label: veins, heart,
-organs, bone), ``len_m``, ``branches``, ``t_s``.
+organs, bone), ``len_m``, ``branches``, ``t_s``; and where the tree's length runs by label group
+(:func:`where_the_tree_runs`).
 
-Verdict: ``right tree`` when the aorta Dice is at least 0.8 and at least 50 % of the centerline lies in the
+Verdict: ``right tree`` when the aorta Dice is at least 0.8 and at least 40 % of the centerline lies in the
 artery labels (dilated 3 mm); ``WRONG TREE (exit 0)`` for any other tree that was not refused; ``refused``
-with the reason. Why this rule: the aorta is the trunk in every territory this CT shows (chest, abdomen,
+with the reason. Why this rule: the aorta is the trunk in every territory this CT shows (chest, upper abdomen,
 both slabs), so a tree whose aorta lumen is not recovered (Dice < 0.8: cut, a different structure, or tissue
-around it) is not the arterial tree a user asked for, and a tree with most of its length outside the
-arteries is mostly something else (veins, heart, bone, organs); the rest of a right tree's length (up to
-half) may be arteries the labelling does not name (renal, mesenteric, intercostal, pulmonary). On the CT in
-HU the automatic tree has Dice 0.89 and in_art about 0.6 (``bench_real_cta.py``), so the rule is not
-stricter than what the clean case achieves.
+around it) is not the arterial tree a user asked for, and a tree with most of its length outside the arteries
+is mostly something else (heart, veins, bone, organs). The fraction is 40 %, not 50 %: the automatic tree of
+the clean CT in HU (``hu``, the case the issue's targets are measured on: aorta Dice 0.89, aorta covered 0.93)
+has 47 % of its length in the artery labels, the rest in the heart (its chambers touch the aortic root),
+pulmonary vessels and arteries the labelling does not name (renal, mesenteric, intercostal); 40 % keeps that
+tree right and calls wrong any tree with more than 60 % of its length outside the arteries. ``in_art`` is
+printed, so a stricter rule can be read off the table.
 """
 from __future__ import annotations
 
@@ -67,9 +70,9 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).parent))
 import bench_real_cta as B  # noqa: E402
 
-VARIANTS = ["hu", "hu_flip", "hu_dicom", "au_cor", "au_cor_ras", "au_obl", "mr", "mr_cor", "mr_cor_bias",
+VARIANTS = ["hu", "hu_flip", "hu_dicom", "au_cor", "au_cor_ras", "au_obl", "au_cor_abd", "mr", "mr_cor", "mr_cor_bias",
             "mr_cor_abd", "mr_cor_chest", "mr_sub_cor", "mr_sag"]
-RIGHT_DICE, RIGHT_IN_ART = 0.8, 0.5
+RIGHT_DICE, RIGHT_IN_ART = 0.8, 0.4
 NOISE_SIGMA = 20.0
 BONE_PREFIXES = ("vertebrae", "sacrum", "rib_", "sternum", "costal", "clavicula", "scapula", "hip_", "femur",
                  "humerus", "skull")
@@ -186,7 +189,7 @@ def build_variant(name: str, data: Path, tmp: Path):
         return v, lab
     L, P, S = np.eye(3)
     cor = np.column_stack([L, -S, P])           # rows along L, columns towards inferior, slices towards posterior
-    if name.startswith("au_cor") or name.startswith("mr_cor") or name == "mr_sub_cor":
+    if name.startswith(("au_cor", "mr_cor")) or name == "mr_sub_cor":
         zr = (-1e9, -175.0) if name.endswith("_abd") else (-190.0, 1e9) if name.endswith("_chest") else None
         grid = target_grid(vol, cor, (1.4, 1.4, 2.5), zr)
     elif name == "au_obl":
@@ -240,6 +243,22 @@ def build_variant(name: str, data: Path, tmp: Path):
     return io.Volume(img.astype(np.float32), *M_o, source=name), lab
 
 
+def where_the_tree_runs(vol, labels_zyx, tree, names: dict[int, str]) -> str:
+    """The percentage of the tree's (densely resampled) centerline in each group of labels, at the nearest voxel:
+    art(eries of the reference), heart (with the pulmonary veins and the left atrial appendage), lung (its
+    vessels), veins (systemic), bone, organ (any other label), none (unlabelled)."""
+    est = B._dense(tree)
+    idx = np.clip(np.rint(vol.lps_to_index_zyx(est)).astype(int), 0, np.array(labels_zyx.shape) - 1)
+    lab = labels_zyx[tuple(idx.T)]
+    groups = {"art": list(B.ARTERIES), "heart": [51, 53, 61], "lung": [10, 11, 12, 13, 14, 16],
+              "vein": [k for k, n in names.items() if n.startswith(SYSTEMIC_VEINS)],
+              "bone": [k for k, n in names.items() if n.startswith(BONE_PREFIXES)]}
+    out = {g: float(np.isin(lab, ids).mean()) for g, ids in groups.items()}
+    out["none"] = float(np.mean(lab == 0))
+    out["organ"] = 1.0 - sum(out.values())
+    return " ".join(f"{g} {100 * v:.0f}" for g, v in out.items())
+
+
 def child(a) -> None:
     import resource
 
@@ -265,6 +284,7 @@ def child(a) -> None:
     inside = np.all((idx >= -0.5) & (idx <= np.array(vol.shape_zyx) - 0.5), axis=1)
     m = B.evaluate(vol, lab, res.vessels.mask_zyx, res.vessels.tree, idx[inside] * sp_zyx, ref["lab"][inside])
     rec.update({k: v for k, v in m.items() if k != "labels"})
+    rec["where"] = where_the_tree_runs(vol, lab, res.vessels.tree, _structures(data))
     rec.update(lumen=res.model.lumen, bg=res.model.background, segmentation=res.segmentation)
     print("RESULT " + json.dumps(rec, default=float))
 
@@ -322,7 +342,8 @@ def main(argv=None) -> int:
                   f"{why[:240]}", flush=True)
         else:
             print(f"{head} | " + " | ".join(f"{r[c]:.3f}" if isinstance(r[c], float) else str(r[c]) for c in cols)
-                  + f" | {r['lumen']:.4g} / {r['bg']:.4g} | {r['segmentation']}", flush=True)
+                  + f" | {r['lumen']:.4g} / {r['bg']:.4g} | {r['segmentation']}; % of length: {r.get('where', '')}",
+                  flush=True)
     return 0
 
 
