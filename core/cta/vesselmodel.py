@@ -956,7 +956,7 @@ def extract_vessels_auto(volume: io.Volume, *, seeds_lps_mm=None, progress: bool
     when it passes every check (``segmentation`` "strict+pruned" or "standard+pruned", ``pruned``
     saying what was cut).
 
-    Every stage runs on the volume laid out in the canonical (LPS) axis order
+    Every stage runs on the volume laid out in a canonical axis order
     (:func:`guidewire3d.cta.grid.canonical_volume`): the same physical volume stored in another axis order (a
     DICOM series against its NIfTI, a RAS NIfTI, a coronal series) gives the same model and tree; the mask is
     returned on the input's grid.

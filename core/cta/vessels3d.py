@@ -20,7 +20,6 @@ from dataclasses import dataclass, field
 import numpy as np
 from guidewire3d import io
 from guidewire3d.cta.centerline import CenterlineOptions, centerline_from_mask
-from guidewire3d.cta.grid import canonical_volume
 from guidewire3d.cta.segment import VesselOptions, segment_vessels
 from guidewire3d.cta.surface import surface_from_mask
 from guidewire3d.vesseltree import VesselTree
@@ -58,17 +57,11 @@ def extract_vessels(volume: io.Volume, *, seeds_lps_mm=None, progress: bool = Fa
 
     Notes
     -----
-    The stages run on the volume laid out in the canonical (LPS) axis order (:func:`guidewire3d.cta.grid.canonical_volume`),
-    so the same physical volume stored in another axis order gives the same tree; the mask is returned on the
-    input's grid.
+    The stages run on the array in its own order: the centerline's thinning follows it, so the same physical
+    volume stored in another axis order gives a slightly different tree. The automatic path
+    (:func:`guidewire3d.cta.vesselmodel.extract_vessels_auto`) lays the volume out in a canonical order first;
+    this HU path does not, so that the simulator's coronary benchmark (identity layout) keeps its measurements.
     """
-    cvol, layout = canonical_volume(volume)
-    if not layout.identity:
-        res = extract_vessels(cvol, seeds_lps_mm=seeds_lps_mm, progress=progress, options=options,
-                              centerline_options=centerline_options)
-        mask = layout.to_input(res.mask_zyx)
-        mask.setflags(write=False)
-        return CTAVessels(mask_zyx=mask, surface=res.surface, tree=res.tree, seconds=res.seconds)
     secs = {}
     t_start = t0 = time.perf_counter()
     mask = segment_vessels(volume, seeds_lps_mm=seeds_lps_mm, progress=progress, options=options)
