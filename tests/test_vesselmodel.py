@@ -459,3 +459,22 @@ def test_a_chamber_touching_the_trunk_is_cut_from_the_automatic_tree(monkeypatch
     monkeypatch.setattr(vesselmodel, "NECK_RATIO", 0.0)
     kept = vesselmodel.extract_vessels_auto(vol)
     assert kept.vessels.mask_zyx[chamber].mean() > 0.9  # without the rule the chamber is in the tree
+
+
+def test_two_separate_tubular_structures_of_comparable_size_are_refused_not_chosen_between():
+    """Without a seed the tree is the tubular component with the most vesselness; when a separate one holds
+    comparable vesselness (the lower heart chambers beside the aorta in an MR-like abdominal slab: 0.74x, and the
+    heart was chosen: a tree of 89 % heart with exit 0), the choice is refused and a seed asked for. A small
+    separate vessel beside the tree (0.2x) is not a rival."""
+    twin = [(np.array([4.0, 33.0, 20.0]), np.array([56.0, 33.0, 20.0]), 5.0),
+            (np.array([4.0, 33.0, 48.0]), np.array([56.0, 33.0, 48.0]), 5.0)]
+    v = _volume(lumen=1900.0, tissue=250.0, air=20.0, noise=30.0, segments=twin, source="two trunks")
+    with pytest.raises(SegmentationError, match="ambiguous: two separate bright tubular structures"):
+        vesselmodel.extract_vessels_auto(v)
+    # a seed in one of them decides
+    r = vesselmodel.extract_vessels_auto(v, seeds_lps_mm=[[48.0, 33.0, 30.0]])
+    assert np.all(np.abs(r.vessels.tree.points_lps_mm[:, 0] - 48.0) < 6.0)
+    small = [twin[0], (np.array([10.0, 33.0, 48.0]), np.array([50.0, 33.0, 48.0]), 2.0)]
+    v2 = _volume(lumen=1900.0, tissue=250.0, air=20.0, noise=30.0, segments=small, source="trunk and a small vessel")
+    r2 = vesselmodel.extract_vessels_auto(v2)
+    assert np.all(np.abs(r2.vessels.tree.points_lps_mm[:, 0] - 20.0) < 6.0)

@@ -71,6 +71,9 @@ class VesselOptions:
     # with its territory (a heart chamber, a vein or the thyroid touching an artery through partial volume)
     neck_ratio: float = 0.0
     neck_min_mm: float = 1.5  # the shallowest neck depth tested (mm; the finest level of the ladder)
+    # finite (without seeds): when a separate tubular component holds at least this fraction of the vesselness mass
+    # of the largest, the choice between them is refused (``SegmentationError``: give a seed) instead of made
+    ambiguous_component_ratio: float = float("inf")
 
 
 def _ball_dilate(mask, radius_mm: float, spacing_zyx) -> np.ndarray:
@@ -487,8 +490,20 @@ def segment_vessels(volume: io.Volume, *, seeds_lps_mm=None, progress: bool = Fa
     else:
         if mass.max() <= 0:
             raise SegmentationError(f"{what}: no vessels found (no tubular bright structure)")
+        first, second = np.argsort(mass)[::-1][:2] if nlab > 1 else (int(np.argmax(mass)), 0)
+        if nlab > 1 and mass[second] >= opt.ambiguous_component_ratio * mass[first]:
+            vofs = off + np.array([s.start for s in vcrop])
+            where = []
+            for k in (first, second):
+                c = cidx[lab_c == k].mean(axis=0) + vofs
+                where.append(",".join(f"{v:.0f}" for v in (M @ c + o)))
+            raise SegmentationError(
+                f"{what}: the vessel tree is ambiguous: two separate bright tubular structures of comparable size (near "
+                f"LPS {where[0]} and {where[1]} mm; the second holds {mass[second] / mass[first]:.2f}x the first's "
+                f"vesselness, at most {opt.ambiguous_component_ratio:g}x expected of the vessel tree's rivals: a heart "
+                f"chamber or another vessel system may be taken for it); give --seed-lps X,Y,Z inside the vessel")
         keep = np.zeros(nlab + 1, bool)
-        keep[int(np.argmax(mass))] = True
+        keep[int(first)] = True
     sel = keep[lab]
     if opt.tubular_support_mm > 0:
         # only what lies near tubular voxels: the enhancing parenchyma an artery enters is not a vessel.

