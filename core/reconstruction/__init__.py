@@ -25,6 +25,7 @@ from guidewire3d.reconstruction.context import (  # noqa: F401
 from guidewire3d.reconstruction.path import (  # noqa: F401
     RIVAL_MIN_SHIFT_MM,
     TOUCH_GEODESIC_MM,
+    TOUCH_RADIUS_FRACTION,
     TRACK_UNSETTLED_EXTRA,
     TRACK_UNSETTLED_SHIFT_MM,
     TREE_END_LEAF_MM,
