@@ -414,21 +414,19 @@ def touching_rival(ctx, costs: PathCosts, nodes, opt):
         return float("inf"), 0.0
     safe = np.maximum(cand, 0)
     valid = cand >= 0
-    # candidate pairs of consecutive anchors whose lumens touch (squared distances by a batched product)
-    X = ctx.points[safe]
-    n2 = np.einsum("tki,tki->tk", X, X)
-    d2 = n2[:-1, :, None] + n2[1:, None, :] - 2.0 * np.matmul(X[:-1], X[1:].transpose(0, 2, 1))
-    R = ctx.radius[safe]
-    rr = TOUCH_RADIUS_FRACTION * np.maximum(R[:-1, :, None], R[1:, None, :])
-    ti, ii, jj = np.nonzero(valid[:-1, :, None] & valid[1:, None, :] & (d2 <= rr * rr))
+    # candidate pairs of consecutive anchors on branches neither of which is the other's ancestor (on
+    # one root path the geodesic is the arclength between them: no detour), whose lumens merge
+    cb = ctx.point_branch[safe]
+    apart = valid[:-1, :, None] & valid[1:, None, :] & np.isfinite(ctx.branch_lca_s[cb[:-1, :, None], cb[1:, None, :]])
+    ti, ii, jj = np.nonzero(apart)
     if len(ti) == 0:
         return float("inf"), 0.0
     pa, pb = safe[ti, ii], safe[ti + 1, jj]
+    e3 = np.linalg.norm(ctx.points[pa] - ctx.points[pb], axis=1)
     lca = ctx.lca_s(pa, pb)
     up = ctx.s[pa] - lca
     geo = up + ctx.s[pb] - lca
-    e3 = np.sqrt(np.maximum(d2[ti, ii, jj], 0.0))
-    far = geo - e3 > TOUCH_GEODESIC_MM
+    far = (e3 <= TOUCH_RADIUS_FRACTION * np.maximum(ctx.radius[pa], ctx.radius[pb])) & (geo - e3 > TOUCH_GEODESIC_MM)
     if not far.any():
         return float("inf"), 0.0
     ti, ii, jj = ti[far], ii[far], jj[far]
