@@ -8,7 +8,8 @@ min-marginals give the branch ambiguity that enters the uncertainty. Path-level 
 costs (:class:`PathCosts`): re-runs without the tracking prior or with a branch's subtree forbidden
 (:func:`branch_alternative`), the tip put in another vessel at another depth along the same rays
 (:func:`tip_rival`) or at the end of a leaf of the tree a few px short of the tip
-(:func:`tree_end_rival`), and how far the path walks back towards the root
+(:func:`tree_end_rival`), a path that crosses where two vessels' lumens merge but the tree joins
+them elsewhere (:func:`touching_rival`), and how far the path walks back towards the root
 (:func:`path_retreat_mm`). A previous frame whose branch was not settled is no tracking prior
 (:func:`tracking_tip`).
 """
