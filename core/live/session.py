@@ -428,8 +428,10 @@ def frame_verdict(wire3d, wire_uv_px, orientation, *, beyond_tip=None, motion=No
     * the path through the tree walks back towards the root (``TREE_RETREAT_MAX_MM``);
     * a path through another branch explains the wire about as well (``BRANCH_EXTRA_MAX``), ending
       more than ``BRANCH_SHIFT_MIN_MM`` away: a branch the path entered avoided, the tip put in
-      another vessel that projects onto the 2D tip, or a path that ends at a leaf of the tree a few
-      px before the tip (``reconstruction.path.branch_alternative``);
+      another vessel that projects onto the 2D tip, a path that ends at a leaf of the tree a few
+      px before the tip, or a path that crosses into a vessel whose lumen touches the chosen route's
+      where the tree joins the two elsewhere (``reconstruction.path.branch_alternative``,
+      ``touching_rival``);
     * the frame's motion update did not fit (``motion``: its ``RegistrationResult``).
     """
     uv = np.asarray(wire_uv_px, float).reshape(-1, 2)
@@ -467,7 +469,8 @@ def frame_verdict(wire3d, wire_uv_px, orientation, *, beyond_tip=None, motion=No
     if extra < BRANCH_EXTRA_MAX and shift_mm > BRANCH_SHIFT_MIN_MM:
         why.append(f"branch ambiguous: a path through another branch of the vessel tree explains the 2D wire about as "
                    f"well (extra cost {extra:.1f}, limit {BRANCH_EXTRA_MAX:g}; over the whole wire, or up to the end of "
-                   f"that branch a few px before the tip, where the CTA tree may have lost the vessel's distal end) and "
+                   f"that branch a few px before the tip, where the CTA tree may have lost the vessel's distal end, or "
+                   f"crossing into a vessel whose lumen touches the path's, which the tree joins elsewhere) and "
                    f"ends {shift_mm:.0f} mm away")
     if motion is not None and not motion.success:
         why.append(f"motion: {motion.message}")

@@ -24,6 +24,8 @@ from guidewire3d.reconstruction.context import (  # noqa: F401
 )
 from guidewire3d.reconstruction.path import (  # noqa: F401
     RIVAL_MIN_SHIFT_MM,
+    TOUCH_GEODESIC_MM,
+    TOUCH_RADIUS_FRACTION,
     TRACK_UNSETTLED_EXTRA,
     TRACK_UNSETTLED_SHIFT_MM,
     TREE_END_LEAF_MM,
@@ -35,6 +37,7 @@ from guidewire3d.reconstruction.path import (  # noqa: F401
     path_retreat_mm,
     path_step_costs,
     tip_rival,
+    touching_rival,
     tracking_tip,
     tree_end_rival,
     viterbi_costs,
