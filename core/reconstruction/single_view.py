@@ -74,7 +74,7 @@ from guidewire3d.reconstruction.path import (
 )
 from guidewire3d.reconstruction.placement import place_on_path
 from guidewire3d.reconstruction.smoothing import arclength, curvature, smooth_wire, tangents
-from guidewire3d.reconstruction.uncertainty import covariance_lumen, covariance_unconstrained
+from guidewire3d.reconstruction.uncertainty import beyond_path_mm2, covariance_lumen, covariance_unconstrained
 from guidewire3d.vesseltree import VesselTree
 
 __all__ = ["Wire3D", "reconstruct_wire", "WireTracker"]
@@ -274,6 +274,10 @@ def _reconstruct_vessel(ctx, uv, *, track_tip, image, registration_covariance, o
         km = np.clip(k - 1, 0, len(aidx) - 1)
         k = np.where(np.abs(aidx[km] - np.arange(len(uv))) < np.abs(aidx[k] - np.arange(len(uv))), km, k)
         amb = ambiguity_mm2(ctx, nodes, marg, opt)[k]
+    if n_skipped:
+        # the wire past the path's last anchor fits no lumen: its depth is extrapolated, as uncertain as it is long
+        past = beyond_path_mm2(ctx, uv, int(aidx[-1]))
+        amb = past if amb is None else amb + past
     msg = (f"ok: {len(uv)} points, {100 * coverage:.0f}% of anchors on the tree, path cost {total:.1f}" + reversed_note
            + prior_note)
     if coverage < 1.0:
