@@ -2,7 +2,8 @@
 reported ``ok`` scored against the truth.
 
 For each seed, ``guidewire3d phantom`` writes a case with options drawn from the seed (frames,
-rigid motion, distractors, dose, no catheter, wire diameter 0.25 / 0.36 / 0.89 mm), then
+rigid motion, distractors, dose, no catheter, wire diameter 0.25 / 0.36 / 0.89 mm; ``--draws wide``:
+also a 1024 px detector, breathing and cardiac motion, no background, the large CT), then
 ``guidewire3d reconstruct`` runs on its DICOM files as a user would (``--track-motion`` when the
 case moves). A frame reported ``ok`` is *silently wrong* when its 3D wire is more than
 ``--mean-mm`` from the true wire on average, or its tip more than ``--tip-mm`` from the true tip
@@ -11,6 +12,7 @@ in view. Also counted: exit codes, tracebacks (there must be none), the verdicts
 dropped (the wire fitted another path much better).
 
     nice .venv/bin/python scripts/bench_stress.py --seed0 3000 --cases 12
+    nice .venv/bin/python scripts/bench_stress.py --seed0 5000 --cases 24 --draws wide
 """
 from __future__ import annotations
 
@@ -36,8 +38,34 @@ REASONS = {"tip end": "tip end uncertain", "beyond tip": "tip uncertain: a wire-
            "trace doubtful": "2D trace doubtful", "branch ambiguous": "branch ambiguous", "motion": "motion:"}
 
 
-def options_of(seed: int) -> list[str]:
-    """The ``phantom`` options of a seed (the same draw on every host)."""
+def options_of(seed: int, draws: str = "standard") -> list[str]:
+    """The ``phantom`` options of a seed (the same draw on every host).
+
+    ``draws="wide"`` (``--draws wide``): a wider, differently seeded draw, of what the standard one never
+    gives: a 1024 px detector (40 %), breathing 8-20 mm (35 %) and a 2-4 mm cardiac contraction (25 %) tracked
+    with ``--track-motion``, no residual background (25 %), the large CT (10 %), besides distractors, a low dose
+    and the wire's diameter.
+    """
+    if draws == "wide":
+        rng = random.Random(seed * 7919 + 13)
+        opts = ["--seed", str(seed), "--frames", str(rng.choice([4, 6]))]
+        if rng.random() < 0.4:
+            opts += ["--detector", "1024"]
+        if rng.random() < 0.35:
+            opts += ["--breathing", str(rng.choice([8, 15, 20]))]
+        if rng.random() < 0.25:
+            opts += ["--cardiac", str(rng.choice([2, 4]))]
+        if rng.random() < 0.25:
+            opts += ["--no-background"]
+        if rng.random() < 0.3:
+            opts += ["--distractors"]
+        if rng.random() < 0.2:
+            opts += ["--dose", "0.5"]
+        if rng.random() < 0.2:
+            opts += ["--wire-diameter", str(rng.choice([0.25, 0.89]))]
+        if rng.random() < 0.1:
+            opts += ["--volume", "large"]
+        return opts
     rng = random.Random(seed)
     opts = ["--seed", str(seed), "--frames", str(rng.choice([4, 6, 8]))]
     if rng.random() < 0.3:
@@ -57,7 +85,7 @@ def run_case(seed: int, work: Path, args) -> dict:
     from guidewire3d.phantom import load_truth
 
     exe = [sys.executable, "-m", "guidewire3d.app.cli"]
-    opts = options_of(seed)
+    opts = options_of(seed, args.draws)
     case, out = work / f"case{seed}", work / f"out{seed}"
     t0 = time.perf_counter()
     p = subprocess.run(exe + ["phantom", "--out", str(case)] + opts, capture_output=True, text=True)
@@ -66,7 +94,7 @@ def run_case(seed: int, work: Path, args) -> dict:
     if p.returncode:
         rec["error"] = p.stderr.strip().splitlines()[-1] if p.stderr.strip() else ""
         return rec
-    extra = ["--track-motion"] if "--motion" in opts else []
+    extra = ["--track-motion"] if any(o in opts for o in ("--motion", "--breathing", "--cardiac")) else []
     r = subprocess.run(exe + ["reconstruct", "--cta", str(case / "ct"), "--roadmap", str(case / "roadmap.dcm"),
                               "--frames", str(case / "frames.dcm"), "--out", str(out), "--no-images"] + extra,
                        capture_output=True, text=True)
@@ -131,7 +159,7 @@ def replay_case(seed: int, args) -> dict:
     from guidewire3d.vesseltree import VesselTree
 
     small = args.replay / "reports" / str(seed)
-    opts = options_of(seed)
+    opts = options_of(seed, args.draws)
     rec = dict(seed=seed, options=" ".join(opts[2:]), phantom_exit=0, exit=None, traceback=False, frames=0, ok=0,
                uncertain=0, failed=0, wrong=[], max_ok_tip_mm=0.0, reasons={}, prior_dropped=0)
     if not (small / "report.json").exists():
@@ -170,6 +198,9 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seed0", type=int, default=3000)
     ap.add_argument("--cases", type=int, default=12)
+    ap.add_argument("--draws", choices=("standard", "wide"), default="standard",
+                    help="the phantom options drawn per seed: standard, or wide (a 1024 px detector, breathing and "
+                         "cardiac motion, no background, the large CT; see options_of)")
     ap.add_argument("--mean-mm", type=float, default=2.0, help="an ok frame farther than this on average is wrong")
     ap.add_argument("--tip-mm", type=float, default=5.0, help="an ok frame whose tip is farther than this is wrong")
     ap.add_argument("--replay", type=Path, default=None, metavar="DIR",

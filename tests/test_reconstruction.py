@@ -430,3 +430,40 @@ def test_distal_part_outside_every_lumen_is_not_forced_onto_another_branch():
     assert np.all(ids[-40:] == -1)  # beyond the tree: no vessel point, larger uncertainty
     assert w.uncertainty_mm[-1] > 2 * np.median(w.uncertainty_mm[: len(W)])
     assert np.linalg.norm(w.points_lps_mm[: len(W)] - W, axis=1).mean() < 0.5
+
+
+def _seed5006():
+    from pathlib import Path
+
+    d = np.load(Path(__file__).parent / "data" / "tracking_seed5006_cardiac.npz")
+    tree = VesselTree(d["tree_points_lps_mm"].astype(float), d["tree_radius_mm"].astype(float), d["tree_parent"])
+    return d, tree, CArm.from_dict(json.loads(str(d["carm_json"])))
+
+
+def _frame5006(d, tree, carm, k, previous):
+    return reconstruct_wire(d[f"wire_uv_px_{k}"].astype(float), Pose.from_matrix(d[f"pose_{k}"]), carm, tree,
+                            registration_covariance=d["registration_covariance"], previous=previous)
+
+
+def test_a_tip_tracked_past_the_paths_end_is_not_reported_confidently_wrong():
+    # bench_stress --draws wide, seed 5006 (--cardiac 2 --distractors: a 2 mm contraction the rigid pose cannot
+    # follow): from frame 3 on, the tracked path ends before the 2D wire does and the wire's last anchors are placed
+    # past its end at an extrapolated depth. Frame 5's tip was 25 mm off with a 2.2 mm 1-sigma (an ``ok`` frame,
+    # silently wrong); the depth past the path's end now spreads with the wire's length there
+    from guidewire3d.live.session import TIP_MAX_UNCERTAINTY_MM
+    from guidewire3d.reconstruction.uncertainty import BEYOND_PATH_DEPTH_PER_MM
+
+    d, tree, carm = _seed5006()
+    prev, tips = None, []
+    for k in range(6):
+        w = _frame5006(d, tree, carm, k, prev)
+        tips.append((float(np.linalg.norm(w.points_lps_mm[-1] - d[f"true_tip_lps_mm_{k}"])), float(w.uncertainty_mm[-1]),
+                     w.past_path_mm))
+        prev = w
+    assert "fit no lumen" in w.message and tips[5][0] > 5.0 and tips[5][2] > 5.0  # the case: frame 5 is still off
+    for err, sigma, past_mm in tips:
+        # a tip more than 5 mm off is never given a 1-sigma the live verdict accepts ...
+        assert err <= 5.0 or sigma > TIP_MAX_UNCERTAINTY_MM, tips
+        # ... and a tip past its path's end is at least as uncertain as the wire there is long
+        assert sigma >= BEYOND_PATH_DEPTH_PER_MM * past_mm, tips
+    assert all(err < 2.0 and past_mm == 0.0 for err, _, past_mm in tips[:3])  # the frames before stay as they were

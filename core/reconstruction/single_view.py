@@ -54,7 +54,7 @@ steps 5 and 6, with the unconstrained uncertainty. This module joins the steps:
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from guidewire3d.errors import InputError
@@ -74,7 +74,7 @@ from guidewire3d.reconstruction.path import (
 )
 from guidewire3d.reconstruction.placement import place_on_path
 from guidewire3d.reconstruction.smoothing import arclength, curvature, smooth_wire, tangents
-from guidewire3d.reconstruction.uncertainty import covariance_lumen, covariance_unconstrained
+from guidewire3d.reconstruction.uncertainty import beyond_path_mm2, covariance_lumen, covariance_unconstrained
 from guidewire3d.vesseltree import VesselTree
 
 __all__ = ["Wire3D", "reconstruct_wire", "WireTracker"]
@@ -117,6 +117,9 @@ class Wire3D:
     branch_extra_cost, branch_tip_shift_mm : float, vessel method: the best path that avoids a
         branch the chosen one entered (``path.branch_alternative``): its extra cost (0: as good;
         inf: none) and how far its end lies from the chosen path's, mm; NaN for the other methods.
+    past_path_mm : float, vessel method: the length of the 2D wire past the last anchor the path
+        through the tree explains (in mm at the tree's depth; its depth is extrapolated, and spread
+        by ``uncertainty.BEYOND_PATH_DEPTH_PER_MM``); 0 when the path explains the wire to its tip.
     """
 
     points_lps_mm: np.ndarray
@@ -136,6 +139,7 @@ class Wire3D:
     tree_retreat_mm: float = float("nan")
     branch_extra_cost: float = float("nan")
     branch_tip_shift_mm: float = float("nan")
+    past_path_mm: float = 0.0
 
     def __post_init__(self):
         object.__setattr__(self, "points_lps_mm", _ro(np.reshape(self.points_lps_mm, (-1, 3))))
@@ -178,6 +182,7 @@ class Wire3D:
             "tree_retreat_mm": f(self.tree_retreat_mm),
             "branch_extra_cost": f(self.branch_extra_cost),
             "branch_tip_shift_mm": f(self.branch_tip_shift_mm),
+            "past_path_mm": f(self.past_path_mm),
         }
 
 
@@ -274,6 +279,12 @@ def _reconstruct_vessel(ctx, uv, *, track_tip, image, registration_covariance, o
         km = np.clip(k - 1, 0, len(aidx) - 1)
         k = np.where(np.abs(aidx[km] - np.arange(len(uv))) < np.abs(aidx[k] - np.arange(len(uv))), km, k)
         amb = ambiguity_mm2(ctx, nodes, marg, opt)[k]
+    past_mm = 0.0
+    if n_skipped:
+        # the wire past the path's last anchor fits no lumen: its depth is extrapolated, as uncertain as it is long
+        past = beyond_path_mm2(ctx, uv, int(aidx[-1]))
+        amb = past if amb is None else amb + past
+        past_mm = float(np.linalg.norm(np.diff(uv[int(aidx[-1]):], axis=0), axis=1).sum()) * ctx.px_mm
     msg = (f"ok: {len(uv)} points, {100 * coverage:.0f}% of anchors on the tree, path cost {total:.1f}" + reversed_note
            + prior_note)
     if coverage < 1.0:
@@ -282,10 +293,11 @@ def _reconstruct_vessel(ctx, uv, *, track_tip, image, registration_covariance, o
         msg += f"; the last {n_skipped} anchors fit no lumen (placed beyond the path's end)"
     ids = np.where(miss > 0, -1, tid)
     retreat_mm = path_retreat_mm(ctx, nodes, max_step_mm=RETREAT_STEP_ANCHORS * opt.dp_step_px * ctx.px_mm)
-    return _finish(ctx, X, uv, ids, depth_std, miss**2, image=image, registration_covariance=registration_covariance,
-                   opt=opt, method=ReconMethod.VESSEL, t0=t0, message=msg, lumen=(half_width, miss, amb),
-                   reversed_input=bool(reversed_note), tree_rise_mm=float(ctx.s[nodes[-1]] - ctx.s[nodes[0]]),
-                   path_checks=(retreat_mm, *branch_alternative(ctx, costs, nodes, total, opt)))
+    w = _finish(ctx, X, uv, ids, depth_std, miss**2, image=image, registration_covariance=registration_covariance,
+                opt=opt, method=ReconMethod.VESSEL, t0=t0, message=msg, lumen=(half_width, miss, amb),
+                reversed_input=bool(reversed_note), tree_rise_mm=float(ctx.s[nodes[-1]] - ctx.s[nodes[0]]),
+                path_checks=(retreat_mm, *branch_alternative(ctx, costs, nodes, total, opt)))
+    return replace(w, past_path_mm=past_mm) if past_mm else w
 
 
 def _reconstruct_paper(ctx, uv, *, image, registration_covariance, opt, t0):
