@@ -448,8 +448,12 @@ def _frame5006(d, tree, carm, k, previous):
 def test_a_tip_tracked_past_the_paths_end_is_not_reported_confidently_wrong():
     # bench_stress --draws wide, seed 5006 (--cardiac 2 --distractors: a 2 mm contraction the rigid pose cannot
     # follow): from frame 3 on, the tracked path ends before the 2D wire does and the wire's last anchors are placed
-    # past its end at an extrapolated depth. Frame 5's tip was 25 mm off with a 2.2 mm 1-sigma (an ``ok`` frame,
-    # silently wrong); the depth past the path's end now spreads with the wire's length there
+    # past its end at an extrapolated depth. Frame 5, with frame 4's path as its prior, put its tip 25 mm off with a
+    # 2.2 mm 1-sigma (an ``ok`` frame, silently wrong); the depth past the path's end now spreads with the wire's
+    # length there. (Since the touching rival, frame 4's branch is unsettled and no prior: frame 5 is forced to take
+    # it below, as it did.)
+    from dataclasses import replace
+
     from guidewire3d.live.session import TIP_MAX_UNCERTAINTY_MM
     from guidewire3d.reconstruction.uncertainty import BEYOND_PATH_DEPTH_PER_MM
 
@@ -460,7 +464,12 @@ def test_a_tip_tracked_past_the_paths_end_is_not_reported_confidently_wrong():
         tips.append((float(np.linalg.norm(w.points_lps_mm[-1] - d[f"true_tip_lps_mm_{k}"])), float(w.uncertainty_mm[-1]),
                      w.past_path_mm))
         prev = w
-    assert "fit no lumen" in w.message and tips[5][0] > 5.0 and tips[5][2] > 5.0  # the case: frame 5 is still off
+        f4 = w if k == 4 else (f4 if k > 4 else None)
+    forced = _frame5006(d, tree, carm, 5, replace(f4, branch_extra_cost=float("inf"), branch_tip_shift_mm=0.0))
+    tips.append((float(np.linalg.norm(forced.points_lps_mm[-1] - d["true_tip_lps_mm_5"])),
+                 float(forced.uncertainty_mm[-1]), forced.past_path_mm))
+    assert "fit no lumen" in forced.message and tips[-1][0] > 5.0 and tips[-1][2] > 5.0  # the case: still off
+    assert tips[4][2] > 1.0  # frame 4 ran past its path too
     for err, sigma, past_mm in tips:
         # a tip more than 5 mm off is never given a 1-sigma the live verdict accepts ...
         assert err <= 5.0 or sigma > TIP_MAX_UNCERTAINTY_MM, tips

@@ -73,6 +73,8 @@ from guidewire3d.reconstruction.triangulation import (  # noqa: F401
     triangulate_wire,
 )
 from guidewire3d.reconstruction.uncertainty import (  # noqa: F401
+    BEYOND_PATH_DEPTH_PER_MM,
+    beyond_path_mm2,
     covariance_lumen,
     covariance_unconstrained,
     pose_jacobian,
