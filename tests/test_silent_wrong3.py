@@ -17,6 +17,7 @@ from guidewire3d.reconstruction import path as recon_path
 from guidewire3d.registration import Verdict
 from guidewire3d.vesseltree import VesselTree
 from test_reconstruction import AP, _chain, _pose
+from test_tip_depth import assert_a_rival_flags_the_wrong_tip
 
 TIP_OFF_MM = 5.0   # bench_stress: an ok frame whose tip is farther than this from the true tip is wrong
 GAP_MM = 1.5       # the tree's cut: the wire's vessel ends this far from where the other vessel passes
@@ -45,17 +46,7 @@ def test_a_wire_going_on_where_the_tree_joined_its_vessel_elsewhere_is_uncertain
     A's end into C where the lumens touch explains the wire as well: the frame is ``uncertain``
     (branch ambiguous, the rival ending more than 5 mm away); without that rival it was ``ok``."""
     tree, W = _miswired_tree()
-    pose = _pose(tree)
-    uv = AP.project(W, pose)
-    opt = ReconOptions()
-    w3 = reconstruct_wire(uv, pose, AP, tree, options=opt)
-    assert w3.success and np.linalg.norm(w3.points_lps_mm[-1] - W[-1]) > TIP_OFF_MM   # the truth: the tip is wrong
-    verdict, why = live.frame_verdict(w3, uv, None)
-    assert verdict is Verdict.UNCERTAIN and "branch ambiguous" in why, why
-    assert w3.branch_extra_cost < live.BRANCH_EXTRA_MAX and w3.branch_tip_shift_mm > live.BRANCH_SHIFT_MIN_MM
-    monkeypatch.setattr(recon_path, "TOUCH_GEODESIC_MM", np.inf)      # without the rival: silently wrong
-    before = reconstruct_wire(uv, pose, AP, tree, options=opt)
-    assert live.frame_verdict(before, uv, None)[0] is Verdict.OK
+    assert_a_rival_flags_the_wrong_tip(tree, W, monkeypatch, "TOUCH_GEODESIC_MM", np.inf)
 
 
 def test_no_rival_where_a_touching_vessel_does_not_explain_the_wire():

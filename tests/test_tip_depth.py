@@ -158,16 +158,12 @@ def _cut_overlap_tree(cut_mm: float):
     return tree, np.vstack([trunk, b[1:]])
 
 
-def test_a_tip_beyond_the_end_of_its_vessel_in_the_tree_is_uncertain(monkeypatch):
-    """The wire runs down the trunk into B, 19 mm along it; the tree has lost B beyond 15 mm (its
-    distal part, as a CTA extraction does), and A projects beside B, 2|y| mm away in depth. The only
-    path that reaches the 2D tip is A's: the tip is put there, about 20 mm off. B explains the wire
-    as well up to its end in the tree, 4 mm before the tip (``tree_end_rival``): the frame is
-    ``uncertain``, not ``ok`` (it was ``ok`` without that rival)."""
-    tree, b_full = _cut_overlap_tree(15.0)
+def assert_a_rival_flags_the_wrong_tip(tree, W, monkeypatch, constant: str, off_value):
+    """The wire ``W`` reconstructed in ``tree`` has its tip more than ``TIP_OFF_MM`` off (the truth), the
+    frame is ``uncertain`` (branch ambiguous, a rival within ``BRANCH_EXTRA_MAX`` ending more than
+    ``BRANCH_SHIFT_MIN_MM`` away), and with ``path.<constant>`` set to ``off_value`` (that rival off) it
+    was ``ok``: silently wrong. Returns ``(pose, uv, options)``."""
     pose = _pose(tree)
-    s = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(b_full, axis=0), axis=1))]
-    W = resample_polyline(b_full[s <= 40.0 + 19.0], 0.2)           # the trunk and 19 mm of B
     uv = AP.project(W, pose)
     opt = ReconOptions()
     w3 = reconstruct_wire(uv, pose, AP, tree, options=opt)
@@ -175,8 +171,22 @@ def test_a_tip_beyond_the_end_of_its_vessel_in_the_tree_is_uncertain(monkeypatch
     verdict, why = live.frame_verdict(w3, uv, None)
     assert verdict is Verdict.UNCERTAIN and "branch ambiguous" in why, why
     assert w3.branch_extra_cost < live.BRANCH_EXTRA_MAX and w3.branch_tip_shift_mm > live.BRANCH_SHIFT_MIN_MM
-    monkeypatch.setattr(recon_path, "TREE_END_MAX_PX", 0.0)            # without the rival: silently wrong
-    assert live.frame_verdict(reconstruct_wire(uv, pose, AP, tree, options=opt), uv, None)[0] is Verdict.OK
+    with monkeypatch.context() as m:
+        m.setattr(recon_path, constant, off_value)                           # without the rival: silently wrong
+        assert live.frame_verdict(reconstruct_wire(uv, pose, AP, tree, options=opt), uv, None)[0] is Verdict.OK
+    return pose, uv, opt
+
+
+def test_a_tip_beyond_the_end_of_its_vessel_in_the_tree_is_uncertain(monkeypatch):
+    """The wire runs down the trunk into B, 19 mm along it; the tree has lost B beyond 15 mm (its
+    distal part, as a CTA extraction does), and A projects beside B, 2|y| mm away in depth. The only
+    path that reaches the 2D tip is A's: the tip is put there, about 20 mm off. B explains the wire
+    as well up to its end in the tree, 4 mm before the tip (``tree_end_rival``): the frame is
+    ``uncertain``, not ``ok`` (it was ``ok`` without that rival)."""
+    tree, b_full = _cut_overlap_tree(15.0)
+    s = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(b_full, axis=0), axis=1))]
+    W = resample_polyline(b_full[s <= 40.0 + 19.0], 0.2)           # the trunk and 19 mm of B
+    pose, uv, opt = assert_a_rival_flags_the_wrong_tip(tree, W, monkeypatch, "TREE_END_MAX_PX", 0.0)
     whole, _ = _cut_overlap_tree(100.0)                                  # the whole tree: B reaches the tip
     right = reconstruct_wire(uv, pose, AP, whole, options=opt)
     assert np.linalg.norm(right.points_lps_mm[-1] - W[-1]) < 2.0

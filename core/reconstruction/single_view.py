@@ -282,9 +282,8 @@ def _reconstruct_vessel(ctx, uv, *, track_tip, image, registration_covariance, o
     past_mm = 0.0
     if n_skipped:
         # the wire past the path's last anchor fits no lumen: its depth is extrapolated, as uncertain as it is long
-        past = beyond_path_mm2(ctx, uv, int(aidx[-1]))
+        past, past_mm = beyond_path_mm2(ctx, uv, int(aidx[-1]))
         amb = past if amb is None else amb + past
-        past_mm = float(np.linalg.norm(np.diff(uv[int(aidx[-1]):], axis=0), axis=1).sum()) * ctx.px_mm
     msg = (f"ok: {len(uv)} points, {100 * coverage:.0f}% of anchors on the tree, path cost {total:.1f}" + reversed_note
            + prior_note)
     if coverage < 1.0:

@@ -160,18 +160,21 @@ def _image_gradient(image, uv) -> np.ndarray:
 BEYOND_PATH_DEPTH_PER_MM = 1.0
 
 
-def beyond_path_mm2(ctx, uv, last_anchor: int) -> np.ndarray:
-    """(M, 3, 3) second moment along each wire point's ray of its depth beyond the path's end.
+def beyond_path_mm2(ctx, uv, last_anchor: int) -> tuple[np.ndarray, float]:
+    """(M, 3, 3) second moment along each wire point's ray of its depth beyond the path's end, and the
+    wire's length past that end (mm).
 
     ``uv`` (M, 2): the 2D wire; ``last_anchor``: the index in it of the last anchor the path through
     the tree explains. A point past it gets ``(BEYOND_PATH_DEPTH_PER_MM L)^2 d d^T``, ``L`` its 2D arclength
-    past that anchor in mm at the tree's depth (``ctx.px_mm``), ``d`` its unit ray; the others zero.
+    past that anchor in mm at the tree's depth (``ctx.px_mm``), ``d`` its unit ray; the others zero. The
+    length is the last point's ``L``.
     """
     uv = np.asarray(uv, dtype=float)
     s_px = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(uv, axis=0), axis=1))]
-    past_mm = np.maximum(s_px - s_px[int(last_anchor)], 0.0) * ctx.px_mm * BEYOND_PATH_DEPTH_PER_MM
+    past_mm = np.maximum(s_px - s_px[int(last_anchor)], 0.0) * ctx.px_mm
+    spread = past_mm * BEYOND_PATH_DEPTH_PER_MM
     d = ctx.rays(uv)
-    return (past_mm**2)[:, None, None] * d[:, :, None] * d[:, None, :]
+    return (spread**2)[:, None, None] * d[:, :, None] * d[:, None, :], float(past_mm[-1])
 
 
 def covariance_lumen(ctx, X, uv, *, tangent, half_width_mm, miss_mm, image, registration_covariance, opt,
