@@ -86,3 +86,78 @@ def test_wide_trunk_keeps_its_side_branches(calibre):
                       np.column_stack([np.full(59, 40.0), np.linspace(31, 60, 59), np.full(59, 160.0)])])
     assert cKDTree(full).query(P)[0].max() < 1.5  # no strand off the axes
     assert len(tree.leaves) == 3  # two branch ends and the trunk's far end (the root is the other)
+
+
+# -- strand systems of a wide lumen (``centerline.without_lumen_strands``) --------------------------------
+
+def _polyline(a, b, step=0.5):
+    n = max(int(np.ceil(np.linalg.norm(np.subtract(b, a)) / step)), 1)
+    return np.asarray(a, float) + np.linspace(0, 1, n + 1)[1:, None] * (np.subtract(b, a))
+
+
+def _aorta_with_strands_and_branches(R=12.0, strand=True):
+    """A VesselTree: a trunk of radius ``R`` along x (root at x = 0); a strand system from its axis at
+    x = 100 to the rim (a stem along +y whose radius falls from R as it nears the wall, forking 6 mm out
+    into two leaves that end at the wall, radius 0.5: what the thinning of a flattened arch leaves);
+    side branches leaving at a right angle: (radius, length beyond the wall, direction)."""
+    pts, rad, par = [np.zeros(3)], [R], [-1]
+
+    def add(poly, radii, start):
+        prev = start
+        for p, r in zip(poly, radii):
+            pts.append(p), rad.append(r), par.append(prev)
+            prev = len(pts) - 1
+        return prev
+
+    axis = _polyline([0, 0, 0], [200, 0, 0])
+    add(axis, np.full(len(axis), R), 0)
+    node = lambda x: int(round(x / 0.5))  # noqa: E731  the axis point at x
+    # the strand: the lumen's section is wider than the axis balls by 3 mm along y (a flattened arch)
+    if strand:
+        stem = _polyline([100, 0, 0], [100, 6, 0])
+        fork = add(stem, R - np.linalg.norm(stem - [100, 0, 0], axis=1) * 0.9, node(100))
+        for dx in (-4.0, 4.0):
+            leaf = _polyline([100, 6, 0], [100 + dx, R + 2.5, 0])
+            add(leaf, np.linspace(R - 5.4, 0.5, len(leaf)), fork)
+    branches = {"r1.5_out15": (1.5, 15.0, 40), "r3_out20": (3.0, 20.0, 70), "r1.5_out5": (1.5, 5.0, 130),
+                "r1_out12": (1.0, 12.0, 160)}
+    ends = {}
+    for name, (r, out, x) in branches.items():
+        line = _polyline([x, 0, 0], [x, 0, R + out - r])
+        s = np.linalg.norm(line - [x, 0, 0], axis=1)
+        ends[name] = add(line, np.maximum(R - s, r), node(x))
+    from guidewire3d.vesseltree import VesselTree
+
+    return VesselTree(np.array(pts), np.array(rad), np.array(par)), ends
+
+
+def test_a_forked_strand_of_a_wide_lumen_goes_and_the_side_branches_stay():
+    from guidewire3d.cta.centerline import STRAND_FRACTION, without_lumen_strands
+
+    tree, ends = _aorta_with_strands_and_branches()
+    # (the skeleton's leaf rule judges each leaf of such a fork alone, and keeps a fork's longest spur)
+    out = without_lumen_strands(tree, STRAND_FRACTION)
+    kd = cKDTree(out.points_lps_mm)
+    strand = tree.points_lps_mm[(tree.points_lps_mm[:, 1] > 0.5)]
+    assert kd.query(strand)[0].min() > 0.4, "the strand system must go whole"
+    for name in ("r1.5_out15", "r3_out20", "r1_out12"):
+        assert kd.query(tree.points_lps_mm[ends[name]])[0] < 1e-9, f"side branch {name} cut"
+    # a side branch is cut only when it shows less than the parent's radius beyond the balls (its
+    # length beyond the wall plus its own radius): 5 + 1.5 mm on a 12 mm trunk, a stub
+    assert kd.query(tree.points_lps_mm[ends["r1.5_out5"]])[0] > 1.0
+    # the trunk is whole, and nothing is removed from a tree without strands
+    assert kd.query(_polyline([0, 0, 0], [200, 0, 0]))[0].max() < 1e-9
+    clean = tree.subtree(out.kdtree.query(tree.points_lps_mm)[0] < 1e-9)
+    assert without_lumen_strands(clean).n_points == clean.n_points
+    assert without_lumen_strands(tree, 0.0) is tree
+
+
+def test_a_narrow_tree_keeps_its_short_branches():
+    """A 2 mm vessel with 1 mm side branches 4 mm long (the simulator's coronary calibre): each reaches 4 +
+    1 mm out of the parent's balls, more than its 2 mm calibre."""
+    from guidewire3d.cta.centerline import without_lumen_strands
+
+    tree, ends = _aorta_with_strands_and_branches(R=2.0, strand=False)
+    out = without_lumen_strands(tree)
+    for name in ("r1.5_out15", "r3_out20", "r1.5_out5", "r1_out12"):
+        assert out.kdtree.query(tree.points_lps_mm[ends[name]])[0] < 1e-9, name

