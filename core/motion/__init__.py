@@ -4,6 +4,10 @@ The public names of the modules below, importable from ``guidewire3d.motion``.
 """
 from guidewire3d.motion.tracking import (  # noqa: F401
     ACQUIRE_STARTS,
+    ACROSS_ALONG_STEP_MM,
+    ACROSS_RANGE_MM,
+    ACROSS_STARTS,
+    ACROSS_STEP_MM,
     CROP_MARGIN_PX,
     MAX_CURVE_POINTS,
     MIN_CC_IN_PLANE,
