@@ -22,6 +22,9 @@ in which it cannot find a plausible vessel tree instead of returning garbage:
 4. :func:`check_plausibility` - vessel volume against the body, branch count, total length and
    tubularity against the field of view; an implausible tree is a ``SegmentationError`` that says
    what was implausible and suggests seeds.
+5. :func:`blood_pool_points` - wide branches whose lumen is a sheet, not a tube, at their own scale
+   (the bright blood of heart chambers between dark myocardium in an MR): cut from the automatic
+   tree with what they separate from its widest part.
 
 :func:`extract_vessels_auto` chains them with the segmentation, surface and centerline of
 :mod:`guidewire3d.cta.vessels3d`.
@@ -312,12 +315,14 @@ class AutoVessels:
     model: IntensityModel
     plausibility: Plausibility
     seconds: dict = field(default_factory=dict)
-    #: "standard", or "strict" when the first tree was implausible and the strict pass's was not
+    #: "standard", or "strict" when the first tree was implausible and the strict pass's was not; "+pruned" when
+    #: its dim wide branches were cut, "+pools" when its branches in blood pools were (:func:`blood_pool_points`)
     segmentation: str = "standard"
     #: the first pass's problems when the strict pass replaced it
     first_pass_problems: tuple[str, ...] = ()
     #: what was cut from the tree when only its dim wide branches made it implausible
-    #: (``prune.DimWidePruning.explain``; ``segmentation`` then ends in "+pruned"), else ""
+    #: (``prune.DimWidePruning.explain``; ``segmentation`` then ends in "+pruned") and what was cut as blood
+    #: pools ("+pools"), else ""
     pruned: str = ""
 
 
@@ -1133,6 +1138,11 @@ def extract_vessels_auto(volume: io.Volume, *, seeds_lps_mm=None, progress: bool
     (:func:`guidewire3d.cta.prune.without_dim_wide_branches`; the seeds must stay in it) is returned
     when it passes every check (``segmentation`` "strict+pruned" or "standard+pruned", ``pruned``
     saying what was cut).
+
+    Without seeds, a tree that passes is then cut of its branches in blood pools (:func:`blood_pool_points`: heart
+    chambers, whose bright blood in an MR is a bowl, not a tube) and of the parts of the tree they separate from its
+    widest part, when they hold more than ``POOL_MIN_FRACTION`` of its length and no other part rivals that one
+    (``POOL_AMBIGUOUS_RATIO``); what remains must pass the same checks (``segmentation`` ends in "+pools").
 
     Every stage runs on the volume laid out in a canonical axis order
     (:func:`guidewire3d.cta.grid.canonical_volume`): the same physical volume stored in another axis order (a
