@@ -99,7 +99,7 @@ def _aorta_with_strands_and_branches(R=12.0, strand=True):
     """A VesselTree: a trunk of radius ``R`` along x (root at x = 0); a strand system from its axis at
     x = 100 to the rim (a stem along +y whose radius falls from R as it nears the wall, forking 6 mm out
     into two leaves that end at the wall, radius 0.5: what the thinning of a flattened arch leaves);
-    side branches leaving at a right angle: (radius, length beyond the wall, direction)."""
+    side branches leaving at a right angle along +z: (radius, length beyond the wall, x of the junction)."""
     pts, rad, par = [np.zeros(3)], [R], [-1]
 
     def add(poly, radii, start):
@@ -153,8 +153,9 @@ def test_a_forked_strand_of_a_wide_lumen_goes_and_the_side_branches_stay():
 
 
 def test_a_narrow_tree_keeps_its_short_branches():
-    """A 2 mm vessel with 1 mm side branches 4 mm long (the simulator's coronary calibre): each reaches 4 +
-    1 mm out of the parent's balls, more than its 2 mm calibre."""
+    """A 2 mm vessel (the simulator's coronary calibre) with side branches of 1-3 mm radius showing 5-20 mm
+    beyond its wall: each reaches out of the parent's balls farther than the parent's 2 mm calibre (the 5 mm
+    stub, cut on the 12 mm trunk above, stays)."""
     from guidewire3d.cta.centerline import without_lumen_strands
 
     tree, ends = _aorta_with_strands_and_branches(R=2.0, strand=False)
