@@ -121,11 +121,18 @@ class VesselTree:
         return np.linalg.norm(self.points_lps_mm[e[:, 1]] - self.points_lps_mm[e[:, 0]], axis=1)
 
     @cached_property
+    def length_at_point_mm(self) -> np.ndarray:
+        """``(N,)`` the length of each point's edge to its parent (0 at the root): the tree's length
+        counted per point, so that a subset of points has ``length_at_point_mm[subset].sum()``."""
+        seg = np.zeros(self.n_points)
+        seg[self.edges[:, 1]] = self.edge_length_mm
+        seg.setflags(write=False)
+        return seg
+
+    @cached_property
     def arclength_from_root_mm(self) -> np.ndarray:
         s = np.zeros(self.n_points)
-        seg = np.zeros(self.n_points)
-        e = self.edges
-        seg[e[:, 1]] = self.edge_length_mm
+        seg = self.length_at_point_mm
         for i in self.order[1:]:
             s[i] = s[self.parent[i]] + seg[i]
         return s

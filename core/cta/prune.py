@@ -107,8 +107,7 @@ def without_dim_wide_branches(volume: io.Volume, vessels: CTAVessels, *, backgro
         tree = _rooted_at_widest_end(tree, allowed=~dim)
         if dim[tree.root]:
             return None
-    seg = np.zeros(tree.n_points)
-    seg[tree.edges[:, 1]] = tree.edge_length_mm
+    seg = tree.length_at_point_mm
     total = float(seg.sum())
     if total <= 0 or float(seg[dim].sum()) > max_fraction * total:
         return None

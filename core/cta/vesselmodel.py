@@ -848,8 +848,7 @@ def dim_wide_fraction(volume: io.Volume, tree, background: float, lumen: float, 
     """
     if tree.n_points < 2 or lumen <= background:
         return 0.0
-    seg = np.zeros(tree.n_points)
-    seg[tree.edges[:, 1]] = tree.edge_length_mm  # each edge's length at its child point
+    seg = tree.length_at_point_mm
     total = float(seg.sum())
     if total <= 0:
         return 0.0
@@ -989,8 +988,7 @@ def blood_pool_points(volume: io.Volume, mask_zyx: np.ndarray, tree, *, radius_m
     out = np.zeros(n, bool)
     if n < 2:
         return out
-    seg = np.zeros(n)
-    seg[tree.edges[:, 1]] = tree.edge_length_mm
+    seg = tree.length_at_point_mm
     cand = []
     for b in tree.branches:
         ids = b.point_ids if b.index == 0 else b.point_ids[1:]
@@ -1026,8 +1024,7 @@ def _without_blood_pools(volume: io.Volume, av: AutoVessels, body_cm3: float, wh
     ves = av.vessels
     tree = ves.tree
     pool = blood_pool_points(volume, ves.mask_zyx, tree)
-    seg = np.zeros(tree.n_points)
-    seg[tree.edges[:, 1]] = tree.edge_length_mm
+    seg = tree.length_at_point_mm
     if not float(seg[pool].sum()) > POOL_MIN_FRACTION * float(seg.sum()):
         return av
     e = tree.edges

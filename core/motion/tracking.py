@@ -436,8 +436,7 @@ class MotionTracker:
         the best fit and those within ``settle_rival_cost`` of it) puts the tree from where
         ``delta`` puts it."""
         zero = np.zeros(6)
-        if len(c) > SETTLE_CURVE_POINTS:  # a coarse answer suffices (it is compared with a limit of mm)
-            c = c[np.linspace(0, len(c) - 1, SETTLE_CURVE_POINTS).round().astype(int)]
+        c = _evenly(c, SETTLE_CURVE_POINTS)  # a coarse answer suffices (it is compared with a limit of mm)
         starts = self._acquire(c, zero)
         starts = (starts[1:1 + SETTLE_STARTS] if len(starts) > 1 else starts) + self._across_starts(c, zero)
         sols = [self._solve(c, start, zero, self._no_Lt, iterations=SETTLE_ITERATIONS) for start in starts]
@@ -539,8 +538,7 @@ class MotionTracker:
         across = np.array([-a[1], a[0], 0.0]) / n_in  # in the image plane, normal to the axis's image
         rng = self.options.acquire_range_mm
         shifts = np.arange(-rng, rng + 1e-9, ACROSS_ALONG_STEP_MM)
-        if len(c) > SETTLE_CURVE_POINTS:
-            c = c[np.linspace(0, len(c) - 1, SETTLE_CURVE_POINTS).round().astype(int)]
+        c = _evenly(c, SETTLE_CURVE_POINTS)
         offsets = np.arange(-ACROSS_RANGE_MM, ACROSS_RANGE_MM + 1e-9, ACROSS_STEP_MM)
         uv = self._project(self._moved(delta))
         px_per_mm = self._f / self._c[2]
@@ -602,13 +600,17 @@ def _starts_from_costs(delta, a, shifts, cost) -> list:
     return starts
 
 
+def _evenly(c: np.ndarray, n: int) -> np.ndarray:
+    """At most ``n`` evenly spaced points of the curve ``c`` (``c`` itself when it has no more)."""
+    return c[np.linspace(0, len(c) - 1, n).round().astype(int)] if len(c) > n else c
+
+
 def _prepare_curve(curve_uv_px) -> np.ndarray:
     """A frame's curve as the tracker uses it: (N, 2) finite px, at most ``MAX_CURVE_POINTS`` evenly
     spaced points (a 1-px ordered wire has hundreds); empty for None."""
     c = np.asarray(curve_uv_px, float).reshape(-1, 2) if curve_uv_px is not None else np.zeros((0, 2))
     c = c[np.all(np.isfinite(c), axis=1)]
-    if len(c) > MAX_CURVE_POINTS:
-        c = c[np.linspace(0, len(c) - 1, MAX_CURVE_POINTS).round().astype(int)]
+    c = _evenly(c, MAX_CURVE_POINTS)
     return c
 
 
@@ -878,8 +880,7 @@ class BiplaneMotionTracker:
     def _second_opinion_mm(self, cs, delta, j) -> float:
         """As ``MotionTracker._second_opinion_mm``, the pair solved alone from both views."""
         zero = np.zeros(6)
-        cs = [c[np.linspace(0, len(c) - 1, SETTLE_CURVE_POINTS).round().astype(int)] if len(c) > SETTLE_CURVE_POINTS
-              else c for c in cs]
+        cs = [_evenly(c, SETTLE_CURVE_POINTS) for c in cs]
         starts = self._acquire(cs, zero)
         sols = [self._solve(cs, start, zero, self._no_Lt, iterations=SETTLE_ITERATIONS)
                 for start in (starts[1:1 + SETTLE_STARTS] if len(starts) > 1 else starts)]
