@@ -120,6 +120,8 @@ class Wire3D:
     past_path_mm : float, vessel method: the length of the 2D wire past the last anchor the path
         through the tree explains (in mm at the tree's depth; its depth is extrapolated, and spread
         by ``uncertainty.BEYOND_PATH_DEPTH_PER_MM``); 0 when the path explains the wire to its tip.
+    prior_dropped : bool, vessel method: the previous frame's path (the tracking prior) was dropped,
+        the wire fitting another path through the tree much better (``ReconOptions.track_override_cost``).
     """
 
     points_lps_mm: np.ndarray
@@ -140,6 +142,7 @@ class Wire3D:
     branch_extra_cost: float = float("nan")
     branch_tip_shift_mm: float = float("nan")
     past_path_mm: float = 0.0
+    prior_dropped: bool = False
 
     def __post_init__(self):
         object.__setattr__(self, "points_lps_mm", _ro(np.reshape(self.points_lps_mm, (-1, 3))))
@@ -183,6 +186,7 @@ class Wire3D:
             "branch_extra_cost": f(self.branch_extra_cost),
             "branch_tip_shift_mm": f(self.branch_tip_shift_mm),
             "past_path_mm": f(self.past_path_mm),
+            "prior_dropped": bool(self.prior_dropped),
         }
 
 
@@ -296,7 +300,7 @@ def _reconstruct_vessel(ctx, uv, *, track_tip, image, registration_covariance, o
                 opt=opt, method=ReconMethod.VESSEL, t0=t0, message=msg, lumen=(half_width, miss, amb),
                 reversed_input=bool(reversed_note), tree_rise_mm=float(ctx.s[nodes[-1]] - ctx.s[nodes[0]]),
                 path_checks=(retreat_mm, *branch_alternative(ctx, costs, nodes, total, opt)))
-    return replace(w, past_path_mm=past_mm) if past_mm else w
+    return replace(w, past_path_mm=past_mm, prior_dropped=bool(prior_note)) if past_mm or prior_note else w
 
 
 def _reconstruct_paper(ctx, uv, *, image, registration_covariance, opt, t0):
