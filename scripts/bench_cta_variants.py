@@ -100,6 +100,19 @@ def _structures(data: Path) -> dict[int, str]:
         return {int(r["id"]): r["structure"] for r in csv.DictReader(fh)}
 
 
+def _mr_mapped(hu: np.ndarray, src: np.ndarray, labels_zyx: np.ndarray, names: dict[int, str], tissue_pts,
+               bone_pts, vein_max: float) -> np.ndarray:
+    """``src`` (HU) through ``HU_PTS -> tissue_pts``; bone labels (where ``hu`` >= 100) through
+    ``[100, 500, 1500] -> bone_pts``; systemic veins at most ``vein_max``."""
+    out = np.interp(src, HU_PTS, tissue_pts).astype(np.float32)
+    bone_ids = [k for k, n in names.items() if n.startswith(BONE_PREFIXES)]
+    bone = np.isin(labels_zyx, bone_ids) & (hu >= 100)
+    out[bone] = np.interp(hu[bone], [100, 500, 1500], bone_pts)
+    veins = np.isin(labels_zyx, [k for k, n in names.items() if n.startswith(SYSTEMIC_VEINS)])
+    out[veins] = np.minimum(out[veins], vein_max)
+    return out
+
+
 def mr_clean(hu_zyx: np.ndarray, labels_zyx: np.ndarray, names: dict[int, str], *, pre: bool = False) -> np.ndarray:
     """A contrast-enhanced T1 MR angiogram's noise-free intensities from the CT (HU) and its labels.
 
@@ -108,14 +121,7 @@ def mr_clean(hu_zyx: np.ndarray, labels_zyx: np.ndarray, names: dict[int, str], 
     (arterial phase) at most 600.
     """
     hu = np.asarray(hu_zyx, dtype=np.float32)
-    src = np.minimum(hu, 60.0) if pre else hu
-    out = np.interp(src, HU_PTS, MR_PTS).astype(np.float32)
-    bone_ids = [k for k, n in names.items() if n.startswith(BONE_PREFIXES)]
-    bone = np.isin(labels_zyx, bone_ids) & (hu >= 100)
-    out[bone] = np.interp(hu[bone], [100, 500, 1500], [700, 60, 40])
-    veins = np.isin(labels_zyx, [k for k, n in names.items() if n.startswith(SYSTEMIC_VEINS)])
-    out[veins] = np.minimum(out[veins], 600.0)
-    return out
+    return _mr_mapped(hu, np.minimum(hu, 60.0) if pre else hu, labels_zyx, names, MR_PTS, [700, 60, 40], 600.0)
 
 
 def tof_clean(hu_zyx: np.ndarray, labels_zyx: np.ndarray, names: dict[int, str]) -> np.ndarray:
@@ -126,13 +132,7 @@ def tof_clean(hu_zyx: np.ndarray, labels_zyx: np.ndarray, names: dict[int, str])
     (saturated by the venous presaturation band) at most 215.
     """
     hu = np.asarray(hu_zyx, dtype=np.float32)
-    out = np.interp(hu, HU_PTS, TOF_PTS).astype(np.float32)
-    bone_ids = [k for k, n in names.items() if n.startswith(BONE_PREFIXES)]
-    bone = np.isin(labels_zyx, bone_ids) & (hu >= 100)
-    out[bone] = np.interp(hu[bone], [100, 500, 1500], [330, 40, 30])
-    veins = np.isin(labels_zyx, [k for k, n in names.items() if n.startswith(SYSTEMIC_VEINS)])
-    out[veins] = np.minimum(out[veins], 215.0)
-    return out
+    return _mr_mapped(hu, hu, labels_zyx, names, TOF_PTS, [330, 40, 30], 215.0)
 
 
 def bias_field(points_lps_mm: np.ndarray, *, amplitude: float = 0.3, seed: int = 3) -> np.ndarray:
