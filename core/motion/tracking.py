@@ -37,12 +37,12 @@ from dataclasses import dataclass
 import numpy as np
 from guidewire3d import kernels
 from guidewire3d.errors import InputError
-from guidewire3d.geometry import CArm, Pose, hat, so3_exp
+from guidewire3d.geometry import CArm, Pose, fine_pixel_factor, hat, so3_exp, options_in_mm
 from guidewire3d.registration import RegistrationResult
 from guidewire3d.vesseltree import VesselTree
 
 __all__ = ["MotionOptions", "MotionTracker", "track_poses", "curve_to_tree_distance_px", "BiplaneMotionTracker",
-           "track_poses_biplane"]
+           "track_poses_biplane", "MOTION_PIXEL_OPTIONS"]
 
 #: below this image-plane fraction of the patient's axis (a beam nearly along it) the in-plane
 #: prior is isotropic and the acquisition search is skipped
@@ -78,6 +78,12 @@ STEP_TOL_RAD = 1e-5
 #: tree samples projected farther than the gate plus this outside the curve's bounding box are
 #: not looked at in a frame (a frame moves the tree by a few px)
 CROP_MARGIN_PX = 30.0
+#: the options in pixels (and ``CROP_MARGIN_PX``), tuned on the simulator's 512 px views: on a view finer
+#: than ``geometry.REFERENCE_PIXEL_AT_ISO_MM`` a one-view tracker widens them to their size in mm there
+#: (``geometry.fine_pixel_factor``), so the fit weighs a curve's offset in mm against the priors in mm as
+#: it does at 512 px, and the gate and the verdict's "in the lumen" hold in mm (at 1024 px, 40 px was a
+#: 3.6 mm gate against breathing of 20 mm). A view at the reference or coarser: exactly as before
+MOTION_PIXEL_OPTIONS = ("sigma_px", "huber_px", "gate_px", "inlier_px", "max_mean_residual_px")
 
 
 @dataclass(frozen=True)
@@ -241,12 +247,15 @@ class MotionTracker:
         The registration's covariance (left-perturbation tangent ``(t mm, phi rad)`` about the
         isocentre origin); added to the roadmap prior.
     options : MotionOptions, optional
+        Its lengths in pixels (``MOTION_PIXEL_OPTIONS``) hold at ``geometry.REFERENCE_PIXEL_AT_ISO_MM``;
+        ``self.options`` has them widened on a finer ``carm`` (``geometry.options_in_mm``).
     """
 
     def __init__(self, tree: VesselTree, carm: CArm, initial_pose: Pose, *, covariance=None,
                  options: MotionOptions | None = None):
         self.tree, self.carm, self.initial_pose = tree, carm, initial_pose
-        self.options = opt = options or MotionOptions()
+        self.options = opt = options_in_mm(options or MotionOptions(), MOTION_PIXEL_OPTIONS, carm.pixel_at_iso_mm)
+        self._crop_margin_px = CROP_MARGIN_PX * fine_pixel_factor(carm.pixel_at_iso_mm)
         pts, self._radius_mm, self._nbr = _samples(tree, opt.sample_mm)
         # tree samples in the camera frame of the initial pose: x_cam = Rc x + tc (z: depth)
         Rc, tc = carm.extrinsics(initial_pose)
@@ -501,7 +510,7 @@ class MotionTracker:
         found, cost, delta, H, it, frac, mean_res, J, w, j, lumen_px = kernels.motion_solve(
             c, self._Y0, self._c, self._nbr, self._radius_mm, focal_px=self._f, principal_point_px=self._pp,
             start=start, prev=prev, Lambda0=self._Lambda0, Lt=Lt, sigma_px=opt.sigma_px, huber_px=opt.huber_px,
-            gate_px=opt.gate_px, inlier_px=opt.inlier_px, crop_px=opt.gate_px + CROP_MARGIN_PX,
+            gate_px=opt.gate_px, inlier_px=opt.inlier_px, crop_px=opt.gate_px + self._crop_margin_px,
             fit_correlation_mm=opt.fit_correlation_mm,
             iterations=int(opt.iterations if iterations is None else iterations), step_tol_mm=STEP_TOL_MM,
             step_tol_rad=STEP_TOL_RAD)
@@ -559,7 +568,7 @@ class MotionTracker:
     def _crop(self, c, delta) -> np.ndarray:
         """The tree samples (indices) projected at ``delta`` within the gate plus ``CROP_MARGIN_PX`` of
         the curve's bounding box (as ``kernels.motion_solve`` selects them)."""
-        crop = self.options.gate_px + CROP_MARGIN_PX
+        crop = self.options.gate_px + self._crop_margin_px
         uv = self._project(self._moved(delta))
         lo, hi = c.min(axis=0) - crop, c.max(axis=0) + crop
         return np.flatnonzero(np.all((uv >= lo) & (uv <= hi), axis=1))
