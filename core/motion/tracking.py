@@ -79,7 +79,7 @@ STEP_TOL_RAD = 1e-5
 #: not looked at in a frame (a frame moves the tree by a few px)
 CROP_MARGIN_PX = 30.0
 #: the options in pixels (and ``CROP_MARGIN_PX``), tuned on the simulator's 512 px views: on a view finer
-#: than ``geometry.REFERENCE_PIXEL_AT_ISO_MM`` a one-view tracker widens them to their size in mm there
+#: than ``geometry.REFERENCE_PIXEL_AT_ISO_MM`` a tracker widens them to their size in mm there (the biplane one per view)
 #: (``geometry.fine_pixel_factor``), so the fit weighs a curve's offset in mm against the priors in mm as
 #: it does at 512 px, and the gate and the verdict's "in the lumen" hold in mm (at 1024 px, 40 px was a
 #: 3.6 mm gate against breathing of 20 mm). A view at the reference or coarser: exactly as before
@@ -768,10 +768,13 @@ class BiplaneMotionTracker:
                                           ())
         best = min(sols, key=lambda s: s[0])
         cost, delta, H, it, per_view, lin = best
-        fits = [frac >= opt.min_inlier_fraction and mean_res <= opt.max_mean_residual_px for frac, mean_res in per_view]
+        # each plane's px limits are its own (``MotionTracker.options``: widened on a view finer than the reference)
+        vo = [p.options for p in self.planes]
+        fits = [frac >= opt.min_inlier_fraction and mean_res <= vo[k].max_mean_residual_px
+                for k, (frac, mean_res) in enumerate(per_view)]
         if not all(fits):
             why = "; ".join(f"plane {PLANES[k]}'s curve does not fit the projected tree at the two-view pose "
-                            f"({100 * per_view[k][0]:.0f}% within {opt.inlier_px:g} px of the lumen, "
+                            f"({100 * per_view[k][0]:.0f}% within {vo[k].inlier_px:g} px of the lumen, "
                             f"{per_view[k][1]:.2f} px outside on average)" for k in range(2) if not fits[k])
             return self._one_view_or_hold(cs, prev, why, t0, [k for k in range(2) if fits[k]])
         self.delta = delta
@@ -847,8 +850,8 @@ class BiplaneMotionTracker:
                 r, J, w, j, lumen = kernels.motion_linearize(
                     c, trk._Y0, trk._c, trk._nbr, trk._radius_mm, focal_px=trk._f, principal_point_px=trk._pp,
                     delta=T @ delta, sel=sel, pairs=pairs if lin[i] is None else lin[i][4],
-                    find_pairs=final or it_ % 2 == 1, sigma_px=opt.sigma_px, huber_px=opt.huber_px,
-                    gate_px=opt.gate_px, point_weight=pw, lumen_slack=opt.biplane_lumen_slack if len(vs) > 1 and not final else 0.0)
+                    find_pairs=final or it_ % 2 == 1, sigma_px=trk.options.sigma_px, huber_px=trk.options.huber_px,
+                    gate_px=trk.options.gate_px, point_weight=pw, lumen_slack=opt.biplane_lumen_slack if len(vs) > 1 and not final else 0.0)
                 lin[i] = (r, J, w, lumen, j)
             if final:
                 break
@@ -864,12 +867,13 @@ class BiplaneMotionTracker:
             if np.all(np.abs(step[:3]) < STEP_TOL_MM) and np.all(np.abs(step[3:]) < STEP_TOL_RAD):
                 last = it_ + 1
         per_view, fit, rob_sum = [], [], 0.0
-        h = opt.huber_px / opt.sigma_px
         for (trk, T, c, sel, pw, _), (r, J, w, lumen, j) in zip(vs, lin):
+            vo = trk.options                     # this view's px options (widened on a fine view)
+            h = vo.huber_px / vo.sigma_px
             outside = np.maximum(np.abs(r) - lumen, 0.0)
-            inl = outside <= opt.inlier_px
+            inl = outside <= vo.inlier_px
             per_view.append((float(inl.mean()), float(outside[inl].mean()) if inl.any() else float("inf")))
-            a = np.minimum(np.abs(r), opt.gate_px) / opt.sigma_px
+            a = np.minimum(np.abs(r), vo.gate_px) / vo.sigma_px
             rob_sum += pw * float(np.sum(2.0 * h * h * (np.sqrt(1.0 + (a / h) ** 2) - 1.0)))
             fit.append((c, J @ T, w, lumen, j))
         dp = delta - prev
