@@ -14,11 +14,12 @@ import numpy as np
 import pytest
 from guidewire3d import geometry, metrics
 from guidewire3d.errors import GeometryError
-from guidewire3d.geometry import CArm
+from guidewire3d.geometry import CArm, Pose
 from guidewire3d.live import session as live
 from guidewire3d.motion import MOTION_PIXEL_OPTIONS, MotionOptions, MotionTracker
 from guidewire3d.phantom import PhantomOptions, simulate
 from guidewire3d.registration import Verdict
+from guidewire3d.vesseltree import VesselTree
 
 TIP_OFF_MM = 5.0  # bench_stress: an ok frame whose tip is farther than this from the true tip is wrong
 
@@ -36,6 +37,15 @@ def test_the_factor_widens_only_below_the_reference():
     for name in MOTION_PIXEL_OPTIONS:
         assert getattr(wide, name) == pytest.approx(2 * getattr(opt, name))
     assert wide.sigma_cc_mm == opt.sigma_cc_mm and wide.settle_rival_cost == opt.settle_rival_cost
+    assert wide.sigma_px == opt.sigma_px and wide.inlier_px == opt.inlier_px     # the 2D noise model stays in px
+    # a tracker widens its own options on a fine view only (the same object on the reference view)
+    z = np.linspace(-20.0, 20.0, 41)
+    tree = VesselTree(np.column_stack([0 * z, 0 * z, z]), np.full(len(z), 2.0), np.r_[-1, np.arange(len(z) - 1)])
+    for detector, k in ((512, 1.0), (1024, 2.0)):
+        carm = CArm(0.0, 0.0, 1000.0, 700.0, ref * 1000.0 / 700.0 * 512 / detector, (detector, detector))
+        trk = MotionTracker(tree, carm, Pose.identity(), options=opt)
+        assert trk.options.gate_px == pytest.approx(k * opt.gate_px) and trk.options.sigma_px == opt.sigma_px
+        assert (trk.options is opt) == (k == 1.0)
 
 
 def test_the_tips_stretch_is_measured_over_the_same_mm():
