@@ -20,12 +20,50 @@ The convention is the normative one of DESIGN.md ("C-arm geometry"). In short:
 """
 from __future__ import annotations
 
+import dataclasses
+import functools
 from dataclasses import dataclass, field
 
 import numpy as np
 from guidewire3d.errors import GeometryError
 
-__all__ = ["Pose", "CArm", "hat", "so3_exp", "so3_log"]
+__all__ = ["Pose", "CArm", "hat", "so3_exp", "so3_log", "REFERENCE_PIXEL_AT_ISO_MM", "fine_pixel_factor",
+           "options_in_mm"]
+
+#: the pixel size at the isocentre (mm) the lengths in pixels of the reconstruction, the frame verdict and
+#: the motion tracker were tuned at: the simulator's 512 px views (0.10-0.25 mm, median about 0.17). On a
+#: finer detector the same error in mm spans more pixels: a 1024 px panel (0.09-0.12 mm) doubled the path
+#: costs (``reconstruction.context.options_at_pixel``, stop 32). Below this size such lengths are widened
+#: to their size in mm here (``fine_pixel_factor``); at this size or coarser they are used as they are
+REFERENCE_PIXEL_AT_ISO_MM = 0.16
+
+
+def fine_pixel_factor(pixel_at_iso_mm: float) -> float:
+    """``REFERENCE_PIXEL_AT_ISO_MM / pixel_at_iso_mm`` when that is above 1 (a detector finer than the
+    reference), else exactly 1.0: a length of ``L`` px tuned at the reference holds its size in mm as
+    ``L * fine_pixel_factor(px)`` px on a finer view, and is left as it is on a coarser one.
+
+    Parameters
+    ----------
+    pixel_at_iso_mm : float
+        The view's pixel at the isocentre (``CArm.pixel_at_iso_mm``), mm; positive and finite.
+    """
+    px = float(pixel_at_iso_mm)
+    if not (np.isfinite(px) and px > 0):
+        raise GeometryError(f"pixel at the isocentre must be a positive number of mm, got {pixel_at_iso_mm!r}")
+    k = REFERENCE_PIXEL_AT_ISO_MM / px
+    return k if k > 1.0 else 1.0
+
+
+@functools.lru_cache(maxsize=64)
+def options_in_mm(options, names: tuple[str, ...], pixel_at_iso_mm: float):
+    """A frozen options dataclass with its lengths in pixels (the fields ``names``) multiplied by
+    ``fine_pixel_factor(pixel_at_iso_mm)`` on a finer view; on a view at the reference or coarser,
+    ``options`` itself (the same object). Cached: every frame of a view asks for the same options."""
+    k = fine_pixel_factor(pixel_at_iso_mm)
+    if k == 1.0:
+        return options
+    return dataclasses.replace(options, **{n: getattr(options, n) * k for n in names})
 
 _EPS = 1e-12
 

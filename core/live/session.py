@@ -33,7 +33,7 @@ import numpy as np
 from guidewire3d import kernels, reconstruction
 from guidewire3d.errors import Guidewire3DError
 from guidewire3d.live.continuation import wire_continuation
-from guidewire3d.geometry import CArm, Pose
+from guidewire3d.geometry import CArm, Pose, fine_pixel_factor
 from guidewire3d.motion.tracking import MotionTracker
 from guidewire3d.registration import Verdict
 from guidewire3d.vesseltree import VesselTree
@@ -79,7 +79,9 @@ BRANCH_SHIFT_MIN_MM = 5.0
 #: a little off) leaves the 3D tip mm off along the vessel: ``bench_stress`` 3504 f3 (9.8 mm over
 #: the last 5 px, the tip 12.1 mm off) and 3505 f1 (6.0 mm, 7.1 mm off), both reported ``ok`` before.
 #: Above ``TIP_STRETCH_MAX_MM`` the tip is not settled (on simulated frames at the true pose and on
-#: the stress cases, ok frames with the tip right stayed below 4 mm)
+#: the stress cases, ok frames with the tip right stayed below 4 mm). In px at
+#: ``geometry.REFERENCE_PIXEL_AT_ISO_MM`` (0.8 mm at the isocentre); a finer view measures over as many mm
+#: (``fine_pixel_factor``: 10 px at 0.08 mm), else the same 3D stretch would lie over half the mm there
 TIP_STRETCH_PX = 5.0
 TIP_STRETCH_MAX_MM = 4.5
 #: a 2D wire whose distal end is this close to the image border (px) runs out of the view there:
@@ -401,7 +403,7 @@ class Session:
             stages["reconstruction"] = stages.get("reconstruction", 0.0) + time.perf_counter() - t1
         verdict, message = frame_verdict(w3, uv, ori, beyond_tip=beyond_tip, doubled_tip=doubled,
                                          motion=motion, image_shape=self.carm.shape, continuation=continuation,
-                                         prior_was_ok=self._prior_was_ok)
+                                         prior_was_ok=self._prior_was_ok, pixel_at_iso_mm=self.carm.pixel_at_iso_mm)
         self._prior_was_ok = verdict is Verdict.OK      # the tracker's prior is now this frame's path
         return FrameResult(index, wire2d, w3, verdict, message, ori, time.perf_counter() - t0, timestamp,
                            self.pose, motion, stages)
@@ -413,7 +415,8 @@ class Session:
 
 
 def frame_verdict(wire3d, wire_uv_px, orientation, *, beyond_tip=None, motion=None, image_shape=None,
-                  continuation=None, doubled_tip=None, prior_was_ok: bool = False):
+                  continuation=None, doubled_tip=None, prior_was_ok: bool = False,
+                  pixel_at_iso_mm: float | None = None):
     """``(Verdict, message)`` of a frame with a 3D wire: ``OK`` with the reconstruction's message,
     or ``UNCERTAIN`` with every reason that applies, the first first:
 
@@ -427,7 +430,8 @@ def frame_verdict(wire3d, wire_uv_px, orientation, *, beyond_tip=None, motion=No
       trace runs past the wire's end (``doubled_tip`` an ``orderedwire.BareTip``);
     * the wire runs out of the image (``image_shape``, rows and cols) at its distal end;
     * the tip's vessel runs along the beam: the wire's last px span many mm in 3D
-      (``TIP_STRETCH_MAX_MM``);
+      (``TIP_STRETCH_MAX_MM``; over ``TIP_STRETCH_PX`` at the reference pixel, widened to as many mm on a
+      view finer than that, ``pixel_at_iso_mm``; None: ``TIP_STRETCH_PX`` as it is);
     * the tip's uncertainty exceeds ``TIP_MAX_UNCERTAINTY_MM``;
     * the path through the tree walks back towards the root (``TREE_RETREAT_MAX_MM``);
     * a path through another branch explains the wire about as well (``BRANCH_EXTRA_MAX``), ending
@@ -459,10 +463,12 @@ def frame_verdict(wire3d, wire_uv_px, orientation, *, beyond_tip=None, motion=No
         why.append(f"tip not in view: the wire runs out of the image at its distal end "
                    f"(u {distal_uv[0]:.0f}, v {distal_uv[1]:.0f} px)")
     # (one view: a second view, ``method`` "biplane", sees the depth the first does not)
-    stretch_mm = tip_stretch_mm(wire3d, uv) if getattr(wire3d, "method", "") != "biplane" else 0.0
+    stretch_px = TIP_STRETCH_PX * (1.0 if pixel_at_iso_mm is None else fine_pixel_factor(pixel_at_iso_mm))
+    stretch_mm = (tip_stretch_mm(wire3d, uv, stretch_px=stretch_px) if getattr(wire3d, "method", "") != "biplane"
+                  else 0.0)
     if stretch_mm > TIP_STRETCH_MAX_MM:
         why.append(f"tip uncertain: its vessel runs along the beam: the 3D wire's last {stretch_mm:.1f} mm project onto "
-                   f"its last {TIP_STRETCH_PX:g} px (limit {TIP_STRETCH_MAX_MM:g} mm), so a tip a pixel off in 2D "
+                   f"its last {stretch_px:.3g} px (limit {TIP_STRETCH_MAX_MM:g} mm), so a tip a pixel off in 2D "
                    f"lies mm off in 3D")
     tip_sigma_mm = float(wire3d.uncertainty_mm[-1]) if len(wire3d.uncertainty_mm) else 0.0
     if tip_sigma_mm > TIP_MAX_UNCERTAINTY_MM:
@@ -491,28 +497,29 @@ def frame_verdict(wire3d, wire_uv_px, orientation, *, beyond_tip=None, motion=No
     return Verdict.UNCERTAIN, "; ".join(why)
 
 
-def tip_stretch_mm(wire3d, wire_uv_px) -> float:
-    """The 3D wire's arclength (mm) over the last ``TIP_STRETCH_PX`` px of its 2D wire (see
+def tip_stretch_mm(wire3d, wire_uv_px, *, stretch_px: float = TIP_STRETCH_PX) -> float:
+    """The 3D wire's arclength (mm) over the last ``stretch_px`` (``TIP_STRETCH_PX``) px of its 2D wire (see
     ``TIP_STRETCH_MAX_MM``); ``wire_uv_px`` in the order given to the reconstruction (its first point
     is the output's tip when ``wire3d.reversed_input``). Where the 3D wire has one point per 2D point
     (a single-view reconstruction), the 2D arclength picks the points (the segment that reaches past
-    ``TIP_STRETCH_PX`` counts in proportion: a coarsely sampled curve, as the real catheter curves of
-    ``bench_real_catheter`` at 12 px, is measured over the same 5 px); else its last
-    ``TIP_STRETCH_PX`` segments (the 2D wire is sampled at about 1 px). 0 for fewer than 2 points
-    (or an object without ``points_lps_mm``)."""
+    ``stretch_px`` counts in proportion: a coarsely sampled curve, as the real catheter curves of
+    ``bench_real_catheter`` at 12 px, is measured over the same 5 px); else its last ``ceil(stretch_px)``
+    segments (the 2D wire is sampled at about 1 px). 0 for fewer than 2 points (or an object without
+    ``points_lps_mm``). ``frame_verdict`` passes ``TIP_STRETCH_PX`` widened on a view finer than
+    ``geometry.REFERENCE_PIXEL_AT_ISO_MM`` (``fine_pixel_factor``)."""
     X = np.asarray(getattr(wire3d, "points_lps_mm", np.zeros((0, 3))), float).reshape(-1, 3)
     if len(X) < 2:
         return 0.0
     uv = np.asarray(wire_uv_px, float).reshape(-1, 2)
-    k = int(np.ceil(TIP_STRETCH_PX))
-    last = 1.0                            # the fraction of the k-th segment (from the tip) within TIP_STRETCH_PX
-    if len(uv) == len(X):                 # walk back from the tip until TIP_STRETCH_PX of the 2D wire (a few points:
+    k = int(np.ceil(stretch_px))
+    last = 1.0                            # the fraction of the k-th segment (from the tip) within stretch_px
+    if len(uv) == len(X):                 # walk back from the tip until stretch_px of the 2D wire (a few points:
         m = min(len(uv), 4 * k + 1)       # plain floats are faster than array calls here)
         tip_first = (uv[:m] if getattr(wire3d, "reversed_input", False) else uv[:-m - 1:-1]).tolist()
         walked, k = 0.0, 0
-        while walked < TIP_STRETCH_PX and k < m - 1:
+        while walked < stretch_px and k < m - 1:
             step = math.dist(tip_first[k], tip_first[k + 1])
-            last = min(1.0, (TIP_STRETCH_PX - walked) / step) if step > 0 else 1.0
+            last = min(1.0, (stretch_px - walked) / step) if step > 0 else 1.0
             walked += step
             k += 1
     k = min(k, len(X) - 1)

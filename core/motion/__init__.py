@@ -11,6 +11,7 @@ from guidewire3d.motion.tracking import (  # noqa: F401
     CROP_MARGIN_PX,
     MAX_CURVE_POINTS,
     MIN_CC_IN_PLANE,
+    MOTION_PIXEL_OPTIONS,
     PLANES,
     SETTLE_CURVE_POINTS,
     SETTLE_ITERATIONS,

@@ -37,12 +37,12 @@ from dataclasses import dataclass
 import numpy as np
 from guidewire3d import kernels
 from guidewire3d.errors import InputError
-from guidewire3d.geometry import CArm, Pose, hat, so3_exp
+from guidewire3d.geometry import CArm, Pose, fine_pixel_factor, hat, so3_exp, options_in_mm
 from guidewire3d.registration import RegistrationResult
 from guidewire3d.vesseltree import VesselTree
 
 __all__ = ["MotionOptions", "MotionTracker", "track_poses", "curve_to_tree_distance_px", "BiplaneMotionTracker",
-           "track_poses_biplane"]
+           "track_poses_biplane", "MOTION_PIXEL_OPTIONS"]
 
 #: below this image-plane fraction of the patient's axis (a beam nearly along it) the in-plane
 #: prior is isotropic and the acquisition search is skipped
@@ -78,6 +78,14 @@ STEP_TOL_RAD = 1e-5
 #: tree samples projected farther than the gate plus this outside the curve's bounding box are
 #: not looked at in a frame (a frame moves the tree by a few px)
 CROP_MARGIN_PX = 30.0
+#: the options in pixels widened on a view finer than ``geometry.REFERENCE_PIXEL_AT_ISO_MM`` to their size
+#: in mm there (``geometry.fine_pixel_factor``; the biplane tracker per view), with ``CROP_MARGIN_PX``: the
+#: gate, a reach (at 1024 px, 40 px was a 3.6 mm gate against breathing of 20 mm). A view at the reference
+#: or coarser: exactly as before. The noise model and the verdict's "in the lumen" (``sigma_px``,
+#: ``huber_px``, ``inlier_px``, ``max_mean_residual_px``) stay in px: widened too, the fit's costs shrink
+#: against ``settle_rival_cost`` and ``bench_motion --only sim`` lost 9 right ``ok`` frames ("not settled",
+#: views at 0.11-0.14 mm) and caught no wrong one
+MOTION_PIXEL_OPTIONS = ("gate_px",)
 
 
 @dataclass(frozen=True)
@@ -241,12 +249,15 @@ class MotionTracker:
         The registration's covariance (left-perturbation tangent ``(t mm, phi rad)`` about the
         isocentre origin); added to the roadmap prior.
     options : MotionOptions, optional
+        Its lengths in pixels (``MOTION_PIXEL_OPTIONS``) hold at ``geometry.REFERENCE_PIXEL_AT_ISO_MM``;
+        ``self.options`` has them widened on a finer ``carm`` (``geometry.options_in_mm``).
     """
 
     def __init__(self, tree: VesselTree, carm: CArm, initial_pose: Pose, *, covariance=None,
                  options: MotionOptions | None = None):
         self.tree, self.carm, self.initial_pose = tree, carm, initial_pose
-        self.options = opt = options or MotionOptions()
+        self.options = opt = options_in_mm(options or MotionOptions(), MOTION_PIXEL_OPTIONS, carm.pixel_at_iso_mm)
+        self._crop_margin_px = CROP_MARGIN_PX * fine_pixel_factor(carm.pixel_at_iso_mm)
         pts, self._radius_mm, self._nbr = _samples(tree, opt.sample_mm)
         # tree samples in the camera frame of the initial pose: x_cam = Rc x + tc (z: depth)
         Rc, tc = carm.extrinsics(initial_pose)
@@ -501,7 +512,7 @@ class MotionTracker:
         found, cost, delta, H, it, frac, mean_res, J, w, j, lumen_px = kernels.motion_solve(
             c, self._Y0, self._c, self._nbr, self._radius_mm, focal_px=self._f, principal_point_px=self._pp,
             start=start, prev=prev, Lambda0=self._Lambda0, Lt=Lt, sigma_px=opt.sigma_px, huber_px=opt.huber_px,
-            gate_px=opt.gate_px, inlier_px=opt.inlier_px, crop_px=opt.gate_px + CROP_MARGIN_PX,
+            gate_px=opt.gate_px, inlier_px=opt.inlier_px, crop_px=opt.gate_px + self._crop_margin_px,
             fit_correlation_mm=opt.fit_correlation_mm,
             iterations=int(opt.iterations if iterations is None else iterations), step_tol_mm=STEP_TOL_MM,
             step_tol_rad=STEP_TOL_RAD)
@@ -559,7 +570,7 @@ class MotionTracker:
     def _crop(self, c, delta) -> np.ndarray:
         """The tree samples (indices) projected at ``delta`` within the gate plus ``CROP_MARGIN_PX`` of
         the curve's bounding box (as ``kernels.motion_solve`` selects them)."""
-        crop = self.options.gate_px + CROP_MARGIN_PX
+        crop = self.options.gate_px + self._crop_margin_px
         uv = self._project(self._moved(delta))
         lo, hi = c.min(axis=0) - crop, c.max(axis=0) + crop
         return np.flatnonzero(np.all((uv >= lo) & (uv <= hi), axis=1))
@@ -759,10 +770,13 @@ class BiplaneMotionTracker:
                                           ())
         best = min(sols, key=lambda s: s[0])
         cost, delta, H, it, per_view, lin = best
-        fits = [frac >= opt.min_inlier_fraction and mean_res <= opt.max_mean_residual_px for frac, mean_res in per_view]
+        # each plane's px limits are its own (``MotionTracker.options``: widened on a view finer than the reference)
+        vo = [p.options for p in self.planes]
+        fits = [frac >= opt.min_inlier_fraction and mean_res <= vo[k].max_mean_residual_px
+                for k, (frac, mean_res) in enumerate(per_view)]
         if not all(fits):
             why = "; ".join(f"plane {PLANES[k]}'s curve does not fit the projected tree at the two-view pose "
-                            f"({100 * per_view[k][0]:.0f}% within {opt.inlier_px:g} px of the lumen, "
+                            f"({100 * per_view[k][0]:.0f}% within {vo[k].inlier_px:g} px of the lumen, "
                             f"{per_view[k][1]:.2f} px outside on average)" for k in range(2) if not fits[k])
             return self._one_view_or_hold(cs, prev, why, t0, [k for k in range(2) if fits[k]])
         self.delta = delta
@@ -838,8 +852,8 @@ class BiplaneMotionTracker:
                 r, J, w, j, lumen = kernels.motion_linearize(
                     c, trk._Y0, trk._c, trk._nbr, trk._radius_mm, focal_px=trk._f, principal_point_px=trk._pp,
                     delta=T @ delta, sel=sel, pairs=pairs if lin[i] is None else lin[i][4],
-                    find_pairs=final or it_ % 2 == 1, sigma_px=opt.sigma_px, huber_px=opt.huber_px,
-                    gate_px=opt.gate_px, point_weight=pw, lumen_slack=opt.biplane_lumen_slack if len(vs) > 1 and not final else 0.0)
+                    find_pairs=final or it_ % 2 == 1, sigma_px=trk.options.sigma_px, huber_px=trk.options.huber_px,
+                    gate_px=trk.options.gate_px, point_weight=pw, lumen_slack=opt.biplane_lumen_slack if len(vs) > 1 and not final else 0.0)
                 lin[i] = (r, J, w, lumen, j)
             if final:
                 break
@@ -855,12 +869,13 @@ class BiplaneMotionTracker:
             if np.all(np.abs(step[:3]) < STEP_TOL_MM) and np.all(np.abs(step[3:]) < STEP_TOL_RAD):
                 last = it_ + 1
         per_view, fit, rob_sum = [], [], 0.0
-        h = opt.huber_px / opt.sigma_px
         for (trk, T, c, sel, pw, _), (r, J, w, lumen, j) in zip(vs, lin):
+            vo = trk.options                     # this view's px options (widened on a fine view)
+            h = vo.huber_px / vo.sigma_px
             outside = np.maximum(np.abs(r) - lumen, 0.0)
-            inl = outside <= opt.inlier_px
+            inl = outside <= vo.inlier_px
             per_view.append((float(inl.mean()), float(outside[inl].mean()) if inl.any() else float("inf")))
-            a = np.minimum(np.abs(r), opt.gate_px) / opt.sigma_px
+            a = np.minimum(np.abs(r), vo.gate_px) / vo.sigma_px
             rob_sum += pw * float(np.sum(2.0 * h * h * (np.sqrt(1.0 + (a / h) ** 2) - 1.0)))
             fit.append((c, J @ T, w, lumen, j))
         dp = delta - prev

@@ -9,14 +9,12 @@ at another pose of the same tree and view reuses the tree tables.
 from __future__ import annotations
 
 import copy
-import dataclasses
-import functools
 from collections import OrderedDict
 from dataclasses import dataclass, fields
 
 import numpy as np
 from guidewire3d.errors import InputError, ReconstructionError
-from guidewire3d.geometry import CArm, Pose
+from guidewire3d.geometry import REFERENCE_PIXEL_AT_ISO_MM, CArm, Pose, options_in_mm
 from guidewire3d.reconstruction.smoothing import arclength
 from guidewire3d.vesseltree import VesselTree
 from scipy.spatial import cKDTree
@@ -79,27 +77,21 @@ class ReconOptions:
             raise InputError(f"ReconOptions.candidates must be a positive integer, got {self.candidates!r}")
 
 
-#: the pixel size at the isocentre (mm) the options in pixels (``PIXEL_OPTIONS``) were tuned at: the
-#: simulator's 512 px views (0.10-0.25 mm, median about 0.17; the branch check's ``BRANCH_EXTRA_MAX`` was
-#: set on them). On a finer detector the same registration error in mm spans more pixels and more
-#: anchors: a 1024 px panel (0.09-0.12 mm) doubled the path costs, and ``bench_stress --draws wide``
-#: 5201 f0 and 6002 f0 were ``ok`` with the tip 9-12 mm off in a vessel overlapping the true one in
-#: projection (the right path's extra cost 7-9, as if 3-4 at 512 px). Below this size the options are
-#: widened to their size in mm here (``options_at_pixel``)
-REFERENCE_PIXEL_AT_ISO_MM = 0.16
+#: the options in pixels, tuned at ``REFERENCE_PIXEL_AT_ISO_MM`` (``geometry``): the simulator's 512 px views.
+#: On a finer detector the same registration error in mm spans more pixels and more anchors: a 1024 px
+#: panel (0.09-0.12 mm) doubled the path costs, and ``bench_stress --draws wide`` 5201 f0 and 6002 f0 were
+#: ``ok`` with the tip 9-12 mm off in a vessel overlapping the true one in projection (the right path's
+#: extra cost 7-9, as if 3-4 at 512 px). Below that size they are widened to their size in mm there
+#: (``options_at_pixel``)
 PIXEL_OPTIONS = ("densify_px", "dp_step_px", "margin_px", "sigma_outside_px", "sigma_step_px", "knot_px",
                  "max_projection_px", "fail_projection_px", "sigma_geo_px")
 
 
-@functools.lru_cache(maxsize=32)
 def options_at_pixel(options: ReconOptions, pixel_at_iso_mm: float) -> ReconOptions:
     """``options`` with its pixel lengths (``PIXEL_OPTIONS``) scaled by ``REFERENCE_PIXEL_AT_ISO_MM /
-    pixel_at_iso_mm`` when that is above 1 (a finer detector), else ``options`` itself. Cached: every
-    frame of a view asks for the same options (and gets the same object)."""
-    k = REFERENCE_PIXEL_AT_ISO_MM / float(pixel_at_iso_mm)
-    if not k > 1.0:
-        return options
-    return dataclasses.replace(options, **{n: getattr(options, n) * k for n in PIXEL_OPTIONS})
+    pixel_at_iso_mm`` when that is above 1 (a finer detector), else ``options`` itself
+    (``geometry.options_in_mm``; cached: every frame of a view gets the same object)."""
+    return options_in_mm(options, PIXEL_OPTIONS, float(pixel_at_iso_mm))
 
 
 _MAY_BE_ZERO = {"start_cost_per_mm", "track_tolerance_mm", "track_confirm_mm",

@@ -19,6 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from guidewire3d import kernels
+from guidewire3d.geometry import fine_pixel_factor
 
 __all__ = ["PathCosts", "viterbi_costs", "viterbi_path", "path_step_costs", "path_retreat_mm", "branch_alternative",
            "tip_rival", "tree_end_rival", "touching_rival", "ambiguity_mm2", "tracking_tip"]
@@ -311,7 +312,9 @@ def tracking_tip(ctx, previous):
 #: :func:`tree_end_rival`: a rival may end this many px (of the 2D wire, in anchors) before the
 #: chosen path's tip, at the end of a leaf branch of the tree (within ``TREE_END_LEAF_MM`` of it).
 #: A CTA tree loses the thin distal end of a vessel (``bench_stress`` 4005 f7: the true tip 4.3 mm
-#: beyond the extracted branch's end, 6 anchors of the 2D wire beyond its projection)
+#: beyond the extracted branch's end, 6 anchors of the 2D wire beyond its projection). In px at
+#: ``REFERENCE_PIXEL_AT_ISO_MM``: a finer view widens it to its size in mm there (``fine_pixel_factor``;
+#: its anchors are widened as much, so the rival may end as many anchors before the tip)
 TREE_END_MAX_PX = 40.0
 TREE_END_LEAF_MM = 2.0
 #: ... and that explains the wire up to its end better than the chosen path does, by this much
@@ -346,7 +349,8 @@ def tree_end_rival(ctx, costs: PathCosts, nodes, opt, *, alpha=None):
     alpha = _forward(costs, T, opt) if alpha is None else alpha
     if alpha is None:
         return float("inf"), 0.0
-    first = max(1, T - int(np.floor(TREE_END_MAX_PX / opt.dp_step_px)))
+    end_px = TREE_END_MAX_PX * fine_pixel_factor(ctx.carm.pixel_at_iso_mm)
+    first = max(1, T - int(np.floor(end_px / opt.dp_step_px)))
     cand = costs.cand[first:T]
     pts = np.maximum(cand, 0)
     br = ctx.point_branch[pts]
