@@ -30,6 +30,10 @@ Variants (``hu*``: the CT in HU; ``au*``: 0.5 HU + 1000; ``mr*``: an MR contrast
   of the chest (z > -190); ``mr_sub_cor``: a subtracted coronal MRA (the magnitude of the post-contrast
   minus that of a pre-contrast image whose blood is unenhanced: vessels bright, noise elsewhere);
   ``mr_sag``: a sagittal acquisition (3.0 mm slices left-right, 1.4 x 1.4 mm in-plane).
+* ``tof``: a time-of-flight MR angiogram's intensities on the CT's own grid (see :func:`tof_clean`: fat and fatty
+  marrow bright ~330, muscle ~190, arteries ~460-470 - 1.4-1.5x the tissue's rise above air over the tissue, the
+  band where a CT's bone in other units also lies -, systemic veins saturated to at most 215, cortical bone ~40,
+  air and lungs near 10), then Rician noise (sigma 9).
 
 Reference: the isotropic skeleton of the artery labels (``bench_real_cta.reference_centerline_iso``:
 aorta, brachiocephalic trunk, subclavian, common carotid and iliac arteries), computed once on the CT's
@@ -72,7 +76,7 @@ sys.path.insert(0, str(Path(__file__).parent))
 import bench_real_cta as B  # noqa: E402
 
 VARIANTS = ["hu", "hu_flip", "hu_dicom", "au_cor", "au_cor_ras", "au_obl", "au_cor_abd", "mr", "mr_cor", "mr_cor_bias",
-            "mr_cor_abd", "mr_cor_chest", "mr_sub_cor", "mr_sag"]
+            "mr_cor_abd", "mr_cor_chest", "mr_sub_cor", "mr_sag", "tof"]
 RIGHT_DICE, RIGHT_MAX_IN_OTHER = 0.8, 0.5
 NOISE_SIGMA = 20.0
 BONE_PREFIXES = ("vertebrae", "sacrum", "rib_", "sternum", "costal", "clavicula", "scapula", "hip_", "femur",
@@ -82,6 +86,11 @@ SYSTEMIC_VEINS = ("brachiocephalic_vein", "superior_vena_cava", "inferior_vena_c
 #: muscle and unenhanced blood ~240, organs 300-500, enhanced blood up to ~1900-2000
 HU_PTS = [-1000, -900, -500, -200, -100, -50, 0, 40, 80, 120, 200, 300, 400, 600]
 MR_PTS = [0, 10, 60, 500, 800, 600, 280, 240, 330, 500, 1000, 1600, 1900, 2000]
+#: a TOF MRA's intensity as a function of the CT's HU: air and lung ~10, fat ~330, muscle and organs (no contrast
+#: agent: the CT's enhancing parenchyma too) ~190-205, the CT's contrast (300-600 HU) 440-470; bone labels and
+#: systemic veins apart (:func:`tof_clean`)
+TOF_PTS = [10, 12, 40, 250, 330, 300, 200, 190, 195, 205, 300, 440, 465, 470]
+TOF_NOISE_SIGMA = 9.0
 
 
 def _structures(data: Path) -> dict[int, str]:
@@ -89,6 +98,19 @@ def _structures(data: Path) -> dict[int, str]:
 
     with open(data / "structures.csv") as fh:
         return {int(r["id"]): r["structure"] for r in csv.DictReader(fh)}
+
+
+def _mr_mapped(hu: np.ndarray, src: np.ndarray, labels_zyx: np.ndarray, names: dict[int, str], tissue_pts,
+               bone_pts, vein_max: float) -> np.ndarray:
+    """``src`` (HU) through ``HU_PTS -> tissue_pts``; bone labels (where ``hu`` >= 100) through
+    ``[100, 500, 1500] -> bone_pts``; systemic veins at most ``vein_max``."""
+    out = np.interp(src, HU_PTS, tissue_pts).astype(np.float32)
+    bone_ids = [k for k, n in names.items() if n.startswith(BONE_PREFIXES)]
+    bone = np.isin(labels_zyx, bone_ids) & (hu >= 100)
+    out[bone] = np.interp(hu[bone], [100, 500, 1500], bone_pts)
+    veins = np.isin(labels_zyx, [k for k, n in names.items() if n.startswith(SYSTEMIC_VEINS)])
+    out[veins] = np.minimum(out[veins], vein_max)
+    return out
 
 
 def mr_clean(hu_zyx: np.ndarray, labels_zyx: np.ndarray, names: dict[int, str], *, pre: bool = False) -> np.ndarray:
@@ -99,14 +121,18 @@ def mr_clean(hu_zyx: np.ndarray, labels_zyx: np.ndarray, names: dict[int, str], 
     (arterial phase) at most 600.
     """
     hu = np.asarray(hu_zyx, dtype=np.float32)
-    src = np.minimum(hu, 60.0) if pre else hu
-    out = np.interp(src, HU_PTS, MR_PTS).astype(np.float32)
-    bone_ids = [k for k, n in names.items() if n.startswith(BONE_PREFIXES)]
-    bone = np.isin(labels_zyx, bone_ids) & (hu >= 100)
-    out[bone] = np.interp(hu[bone], [100, 500, 1500], [700, 60, 40])
-    veins = np.isin(labels_zyx, [k for k, n in names.items() if n.startswith(SYSTEMIC_VEINS)])
-    out[veins] = np.minimum(out[veins], 600.0)
-    return out
+    return _mr_mapped(hu, np.minimum(hu, 60.0) if pre else hu, labels_zyx, names, MR_PTS, [700, 60, 40], 600.0)
+
+
+def tof_clean(hu_zyx: np.ndarray, labels_zyx: np.ndarray, names: dict[int, str]) -> np.ndarray:
+    """A time-of-flight MR angiogram's noise-free intensities from the CT (HU) and its labels.
+
+    Soft tissue through ``HU_PTS -> TOF_PTS`` (the CT's enhanced blood becomes the arteries' inflow signal); bone
+    labels: cortex (>= 500 HU) ~40, marrow (100-500 HU) from fat-bright ~330 down to the cortex; systemic veins
+    (saturated by the venous presaturation band) at most 215.
+    """
+    hu = np.asarray(hu_zyx, dtype=np.float32)
+    return _mr_mapped(hu, hu, labels_zyx, names, TOF_PTS, [330, 40, 30], 215.0)
 
 
 def bias_field(points_lps_mm: np.ndarray, *, amplitude: float = 0.3, seed: int = 3) -> np.ndarray:
@@ -217,7 +243,8 @@ def build_variant(name: str, data: Path, tmp: Path):
         return v, lab
     # MR variants
     rng = np.random.default_rng(7)
-    clean = mr_clean(A, labels, names)
+    clean = tof_clean(A, labels, names) if name == "tof" else mr_clean(A, labels, names)
+    sigma = TOF_NOISE_SIGMA if name == "tof" else NOISE_SIGMA
     if grid is None:  # the CT's own grid
         img, lab, M_o = clean, labels, (vol.spacing_mm, vol.origin_lps_mm, vol.direction)
     else:
@@ -232,8 +259,8 @@ def build_variant(name: str, data: Path, tmp: Path):
         img = img * f.astype(np.float32)
 
     def rician(x):
-        n1 = rng.normal(0, NOISE_SIGMA, x.shape).astype(np.float32)
-        n2 = rng.normal(0, NOISE_SIGMA, x.shape).astype(np.float32)
+        n1 = rng.normal(0, sigma, x.shape).astype(np.float32)
+        n2 = rng.normal(0, sigma, x.shape).astype(np.float32)
         return np.sqrt((x + n1) ** 2 + n2 ** 2)
 
     if name == "mr_sub_cor":

@@ -35,7 +35,7 @@ REASONS = {"tip end": "tip end uncertain", "beyond tip": "tip uncertain: a wire-
            "tip bare": "tip uncertain: the trace's last",
            "along beam": "tip uncertain: its vessel runs along the beam",
            "not in view": "tip not in view", "tip sigma": "tip uncertain: its position",
-           "trace doubtful": "2D trace doubtful", "branch ambiguous": "branch ambiguous", "motion": "motion:"}
+           "trace doubtful": "2D trace doubtful", "branch ambiguous": "branch ambiguous", "motion": "motion:", "path changed": "path changed"}
 
 
 def options_of(seed: int, draws: str = "standard") -> list[str]:

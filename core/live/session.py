@@ -269,6 +269,7 @@ class Session:
         self.motion_options = motion_options
         self.n_frames = 0
         self.tracker = None
+        self._prior_was_ok = False  # the frame whose path is the tracker's prior was reported ok
         self.set_pose(pose, registration_covariance=registration_covariance)
 
     # --- state --------------------------------------------------------------------------------
@@ -303,6 +304,7 @@ class Session:
         if self._segmenter is not None:
             self._segmenter.reset()
         self.tracker.previous = None
+        self._prior_was_ok = False
         if self.motion_tracker is not None:
             self.motion_tracker.reset()
 
@@ -398,7 +400,9 @@ class Session:
             doubled = tip_end_check(image, uv, at_end=not w3.reversed_input)
             stages["reconstruction"] = stages.get("reconstruction", 0.0) + time.perf_counter() - t1
         verdict, message = frame_verdict(w3, uv, ori, beyond_tip=beyond_tip, doubled_tip=doubled,
-                                         motion=motion, image_shape=self.carm.shape, continuation=continuation)
+                                         motion=motion, image_shape=self.carm.shape, continuation=continuation,
+                                         prior_was_ok=self._prior_was_ok)
+        self._prior_was_ok = verdict is Verdict.OK      # the tracker's prior is now this frame's path
         return FrameResult(index, wire2d, w3, verdict, message, ori, time.perf_counter() - t0, timestamp,
                            self.pose, motion, stages)
 
@@ -409,7 +413,7 @@ class Session:
 
 
 def frame_verdict(wire3d, wire_uv_px, orientation, *, beyond_tip=None, motion=None, image_shape=None,
-                  continuation=None, doubled_tip=None):
+                  continuation=None, doubled_tip=None, prior_was_ok: bool = False):
     """``(Verdict, message)`` of a frame with a 3D wire: ``OK`` with the reconstruction's message,
     or ``UNCERTAIN`` with every reason that applies, the first first:
 
@@ -432,7 +436,12 @@ def frame_verdict(wire3d, wire_uv_px, orientation, *, beyond_tip=None, motion=No
       px before the tip, or a path that crosses into a vessel whose lumen touches the chosen route's
       where the tree joins the two elsewhere (``reconstruction.path.branch_alternative``,
       ``touching_rival``);
-    * the frame's motion update did not fit (``motion``: its ``RegistrationResult``).
+    * the frame's motion update did not fit (``motion``: its ``RegistrationResult``);
+    * the wire left the path of the previous frame, which was reported ``ok`` (``prior_was_ok``): the
+      reconstruction dropped that path as its prior (``Wire3D.prior_dropped``), the wire fitting another
+      path through the tree much better. A wire advances and retracts along one path: one of the two
+      frames, or the pose they were reconstructed in, is wrong (``bench_stress`` 6104 f2: the tracked pose
+      drifting 5 mm off, the tip put 9.8 mm off in another branch, ``ok`` after an ``ok`` frame).
     """
     uv = np.asarray(wire_uv_px, float).reshape(-1, 2)
     reversed_ = bool(getattr(wire3d, "reversed_input", False))
@@ -474,6 +483,9 @@ def frame_verdict(wire3d, wire_uv_px, orientation, *, beyond_tip=None, motion=No
                    f"ends {shift_mm:.0f} mm away")
     if motion is not None and not motion.success:
         why.append(f"motion: {motion.message}")
+    if prior_was_ok and getattr(wire3d, "prior_dropped", False):
+        why.append("path changed: the wire fits another path through the vessel tree much better than the previous "
+                   "ok frame's (a wire moves along one path: this frame, that one or the pose is wrong)")
     if not why:
         return Verdict.OK, wire3d.message
     return Verdict.UNCERTAIN, "; ".join(why)

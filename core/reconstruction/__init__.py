@@ -18,9 +18,12 @@ from guidewire3d.reconstruction.candidates import (  # noqa: F401
     tree_candidates,
 )
 from guidewire3d.reconstruction.context import (  # noqa: F401
+    PIXEL_OPTIONS,
+    REFERENCE_PIXEL_AT_ISO_MM,
     ReconOptions,
     ReconstructionContext,
     build_context,
+    options_at_pixel,
 )
 from guidewire3d.reconstruction.path import (  # noqa: F401
     RIVAL_MIN_SHIFT_MM,

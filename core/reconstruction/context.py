@@ -9,6 +9,7 @@ at another pose of the same tree and view reuses the tree tables.
 from __future__ import annotations
 
 import copy
+import dataclasses
 from collections import OrderedDict
 from dataclasses import dataclass, fields
 
@@ -19,12 +20,14 @@ from guidewire3d.reconstruction.smoothing import arclength
 from guidewire3d.vesseltree import VesselTree
 from scipy.spatial import cKDTree
 
-__all__ = ["ReconOptions", "ReconstructionContext", "build_context"]
+__all__ = ["PIXEL_OPTIONS", "REFERENCE_PIXEL_AT_ISO_MM", "ReconOptions", "ReconstructionContext", "build_context",
+           "options_at_pixel"]
 
 
 @dataclass(frozen=True)
 class ReconOptions:
-    """Tuning of the reconstruction (defaults are the ones benchmarked)."""
+    """Tuning of the reconstruction (defaults are the ones benchmarked). The lengths in pixels hold at
+    ``REFERENCE_PIXEL_AT_ISO_MM``; a finer view widens them (``options_at_pixel``)."""
 
     densify_px: float = 3.0  #: target projected spacing of the (densified) tree points
     densify_radius: float = 0.4  #: ... but at least this fraction of the vessel radius
@@ -73,6 +76,27 @@ class ReconOptions:
                 raise InputError(f"ReconOptions.{f.name} must be a finite positive number, got {v!r}")
         if int(self.candidates) != self.candidates or self.candidates < 1:
             raise InputError(f"ReconOptions.candidates must be a positive integer, got {self.candidates!r}")
+
+
+#: the pixel size at the isocentre (mm) the options in pixels (``PIXEL_OPTIONS``) were tuned at: the
+#: simulator's 512 px views (0.10-0.25 mm, median about 0.17; the branch check's ``BRANCH_EXTRA_MAX`` was
+#: set on them). On a finer detector the same registration error in mm spans more pixels and more
+#: anchors: a 1024 px panel (0.09-0.12 mm) doubled the path costs, and ``bench_stress --draws wide``
+#: 5201 f0 and 6002 f0 were ``ok`` with the tip 9-12 mm off in a vessel overlapping the true one in
+#: projection (the right path's extra cost 7-9, as if 3-4 at 512 px). Below this size the options are
+#: widened to their size in mm here (``options_at_pixel``)
+REFERENCE_PIXEL_AT_ISO_MM = 0.16
+PIXEL_OPTIONS = ("densify_px", "dp_step_px", "margin_px", "sigma_outside_px", "sigma_step_px", "knot_px",
+                 "max_projection_px", "fail_projection_px", "sigma_geo_px")
+
+
+def options_at_pixel(options: ReconOptions, pixel_at_iso_mm: float) -> ReconOptions:
+    """``options`` with its pixel lengths (``PIXEL_OPTIONS``) scaled by ``REFERENCE_PIXEL_AT_ISO_MM /
+    pixel_at_iso_mm`` when that is above 1 (a finer detector), else ``options`` itself."""
+    k = REFERENCE_PIXEL_AT_ISO_MM / float(pixel_at_iso_mm)
+    if not k > 1.0:
+        return options
+    return dataclasses.replace(options, **{n: getattr(options, n) * k for n in PIXEL_OPTIONS})
 
 
 _MAY_BE_ZERO = {"start_cost_per_mm", "track_tolerance_mm", "track_confirm_mm",

@@ -62,7 +62,7 @@ from guidewire3d.geometry import CArm, Pose
 from guidewire3d.methods import ReconMethod
 from guidewire3d.reconstruction.baselines import bspline_points, paper_points
 from guidewire3d.reconstruction.candidates import anchor_indices, tree_candidates
-from guidewire3d.reconstruction.context import ReconOptions, build_context
+from guidewire3d.reconstruction.context import ReconOptions, build_context, options_at_pixel
 from guidewire3d.reconstruction.path import (
     ambiguity_mm2,
     branch_alternative,
@@ -120,6 +120,8 @@ class Wire3D:
     past_path_mm : float, vessel method: the length of the 2D wire past the last anchor the path
         through the tree explains (in mm at the tree's depth; its depth is extrapolated, and spread
         by ``uncertainty.BEYOND_PATH_DEPTH_PER_MM``); 0 when the path explains the wire to its tip.
+    prior_dropped : bool, vessel method: the previous frame's path (the tracking prior) was dropped,
+        the wire fitting another path through the tree much better (``ReconOptions.track_override_cost``).
     """
 
     points_lps_mm: np.ndarray
@@ -140,6 +142,7 @@ class Wire3D:
     branch_extra_cost: float = float("nan")
     branch_tip_shift_mm: float = float("nan")
     past_path_mm: float = 0.0
+    prior_dropped: bool = False
 
     def __post_init__(self):
         object.__setattr__(self, "points_lps_mm", _ro(np.reshape(self.points_lps_mm, (-1, 3))))
@@ -183,6 +186,7 @@ class Wire3D:
             "branch_extra_cost": f(self.branch_extra_cost),
             "branch_tip_shift_mm": f(self.branch_tip_shift_mm),
             "past_path_mm": f(self.past_path_mm),
+            "prior_dropped": bool(self.prior_dropped),
         }
 
 
@@ -296,7 +300,7 @@ def _reconstruct_vessel(ctx, uv, *, track_tip, image, registration_covariance, o
                 opt=opt, method=ReconMethod.VESSEL, t0=t0, message=msg, lumen=(half_width, miss, amb),
                 reversed_input=bool(reversed_note), tree_rise_mm=float(ctx.s[nodes[-1]] - ctx.s[nodes[0]]),
                 path_checks=(retreat_mm, *branch_alternative(ctx, costs, nodes, total, opt)))
-    return replace(w, past_path_mm=past_mm) if past_mm else w
+    return replace(w, past_path_mm=past_mm, prior_dropped=bool(prior_note)) if past_mm or prior_note else w
 
 
 def _reconstruct_paper(ctx, uv, *, image, registration_covariance, opt, t0):
@@ -360,7 +364,7 @@ def reconstruct_wire(wire_uv_px, pose: Pose, carm: CArm, tree: VesselTree, *, pr
     uv = _validate_uv(wire_uv_px)
     if len(uv) < 2:
         return Wire3D.failed("the 2D wire has fewer than 2 points", method=method.value)
-    opt = options or ReconOptions()
+    opt = options_at_pixel(options or ReconOptions(), carm.pixel_at_iso_mm)
     ctx = build_context(pose, carm, tree, options=opt)
     kw = dict(image=image, registration_covariance=registration_covariance, opt=opt, t0=t0)
     if method is ReconMethod.PAPER:
@@ -383,7 +387,7 @@ class WireTracker:
         self.method = method
         self.registration_covariance = registration_covariance
         self.options = options or ReconOptions()
-        self.context = build_context(pose, carm, tree, options=self.options)
+        self.context = build_context(pose, carm, tree, options=options_at_pixel(self.options, carm.pixel_at_iso_mm))
         self.previous: Wire3D | None = None
         self.n_frames = 0
         self.failed_frames: list[int] = []
