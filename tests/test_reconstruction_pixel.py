@@ -23,6 +23,7 @@ from guidewire3d.reconstruction import ReconOptions, reconstruct_wire
 from guidewire3d.reconstruction import context
 from guidewire3d.registration import Verdict
 from guidewire3d.vesseltree import VesselTree
+from scipy.spatial import cKDTree
 from test_reconstruction import _overlap_tree, _pose, _wire_on
 
 TIP_OFF_MM = 5.0   # bench_stress: an ok frame whose tip is farther than this from the true tip is wrong
@@ -66,11 +67,9 @@ def test_a_finer_detector_gives_the_same_wire_costs_and_uncertainty():
         assert w.success and np.linalg.norm(w.points_lps_mm[-1] - W[-1]) < 1.5
         out.append(w)
     coarse, fine = out
-    n = min(len(coarse.points_lps_mm), len(fine.points_lps_mm))
     a = resample_polyline(coarse.points_lps_mm, 0.5)
     b = resample_polyline(fine.points_lps_mm, 0.5)
-    from scipy.spatial import cKDTree
-    assert n > 10 and cKDTree(b).query(a)[0].mean() < 0.1
+    assert min(len(a), len(b)) > 10 and cKDTree(b).query(a)[0].mean() < 0.1
     assert abs(fine.branch_extra_cost - coarse.branch_extra_cost) < 0.1 * coarse.branch_extra_cost, \
         (coarse.branch_extra_cost, fine.branch_extra_cost)
     assert abs(fine.uncertainty_mm[-1] - coarse.uncertainty_mm[-1]) < 0.05 * coarse.uncertainty_mm[-1]

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import functools
 from collections import OrderedDict
 from dataclasses import dataclass, fields
 
@@ -90,9 +91,11 @@ PIXEL_OPTIONS = ("densify_px", "dp_step_px", "margin_px", "sigma_outside_px", "s
                  "max_projection_px", "fail_projection_px", "sigma_geo_px")
 
 
+@functools.lru_cache(maxsize=32)
 def options_at_pixel(options: ReconOptions, pixel_at_iso_mm: float) -> ReconOptions:
     """``options`` with its pixel lengths (``PIXEL_OPTIONS``) scaled by ``REFERENCE_PIXEL_AT_ISO_MM /
-    pixel_at_iso_mm`` when that is above 1 (a finer detector), else ``options`` itself."""
+    pixel_at_iso_mm`` when that is above 1 (a finer detector), else ``options`` itself. Cached: every
+    frame of a view asks for the same options (and gets the same object)."""
     k = REFERENCE_PIXEL_AT_ISO_MM / float(pixel_at_iso_mm)
     if not k > 1.0:
         return options
