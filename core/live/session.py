@@ -390,10 +390,14 @@ class Session:
         beyond_tip = getattr(wire2d, "beyond_tip", None)
         # the image beyond the tip is read only where frame_verdict would use it: not when a piece of
         # the mask beyond the tip already makes the tip uncertain
-        if (image is not None and self.method == "vessel" and len(w3.tree_point_ids)
+        # from the last wire point placed in a lumen: the tip itself may lie just outside its projected lumen
+        # (its tree point is then -1, and before stop 33 the check measured nothing: seed 0 f16 of
+        # ``bench_motion --only sim``, the wire doubled back into a branch, ``ok`` with the tip 14 mm off)
+        on_tree = w3.tree_point_ids[w3.tree_point_ids >= 0]
+        if (image is not None and self.method == "vessel" and len(on_tree)
                 and (beyond_tip is None or w3.reversed_input)):
             t1 = time.perf_counter()
-            continuation = wire_continuation(image, self.tree, self.carm, self.pose, int(w3.tree_point_ids[-1]),
+            continuation = wire_continuation(image, self.tree, self.carm, self.pose, int(on_tree[-1]),
                                              uv[::-1] if w3.reversed_input else uv)
             stages["reconstruction"] = stages.get("reconstruction", 0.0) + time.perf_counter() - t1
         doubled = None
