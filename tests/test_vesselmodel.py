@@ -148,6 +148,21 @@ def test_a_linear_change_of_units_gives_the_same_model_and_tree(scale, offset):
     assert r.vessels.tree.total_length_mm == pytest.approx(r0.vessels.tree.total_length_mm, rel=AU_MASK_TOL)
 
 
+def test_a_ct_in_other_units_with_a_bright_lumen_keeps_its_bone_out():
+    """A CT whose lumen is at 500 HU, in 0.5 HU + 1000: its rib (under 2 cm3 above twice the contrast) is bone,
+    as in HU, because its lumen lies where a CT's contrast does relative to its air and tissue. Without that the
+    model had no bone level and the tree took in the rib (265.9 mm against the HU tree's 82.9 mm)."""
+    ct = _volume(lumen=500.0, bone=1100.0)
+    r0 = vesselmodel.extract_vessels_auto(ct)
+    au = io.Volume(ct.array_zyx * np.float32(0.5) + np.float32(1000.0), ct.spacing_mm, ct.origin_lps_mm,
+                   ct.direction, source="AU")
+    r = vesselmodel.extract_vessels_auto(au)
+    assert r.model.bone is not None and r.model.bone < 0.5 * 1100.0 + 1000.0
+    m0, m1 = r0.vessels.mask_zyx, r.vessels.mask_zyx
+    assert np.count_nonzero(m0 ^ m1) <= AU_MASK_TOL * np.count_nonzero(m0)
+    assert r.vessels.tree.total_length_mm == pytest.approx(r0.vessels.tree.total_length_mm, rel=AU_MASK_TOL)
+
+
 def test_lumen_modes_do_not_depend_on_a_far_tail_of_the_sample():
     """The lumen histogram's bins lie on the background's grid: a bright class far from the lumen (bone, which a
     CT in HU leaves out of the sample and the same CT in other units keeps) does not move the lumen mode, and

@@ -730,7 +730,7 @@ def _estimate_intensity_model(volume: io.Volume, *, seeds_lps_mm=None):
                                  f"background {bg:.4g}, noise {noise:.3g})")
             levels.append(lvl)
         L = float(np.median(levels))
-        bone = _bone_level(ds, bg, L, hu, vox_cm3)
+        bone = _bone_level(ds, bg, L, hu, vox_cm3, ct_like=_ct_contrast_rise(L, med, lo_mode))
         return IntensityModel(bg, L, noise, bone, hu, float("nan"), 0.0, source="seeds"), None
 
     # -- candidates and vesselness
@@ -818,7 +818,7 @@ def _estimate_intensity_model(volume: io.Volume, *, seeds_lps_mm=None):
         tub &= vals > floor + LUMEN_BAND_FRACTION * (L - floor)
     radius = float(np.exp(np.average(np.log(2.0 * np.asarray(MODEL_SCALES_MM)[arg[tub]]), weights=ves[tub])))
     tub_cm3 = float(tub.mean()) * n_cand * vox_cm3
-    bone = _bone_level(ds, bg, L, hu, vox_cm3)
+    bone = _bone_level(ds, bg, L, hu, vox_cm3, ct_like=_ct_contrast_rise(L, med, lo_mode))
     model = IntensityModel(bg, L, noise, bone, hu, radius, tub_cm3, rotational=rotational, floor=floor)
     # -- is one global level enough? the tissue level must not vary across the body like the contrast
     spread_tissue = _tissue_level_range(ds, body, sp_ds)
@@ -910,11 +910,28 @@ def _check_consistent(model: IntensityModel, what: str, vals: np.ndarray, ves: n
             f"bone around a tubular part, not vessels?; give --seed-lps in a vessel")
 
 
-def _bone_level(ds, bg, L, hu, vox_cm3) -> float | None:
-    tail_cm3 = float(np.count_nonzero(ds > bg + 2.0 * (L - bg))) * vox_cm3
+def _ct_contrast_rise(L: float, med: float, air: float | None) -> bool:
+    """Whether a lumen level ``L`` lies where a CT's contrast does, relative to the volume's air and tissue
+    (``CT_CONTRAST_RISE`` times the tissue's rise above air over the body's median ``med``)."""
+    if air is None or not med > air:
+        return False
+    rise = (L - med) / (med - air)
+    return bool(CT_CONTRAST_RISE[0] <= rise <= CT_CONTRAST_RISE[1])
+
+
+def _bone_level(ds, bg, L, hu, vox_cm3, *, ct_like: bool = False) -> float | None:
+    """The level above which a voxel is bone, not lumen; ``None`` when the volume has no brighter class.
+
+    A CT always has one: in HU it starts about 620 HU (issue 4's default); in other units, when the lumen lies
+    where a CT's contrast does (``ct_like``, :func:`_ct_contrast_rise`), at ``BONE_FACTOR`` times the contrast.
+    Else (an MR, a 3DRA) only when at least 2 cm3 lie above twice the contrast. Without ``ct_like`` a CT in
+    0.5 HU + 1000 whose lumen is at 500 HU and whose ribs are thin (under 2 cm3 above 960 HU) had no bone level,
+    and its tree took in a rib (3.2x the HU tree's length, the synthetic CT of ``tests/test_vesselmodel.py``).
+    """
     if hu:  # calibrated CT: cortical bone starts about 620 HU (issue 4's default)
         return float(min(bg + BONE_FACTOR * (L - bg), max(HU_BONE_MIN, L + 0.2 * (L - bg))))
-    if tail_cm3 >= 2.0:
+    tail_cm3 = float(np.count_nonzero(ds > bg + 2.0 * (L - bg))) * vox_cm3
+    if ct_like or tail_cm3 >= 2.0:
         return float(bg + BONE_FACTOR * (L - bg))
     return None
 
