@@ -883,7 +883,7 @@ def _check_consistent(model: IntensityModel, what: str, vals: np.ndarray, ves: n
     """
     L, bg = model.lumen, model.background
     rise = (L - med) / (med - air) if air is not None and med > air else float("nan")
-    ct_like = air is not None and CT_CONTRAST_RISE[0] <= rise <= CT_CONTRAST_RISE[1]
+    ct_like = _ct_contrast_rise(L, med, air)
     if model.bone is not None and (model.rotational or not model.hu) and not ct_like and len(vals):
         near = np.abs(vals - L) <= 0.25 * max(L - bg, 1e-12)
         above = vals > model.bone
