@@ -131,7 +131,8 @@ def wire_continuation(image, tree, carm, pose, tip_point_id: int, wire_uv_px) ->
     tree : VesselTree
     carm, pose : the frame's C-arm and pose (the tree is projected with them)
     tip_point_id : int
-        The tree point of the reconstructed tip (``Wire3D.tree_point_ids[-1]``).
+        The tree point of the reconstructed tip: the last of ``Wire3D.tree_point_ids`` that is not -1 (the tip
+        itself may lie just outside its projected lumen).
     wire_uv_px : (M, 2) array
         The traced 2D wire, ordered proximal -> distal (its last point is the tip).
     """
