@@ -1088,6 +1088,15 @@ def _sheet_ratio_at(mask_zyx: np.ndarray, spacing_zyx, points_zyx: np.ndarray, s
     return out
 
 
+def _sheet_ratio_of_points(volume: io.Volume, mask_zyx: np.ndarray, tree, ids: np.ndarray) -> np.ndarray:
+    """:func:`_sheet_ratio_at` at the tree points ``ids``, each at its own scale: the ``POOL_SCALES_MM`` nearest
+    to half its radius (the scale at which a tube of that radius answers best)."""
+    scales = np.asarray(POOL_SCALES_MM)
+    sigma = scales[np.argmin(np.abs(tree.radius_mm[ids][:, None] / 2.0 - scales[None, :]), axis=1)]
+    pts = volume.lps_to_index_zyx(np.asarray(tree.points_lps_mm, dtype=float)[ids])
+    return _sheet_ratio_at(mask_zyx, np.asarray(volume.spacing_mm, dtype=float)[::-1], pts, sigma)
+
+
 def blood_pool_points(volume: io.Volume, mask_zyx: np.ndarray, tree, *, radius_mm: float = POOL_RADIUS_MM,
                       min_length_radii: float = POOL_MIN_LENGTH_RADII,
                       sheet_ratio: float = POOL_SHEET_RATIO) -> np.ndarray:
@@ -1115,11 +1124,7 @@ def blood_pool_points(volume: io.Volume, mask_zyx: np.ndarray, tree, *, radius_m
             cand.append(ids)
     if not cand:
         return out
-    ids_all = np.concatenate(cand)
-    scales = np.asarray(POOL_SCALES_MM)
-    sigma = scales[np.argmin(np.abs(tree.radius_mm[ids_all][:, None] / 2.0 - scales[None, :]), axis=1)]  # ~ r / 2
-    pts = volume.lps_to_index_zyx(np.asarray(tree.points_lps_mm, dtype=float)[ids_all])
-    ratio = _sheet_ratio_at(mask_zyx, np.asarray(volume.spacing_mm, dtype=float)[::-1], pts, sigma)
+    ratio = _sheet_ratio_of_points(volume, mask_zyx, tree, np.concatenate(cand))
     k = 0
     for ids in cand:
         if float(np.median(ratio[k:k + len(ids)])) < sheet_ratio:
@@ -1137,8 +1142,8 @@ def _rejoined_tubes(volume: io.Volume, mask_zyx: np.ndarray, tree, comp: np.ndar
     from scipy.spatial import cKDTree
 
     keep = np.asarray(keep, bool).copy()
-    parts = [c for c in np.unique(comp[(comp >= 0) & ~keep])]
-    if not parts:
+    parts = np.unique(comp[(comp >= 0) & ~keep])
+    if not len(parts):
         return keep, []
     pts = np.asarray(tree.points_lps_mm, dtype=float)
     r = np.asarray(tree.radius_mm, dtype=float)
@@ -1148,11 +1153,8 @@ def _rejoined_tubes(volume: io.Volume, mask_zyx: np.ndarray, tree, comp: np.ndar
     if not narrow:
         return keep, []
     ids = np.concatenate(narrow)
-    scales = np.asarray(POOL_SCALES_MM)
-    sigma = scales[np.argmin(np.abs(r[ids][:, None] / 2.0 - scales[None, :]), axis=1)]
     ratio = np.zeros(tree.n_points)
-    ratio[ids] = _sheet_ratio_at(mask_zyx, np.asarray(volume.spacing_mm, dtype=float)[::-1],
-                                 volume.lps_to_index_zyx(pts[ids]), sigma)
+    ratio[ids] = _sheet_ratio_of_points(volume, mask_zyx, tree, ids)
     tubes = []
     for m in narrow:
         o = np.argsort(ratio[m])
