@@ -182,7 +182,9 @@ def vessel_mask(image, *, dark_vessels: bool | None = None, max_radius_px: float
         Radius of the widest vessel expected, px (e.g. from the CTA and the C-arm magnification).
         ``None``: vessels up to ``FINE_MAX_RADIUS_PX`` x (image size / 300 px), typical of
         coronary angiograms. A larger value adds a second detection pass on an f-times binned
-        image, ``f = ceil(max_radius_px / (FINE_MAX_RADIUS_PX x scale))`` (at most 8).
+        image, ``f = ceil(max_radius_px / (FINE_MAX_RADIUS_PX x scale))`` (at most 8); the vessels
+        wider than the fine pass covers (an aorta) are then outlined at full resolution, and they
+        replace the binned pass's blocks near them (``WIDE_VESSELS``).
         Used by ``CLASSICAL`` only (the learned model covers coronary-sized vessels).
     method : VesselMethod or str
         ``"classical"``, ``"learned"`` or ``"auto"`` (default). ``AUTO`` is ``CLASSICAL`` when
