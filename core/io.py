@@ -879,7 +879,11 @@ def _read_dicom_header(path: Path, what: str):
     except OSError as e:
         raise InputError(f"{path}: cannot read it ({e.strerror})") from None
     except Exception as e:  # noqa: BLE001
-        raise DicomError(f"{path}: unreadable DICOM header ({e.__class__.__name__}: {str(e)[:100]})") from None
+        # pydicom's parse errors (struct.error 'unpack requires a buffer of 4 bytes', EOFError ...) come from a
+        # header that ends inside an element: a truncated file, or a corrupt length. Which one depends on where the
+        # cut falls in the file meta group, whose UIDs vary in length from file to file
+        raise DicomError(f"{path}: truncated or corrupt DICOM header, unreadable ({e.__class__.__name__}: "
+                         f"{str(e)[:100]})") from None
     if "PixelData" not in ds:
         ts = getattr(getattr(ds, "file_meta", None), "TransferSyntaxUID", None)
         raise DicomError(f"{path}: truncated or not an image DICOM file: no PixelData (7FE0,0010) "

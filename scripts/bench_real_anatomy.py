@@ -39,7 +39,9 @@ the same registration started with the isocentre at the centroid of the tree's i
 start the product cannot know: a diagnostic of the capture range): start mTRE, then verdict and mTRE; ``wire``/``tip``
 the 3D mean and tip errors (mm, median over the frames with a 3D wire) against the in-image part
 of the true wire, ``wire_tp`` the same reconstructed in the true pose (isolates the 2D wire and the
-3D reconstruction from the registration); ``frames`` frames with a 3D wire; diagnostics: ``wire2d_tp`` the fraction of the in-image true
+3D reconstruction from the registration); ``frames`` frames with a 3D wire; ``ok`` / ``okwrong`` (and ``_tp``) of
+them, those whose verdict is ok, and those ok with the wire more than ``WIRE_OFF_MM`` or the tip more than
+``TIP_OFF_MM`` off (silently wrong); diagnostics: ``wire2d_tp`` the fraction of the in-image true
 wire's projection within 3 px of the 2D wire the session found (median over the frames);
 ``tree3`` the fraction of the in-image true wire within 3 mm of the extracted 3D centerline,
 ``cl2d`` the fraction of the 2D centerline points within 5 px of the projected reference (label)
@@ -68,6 +70,8 @@ DETECTOR_PX = 512
 VIEW_MM = 160.0  # the view is centred on the last VIEW_MM of the wire path
 TIP_BACK_MM = (90.0, 60.0, 30.0, 0.0)
 WIRE_RADIUS_MM = 0.445
+WIRE_OFF_MM = 2.0   # a frame whose verdict is ok with its 3D wire farther off than this, or its tip
+TIP_OFF_MM = 5.0    # ... farther than this, is silently wrong (``okwrong``), as in bench_motion.py
 
 
 def _cta_digest() -> str:
@@ -261,6 +265,7 @@ def run_pose(k, rng, wires, tree, iodine, mu_ct, vol, ref_lps, log):
         sess.warm_up(frames[0])
         errs, tips, secs = [], [], []
         cover = []
+        n_ok = n_ok_wrong = 0
         for fr, tw in zip(sess.run(frames), true_wires):
             secs.append(fr.seconds)
             # 2D diagnostic: the in-image true wire's projection covered by the 2D wire found (3 px)
@@ -275,6 +280,11 @@ def run_pose(k, rng, wires, tree, iodine, mu_ct, vol, ref_lps, log):
             e = metrics.wire_errors_mm(fr.wire3d.points_lps_mm, tru)
             errs.append(e["mean_error_mm"])
             tips.append(e["tip_error_mm"])
+            ok = fr.verdict.value == "ok"
+            n_ok += ok
+            n_ok_wrong += ok and (e["mean_error_mm"] > WIRE_OFF_MM or e["tip_error_mm"] > TIP_OFF_MM)
+        row["ok" + key] = n_ok
+        row["okwrong" + key] = n_ok_wrong
         row["wire" + key] = float(np.median(errs)) if errs else float("nan")
         row["tip" + key] = float(np.median(tips)) if tips else float("nan")
         row["frames" + key] = len(errs)
@@ -323,7 +333,7 @@ def main(argv=None):
     rows = []
     cols = ["pose", "target", "primary", "secondary", "reg_ok", "why", "expl", "mtre_view", "mtre_all", "start", "lm_true",
             "true_why", "vc_start", "vc",
-            "wire", "tip", "frames", "wire_tp", "tip_tp", "frames_tp", "wire2d_tp", "tree3", "cl2d", "cov2d", "t_cl", "t_reg", "t_fr"]
+            "wire", "tip", "frames", "ok", "okwrong", "wire_tp", "tip_tp", "frames_tp", "ok_tp", "okwrong_tp", "wire2d_tp", "tree3", "cl2d", "cov2d", "t_cl", "t_reg", "t_fr"]
     print("| " + " | ".join(cols) + " |")
     print("|" + "---|" * len(cols))
     for k in range(a.poses):
@@ -359,6 +369,10 @@ def main(argv=None):
     print(" | <= 1.0 mm |")
     print(f"| 3D wire mean error in the true pose, median over poses | {np.median(tp):.2f} mm |  |" if tp else
           "| 3D wire mean error in the true pose | n/a |  |")
+    for key, where in (("", "registered pose"), ("_tp", "true pose")):
+        print(f"| frames with a 3D wire / verdict ok / ok but wrong (wire > {WIRE_OFF_MM:g} or tip > {TIP_OFF_MM:g} mm), "
+              f"{where} | {sum(r.get('frames' + key, 0) for r in done)} / {sum(r.get('ok' + key, 0) for r in done)} / "
+              f"{sum(r.get('okwrong' + key, 0) for r in done)} | - / - / 0 |")
     print(f"| per pose: 2D centerline / registration / per frame | {np.median([r['t_cl'] for r in done]):.1f} / "
           f"{np.median([r['t_reg'] for r in done]):.1f} / {np.median([r.get('t_fr', np.nan) for r in done]):.2f} s "
           f"(median) |  |")

