@@ -163,7 +163,8 @@ def main(argv=None):
     ap.add_argument("--tree", choices=("auto", "seeded", "labels"), default="auto",
                     help="auto: the product's automatic tree; seeded: with a seed in the aorta; labels: a control, "
                          "the centerline of the artery labels (the real-anatomy phantom's true tree)")
-    ap.add_argument("--set", action="append", default=[], metavar="NAME=VALUE")
+    ap.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
+                    help="set a constant of a registration module or of xray.roadmap (e.g. WIDE_VESSELS=1)")
     ap.add_argument("--start", choices=("nominal", "view-centre"), default="nominal",
                     help="the product's start: nominal (the isocentre at the tree's centroid) or view-centre (the "
                          "isocentre at the viewed region's centre, as reconstruct --isocentre-lps gives it: the "
@@ -173,12 +174,13 @@ def main(argv=None):
     a = ap.parse_args(argv)
     from guidewire3d import metrics, registration
     from guidewire3d.registration import model, problem, search, solve, verdict
+    from guidewire3d.xray import roadmap
 
     for kv in a.set:
         name, value = kv.split("=", 1)
-        mod = next((m for m in (verdict, search, solve, problem, model) if hasattr(m, name)), None)
+        mod = next((m for m in (verdict, search, solve, problem, model, roadmap) if hasattr(m, name)), None)
         if mod is None:
-            ap.error(f"--set: no registration module has a constant {name}")
+            ap.error(f"--set: no registration or xray.roadmap module has a constant {name}")
         kind = type(getattr(mod, name))
         setattr(mod, name, value.lower() in ("1", "true", "yes") if kind is bool else kind(value))
 

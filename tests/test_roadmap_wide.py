@@ -63,7 +63,8 @@ def _outside_branch_roots(axis, aorta, radius_px):
 
 @pytest.fixture
 def wide_pass(monkeypatch):
-    """The full-resolution pass for wide vessels, off by default (``roadmap.WIDE_VESSELS``)."""
+    """The full-resolution pass for wide vessels (``roadmap.WIDE_VESSELS``, on by default since the local
+    replacement; set here so that these tests keep testing it)."""
     from guidewire3d.xray import roadmap
 
     monkeypatch.setattr(roadmap, "WIDE_VESSELS", True)

@@ -68,10 +68,12 @@ FINE_MAX_RADIUS_PX = 6.0          # widest vessel radius the single-resolution p
 MAX_COARSE_FACTOR = 8             # largest binning of the coarse pass (see max_radius_px)
 HALF_MAX = 0.5                    # fraction of the local vessel contrast at the vessel edge
 WIDE_TOPHAT_FACTOR = 1.2          # wide vessels' top-hat disk: this x max_radius_px (see _wide_vessels)
-WIDE_VESSELS = False               # the full-resolution pass for vessels wider than the fine pass (_wide_vessels):
-                                  # off by default. It helps a dense aortogram (issue 17's real-anatomy poses), but
-                                  # next to the simulator's thick trunk it dropped the coarse detection of a faint
-                                  # branch, and bench_stress seeds 3606 and 3608 lost their registration (refused)
+WIDE_VESSELS = True                # the full-resolution pass for vessels wider than the fine pass (_wide_vessels):
+                                  # it replaces the coarse pass's blocks only near the wide pieces
+                                  # (_replace_coarse_by_wide; replacing whole coarse components dropped a faint
+                                  # branch beside the simulator's thick trunk: bench_stress seeds 3606 and 3608)
+WIDE_REPLACE_BLOCKS = 2.0         # the wide pieces replace the coarse detections within this many coarse blocks
+                                  # of them (see _replace_coarse_by_wide)
 WIDE_EDGE_FRACTION = 0.25         # wide vessels' edge: this x the local contrast (a tube's chord there is
                                   # sqrt(1 - 0.25^2) = 97 % of its diameter; at half maximum 87 %)
 
@@ -180,7 +182,9 @@ def vessel_mask(image, *, dark_vessels: bool | None = None, max_radius_px: float
         Radius of the widest vessel expected, px (e.g. from the CTA and the C-arm magnification).
         ``None``: vessels up to ``FINE_MAX_RADIUS_PX`` x (image size / 300 px), typical of
         coronary angiograms. A larger value adds a second detection pass on an f-times binned
-        image, ``f = ceil(max_radius_px / (FINE_MAX_RADIUS_PX x scale))`` (at most 8).
+        image, ``f = ceil(max_radius_px / (FINE_MAX_RADIUS_PX x scale))`` (at most 8); the vessels
+        wider than the fine pass covers (an aorta) are then outlined at full resolution, and they
+        replace the binned pass's blocks near them (``WIDE_VESSELS``).
         Used by ``CLASSICAL`` only (the learned model covers coronary-sized vessels).
     method : VesselMethod or str
         ``"classical"``, ``"learned"`` or ``"auto"`` (default). ``AUTO`` is ``CLASSICAL`` when
@@ -240,22 +244,58 @@ def vessel_mask(image, *, dark_vessels: bool | None = None, max_radius_px: float
             wide = (_wide_vessels(att, mc, f, float(max_radius_px), fov, FINE_MAX_RADIUS_PX * scale)
                     if WIDE_VESSELS else None)
             if wide is not None:
-                # the coarse detections of the wide vessels are replaced by their full-resolution
-                # extent (f x f blocks would fill the bright background an aortic arch encloses,
-                # and a blocky outline puts spurs and a jagged axis in the skeleton)
-                lab, n = ndi.label(up, structure=np.ones((3, 3), bool))
-                hit = np.zeros(n + 1, bool)
-                hit[np.unique(lab[wide])] = True
-                hit[0] = False
-                up &= ~hit[lab]
+                up = _replace_coarse_by_wide(up, wide, f, m)
                 m = m | wide
             m = m | up
+    # the size filter on the detections (the wide pieces among them), as without the wide pass: filtering
+    # again after the width completion measured the branches against the aorta's full extent and dropped a
+    # carotid group at 10 % of it (real-anatomy pose 13)
     m = _filter_components(m)
     if m.any():                                  # grow the detections to full width (FWHM)
         m = _complete_width(m, th_l, fov, scale)
-        if wide is not None:
-            m = _filter_components(m | wide)
     return m
+
+
+def _replace_coarse_by_wide(up: np.ndarray, wide: np.ndarray, f: int, fine: np.ndarray) -> np.ndarray:
+    """The coarse detections ``up`` (f x f blocks, full resolution) with those of the wide vessels
+    ``wide`` replaced by the wide pieces' full-resolution extent, locally.
+
+    f x f blocks would fill the bright background an aortic arch encloses, and a blocky outline
+    puts spurs and a jagged axis in the skeleton. Removed: the coarse pixels of the components that
+    touch a wide piece, within ``WIDE_REPLACE_BLOCKS`` coarse blocks of it (the coarse outline's
+    reach beyond a vessel's edge: one block of binning, one of the coarse top-hat's smoothing) or in
+    a hole of it (background the vessel encloses). Kept: the rest of such a component where it
+    reaches at least one block beyond that band (a narrower vessel beside the wide one that only the
+    coarse pass saw; less is the outline's jitter), and the coarse pixels of that band within the
+    same reach of such a vessel beyond it, coarse or ``fine`` (the fine pass's detections): a
+    branch's root. Without it a faint branch whose fine detection stops short of a thick trunk
+    (the trunk's edge hides its end) is cut off from the tree, and dropped as a small component
+    (``bench_stress`` seed 3606), where the coarse blocks had joined it.
+    """
+    lab, n = ndi.label(up, structure=np.ones((3, 3), bool))
+    hit = np.zeros(n + 1, bool)
+    hit[np.unique(lab[wide])] = True
+    hit[0] = False
+    touching = up & hit[lab]
+    reach = WIDE_REPLACE_BLOCKS * f
+    dist = ndi.distance_transform_edt(~wide)
+    near = dist <= reach
+    holes = ndi.binary_fill_holes(wide) & ~wide
+    # what lies beyond the band, in pieces that reach at least one more block out (a vessel; a fringe's tail
+    # just past the band is the outline's jitter)
+    beyond = (touching | fine) & ~near & ~holes
+    lab_b, n_b = ndi.label(beyond, structure=np.ones((3, 3), bool))
+    if n_b:
+        far = np.zeros(n_b + 1, bool)
+        far[1:] = ndi.maximum(dist, lab_b, index=np.arange(1, n_b + 1)) > reach + f
+        beyond = far[lab_b]
+    rest = touching & beyond
+    root = touching & near & ~wide & ~holes
+    if beyond.any():
+        root &= ndi.distance_transform_edt(~beyond) <= reach
+    else:
+        root[:] = False
+    return (up & ~touching) | rest | root
 
 
 def _wide_vessels(att: np.ndarray, mc: np.ndarray, f: int, max_radius_px: float, fov: np.ndarray,
