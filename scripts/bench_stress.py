@@ -35,7 +35,8 @@ REASONS = {"tip end": "tip end uncertain", "beyond tip": "tip uncertain: a wire-
            "tip bare": "tip uncertain: the trace's last",
            "along beam": "tip uncertain: its vessel runs along the beam",
            "not in view": "tip not in view", "tip sigma": "tip uncertain: its position",
-           "trace doubtful": "2D trace doubtful", "branch ambiguous": "branch ambiguous", "motion": "motion:", "path changed": "path changed"}
+           "trace doubtful": "2D trace doubtful", "branch ambiguous": "branch ambiguous", "motion": "motion:",
+           "path changed": "path changed", "off lumen": "wire off its vessel"}
 
 
 def options_of(seed: int, draws: str = "standard") -> list[str]:

@@ -72,6 +72,15 @@ TREE_RETREAT_MAX_MM = 6.0
 #: tips were right, become ``uncertain`` as well
 BRANCH_EXTRA_MAX = 4.0
 BRANCH_SHIFT_MIN_MM = 5.0
+#: a wire whose rays pass more than this (mm, at the vessel) outside the lumen of the tree path they were
+#: placed in (``Wire3D.lumen_miss_mm``) is not in that vessel there: a frame reported ``ok`` promises a wire
+#: within 2 mm (``bench_stress`` / ``bench_motion``'s ``WIRE_OFF_MM``), and a reconstruction whose own points lie
+#: further outside their vessel than that contradicts its prior (the wire is in the lumen). It happens when
+#: the tree lacks the vessel the wire is in (a real CTA tree drawn through a rib where the subclavian artery
+#: crosses it: the tip 10.4 mm off, ``ok``) or the pose is off there (the static roadmap pose under breathing:
+#: ``bench_motion --only sim``, 34 of its 56 silently wrong ``ok`` frames, 1 of its 146 right ones; with the
+#: pose tracked 1 of 4 wrong, seed 19 f0 with its tip 28 mm off, and none of the 427 right ones)
+OFF_LUMEN_MAX_MM = 2.0
 #: the tip along the beam: the 3D wire's arclength over the last ``TIP_STRETCH_PX`` px of its 2D wire
 #: (``tip_stretch_mm``). Where the tip's vessel runs in the image plane, they span about 5 x the
 #: pixel size at the isocentre (about 1 mm); where it turns along the beam, many mm project onto
@@ -444,6 +453,8 @@ def frame_verdict(wire3d, wire_uv_px, orientation, *, beyond_tip=None, motion=No
       px before the tip, or a path that crosses into a vessel whose lumen touches the chosen route's
       where the tree joins the two elsewhere (``reconstruction.path.branch_alternative``,
       ``touching_rival``);
+    * the wire's rays pass more than ``OFF_LUMEN_MAX_MM`` outside the lumen of the tree path they were
+      placed in (``Wire3D.lumen_miss_mm``): the tree lacks the vessel the wire is in, or the pose is off;
     * the frame's motion update did not fit (``motion``: its ``RegistrationResult``);
     * the wire left the path of the previous frame, which was reported ``ok`` (``prior_was_ok``): the
       reconstruction dropped that path as its prior (``Wire3D.prior_dropped``), the wire fitting another
@@ -483,6 +494,9 @@ def frame_verdict(wire3d, wire_uv_px, orientation, *, beyond_tip=None, motion=No
         why.append(f"2D trace doubtful: along the wire, its path through the vessel tree walks {retreat_mm:.0f} mm "
                    f"back towards the root (a wire advanced from the root does not; the trace may have taken the "
                    f"wrong way where the wire crosses itself)")
+    miss_mm = np.asarray(getattr(wire3d, "lumen_miss_mm", ()), float)
+    if len(miss_mm) and float(miss_mm.max()) > OFF_LUMEN_MAX_MM:
+        why.append(_off_lumen_reason(wire3d))
     extra = float(getattr(wire3d, "branch_extra_cost", float("nan")))
     shift_mm = float(getattr(wire3d, "branch_tip_shift_mm", float("nan")))
     if extra < BRANCH_EXTRA_MAX and shift_mm > BRANCH_SHIFT_MIN_MM:
@@ -499,6 +513,20 @@ def frame_verdict(wire3d, wire_uv_px, orientation, *, beyond_tip=None, motion=No
     if not why:
         return Verdict.OK, wire3d.message
     return Verdict.UNCERTAIN, "; ".join(why)
+
+
+def _off_lumen_reason(wire3d) -> str:
+    """The ``uncertain`` reason of a wire whose rays pass more than ``OFF_LUMEN_MAX_MM`` outside the lumen
+    of their tree path (``Wire3D.lumen_miss_mm``): how far, over how much of the wire, and where."""
+    miss = np.asarray(wire3d.lumen_miss_mm, float)
+    arc = np.asarray(wire3d.arclength_mm, float)
+    off = miss > OFF_LUMEN_MAX_MM
+    span_mm = float(np.sum(np.diff(arc)[off[1:] | off[:-1]])) if len(arc) == len(miss) and len(arc) > 1 else 0.0
+    k = int(np.argmax(miss))
+    from_tip_mm = float(arc[-1] - arc[k]) if len(arc) == len(miss) else float("nan")
+    return (f"wire off its vessel: {span_mm:.0f} mm of the 3D wire lie up to {miss[k]:.1f} mm outside the lumen of the "
+            f"tree path it was placed in ({from_tip_mm:.0f} mm before the tip; limit {OFF_LUMEN_MAX_MM:g} mm): the "
+            f"vessel tree lacks the one the wire is in there, or the pose is off")
 
 
 def tip_stretch_mm(wire3d, wire_uv_px, *, stretch_px: float = TIP_STRETCH_PX) -> float:

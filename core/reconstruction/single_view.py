@@ -122,6 +122,10 @@ class Wire3D:
         by ``uncertainty.BEYOND_PATH_DEPTH_PER_MM``); 0 when the path explains the wire to its tip.
     prior_dropped : bool, vessel method: the previous frame's path (the tracking prior) was dropped,
         the wire fitting another path through the tree much better (``ReconOptions.track_override_cost``).
+    lumen_miss_mm : (N,) ndarray, vessel method: how far each point's ray passes outside the lumen of its
+        tree point (distance from the ray to the centerline minus the radius, mm at the vessel; 0 inside).
+        Empty for the other methods. A stretch of the wire far outside the path's lumen is not in that
+        vessel: the tree lacks the one it is in, or the pose is off there (``live.session.OFF_LUMEN_MAX_MM``).
     """
 
     points_lps_mm: np.ndarray
@@ -143,10 +147,11 @@ class Wire3D:
     branch_tip_shift_mm: float = float("nan")
     past_path_mm: float = 0.0
     prior_dropped: bool = False
+    lumen_miss_mm: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
     def __post_init__(self):
         object.__setattr__(self, "points_lps_mm", _ro(np.reshape(self.points_lps_mm, (-1, 3))))
-        for name in ("uncertainty_mm", "arclength_mm", "curvature_per_mm"):
+        for name in ("uncertainty_mm", "arclength_mm", "curvature_per_mm", "lumen_miss_mm"):
             object.__setattr__(self, name, _ro(np.reshape(getattr(self, name), -1)))
         object.__setattr__(self, "tree_point_ids", _ro(np.reshape(self.tree_point_ids, -1), np.int64))
         object.__setattr__(self, "covariance_mm2", _ro(np.reshape(self.covariance_mm2, (-1, 3, 3))))
@@ -187,6 +192,7 @@ class Wire3D:
             "branch_tip_shift_mm": f(self.branch_tip_shift_mm),
             "past_path_mm": f(self.past_path_mm),
             "prior_dropped": bool(self.prior_dropped),
+            "lumen_miss_mm": np.round(self.lumen_miss_mm, 3).tolist(),
         }
 
 
@@ -300,7 +306,7 @@ def _reconstruct_vessel(ctx, uv, *, track_tip, image, registration_covariance, o
                 opt=opt, method=ReconMethod.VESSEL, t0=t0, message=msg, lumen=(half_width, miss, amb),
                 reversed_input=bool(reversed_note), tree_rise_mm=float(ctx.s[nodes[-1]] - ctx.s[nodes[0]]),
                 path_checks=(retreat_mm, *branch_alternative(ctx, costs, nodes, total, opt)))
-    return replace(w, past_path_mm=past_mm, prior_dropped=bool(prior_note)) if past_mm or prior_note else w
+    return replace(w, past_path_mm=past_mm, prior_dropped=bool(prior_note), lumen_miss_mm=miss)
 
 
 def _reconstruct_paper(ctx, uv, *, image, registration_covariance, opt, t0):
