@@ -23,6 +23,8 @@ pulmonary-vein and vein labels (:func:`without_labelled_branches`); ``--tree-pkl
 ``VesselTree`` or the benchmark's cached dict with ``"tree"``). ``--uv on-ref`` / ``--uv snapped``: controls of
 the 2D side (:func:`controlled_uv`). The ``depth mm`` column: how far the result moved the tree's in-view points
 along the beam (their centroid's camera z minus the truth's; negative: toward the source).
+``--uv snapped --uv-offset-px 0.5``: the snapped 2D points moved by smooth random offsets (:func:`smooth_offsets_px`),
+the single view's depth sensitivity to a correlated 2D/3D disagreement.
 """
 from __future__ import annotations
 
@@ -207,6 +209,18 @@ def controlled_uv(c, mode: str, ref_lps, tree_dense_lps, *, near_px: float = 3.0
     return uv, rad
 
 
+def smooth_offsets_px(uv, rms_px: float, length_px: float, rng, *, n_waves: int = 8) -> np.ndarray:
+    """``(M, 2)`` offsets for the points ``uv``: a smooth random field (``n_waves`` plane waves per component,
+    wave numbers ~ N(0, 1 / length_px)) with ``rms_px`` standard deviation per component - a model of a 2D
+    centerline whose disagreement with the projected 3D one is correlated along the vessels, not per point (the
+    2D model's local fit averages per-point noise away)."""
+    uv = np.asarray(uv, float)
+    k = rng.normal(0.0, 1.0 / float(length_px), (n_waves, 2))
+    ph = rng.uniform(0.0, 2.0 * np.pi, (n_waves, 2))
+    f = np.stack([np.sin(uv @ k.T + ph[:, d]).sum(axis=1) for d in range(2)], axis=1)
+    return float(rms_px) * f / np.sqrt(0.5 * n_waves)
+
+
 def depth_shift_mm(carm, pose_true, pose, points_lps_mm) -> float:
     """How far ``pose`` moves the centroid of ``points_lps_mm`` along the beam from ``pose_true`` (camera z, mm;
     negative: toward the source)."""
@@ -230,6 +244,10 @@ def main(argv=None):
                     help="a control of the 2D side (controlled_uv): roadmap (the product), on-ref (only its points "
                          "within 3 px of the projected artery centerline), snapped (those moved onto the projected "
                          "tree)")
+    ap.add_argument("--uv-offset-px", type=float, default=0.0, metavar="RMS",
+                    help="with --uv snapped: add smooth random offsets of this rms per component (smooth_offsets_px; "
+                         "seeded by the pose index)")
+    ap.add_argument("--uv-offset-length-px", type=float, default=40.0, help="their correlation length")
     ap.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
                     help="set a constant of a registration module or of xray.roadmap (e.g. WIDE_VESSELS=1)")
     ap.add_argument("--start", choices=("nominal", "view-centre"), default="nominal",
@@ -310,6 +328,8 @@ def main(argv=None):
                 wires = b.cached_wires(*ra.load_case(cache)[:2], cache)
             init = nominal_pose(b.view_centre(wires[c["target"]]))
         uv, rad = (c["uv"], c["radius"]) if a.uv == "roadmap" else controlled_uv(c, a.uv, ref_lps, t_dense)
+        if a.uv == "snapped" and a.uv_offset_px > 0:
+            uv = uv + smooth_offsets_px(uv, a.uv_offset_px, a.uv_offset_length_px, np.random.default_rng(c["k"]))
         r = registration.register(tree, uv, carm, centerline_radius_px=rad, init_pose=init)
         rt = registration.refine(tree, uv, carm, pose, centerline_radius_px=rad)
         depths.append(depth_shift_mm(carm, pose, rt.pose, Pv))

@@ -111,3 +111,17 @@ def test_depth_shift_is_the_translation_along_the_beam():
     assert abs(d.depth_shift_mm(carm, pose, moved, line) - 5.0) < 1e-9
     side = Pose(np.eye(3), 5.0 * carm.axes[0]) @ pose
     assert abs(d.depth_shift_mm(carm, pose, side, line)) < 1e-9
+
+
+def test_smooth_offsets_have_the_asked_rms_and_correlation():
+    import diagnose_real_anatomy as d
+
+    uv = np.column_stack([np.linspace(0, 4000, 4001), np.zeros(4001)])
+    rms = []
+    for seed in range(40):
+        f = d.smooth_offsets_px(uv, 0.5, 40.0, np.random.default_rng(seed))
+        rms.append(np.sqrt(np.mean(f ** 2, axis=0)))
+        # neighbours 1 px apart move together (correlated)
+        near = np.corrcoef(f[:-1, 0], f[1:, 0])[0, 1]
+        assert near > 0.99
+    assert abs(float(np.mean(rms)) - 0.5) < 0.1
