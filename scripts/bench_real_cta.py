@@ -256,6 +256,25 @@ def evaluate(vol, labels_zyx, mask_zyx, tree, ref_mm, ref_lab) -> dict:
     }
 
 
+def _estimate_near_labels(vol, labels_zyx, tree):
+    """The densely resampled estimate and where it lies against the artery labels: ``(est, branch of each point,
+    the artery labels' mask, the nearest artery label of each voxel, the points' voxel index tuple, whether each
+    point is within 3 mm of the labels, whether each branch has points farther)``."""
+    from scipy import ndimage as ndi
+
+    sp_zyx = np.asarray(vol.spacing_mm)[::-1]
+    est, br = _dense(tree, with_branch=True)
+    art = np.isin(labels_zyx, list(ARTERIES))
+    d_art, ind = ndi.distance_transform_edt(~art, sampling=sp_zyx, return_indices=True)
+    nearest = labels_zyx[tuple(ind)]
+    del ind
+    idx = np.clip(np.rint(vol.lps_to_index_zyx(est)).astype(int), 0, np.array(labels_zyx.shape) - 1)
+    ti = tuple(idx.T)
+    in_art = d_art[ti] <= COVER_MM
+    leaves = np.bincount(br, weights=~in_art, minlength=len(tree.branches)) > 0  # points away from the labels
+    return est, br, art, nearest, ti, in_art, leaves
+
+
 def evaluate_iso(vol, labels_zyx, tree, ref_mm, ref_lab, mask_zyx) -> tuple[dict, list[str]]:
     """The issue's distances against the isotropic reference (:func:`reference_centerline_iso`), the
     in-label ``est->ref``, and a per-artery breakdown (lines of text).
@@ -273,19 +292,10 @@ def evaluate_iso(vol, labels_zyx, tree, ref_mm, ref_lab, mask_zyx) -> tuple[dict
 
     sp_zyx = np.asarray(vol.spacing_mm)[::-1]
     ref_lps = vol.index_zyx_to_lps(ref_mm / sp_zyx)
-    est, br = _dense(tree, with_branch=True)
+    est, br, art, nearest, ti, in_art, leaves = _estimate_near_labels(vol, labels_zyx, tree)
     d_re, _ = cKDTree(est).query(ref_lps)
     named = ref_lab != AORTA
-    art = np.isin(labels_zyx, list(ARTERIES))
-    d_art, ind = ndi.distance_transform_edt(~art, sampling=sp_zyx, return_indices=True)
-    nearest = labels_zyx[tuple(ind)]
-    del ind
-    idx = np.clip(np.rint(vol.lps_to_index_zyx(est)).astype(int), 0, np.array(labels_zyx.shape) - 1)
-    ti = tuple(idx.T)
-    in_art = d_art[ti] <= 3.0
     in_lab = art[ti]
-    nb = int(br.max()) + 1
-    leaves = np.bincount(br, weights=~in_art, minlength=nb) > 0  # the branch has points away from the labels
     own = in_lab & ~leaves[br]
     d_er, _ = cKDTree(ref_lps).query(est)
     m = {
@@ -350,16 +360,7 @@ def est_to_ref_breakdown(vol, labels_zyx, tree, ref_mm, ref_lab, mask_zyx=None) 
 
     sp_zyx = np.asarray(vol.spacing_mm)[::-1]
     ref_lps = vol.index_zyx_to_lps(np.asarray(ref_mm, dtype=float) / sp_zyx)
-    est, br = _dense(tree, with_branch=True)
-    art = np.isin(labels_zyx, list(ARTERIES))
-    d_art, ind = ndi.distance_transform_edt(~art, sampling=sp_zyx, return_indices=True)
-    nearest = labels_zyx[tuple(ind)]
-    del ind
-    idx = np.clip(np.rint(vol.lps_to_index_zyx(est)).astype(int), 0, np.array(labels_zyx.shape) - 1)
-    ti = tuple(idx.T)
-    in_art = d_art[ti] <= COVER_MM
-    nb = len(tree.branches)
-    leaves_labels = np.bincount(br, weights=~in_art, minlength=nb) > 0
+    est, br, _, nearest, ti, in_art, leaves_labels = _estimate_near_labels(vol, labels_zyx, tree)
     terminal = np.array([not b.children for b in tree.branches], dtype=bool)
     cat = np.where(leaves_labels[br], 0, np.where(terminal[br], 1, 2))
     d_er, _ = cKDTree(ref_lps).query(est)
