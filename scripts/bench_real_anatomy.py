@@ -191,6 +191,9 @@ def refusal(r) -> str:
             (f"inliers {r.inlier_fraction:.2f}" if r.inlier_fraction < verdict.MIN_INLIER_FRACTION else "").strip()
     if r.pose_std_mm > verdict.COVARIANCE_SCREEN_FACTOR * r.max_pose_std_mm:
         return f"1-sigma {r.pose_std_mm:.2f} > {r.max_pose_std_mm:.2f}"
+    if np.isfinite(r.model_std_mm) and np.hypot(r.pose_std_mm, r.model_std_mm) > \
+            verdict.COVARIANCE_SCREEN_FACTOR * r.max_pose_std_mm:
+        return f"model error {r.model_std_mm:.2f}"
     if np.isfinite(r.jackknife_std_mm) and r.jackknife_std_mm > verdict.JACKKNIFE_FACTOR * r.max_pose_std_mm:
         return f"jackknife {r.jackknife_std_mm:.1f} > {verdict.JACKKNIFE_FACTOR * r.max_pose_std_mm:.1f}"
     return "depth profile/scan"

@@ -22,7 +22,7 @@ bifurcations matched with ``match_bifurcations`` at the same start) is in the sa
 ``--verdict`` counts false refusals (mTRE <= 2 mm, verdict not OK) and false acceptances (mTRE > 2 mm,
 OK) of five verdicts computed from the same results (``legacy_ok``: before issue 20; ``sigma_ok``: the
 covariance's limit alone; ``jackknife_ok``: that and the jackknife second opinion; ``profile_ok``: and the
-two-point depth profile; the shipped one, with the wide depth scan) on end-to-end inputs, five roadmaps per seed (see ``load_verdict_cases``; preparing a seed takes
+two-point depth profile; the shipped one, with the wide depth scan; ``--set MODEL_ERROR_GATE=1`` adds the model error's gate) on end-to-end inputs, five roadmaps per seed (see ``load_verdict_cases``; preparing a seed takes
 ~20 s, cached under ``--cache``).
 
 ``--e2e`` uses the inputs of ``guidewire3d bench`` (seeds 100.., same ``PhantomOptions``, DICOM
@@ -91,7 +91,7 @@ def profile_ok(r) -> bool:
 REASONS = (("mean residual", "residual"), ("of the 2D centerline explained", "inliers"),
            ("one vessel path is explained", "1-sigma (single path)"), ("do not determine the pose", "1-sigma"),
            ("jackknife 1-sigma", "jackknife"), ("does not settle the depth along the beam", "depth profile"),
-           ("depth scan finds another depth", "depth scan"))
+           ("depth scan finds another depth", "depth scan"), ("(model error)", "model error"))
 
 
 def refusal_reasons(message: str) -> str:
@@ -443,12 +443,17 @@ def verdict_table(rows, out, seeds):
     alone (``sigma_ok``), 1-sigma and the jackknife second opinion (``jackknife_ok``), and the depth
     profile (``profile_ok``), and the shipped one (with the depth scan); then which checks refused the
     right registrations and which accepted wrong ones."""
+    from guidewire3d.registration import verdict
+
     names = " / ".join(n for _, n in VERDICT_COLUMNS)
     out(f"\n### Verdict vs truth: {len(rows)} registrations from the DICOM start (seeds {seeds}), "
         f"right = mTRE <= {SUCCESS_MM} mm")
     out("verdicts: *legacy* = before issue 20; *1-sigma* = the pose covariance's limit alone; "
         "*jackknife* = 1-sigma and the jackknife second opinion; *profile* = and the two-point depth profile; "
-        "*scan* (shipped) = and the wide depth scan, which also settles a depth the covariance leaves too wide")
+        "*scan* (shipped) = and the wide depth scan, which also settles a depth the covariance leaves too wide"
+        + ("; and the model error's gate (MODEL_ERROR_GATE: the jackknife, profile and scan then run only on the poses "
+           "it passes, so the columns before *scan* count the others as passing them)" if verdict.MODEL_ERROR_GATE
+           else ""))
     out(f"| roadmap | n | right | false refusals {names} | false acceptances {names} | largest mTRE flagged OK "
         f"{names} (mm) |")
     out("|---|---|---|---|---|---|")

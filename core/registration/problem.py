@@ -129,6 +129,7 @@ class _Eval:
     dist2_px: np.ndarray | None = None  # (M,) 2D -> 3D distance (px)
     gate_px: float = float("nan")  # settings of the evaluation (to redo it with the information)
     delta: float = float("nan")
+    G_2d: np.ndarray | None = None  # (M, 6, 2) with the information: how the 2D samples pull the pose (below)
 
 
 @dataclass(frozen=True, eq=False)
@@ -349,7 +350,17 @@ class _Problem:
             vf = np.concatenate([drho1, drho1, self.lam * drho2, self.lam * drho2])
             H_info = (J * vf[:, None]).T @ J
             chi2 = float(np.dot(vf * rf, rf))
-        return _Eval(pose, float(energy), corr, g, H, rnorm, n1, n2, H_info, chi2, dof, gate_px=gate_px, delta=delta)
+            # the estimate's sensitivity to the 2D samples: row k is r_k = w_k . (projection - q_m(k)), so
+            # moving the 2D samples by dq moves the information-weighted optimum by H_info^-1 sum_m G_2d[m] dq_m
+            # (theta units): G_2d[m] = sum over the rows of sample m of v_k J_k w_k^T
+            rows_q = np.concatenate([c.j[k1], c.j[k1], k2i, k2i])
+            Gk = ((J * vf[:, None])[:, :, None] * W[:, None, :]).reshape(K, 12)
+            G_2d = np.stack([np.bincount(rows_q, weights=Gk[:, ch], minlength=M) for ch in range(12)],
+                            axis=1).reshape(M, 6, 2)
+        else:
+            G_2d = None
+        return _Eval(pose, float(energy), corr, g, H, rnorm, n1, n2, H_info, chi2, dof, gate_px=gate_px, delta=delta,
+                     G_2d=G_2d)
 
     def with_info(self, ev: _Eval) -> _Eval:
         """``ev`` re-evaluated (same pose and correspondences) with the covariance information."""

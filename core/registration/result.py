@@ -80,6 +80,12 @@ class RegistrationResult:
         ``JACKKNIFE_TILES`` spatial tiles of the 2D centerline left out in turn and the pose refined
         without it. ``success`` needs it within ``JACKKNIFE_FACTOR x max_pose_std_mm``: a pose that
         rests on one part of the roadmap (a wrong branch match, a segment off as a whole) moves.
+    model_std_mm : float
+        The fifth opinion (NaN when not computed, i.e. when the covariance's screen already refused): the RMS
+        1-sigma displacement of the tree's points in view that a smooth disagreement of the 2D and the projected 3D
+        centerline (``MODEL_ERROR_PX`` per component, correlated over ``MODEL_ERROR_LENGTH_PX``) causes, to first
+        order; mostly along the beam. Reported; with ``MODEL_ERROR_GATE`` (off by default) ``success`` also needs
+        ``hypot(pose_std_mm, model_std_mm)`` within the covariance's screen. It is not in ``covariance_6x6``.
     depth_scan_rise : float
         The fourth opinion (NaN when not computed): the depth scan's smallest rise of the energy at depths
         ``DEPTH_SCAN_FAR_MM`` or more from the result along the beam, the rest of the pose re-fitted, in units
@@ -107,6 +113,7 @@ class RegistrationResult:
     max_pose_std_mm: float = float("nan")
     jackknife_std_mm: float = float("nan")
     depth_scan_rise: float = float("nan")
+    model_std_mm: float = float("nan")
 
     def __bool__(self) -> bool:
         return bool(self.success)
@@ -136,6 +143,7 @@ class RegistrationResult:
             "max_pose_std_mm": _json_float(self.max_pose_std_mm),
             "jackknife_std_mm": _json_float(self.jackknife_std_mm),
             "depth_scan_rise": _json_float(self.depth_scan_rise),
+            "model_std_mm": _json_float(self.model_std_mm),
         }
 
 
