@@ -104,7 +104,7 @@ def cached_tree(vol, cache: Path, log, seeds_lps_mm=None):
 
 
 def cached_wires(vol, labels, cache: Path):
-    f = cache / "real_anatomy" / "wires_v1.pkl"
+    f = cache / "real_anatomy" / "wires_v2.pkl"  # v2: through as few labels as possible (realct._route)
     if f.is_file():
         return pickle.loads(f.read_bytes())
     w = {t: ra.true_wire(vol, labels, t, wire_radius_mm=WIRE_RADIUS_MM) for t in ra.TARGETS}

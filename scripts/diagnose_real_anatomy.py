@@ -49,7 +49,7 @@ def prepared_cases(n: int, seed: int, cache: Path, log, tree=None):
     ``roadmap_centerline`` on every run (with the pipeline's ``max_radius_px`` from ``tree``)."""
     from guidewire3d.xray.roadmap import roadmap_centerline
 
-    f = cache / "real_anatomy" / f"diagnose_roadmaps_seed{seed}_v1.pkl"
+    f = cache / "real_anatomy" / f"diagnose_roadmaps_seed{seed}_v2.pkl"  # v2: the true wires of wires_v2
     have = pickle.loads(f.read_bytes()) if f.is_file() else []
     if len(have) < n:
         vol, labels, _, _ = ra.load_case(cache)
@@ -59,10 +59,12 @@ def prepared_cases(n: int, seed: int, cache: Path, log, tree=None):
         for k in range(n):
             t0 = time.perf_counter()
             target, carm, pose = b.make_pose(rng, k, wires)
-            roadmap, _, _, _ = b.render(rng, carm, pose, wires[target], iodine, mu_ct, vol)  # draws as the benchmark
+            roadmap, frames, true_wires, _ = b.render(rng, carm, pose, wires[target], iodine, mu_ct, vol)  # as the bench
             if k < len(have):
                 continue
-            have.append(dict(k=k, target=target, carm=carm, pose=pose, roadmap=np.asarray(roadmap, np.float32)))
+            have.append(dict(k=k, target=target, carm=carm, pose=pose, roadmap=np.asarray(roadmap, np.float32),
+                             frames=[np.asarray(x, np.float32) for x in frames],
+                             true_wires=[np.asarray(w) for w in true_wires]))
             log(f"pose {k}: roadmap rendered in {time.perf_counter() - t0:.0f} s")
             f.parent.mkdir(parents=True, exist_ok=True)
             f.write_bytes(pickle.dumps(have))

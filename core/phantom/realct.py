@@ -157,48 +157,94 @@ def _smooth_polyline(P, sigma_mm=4.0, step_mm=0.5):
     return ndi.gaussian_filter1d(Q, sigma_mm / step_mm, axis=0, mode="nearest")
 
 
-def true_wire_lps_mm(volume, labels_zyx, arteries, *, wire_radius_mm: float, target: int | None, seed: int):
-    """``(wire (N, 3) LPS mm proximal -> distal, ~0.5 mm apart; start label; target label)``.
-
-    The shortest path on the skeleton of the artery labels from the most caudal point of the widest
-    artery label (the most voxels) to the far end of ``target`` (else the seed picks one of the
-    reachable artery labels), smoothed (4 mm), and each point pushed into the lumen while it is
-    closer than ``wire_radius_mm`` + 0.5 mm to the wall.
-    """
+def _label_skeleton(labels_zyx, labels, trunk, sp_zyx, volume):
+    """The skeleton graph of the union of ``labels`` (one closing), from the most caudal skeleton point of
+    ``trunk``: ``(mask, coords (K, 3) index zyx, label per point, dist, pred, start)``. InputError when the
+    labels have no skeleton or the trunk has no skeleton point."""
     from scipy import ndimage as ndi
     from scipy.sparse.csgraph import dijkstra
     from skan import Skeleton
     from skimage.morphology import skeletonize
 
-    sp_zyx = np.asarray(volume.spacing_mm, float)[::-1]
-    art = np.isin(labels_zyx, list(arteries))
+    art = np.isin(labels_zyx, list(labels))
+    if not art.any():
+        raise InputError("--anatomy-labels: the artery labels have no skeleton (too small)")
     art = ndi.binary_closing(art, iterations=1) | art
-    sk = skeletonize(art).astype(bool)
+    box = ndi.find_objects(art.astype(np.uint8))[0]  # skeletonised in the labels' bounding box (+ 2 voxels)
+    box = tuple(slice(max(b.start - 2, 0), min(b.stop + 2, n)) for b, n in zip(box, art.shape))
+    sk = skeletonize(art[box]).astype(bool)
     if sk.sum() < 2:
         raise InputError("--anatomy-labels: the artery labels have no skeleton (too small)")
     s = Skeleton(sk, spacing=tuple(sp_zyx))
-    coords = s.coordinates
+    coords = s.coordinates + np.array([b.start for b in box], float)
     lab = labels_zyx[tuple(np.round(coords).astype(int).T)]
-    counts = {a: int((labels_zyx == a).sum()) for a in arteries}
-    trunk = max(counts, key=counts.get)
     on = np.flatnonzero(lab == trunk)
     if not len(on):
         raise InputError(f"--anatomy-labels: the widest artery label {trunk} has no skeleton point")
     # most caudal: the largest S coordinate is cranial in LPS
-    lps = volume.index_zyx_to_lps(coords[on])
-    start = on[np.argmin(lps[:, 2])]
+    start = on[np.argmin(volume.index_zyx_to_lps(coords[on])[:, 2])]
     dist, pred = dijkstra(s.graph, indices=start, return_predecessors=True)
+    return art, coords, lab, dist, pred, start
+
+
+def _path_to(sk, label):
+    """Skeleton point indices from the start to the far end of ``label`` (by path length), or None."""
+    _, _, lab, dist, pred, start = sk
+    tg = np.flatnonzero((lab == label) & np.isfinite(dist))
+    if not len(tg):
+        return None
+    path = [tg[np.argmax(dist[tg])]]
+    while path[-1] != start:
+        path.append(pred[path[-1]])
+    return path[::-1]
+
+
+def _route(labels_zyx, arteries, trunk, target, sp_zyx, volume):
+    """The skeleton (:func:`_label_skeleton`) and path to ``target`` through as few other artery labels as
+    possible: the trunk and the target alone; else with one other artery label, those that touch the target
+    first (the most contact first, the first that connects it); else all of them. Where two branch labels touch
+    (the left subclavian and common carotid origins on the arch), the skeleton of all the labels joins them, and
+    the shortest path to one ran through the other and across the tissue between them: a wire outside the
+    vessels."""
+    from scipy import ndimage as ndi
+
+    tgt = labels_zyx == target
+    ring = ndi.binary_dilation(tgt, iterations=2) & ~tgt
+    touch = np.bincount(np.searchsorted(np.sort(arteries), labels_zyx[ring][np.isin(labels_zyx[ring], arteries)]),
+                        minlength=len(arteries))
+    order = sorted((a for a in arteries if a not in (trunk, target)),
+                   key=lambda a: -touch[int(np.searchsorted(np.sort(arteries), a))])
+    for labels in [(trunk, target)] + [(trunk, a, target) for a in order]:
+        try:
+            sk = _label_skeleton(labels_zyx, labels, trunk, sp_zyx, volume)
+        except InputError:
+            continue
+        path = _path_to(sk, target)
+        if path is not None:
+            return sk, path
+    sk = _label_skeleton(labels_zyx, arteries, trunk, sp_zyx, volume)
+    return sk, _path_to(sk, target)
+
+
+def true_wire_lps_mm(volume, labels_zyx, arteries, *, wire_radius_mm: float, target: int | None, seed: int):
+    """``(wire (N, 3) LPS mm proximal -> distal, ~0.5 mm apart; start label; target label)``.
+
+    The shortest path on the skeleton of the artery labels from the most caudal point of the widest
+    artery label (the most voxels) to the far end of ``target`` (else the seed picks one of the
+    reachable artery labels), through as few other artery labels as possible (:func:`_route`: the
+    trunk and the target alone when they connect), smoothed (4 mm), and each point pushed into the
+    lumen of those labels while it is closer than ``wire_radius_mm`` + 0.5 mm to the wall.
+    """
+    from scipy import ndimage as ndi
+
+    sp_zyx = np.asarray(volume.spacing_mm, float)[::-1]
+    counts = {a: int((labels_zyx == a).sum()) for a in arteries}
+    trunk = max(counts, key=counts.get)
+    sk = _label_skeleton(labels_zyx, arteries, trunk, sp_zyx, volume)
+    lab, dist = sk[2], sk[3]
     reach = [a for a in arteries if a != trunk and np.isfinite(dist[lab == a]).any()]
-
-    def path_to(label):
-        tg = np.flatnonzero((lab == label) & np.isfinite(dist))
-        path = [tg[np.argmax(dist[tg])]]  # the far end of the label
-        while path[-1] != start:
-            path.append(pred[path[-1]])
-        return path[::-1]
-
     # the seed's choice: the arteries the wire can end in (not one it passes on the way to another)
-    passed = {int(v) for a in reach for v in lab[path_to(a)] if v != a} - {0}
+    passed = {int(v) for a in reach for v in lab[_path_to(sk, a)] if v != a} - {0}
     ends = [a for a in reach if a not in passed] or reach
     if target is None:
         if not reach:
@@ -207,7 +253,9 @@ def true_wire_lps_mm(volume, labels_zyx, arteries, *, wire_radius_mm: float, tar
     elif target not in reach:
         raise InputError(f"--wire-to: label {target} is not an artery connected to the trunk (label {trunk}); "
                          f"reachable: {reach}")
-    P = _smooth_polyline(volume.index_zyx_to_lps(coords[np.array(path_to(target))]))
+    rsk, path = _route(labels_zyx, arteries, trunk, target, sp_zyx, volume)
+    art, coords = rsk[0], rsk[1]
+    P = _smooth_polyline(volume.index_zyx_to_lps(coords[np.array(path)]))
     inside = ndi.distance_transform_edt(art, sampling=sp_zyx)
     grad = np.stack(np.gradient(inside, *sp_zyx), axis=-1)
     for _ in range(20):
