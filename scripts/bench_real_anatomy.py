@@ -303,9 +303,7 @@ def main(argv=None):
 
     warnings.filterwarnings("ignore", category=RuntimeWarning)
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--poses", type=int, default=20)
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--cache", default=str(Path.home() / ".cache" / "guidewire3d"))
+    ra.add_pose_arguments(ap)
     ap.add_argument("--seed-aorta", action="store_true",
                     help="the planning workflow: the tree connected to a seed in the descending aorta (a point of the "
                          "true wire at a quarter of its length, inside the aorta's lumen), as `vessels --seed-lps`")

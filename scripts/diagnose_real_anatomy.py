@@ -233,9 +233,7 @@ def depth_shift_mm(carm, pose_true, pose, points_lps_mm) -> float:
 def main(argv=None):
     warnings.filterwarnings("ignore", category=RuntimeWarning)
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--poses", type=int, default=20)
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--cache", default=str(Path.home() / ".cache" / "guidewire3d"))
+    ra.add_pose_arguments(ap)
     ap.add_argument("--tree", choices=("auto", "seeded", "labels", "auto-arterial"), default="auto",
                     help="auto: the product's automatic tree; seeded: with a seed in the aorta; labels: a control, "
                          "the centerline of the artery labels (the real-anatomy phantom's true tree); auto-arterial: "

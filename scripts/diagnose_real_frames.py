@@ -66,9 +66,7 @@ def point_errors(carm, pose, wire3d, true_lps_mm, tree) -> dict:
 def main(argv=None):
     warnings.filterwarnings("ignore", category=RuntimeWarning)
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--poses", type=int, default=20)
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--cache", default=str(Path.home() / ".cache" / "guidewire3d"))
+    ra.add_pose_arguments(ap)
     ap.add_argument("--root", choices=("auto", "entry"), default="auto",
                     help="auto: the automatic tree as it is (rooted at its widest end); entry: re-rooted where the "
                          "true wire enters (an oracle)")

@@ -29,6 +29,13 @@ TARGETS = {58: "common carotid left", 57: "common carotid right (via brachioceph
 CARDIAC = (51, 52, 53, 54, 55, 56, 57, 58, 59, 60, 61, 62, 63, 64, 65, 66, 67, 68)  # heart, vessels (contrast-filled)
 
 
+def add_pose_arguments(ap) -> None:
+    """The options the real-anatomy scripts share: ``--poses``, ``--seed`` (the benchmark's draws) and ``--cache``."""
+    ap.add_argument("--poses", type=int, default=20)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--cache", default=str(Path.home() / ".cache" / "guidewire3d"))
+
+
 def load_case(cache: Path):
     import SimpleITK as sitk
     from guidewire3d import io
