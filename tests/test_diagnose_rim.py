@@ -6,6 +6,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
 
@@ -42,28 +43,35 @@ def _centre_x(frac_zyx, offset_zyx):
 
 def test_unlabelled_rim_keeps_bone_out_and_the_iodine_centre_on_the_axis():
     import diagnose_real_anatomy as d
-    import real_anatomy as ra
 
     # no partial volume outside the label: the lumen is the label, its axis the ground truth
     vol, labels = _artery_beside_a_rib(rim_hu=0.0)
-    bench = ra.iodine_fraction(vol, labels)
     ctrl = d.iodine_fraction_unlabelled_rim(vol, labels)
-    # the benchmark's rim takes rib voxels as iodine (fraction 1: 900 HU is above the lumen's 400 HU) ...
-    lo = bench[1]
-    rib_in_bench = bench[0][labels[lo[0]:lo[0] + bench[0].shape[0], lo[1]:lo[1] + bench[0].shape[1],
-                                   lo[2]:lo[2] + bench[0].shape[2]] == RIB]
-    assert rib_in_bench.max() == 1.0
-    # ... and its iodine centre moves toward the rib; the control's stays on the axis (symmetric rim)
-    assert _centre_x(*bench) - AXIS_YX[1] > 0.1
     assert abs(_centre_x(*ctrl) - AXIS_YX[1]) < 1e-6
-    # the control keeps the unlabelled partial-volume rim: (250 - 100) / (400 - 100) = 0.5
-    vol, labels = _artery_beside_a_rib(rim_hu=250.0)
-    ctrl = d.iodine_fraction_unlabelled_rim(vol, labels)
-    lo = ctrl[1]
-    f = np.zeros(labels.shape, np.float32)
-    f[lo[0]:lo[0] + ctrl[0].shape[0], lo[1]:lo[1] + ctrl[0].shape[1], lo[2]:lo[2] + ctrl[0].shape[2]] = ctrl[0]
+    # the control keeps the unlabelled partial-volume rim: (250 - 100) / (400 - 100) = 0.5, and no rib voxel
     from scipy import ndimage as ndi
 
+    vol, labels = _artery_beside_a_rib(rim_hu=250.0)
+    f = _full(*d.iodine_fraction_unlabelled_rim(vol, labels), labels.shape)
     art = labels == AORTA
     ring = ndi.binary_dilation(art, iterations=1) & ~art & (labels == 0)
-    assert np.allclose(f[ring], 0.5) and np.all(f[labels == RIB] == 0.0) and np.allclose(f[labels == AORTA], 1.0)
+    assert ring.any() and np.allclose(f[ring], 0.5)
+    assert np.all(f[labels == RIB] == 0.0) and np.allclose(f[art], 1.0)
+
+
+@pytest.mark.xfail(strict=True, reason="the phantom's rim (phantom.realct.iodine_fraction_zyx) takes the voxels of a "
+                   "rib the artery touches as iodine: the diff in the dbias report restricts it to unlabelled voxels")
+def test_phantom_iodine_has_no_bone_and_its_centre_on_the_axis():
+    import real_anatomy as ra
+
+    vol, labels = _artery_beside_a_rib(rim_hu=0.0)
+    bench = ra.iodine_fraction(vol, labels)
+    f = _full(*bench, labels.shape)
+    assert np.all(f[labels == RIB] == 0.0)
+    assert abs(_centre_x(*bench) - AXIS_YX[1]) < 1e-6
+
+
+def _full(frac_zyx, lo, shape):
+    f = np.zeros(shape, np.float32)
+    f[lo[0]:lo[0] + frac_zyx.shape[0], lo[1]:lo[1] + frac_zyx.shape[1], lo[2]:lo[2] + frac_zyx.shape[2]] = frac_zyx
+    return f
