@@ -25,6 +25,10 @@ the 2D side (:func:`controlled_uv`). The ``depth mm`` column: how far the result
 along the beam (their centroid's camera z minus the truth's; negative: toward the source).
 ``--uv snapped --uv-offset-px 0.5``: the snapped 2D points moved by smooth random offsets (:func:`smooth_offsets_px`),
 the single view's depth sensitivity to a correlated 2D/3D disagreement.
+``--roadmap-rim unlabelled``: the roadmaps re-rendered (same poses, exposure and noise: :func:`_render_paired`) with
+the artery labels' one-voxel partial-volume rim in unlabelled voxels only (:func:`iodine_fraction_unlabelled_rim`);
+the benchmark's rim takes the first ribs' bone beside the subclavian arteries and the enhanced heart at the aortic
+root as iodine, a one-sided fringe that moves those 2D vessels off the CTA's tree and the depth toward the source.
 """
 from __future__ import annotations
 
@@ -316,7 +320,7 @@ def main(argv=None):
     ap.add_argument("--roadmap-rim", choices=("labels", "unlabelled"), default="labels",
                     help="the roadmaps' iodine rim (prepared_cases): labels (the benchmark's: the artery labels dilated "
                          "by one voxel, ribs and heart included) or unlabelled (a control: the rim in unlabelled voxels "
-                         "only; rendered once, ~1 min per pose, cached separately)")
+                         "only; the same poses and noise, rendered once, ~15 s per pose, cached separately)")
     ap.add_argument("--centerline-only", action="store_true",
                     help="only the 2D centerline table (against the projected artery labels' centerline), no registration")
     a = ap.parse_args(argv)
