@@ -25,6 +25,10 @@ the 2D side (:func:`controlled_uv`). The ``depth mm`` column: how far the result
 along the beam (their centroid's camera z minus the truth's; negative: toward the source).
 ``--uv snapped --uv-offset-px 0.5``: the snapped 2D points moved by smooth random offsets (:func:`smooth_offsets_px`),
 the single view's depth sensitivity to a correlated 2D/3D disagreement.
+``--roadmap-rim unlabelled``: the roadmaps re-rendered (same poses, exposure and noise: :func:`_render_paired`) with
+the artery labels' one-voxel partial-volume rim in unlabelled voxels only (:func:`iodine_fraction_unlabelled_rim`);
+the benchmark's rim takes the first ribs' bone beside the subclavian arteries and the enhanced heart at the aortic
+root as iodine, a one-sided fringe that moves those 2D vessels off the CTA's tree and the depth toward the source.
 """
 from __future__ import annotations
 
@@ -43,28 +47,38 @@ import bench_real_anatomy as b  # noqa: E402
 import real_anatomy as ra  # noqa: E402
 
 
-def prepared_cases(n: int, seed: int, cache: Path, log, tree=None):
+def prepared_cases(n: int, seed: int, cache: Path, log, tree=None, *, rim: str = "labels"):
     """The benchmark's registration inputs for poses ``0..n-1`` of ``seed``: the roadmaps (cached, one file per
-    seed; they do not depend on the tree) and their 2D centerlines, computed by this checkout's
-    ``roadmap_centerline`` on every run (with the pipeline's ``max_radius_px`` from ``tree``)."""
+    seed and ``rim``; they do not depend on the tree) and their 2D centerlines, computed by this checkout's
+    ``roadmap_centerline`` on every run (with the pipeline's ``max_radius_px`` from ``tree``). ``rim``: the
+    roadmap's iodine as the benchmark renders it (``labels``: the artery labels' one-voxel rim, whatever its
+    voxels are labelled) or, a control, with that rim only in unlabelled voxels (``unlabelled``,
+    :func:`iodine_fraction_unlabelled_rim`: no rib, heart or vein voxel rendered as iodine)."""
     from guidewire3d.xray.roadmap import roadmap_centerline
 
-    f = cache / "real_anatomy" / f"diagnose_roadmaps_seed{seed}_v2.pkl"  # v2: the true wires of wires_v2
+    tag = "" if rim == "labels" else f"_rim-{rim}-paired"
+    # v3: the true wires of wires_v2 and the phantom's rim in unlabelled voxels only (stop 36), with the frames
+    f = cache / "real_anatomy" / f"diagnose_roadmaps_seed{seed}{tag}_v3.pkl"
     have = pickle.loads(f.read_bytes()) if f.is_file() else []
     if len(have) < n:
         vol, labels, _, _ = ra.load_case(cache)
         wires = b.cached_wires(vol, labels, cache)
         iodine, mu_ct = ra.iodine_fraction(vol, labels), ra.anatomy_mu(vol, labels)
+        control = None if rim == "labels" else iodine_fraction_unlabelled_rim(vol, labels)
         rng = np.random.default_rng(seed)
         for k in range(n):
             t0 = time.perf_counter()
             target, carm, pose = b.make_pose(rng, k, wires)
-            roadmap, frames, true_wires, _ = b.render(rng, carm, pose, wires[target], iodine, mu_ct, vol)  # as the bench
+            frames, true_wires = None, None
+            if control is None:
+                roadmap, frames, true_wires, _ = b.render(rng, carm, pose, wires[target], iodine, mu_ct, vol)  # as the bench
+            else:
+                roadmap = _render_paired(rng, carm, pose, wires[target], iodine, mu_ct, vol, control)
             if k < len(have):
                 continue
             have.append(dict(k=k, target=target, carm=carm, pose=pose, roadmap=np.asarray(roadmap, np.float32),
-                             frames=[np.asarray(x, np.float32) for x in frames],
-                             true_wires=[np.asarray(w) for w in true_wires]))
+                             frames=None if frames is None else [np.asarray(x, np.float32) for x in frames],
+                             true_wires=None if true_wires is None else [np.asarray(w) for w in true_wires]))
             log(f"pose {k}: roadmap rendered in {time.perf_counter() - t0:.0f} s")
             f.parent.mkdir(parents=True, exist_ok=True)
             f.write_bytes(pickle.dumps(have))
@@ -76,6 +90,57 @@ def prepared_cases(n: int, seed: int, cache: Path, log, tree=None):
             c.update(uv=np.asarray(cl.points_uv_px, float), radius=np.asarray(cl.radius_px, float), centerline=cl)
         out.append(c)
     return out
+
+
+def iodine_fraction_unlabelled_rim(vol, labels):
+    """``ra.iodine_fraction`` with the artery labels' one-voxel partial-volume rim restricted to unlabelled voxels:
+    the benchmark's rim also takes the voxels of the structures the arteries touch (the first ribs beside the
+    subclavian arteries, the heart at the aortic root; bone and enhanced heart are above 100 HU), so the roadmap
+    shows a bright fringe on one side of those vessels that the CTA's vessel tree does not have."""
+    from bench_real_cta import AORTA, ARTERIES
+    from scipy import ndimage as ndi
+
+    hu = np.asarray(vol.array_zyx, np.float32)
+    art = np.isin(labels, list(ARTERIES))
+    lumen_hu = float(np.median(hu[labels == AORTA]))
+    rim = ndi.binary_dilation(art, iterations=1) & (labels == 0)
+    f = np.clip((hu - 100.0) / (lumen_hu - 100.0), 0.0, 1.0) * (art | rim)
+    idx = np.argwhere(f > 0)
+    lo, hi = np.maximum(idx.min(0) - 1, 0), np.minimum(idx.max(0) + 2, f.shape)
+    return np.ascontiguousarray(f[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]], np.float32), lo
+
+
+def _render_paired(rng, carm, pose, wire, iodine, mu_ct, vol, control):
+    """``b.render``'s draws on ``rng`` (the benchmark's stream: its poses and noise), but the roadmap of the
+    ``control`` iodine ``(fraction_zyx, offset_zyx)`` with the same exposure and the same noise state as the
+    benchmark's roadmap (the two differ only where the iodine does)."""
+    import guidewire3d.phantom.xray as px
+
+    seen = {}
+    ray0, expose0 = ra.ray_integral, px._expose
+
+    def ray(carm_, pose_, vz, vol_, **kw):
+        out = ray0(carm_, pose_, vz, vol_, **kw)
+        if vz is iodine[0]:
+            seen["L"] = out
+            seen["L2"] = ray0(carm_, pose_, control[0], vol_, **{**kw, "offset_zyx": control[1]})
+        return out
+
+    def expose(rng_, att, **kw):
+        if "roadmap" not in seen:  # the first exposure of render() is the roadmap's
+            L = seen["L"]
+            mu = float(np.median(att[L > 0] / L[L > 0]))
+            twin = np.random.Generator(type(rng_.bit_generator)())
+            twin.bit_generator.state = rng_.bit_generator.state
+            seen["roadmap"] = expose0(twin, mu * seen["L2"], **kw)
+        return expose0(rng_, att, **kw)
+
+    ra.ray_integral, px._expose = ray, expose
+    try:
+        b.render(rng, carm, pose, wire, iodine, mu_ct, vol)
+    finally:
+        ra.ray_integral, px._expose = ray0, expose0
+    return seen["roadmap"]
 
 
 def max_radius_px(tree, carm) -> float:
@@ -254,6 +319,10 @@ def main(argv=None):
                     help="the product's start: nominal (the isocentre at the tree's centroid) or view-centre (the "
                          "isocentre at the viewed region's centre, as reconstruct --isocentre-lps gives it: the "
                          "centre of the wire's last 160 mm, 3-20 mm and 0.5-5 deg from the true pose)")
+    ap.add_argument("--roadmap-rim", choices=("labels", "unlabelled"), default="labels",
+                    help="the roadmaps' iodine rim (prepared_cases): labels (the benchmark's: the artery labels dilated "
+                         "by one voxel, ribs and heart included) or unlabelled (a control: the rim in unlabelled voxels "
+                         "only; the same poses and noise, rendered once, ~15 s per pose, cached separately)")
     ap.add_argument("--centerline-only", action="store_true",
                     help="only the 2D centerline table (against the projected artery labels' centerline), no registration")
     a = ap.parse_args(argv)
@@ -298,7 +367,7 @@ def main(argv=None):
             n0 = tree.total_length_mm
             tree = without_labelled_branches(tree, vol, labels)
             log(f"auto-arterial: {tree.total_length_mm:.0f} of {n0:.0f} mm kept")
-    cases = prepared_cases(a.poses, a.seed, cache, log, tree)
+    cases = prepared_cases(a.poses, a.seed, cache, log, tree, rim=a.roadmap_rim)
     print(f"cta digest {b._cta_digest()}; 2D centerline: {Path(__file__).resolve().parents[1].name} checkout")
     centerline_table(cases, cache, tree)
     if a.centerline_only:
