@@ -57,25 +57,24 @@ def prepared_cases(n: int, seed: int, cache: Path, log, tree=None, *, rim: str =
     from guidewire3d.xray.roadmap import roadmap_centerline
 
     tag = "" if rim == "labels" else f"_rim-{rim}-paired"
-    # v3: the true wires of wires_v2 and the phantom's rim in unlabelled voxels only (stop 36), with the frames
-    f = cache / "real_anatomy" / f"diagnose_roadmaps_seed{seed}{tag}_v3.pkl"
+    # v4: per-pose random streams (bench_real_anatomy.pose_rngs), the true wires of wires_v2 and the phantom's rim in
+    # unlabelled voxels only (stop 36), with the frames
+    f = cache / "real_anatomy" / f"diagnose_roadmaps_seed{seed}{tag}_v4.pkl"
     have = pickle.loads(f.read_bytes()) if f.is_file() else []
     if len(have) < n:
         vol, labels, _, _ = ra.load_case(cache)
         wires = b.cached_wires(vol, labels, cache)
         iodine, mu_ct = ra.iodine_fraction(vol, labels), ra.anatomy_mu(vol, labels)
         control = None if rim == "labels" else iodine_fraction_unlabelled_rim(vol, labels)
-        rng = np.random.default_rng(seed)
-        for k in range(n):
+        for k in range(len(have), n):
             t0 = time.perf_counter()
-            target, carm, pose = b.make_pose(rng, k, wires)
+            rng_pose, rng = b.pose_rngs(seed, k)
+            target, carm, pose = b.make_pose(rng_pose, k, wires)
             frames, true_wires = None, None
             if control is None:
                 roadmap, frames, true_wires, _ = b.render(rng, carm, pose, wires[target], iodine, mu_ct, vol)  # as the bench
             else:
                 roadmap = _render_paired(rng, carm, pose, wires[target], iodine, mu_ct, vol, control)
-            if k < len(have):
-                continue
             have.append(dict(k=k, target=target, carm=carm, pose=pose, roadmap=np.asarray(roadmap, np.float32),
                              frames=None if frames is None else [np.asarray(x, np.float32) for x in frames],
                              true_wires=None if true_wires is None else [np.asarray(w) for w in true_wires]))
