@@ -462,7 +462,6 @@ def _pose_std_mm(cov, pose: Pose, points_lps_mm) -> float:
     return float(np.sqrt(max(var.mean(), 0.0)))
 
 
-
 def _model_error_cov(prob: _Problem, ev, sigma_px: float, length_px: float) -> np.ndarray | None:
     """The pose covariance ``(t mm, phi rad)`` that a smooth disagreement between the 2D and the projected 3D
     centerline causes: a Gaussian random field over the image, ``sigma_px`` per component, squared-exponential
