@@ -27,8 +27,10 @@ along the beam (their centroid's camera z minus the truth's; negative: toward th
 the single view's depth sensitivity to a correlated 2D/3D disagreement.
 ``--roadmap-rim unlabelled``: the roadmaps re-rendered (same poses, exposure and noise: :func:`_render_paired`) with
 the artery labels' one-voxel partial-volume rim in unlabelled voxels only (:func:`iodine_fraction_unlabelled_rim`);
-the benchmark's rim takes the first ribs' bone beside the subclavian arteries and the enhanced heart at the aortic
-root as iodine, a one-sided fringe that moves those 2D vessels off the CTA's tree and the depth toward the source.
+the benchmark's rim took the first ribs' bone beside the subclavian arteries and the enhanced heart at the aortic
+root as iodine, a one-sided fringe that moved those 2D vessels off the CTA's tree and the depth toward the source.
+Since stop 36 the product's phantom (``phantom.realct.iodine_fraction_zyx``) keeps its rim in unlabelled voxels too,
+so the control now renders the same iodine; it stays to pair runs with the numbers measured before.
 """
 from __future__ import annotations
 
@@ -51,9 +53,9 @@ def prepared_cases(n: int, seed: int, cache: Path, log, tree=None, *, rim: str =
     """The benchmark's registration inputs for poses ``0..n-1`` of ``seed``: the roadmaps (cached, one file per
     seed and ``rim``; they do not depend on the tree) and their 2D centerlines, computed by this checkout's
     ``roadmap_centerline`` on every run (with the pipeline's ``max_radius_px`` from ``tree``). ``rim``: the
-    roadmap's iodine as the benchmark renders it (``labels``: the artery labels' one-voxel rim, whatever its
-    voxels are labelled) or, a control, with that rim only in unlabelled voxels (``unlabelled``,
-    :func:`iodine_fraction_unlabelled_rim`: no rib, heart or vein voxel rendered as iodine)."""
+    roadmap's iodine as the benchmark renders it (``labels``) or, a control, with the rim only in unlabelled voxels
+    (``unlabelled``, :func:`iodine_fraction_unlabelled_rim`: no rib, heart or vein voxel rendered as iodine; since
+    stop 36 the benchmark's phantom does the same)."""
     from guidewire3d.xray.roadmap import roadmap_centerline
 
     tag = "" if rim == "labels" else f"_rim-{rim}-paired"
@@ -319,9 +321,9 @@ def main(argv=None):
                          "isocentre at the viewed region's centre, as reconstruct --isocentre-lps gives it: the "
                          "centre of the wire's last 160 mm, 3-20 mm and 0.5-5 deg from the true pose)")
     ap.add_argument("--roadmap-rim", choices=("labels", "unlabelled"), default="labels",
-                    help="the roadmaps' iodine rim (prepared_cases): labels (the benchmark's: the artery labels dilated "
-                         "by one voxel, ribs and heart included) or unlabelled (a control: the rim in unlabelled voxels "
-                         "only; the same poses and noise, rendered once, ~15 s per pose, cached separately)")
+                    help="the roadmaps' iodine rim (prepared_cases): labels (the benchmark's) or unlabelled (a control: "
+                         "the rim in unlabelled voxels only, as the benchmark's phantom also does since stop 36; the "
+                         "same poses and noise, rendered once, ~15 s per pose, cached separately)")
     ap.add_argument("--centerline-only", action="store_true",
                     help="only the 2D centerline table (against the projected artery labels' centerline), no registration")
     a = ap.parse_args(argv)
