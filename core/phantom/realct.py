@@ -209,11 +209,8 @@ def _route(labels_zyx, arteries, trunk, target, sp_zyx, volume):
     from scipy import ndimage as ndi
 
     tgt = labels_zyx == target
-    ring = ndi.binary_dilation(tgt, iterations=2) & ~tgt
-    touch = np.bincount(np.searchsorted(np.sort(arteries), labels_zyx[ring][np.isin(labels_zyx[ring], arteries)]),
-                        minlength=len(arteries))
-    order = sorted((a for a in arteries if a not in (trunk, target)),
-                   key=lambda a: -touch[int(np.searchsorted(np.sort(arteries), a))])
+    around = labels_zyx[ndi.binary_dilation(tgt, iterations=2) & ~tgt]  # the labels within 2 voxels of the target
+    order = sorted((a for a in arteries if a not in (trunk, target)), key=lambda a: -int(np.count_nonzero(around == a)))
     for labels in [(trunk, target)] + [(trunk, a, target) for a in order]:
         try:
             sk = _label_skeleton(labels_zyx, labels, trunk, sp_zyx, volume)
