@@ -36,7 +36,8 @@ REASONS = {"tip end": "tip end uncertain", "beyond tip": "tip uncertain: a wire-
            "along beam": "tip uncertain: its vessel runs along the beam",
            "not in view": "tip not in view", "tip sigma": "tip uncertain: its position",
            "trace doubtful": "2D trace doubtful", "branch ambiguous": "branch ambiguous", "motion": "motion:",
-           "path changed": "path changed", "off lumen": "wire off its vessel"}
+           "path changed": "path changed", "off lumen": "wire off its vessel",
+           "wire sigma": "wire depth uncertain"}
 
 
 def options_of(seed: int, draws: str = "standard") -> list[str]:

@@ -70,8 +70,12 @@ def main(argv=None):
     ap.add_argument("--root", choices=("auto", "entry"), default="auto",
                     help="auto: the automatic tree as it is (rooted at its widest end); entry: re-rooted where the "
                          "true wire enters (an oracle)")
+    ap.add_argument("--sigma-centerline-mm", type=float, default=None,
+                    help="the reconstruction's CTA centerline error (ReconOptions.sigma_centerline_mm; default: the "
+                         "engine's)")
     a = ap.parse_args(argv)
     from guidewire3d import metrics
+    from guidewire3d.reconstruction import ReconOptions
     from guidewire3d.live import Session
 
     cache = Path(a.cache).expanduser()
@@ -86,14 +90,18 @@ def main(argv=None):
     for P in poses:
         carm, pose = P["carm"], P["pose"]
         tree = entry_rooted(tree0, P["true_wires"][0]) if a.root == "entry" else tree0
-        session = Session(tree, carm, pose)
+        session = Session(tree, carm, pose, options=None if a.sigma_centerline_mm is None
+                          else ReconOptions(sigma_centerline_mm=a.sigma_centerline_mm))
         session.warm_up(P["frames"][0])
         for t, (fr, tw) in enumerate(zip(session.run(P["frames"]), P["true_wires"])):
             tru = b.visible_part(carm, pose, tw)
-            row = dict(k=P["k"], t=t, verdict=fr.verdict.value, msg=fr.message, err=np.nan, tip=np.nan)
+            row = dict(k=P["k"], t=t, verdict=fr.verdict.value, msg=fr.message, err=np.nan, tip=np.nan,
+                       sig=np.nan, tip_sig=np.nan)
             if fr.wire3d and len(tru) >= 2:
                 e = metrics.wire_errors_mm(fr.wire3d.points_lps_mm, tru)
-                row.update(err=e["mean_error_mm"], tip=e["tip_error_mm"])
+                u = np.asarray(fr.wire3d.uncertainty_mm, float)
+                row.update(err=e["mean_error_mm"], tip=e["tip_error_mm"], sig=float(np.median(u)) if len(u) else np.nan,
+                           tip_sig=float(u[-1]) if len(u) else np.nan)
                 pe = point_errors(carm, pose, fr.wire3d, tru, tree)
                 pe["ok"] = np.full(len(pe["err"]), fr.verdict.value == "ok")
                 pts.append(pe)
@@ -107,7 +115,8 @@ def main(argv=None):
           f"{b.WIRE_OFF_MM:g} mm or the tip > {b.TIP_OFF_MM:g} mm off (silently wrong): {int(wrong.sum())}")
     for r in rows:
         if r["verdict"] == "ok":
-            print(f"  ok: pose {r['k']} frame {r['t']}: wire {r['err']:.2f} mm, tip {r['tip']:.2f} mm"
+            print(f"  ok: pose {r['k']} frame {r['t']}: wire {r['err']:.2f} mm, tip {r['tip']:.2f} mm; its points' "
+                  f"median 1 sigma {r['sig']:.1f} mm, the tip's {r['tip_sig']:.1f} mm"
                   + ("  SILENTLY WRONG" if r["err"] > b.WIRE_OFF_MM or r["tip"] > b.TIP_OFF_MM else ""))
     from bench_stress import REASONS
 

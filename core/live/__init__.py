@@ -28,6 +28,7 @@ from guidewire3d.live.session import (  # noqa: F401
     TIP_STRETCH_PX,
     TREE_RETREAT_MAX_MM,
     TREE_RISE_MIN_MM,
+    WIRE_MAX_UNCERTAINTY_MM,
     FrameResult,
     Orientation,
     Session,
@@ -35,4 +36,5 @@ from guidewire3d.live.session import (  # noqa: F401
     log,
     orientation_of,
     tip_stretch_mm,
+    wire_uncertainty_mm,
 )

@@ -40,7 +40,8 @@ from guidewire3d.vesseltree import VesselTree
 from guidewire3d.xray import segmentation
 from guidewire3d.xray.orderedwire import OrderedWire, ordered_wire, tip_end_check
 
-__all__ = ["Orientation", "FrameResult", "Session", "orientation_of", "frame_verdict", "tip_stretch_mm"]
+__all__ = ["Orientation", "FrameResult", "Session", "orientation_of", "frame_verdict", "tip_stretch_mm",
+           "wire_uncertainty_mm"]
 
 log = logging.getLogger(__name__)
 
@@ -81,6 +82,13 @@ BRANCH_SHIFT_MIN_MM = 5.0
 #: ``bench_motion --only sim``, 34 of its 56 silently wrong ``ok`` frames, 1 of its 146 right ones; with the
 #: pose tracked 1 of 4 wrong, seed 19 f0 with its tip 28 mm off, and none of the 427 right ones)
 OFF_LUMEN_MAX_MM = 2.0
+#: a wire whose own points are known to worse than this (``Wire3D.uncertainty_mm``, the median over its points of
+#: ``sqrt(trace Sigma)``, an rms 3D error) is not reported ``ok``: an ok frame promises a wire within 2 mm
+#: (``OFF_LUMEN_MAX_MM``, ``bench_stress``'s ``WIRE_OFF_MM``), and one view does not fix the wire's depth inside a
+#: lumen much wider than that. On the real-anatomy frames (``scripts/diagnose_real_frames.py --root entry``, the
+#: true pose) the 18 ``ok`` frames of a transfemoral wire in the aorta had 11 whose wire was 2.05-3.44 mm off, all
+#: with a median 1 sigma of 2.2-3.1 mm; the 7 within 2 mm had 1.3-2.5 mm
+WIRE_MAX_UNCERTAINTY_MM = 2.0
 #: the tip along the beam: the 3D wire's arclength over the last ``TIP_STRETCH_PX`` px of its 2D wire
 #: (``tip_stretch_mm``). Where the tip's vessel runs in the image plane, they span about 5 x the
 #: pixel size at the isocentre (about 1 mm); where it turns along the beam, many mm project onto
@@ -446,6 +454,8 @@ def frame_verdict(wire3d, wire_uv_px, orientation, *, beyond_tip=None, motion=No
       (``TIP_STRETCH_MAX_MM``; over ``TIP_STRETCH_PX`` at the reference pixel, widened to as many mm on a
       view finer than that, ``pixel_at_iso_mm``; None: ``TIP_STRETCH_PX`` as it is);
     * the tip's uncertainty exceeds ``TIP_MAX_UNCERTAINTY_MM``;
+    * the wire's points are known to worse than ``WIRE_MAX_UNCERTAINTY_MM`` (their median 1 sigma,
+      ``wire_uncertainty_mm``): one view does not place a wire in depth inside a wide lumen;
     * the path through the tree walks back towards the root (``TREE_RETREAT_MAX_MM``);
     * a path through another branch explains the wire about as well (``BRANCH_EXTRA_MAX``), ending
       more than ``BRANCH_SHIFT_MIN_MM`` away: a branch the path entered avoided, the tip put in
@@ -489,6 +499,11 @@ def frame_verdict(wire3d, wire_uv_px, orientation, *, beyond_tip=None, motion=No
     if tip_sigma_mm > TIP_MAX_UNCERTAINTY_MM:
         why.append(f"tip uncertain: its position is known to {tip_sigma_mm:.1f} mm (1 sigma, limit "
                    f"{TIP_MAX_UNCERTAINTY_MM:g} mm); {wire3d.message}")
+    wire_sigma_mm = wire_uncertainty_mm(wire3d)
+    if wire_sigma_mm > WIRE_MAX_UNCERTAINTY_MM:
+        why.append(f"wire depth uncertain: its points are known to {wire_sigma_mm:.1f} mm (median 1 sigma, limit "
+                   f"{WIRE_MAX_UNCERTAINTY_MM:g} mm): one view does not fix where the wire lies in depth inside a "
+                   f"lumen this wide; the tip's own 1 sigma is {tip_sigma_mm:.1f} mm")
     retreat_mm = float(getattr(wire3d, "tree_retreat_mm", float("nan")))
     if retreat_mm > TREE_RETREAT_MAX_MM:
         why.append(f"2D trace doubtful: along the wire, its path through the vessel tree walks {retreat_mm:.0f} mm "
@@ -513,6 +528,14 @@ def frame_verdict(wire3d, wire_uv_px, orientation, *, beyond_tip=None, motion=No
     if not why:
         return Verdict.OK, wire3d.message
     return Verdict.UNCERTAIN, "; ".join(why)
+
+
+def wire_uncertainty_mm(wire3d) -> float:
+    """The median over a 3D wire's points of their own uncertainty (``Wire3D.uncertainty_mm``, 1 sigma, mm): what
+    ``frame_verdict`` holds against ``WIRE_MAX_UNCERTAINTY_MM``. 0 for a wire without points (or NaN values only)."""
+    u = np.asarray(getattr(wire3d, "uncertainty_mm", ()), float)
+    u = u[np.isfinite(u)]
+    return float(np.median(u)) if len(u) else 0.0
 
 
 def _off_lumen_reason(wire3d) -> str:
