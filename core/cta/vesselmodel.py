@@ -1198,7 +1198,7 @@ def _tree_of_edges(tree, edges: np.ndarray, keep: np.ndarray, root: int):
     idx = -np.ones(n, dtype=np.int64)
     idx[keep] = np.arange(int(keep.sum()))
     par = np.where(pred[keep] >= 0, idx[np.maximum(pred[keep], 0)], -1)
-    return VesselTree(tree.points_lps_mm[keep], tree.radius_mm[keep], par)
+    return VesselTree(tree.points_lps_mm[keep], tree.radius_mm[keep], par, tree.centerline_sigma_mm)
 
 
 def _without_blood_pools(volume: io.Volume, av: AutoVessels, body_cm3: float, what: str) -> AutoVessels:

@@ -24,6 +24,7 @@ from guidewire3d.reconstruction.context import (  # noqa: F401
     ReconstructionContext,
     build_context,
     options_at_pixel,
+    options_for_tree,
 )
 from guidewire3d.reconstruction.path import (  # noqa: F401
     RIVAL_MIN_SHIFT_MM,

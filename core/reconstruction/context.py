@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import copy
 from collections import OrderedDict
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 
 import numpy as np
 from guidewire3d.errors import InputError, ReconstructionError
@@ -20,7 +20,7 @@ from guidewire3d.vesseltree import VesselTree
 from scipy.spatial import cKDTree
 
 __all__ = ["PIXEL_OPTIONS", "REFERENCE_PIXEL_AT_ISO_MM", "ReconOptions", "ReconstructionContext", "build_context",
-           "options_at_pixel"]
+           "options_at_pixel", "options_for_tree"]
 
 
 @dataclass(frozen=True)
@@ -92,6 +92,16 @@ def options_at_pixel(options: ReconOptions, pixel_at_iso_mm: float) -> ReconOpti
     pixel_at_iso_mm`` when that is above 1 (a finer detector), else ``options`` itself
     (``geometry.options_in_mm``; cached: every frame of a view gets the same object)."""
     return options_in_mm(options, PIXEL_OPTIONS, float(pixel_at_iso_mm))
+
+
+def options_for_tree(options: ReconOptions, tree) -> ReconOptions:
+    """``options`` with ``sigma_centerline_mm`` raised to the tree's own centerline error
+    (``VesselTree.centerline_sigma_mm``: a tree extracted from a CT's voxels knows how far its centerline may lie
+    from the axis) where that is larger; else ``options`` itself."""
+    cs = getattr(tree, "centerline_sigma_mm", None)
+    if cs is None or not cs > options.sigma_centerline_mm:
+        return options
+    return replace(options, sigma_centerline_mm=float(cs))
 
 
 _MAY_BE_ZERO = {"start_cost_per_mm", "track_tolerance_mm", "track_confirm_mm",

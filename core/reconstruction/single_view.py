@@ -62,7 +62,7 @@ from guidewire3d.geometry import CArm, Pose
 from guidewire3d.methods import ReconMethod
 from guidewire3d.reconstruction.baselines import bspline_points, paper_points
 from guidewire3d.reconstruction.candidates import anchor_indices, tree_candidates
-from guidewire3d.reconstruction.context import ReconOptions, build_context, options_at_pixel
+from guidewire3d.reconstruction.context import ReconOptions, build_context, options_at_pixel, options_for_tree
 from guidewire3d.reconstruction.path import (
     ambiguity_mm2,
     branch_alternative,
@@ -370,7 +370,7 @@ def reconstruct_wire(wire_uv_px, pose: Pose, carm: CArm, tree: VesselTree, *, pr
     uv = _validate_uv(wire_uv_px)
     if len(uv) < 2:
         return Wire3D.failed("the 2D wire has fewer than 2 points", method=method.value)
-    opt = options_at_pixel(options or ReconOptions(), carm.pixel_at_iso_mm)
+    opt = options_for_tree(options_at_pixel(options or ReconOptions(), carm.pixel_at_iso_mm), tree)
     ctx = build_context(pose, carm, tree, options=opt)
     kw = dict(image=image, registration_covariance=registration_covariance, opt=opt, t0=t0)
     if method is ReconMethod.PAPER:
@@ -393,7 +393,8 @@ class WireTracker:
         self.method = method
         self.registration_covariance = registration_covariance
         self.options = options or ReconOptions()
-        self.context = build_context(pose, carm, tree, options=options_at_pixel(self.options, carm.pixel_at_iso_mm))
+        self.context = build_context(pose, carm, tree,
+                                     options=options_for_tree(options_at_pixel(self.options, carm.pixel_at_iso_mm), tree))
         self.previous: Wire3D | None = None
         self.n_frames = 0
         self.failed_frames: list[int] = []
