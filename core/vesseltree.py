@@ -392,7 +392,9 @@ MAX_ACCESS_DISTANCE_MM = 150.0
 
 
 def _access_label(p, option: str) -> str:
-    return f"{option}={','.join(f'{v:g}' for v in p)}"
+    """``--access-lps=1,2,3`` for a command-line option, ``access point (1,2,3 LPS mm)`` otherwise."""
+    xyz = ",".join(f"{v:g}" for v in p)
+    return f"{option}={xyz}" if option.startswith("-") else f"{option} ({xyz} LPS mm)"
 
 
 def check_access(access_lps_mm, *, bounds_lps_mm=None, max_distance_mm: float = MAX_ACCESS_DISTANCE_MM,
@@ -429,7 +431,7 @@ def check_access(access_lps_mm, *, bounds_lps_mm=None, max_distance_mm: float = 
         if d > max_distance_mm:
             raise InputError(f"{_access_label(p, option)}: {d:.0f} mm outside the CTA's field of view, so at least "
                              f"that far from its vessels (at most {max_distance_mm:g} mm: give the point where the "
-                             "wire enters the CTA, e.g. the sheath tip, in LPS mm)")
+                             "wire enters the CTA, e.g. the sheath tip)")
     return p
 
 
@@ -468,8 +470,7 @@ def rooted_at_access(tree: VesselTree, access_lps_mm, *, max_distance_mm: float 
     i, d = int(idx[0]), float(dist[0])
     if d > max_distance_mm:
         raise InputError(f"{_access_label(p, option)}: {d:.0f} mm from the nearest point of the vessel tree (at most "
-                         f"{max_distance_mm:g} mm: give the point where the wire enters the CTA, e.g. the sheath tip, "
-                         "in LPS mm)")
+                         f"{max_distance_mm:g} mm: give the point where the wire enters the CTA, e.g. the sheath tip)")
     return tree.rerooted(i)
 
 
