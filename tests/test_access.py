@@ -346,3 +346,72 @@ def test_plugin_parameter_node_has_the_access_markup():
     props = {p.get("name"): p for p in w.findall("property")}
     assert props["SlicerParameterName"].find("string").text == "access"
     assert props["noneEnabled"].find("bool").text == "true"  # optional
+
+
+def test_live_setup_from_inputs_roots_the_tree_it_registers(reconstructed, small_case_dir):
+    """``live --cta --roadmap --access-lps``: the setup's tree is rooted at the access, its pose the one
+    ``reconstruct`` registered (the same inputs; the access at the automatic root, the truth's entry)."""
+    from guidewire3d.app import stream
+    from guidewire3d.geometry import Pose
+
+    _, at_entry, entry, _ = reconstructed
+    setup = stream.setup_from_inputs(small_case_dir / "ct", small_case_dir / "roadmap.dcm", access_lps_mm=entry)
+    rep = json.loads((at_entry / "report.json").read_text())
+    assert setup.tree.root == rep["access"]["root_index"]
+    assert setup.pose.allclose(Pose.from_matrix(np.asarray(rep["pose"])), atol_mm=1e-6)
+    assert "rooted at" in setup.description
+
+
+def test_live_refuses_a_far_access_with_one_line(reconstructed, capsys):
+    plain = reconstructed[0]
+    rc = main(["live", "--from", str(plain), "--access-lps=1000,0,0", "--max-frames", "1", "--port", "0"])
+    err = capsys.readouterr().err
+    assert rc == 2 and err.count("\n") == 1, err
+    assert re.search(r"^guidewire3d: error: --access-lps=1000,0,0: [0-9]+ mm from the nearest point of the vessel tree",
+                     err), err
+
+
+# ------------------------------------------------------------------------------------------
+# biplane `reconstruct`
+# ------------------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def biplane_case_dir(tmp_path_factory):
+    out = tmp_path_factory.mktemp("access-biplane") / "case"
+    assert main(["phantom", "--out", str(out), "--seed", "3", "--frames", "3", "--biplane"]) == 0
+    return out
+
+
+def _biplane_args(d, out, *extra):
+    return ["reconstruct", "--cta", str(d / "ct"), "--roadmap", str(d / "roadmap.dcm"), "--roadmap",
+            str(d / "roadmap_b.dcm"), "--frames", str(d / "frames.dcm"), "--frames", str(d / "frames_b.dcm"),
+            "--out", str(out), "--segmenter", "ridge", "--no-images", *extra]
+
+
+def test_biplane_reconstruct_records_the_access_and_matches_truth(biplane_case_dir, tmp_path):
+    from guidewire3d import metrics
+
+    truth = load_truth(biplane_case_dir)
+    entry = truth.tree.points_lps_mm[truth.wire_path_point_ids[0]]
+    out = tmp_path / "out"
+    assert main(_biplane_args(biplane_case_dir, out, "--access-lps=" + ",".join(f"{v:.3f}" for v in entry))) == 0
+    rep = json.loads((out / "report.json").read_text())
+    np.testing.assert_allclose(rep["inputs"]["access_lps_mm"], entry, atol=JSON_MM)
+    assert rep["inputs"]["biplane"] and rep["biplane"]["n_pairs"] == 3  # the biplane report kept
+    reg = np.load(out / "registration_inputs.npz")
+    tree = VesselTree(reg["tree_points_lps_mm"], reg["tree_radius_mm"], reg["tree_parent"])
+    assert rep["access"]["root_index"] == tree.root
+    assert rep["access"]["distance_mm"] == pytest.approx(np.min(np.linalg.norm(tree.points_lps_mm - entry, axis=1)),
+                                                         abs=0.01)
+    ok = [f for f in rep["frames"] if f["success"]]
+    assert len(ok) == 3
+    for f in ok:
+        vis = np.asarray(truth.wire_visible[f["index"]], bool)
+        assert metrics.wire_errors_mm(f["points_lps_mm"], np.asarray(truth.wire_lps_mm[f["index"]])[vis])[
+            "mean_error_mm"] < 1.0  # test_biplane.py's tolerance
+
+
+def test_biplane_reconstruct_refuses_a_far_access_and_writes_nothing(biplane_case_dir, tmp_path, capsys):
+    rc = main(_biplane_args(biplane_case_dir, tmp_path / "out", "--access-lps=0,0,5000"))
+    err = capsys.readouterr().err
+    assert rc == 2 and err.count("\n") == 1 and "--access-lps=0,0,5000: " in err and "mm outside the CTA" in err
+    assert list(tmp_path.iterdir()) == []
