@@ -14,7 +14,8 @@ import scipy.sparse as sp
 from guidewire3d.errors import InputError
 from scipy.sparse.csgraph import dijkstra
 
-__all__ = ["Branch", "VesselTree"]
+__all__ = ["Branch", "VesselTree", "MAX_ACCESS_DISTANCE_MM", "access_record", "check_access",
+           "rooted_at_access"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -236,7 +237,8 @@ class VesselTree:
 
     def nearest_point(self, points_lps_mm) -> tuple[np.ndarray, np.ndarray]:
         """``(index, distance_mm)`` of the nearest centerline point for each query point."""
-        return self.kdtree.query(np.atleast_2d(np.asarray(points_lps_mm, dtype=float)))
+        dist, idx = self.kdtree.query(np.atleast_2d(np.asarray(points_lps_mm, dtype=float)))
+        return idx, dist
 
     @cached_property
     def kdtree(self):
@@ -390,3 +392,114 @@ class VesselTree:
                 offsets.append(n)
                 n += len(sub)
         return cls(np.vstack(pts), np.concatenate(rad), np.concatenate(par))
+
+
+# --------------------------------------------------------------------------------------
+# the access point: where the wire enters the vessels
+# --------------------------------------------------------------------------------------
+#: An access point further than this from every point of the tree is refused. The tree is rooted at its
+#: point nearest the access, which is the right point when the access lies beyond the end of the vessel
+#: the wire comes up (a femoral puncture below an abdominal CTA, the sheath tip, a radial puncture beyond
+#: the arm's field of view), but a point this far from every vessel is a point in another frame (RAS for
+#: LPS), in other units or of another patient: refused, not guessed from. A femoral puncture below a chest
+#: CTA (about 300 mm below its lower edge) is further: give the point where the wire enters the CTA then
+#: (the descending aorta at the lower edge of the field of view).
+MAX_ACCESS_DISTANCE_MM = 150.0
+
+
+def _access_label(p, option: str) -> str:
+    """``--access-lps=1,2,3`` for a command-line option, ``access point (1,2,3 LPS mm)`` otherwise."""
+    xyz = ",".join(f"{v:g}" for v in p)
+    return f"{option}={xyz}" if option.startswith("-") else f"{option} ({xyz} LPS mm)"
+
+
+def check_access(access_lps_mm, *, bounds_lps_mm=None, max_distance_mm: float = MAX_ACCESS_DISTANCE_MM,
+                 option: str = "--access-lps") -> np.ndarray:
+    """The access point as a ``(3,)`` array, checked before any work.
+
+    Parameters
+    ----------
+    access_lps_mm : (3,) array_like of float
+        Where the wire enters the vessels (LPS mm).
+    bounds_lps_mm : (2, 3) array_like of float, optional
+        The CTA's LPS bounding box (``io.Volume.bounds_lps_mm``). Its vessel tree lies inside it, so an
+        access point further than ``max_distance_mm`` from the box is further than that from the tree too:
+        refused here, before the vessel stage.
+    option : str
+        The name the messages give the point (the command-line option).
+
+    Raises
+    ------
+    InputError
+        Not three finite numbers, or (with ``bounds_lps_mm``) too far from the CTA.
+    """
+    try:
+        p = np.array(access_lps_mm, dtype=float).reshape(-1)
+    except (TypeError, ValueError):
+        raise InputError(f"{option}: expected a point x,y,z in LPS mm, got {access_lps_mm!r}") from None
+    if p.shape != (3,):
+        raise InputError(f"{option}: expected a point x,y,z in LPS mm, got {p.size} values")
+    if not np.all(np.isfinite(p)):
+        raise InputError(f"{_access_label(p, option)}: not a finite point")
+    if bounds_lps_mm is not None:
+        lo, hi = np.asarray(bounds_lps_mm, dtype=float).reshape(2, 3)
+        d = float(np.linalg.norm(np.maximum(lo - p, 0.0) + np.maximum(p - hi, 0.0)))
+        if d > max_distance_mm:
+            raise InputError(f"{_access_label(p, option)}: {d:.0f} mm outside the CTA's field of view, so at least "
+                             f"that far from its vessels (at most {max_distance_mm:g} mm: give the point where the "
+                             "wire enters the CTA, e.g. the sheath tip)")
+    return p
+
+
+def rooted_at_access(tree: VesselTree, access_lps_mm, *, max_distance_mm: float = MAX_ACCESS_DISTANCE_MM,
+                     option: str = "--access-lps") -> VesselTree:
+    """The tree rooted at its point nearest the access point, where the wire enters the vessels.
+
+    The reconstruction and the live engine assume the wire is advanced from the tree's root (the
+    automatic tree's root is its widest end: the aortic root of a chest CTA); a transfemoral or
+    transradial wire comes from elsewhere. The points, radii and edges are those of ``tree``
+    (:meth:`VesselTree.rerooted`); only the direction of the edges on the way to the new root changes.
+
+    Parameters
+    ----------
+    tree : VesselTree
+    access_lps_mm : (3,) array_like of float
+        Where the wire enters (LPS mm): a puncture or the sheath tip. It may lie outside the CTA's
+        field of view; the tree's nearest point is used then.
+    max_distance_mm : float
+        The farthest the access may be from the tree (:data:`MAX_ACCESS_DISTANCE_MM`).
+    option : str
+        The name the messages give the point (the command-line option).
+
+    Returns
+    -------
+    VesselTree
+        ``tree`` itself when its root is already the nearest point.
+
+    Raises
+    ------
+    InputError
+        Not three finite numbers, or further than ``max_distance_mm`` from every point of the tree.
+    """
+    p = check_access(access_lps_mm, max_distance_mm=max_distance_mm, option=option)
+    idx, dist = tree.nearest_point(p)
+    i, d = int(idx[0]), float(dist[0])
+    if d > max_distance_mm:
+        raise InputError(f"{_access_label(p, option)}: {d:.0f} mm from the nearest point of the vessel tree (at most "
+                         f"{max_distance_mm:g} mm: give the point where the wire enters the CTA, e.g. the sheath tip)")
+    return tree.rerooted(i)
+
+
+def access_record(tree: VesselTree, access_lps_mm) -> dict:
+    """What the output folders record of an access point (``report.json`` and ``vessels.json``
+    ``"access"``): the point, the root chosen for it (the tree's root: a tree from
+    :func:`rooted_at_access`) and the distance between them (mm)."""
+    p = check_access(access_lps_mm)
+    root = tree.points_lps_mm[tree.root]
+    return {
+        "access_lps_mm": [round(float(v), 3) for v in p],
+        "root_index": int(tree.root),
+        "root_lps_mm": [round(float(v), 3) for v in root],
+        "distance_mm": round(float(np.linalg.norm(root - p)), 2),
+        "max_distance_mm": MAX_ACCESS_DISTANCE_MM,
+    }

@@ -49,6 +49,7 @@ from guidewire3d.reconstruction.triangulation import (
 from guidewire3d.reconstruction import reconstruct_wire
 from guidewire3d.registration import model, problem, search, solve, verdict
 from guidewire3d.registration.result import RegistrationResult, Verdict, _failed
+from guidewire3d.vesseltree import check_access
 from guidewire3d.xray.orderedwire import ordered_wire, tip_end_check
 
 __all__ = ["ViewFit", "BiplaneRegistration", "register_biplane", "BiplaneFrame", "BiplaneSession",
@@ -740,14 +741,18 @@ def _frame_ids(road: io.XARun, live: io.XARun, k: int) -> list[int]:
 
 
 def run(volume, roadmaps, frames, *, roadmap_frame=None, seeds_lps_mm=None, method="vessel", segmenter="unet",
-        force: bool = False, progress: bool = False, log=None) -> BiplaneResult:
+        force: bool = False, progress: bool = False, access_lps_mm=None, log=None) -> BiplaneResult:
     """The biplane chain on in-memory inputs: CTA vessels, both roadmaps' centerlines, the joint
-    registration, then every pair of live frames through a :class:`BiplaneSession`."""
+    registration, then every pair of live frames through a :class:`BiplaneSession`.
+
+    ``access_lps_mm`` (LPS mm, optional): where the wire enters; the tree is rooted at its point
+    nearest to it, as in :func:`guidewire3d.app.pipeline.run`."""
     check_planes(roadmaps, frames)
     timing: dict[str, float] = {}
     t0 = time.perf_counter()
     vessels = vesselmodel.extract_vessels_any_units(volume, seeds_lps_mm=seeds_lps_mm, progress=progress, log=log)
     timing["cta_vessels"] = time.perf_counter() - t0
+    vessels = pipeline.rooted_vessels(vessels, access_lps_mm, log=log)
     tree = vessels.tree
 
     t0 = time.perf_counter()
@@ -850,11 +855,11 @@ def write_outdir(result: BiplaneResult, out_dir: Path, *, inputs: dict, images: 
 
 
 def run_to_outdir(cta, roadmaps, frames, out_dir, *, series_uid=None, roadmap_frame=None, seeds_lps_mm=None,
-                  method="vessel", segmenter="unet", force=False, images=True, progress=True, log=None,
-                  screenshot=None) -> BiplaneResult:
+                  method="vessel", segmenter="unet", force=False, images=True, progress=True, access_lps_mm=None,
+                  log=None, screenshot=None) -> BiplaneResult:
     """Read both planes' files and the CTA, run, and write ``out_dir`` atomically (as
     ``pipeline.run_to_outdir``: every input checked before the heavy work, a staging folder renamed
-    at the end)."""
+    at the end; with ``access_lps_mm`` the rooted tree and ``report.json`` ``"access"``)."""
     out_dir = Path(out_dir)
     io.require_empty_folder(out_dir, min_free_mb=pipeline.MIN_FREE_MB)
     t0 = time.perf_counter()
@@ -864,10 +869,12 @@ def run_to_outdir(cta, roadmaps, frames, out_dir, *, series_uid=None, roadmap_fr
     check_inputs(roads, lives, roadmap_frame=roadmap_frame)
     vol = io.read_volume(cta, series_uid=series_uid, log=log)
     pipeline.check_seeds(vol, seeds_lps_mm)
+    if access_lps_mm is not None:
+        access_lps_mm = check_access(access_lps_mm, bounds_lps_mm=vol.bounds_lps_mm)
     t_load = time.perf_counter() - t0
     with io.staged_folder(out_dir) as staging:
         result = run(vol, roads, lives, roadmap_frame=roadmap_frame, seeds_lps_mm=seeds_lps_mm, method=method,
-                     segmenter=segmenter, force=force, progress=progress, log=log)
+                     segmenter=segmenter, force=force, progress=progress, access_lps_mm=access_lps_mm, log=log)
         result.plane_a.timing["load_inputs"] = t_load
         inputs = {
             "cta": str(Path(cta).resolve()),
@@ -884,6 +891,12 @@ def run_to_outdir(cta, roadmaps, frames, out_dir, *, series_uid=None, roadmap_fr
             "track_motion": False,
             "biplane": True,
         }
-        io.write_into(out_dir, staging, lambda st: write_outdir(result, st, inputs=inputs, images=images,
-                                                                screenshot=screenshot))
+        if access_lps_mm is not None:
+            inputs["access_lps_mm"] = [round(float(v), 3) for v in access_lps_mm]
+
+        def write(st: Path) -> None:
+            write_outdir(result, st, inputs=inputs, images=images, screenshot=screenshot)
+            pipeline.write_access_record(st, result.plane_a.tree, access_lps_mm)
+
+        io.write_into(out_dir, staging, write)
     return result

@@ -40,6 +40,16 @@ def _parse_xyz(text: str) -> tuple[float, float, float]:
     return vals
 
 
+def _add_access_option(p: argparse.ArgumentParser) -> None:
+    """``--access-lps``: where the wire enters the vessels (``guidewire3d.vesseltree.rooted_at_access``)."""
+    p.add_argument("--access-lps", type=_parse_xyz, default=None, metavar="X,Y,Z",
+                   help="where the wire enters the vessels, in LPS mm (the sheath tip, or a femoral or radial puncture "
+                        "within 150 mm of the CTA's vessels): the vessel tree is rooted at its point nearest to it. "
+                        "The reconstruction assumes the wire advances from the root, by default the tree's widest end "
+                        "(the aortic root of a chest CTA); give this for transfemoral and transradial wires. Write "
+                        "--access-lps=X,Y,Z when X is negative")
+
+
 def _add_geometry_overrides(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group("C-arm geometry overrides (replace or supply XA tags)")
     g.add_argument("--sid", type=float, metavar="MM", help="DistanceSourceToDetector (0018,1110)")
@@ -78,7 +88,8 @@ def _run_reconstruct(args) -> int:
         args.cta, args.roadmap, args.frames, args.out, series_uid=args.series_uid,
         overrides=pipeline.geometry_overrides(args), roadmap_frame=args.roadmap_frame, seeds_lps_mm=args.seed_lps,
         method=args.method, segmenter=args.segmenter, force=args.force, images=not args.no_images,
-        progress=True, track_motion=args.track_motion, log=_stderr, screenshot=_viewer_screenshot,
+        progress=True, track_motion=args.track_motion, access_lps_mm=args.access_lps, log=_stderr,
+        screenshot=_viewer_screenshot,
     )
     n_ok = sum(1 for w in result.wires3d if w.success)
     n_unsure = sum(1 for fr in result.frame_results if fr.verdict.value == "uncertain")
@@ -110,7 +121,7 @@ def _run_reconstruct_biplane(args) -> int:
     result = biplane.run_to_outdir(args.cta, args.roadmap, args.frames, args.out, series_uid=args.series_uid,
                            roadmap_frame=args.roadmap_frame, seeds_lps_mm=args.seed_lps, method=args.method,
                            segmenter=args.segmenter, force=args.force, images=not args.no_images, progress=True,
-                           log=_stderr, screenshot=_viewer_screenshot)
+                           access_lps_mm=args.access_lps, log=_stderr, screenshot=_viewer_screenshot)
     reg = result.registration.result
     n_ok = sum(1 for p in result.pairs if p)
     n_two = sum(1 for p in result.pairs if p.views == "AB")
@@ -182,6 +193,7 @@ def _add_reconstruct_parser(sub) -> None:
     p.add_argument("--track-motion", action="store_true",
                    help="follow breathing / heartbeat: update the pose in each frame from its wire (see README, Motion)")
     p.add_argument("--no-images", action="store_true", help="skip screenshot/overlay/metrics PNGs")
+    _add_access_option(p)
     _add_geometry_overrides(p)
 
     p.set_defaults(func=_run_reconstruct)
@@ -245,6 +257,7 @@ def _add_live_parser(sub, full: bool = True) -> None:
         from guidewire3d.app.stream import add_cli_options
 
         add_cli_options(p)
+        _add_access_option(p)
         _add_geometry_overrides(p)
         p.set_defaults(func=run)
 
@@ -302,6 +315,7 @@ def _add_vessels_parser(sub) -> None:  # issue 17: the vessel tree alone, any an
                    help="a point in LPS mm inside a vessel lumen: the result is the connected tree containing it "
                         "(repeatable; the first is the root; write --seed-lps=X,Y,Z when X is negative)")
     p.add_argument("--series-uid", default=None, help="SeriesInstanceUID to read from a DICOM folder")
+    _add_access_option(p)
 
     def run(args):
         from guidewire3d.app import vesselplan

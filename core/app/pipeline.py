@@ -6,6 +6,8 @@ files, runs, and writes the OUT_DIR described in the README ("Output folder").
 """
 from __future__ import annotations
 
+import dataclasses
+import json
 import sys
 import time
 from dataclasses import dataclass, field
@@ -23,11 +25,12 @@ from guidewire3d.live import session as live_engine
 from guidewire3d.live.session import FrameResult
 from guidewire3d.reconstruction import Wire3D
 from guidewire3d.registration import RegistrationResult
+from guidewire3d.vesseltree import access_record, check_access, rooted_at_access
 from guidewire3d.xray.orderedwire import OrderedWire
 from guidewire3d.xray.roadmap import Centerline2D, roadmap_centerline
 
 __all__ = ["PipelineResult", "run", "run_to_outdir", "load_inputs", "choose_roadmap_frame", "check_roadmap_frame",
-           "check_seeds"]
+           "check_seeds", "rooted_vessels", "write_access_record"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -180,7 +183,8 @@ def check_seeds(volume: io.Volume, seeds_lps_mm, *, option: str = "--seed-lps") 
 
 def run(volume: io.Volume, roadmap: io.XARun, frames: io.XARun, *, roadmap_frame: int | None = None,
         seeds_lps_mm=None, method: str = "vessel", segmenter: str = "unet", force: bool = False,
-        progress: bool = False, pose: Pose | None = None, track_motion: bool = False, log=None) -> PipelineResult:
+        progress: bool = False, pose: Pose | None = None, track_motion: bool = False, access_lps_mm=None,
+        log=None) -> PipelineResult:
     """Run the whole chain on in-memory inputs.
 
     Parameters
@@ -196,11 +200,16 @@ def run(volume: io.Volume, roadmap: io.XARun, frames: io.XARun, *, roadmap_frame
     track_motion : bool
         Update the pose in every live frame from its wire (``motion.MotionTracker``, the
         registration as its prior) and reconstruct the frame in it.
+    access_lps_mm : (3,) array_like of float, optional
+        Where the wire enters the vessels (LPS mm: the puncture or the sheath tip): the tree is rooted
+        at its point nearest to it (:func:`guidewire3d.vesseltree.rooted_at_access`), since the engine
+        assumes the wire advances from the root. Default: the tree's own root (its widest end).
     """
     timing: dict[str, float] = {}
     t0 = time.perf_counter()
     vessels = vesselmodel.extract_vessels_any_units(volume, seeds_lps_mm=seeds_lps_mm, progress=progress, log=log)
     timing["cta_vessels"] = time.perf_counter() - t0
+    vessels = rooted_vessels(vessels, access_lps_mm, log=log)
     tree = vessels.tree
 
     t0 = time.perf_counter()
@@ -248,6 +257,29 @@ def run(volume: io.Volume, roadmap: io.XARun, frames: io.XARun, *, roadmap_frame
                           frame_results=frame_results)
 
 
+def rooted_vessels(vessels: CTAVessels, access_lps_mm, *, log=None) -> CTAVessels:
+    """``vessels`` with its tree rooted at the access point (:func:`~guidewire3d.vesseltree.rooted_at_access`);
+    ``vessels`` itself when ``access_lps_mm`` is None."""
+    if access_lps_mm is None:
+        return vessels
+    tree = rooted_at_access(vessels.tree, access_lps_mm)
+    rec = access_record(tree, access_lps_mm)
+    _say(f"access point {rec['access_lps_mm']}: the vessel tree is rooted at its point {rec['root_lps_mm']} "
+         f"({rec['distance_mm']:.1f} mm from it)", log)
+    return dataclasses.replace(vessels, tree=tree)
+
+
+def write_access_record(out_dir, tree, access_lps_mm) -> None:
+    """Add ``"access"`` (:func:`~guidewire3d.vesseltree.access_record`) to ``out_dir/report.json``;
+    nothing when ``access_lps_mm`` is None (the report stays as it was)."""
+    if access_lps_mm is None:
+        return
+    path = Path(out_dir) / "report.json"
+    rep = json.loads(path.read_text())
+    rep["access"] = access_record(tree, access_lps_mm)
+    io.atomic_write_text(path, json.dumps(rep, indent=1))
+
+
 def roadmap_centerline_of(roadmap: io.XARun, tree, roadmap_frame=None):
     """``(k, image, Centerline2D)``: the roadmap frame used (:func:`choose_roadmap_frame`) and its 2D
     centerline, its vesselness scales bounded by the widest CTA vessel in roadmap pixels."""
@@ -274,7 +306,7 @@ MIN_FREE_MB = 32  # refuse to start with less free space where --out goes (4 fra
 
 def run_to_outdir(cta, roadmap, frames, out_dir, *, series_uid=None, overrides=None, roadmap_frame=None,
                   seeds_lps_mm=None, method="vessel", segmenter="unet", force=False, images=True,
-                  progress=True, replace=False, truth=None, track_motion=False, log=None,
+                  progress=True, replace=False, truth=None, track_motion=False, access_lps_mm=None, log=None,
                   screenshot=None) -> PipelineResult:
     """Read the files, run, and write the output folder atomically (a staging folder renamed at the end).
 
@@ -284,6 +316,8 @@ def run_to_outdir(cta, roadmap, frames, out_dir, *, series_uid=None, overrides=N
     While the run works its staging folder holds ``out_dir`` (``io.staged_folder``): a second run
     into the same folder is refused. ``screenshot(out_dir, png_path)``, when given (the front ends
     pass the viewer's offscreen renderer), writes ``screenshot.png`` with the other images.
+    ``access_lps_mm`` (see :func:`run`): the folder holds the rooted tree, and ``report.json`` the access
+    point and the root chosen for it (``"access"``).
     """
     out_dir = Path(out_dir)
     replace = bool(replace and (out_dir / "report.json").is_file())
@@ -292,10 +326,13 @@ def run_to_outdir(cta, roadmap, frames, out_dir, *, series_uid=None, overrides=N
     vol, road, live = load_inputs(cta, roadmap, frames, series_uid=series_uid, overrides=overrides, log=log)
     roadmap_frame = choose_roadmap_frame(road, roadmap_frame)
     check_seeds(vol, seeds_lps_mm)
+    if access_lps_mm is not None:
+        access_lps_mm = check_access(access_lps_mm, bounds_lps_mm=vol.bounds_lps_mm)
     t_load = time.perf_counter() - t0
     with io.staged_folder(out_dir, replace=replace) as staging:
         result = run(vol, road, live, roadmap_frame=roadmap_frame, seeds_lps_mm=seeds_lps_mm, method=method,
-                     segmenter=segmenter, force=force, progress=progress, track_motion=track_motion, log=log)
+                     segmenter=segmenter, force=force, progress=progress, track_motion=track_motion,
+                     access_lps_mm=access_lps_mm, log=log)
         result.timing["load_inputs"] = t_load
         inputs = {
             "cta": str(Path(cta).resolve()),
@@ -308,6 +345,8 @@ def run_to_outdir(cta, roadmap, frames, out_dir, *, series_uid=None, overrides=N
             "forced": bool(force),
             "track_motion": bool(track_motion),
         }
+        if access_lps_mm is not None:
+            inputs["access_lps_mm"] = [round(float(v), 3) for v in access_lps_mm]
 
         def write(staging: Path) -> None:
             t0 = time.perf_counter()
@@ -315,6 +354,7 @@ def run_to_outdir(cta, roadmap, frames, out_dir, *, series_uid=None, overrides=N
                                 screenshot=screenshot)
             result.timing["export"] = time.perf_counter() - t0
             export.write_report(result, staging, inputs=inputs, truth=truth)  # again, with export timing
+            write_access_record(staging, result.tree, access_lps_mm)
 
         io.write_into(out_dir, staging, write)
     return result

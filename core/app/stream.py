@@ -55,6 +55,7 @@ from guidewire3d.errors import GeometryError, InputError
 from guidewire3d.geometry import CArm
 from guidewire3d.live import session as live
 from guidewire3d.registration import Verdict
+from guidewire3d.vesseltree import access_record, check_access, rooted_at_access
 from guidewire3d.xray.orderedwire import OrderedWire
 from guidewire3d.xray.roadmap import roadmap_centerline
 
@@ -110,9 +111,19 @@ class LiveSetup:
         return (self.frames_carm, self.frames_carm_b) if self.biplane else (self.frames_carm,)
 
 
-def setup_from_outdir(out_dir, *, force: bool = False) -> LiveSetup:
+def _access_note(tree, access_lps_mm) -> str:
+    """What a setup's description says of the access point ("" without one)."""
+    if access_lps_mm is None:
+        return ""
+    rec = access_record(tree, access_lps_mm)
+    return f", rooted at {rec['root_lps_mm']} ({rec['distance_mm']:.1f} mm from the access point)"
+
+
+def setup_from_outdir(out_dir, *, force: bool = False, access_lps_mm=None) -> LiveSetup:
     """The vessel tree and registration of a ``reconstruct`` output folder (a manual correction
-    included: ``registration.json``'s ``pose``).
+    included: ``registration.json``'s ``pose``). ``access_lps_mm`` (LPS mm, optional): where the wire
+    enters; the folder's tree is rooted at its point nearest to it
+    (:func:`guidewire3d.vesseltree.rooted_at_access`).
 
     Raises
     ------
@@ -137,13 +148,14 @@ def setup_from_outdir(out_dir, *, force: bool = False) -> LiveSetup:
         c = np.asarray(c, float) if c is not None else None
         cov = c if c is not None and c.shape == (6, 6) and np.all(np.isfinite(c)) else None
     plane_b = load_plane_b(out_dir, load_images=False)
-    desc = (f"{out_dir}: {case.tree.n_points} centerline points, {case.pose_source} pose "
-            f"(registration {verdict.value})")
+    tree = case.tree if access_lps_mm is None else rooted_at_access(case.tree, access_lps_mm)
+    desc = (f"{out_dir}: {tree.n_points} centerline points{_access_note(tree, access_lps_mm)}, {case.pose_source} "
+            f"pose (registration {verdict.value})")
     if plane_b is None:
-        return LiveSetup(case.tree, case.frames_carm, case.pose, cov, desc, verdict)
+        return LiveSetup(tree, case.frames_carm, case.pose, cov, desc, verdict)
     desc += (f"; biplane: plane A {_angles(case.frames_carm)}, plane B {_angles(plane_b.frames_carm)} "
              f"({_separation_deg(case.frames_carm, plane_b.frames_carm):.0f} deg apart)")
-    return LiveSetup(case.tree, case.frames_carm, case.pose, cov, desc, verdict, plane_b.frames_carm,
+    return LiveSetup(tree, case.frames_carm, case.pose, cov, desc, verdict, plane_b.frames_carm,
                      (f"{out_dir} (plane A)", f"{out_dir} (plane B)"))
 
 
@@ -156,17 +168,20 @@ def _separation_deg(a, b) -> float:
 
 
 def setup_from_inputs(cta, roadmap, *, roadmap_frame=None, seeds_lps_mm=None, series_uid=None, overrides=None,
-                      force: bool = False, log=None) -> LiveSetup:
+                      force: bool = False, access_lps_mm=None, log=None) -> LiveSetup:
     """CTA vessels -> roadmap centerline -> registration, as ``reconstruct`` does it.
 
     ``roadmap``: one roadmap file, or a sequence of one or two (plane A, plane B: the joint
     registration ``biplane.register_biplane`` of both roadmaps, as ``reconstruct`` with two
     ``--roadmap``; C-arm ``overrides`` describe one view and are refused then).
+    ``access_lps_mm`` (LPS mm, optional): where the wire enters; the tree is rooted at its point
+    nearest to it, as ``reconstruct --access-lps`` does.
     """
     roadmaps = [roadmap] if isinstance(roadmap, (str, Path)) else list(roadmap)
     if len(roadmaps) == 2:
         return _setup_biplane_from_inputs(cta, roadmaps, roadmap_frame=roadmap_frame, seeds_lps_mm=seeds_lps_mm,
-                                          series_uid=series_uid, overrides=overrides, force=force, log=log)
+                                          series_uid=series_uid, overrides=overrides, force=force,
+                                          access_lps_mm=access_lps_mm, log=log)
     if len(roadmaps) != 1:
         raise InputError(f"--roadmap: give one (one plane) or two (biplane: plane A, then plane B), got {len(roadmaps)}")
     roadmap = roadmaps[0]
@@ -175,9 +190,11 @@ def setup_from_inputs(cta, roadmap, *, roadmap_frame=None, seeds_lps_mm=None, se
     vol = io.read_volume(cta, series_uid=series_uid, log=log)
     k = pipeline.choose_roadmap_frame(road, roadmap_frame)
     pipeline.check_seeds(vol, seeds_lps_mm)
+    if access_lps_mm is not None:
+        access_lps_mm = check_access(access_lps_mm, bounds_lps_mm=vol.bounds_lps_mm)
     t0 = time.perf_counter()
     ves = vesselmodel.extract_vessels_any_units(vol, seeds_lps_mm=seeds_lps_mm, log=log)
-    tree = ves.tree
+    tree = pipeline.rooted_vessels(ves, access_lps_mm, log=log).tree
     cl = roadmap_centerline(np.asarray(road.frames[k]),
                             max_radius_px=float(tree.radius_mm.max()) / road.carm.pixel_at_iso_mm * 1.5)
     reg = registration.register(tree, cl.points_uv_px, road.carm, centerline_radius_px=cl.radius_px)
@@ -187,8 +204,8 @@ def setup_from_inputs(cta, roadmap, *, roadmap_frame=None, seeds_lps_mm=None, se
     if not reg.success and not force:
         raise InputError(f"{roadmap}: the registration {reg.verdict.value} its checks ({reg.message}); run "
                          "`guidewire3d reconstruct` and correct it in the viewer, then `live --from OUT`, or give --force")
-    return LiveSetup(tree, road.carm, reg.pose, reg.covariance_6x6,
-                     f"{cta} + {roadmap} frame {k}: {tree.n_points} centerline points", reg.verdict)
+    desc = f"{cta} + {roadmap} frame {k}: {tree.n_points} centerline points{_access_note(tree, access_lps_mm)}"
+    return LiveSetup(tree, road.carm, reg.pose, reg.covariance_6x6, desc, reg.verdict)
 
 
 def read_biplane_roadmaps(roadmaps, *, roadmap_frame=None, overrides=None) -> list:
@@ -206,14 +223,17 @@ def read_biplane_roadmaps(roadmaps, *, roadmap_frame=None, overrides=None) -> li
 
 
 def _setup_biplane_from_inputs(cta, roadmaps, *, roadmap_frame=None, seeds_lps_mm=None, series_uid=None,
-                               overrides=None, force: bool = False, log=None) -> LiveSetup:
+                               overrides=None, force: bool = False, access_lps_mm=None, log=None) -> LiveSetup:
     """Two roadmaps: CTA vessels -> both roadmaps' centerlines -> the joint registration, as
     ``biplane.run`` does it."""
     roads = read_biplane_roadmaps(roadmaps, roadmap_frame=roadmap_frame, overrides=overrides)
     vol = io.read_volume(cta, series_uid=series_uid, log=log)
     pipeline.check_seeds(vol, seeds_lps_mm)
+    if access_lps_mm is not None:
+        access_lps_mm = check_access(access_lps_mm, bounds_lps_mm=vol.bounds_lps_mm)
     t0 = time.perf_counter()
-    tree = vesselmodel.extract_vessels_any_units(vol, seeds_lps_mm=seeds_lps_mm, log=log).tree
+    ves = vesselmodel.extract_vessels_any_units(vol, seeds_lps_mm=seeds_lps_mm, log=log)
+    tree = pipeline.rooted_vessels(ves, access_lps_mm, log=log).tree
     ks, _, cls = zip(*(pipeline.roadmap_centerline_of(road, tree, roadmap_frame) for road in roads))
     breg = biplane.register_biplane(tree, [c.points_uv_px for c in cls], [r.carm for r in roads],
                                     centerline_radius_px=[c.radius_px for c in cls])
@@ -227,7 +247,8 @@ def _setup_biplane_from_inputs(cta, roadmaps, *, roadmap_frame=None, seeds_lps_m
                          "viewer, then `live --from OUT`, or give --force")
     a, b = roads[0].carm, roads[1].carm
     desc = (f"{cta} + {roadmaps[0]} frame {ks[0]} (plane A, {_angles(a)}) + {roadmaps[1]} frame {ks[1]} (plane B, "
-            f"{_angles(b)}; {_separation_deg(a, b):.0f} deg apart): {tree.n_points} centerline points")
+            f"{_angles(b)}; {_separation_deg(a, b):.0f} deg apart): {tree.n_points} centerline points"
+            f"{_access_note(tree, access_lps_mm)}")
     return LiveSetup(tree, a, reg.pose, reg.covariance_6x6, desc, reg.verdict, b,
                      tuple(str(r) for r in roadmaps))
 
@@ -728,8 +749,9 @@ def cli_live(args) -> int:
         print(m, file=sys.stderr)
     roadmaps = args.roadmap or []
     replays = None
+    access = getattr(args, "access_lps", None)
     if args.from_out:
-        setup = setup_from_outdir(args.from_out, force=args.force)
+        setup = setup_from_outdir(args.from_out, force=args.force, access_lps_mm=access)
         _check_plane_options(args, setup.biplane)
         if setup.biplane and args.replay:
             replays = _read_biplane_replays(args, [_PlaneView(c, src) for c, src in
@@ -742,7 +764,7 @@ def cli_live(args) -> int:
             if args.replay:
                 replays = _read_biplane_replays(args, roads)
         setup = setup_from_inputs(args.cta, roadmaps, roadmap_frame=args.roadmap_frame, series_uid=args.series_uid,
-                                  overrides=geometry_overrides(args), force=args.force, log=say)
+                                  overrides=geometry_overrides(args), force=args.force, access_lps_mm=access, log=say)
     if setup.biplane:
         return _serve_biplane(args, setup, replays, say)
     source, carm = _make_source(args, setup)

@@ -6,6 +6,7 @@ does): ``centerline.vtp``, ``vessels.stl``, ``vessels.vtp`` and ``vessels.json``
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 import sys
 import time
@@ -15,15 +16,17 @@ import numpy as np
 from guidewire3d import io
 from guidewire3d.app import export
 from guidewire3d.cta import vesselmodel
+from guidewire3d.vesseltree import access_record, check_access, rooted_at_access
 
 __all__ = ["vessels_record", "run_to_outdir", "cli_main"]
 
 MIN_FREE_MB = 16
 
 
-def vessels_record(auto, *, inputs: dict) -> dict:
+def vessels_record(auto, *, inputs: dict, access_lps_mm=None) -> dict:
     """The content of ``vessels.json``: inputs, the intensity model, the plausibility record, the
-    branches (parent, length, radii, end points) and stage timings."""
+    branches (parent, length, radii, end points) and stage timings; with ``access_lps_mm`` (the tree
+    rooted at it) also ``"access"`` (:func:`guidewire3d.vesseltree.access_record`)."""
     tree = auto.vessels.tree
     P, R = tree.points_lps_mm, tree.radius_mm
     branches = []
@@ -41,7 +44,7 @@ def vessels_record(auto, *, inputs: dict) -> dict:
             "start_lps_mm": [round(float(v), 2) for v in P[ids[0]]],
             "end_lps_mm": [round(float(v), 2) for v in P[ids[-1]]],
         })
-    return {
+    rec = {
         "inputs": inputs,
         "intensity_model": auto.model.to_dict(),
         "plausibility": auto.plausibility.to_dict(),
@@ -59,14 +62,20 @@ def vessels_record(auto, *, inputs: dict) -> dict:
         "branches": branches,
         "timing": {k: round(float(v), 3) for k, v in auto.seconds.items()},
     }
+    if access_lps_mm is not None:
+        rec["access"] = access_record(tree, access_lps_mm)
+    return rec
 
 
-def run_to_outdir(cta, out_dir, *, seeds_lps_mm=None, series_uid=None, progress: bool = True, log=None):
+def run_to_outdir(cta, out_dir, *, seeds_lps_mm=None, series_uid=None, progress: bool = True, access_lps_mm=None,
+                  log=None):
     """Read ``cta``, extract its vessels and write ``out_dir`` atomically; returns the ``AutoVessels``.
 
     Every check that can be made before the work is made first (the output location, the
-    volume, its geometry, the seeds); a volume without a plausible vessel tree raises and leaves
-    nothing behind.
+    volume, its geometry, the seeds, the access point); a volume without a plausible vessel tree
+    raises and leaves nothing behind. ``access_lps_mm`` (LPS mm, optional): where the wire will enter;
+    the tree written (and returned) is rooted at its point nearest to it
+    (:func:`guidewire3d.vesseltree.rooted_at_access`).
     """
     out_dir = Path(out_dir)
     io.require_empty_folder(out_dir, min_free_mb=MIN_FREE_MB)
@@ -74,19 +83,26 @@ def run_to_outdir(cta, out_dir, *, seeds_lps_mm=None, series_uid=None, progress:
     vol = io.read_volume(cta, series_uid=series_uid, log=log, modalities=("CT", "MR"))
     vesselmodel.check_geometry(vol)
     seeds = None if not seeds_lps_mm else np.asarray(seeds_lps_mm, dtype=float).reshape(-1, 3)
+    if access_lps_mm is not None:
+        access_lps_mm = check_access(access_lps_mm, bounds_lps_mm=vol.bounds_lps_mm)
     t_load = time.perf_counter() - t0
     with io.staged_folder(out_dir) as staging:
         auto = vesselmodel.extract_vessels_auto(vol, seeds_lps_mm=seeds, progress=progress)
         auto.seconds["load"] = t_load
+        if access_lps_mm is not None:
+            tree = rooted_at_access(auto.vessels.tree, access_lps_mm)
+            auto = dataclasses.replace(auto, vessels=dataclasses.replace(auto.vessels, tree=tree))
         inputs = {"cta": str(Path(cta).resolve()), "series_uid": vol.series_uid,
                   "shape_zyx": list(vol.shape_zyx), "spacing_mm": list(vol.spacing_mm),
                   "seeds_lps_mm": None if seeds is None else seeds.round(3).tolist()}
+        if access_lps_mm is not None:
+            inputs["access_lps_mm"] = [round(float(v), 3) for v in access_lps_mm]
 
         def write(staging: Path) -> None:
             export.write_polydata(auto.vessels.tree.to_polydata(), staging / "centerline.vtp")
             export.write_polydata(auto.vessels.surface, staging / "vessels.stl")
             export.write_polydata(auto.vessels.surface, staging / "vessels.vtp")
-            rec = vessels_record(auto, inputs=inputs)
+            rec = vessels_record(auto, inputs=inputs, access_lps_mm=access_lps_mm)
             io.atomic_write_text(staging / "vessels.json", json.dumps(rec, indent=1))
 
         io.write_into(out_dir, staging, write)
@@ -98,13 +114,18 @@ def cli_main(args) -> int:
         print(msg, file=sys.stderr)
 
     auto = run_to_outdir(args.cta, args.out, seeds_lps_mm=args.seed_lps, series_uid=args.series_uid, log=say,
-                         progress=sys.stderr.isatty())
+                         progress=sys.stderr.isatty(), access_lps_mm=getattr(args, "access_lps", None))
     m, t = auto.model, auto.vessels.tree
     if auto.segmentation != "standard":
         how = "the strict pass's tree" if auto.segmentation.startswith("strict") else "the tree"
         cut = f", {auto.pruned}" if auto.pruned else ""
         say(f"note: the first vessel tree was implausible ({'; '.join(auto.first_pass_problems)}); {how} is "
             f"written{cut} (check it in the viewer)")
+    access = getattr(args, "access_lps", None)
+    if access is not None:
+        rec = access_record(t, access)
+        say(f"the tree is rooted at {rec['root_lps_mm']}, its point nearest --access-lps ({rec['distance_mm']:.1f} mm "
+            "from it)")
     print(f"wrote {args.out}: {len(t.branches)} branches, {t.total_length_mm / 10:.1f} cm of centerline, "
           f"radius {np.median(t.radius_mm):.1f} mm median / {t.radius_mm.max():.1f} mm max, "
           f"{auto.plausibility.vessel_cm3:.1f} cm3; lumen {m.lumen:.4g}, background {m.background:.4g} "

@@ -159,6 +159,8 @@ if SLICER_APP:
         means "the roadmap run". roadmapFrame -1: choose the most contrast-filled frame.
         roadmapBPath/framesBPath (or roadmapBSequence/framesBSequence): plane B of a biplane C-arm,
         optional; with plane B's roadmap the biplane chain runs (one pose, each wire from both planes).
+        access: one markups point where the wire enters the vessels (the sheath tip or the puncture),
+        optional; the vessel tree is rooted at its point nearest to it (transfemoral, transradial wires).
         """
 
         ctaVolume: vtkMRMLScalarVolumeNode
@@ -171,6 +173,7 @@ if SLICER_APP:
         roadmapBSequence: vtkMRMLSequenceNode
         framesBSequence: vtkMRMLSequenceNode
         seeds: vtkMRMLMarkupsFiducialNode
+        access: vtkMRMLMarkupsFiducialNode
         roadmapFrame: Annotated[int, WithinRange(-1, 99999)] = -1
         method: Annotated[str, Choice(list(METHOD_CHOICES))] = "vessel"
         segmenter: Annotated[str, Choice(list(SEGMENTER_CHOICES))] = "unet"

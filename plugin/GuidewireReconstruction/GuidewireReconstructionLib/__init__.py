@@ -15,6 +15,7 @@ from .logic import (  # noqa: F401
     pose_to_transform_node,
     ras_to_lps,
     seeds_from_node,
+    access_from_node,
     volume_from_node,
     volume_to_node,
     wire_tube_polydata,

@@ -47,6 +47,7 @@ from guidewire3d.errors import InputError, ReconstructionError, RegistrationErro
 from guidewire3d.geometry import CArm, Pose
 from guidewire3d.methods import ReconMethod
 from guidewire3d.reconstruction import Wire3D
+from guidewire3d.vesseltree import check_access
 from guidewire3d.xray.segmentation import SegMethod
 
 __all__ = [
@@ -59,6 +60,7 @@ __all__ = [
     "volume_from_node",
     "volume_to_node",
     "seeds_from_node",
+    "access_from_node",
     "xa_to_sequence_node",
     "xa_from_sequence_node",
     "polydata_lps_to_ras",
@@ -239,6 +241,24 @@ def seeds_from_node(markups_node) -> np.ndarray | None:
         return None
     ras = np.array([markups_node.GetNthControlPointPositionWorld(i) for i in range(n)], dtype=float)
     return ras_to_lps(ras)
+
+
+def access_from_node(markups_node) -> np.ndarray | None:
+    """``(3,)`` LPS access point (world coordinates) of a markups node: where the wire enters the
+    vessels (``guidewire3d.vesseltree.rooted_at_access``); ``None`` when empty/absent.
+
+    Raises
+    ------
+    InputError
+        The node holds more than one point (which one is the access would be a guess).
+    """
+    pts = seeds_from_node(markups_node)
+    if pts is None:
+        return None
+    if len(pts) != 1:
+        raise InputError(f"access point: {markups_node.GetName()} holds {len(pts)} points; place one, where the wire "
+                         "enters the vessels (the sheath tip or the puncture)")
+    return pts[0]
 
 
 # --------------------------------------------------------------------------------------
@@ -566,7 +586,7 @@ class GuidewireReconstructionCoreLogic:
     def process(self, *, cta_volume_node, roadmap, frames=None, seeds_node=None, roadmap_frame: int | None = None,
                 method: WireMethod | str = WireMethod.VESSEL, segmenter: Segmenter | str = Segmenter.UNET,
                 force: bool = False, outputs: OutputNodes | None = None, pose: Pose | None = None,
-                track_motion: bool = False, roadmap_b=None, frames_b=None) -> OutputNodes:
+                track_motion: bool = False, roadmap_b=None, frames_b=None, access_node=None) -> OutputNodes:
         """Run the pipeline and write (or update) the output nodes.
 
         With ``roadmap_b`` (plane B of a biplane C-arm) the biplane chain runs instead
@@ -581,6 +601,10 @@ class GuidewireReconstructionCoreLogic:
             The contrast roadmap run and the live frames (``frames=None``: the roadmap run).
         seeds_node : vtkMRMLMarkupsFiducialNode, optional
             Seed points inside the vessels of interest.
+        access_node : vtkMRMLMarkupsFiducialNode, optional
+            One point where the wire enters the vessels (the sheath tip or the puncture): the vessel
+            tree is rooted at its point nearest to it (``access_lps_mm`` of the pipeline), for
+            transfemoral and transradial wires. Empty or absent: the tree's own root (its widest end).
         roadmap_frame : int, optional
             Frame of the roadmap run to use (``None`` or negative: the most contrast-filled).
         outputs : OutputNodes, optional
@@ -608,6 +632,9 @@ class GuidewireReconstructionCoreLogic:
         live = road if frames is None else self._xa(frames, "frames")
         live_node = roadmap if frames is None else frames
         seeds = seeds_from_node(seeds_node)
+        access = access_from_node(access_node)
+        if access is not None:  # before the heavy work
+            access = check_access(access, bounds_lps_mm=vol.bounds_lps_mm, option="access point")
         if roadmap_frame is not None and roadmap_frame < 0:
             roadmap_frame = None
         is_seq = hasattr(live_node, "IsA") and live_node.IsA("vtkMRMLSequenceNode")
@@ -618,14 +645,14 @@ class GuidewireReconstructionCoreLogic:
             t0 = time.perf_counter()
             bres = biplane.run(vol, [road, road_b], [live, live_b], roadmap_frame=roadmap_frame, seeds_lps_mm=seeds,
                                method=method.value, segmenter=segmenter.value, force=force, progress=False,
-                               log=log.info)
+                               access_lps_mm=access, log=log.info)
             log.info("guidewire3d biplane: %.1f s", time.perf_counter() - t0)
             return self.show_result(bres.plane_a, method=method, segmenter=segmenter, outputs=outputs,
                                     frames_sequence=live_node if is_seq else None, biplane_result=bres)
         t0 = time.perf_counter()
         result = pipeline.run(vol, road, live, roadmap_frame=roadmap_frame, seeds_lps_mm=seeds, method=method.value,
                               segmenter=segmenter.value, force=force, progress=False, pose=pose, log=log.info,
-                              track_motion=bool(track_motion))
+                              track_motion=bool(track_motion), access_lps_mm=access)
         log.info("guidewire3d pipeline: %.1f s", time.perf_counter() - t0)
         return self.show_result(result, method=method, segmenter=segmenter, outputs=outputs,
                                 frames_sequence=live_node if is_seq else None, track_motion=track_motion)
@@ -766,7 +793,7 @@ class GuidewireReconstructionCoreLogic:
         ``p`` is the module's ``@parameterNodeWrapper`` (or any object with the same attributes):
         ``ctaVolume``, ``roadmapPath``/``roadmapSequence``, ``framesPath``/``framesSequence``, plane B's
         ``roadmapBPath``/``roadmapBSequence`` and ``framesBPath``/``framesBSequence`` (optional), ``seeds``,
-        ``roadmapFrame``, ``method``, ``segmenter``, ``force``, ``registrationTransform``,
+        ``access`` (optional), ``roadmapFrame``, ``method``, ``segmenter``, ``force``, ``registrationTransform``,
         ``metricsTable``, ``vesselModel``. An XA file is loaded into a new sequence node, which is
         written back to ``p``; so are the output nodes created by the run.
         """
@@ -791,7 +818,8 @@ class GuidewireReconstructionCoreLogic:
         out = self.process(cta_volume_node=p.ctaVolume, roadmap=roadmap, frames=frames, seeds_node=p.seeds,
                            roadmap_frame=int(p.roadmapFrame), method=p.method, segmenter=p.segmenter,
                            force=bool(p.force), outputs=outputs,
-                           track_motion=bool(getattr(p, "trackMotion", False)), roadmap_b=roadmap_b, frames_b=frames_b)
+                           track_motion=bool(getattr(p, "trackMotion", False)), roadmap_b=roadmap_b, frames_b=frames_b,
+                           access_node=getattr(p, "access", None))
         p.registrationTransform = out.transform
         p.metricsTable = out.table
         p.vesselModel = out.vessel_model
