@@ -2,7 +2,7 @@
 
 Usage::
 
-    nice .venv/bin/python scripts/bench_real_anatomy.py --poses 20 [--seed 0] [--seed-aorta]
+    nice .venv/bin/python scripts/bench_real_anatomy.py --poses 20 [--seed 0] [--seed-aorta] [--access]
 
 (registration only, the same poses cached, seconds per run: ``scripts/diagnose_real_anatomy.py``)
 
@@ -206,15 +206,18 @@ def pose_rngs(seed: int, k: int):
     return np.random.default_rng([seed, k, 0]), np.random.default_rng([seed, k, 1])
 
 
-def run_pose(k, seed, wires, tree, iodine, mu_ct, vol, ref_lps, log):
+def run_pose(k, seed, wires, tree, iodine, mu_ct, vol, ref_lps, log, access: bool = False):
     from guidewire3d import metrics, registration
     from guidewire3d.live import Session
+    from guidewire3d.vesseltree import rooted_at_access
     from guidewire3d.xray.roadmap import roadmap_centerline
     from scipy.spatial import cKDTree
 
     rng_pose, rng_render = pose_rngs(seed, k)
     target, carm, pose = make_pose(rng_pose, k, wires)
     W = wires[target]
+    if access:    # the user's --access-lps: where the wire enters the CTA (its first point, the lowest aorta point)
+        tree = rooted_at_access(tree, W[0])
     roadmap, frames, true_wires, L = render(rng_render, carm, pose, W, iodine, mu_ct, vol)
     P = tree.points_lps_mm
     uvP = carm.project(P, pose)
@@ -315,6 +318,10 @@ def main(argv=None):
     ap.add_argument("--seed-aorta", action="store_true",
                     help="the planning workflow: the tree connected to a seed in the descending aorta (a point of the "
                          "true wire at a quarter of its length, inside the aorta's lumen), as `vessels --seed-lps`")
+    ap.add_argument("--access", action="store_true",
+                    help="root the tree where the wire enters the CTA, as `--access-lps` does (the true wire's first "
+                         "point: a transfemoral wire comes up the descending aorta); default: the tree's own root, "
+                         "its widest end (the aortic root)")
     a = ap.parse_args(argv)
     from guidewire3d.app.bench import machine_line
 
@@ -334,8 +341,9 @@ def main(argv=None):
     tree = rec["tree"]
     seeded = "" if seeds is None else f" seeded at {np.round(seeds[0], 1).tolist()}"
     print(f"tree: extract_vessels_auto{seeded}, {len(tree.points_lps_mm)} points, {len(tree.branches)} branches, "
-          f"{tree.total_length_mm / 1000:.2f} m, max radius {tree.radius_mm.max():.1f} mm, "
-          f"{rec['seconds']:.0f} s (cached)")
+          f"{tree.total_length_mm / 1000:.2f} m, max radius {tree.radius_mm.max():.1f} mm, centerline sigma "
+          f"{tree.centerline_sigma_mm} mm, {rec['seconds']:.0f} s (cached); root: "
+          + ("the access (the wire's entry)" if a.access else "its own (the widest end)"))
     iodine = ra.iodine_fraction(vol, labels)
     mu_ct = ra.anatomy_mu(vol, labels)
     rows = []
@@ -345,7 +353,7 @@ def main(argv=None):
     print("| " + " | ".join(cols) + " |")
     print("|" + "---|" * len(cols))
     for k in range(a.poses):
-        row = run_pose(k, a.seed, wires, tree, iodine, mu_ct, vol, ref_lps, log)
+        row = run_pose(k, a.seed, wires, tree, iodine, mu_ct, vol, ref_lps, log, access=a.access)
         rows.append(row)
         if "skipped" in row:
             print(f"| {k} | {row['target']} | {row['primary']} | {row['secondary']} | skipped: {row['skipped']} |")

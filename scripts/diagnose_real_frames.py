@@ -10,9 +10,9 @@ than ``WIRE_OFF_MM`` or whose tip is more than ``TIP_OFF_MM`` off (silently wron
 distance from the true wire (and the part of it along the beam) against its own uncertainty, by the tree's
 radius at the point.
 
-``--root entry`` re-roots the tree at its point nearest the true wire's entry (its first point, the lowest
-aorta point: a transfemoral wire) instead of the tree's widest end: an oracle of where the wire comes from,
-which the product does not know.
+``--root entry`` roots the tree at its point nearest the true wire's entry (its first point, the lowest
+aorta point: a transfemoral wire) instead of the tree's widest end, as the product's ``--access-lps`` does
+with the access point a clinician gives (``vesseltree.rooted_at_access``).
 
     nice .venv/bin/python scripts/diagnose_real_frames.py --poses 20 [--root entry]
 """
@@ -43,10 +43,11 @@ def cached_frames(n: int, seed: int, cache: Path, log) -> list[dict]:
 
 
 def entry_rooted(tree, true_wire_lps_mm):
-    """``tree`` re-rooted at its point nearest the true wire's first point (where the wire enters)."""
-    from scipy.spatial import cKDTree
+    """``tree`` rooted at its point nearest the true wire's first point, where the wire enters: what the product's
+    ``--access-lps`` does (``vesseltree.rooted_at_access``) with the access a clinician gives."""
+    from guidewire3d.vesseltree import rooted_at_access
 
-    return tree.rerooted(int(cKDTree(tree.points_lps_mm).query(np.asarray(true_wire_lps_mm)[0])[1]))
+    return rooted_at_access(tree, np.asarray(true_wire_lps_mm)[0])
 
 
 def point_errors(carm, pose, wire3d, true_lps_mm, tree) -> dict:
@@ -68,8 +69,8 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ra.add_pose_arguments(ap)
     ap.add_argument("--root", choices=("auto", "entry"), default="auto",
-                    help="auto: the automatic tree as it is (rooted at its widest end); entry: re-rooted where the "
-                         "true wire enters (an oracle)")
+                    help="auto: the automatic tree as it is (rooted at its widest end); entry: rooted where the "
+                         "true wire enters, as --access-lps roots it")
     ap.add_argument("--sigma-centerline-mm", type=float, default=None,
                     help="the reconstruction's CTA centerline error (ReconOptions.sigma_centerline_mm; default: the "
                          "engine's)")

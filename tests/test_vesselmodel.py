@@ -360,6 +360,8 @@ def test_vessels_command_writes_the_planning_folder(ct, tmp_path):
     lengths = sum(b["length_mm"] for b in rec["branches"])
     assert lengths == pytest.approx(rec["tree"]["total_length_mm"], rel=0.01)
     assert rec["tree"]["radius_mm"]["max"] == pytest.approx(TRUNK[2], abs=1.0)
+    # the centerline's own error, from the coarsest voxel spacing (cta.centerline.centerline_sigma_mm_of)
+    assert rec["tree"]["centerline_sigma_mm"] == pytest.approx(max(0.2, 0.4 * max(ct.spacing_mm)), abs=1e-3)
     cl = export.read_polydata(out / "centerline.vtp")
     assert cl.GetNumberOfPoints() >= rec["tree"]["n_points"]
 

@@ -58,6 +58,9 @@ def vessels_record(auto, *, inputs: dict, access_lps_mm=None) -> dict:
             "radius_mm": {"min": round(float(R.min()), 2), "median": round(float(np.median(R)), 2),
                           "max": round(float(R.max()), 2)},
             "vessel_volume_cm3": round(auto.plausibility.vessel_cm3, 2),
+            # how far the centerline may lie from the vessels' axes (1 sigma per axis, from the voxel spacing)
+            "centerline_sigma_mm": (None if tree.centerline_sigma_mm is None
+                                    else round(float(tree.centerline_sigma_mm), 3)),
         },
         "branches": branches,
         "timing": {k: round(float(v), 3) for k, v in auto.seconds.items()},
