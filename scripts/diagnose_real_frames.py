@@ -14,7 +14,7 @@ radius at the point.
 aorta point: a transfemoral wire) instead of the tree's widest end, as the product's ``--access-lps`` does
 with the access point a clinician gives (``vesseltree.rooted_at_access``).
 
-    nice .venv/bin/python scripts/diagnose_real_frames.py --poses 20 [--root entry]
+    nice .venv/bin/python scripts/diagnose_real_frames.py --poses 20 [--root entry] [--biplane]
 """
 from __future__ import annotations
 
@@ -50,6 +50,20 @@ def entry_rooted(tree, true_wire_lps_mm):
     return rooted_at_access(tree, np.asarray(true_wire_lps_mm)[0])
 
 
+def plane_b(P, seed: int, wires, iodine, mu_ct, vol):
+    """Plane B of pose ``P`` (``cached_frames``): a view 90 deg from plane A's primary angle (towards the
+    patient's midline: LAO 90 - a, or RAO), no angulation, the same SID, SOD and detector, about the same isocentre
+    (the same patient pose), and its live frames of the same wire (``bench_real_anatomy.render``, its own noise)."""
+    from guidewire3d.geometry import CArm
+
+    c = P["carm"]
+    primary = c.primary_deg - 90.0 if c.primary_deg >= 0 else c.primary_deg + 90.0
+    carm_b = CArm(primary, 0.0, c.sid_mm, c.sod_mm, c.pixel_mm, c.shape)
+    rng = np.random.default_rng([seed, int(P["k"]), 2])
+    _, frames, _, _ = b.render(rng, carm_b, P["pose"], wires[P["target"]], iodine, mu_ct, vol)
+    return carm_b, frames
+
+
 def point_errors(carm, pose, wire3d, true_lps_mm, tree) -> dict:
     """Per 3D wire point: distance to the true wire (mm), its part along the beam, the tree's radius at the
     point's nearest tree point, and the point's own uncertainty (1 sigma, mm)."""
@@ -71,11 +85,15 @@ def main(argv=None):
     ap.add_argument("--root", choices=("auto", "entry"), default="auto",
                     help="auto: the automatic tree as it is (rooted at its widest end); entry: rooted where the "
                          "true wire enters, as --access-lps roots it")
+    ap.add_argument("--biplane", action="store_true",
+                    help="a second plane at the same pose (plane_b: 90 deg from plane A, no angulation), both through "
+                         "app.biplane.BiplaneSession")
     ap.add_argument("--sigma-centerline-mm", type=float, default=None,
                     help="the reconstruction's CTA centerline error (ReconOptions.sigma_centerline_mm; default: the "
                          "engine's)")
     a = ap.parse_args(argv)
     from guidewire3d import metrics
+    from guidewire3d.app.biplane import BiplaneSession
     from guidewire3d.reconstruction import ReconOptions
     from guidewire3d.live import Session
 
@@ -87,14 +105,25 @@ def main(argv=None):
     tree_file = cache / "real_anatomy" / f"tree_{b._cta_digest()}.pkl"
     tree0 = b.cached_tree(None if tree_file.is_file() else ra.load_case(cache)[0], cache, log)["tree"]
     poses = cached_frames(a.poses, a.seed, cache, log)
+    if a.biplane:
+        vol, labels, _, _ = ra.load_case(cache)
+        wires, mu_ct = b.cached_wires(vol, labels, cache), ra.anatomy_mu(vol, labels)
+        iodine = ra.iodine_fraction(vol, labels)
     rows, pts = [], []
     for P in poses:
         carm, pose = P["carm"], P["pose"]
         tree = entry_rooted(tree0, P["true_wires"][0]) if a.root == "entry" else tree0
-        session = Session(tree, carm, pose, options=None if a.sigma_centerline_mm is None
-                          else ReconOptions(sigma_centerline_mm=a.sigma_centerline_mm))
-        session.warm_up(P["frames"][0])
-        for t, (fr, tw) in enumerate(zip(session.run(P["frames"]), P["true_wires"])):
+        options = None if a.sigma_centerline_mm is None else ReconOptions(sigma_centerline_mm=a.sigma_centerline_mm)
+        if a.biplane:
+            carm_b, frames_b = plane_b(P, a.seed, wires, iodine, mu_ct, vol)
+            session = BiplaneSession(tree, (carm, carm_b), pose, options=options, threads=1)
+            session.warm_up(P["frames"][0], frames_b[0])
+            results = [session.process(fa, fb).result for fa, fb in zip(P["frames"], frames_b)]
+        else:
+            session = Session(tree, carm, pose, options=options)
+            session.warm_up(P["frames"][0])
+            results = session.run(P["frames"])
+        for t, (fr, tw) in enumerate(zip(results, P["true_wires"])):
             tru = b.visible_part(carm, pose, tw)
             row = dict(k=P["k"], t=t, verdict=fr.verdict.value, msg=fr.message, err=np.nan, tip=np.nan,
                        sig=np.nan, tip_sig=np.nan)
@@ -111,7 +140,8 @@ def main(argv=None):
     E, T = np.array([r["err"] for r in rows]), np.array([r["tip"] for r in rows])
     ok = np.array([r["verdict"] == "ok" for r in rows])
     wrong = ok & ((E > b.WIRE_OFF_MM) | (T > b.TIP_OFF_MM))
-    print(f"{len(poses)} poses, {len(rows)} frames, true pose, tree root: {a.root}; load {os.getloadavg()[0]:.1f}")
+    print(f"{len(poses)} poses, {len(rows)} frames, true pose, tree root: {a.root}"
+          + (", biplane (plane B 90 deg from plane A)" if a.biplane else "") + f"; load {os.getloadavg()[0]:.1f}")
     print(f"verdicts: ok {n['ok']}, uncertain {n['uncertain']}, failed {n['failed']}; ok with the wire > "
           f"{b.WIRE_OFF_MM:g} mm or the tip > {b.TIP_OFF_MM:g} mm off (silently wrong): {int(wrong.sum())}")
     for r in rows:

@@ -83,3 +83,36 @@ def test_the_trees_own_centerline_error_enters_the_uncertainty():
     u_thick = live.wire_uncertainty_mm(reconstruct_wire(uv, pose, carm, thick))
     # the centerline error adds in quadrature across the vessel (along q, the depth here)
     assert u_thick > u_thin and u_thick**2 - u_thin**2 == pytest.approx(1.0 - 0.2**2, rel=0.15)
+
+
+def test_a_two_view_wires_distal_part_from_one_plane_keeps_that_views_promise():
+    """``app.biplane._one_plane_distal_reasons``: the distal part a two-view wire took from one plane alone
+    (``extend_distal``) is a single-view reconstruction; that plane's doubts about its own wire (here its path
+    walking back towards the root), or that part's points known to worse than 2 mm, make the pair ``uncertain``;
+    without them, or without such a part, nothing is added."""
+    from types import SimpleNamespace
+
+    from guidewire3d.app.biplane import _one_plane_distal_reasons
+    from guidewire3d.reconstruction.triangulation import TwoViewWire
+
+    carm = CArm(0.0, 0.0, 1100.0, 750.0, 0.3, (512, 512))
+    uv = np.column_stack([np.linspace(100, 300, 50), np.full(50, 200.0)])
+    arc = np.linspace(0.0, 100.0, 50)
+    single = SimpleNamespace(uncertainty_mm=np.full(50, 0.8), message="ok: 50 points", reversed_input=False,
+                             tree_retreat_mm=0.0, points_lps_mm=np.column_stack([arc, np.zeros(50), np.zeros(50)]))
+    two = SimpleNamespace(arclength_mm=arc, uncertainty_mm=np.r_[np.full(35, 0.3), np.full(15, 1.4)])
+
+    def tv(two_view, source, distal_mm=30.0):
+        return TwoViewWire(two_view, (0.1, 0.1), 0.8, False, (0.0, 60.0), distal_mm, 0, source, uv)
+
+    assert _one_plane_distal_reasons(tv(two, single), (carm, carm)) == ""
+    assert _one_plane_distal_reasons(tv(two, single, 0.0), (carm, carm)) == ""
+    doubtful = SimpleNamespace(**{**vars(single), "tree_retreat_mm": 20.0})
+    why = _one_plane_distal_reasons(tv(two, doubtful), (carm, carm))
+    assert why.startswith("distal part from plane A alone: its last 30 mm") and "2D trace doubtful" in why
+    deep = SimpleNamespace(**{**vars(two), "uncertainty_mm": np.r_[np.full(35, 0.3), np.full(15, 3.0)]})
+    why = _one_plane_distal_reasons(tv(deep, single), (carm, carm))
+    assert "known to 3.0 mm" in why and "2D trace doubtful" not in why
+    # the single-view wire's own depth over its whole length (the two views settle its proximal part) is left out
+    wide = SimpleNamespace(**{**vars(single), "uncertainty_mm": np.full(50, 3.0)})
+    assert _one_plane_distal_reasons(tv(two, wide), (carm, carm)) == ""

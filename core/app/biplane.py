@@ -37,7 +37,7 @@ from guidewire3d.cta import vesselmodel
 from guidewire3d.errors import Guidewire3DError, InputError
 from guidewire3d.geometry import CArm, Pose, nominal_pose
 from guidewire3d.live import session as live
-from guidewire3d.live.session import FrameResult, _no_wire, frame_verdict, orientation_of
+from guidewire3d.live.session import WIRE_MAX_UNCERTAINTY_MM, FrameResult, _no_wire, frame_verdict, orientation_of
 from guidewire3d.motion.tracking import BiplaneMotionTracker
 from guidewire3d.reconstruction.triangulation import (
     TwoViewContext,
@@ -615,6 +615,10 @@ class BiplaneSession:
                 beyond = next((b for b in (getattr(w, "beyond_tip", None) for w in wires) if b is not None), None)
                 verdict, message = frame_verdict(w3, uv[0], ori, beyond_tip=beyond,
                                                  doubled_tip=_doubled_tip_two_view(tv, uv, images), motion=motion)
+                distal = _one_plane_distal_reasons(tv, self.carms)
+                if distal:
+                    verdict = Verdict.UNCERTAIN
+                    message = distal if message == w3.message else f"{message}; {distal}"
                 fr = FrameResult(index, wires[0], w3, verdict, message, ori, time.perf_counter() - t0, float("nan"),
                                  self.pose, motion)
                 return BiplaneFrame(fr, "AB", "", wires[1], tv.projection_error_px, index_b, fr.seconds)
@@ -640,6 +644,38 @@ class BiplaneSession:
         fr = FrameResult(index, wires[0], fr_k.wire3d, verdict, message,
                          fr_k.orientation, time.perf_counter() - t0, float("nan"), self.pose, motion)
         return BiplaneFrame(fr, PLANES[k] if fr_k.wire3d else "", fallback, wires[1], tuple(perr), index_b, fr.seconds)
+
+
+def _one_plane_distal_reasons(tv, carms) -> str:
+    """The ``uncertain`` reasons of a two-view wire's distal part taken from one plane alone (``extend_distal``:
+    the other plane's 2D wire stops short of it, or it leaves that plane's view), or "". That part is a single-view
+    reconstruction: its depth is the vessel prior's, and it keeps only what that view can promise. Its points
+    known to worse than ``WIRE_MAX_UNCERTAINTY_MM`` (median 1 sigma), or that plane's single-view wire judged
+    doubtful by ``frame_verdict`` (the path walking back towards the root, another branch explaining it as well,
+    the wire off its vessel, the tip's uncertainty ...; its whole-wire depth is left out, the two views settle
+    the rest of the wire), make the frame ``uncertain``. On the real-anatomy frames in two planes
+    (``scripts/diagnose_real_frames.py --root entry --biplane``) 6 of 33 ``ok`` frames were silently wrong, all
+    with 37-122 mm taken from one plane alone, the wire 1.9-4.2 mm or the tip 5-29 mm off."""
+    if tv.single_view_distal_mm <= 0 or tv.distal_source is None or tv.distal_plane not in (0, 1):
+        return ""
+    w, k = tv.distal_source, tv.distal_plane
+    plane = "AB"[k]
+    why = []
+    arc = np.asarray(tv.wire3d.arclength_mm, float)
+    unc = np.asarray(tv.wire3d.uncertainty_mm, float)
+    if len(arc) == len(unc) and len(arc):
+        part = arc >= arc[-1] - tv.single_view_distal_mm - 1e-9
+        sigma_mm = float(np.median(unc[part])) if part.any() else 0.0
+        if sigma_mm > WIRE_MAX_UNCERTAINTY_MM:
+            why.append(f"its points are known to {sigma_mm:.1f} mm (median 1 sigma, limit {WIRE_MAX_UNCERTAINTY_MM:g} mm)")
+    verdict, message = frame_verdict(w, tv.distal_uv_px, None, image_shape=carms[k].shape,
+                                     pixel_at_iso_mm=carms[k].pixel_at_iso_mm)
+    if verdict is not Verdict.OK:
+        why += [m for m in message.split("; ") if m and not m.startswith("wire depth uncertain")]
+    if not why:
+        return ""
+    return (f"distal part from plane {plane} alone: its last {tv.single_view_distal_mm:.0f} mm are seen in plane "
+            f"{plane} only (their depth is the vessel prior's), and " + "; ".join(why))
 
 
 def _doubled_tip_two_view(tv, uv, images):

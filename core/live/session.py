@@ -503,7 +503,7 @@ def frame_verdict(wire3d, wire_uv_px, orientation, *, beyond_tip=None, motion=No
     if wire_sigma_mm > WIRE_MAX_UNCERTAINTY_MM:
         why.append(f"wire depth uncertain: its points are known to {wire_sigma_mm:.1f} mm (median 1 sigma, limit "
                    f"{WIRE_MAX_UNCERTAINTY_MM:g} mm): one view places the wire in depth no closer than its lumen's "
-                   f"width and the CTA centerline's own error allow; the tip's own 1 sigma is {tip_sigma_mm:.1f} mm")
+                   f"width and the CTA centerline's own error allow (the tip's own 1 sigma: {tip_sigma_mm:.1f} mm)")
     retreat_mm = float(getattr(wire3d, "tree_retreat_mm", float("nan")))
     if retreat_mm > TREE_RETREAT_MAX_MM:
         why.append(f"2D trace doubtful: along the wire, its path through the vessel tree walks {retreat_mm:.0f} mm "

@@ -86,6 +86,11 @@ class TwoViewWire:
     b_reversed: bool  # plane B's 2D order ran the other way (distal -> proximal relative to A)
     distal_gap_px: tuple[float, float] = (float("nan"), float("nan"))  # each plane's 2D wire beyond the two-view tip
     single_view_distal_mm: float = 0.0  # length of the distal part appended from one plane (extend_distal)
+    #: that plane (0: A, 1: B; -1 when none), its single-view reconstruction the distal part was taken from and its
+    #: 2D wire in plane A's order: the frame verdict holds the distal part to what that one view can promise
+    distal_plane: int = -1
+    distal_source: object = None  # reconstruction.Wire3D
+    distal_uv_px: object = None  # (M, 2) ndarray
 
     def __bool__(self) -> bool:
         return bool(self.wire3d)
@@ -445,7 +450,7 @@ def extend_distal(tv: TwoViewWire, wire_a_uv_px, wire_b_uv_px, ctx: TwoViewConte
     perr = list(tv.projection_error_px)
     w3 = Wire3D(X, unc, float(arc[-1]), W.projection_error_px, W.success, msg, ids, arc, curvature(X),
                 W.seconds + w.seconds, "biplane", cov, False, rise)
-    return TwoViewWire(w3, tuple(perr), tv.matched_fraction, tv.b_reversed, tv.distal_gap_px, ext_mm)
+    return TwoViewWire(w3, tuple(perr), tv.matched_fraction, tv.b_reversed, tv.distal_gap_px, ext_mm, k, w, uv)
 
 
 def _with_message(tv: TwoViewWire, message: str) -> TwoViewWire:
