@@ -805,6 +805,8 @@ def test_real_window_keys_under_xvfb_biplane(bsynth, tmp_path):
     assert moved.allclose(expected, atol_mm=1e-6, atol_rad=1e-9)
 
 
+@pytest.mark.xvfb
+@pytest.mark.skipif(not _HAVE_X_TOOLS, reason="needs xvfb-run and xdotool (apt: xvfb xauth xdotool)")
 def test_real_window_keys_under_xvfb(case_dir, synth, tmp_path):
     import cv2
 
