@@ -655,7 +655,7 @@ def _one_plane_distal_reasons(tv, carms) -> str:
     the wire off its vessel, the tip's uncertainty ...; its whole-wire depth is left out, the two views settle
     the rest of the wire), make the frame ``uncertain``. On the real-anatomy frames in two planes
     (``scripts/diagnose_real_frames.py --root entry --biplane``) 6 of 33 ``ok`` frames were silently wrong, all
-    with 37-122 mm taken from one plane alone, the wire 1.9-4.2 mm or the tip 5-29 mm off."""
+    with 37-122 mm taken from one plane alone (the wire 2.8-4.2 mm or the tip 5.1-29 mm off)."""
     if tv.single_view_distal_mm <= 0 or tv.distal_source is None or tv.distal_plane not in (0, 1):
         return ""
     w, k = tv.distal_source, tv.distal_plane
