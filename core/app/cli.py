@@ -40,14 +40,15 @@ def _parse_xyz(text: str) -> tuple[float, float, float]:
     return vals
 
 
-def _add_access_option(p: argparse.ArgumentParser) -> None:
-    """``--access-lps``: where the wire enters the vessels (``guidewire3d.vesseltree.rooted_at_access``)."""
+def _add_access_option(p: argparse.ArgumentParser, *, note: str = "") -> None:
+    """``--access-lps``: where the wire enters the vessels (``guidewire3d.vesseltree.rooted_at_access``);
+    ``note``: what the option means for this command, added to its help."""
     p.add_argument("--access-lps", type=_parse_xyz, default=None, metavar="X,Y,Z",
                    help="where the wire enters the vessels, in LPS mm (the sheath tip, or a femoral or radial puncture "
                         "within 150 mm of the CTA's vessels): the vessel tree is rooted at its point nearest to it. "
                         "The reconstruction assumes the wire advances from the root, by default the tree's widest end "
                         "(the aortic root of a chest CTA); give this for transfemoral and transradial wires. Write "
-                        "--access-lps=X,Y,Z when X is negative")
+                        "--access-lps=X,Y,Z when X is negative" + (f". {note}" if note else ""))
 
 
 def _add_geometry_overrides(p: argparse.ArgumentParser) -> None:
@@ -285,6 +286,9 @@ def _add_batch_parser(sub, full: bool = True) -> None:
         from guidewire3d.app import batch
 
         batch.add_cli_options(p)
+        _add_access_option(p, note="Every study's, recorded in its report.json as reconstruct records it; a "
+                                   "manifest's access_lps column overrides it per study (\"x,y,z\" quoted; none: the "
+                                   "automatic root; empty: this point)")
         p.set_defaults(func=batch.cli_batch)
 
 
