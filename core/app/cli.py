@@ -302,6 +302,7 @@ def _add_listen_parser(sub, full: bool = True) -> None:
         from guidewire3d.app import dicomnet
 
         dicomnet.add_cli_options(p)
+        _add_access_option(p, note="Every received study's, recorded in its report.json as reconstruct records it")
         p.set_defaults(func=dicomnet.cli_listen)
 
 
