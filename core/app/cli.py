@@ -214,7 +214,8 @@ def _add_view_parser(sub) -> None:
     p = sub.add_parser("view", help="desktop viewer on an output folder or on inputs",
                        description="Open the pyvista viewer on a reconstruct output folder "
                                    "(or on --cta/--roadmap/--frames), or render a screenshot offscreen.")
-    p.add_argument("out_dir", nargs="?", help="a folder written by reconstruct/demo")
+    p.add_argument("out_dir", nargs="?", help="a folder written by reconstruct/demo; with --cta/--roadmap/--frames, "
+                                              "the folder their run writes (default: a new temporary folder)")
     p.add_argument("--cta")
     p.add_argument("--roadmap")
     p.add_argument("--frames")
@@ -223,6 +224,8 @@ def _add_view_parser(sub) -> None:
     p.add_argument("--size", default="1200x800", metavar="WxH", help="window/screenshot size")
     p.add_argument("--live", metavar="HOST:PORT", help="follow a `guidewire3d live` server (e.g. 127.0.0.1:18944): "
                    "the wire tube shows its newest wire (in OUT_DIR's scene when given)")
+    _add_access_option(p, note="With --cta/--roadmap/--frames only (the run before the viewer opens, as reconstruct "
+                               "--access-lps); an existing OUT_DIR holds its tree rooted already (report.json 'access')")
 
     def run(args):
         from guidewire3d.viewer import app
