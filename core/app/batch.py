@@ -14,6 +14,7 @@ from __future__ import annotations
 import csv
 import io as _stdio
 import os
+import re
 import sys
 import time
 from dataclasses import dataclass
@@ -23,13 +24,16 @@ from guidewire3d import io
 from guidewire3d.app import pipeline
 from guidewire3d.errors import Guidewire3DError, InputError, OutputError
 from guidewire3d.methods import ReconMethod, SegMethod, choices
+from guidewire3d.vesseltree import check_access
 
 __all__ = ["StudySpec", "read_manifest", "group_dicom_tree", "load_studies", "run_study", "run_batch",
            "write_summary", "read_summary", "SUMMARY_COLUMNS", "MANIFEST_COLUMNS"]
 
 MANIFEST_COLUMNS = ("study", "cta", "roadmap", "frames")
 # optional manifest columns: the `reconstruct` options they set (other columns are ignored)
-OPTION_COLUMNS = ("series_uid", "roadmap_frame", "method", "segmenter", "force", "track_motion")
+OPTION_COLUMNS = ("series_uid", "roadmap_frame", "method", "segmenter", "force", "track_motion", "access_lps")
+# the manifest's access_lps that keeps a study's automatic root when the batch has a --access-lps
+NO_ACCESS = "none"
 SUMMARY_COLUMNS = ("study", "status", "verdict", "residual_px", "frames_reconstructed", "frames_total", "seconds",
                    "peak_rss_mb", "worker", "error")
 SUMMARY_NAME = "summary.csv"
@@ -55,8 +59,10 @@ _FALSE = {"0", "false", "no", "n", ""}
 class StudySpec:
     """One study of a batch: the inputs and options of one ``reconstruct`` run.
 
-    ``error`` is set for a study that could not be assembled from a DICOM tree (no CT series, no XA
-    run): it is recorded as failed without running.
+    ``access_lps_mm`` (LPS mm) is ``reconstruct --access-lps``: where the wire enters the vessels;
+    ``access_option`` names where it came from in the errors (``--access-lps``, or the manifest's
+    ``access_lps`` cell). ``error`` is set for a study that could not be assembled from a DICOM tree
+    (no CT series, no XA run): it is recorded as failed without running.
     """
 
     study: str
@@ -69,6 +75,8 @@ class StudySpec:
     segmenter: str = "unet"
     force: bool = False
     track_motion: bool = False
+    access_lps_mm: tuple[float, float, float] | None = None
+    access_option: str = "--access-lps"  # what the errors call the access point: the option or the manifest cell
     source: str = ""
     error: str | None = None
 
@@ -90,8 +98,39 @@ def check_study_name(name: str, where: str) -> str:
     return name
 
 
+def _renamed_access(message: str, option: str) -> str:
+    """``message`` with the access point named ``option``: the errors of ``check_access`` and of the
+    pipeline start with ``--access-lps=x,y,z``; a point from a manifest is its ``access_lps`` cell."""
+    if option != "--access-lps" and message.startswith("--access-lps="):
+        return f"{option}={message[len('--access-lps='):]}"
+    return message
+
+
+def parse_access(value: str, where: str) -> tuple[float, float, float] | None:
+    """A manifest's ``access_lps`` cell: ``"x,y,z"`` in LPS mm (quoted in the CSV; ``;`` or spaces
+    may separate the numbers too) -> ``(x, y, z)``; ``""`` -> None; an InputError naming ``where``
+    and the column otherwise. ``NO_ACCESS`` is handled by the caller."""
+    v = value.strip()
+    if not v:
+        return None
+    parts = [t for t in re.split(r"[,;\s]+", v) if t]
+    try:
+        xyz = [float(t) for t in parts]
+    except ValueError:
+        xyz = []
+    if len(xyz) != 3:
+        raise InputError(f"{where}: access_lps: expected x,y,z in LPS mm (quoted: \"x,y,z\"), or {NO_ACCESS}, "
+                         f"got {v!r}")
+    try:
+        return tuple(float(c) for c in check_access(xyz))
+    except InputError as e:  # named as the manifest's cell, as run_study names the pipeline's refusals
+        raise InputError(_renamed_access(str(e), f"{where}: access_lps")) from None
+
+
 def _option(value: str, column: str, where: str):
     v = value.strip()
+    if column == "access_lps":
+        return parse_access(v, where)
     if column == "series_uid":
         return v or None
     if column == "roadmap_frame":
@@ -118,12 +157,17 @@ def _option(value: str, column: str, where: str):
     raise InputError(f"{where}: {column}: expected true or false, got {v!r}")
 
 
-def read_manifest(path) -> list[StudySpec]:
+def read_manifest(path, *, access_lps_mm=None) -> list[StudySpec]:
     """The studies of a CSV manifest with the columns ``study,cta,roadmap,frames``.
 
     Optional columns set ``reconstruct`` options per study: ``series_uid``, ``roadmap_frame``,
-    ``method``, ``segmenter``, ``force``, ``track_motion``; other columns are ignored. Relative
-    paths are relative to the manifest's folder. Every row is checked before anything runs.
+    ``method``, ``segmenter``, ``force``, ``track_motion``, ``access_lps``; other columns are
+    ignored. Relative paths are relative to the manifest's folder. Every row is checked before
+    anything runs.
+
+    ``access_lps_mm`` ((3,) LPS mm, optional: the batch's ``--access-lps``) is every study's access
+    point; a study's ``access_lps`` cell overrides it: ``"x,y,z"`` (quoted) another point, ``none``
+    the automatic root, empty the batch's point.
 
     Raises
     ------
@@ -160,11 +204,13 @@ def read_manifest(path) -> list[StudySpec]:
     if len(rows) == 1:
         raise InputError(f"{path}: no studies (only a header)")
     base = path.resolve().parent
+    default_access = None if access_lps_mm is None else tuple(float(c) for c in check_access(access_lps_mm))
     studies, seen = [], {}
     for line, r in rows[1:]:
         where = f"{path} line {line}"
         if len(r) > len(header) and any(c.strip() for c in r[len(header):]):
-            raise InputError(f"{where}: {len(r)} fields, the header has {len(header)}")
+            hint = ' (quote the access_lps cell: "x,y,z")' if "access_lps" in header else ""
+            raise InputError(f"{where}: {len(r)} fields, the header has {len(header)}{hint}")
         rec = {h: (r[i] if i < len(r) else "") for i, h in enumerate(header) if h}
         name = check_study_name(rec["study"], where)
         if name in seen:
@@ -181,8 +227,15 @@ def read_manifest(path) -> list[StudySpec]:
             if not p.exists():
                 raise InputError(f"{where}: {col}: {p}: no such file or folder")
             files[col] = str(p)
-        opts = {c: _option(rec[c], c, where) for c in OPTION_COLUMNS if c in rec}
+        cell = rec.get("access_lps", "").strip()
+        opts = {c: _option(rec[c], c, where) for c in OPTION_COLUMNS
+                if c in rec and not (c == "access_lps" and cell.lower() == NO_ACCESS)}
         opts = {k: v for k, v in opts.items() if v is not None}
+        access = opts.pop("access_lps", None)
+        if access is not None:
+            opts.update(access_lps_mm=access, access_option=f"{where}: access_lps")
+        elif cell.lower() != NO_ACCESS:
+            opts.update(access_lps_mm=default_access)
         studies.append(StudySpec(name, files["cta"], files["roadmap"], files["frames"], source=where, **opts))
     return studies
 
@@ -254,20 +307,22 @@ def choose_xa_runs(runs) -> tuple[str, str]:
     return road.path, live.path
 
 
-def group_dicom_tree(root, *, log=None) -> list[StudySpec]:
+def group_dicom_tree(root, *, access_lps_mm=None, log=None) -> list[StudySpec]:
     """The studies of a DICOM folder tree, one per StudyInstanceUID, named by it.
 
     The CTA is the study's CT series with the most slices (its files must lie in one folder); every
     XA or RF file is one run, and :func:`choose_xa_runs` picks the roadmap and the live frames.
     Files that are not DICOM, hidden files and other modalities are ignored. A study without a CT
     series or without an XA run is returned with ``error`` set (recorded as failed, not run).
+    ``access_lps_mm`` ((3,) LPS mm, optional: ``--access-lps``) is every study's access point.
 
     Raises
     ------
     InputError
-        ``root`` is not a folder, or holds no DICOM study at all.
+        ``root`` is not a folder, or holds no DICOM study at all; or ``access_lps_mm`` is not a point.
     """
     root = Path(root)
+    access = None if access_lps_mm is None else tuple(float(c) for c in check_access(access_lps_mm))
     if not root.is_dir():
         raise InputError(f"{root}: not a folder")
     ct: dict[str, dict[str, list[Path]]] = {}
@@ -329,16 +384,17 @@ def group_dicom_tree(root, *, log=None) -> list[StudySpec]:
                 road, live = choose_xa_runs(runs)
         if log is not None:
             log(f"{name}: " + (error or f"CT {uid} ({len(series[uid])} slices), roadmap {road}, frames {live}"))
-        out.append(StudySpec(name, cta, road, live, series_uid=uid, source=where, error=error))
+        out.append(StudySpec(name, cta, road, live, series_uid=uid, access_lps_mm=access, source=where, error=error))
     return out
 
 
-def load_studies(manifest, *, log=None) -> list[StudySpec]:
-    """A CSV manifest (:func:`read_manifest`) or a DICOM folder tree (:func:`group_dicom_tree`)."""
+def load_studies(manifest, *, access_lps_mm=None, log=None) -> list[StudySpec]:
+    """A CSV manifest (:func:`read_manifest`) or a DICOM folder tree (:func:`group_dicom_tree`);
+    ``access_lps_mm``: the batch's ``--access-lps`` (a manifest's ``access_lps`` column overrides it)."""
     p = Path(manifest)
     if p.is_dir():
-        return group_dicom_tree(p, log=log)
-    return read_manifest(p)
+        return group_dicom_tree(p, access_lps_mm=access_lps_mm, log=log)
+    return read_manifest(p, access_lps_mm=access_lps_mm)
 
 
 # --------------------------------------------------------------------------------------
@@ -409,10 +465,11 @@ def run_study(spec: StudySpec, out_root, *, images: bool = True, replace: bool =
         result = pipeline.run_to_outdir(spec.cta, spec.roadmap, spec.frames, out, series_uid=spec.series_uid,
                                         roadmap_frame=spec.roadmap_frame, method=spec.method,
                                         segmenter=spec.segmenter, force=spec.force, images=images,
-                                        progress=False, replace=replace, track_motion=spec.track_motion)
+                                        progress=False, replace=replace, track_motion=spec.track_motion,
+                                        access_lps_mm=spec.access_lps_mm)
     except Guidewire3DError as e:
-        return {**row, "status": FAILED, "error": _one_line(e), "seconds": round(time.perf_counter() - t0, 2),
-                "peak_rss_mb": round(_peak_rss_mb(), 1)}
+        return {**row, "status": FAILED, "error": _renamed_access(_one_line(e), spec.access_option),
+                "seconds": round(time.perf_counter() - t0, 2), "peak_rss_mb": round(_peak_rss_mb(), 1)}
     reg = result.registration
     n_ok = sum(1 for w in result.wires3d if w.success)
     return {**row, "status": DONE if result.reconstructed else NOT_RECONSTRUCTED,
@@ -606,8 +663,8 @@ def _counts(rows) -> str:
 def add_cli_options(p) -> None:
     p.add_argument("manifest", metavar="MANIFEST",
                    help="a CSV with the columns study,cta,roadmap,frames (optional: series_uid, roadmap_frame, "
-                        "method, segmenter, force, track_motion), or a DICOM folder tree (one study per "
-                        "StudyInstanceUID; see README, 'batch')")
+                        "method, segmenter, force, track_motion, access_lps as a quoted \"x,y,z\" or none), or a "
+                        "DICOM folder tree (one study per StudyInstanceUID; see README, 'batch')")
     p.add_argument("--out", required=True, metavar="DIR",
                    help="output folder: DIR/<study>/ per study and DIR/summary.csv")
     g = p.add_mutually_exclusive_group()
@@ -625,7 +682,7 @@ def cli_batch(args) -> int:
     def say(msg):
         print(msg, file=sys.stderr)
 
-    studies = load_studies(args.manifest)
+    studies = load_studies(args.manifest, access_lps_mm=getattr(args, "access_lps", None))
     if Path(args.manifest).is_dir():
         say(f"{args.manifest}: {len(studies)} studies ({sum(s.error is None for s in studies)} with a CT series "
             "and XA runs)")

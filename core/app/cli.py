@@ -40,14 +40,15 @@ def _parse_xyz(text: str) -> tuple[float, float, float]:
     return vals
 
 
-def _add_access_option(p: argparse.ArgumentParser) -> None:
-    """``--access-lps``: where the wire enters the vessels (``guidewire3d.vesseltree.rooted_at_access``)."""
+def _add_access_option(p: argparse.ArgumentParser, *, note: str = "") -> None:
+    """``--access-lps``: where the wire enters the vessels (``guidewire3d.vesseltree.rooted_at_access``);
+    ``note``: what the option means for this command, added to its help."""
     p.add_argument("--access-lps", type=_parse_xyz, default=None, metavar="X,Y,Z",
                    help="where the wire enters the vessels, in LPS mm (the sheath tip, or a femoral or radial puncture "
                         "within 150 mm of the CTA's vessels): the vessel tree is rooted at its point nearest to it. "
                         "The reconstruction assumes the wire advances from the root, by default the tree's widest end "
                         "(the aortic root of a chest CTA); give this for transfemoral and transradial wires. Write "
-                        "--access-lps=X,Y,Z when X is negative")
+                        "--access-lps=X,Y,Z when X is negative" + (f". {note}" if note else ""))
 
 
 def _add_geometry_overrides(p: argparse.ArgumentParser) -> None:
@@ -213,7 +214,8 @@ def _add_view_parser(sub) -> None:
     p = sub.add_parser("view", help="desktop viewer on an output folder or on inputs",
                        description="Open the pyvista viewer on a reconstruct output folder "
                                    "(or on --cta/--roadmap/--frames), or render a screenshot offscreen.")
-    p.add_argument("out_dir", nargs="?", help="a folder written by reconstruct/demo")
+    p.add_argument("out_dir", nargs="?", help="a folder written by reconstruct/demo; with --cta/--roadmap/--frames, "
+                                              "the folder their run writes (default: a new temporary folder)")
     p.add_argument("--cta")
     p.add_argument("--roadmap")
     p.add_argument("--frames")
@@ -222,6 +224,8 @@ def _add_view_parser(sub) -> None:
     p.add_argument("--size", default="1200x800", metavar="WxH", help="window/screenshot size")
     p.add_argument("--live", metavar="HOST:PORT", help="follow a `guidewire3d live` server (e.g. 127.0.0.1:18944): "
                    "the wire tube shows its newest wire (in OUT_DIR's scene when given)")
+    _add_access_option(p, note="With --cta/--roadmap/--frames only (the run before the viewer opens, as reconstruct "
+                               "--access-lps); an existing OUT_DIR holds its tree rooted already (report.json 'access')")
 
     def run(args):
         from guidewire3d.viewer import app
@@ -285,6 +289,9 @@ def _add_batch_parser(sub, full: bool = True) -> None:
         from guidewire3d.app import batch
 
         batch.add_cli_options(p)
+        _add_access_option(p, note="Every study's, recorded in its report.json as reconstruct records it; a "
+                                   "manifest's access_lps column overrides it per study (\"x,y,z\" quoted; none: the "
+                                   "automatic root; empty: this point)")
         p.set_defaults(func=batch.cli_batch)
 
 
@@ -298,6 +305,7 @@ def _add_listen_parser(sub, full: bool = True) -> None:
         from guidewire3d.app import dicomnet
 
         dicomnet.add_cli_options(p)
+        _add_access_option(p, note="Every received study's, recorded in its report.json as reconstruct records it")
         p.set_defaults(func=dicomnet.cli_listen)
 
 

@@ -8,7 +8,8 @@ series and an XA run and no instance arrived for ``quiet_s`` seconds, or at once
 :meth:`StudyReceiver.reconstruct_now` (``SIGUSR1`` from the command line). A study that receives
 more instances after its reconstruction is reconstructed again (its output folder replaced).
 Reconstructions run one at a time in a background thread, so receiving goes on meanwhile; each
-adds its row to ``OUT/summary.csv`` (the format of ``batch``).
+adds its row to ``OUT/summary.csv`` (the format of ``batch``). ``access_lps_mm`` (``--access-lps``)
+is every study's access point, as ``reconstruct --access-lps`` takes it.
 """
 from __future__ import annotations
 
@@ -25,6 +26,7 @@ from pathlib import Path
 from guidewire3d.app import batch
 from guidewire3d.app.batch import writable_folder
 from guidewire3d.errors import InputError
+from guidewire3d.vesseltree import check_access
 
 __all__ = ["StudyReceiver", "add_cli_options", "cli_listen"]
 
@@ -65,11 +67,14 @@ class StudyReceiver:
         A study is complete when no instance of it arrived for this long.
     auto : bool
         Reconstruct complete studies by themselves (else only on :meth:`reconstruct_now`).
+    access_lps_mm : (3,) array_like of float, optional
+        Where the wire enters the vessels (LPS mm), for every study: its tree is rooted at its point
+        nearest to it and ``report.json`` records it (``reconstruct --access-lps``).
     """
 
     def __init__(self, store_dir, out_dir, *, port: int = 11112, host: str = "127.0.0.1",
                  ae_title: str = DEFAULT_AE_TITLE, quiet_s: float = DEFAULT_QUIET_S, auto: bool = True,
-                 images: bool = True, log=None):
+                 images: bool = True, access_lps_mm=None, log=None):
         if not 0 <= int(port) <= 65535:
             raise InputError(f"--port {port}: expected 0..65535")
         if not (quiet_s >= 0):
@@ -77,6 +82,7 @@ class StudyReceiver:
         title = str(ae_title).strip()
         if not 1 <= len(title) <= 16 or not title.isascii() or "\\" in title:
             raise InputError(f"--ae-title {ae_title!r}: expected 1-16 ASCII characters without '\\'")
+        self.access_lps_mm = None if access_lps_mm is None else tuple(float(c) for c in check_access(access_lps_mm))
         self.store_dir = Path(os.path.abspath(store_dir))
         self.out_dir = Path(os.path.abspath(out_dir))
         writable_folder(self.store_dir, "--store folder")
@@ -119,7 +125,9 @@ class StudyReceiver:
                 from None
         self._ae = ae
         self._say(f"listening on {self.host}:{self.port} as {self.ae_title}; filing into {self.store_dir}, "
-                  f"reconstructing into {self.out_dir}")
+                  f"reconstructing into {self.out_dir}"
+                  + ("" if self.access_lps_mm is None else
+                     f"; access point {','.join(f'{v:g}' for v in self.access_lps_mm)} LPS mm"))
         self._scan_store()
         for target, name in ((self._watch, "gw3d-watch"), (self._work, "gw3d-reconstruct")):
             t = threading.Thread(target=target, name=name, daemon=True)
@@ -226,7 +234,7 @@ class StudyReceiver:
                      and (force or (now - st.last_arrival >= self.quiet_s and st.instances != st.checked_at))]
         for s, st, n in cands:  # n: the instances on disk before the folder is read (more may arrive meanwhile)
             try:
-                (spec,) = batch.group_dicom_tree(self.store_dir / s)
+                (spec,) = batch.group_dicom_tree(self.store_dir / s, access_lps_mm=self.access_lps_mm)
             except (InputError, ValueError) as e:  # nothing readable yet, or more than one study inside
                 spec, err = None, str(e)
             else:
@@ -312,7 +320,8 @@ def cli_listen(args) -> int:
     store = Path(args.store)
     out = Path(args.out) if args.out else store.with_name(f"{store.name}-out")
     rx = StudyReceiver(store, out, port=args.port, host=args.host, ae_title=args.ae_title,
-                       quiet_s=args.quiet_seconds, auto=not args.on_demand, images=not args.no_images, log=say)
+                       quiet_s=args.quiet_seconds, auto=not args.on_demand, images=not args.no_images,
+                       access_lps_mm=getattr(args, "access_lps", None), log=say)
     rx.start()
     if hasattr(signal, "SIGUSR1"):
         def on_usr1(signum, frame):

@@ -1,10 +1,11 @@
 """The desktop viewer: builds the scene, wires keys and sliders to the controller, shows the window.
 
-``guidewire3d view OUT_DIR`` (or ``--cta/--roadmap/--frames`` to run the pipeline first);
+``guidewire3d view OUT_DIR`` (or ``--cta/--roadmap/--frames [--access-lps]`` to run the pipeline first);
 ``--screenshot PATH`` renders offscreen and exits. Keys are listed on screen (``scene.HELP``).
 """
 from __future__ import annotations
 
+import json
 import os
 import tempfile
 from pathlib import Path
@@ -360,12 +361,37 @@ def run_live(address, *, out_dir=None, size_px=DEFAULT_SIZE, screenshot=None, wa
 
 
 def _run_pipeline(args) -> Path:
+    """``view --cta --roadmap --frames [OUT_DIR] [--access-lps]``: ``reconstruct``'s library call
+    (``pipeline.run_to_outdir``) into OUT_DIR, or a new temporary folder; the folder it wrote."""
     missing = [f"--{n}" for n in ("cta", "roadmap", "frames") if not getattr(args, n, None)]
     if missing:
         raise InputError(f"view: {', '.join(missing)} missing (give all of --cta, --roadmap, --frames, or an OUT_DIR)")
-    out = Path(args.out_dir) if args.out_dir else Path(tempfile.mkdtemp(prefix="guidewire3d-view-"))
-    pipeline.run_to_outdir(args.cta, args.roadmap, args.frames, out, screenshot=render_outdir_screenshot)
+    temporary = not getattr(args, "out_dir", None)
+    out = Path(tempfile.mkdtemp(prefix="guidewire3d-view-")) if temporary else Path(args.out_dir)
+    try:
+        pipeline.run_to_outdir(args.cta, args.roadmap, args.frames, out, access_lps_mm=getattr(args, "access_lps", None),
+                               screenshot=render_outdir_screenshot)
+    except BaseException:
+        if temporary and out.is_dir() and not any(out.iterdir()):
+            out.rmdir()  # refused or interrupted: the empty temporary folder is not left behind
+        raise
     return out
+
+
+def _refuse_access(args, out_dir) -> None:
+    """``--access-lps`` belongs to a run: refused (one line) on a finished OUT_DIR, whose report says
+    how its tree is rooted."""
+    if getattr(args, "access_lps", None) is None:
+        return
+    try:
+        rec = json.loads((Path(out_dir) / "report.json").read_text()).get("access")
+    except (OSError, ValueError, AttributeError):
+        rec = None
+    rooted = ("at its access point " + ",".join(f"{v:g}" for v in rec["access_lps_mm"])
+              if isinstance(rec, dict) and "access_lps_mm" in rec else "at its automatic root")
+    raise InputError(f"--access-lps: {out_dir} is a finished reconstruction, its vessel tree rooted when it was "
+                     f"written ({rooted}); give --access-lps with --cta, --roadmap and --frames, or rerun "
+                     "`guidewire3d reconstruct --access-lps`")
 
 
 def cli_main(args) -> int:
@@ -375,6 +401,9 @@ def cli_main(args) -> int:
     if frame < 0:
         raise InputError(f"--frame: must be >= 0, got {frame}")
     if getattr(args, "live", None):
+        if getattr(args, "access_lps", None) is not None:
+            raise InputError("--access-lps: view --live shows the wires of a `guidewire3d live` server, whose tree is "
+                             "rooted by that server; give --access-lps to `guidewire3d live`")
         out = Path(args.out_dir) if getattr(args, "out_dir", None) else None
         if out is not None and not (out / "report.json").is_file():
             raise InputError(f"{out}: no report.json (not a guidewire3d output folder)")
@@ -383,6 +412,9 @@ def cli_main(args) -> int:
         out_dir = _run_pipeline(args)
     elif getattr(args, "out_dir", None):
         out_dir = Path(args.out_dir)
+        if not (out_dir / "report.json").is_file():
+            raise InputError(f"{out_dir}: no report.json (not a guidewire3d output folder)")
+        _refuse_access(args, out_dir)
     else:
         raise InputError("view: give an OUT_DIR or --cta, --roadmap and --frames")
     if not (out_dir / "report.json").is_file():
