@@ -196,6 +196,14 @@ def _joint_search(m3, m2s, carms, start: Pose, *, n_best: int) -> list[Pose]:
     over a 3D grid of translations (plane A's in-plane shifts x depths along A's beam, each
     translation read in plane B's map where it lands); the best ``n_best`` distinct poses."""
     rotvecs = search.search_rotvecs(carms[0])
+    shifts = [search.shift_range_mm(m3, c, start) for c in carms]
+    if max(max(r) for r in shifts) > search.SEARCH_SHIFT_MM:
+        # a tree larger than the view (a chest-abdomen tree through a view of the arch): wide ranges, searched
+        # from each plane's best shifts along its beam in the other (search.joint_wide_candidates)
+        maps = [search._search_cost_maps(m3, m2, c, start, rotvecs, weight_3d=SEARCH_WEIGHT_3D, shift_mm=r)
+                for m2, c, r in zip(m2s, carms, shifts)]
+        best = search.joint_wide_candidates(maps, carms, rotvecs)
+        return _distinct_candidates(best, m3, rotvecs, maps[0][2], start, maps[0][3] * maps[0][4], n_best)
     maps = [search._search_cost_maps(m3, m2, c, start, rotvecs, weight_3d=SEARCH_WEIGHT_3D)
             for m2, c in zip(m2s, carms)]
     (Ca, _, centre, mmpx_a, c0a, ma), (Cb, _, _, mmpx_b, c0b, mb) = maps
@@ -217,10 +225,16 @@ def _joint_search(m3, m2s, carms, start: Pose, *, n_best: int) -> list[Pose]:
         j = int(np.argmin(cost))
         best.append((float(cost[j]), k, t[j]))
     best.sort(key=lambda x: x[0])
+    return _distinct_candidates(best, m3, rotvecs, centre, start, step_a, n_best)
+
+
+def _distinct_candidates(best, m3, rotvecs, centre, start: Pose, step_mm: float, n_best: int) -> list[Pose]:
+    """The first ``n_best`` poses of ``best`` (``(cost, k, t_mm)``, lowest cost first) at least two search
+    cells (``step_mm``) apart."""
     out: list[Pose] = []
     for _, k, tk in best:
         cand = Pose(np.eye(3), tk) @ Pose.from_rotvec_about(rotvecs[k], centre) @ start
-        if any(search._pose_close(cand, p, m3, mm=2.0 * step_a) for p in out):
+        if any(search._pose_close(cand, p, m3, mm=2.0 * step_mm) for p in out):
             continue
         out.append(cand)
         if len(out) >= n_best:

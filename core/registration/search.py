@@ -235,3 +235,51 @@ def _pose_close(a: Pose, b: Pose, m3: _Model3D, *, mm: float) -> bool:
     pa, pb = a.apply(m3.coarse), b.apply(m3.coarse)
     return float(np.linalg.norm(pa - pb, axis=1).mean()) < mm
 
+
+
+JOINT_WIDE_MINIMA = 30  # biplane search of a tree larger than the view: the lowest local minima of each rotation's
+#   cost map in one plane (in-plane shifts over shift_range_mm), each scanned along that plane's beam in the other's
+
+
+def joint_wide_candidates(maps, carms, rotvecs, *, minima: int = JOINT_WIDE_MINIMA) -> list[tuple[float, int, np.ndarray]]:
+    """The biplane coarse search's candidates for a tree larger than the view: ``(cost, k, t_mm)``.
+
+    ``maps``: each plane's :func:`_search_cost_maps` over the same ``rotvecs`` and start, with its own
+    :func:`shift_range_mm` (``m`` the pair ``(m_u, m_v)``). A full grid of translations (plane A's shifts x
+    depths) over ranges of 100-200 mm is millions of cells per rotation; instead, for every rotation ``k`` and
+    each plane in turn, the ``minima`` lowest local minima of its cost map (3 x 3 cells) are taken and the depth
+    along its beam is scanned, in its own cell steps, over the other plane's largest shift range, reading the
+    other plane's map where the translation lands: the joint cost is the sum. A translation that leaves the other
+    plane's searched range is skipped."""
+    axes = [c.axes for c in carms]
+    out = []
+    for me in (0, 1):
+        other = 1 - me
+        C, _, _, mmpx, c0, (mu, mv) = maps[me]
+        Co, _, _, mmpx_o, c0_o, (mu_o, mv_o) = maps[other]
+        step, step_o = mmpx * c0, mmpx_o * c0_o
+        e_u, e_v, d = axes[me]
+        eo_u, eo_v, _ = axes[other]
+        nd = int(np.ceil(max(mu_o * step_o, mv_o * step_o) / step))
+        depths = np.arange(-nd, nd + 1) * step
+        for k in range(C.shape[0]):
+            ck = C[k]
+            is_min = ndi.minimum_filter(ck, size=3, mode="nearest") == ck
+            iy, ix = np.nonzero(is_min)
+            if len(iy) > minima:
+                sel = np.argpartition(ck[iy, ix], minima)[:minima]
+                iy, ix = iy[sel], ix[sel]
+            t_in = ((ix - mu)[:, None] * e_u + (iy - mv)[:, None] * e_v) * step  # (M, 3)
+            t = t_in[:, None, :] + depths[None, :, None] * d  # (M, D, 3)
+            jx = np.rint(t @ eo_u / step_o).astype(int) + mu_o
+            jy = np.rint(t @ eo_v / step_o).astype(int) + mv_o
+            inb = (jx >= 0) & (jx < Co.shape[2]) & (jy >= 0) & (jy < Co.shape[1])
+            if not inb.any():
+                continue
+            cost = np.where(inb, Co[k, np.clip(jy, 0, Co.shape[1] - 1), np.clip(jx, 0, Co.shape[2] - 1)], np.inf)
+            cost = cost + ck[iy, ix][:, None]
+            j = np.unravel_index(int(np.argmin(cost)), cost.shape)
+            if np.isfinite(cost[j]):
+                out.append((float(cost[j]), k, t[j]))
+    out.sort(key=lambda x: x[0])
+    return out
