@@ -178,7 +178,8 @@ def test_bad_real_anatomy_input_is_one_line_exit_2_nothing_written(case, labelle
         shutil.copy(root / "labels.nii.gz", labels)
         words = ["--artery-labels", "structures.csv"]
     elif case == "biplane":
-        extra, words = ["--biplane"], ["--biplane", "--anatomy-ct"]
+        # a real-anatomy case takes --biplane (plane B 90 deg from plane A), not plane B's angles
+        extra, words = ["--biplane", "--plane-b-angles-deg", "10", "0"], ["--plane-b-angles-deg", "--anatomy-ct"]
     elif case == "only_ct":
         labels, words = None, ["--anatomy-labels"]
     elif case == "bad_target":
@@ -231,3 +232,31 @@ def test_the_true_wire_does_not_cut_through_a_touching_branch():
         assert trunk == AORTA and got == target
         assert not (on == other).any() and not (on == 0).any()          # never in the other branch, never outside
         assert (on == target).mean() > 0.2 and on[-1] == target          # and it ends in its target
+
+
+def test_real_anatomy_biplane_case_writes_plane_b_and_keeps_plane_a(labelled_ct, tmp_path, capsys):
+    """``--biplane`` on a real-anatomy case: plane B (the held-out view) gets its roadmap (``roadmap_b.dcm``) and
+    frames (``frames_b.dcm``) with its own positioner tags; plane A's images and the truth are those of the monoplane
+    case of the same seed (plane B's noise is its own stream)."""
+    import pydicom
+    from guidewire3d import io
+    from guidewire3d.phantom import load_truth
+
+    root, lab = labelled_ct
+    args = ["--anatomy-ct", str(root / "ct.nii.gz"), "--anatomy-labels", str(root / "labels.nii.gz"),
+            "--seed", "3", "--frames", "2", "--wire-to", str(CAROTID)]
+    mono, bi = tmp_path / "mono", tmp_path / "bi"
+    assert _main(["phantom", *args, "--out", str(mono)]) == 0
+    assert _main(["phantom", *args, "--out", str(bi), "--biplane"]) == 0, capsys.readouterr().err
+    assert {"roadmap_b.dcm", "frames_b.dcm"} <= {p.name for p in bi.iterdir()}
+    for name in ("roadmap.dcm", "frames.dcm"):
+        np.testing.assert_array_equal(pydicom.dcmread(mono / name).pixel_array, pydicom.dcmread(bi / name).pixel_array)
+    t = load_truth(bi)
+    assert t.pose.matrix.tolist() == load_truth(mono).pose.matrix.tolist()
+    run_b = io.read_xa(bi / "roadmap_b.dcm")
+    assert abs(run_b.carm.primary_deg - t.heldout_carm.primary_deg) < 0.05
+    # plane B's roadmap shows the arteries where they project in plane B
+    road = run_b.frames[0].astype(float)
+    uv = t.heldout_carm.project(t.tree.points_lps_mm, t.pose)
+    px = np.round(uv[t.heldout_carm.in_image(uv, margin_px=2)]).astype(int)
+    assert len(px) > 50 and np.median(road[px[:, 1], px[:, 0]]) < 0.85 * np.median(road)

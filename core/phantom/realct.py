@@ -64,6 +64,9 @@ class RealAnatomyOptions:
     dose: float = 1.0
     wire_to: int | None = None  # target artery label; None: chosen by the seed among the reachable ones
     artery_labels: tuple[int, ...] | None = None  # None: from the structures.csv names
+    #: a biplane case: plane B (the held-out view, 90 deg from plane A in LAO/RAO) gets its own roadmap too
+    #: (``roadmap_b.dcm``); its own noise stream, so plane A's images are those of the monoplane case
+    biplane: bool = False
 
     def __post_init__(self):
         if self.seed < 0:
@@ -380,7 +383,7 @@ def simulate_real_anatomy(volume, labels_zyx, arteries, contrast, options: RealA
             print(f"  {msg} ...", flush=True)
 
     ss = np.random.SeedSequence([int(options.seed), 0x4EA1_0017])
-    rng_view, rng_xa = (np.random.default_rng(s) for s in ss.spawn(2))
+    rng_view, rng_xa, rng_b = (np.random.default_rng(s) for s in ss.spawn(3))  # the first two as with spawn(2)
     r_wire = options.wire_diameter_mm / 2
     wire, trunk, target = true_wire_lps_mm(volume, labels_zyx, arteries, wire_radius_mm=r_wire,
                                            target=options.wire_to, seed=options.seed)
@@ -431,14 +434,22 @@ def simulate_real_anatomy(volume, labels_zyx, arteries, contrast, options: RealA
             vis.append(cam.in_image(uv))
             masks.append(_wire_mask(fine, 3, [uv], shape))
         views[name] = (np.stack(frames), tuple(uvs), tuple(vis), np.stack(masks))
+    held_roadmap = None
+    if options.biplane:
+        stage("plane B's roadmap")
+        L_b = ray_integral(held, pose, iodine[0], volume, step_mm=0.5, offset_zyx=iodine[1])
+        held_roadmap = _expose(rng_b, mu_contrast * L_b, b0=b0, n0=4 * n0, psf_px=_psf_sigma_px(rng_b, held),
+                               gain_field=gain_field, gain=1.0).astype(np.float32)
     _, ids = cKDTree(tree.points_lps_mm).query(wire)
     path_ids = np.asarray([i for k, i in enumerate(ids) if k == 0 or i != ids[k - 1]], np.int64)
     opts = PhantomOptions(seed=options.seed, n_frames=options.n_frames, wire_diameter_mm=options.wire_diameter_mm,
-                          detector_px=options.detector_px, background=True, catheter=False, dose=options.dose)
+                          detector_px=options.detector_px, background=True, catheter=False, dose=options.dose,
+                          biplane=options.biplane)
     case = PhantomCase(
         options=opts, volume=volume, lumen_mask_zyx=art, distractor_mask_zyx=np.zeros_like(art),
         tree=tree, carm=carm, pose=pose, roadmap=roadmap, vessel_mask_2d=vessel_mask,
         frames=views["main"][0], wire_lps_mm=tuple(wires), wire_uv_px=views["main"][1], wire_visible=views["main"][2],
         wire_mask=views["main"][3], wire_diameter_mm=options.wire_diameter_mm, heldout_carm=held,
-        heldout_frames=views["held"][0], heldout_wire_uv_px=views["held"][1], wire_path_point_ids=path_ids)
+        heldout_frames=views["held"][0], heldout_wire_uv_px=views["held"][1], wire_path_point_ids=path_ids,
+        heldout_roadmap=held_roadmap)
     return case, {"trunk_label": int(trunk), "target_label": int(target)}
