@@ -81,10 +81,11 @@ SEARCH_WEIGHT_3D = 0.1  # joint search: weight of the 3D -> 2D chamfer half (it 
 # Set on the real-anatomy pairs (``scripts/diagnose_real_frames.py --root entry --biplane``, 36 of 80 with a one-plane
 # part inside the other plane's image): the 8 right ``ok`` ones exceeded the chance by 0.35-0.79 (their parts lost by the
 # other plane's segmenter, yet its image shows them), the silently wrong pose 19 f1 by 0.14 (122 mm from plane B, the tip
-# 5.8 mm off; its part found again 4 mm shallower), the 14 wrong ``uncertain`` ones by -0.06-0.85 (8 of them below
-# 0.25). The simulator's biplane cases (``scripts/bench_biplane.py --cases 30 --frames 4``, 12 such parts): 0.53-1.00,
-# but seed 5 frame 2 0.09 (85 mm from plane A, 0.85 mm off the true wire with a median 1 sigma of 0.45 mm).
-# A tolerance of 1.5 or 2 mm separates no better (the shifted copies then overlap the tolerance).
+# 5.8 mm off; the best match 4 mm nearer plane B's source), the 16 wrong ``uncertain`` ones by -0.06-0.85 (12 of them
+# below 0.25; the other 4 are off at the tip, along the wire, which the image along the part does not tell). The
+# simulator's biplane cases (``scripts/bench_biplane.py --cases 30 --frames 4``, 12 such parts): 0.53-1.00, but seed 5
+# frame 2 0.09 (85 mm from plane A, 0.85 mm off the true wire with a median 1 sigma of 0.45 mm). A tolerance of 1.5 or
+# 2 mm separates no better (the shifted copies then overlap the tolerance).
 IMAGE_CHECK_RIDGE = 0.5
 IMAGE_CHECK_TOLERANCE_MM = 1.0
 IMAGE_CHECK_OFFSETS_MM = (-10.0, -8.0, -6.0, -4.0, 4.0, 6.0, 8.0, 10.0)
