@@ -31,11 +31,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-from guidewire3d import io
+from guidewire3d import io, kernels
 from guidewire3d.app import export, pipeline
 from guidewire3d.cta import vesselmodel
 from guidewire3d.errors import Guidewire3DError, InputError
 from guidewire3d.geometry import CArm, Pose, nominal_pose
+from guidewire3d.metrics import resample_polyline
 from guidewire3d.live import session as live
 from guidewire3d.live.session import WIRE_MAX_UNCERTAINTY_MM, FrameResult, _no_wire, frame_verdict, orientation_of
 from guidewire3d.motion.tracking import BiplaneMotionTracker
@@ -51,6 +52,7 @@ from guidewire3d.registration import model, problem, search, solve, verdict
 from guidewire3d.registration.result import RegistrationResult, Verdict, _failed
 from guidewire3d.vesseltree import check_access
 from guidewire3d.xray.orderedwire import ordered_wire, tip_end_check
+from guidewire3d.xray.segmentation import ridge_probability
 
 __all__ = ["ViewFit", "BiplaneRegistration", "register_biplane", "BiplaneFrame", "BiplaneSession",
            "pair_frames", "check_planes", "check_inputs", "run", "run_to_outdir", "projection_error_summary", "PLANES"]
@@ -69,6 +71,27 @@ AMBIGUITY_MM = 1.0  # second opinion: another LM result at least this far (RMS o
 AMBIGUITY_ENERGY_RATIO = 1.05  # ... whose narrow-stage energy is within this factor of the chosen one's: the two
 #   roadmaps do not tell the poses apart, the verdict is uncertain
 SEARCH_WEIGHT_3D = 0.1  # joint search: weight of the 3D -> 2D chamfer half (it favours poses that crowd the tree onto a partial roadmap)
+# The other plane's image as a second opinion on a distal part taken from one plane alone (``_other_plane_image_reasons``):
+# that part's points, moved along their own plane's rays (the depth that plane does not measure), are projected into the
+# other plane, and its image's ridge response (``segmentation.ridge_probability``, the ``ridge`` segmenter's filter) is
+# read there. A point "shows wire" when the response reaches ``IMAGE_CHECK_RIDGE`` within ``IMAGE_CHECK_TOLERANCE_MM`` of
+# its depth; the same is counted with the depth moved by each of ``IMAGE_CHECK_OFFSETS_MM`` (the chance of meeting some
+# dark line in that image: bone edges, vessels, catheters). The part is contradicted when the share of its length (in
+# that image) that shows wire exceeds the chance (the median over the offsets) by less than ``IMAGE_CHECK_MARGIN``.
+# Set on the real-anatomy pairs (``scripts/diagnose_real_frames.py --root entry --biplane``, 36 of 80 with a one-plane
+# part inside the other plane's image): the 8 right ``ok`` ones exceeded the chance by 0.35-0.79 (their parts lost by the
+# other plane's segmenter, yet its image shows them), the silently wrong pose 19 f1 by 0.14 (122 mm from plane B, the tip
+# 5.8 mm off; the best match 4 mm nearer plane B's source), the 16 wrong ``uncertain`` ones by -0.06-0.85 (12 of them
+# below 0.25; the other 4 are off at the tip, along the wire, which the image along the part does not tell). The
+# simulator's biplane cases (``scripts/bench_biplane.py --cases 30 --frames 4``, 12 such parts): 0.53-1.00, but seed 5
+# frame 2 0.09 (85 mm from plane A, 0.85 mm off the true wire with a median 1 sigma of 0.45 mm). A tolerance of 1.5 or
+# 2 mm separates no better (the shifted copies then overlap the tolerance).
+IMAGE_CHECK_RIDGE = 0.5
+IMAGE_CHECK_TOLERANCE_MM = 1.0
+IMAGE_CHECK_OFFSETS_MM = (-10.0, -8.0, -6.0, -4.0, 4.0, 6.0, 8.0, 10.0)
+IMAGE_CHECK_MARGIN = 0.25
+IMAGE_CHECK_MIN_MM = 10.0  # a part with less of its length inside the other plane's image is not judged
+IMAGE_CHECK_EDGE_PX = 8.0  # ... inside: this far from the image border
 
 
 # ============================================================================================
@@ -630,6 +653,9 @@ class BiplaneSession:
                 verdict, message = frame_verdict(w3, uv[0], ori, beyond_tip=beyond,
                                                  doubled_tip=_doubled_tip_two_view(tv, uv, images), motion=motion)
                 distal = _one_plane_distal_reasons(tv, self.carms)
+                seen = _other_plane_image_reasons(tv, images, self.context)
+                if seen:
+                    distal = f"{distal}; {seen}" if distal else seen
                 if distal:
                     verdict = Verdict.UNCERTAIN
                     message = distal if message == w3.message else f"{message}; {distal}"
@@ -690,6 +716,98 @@ def _one_plane_distal_reasons(tv, carms) -> str:
         return ""
     return (f"distal part from plane {plane} alone: its last {tv.single_view_distal_mm:.0f} mm are seen in plane "
             f"{plane} only (their depth is the vessel prior's), and " + "; ".join(why))
+
+
+def other_plane_image_support(image, points_lps_mm, context, plane: int) -> dict:
+    """How far the image of the other plane shows a wire along a 3D curve whose depth only ``plane`` fixes.
+
+    The curve ``points_lps_mm (N, 3)`` (ordered) is resampled every half pixel of the other plane (at the isocentre);
+    each point ``X`` is moved along ``plane``'s ray through it by ``d`` mm and projected into the other plane, and the
+    ridge response of that plane's ``image`` (``segmentation.ridge_probability``) is read there. A point shows wire at depth offset ``o`` when the response reaches ``IMAGE_CHECK_RIDGE``
+    for some ``d`` within ``IMAGE_CHECK_TOLERANCE_MM`` of ``o``.
+
+    Parameters
+    ----------
+    image : (H, W) ndarray
+        The other plane's live frame (the wire darker than the background).
+    points_lps_mm : (N, 3) ndarray of float
+    context : TwoViewContext
+        Both planes at the pose.
+    plane : int
+        0 (A) or 1 (B): the plane that saw the curve; the image is the other one's.
+
+    Returns
+    -------
+    dict
+        ``length_mm`` the curve's length whose projection (at its own depth) lies inside the other plane's image
+        (``IMAGE_CHECK_EDGE_PX`` from its border); ``shown`` the share of that length that shows wire at its own depth;
+        ``chance`` the median share over the depths moved by ``IMAGE_CHECK_OFFSETS_MM``; ``best_offset_mm`` the
+        offset among ``(0,) + IMAGE_CHECK_OFFSETS_MM`` with the largest share.
+    """
+    if plane not in (0, 1):
+        raise InputError(f"other_plane_image_support: plane must be 0 (A) or 1 (B), got {plane!r}")
+    k, o = int(plane), 1 - int(plane)
+    img = np.asarray(image)
+    X = np.asarray(points_lps_mm, float).reshape(-1, 3)
+    carm_o = context.carms[o]
+    empty = {"length_mm": 0.0, "shown": float("nan"), "chance": float("nan"), "best_offset_mm": float("nan")}
+    if len(X) < 2 or img.ndim != 2:
+        return empty
+    step = 0.5 * carm_o.pixel_at_iso_mm
+    X = resample_polyline(X, step)
+    seg = np.r_[np.linalg.norm(np.diff(X, axis=0), axis=1), 0.0]
+    w = 0.5 * (seg + np.r_[0.0, seg[:-1]])  # each point's share of the length (mm)
+    src = context.pose.inverse().apply(context.carms[k].source_room_mm[None])[0]
+    ray = X - src
+    ray /= np.linalg.norm(ray, axis=1)[:, None]
+    H, W = img.shape
+    uv0 = context.project(o, X)
+    inside = ((uv0[:, 0] >= IMAGE_CHECK_EDGE_PX) & (uv0[:, 0] <= W - 1 - IMAGE_CHECK_EDGE_PX)
+              & (uv0[:, 1] >= IMAGE_CHECK_EDGE_PX) & (uv0[:, 1] <= H - 1 - IMAGE_CHECK_EDGE_PX))
+    length = float(w[inside].sum())
+    if length <= 0:
+        return empty
+    pr = ridge_probability(img)
+    tol = np.arange(-IMAGE_CHECK_TOLERANCE_MM, IMAGE_CHECK_TOLERANCE_MM + 1e-9, step)
+    Xi, wi, ri = X[inside], w[inside], ray[inside]
+
+    def share(offset):
+        best = np.zeros(len(Xi))
+        for d in offset + tol:
+            uv = context.project(o, Xi + d * ri)
+            best = np.maximum(best, kernels.sample_bilinear(pr, uv[:, 1], uv[:, 0], mode="constant", cval=0.0))
+        return float(wi[best >= IMAGE_CHECK_RIDGE].sum() / wi.sum())
+
+    offsets = (0.0,) + tuple(IMAGE_CHECK_OFFSETS_MM)
+    shares = [share(d) for d in offsets]
+    return {"length_mm": length, "shown": shares[0], "chance": float(np.median(shares[1:])),
+            "best_offset_mm": float(offsets[int(np.argmax(shares))])}
+
+
+def _other_plane_image_reasons(tv, images, context) -> str:
+    """The ``uncertain`` reason when the other plane's image contradicts a distal part taken from one plane alone
+    (``extend_distal``), or "": that part's depth is the vessel prior's; projected into the other plane, the image
+    there should show the wire along it (whatever that plane's segmenter made of it). It does not when the share of
+    its length there that shows wire exceeds the chance of meeting some dark line (``other_plane_image_support``) by
+    less than ``IMAGE_CHECK_MARGIN``. Not judged: no image of the other plane, or less than ``IMAGE_CHECK_MIN_MM`` of
+    the part inside it."""
+    if tv.single_view_distal_mm <= 0 or tv.distal_plane not in (0, 1):
+        return ""
+    k = tv.distal_plane
+    img = images[1 - k] if images is not None and len(images) > 1 - k else None
+    if img is None or np.ndim(img) != 2:
+        return ""
+    arc = np.asarray(tv.wire3d.arclength_mm, float)
+    X = np.asarray(tv.wire3d.points_lps_mm, float)
+    part = arc >= arc[-1] - tv.single_view_distal_mm - 1e-9
+    i0 = max(int(np.argmax(part)) - 1, 0)  # from the two-view tip on
+    s = other_plane_image_support(img, X[i0:], context, k)
+    if not s["length_mm"] >= IMAGE_CHECK_MIN_MM or s["shown"] - s["chance"] >= IMAGE_CHECK_MARGIN:
+        return ""
+    return (f"distal part from plane {'AB'[k]} alone: plane {'BA'[k]}'s image shows no wire along its projection "
+            f"(wire seen along {100 * s['shown']:.0f}% of its {s['length_mm']:.0f} mm there, and along "
+            f"{100 * s['chance']:.0f}% with its depth moved {min(map(abs, IMAGE_CHECK_OFFSETS_MM)):g}-"
+            f"{max(map(abs, IMAGE_CHECK_OFFSETS_MM)):g} mm)")
 
 
 def _doubled_tip_two_view(tv, uv, images):
