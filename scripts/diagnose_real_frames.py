@@ -102,8 +102,7 @@ def main(argv=None):
     def log(m):
         print(m, file=sys.stderr, flush=True)
 
-    tree_file = cache / "real_anatomy" / f"tree_{b._cta_digest()}.pkl"
-    tree0 = b.cached_tree(None if tree_file.is_file() else ra.load_case(cache)[0], cache, log)["tree"]
+    tree0 = b.automatic_tree(cache, log)
     poses = cached_frames(a.poses, a.seed, cache, log)
     if a.biplane:
         vol, labels, _, _ = ra.load_case(cache)
