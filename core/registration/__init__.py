@@ -48,6 +48,7 @@ from guidewire3d.registration.result import (  # noqa: F401
     Verdict,
 )
 from guidewire3d.registration.search import (  # noqa: F401
+    JOINT_WIDE_MINIMA,
     SEARCH_LARGE_TREE_RATIO,
     SEARCH_ROT_INPLANE_DEG,
     SEARCH_ROT_OUTPLANE_DEG,
@@ -55,6 +56,7 @@ from guidewire3d.registration.search import (  # noqa: F401
     SEARCH_SHIFT_MM,
     SEARCH_TRUNC_CELLS,
     SEARCH_WEIGHT_3D_LARGE_TREE,
+    joint_wide_candidates,
     search_rotvecs,
     shift_range_mm,
 )

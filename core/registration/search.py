@@ -17,7 +17,7 @@ from guidewire3d.registration.model import _Model2D, _Model3D, _search_cell_px
 from scipy import fft as sfft
 from scipy import ndimage as ndi
 
-__all__ = ["search_rotvecs", "shift_range_mm"]
+__all__ = ["search_rotvecs", "shift_range_mm", "joint_wide_candidates"]
 
 SEARCH_ROT_INPLANE_DEG = np.arange(-15.0, 15.01, 5.0)
 SEARCH_ROT_OUTPLANE_DEG = np.array([-10.0, 0.0, 10.0])
