@@ -146,6 +146,35 @@ def test_batch_manifest_access_overrides_the_global_one(batch_run, study):
     assert np.linalg.norm(np.subtract(rep["access"]["root_lps_mm"], glob["root_lps_mm"])) > MOVED_MM
 
 
+def test_a_rerun_never_reuses_a_study_made_at_another_access(batch_run, study, tmp_path):
+    """A finished study is skipped only when its report was made at the access point this run asks for; made at
+    another one (or with none), it is ``failed`` with a one-line reason, its folder untouched."""
+    import shutil
+
+    _, out0 = batch_run
+    case, far, entry = study
+    out = tmp_path / "out"
+    shutil.copytree(out0, out)
+    files = [case / "ct", case / "roadmap.dcm", case / "frames.dcm"]
+    m = _manifest(tmp_path / "m.csv", ["study", "cta", "roadmap", "frames", "segmenter", "access_lps"],
+                  [["glob", *files, "ridge", ""], ["entry", *files, "ridge", _xyz(entry)]])
+    before = (out / "glob" / "report.json").read_bytes()
+
+    def rerun(*extra):
+        main(["batch", str(m), "--out", str(out), "--workers", "1", "--no-images", *extra])
+        with open(out / batch.SUMMARY_NAME, newline="") as f:
+            return {r["study"]: r for r in csv.DictReader(f)}
+
+    rows = rerun(f"--access-lps={_xyz(far)}")  # the same points: both skipped
+    assert [rows[s]["status"] for s in ("glob", "entry")] == [batch.SKIPPED, batch.SKIPPED]
+    rows = rerun(f"--access-lps={_xyz(entry)}")  # glob now asks for the entry: not the study on disk
+    assert rows["glob"]["status"] == batch.FAILED and rows["entry"]["status"] == batch.SKIPPED
+    assert "made with --access-lps=" in rows["glob"]["error"] and "remove the folder" in rows["glob"]["error"]
+    rows = rerun()  # no access point at all
+    assert rows["glob"]["status"] == batch.FAILED and "this run asks for none" in rows["glob"]["error"]
+    assert (out / "glob" / "report.json").read_bytes() == before
+
+
 def test_manifest_access_cells_and_the_dicom_tree(study, tmp_path):
     """Empty: the batch's point; ``none``: the automatic root; a point (``,`` quoted, ``;`` or spaces):
     its own, named by its cell in the errors. A DICOM tree: every study gets the batch's point."""

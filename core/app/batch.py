@@ -492,8 +492,19 @@ def finished_row(spec: StudySpec, out_root, previous: dict | None = None) -> dic
     except (OSError, ValueError):
         report = {}
     prev = previous or {}
-    return {**{k: prev.get(k, "") for k in ("seconds", "peak_rss_mb", "worker")},
-            **_row_from_report(spec.study, report), "status": SKIPPED, "error": ""}
+    row = {**{k: prev.get(k, "") for k in ("seconds", "peak_rss_mb", "worker")},
+           **_row_from_report(spec.study, report), "status": SKIPPED, "error": ""}
+    had = (report.get("inputs") or {}).get("access_lps_mm")
+    want = spec.access_lps_mm
+    same = (had is None and want is None) or (had is not None and want is not None and len(had) == len(want) and
+                                               all(abs(float(a) - float(b)) <= 1e-3 for a, b in zip(had, want)))
+    if report and not same:
+        # not the study this run asks for: its tree was rooted elsewhere. Never reuse it silently
+        said = "no access point" if had is None else f"--access-lps={','.join(f'{float(c):g}' for c in had)}"
+        asked = "none" if want is None else f"{spec.access_option}={','.join(f'{c:g}' for c in want)}"
+        row.update(status=FAILED, error=f"{Path(out_root) / spec.study}: its report.json was made with {said}, "
+                                        f"this run asks for {asked}: remove the folder to reconstruct it again")
+    return row
 
 
 # --------------------------------------------------------------------------------------
