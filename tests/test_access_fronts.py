@@ -172,6 +172,12 @@ def test_a_rerun_never_reuses_a_study_made_at_another_access(batch_run, study, t
     assert "made with --access-lps=" in rows["glob"]["error"] and "remove the folder" in rows["glob"]["error"]
     rows = rerun()  # no access point at all
     assert rows["glob"]["status"] == batch.FAILED and "this run asks for none" in rows["glob"]["error"]
+    # another segmenter: not the study on disk either (the access points as made)
+    m = _manifest(tmp_path / "m.csv", ["study", "cta", "roadmap", "frames", "segmenter", "access_lps"],
+                  [["glob", *files, "unet", ""], ["entry", *files, "ridge", _xyz(entry)]])
+    rows = rerun(f"--access-lps={_xyz(far)}")
+    assert rows["glob"]["status"] == batch.FAILED and rows["entry"]["status"] == batch.SKIPPED
+    assert "segmenter ridge, this run asks for segmenter unet" in rows["glob"]["error"]
     assert (out / "glob" / "report.json").read_bytes() == before
 
 

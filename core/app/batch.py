@@ -494,16 +494,24 @@ def finished_row(spec: StudySpec, out_root, previous: dict | None = None) -> dic
     prev = previous or {}
     row = {**{k: prev.get(k, "") for k in ("seconds", "peak_rss_mb", "worker")},
            **_row_from_report(spec.study, report), "status": SKIPPED, "error": ""}
-    had = (report.get("inputs") or {}).get("access_lps_mm")
+    inputs = report.get("inputs") or {}
+    had = inputs.get("access_lps_mm")
     want = spec.access_lps_mm
     same = (had is None and want is None) or (had is not None and want is not None and len(had) == len(want) and
                                                all(abs(float(a) - float(b)) <= 1e-3 for a, b in zip(had, want)))
-    if report and not same:
-        # not the study this run asks for: its tree was rooted elsewhere. Never reuse it silently
+    stale = []
+    if report and not same:  # its tree was rooted elsewhere
         said = "no access point" if had is None else f"--access-lps={','.join(f'{float(c):g}' for c in had)}"
         asked = "none" if want is None else f"{spec.access_option}={','.join(f'{c:g}' for c in want)}"
-        row.update(status=FAILED, error=f"{Path(out_root) / spec.study}: its report.json was made with {said}, "
-                                        f"this run asks for {asked}: remove the folder to reconstruct it again")
+        stale.append((said, asked))
+    for key in ("method", "segmenter", "track_motion"):  # the options that change what a reconstruction gives
+        if key in inputs and inputs[key] != getattr(spec, key):
+            stale.append((f"{key} {inputs[key]}", f"{key} {getattr(spec, key)}"))
+    if stale:
+        # not the study this run asks for: never reuse it silently
+        row.update(status=FAILED, error=f"{Path(out_root) / spec.study}: its report.json was made with "
+                                        f"{', '.join(a for a, _ in stale)}, this run asks for "
+                                        f"{', '.join(b for _, b in stale)}: remove the folder to reconstruct it again")
     return row
 
 
