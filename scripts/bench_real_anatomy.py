@@ -178,12 +178,25 @@ def render(rng, carm, pose, wire, iodine, mu_ct, vol):
 
 
 def visible_part(carm, pose, w):
-    """The in-image part of the true wire (from its first in-image point to its last)."""
-    ok = carm.in_image(carm.project(w, pose))
+    """The in-image part of the true wire (from its first in-image point to its last); ``carm`` may be a tuple of
+    views (two planes): the part in any of their images."""
+    ok = np.zeros(len(w), bool)
+    for c in (carm if isinstance(carm, (tuple, list)) else (carm,)):
+        ok |= c.in_image(c.project(w, pose))
     if not ok.any():
         return w[:0]
     i = np.flatnonzero(ok)
     return w[i[0]:i[-1] + 1]
+
+
+def plane_b_carm(carm_a):
+    """Plane B of plane A ``carm_a`` in the two-plane diagnostics: 90 deg from its primary angle towards the
+    patient's midline (LAO 90 - a, or RAO), no angulation, the same SID, SOD and detector."""
+    from guidewire3d.geometry import CArm
+
+    c = carm_a
+    primary = c.primary_deg - 90.0 if c.primary_deg >= 0 else c.primary_deg + 90.0
+    return CArm(primary, 0.0, c.sid_mm, c.sod_mm, c.pixel_mm, c.shape)
 
 
 def refusal(r) -> str:

@@ -5,7 +5,7 @@ Usage::
     nice .venv/bin/python scripts/bench_real_biplane.py --poses 20 [--seed 0] [--access]
 
 The poses, plane A's roadmap and live frames are ``bench_real_anatomy.py``'s (cached by
-``diagnose_real_anatomy.prepared_cases``). Plane B is ``diagnose_real_frames.plane_b``'s: 90 deg from plane A's
+``diagnose_real_anatomy.prepared_cases``). Plane B is ``bench_real_anatomy.plane_b_carm``: 90 deg from plane A's
 primary angle towards the midline, no angulation, the same SID, SOD, detector and patient pose; its roadmap and
 frames are rendered with the same phantom (``bench_real_anatomy.render``, its own noise) and cached under
 ``--cache``/real_anatomy. The product's chain as ``reconstruct`` runs it on two planes
@@ -42,16 +42,6 @@ import real_anatomy as ra  # noqa: E402
 SUCCESS_MM = b.SUCCESS_MM
 
 
-def plane_b_carm(carm_a):
-    """Plane B of plane A ``carm_a`` as ``diagnose_real_frames.plane_b`` places it: 90 deg from its primary angle
-    towards the patient's midline (LAO 90 - a, or RAO), no angulation, the same SID, SOD and detector."""
-    from guidewire3d.geometry import CArm
-
-    c = carm_a
-    primary = c.primary_deg - 90.0 if c.primary_deg >= 0 else c.primary_deg + 90.0
-    return CArm(primary, 0.0, c.sid_mm, c.sod_mm, c.pixel_mm, c.shape)
-
-
 def plane_b_cases(poses, seed: int, cache: Path, log) -> list[dict]:
     """Plane B of each prepared pose (``carm``, ``roadmap``, ``frames``), rendered once and cached."""
     f = cache / "real_anatomy" / f"planeb_seed{seed}_v1.pkl"
@@ -62,7 +52,7 @@ def plane_b_cases(poses, seed: int, cache: Path, log) -> list[dict]:
         iodine, mu_ct = ra.iodine_fraction(vol, labels), ra.anatomy_mu(vol, labels)
         for P in poses[len(have):]:
             t0 = time.perf_counter()
-            carm_b = plane_b_carm(P["carm"])
+            carm_b = b.plane_b_carm(P["carm"])
             rng = np.random.default_rng([seed, int(P["k"]), 2])   # diagnose_real_frames.plane_b's stream
             roadmap, frames, _, _ = b.render(rng, carm_b, P["pose"], wires[P["target"]], iodine, mu_ct, vol)
             have.append(dict(k=P["k"], carm=carm_b, roadmap=np.asarray(roadmap, np.float32),
@@ -71,17 +61,6 @@ def plane_b_cases(poses, seed: int, cache: Path, log) -> list[dict]:
             f.parent.mkdir(parents=True, exist_ok=True)
             f.write_bytes(pickle.dumps(have))
     return have[:len(poses)]
-
-
-def visible_in_either(carms, pose, w):
-    """The part of the true wire ``w`` from its first to its last point in either plane's image."""
-    ok = np.zeros(len(w), bool)
-    for c in carms:
-        ok |= c.in_image(c.project(w, pose))
-    if not ok.any():
-        return w[:0]
-    i = np.flatnonzero(ok)
-    return w[i[0]:i[-1] + 1]
 
 
 def run_pose(P, B, tree):
@@ -116,7 +95,7 @@ def run_pose(P, B, tree):
     errs, tips = [], []
     for fa, fb, tw in zip(P["frames"], B["frames"], P["true_wires"]):
         fr = sess.process(fa, fb).result
-        tru = visible_in_either(carms, pose, tw)
+        tru = b.visible_part(carms, pose, tw)
         if not fr or len(tru) < 2:
             continue
         e = metrics.wire_errors_mm(fr.wire3d.points_lps_mm, tru)

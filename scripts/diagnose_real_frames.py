@@ -54,11 +54,7 @@ def plane_b(P, seed: int, wires, iodine, mu_ct, vol):
     """Plane B of pose ``P`` (``cached_frames``): a view 90 deg from plane A's primary angle (towards the
     patient's midline: LAO 90 - a, or RAO), no angulation, the same SID, SOD and detector, about the same isocentre
     (the same patient pose), and its live frames of the same wire (``bench_real_anatomy.render``, its own noise)."""
-    from guidewire3d.geometry import CArm
-
-    c = P["carm"]
-    primary = c.primary_deg - 90.0 if c.primary_deg >= 0 else c.primary_deg + 90.0
-    carm_b = CArm(primary, 0.0, c.sid_mm, c.sod_mm, c.pixel_mm, c.shape)
+    carm_b = b.plane_b_carm(P["carm"])
     rng = np.random.default_rng([seed, int(P["k"]), 2])
     _, frames, _, _ = b.render(rng, carm_b, P["pose"], wires[P["target"]], iodine, mu_ct, vol)
     return carm_b, frames

@@ -495,13 +495,11 @@ def finished_row(spec: StudySpec, out_root, previous: dict | None = None) -> dic
     row = {**{k: prev.get(k, "") for k in ("seconds", "peak_rss_mb", "worker")},
            **_row_from_report(spec.study, report), "status": SKIPPED, "error": ""}
     inputs = report.get("inputs") or {}
-    had = inputs.get("access_lps_mm")
-    want = spec.access_lps_mm
-    same = (had is None and want is None) or (had is not None and want is not None and len(had) == len(want) and
-                                               all(abs(float(a) - float(b)) <= 1e-3 for a, b in zip(had, want)))
+    had, want = (None if p is None else tuple(round(float(c), 3) for c in p)
+                 for p in (inputs.get("access_lps_mm"), spec.access_lps_mm))
     stale = []
-    if report and not same:  # its tree was rooted elsewhere
-        said = "no access point" if had is None else f"--access-lps={','.join(f'{float(c):g}' for c in had)}"
+    if report and had != want:  # its tree was rooted elsewhere
+        said = "no access point" if had is None else f"--access-lps={','.join(f'{c:g}' for c in had)}"
         asked = "none" if want is None else f"{spec.access_option}={','.join(f'{c:g}' for c in want)}"
         stale.append((said, asked))
     for key in ("method", "segmenter", "track_motion"):  # the options that change what a reconstruction gives
