@@ -7,7 +7,8 @@ grouped by StudyInstanceUID (:func:`group_dicom_tree`). Each study is one task o
 local cluster of worker processes bound to 127.0.0.1, or an existing scheduler. A task that raises
 unexpectedly (a crash, a killed worker) is retried; a study with bad input fails at once (the same
 input would fail again). Either way it is recorded in ``DIR/summary.csv`` and the batch goes on.
-A study whose folder already holds a ``report.json`` is skipped.
+A study whose folder already holds a ``report.json`` is skipped when it was made with the options
+this run asks for (:func:`finished_row`), and refused (``failed``, its folder untouched) otherwise.
 """
 from __future__ import annotations
 
@@ -27,15 +28,18 @@ from guidewire3d.methods import ReconMethod, SegMethod, choices
 from guidewire3d.vesseltree import check_access
 
 __all__ = ["StudySpec", "read_manifest", "group_dicom_tree", "load_studies", "run_study", "run_batch",
-           "write_summary", "read_summary", "SUMMARY_COLUMNS", "MANIFEST_COLUMNS"]
+           "write_summary", "read_summary", "finished_row", "made_otherwise", "SUMMARY_COLUMNS", "MANIFEST_COLUMNS",
+           "OPTION_COLUMNS"]
 
 MANIFEST_COLUMNS = ("study", "cta", "roadmap", "frames")
 # optional manifest columns: the `reconstruct` options they set (other columns are ignored)
 OPTION_COLUMNS = ("series_uid", "roadmap_frame", "method", "segmenter", "force", "track_motion", "access_lps")
 # the manifest's access_lps that keeps a study's automatic root when the batch has a --access-lps
 NO_ACCESS = "none"
+# then the option columns: the options a study was made with (its report.json), or, failed without a
+# folder, the ones it asked for (empty roadmap_frame, series_uid: the automatic choice)
 SUMMARY_COLUMNS = ("study", "status", "verdict", "residual_px", "frames_reconstructed", "frames_total", "seconds",
-                   "peak_rss_mb", "worker", "error")
+                   "peak_rss_mb", "worker", "error", *OPTION_COLUMNS)
 SUMMARY_NAME = "summary.csv"
 REPORT_NAME = "report.json"
 
@@ -428,16 +432,41 @@ def _one_line(text: str) -> str:
     return " ".join(str(text).split())
 
 
+def _xyz(point) -> str:
+    """``"x,y,z"`` to 1e-3 mm (as report.json rounds a point), without trailing zeros."""
+    return ",".join(f"{round(float(c), 3) + 0.0:.3f}".rstrip("0").rstrip(".") for c in point)
+
+
+def _option_cells(*, series_uid, roadmap_frame, method, segmenter, force, track_motion, access_lps_mm) -> dict:
+    """The option columns of a summary row (``OPTION_COLUMNS``), as a manifest would write them."""
+    def flag(v):
+        return "" if v is None else ("true" if v else "false")
+
+    return {"series_uid": series_uid or "", "roadmap_frame": "" if roadmap_frame is None else int(roadmap_frame),
+            "method": method or "", "segmenter": segmenter or "", "force": flag(force),
+            "track_motion": flag(track_motion), "access_lps": "" if access_lps_mm is None else _xyz(access_lps_mm)}
+
+
+def _asked_cells(spec: StudySpec) -> dict:
+    return _option_cells(series_uid=spec.series_uid, roadmap_frame=spec.roadmap_frame, method=spec.method,
+                         segmenter=spec.segmenter, force=spec.force, track_motion=spec.track_motion,
+                         access_lps_mm=spec.access_lps_mm)
+
+
 def _row_from_report(study: str, report: dict) -> dict:
     reg = report.get("registration", {})
     frames = report.get("frames", [])
     n_ok = sum(1 for f in frames if f.get("success"))
+    inputs = report.get("inputs") or {}
     return {
         "study": study,
         "verdict": reg.get("verdict", ""),
         "residual_px": reg.get("mean_residual_px", ""),
         "frames_reconstructed": n_ok,
         "frames_total": len(frames) if frames else "",
+        **_option_cells(series_uid=inputs.get("series_uid"), roadmap_frame=inputs.get("roadmap_frame"),
+                        method=inputs.get("method"), segmenter=inputs.get("segmenter"), force=inputs.get("forced"),
+                        track_motion=inputs.get("track_motion"), access_lps_mm=inputs.get("access_lps_mm")),
     }
 
 
@@ -454,7 +483,7 @@ def run_study(spec: StudySpec, out_root, *, images: bool = True, replace: bool =
     that the scheduler retries the task. ``seconds`` is the wall time of the study, ``peak_rss_mb``
     the peak resident memory of the process while it ran (Linux; elsewhere the process's peak).
     """
-    row = {"study": spec.study, "worker": _worker_name()}
+    row = {"study": spec.study, "worker": _worker_name(), **_asked_cells(spec)}
     if spec.error:  # not run
         return {**row, "status": FAILED, "error": _one_line(spec.error), "seconds": 0.0, "worker": ""}
     t0 = time.perf_counter()
@@ -472,6 +501,7 @@ def run_study(spec: StudySpec, out_root, *, images: bool = True, replace: bool =
                 "seconds": round(time.perf_counter() - t0, 2), "peak_rss_mb": round(_peak_rss_mb(), 1)}
     reg = result.registration
     n_ok = sum(1 for w in result.wires3d if w.success)
+    row.update(series_uid=result.volume.series_uid or "", roadmap_frame=int(result.roadmap_frame_index))  # as made
     return {**row, "status": DONE if result.reconstructed else NOT_RECONSTRUCTED,
             "verdict": reg.verdict.value, "residual_px": round(float(reg.mean_residual_px), 4),
             "frames_reconstructed": n_ok, "frames_total": len(result.frame_indices),
@@ -480,11 +510,62 @@ def run_study(spec: StudySpec, out_root, *, images: bool = True, replace: bool =
                                                                "frames were not reconstructed")}
 
 
-def finished_row(spec: StudySpec, out_root, previous: dict | None = None) -> dict | None:
-    """The ``skipped`` row of a study whose output folder exists with a report, else None."""
+def _automatic_roadmap_frame(roadmap) -> int | str:
+    """The roadmap frame ``reconstruct`` chooses in ``roadmap`` without ``--roadmap-frame``, or why it
+    cannot choose one (one line)."""
+    try:
+        return pipeline.choose_roadmap_frame(pipeline.read_xa_input(roadmap))
+    except Guidewire3DError as e:
+        return _one_line(e)
+
+
+def made_otherwise(spec: StudySpec, folder, report: dict, *, images: bool = True) -> list[tuple[str, str]]:
+    """What the finished study in ``folder`` (its ``report.json`` read as ``report``) was made with
+    that ``spec`` does not ask for: ``(made with, asked for)`` pairs, [] when it is the study asked for.
+
+    Compared: the access point (to 1e-3 mm, as the report rounds it), ``method``, ``segmenter``,
+    ``track_motion``, ``series_uid`` when given (an empty one is the series read, not compared),
+    ``roadmap_frame`` (empty: the frame ``reconstruct`` chooses, read from the roadmap now), ``force``
+    only where it changes the result (the registration failed: forced, the frames were reconstructed
+    anyway), and ``images``: a study with reconstructed frames made without its PNGs (``--no-images``)
+    is not the study a run with images asks for; one with PNGs serves a ``--no-images`` run.
+    """
+    inputs = report.get("inputs") or {}
+    stale = []
+    had, want = (None if p is None else tuple(round(float(c), 3) for c in p)
+                 for p in (inputs.get("access_lps_mm"), spec.access_lps_mm))
+    if had != want:  # its tree was rooted elsewhere
+        said = "no access point" if had is None else f"--access-lps={_xyz(had)}"
+        asked = "none" if want is None else f"{spec.access_option}={_xyz(want)}"
+        stale.append((said, asked))
+    for key in ("method", "segmenter", "track_motion"):  # the options that change what a reconstruction gives
+        if key in inputs and inputs[key] != getattr(spec, key):
+            stale.append((f"{key} {inputs[key]}", f"{key} {getattr(spec, key)}"))
+    uid = inputs.get("series_uid")
+    if spec.series_uid is not None and uid is not None and uid != spec.series_uid:  # None: not a DICOM series
+        stale.append((f"series_uid {uid}", f"series_uid {spec.series_uid}"))
+    frame = inputs.get("roadmap_frame")
+    if frame is not None:
+        asked = spec.roadmap_frame if spec.roadmap_frame is not None else _automatic_roadmap_frame(spec.roadmap)
+        if asked != frame:
+            stale.append((f"roadmap_frame {frame}", f"roadmap_frame {asked}" if spec.roadmap_frame is not None
+                          else f"the automatic roadmap_frame ({asked})"))
+    if "forced" in inputs and not (report.get("registration") or {}).get("success", False) \
+            and bool(inputs["forced"]) != spec.force:  # a registration that succeeded reconstructs either way
+        stale.append((f"force {bool(inputs['forced'])} (the registration failed)", f"force {spec.force}"))
+    if images and report.get("frames") and not any(Path(folder).glob("overlay_*.png")):
+        stale.append(("--no-images", "images"))
+    return stale
+
+
+def finished_row(spec: StudySpec, out_root, previous: dict | None = None, *, images: bool = True) -> dict | None:
+    """The row of a study whose output folder exists with a report, else None: ``skipped`` (its
+    values read from the report, the measures from ``previous``, its last summary row) when it was
+    made as ``spec`` asks (:func:`made_otherwise`), else ``failed`` with why, the folder untouched."""
     import json
 
-    rep = Path(out_root) / spec.study / REPORT_NAME
+    folder = Path(out_root) / spec.study
+    rep = folder / REPORT_NAME
     if not rep.is_file():
         return None
     try:
@@ -494,22 +575,12 @@ def finished_row(spec: StudySpec, out_root, previous: dict | None = None) -> dic
     prev = previous or {}
     row = {**{k: prev.get(k, "") for k in ("seconds", "peak_rss_mb", "worker")},
            **_row_from_report(spec.study, report), "status": SKIPPED, "error": ""}
-    inputs = report.get("inputs") or {}
-    had, want = (None if p is None else tuple(round(float(c), 3) for c in p)
-                 for p in (inputs.get("access_lps_mm"), spec.access_lps_mm))
-    stale = []
-    if report and had != want:  # its tree was rooted elsewhere
-        said = "no access point" if had is None else f"--access-lps={','.join(f'{c:g}' for c in had)}"
-        asked = "none" if want is None else f"{spec.access_option}={','.join(f'{c:g}' for c in want)}"
-        stale.append((said, asked))
-    for key in ("method", "segmenter", "track_motion"):  # the options that change what a reconstruction gives
-        if key in inputs and inputs[key] != getattr(spec, key):
-            stale.append((f"{key} {inputs[key]}", f"{key} {getattr(spec, key)}"))
+    stale = made_otherwise(spec, folder, report, images=images) if report else []
     if stale:
         # not the study this run asks for: never reuse it silently
-        row.update(status=FAILED, error=f"{Path(out_root) / spec.study}: its report.json was made with "
-                                        f"{', '.join(a for a, _ in stale)}, this run asks for "
-                                        f"{', '.join(b for _, b in stale)}: remove the folder to reconstruct it again")
+        row.update(status=FAILED, error=f"{folder}: it was made with {', '.join(a for a, _ in stale)}, this run "
+                                        f"asks for {', '.join(b for _, b in stale)}: remove the folder to "
+                                        "reconstruct it again")
     return row
 
 
@@ -596,7 +667,8 @@ def run_batch(studies, out_dir, *, workers: int | None = None, scheduler: str | 
     retries : int
         Further attempts for a study whose task raised unexpectedly (a crash, a lost worker).
 
-    Studies with an output folder holding ``report.json`` are skipped (``status`` ``skipped``).
+    Studies with an output folder holding ``report.json`` are skipped (``status`` ``skipped``), or
+    ``failed`` when made otherwise than asked (:func:`finished_row`; ``images`` is asked too).
     ``summary.csv`` is rewritten (atomically) after each study, so an interrupted batch leaves a
     summary of what it finished.
     """
@@ -612,7 +684,7 @@ def run_batch(studies, out_dir, *, workers: int | None = None, scheduler: str | 
     rows: dict[str, dict] = {}
     todo = []
     for s in studies:
-        done = finished_row(s, out_dir, previous.get(s.study))
+        done = finished_row(s, out_dir, previous.get(s.study), images=images)
         if done is not None:
             rows[s.study] = done
         elif s.error:
@@ -663,7 +735,8 @@ def _run_on(client, todo, out_dir, rows, *, retries, images, progress, on_row) -
         try:
             row = f.result()
         except Exception as e:  # noqa: BLE001 - retries exhausted: recorded, the batch goes on
-            row = {"study": s.study, "status": FAILED, "error": _one_line(f"{e.__class__.__name__}: {e}")}
+            row = {"study": s.study, "status": FAILED, "error": _one_line(f"{e.__class__.__name__}: {e}"),
+                   **_asked_cells(s)}
         rows[s.study] = row
         f.release()
         on_row()
