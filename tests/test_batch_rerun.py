@@ -1,0 +1,147 @@
+"""A `batch` rerun reuses a finished study only when it was made with the options the run asks for.
+
+One real study (tiny study s11 of conftest, 2 live frames, the ridge segmenter) made by `batch` with
+``roadmap_frame`` 1 of a roadmap run of two identical frames, at an access point, without images. Each
+rerun changes one thing: a study made otherwise is ``failed`` with a one-line reason naming what it was
+made with and what the run asks for, and its folder is left as it was; a study made as asked is
+``skipped``. ``summary.csv`` states the options every study was made with (the manifest's option
+columns, appended after the first columns).
+"""
+from __future__ import annotations
+
+import csv
+import json
+import shutil
+
+import numpy as np
+import pydicom
+import pytest
+
+from guidewire3d import io
+from guidewire3d.app import batch
+from guidewire3d.app.cli import main
+from guidewire3d.phantom import load_truth
+
+STUDY = "s11"  # a tiny study of conftest.TINY_SEEDS (registration ok)
+JSON_MM = 1e-3  # mm: report.json and summary.csv round a point to 3 decimals
+HEADER = ["study", "cta", "roadmap", "frames", "segmenter", "roadmap_frame", "series_uid", "force", "access_lps"]
+FIRST_COLUMNS = ("study", "status", "verdict", "residual_px", "frames_reconstructed", "frames_total", "seconds",
+                 "peak_rss_mb", "worker", "error")  # summary.csv before the option columns: kept in place
+
+
+def _xyz(p) -> str:
+    return ",".join(f"{v:.3f}" for v in p)
+
+
+def _summary(out) -> tuple[list[str], dict[str, dict]]:
+    with open(out / batch.SUMMARY_NAME, newline="") as f:
+        r = csv.DictReader(f)
+        rows = {row["study"]: row for row in r}
+        return list(r.fieldnames), rows
+
+
+def _folder_state(folder) -> dict:
+    """Every file of ``folder`` with its bytes and modification time: what "untouched" means."""
+    return {p.name: (p.read_bytes(), p.stat().st_mtime_ns) for p in sorted(folder.iterdir())}
+
+
+@pytest.fixture(scope="module")
+def made(tiny_studies, tmp_path_factory):
+    """The study made once by `batch`: (case files, the CT's series UID, the access point, out folder,
+    the first run's exit code)."""
+    d = tiny_studies[STUDY]
+    tmp = tmp_path_factory.mktemp("rerun")
+    road = io.read_xa(d / "roadmap.dcm")
+    # two identical roadmap frames: the automatic choice is frame 0, and frame 1 registers as well
+    roadmap2 = io.write_xa(tmp / "roadmap2.dcm", np.concatenate([road.frames, road.frames]), road.carm)
+    files = [d / "ct", roadmap2, d / "frames.dcm"]
+    uid = str(pydicom.dcmread(sorted((d / "ct").iterdir())[0], stop_before_pixels=True).SeriesInstanceUID)
+    truth = load_truth(d)
+    far = np.array([float(v) for v in _xyz(truth.tree.points_lps_mm[truth.wire_path_point_ids[-1]]).split(",")])
+    out = tmp / "out"
+    m = _manifest(tmp / "m.csv", files, roadmap_frame="1", access_lps=_xyz(far))
+    rc = main(["batch", str(m), "--out", str(out), "--workers", "1", "--no-images"])
+    return files, uid, far, out, rc
+
+
+def _manifest(path, files, **cells):
+    row = {"study": STUDY, "segmenter": "ridge", "roadmap_frame": "", "series_uid": "", "force": "",
+           "access_lps": "", **cells}
+    with open(path, "w", newline="") as f:
+        w = csv.writer(f)  # quotes the access point's commas, as a spreadsheet does
+        w.writerow(HEADER)
+        w.writerow([row[h] if h not in ("cta", "roadmap", "frames") else files[("cta", "roadmap", "frames").index(h)]
+                    for h in HEADER])
+    return path
+
+
+def test_the_summary_states_the_options_the_study_was_made_with(made):
+    files, uid, far, out, rc = made
+    assert rc == 0
+    columns, rows = _summary(out)
+    assert tuple(columns) == batch.SUMMARY_COLUMNS == (*FIRST_COLUMNS, *batch.OPTION_COLUMNS)
+    row = rows[STUDY]
+    assert row["status"] == batch.DONE and row["verdict"] == "ok"
+    np.testing.assert_allclose([float(v) for v in row["access_lps"].split(",")], far, atol=JSON_MM)
+    assert {k: row[k] for k in ("series_uid", "roadmap_frame", "method", "segmenter", "force", "track_motion")} == {
+        "series_uid": uid, "roadmap_frame": "1", "method": "vessel", "segmenter": "ridge", "force": "false",
+        "track_motion": "false"}
+    # the same values as the folder's report.json
+    inputs = json.loads((out / STUDY / "report.json").read_text())["inputs"]
+    assert (inputs["roadmap_frame"], inputs["series_uid"], inputs["forced"]) == (1, uid, False)
+    np.testing.assert_allclose(inputs["access_lps_mm"], far, atol=JSON_MM)
+
+
+@pytest.mark.parametrize("cells, images, reason", [
+    ({}, False, None),                                       # as made: reused
+    ({"series_uid": "UID"}, False, None),                    # the series it was made with, now named
+    ({"force": "true"}, False, None),                        # the registration succeeded: force changes nothing
+    ({"roadmap_frame": "0"}, False, "made with roadmap_frame 1, this run asks for roadmap_frame 0"),
+    ({"roadmap_frame": ""}, False, "made with roadmap_frame 1, this run asks for the automatic roadmap_frame (0)"),
+    ({"series_uid": "1.2.3.4"}, False, "made with series_uid UID, this run asks for series_uid 1.2.3.4"),
+    ({}, True, "made with --no-images, this run asks for images"),
+    ({"roadmap_frame": "0", "access_lps": "none"}, False,
+     "made with --access-lps=FAR, roadmap_frame 1, this run asks for none, roadmap_frame 0"),
+], ids=["same", "series-named", "force-ok", "frame", "frame-automatic", "series", "images", "two"])
+def test_a_rerun_reuses_only_a_study_made_as_asked(made, tmp_path, cells, images, reason):
+    files, uid, far, out, _ = made
+    typed = _xyz(far)
+    cells = {"roadmap_frame": "1", "access_lps": typed,
+             **{k: v.replace("UID", uid) for k, v in cells.items()}}
+    before = _folder_state(out / STUDY)
+    m = _manifest(tmp_path / "m.csv", files, **cells)
+    rc = main(["batch", str(m), "--out", str(out), "--workers", "1", *([] if images else ["--no-images"])])
+    row = _summary(out)[1][STUDY]
+    assert _folder_state(out / STUDY) == before  # reused or refused, never rewritten
+    if reason is None:
+        assert (rc, row["status"], row["error"]) == (0, batch.SKIPPED, "")
+    else:
+        made_with = ",".join(f"{v:.3f}".rstrip("0").rstrip(".") for v in far)  # to 1e-3 mm, no trailing zeros
+        expected = reason.replace("UID", uid).replace("FAR", made_with)
+        assert (rc, row["status"]) == (1, batch.FAILED)
+        assert row["error"] == (f"{out / STUDY}: it was {expected}: remove the folder to reconstruct it again")
+    # either way the row states what the folder holds
+    assert (row["roadmap_frame"], row["series_uid"], row["verdict"]) == ("1", uid, "ok")
+
+
+def test_force_is_compared_where_the_registration_failed(made, tmp_path):
+    """A study whose registration failed is not reconstructed without ``force``, and is with it: each
+    is not the study the other asks for. (The study's report is edited, on a copy, into a failed one.)"""
+    files, uid, far, out0, _ = made
+    out = tmp_path / "out"
+    shutil.copytree(out0 / STUDY, out / STUDY)
+    rep_path = out / STUDY / "report.json"
+    rep = json.loads(rep_path.read_text())
+    rep["registration"]["success"] = False
+    for forced, ask, status in [(False, "true", batch.FAILED), (True, "", batch.FAILED), (True, "true", batch.SKIPPED),
+                                (False, "", batch.SKIPPED)]:
+        rep["inputs"]["forced"] = forced
+        rep_path.write_text(json.dumps(rep))
+        m = _manifest(tmp_path / "m.csv", files, roadmap_frame="1", access_lps=_xyz(far), force=ask)
+        main(["batch", str(m), "--out", str(out), "--workers", "1", "--no-images"])
+        row = _summary(out)[1][STUDY]
+        assert row["status"] == status, (forced, ask, row)
+        assert row["force"] == ("true" if forced else "false")
+        if status == batch.FAILED:
+            assert (f"it was made with force {forced} (the registration failed), this run asks for force "
+                    f"{not forced}: remove the folder") in row["error"]
