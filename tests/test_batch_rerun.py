@@ -145,3 +145,19 @@ def test_force_is_compared_where_the_registration_failed(made, tmp_path):
         if status == batch.FAILED:
             assert (f"it was made with force {forced} (the registration failed), this run asks for force "
                     f"{not forced}: remove the folder") in row["error"]
+
+
+def test_a_study_that_failed_without_a_folder_states_the_options_asked_for(made, tmp_path):
+    """No folder to read them from: the row states what the manifest asked for (empty roadmap_frame and
+    series_uid: the automatic choice)."""
+    files, _, far, _, _ = made
+    ct_slice = sorted(files[0].iterdir())[0]  # a CT slice where the roadmap belongs: refused on reading
+    m = _manifest(tmp_path / "m.csv", [files[0], ct_slice, files[2]], access_lps=_xyz(far), force="true")
+    (spec,) = batch.read_manifest(m)
+    row = batch.run_study(spec, tmp_path / "out", images=False)
+    assert row["status"] == batch.FAILED and row["error"].startswith(f"{ct_slice}: ")
+    assert not (tmp_path / "out" / STUDY).exists()
+    assert {k: row[k] for k in ("series_uid", "roadmap_frame", "method", "segmenter", "force", "track_motion")} == {
+        "series_uid": "", "roadmap_frame": "", "method": "vessel", "segmenter": "ridge", "force": "true",
+        "track_motion": "false"}
+    np.testing.assert_allclose([float(v) for v in row["access_lps"].split(",")], far, atol=JSON_MM)
