@@ -43,6 +43,11 @@ class VesselTree:
     #: known: a tree extracted from a CT's voxels carries its own (``cta.centerline.centerline_sigma_mm_of``); the
     #: reconstruction's uncertainty uses it where it exceeds ``ReconOptions.sigma_centerline_mm``. None: unknown
     centerline_sigma_mm: float | None = None
+    #: (K, 3) LPS mm: segmented lumen of the tree's own mask that no ball of the tree covers (two vessels fused in
+    #: the mask, the tree kept one: ``cta.lostlumen``), on a grid of step ``lost_lumen_step_mm``; None: unknown
+    #: (a tree not extracted from a mask), an empty array: none
+    lost_lumen_lps_mm: np.ndarray | None = None
+    lost_lumen_step_mm: float | None = None
 
     def __post_init__(self):
         p = np.array(self.points_lps_mm, dtype=float, copy=True)
@@ -67,6 +72,18 @@ class VesselTree:
             if not np.isfinite(cs) or cs < 0:
                 raise InputError(f"VesselTree centerline_sigma_mm must be finite and >= 0, got {cs}")
             object.__setattr__(self, "centerline_sigma_mm", cs)
+        if self.lost_lumen_lps_mm is not None:
+            q = np.array(self.lost_lumen_lps_mm, dtype=float, copy=True).reshape(-1, 3)
+            try:
+                st = float(self.lost_lumen_step_mm)
+            except (TypeError, ValueError):
+                raise InputError(f"VesselTree lost_lumen_step_mm must be a number, got {self.lost_lumen_step_mm!r}") \
+                    from None
+            if not np.all(np.isfinite(q)) or not np.isfinite(st) or st <= 0:
+                raise InputError("VesselTree lost lumen points must be finite and its step > 0")
+            q.setflags(write=False)
+            object.__setattr__(self, "lost_lumen_lps_mm", q)
+            object.__setattr__(self, "lost_lumen_step_mm", st)
         for a in (p, r, par):
             a.setflags(write=False)
         object.__setattr__(self, "points_lps_mm", p)
@@ -246,6 +263,14 @@ class VesselTree:
 
         return cKDTree(self.points_lps_mm)
 
+    @cached_property
+    def lost_lumen_kdtree(self):
+        """A KD-tree over ``lost_lumen_lps_mm`` (None when there is none)."""
+        from scipy.spatial import cKDTree
+
+        L = self.lost_lumen_lps_mm
+        return None if L is None or len(L) == 0 else cKDTree(L)
+
     # --- conversion ---------------------------------------------------------------------
     def subtree(self, keep) -> "VesselTree":
         """The tree restricted to ``keep`` (bool mask or indices) which must include a connected part with the root."""
@@ -255,7 +280,7 @@ class VesselTree:
         new_index[keep_mask] = np.arange(keep_mask.sum())
         par = self.parent[keep_mask]
         new_par = np.where(par >= 0, new_index[np.maximum(par, 0)], -1)
-        return VesselTree(self.points_lps_mm[keep_mask], self.radius_mm[keep_mask], new_par, self.centerline_sigma_mm)
+        return VesselTree(self.points_lps_mm[keep_mask], self.radius_mm[keep_mask], new_par, **self._extras())
 
     def rerooted(self, new_root: int) -> "VesselTree":
         """The same points, radii and edges, rooted at point ``new_root`` (the edges on its path to the
@@ -272,7 +297,7 @@ class VesselTree:
             nxt = int(par[p])
             par[p] = child
             child, p = p, nxt
-        return VesselTree(self.points_lps_mm, self.radius_mm, par, self.centerline_sigma_mm)
+        return VesselTree(self.points_lps_mm, self.radius_mm, par, **self._extras())
 
     def densified(self, step_mm) -> tuple["VesselTree", np.ndarray]:
         """Insert points on edges longer than ``step_mm`` (scalar or per point, taken at the child).
@@ -302,12 +327,25 @@ class VesselTree:
         last = new_ids[np.r_[first[k > 0] + k[k > 0] - 1]]
         parent[e[k > 0, 1]] = last
         orig = np.r_[np.arange(n), np.where(frac < 0.5, pa, ch)]
-        dense = VesselTree(np.vstack([P, new_pts]), np.r_[R, new_rad], np.r_[parent, new_par], tree.centerline_sigma_mm)
+        dense = VesselTree(np.vstack([P, new_pts]), np.r_[R, new_rad], np.r_[parent, new_par], **tree._extras())
         return dense, orig.astype(np.int64)
 
     def transformed(self, pose) -> "VesselTree":
         """The same tree moved by a rigid ``Pose``."""
-        return VesselTree(pose.apply(self.points_lps_mm), self.radius_mm, self.parent, self.centerline_sigma_mm)
+        ex = self._extras()
+        if self.lost_lumen_lps_mm is not None and len(self.lost_lumen_lps_mm):
+            ex["lost_lumen_lps_mm"] = pose.apply(self.lost_lumen_lps_mm)
+        return VesselTree(pose.apply(self.points_lps_mm), self.radius_mm, self.parent, **ex)
+
+    def _extras(self) -> dict:
+        """What a tree derived from this one (the same vessels) keeps besides points, radii and parents."""
+        return dict(centerline_sigma_mm=self.centerline_sigma_mm, lost_lumen_lps_mm=self.lost_lumen_lps_mm,
+                    lost_lumen_step_mm=self.lost_lumen_step_mm)
+
+    def with_lost_lumen(self, points_lps_mm, step_mm: float) -> "VesselTree":
+        """The same tree carrying its lost lumen (``cta.lostlumen.lost_lumen_lps_mm``)."""
+        return VesselTree(self.points_lps_mm, self.radius_mm, self.parent, self.centerline_sigma_mm,
+                          np.asarray(points_lps_mm, float).reshape(-1, 3), step_mm)
 
     def to_dict(self) -> dict:
         d = {
@@ -317,13 +355,18 @@ class VesselTree:
         }
         if self.centerline_sigma_mm is not None:
             d["centerline_sigma_mm"] = round(self.centerline_sigma_mm, 5)
+        if self.lost_lumen_lps_mm is not None:
+            d["lost_lumen_lps_mm"] = np.round(self.lost_lumen_lps_mm, 3).tolist()
+            d["lost_lumen_step_mm"] = round(float(self.lost_lumen_step_mm), 5)
         return d
 
     @classmethod
     def from_dict(cls, d: dict) -> "VesselTree":
         try:
+            lost = d.get("lost_lumen_lps_mm")
             return cls(np.asarray(d["points_lps_mm"]), np.asarray(d["radius_mm"]), np.asarray(d["parent"]),
-                       d.get("centerline_sigma_mm"))
+                       d.get("centerline_sigma_mm"), None if lost is None else np.asarray(lost, float).reshape(-1, 3),
+                       d.get("lost_lumen_step_mm") if lost is not None else None)
         except KeyError as e:
             raise InputError(f"vessel tree record is missing field {e.args[0]!r}") from None
 

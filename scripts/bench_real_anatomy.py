@@ -87,7 +87,7 @@ def _cta_digest() -> str:
 def cached_tree(vol, cache: Path, log, seeds_lps_mm=None):
     """The product's automatic vessel tree of the CT (with ``seeds_lps_mm``: the connected tree containing
     them, as ``--seed-lps``), cached per version of the CTA code and seeds."""
-    from guidewire3d.cta import vesselmodel
+    from guidewire3d.cta import lostlumen, vesselmodel
 
     tag = "" if seeds_lps_mm is None else "_seed" + hashlib.sha256(np.round(np.asarray(seeds_lps_mm, float), 3)
                                                                   .tobytes()).hexdigest()[:8]
@@ -97,7 +97,8 @@ def cached_tree(vol, cache: Path, log, seeds_lps_mm=None):
     log("extracting the vessel tree (extract_vessels_auto; once, cached) ...")
     t0 = time.perf_counter()
     res = vesselmodel.extract_vessels_auto(vol, seeds_lps_mm=seeds_lps_mm)
-    rec = {"tree": res.vessels.tree, "seconds": time.perf_counter() - t0}
+    # with its lost lumen, as the product's vessel stage gives it (vesselmodel.extract_vessels_any_units)
+    rec = {"tree": lostlumen.with_lost_lumen(vol, res.vessels).tree, "seconds": time.perf_counter() - t0}
     f.parent.mkdir(parents=True, exist_ok=True)
     f.write_bytes(pickle.dumps(rec))
     return rec

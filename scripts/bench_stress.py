@@ -37,7 +37,8 @@ REASONS = {"tip end": "tip end uncertain", "beyond tip": "tip uncertain: a wire-
            "not in view": "tip not in view", "tip sigma": "tip uncertain: its position",
            "trace doubtful": "2D trace doubtful", "branch ambiguous": "branch ambiguous", "motion": "motion:",
            "path changed": "path changed", "off lumen": "wire off its vessel",
-           "wire sigma": "wire depth uncertain", "one-plane distal": "distal part from plane"}
+           "wire sigma": "wire depth uncertain", "one-plane distal": "distal part from plane",
+           "lost lumen": "centerline tree does not follow"}
 
 
 def options_of(seed: int, draws: str = "standard") -> list[str]:

@@ -257,6 +257,9 @@ def write_registration_inputs(out_dir, tree, centerline2d, centerline2d_b=None) 
     )
     if getattr(tree, "centerline_sigma_mm", None) is not None:
         arrays["tree_centerline_sigma_mm"] = np.float64(tree.centerline_sigma_mm)
+    if getattr(tree, "lost_lumen_lps_mm", None) is not None:
+        arrays["tree_lost_lumen_lps_mm"] = np.asarray(tree.lost_lumen_lps_mm, float)
+        arrays["tree_lost_lumen_step_mm"] = np.float64(tree.lost_lumen_step_mm)
     if centerline2d_b is not None:
         arrays["centerline_b_uv_px"] = np.asarray(centerline2d_b.points_uv_px, float)
         arrays["centerline_b_radius_px"] = np.asarray(centerline2d_b.radius_px, float)

@@ -266,8 +266,11 @@ def load_outdir(out_dir, *, load_images: bool = True) -> ViewerCase:
     if npz_path.exists():
         try:
             with np.load(npz_path, allow_pickle=False) as z:
+                lost = "tree_lost_lumen_lps_mm" in z and "tree_lost_lumen_step_mm" in z
                 tree = VesselTree(z["tree_points_lps_mm"], z["tree_radius_mm"], z["tree_parent"],
-                                      float(z["tree_centerline_sigma_mm"]) if "tree_centerline_sigma_mm" in z else None)
+                                  float(z["tree_centerline_sigma_mm"]) if "tree_centerline_sigma_mm" in z else None,
+                                  np.asarray(z["tree_lost_lumen_lps_mm"], float).reshape(-1, 3) if lost else None,
+                                  float(z["tree_lost_lumen_step_mm"]) if lost else None)
                 cl_uv = np.asarray(z["centerline_uv_px"], dtype=float).reshape(-1, 2)
                 cl_r = _radius_of(z, "centerline_radius_px", len(cl_uv))
         except (KeyError, ValueError, OSError) as e:

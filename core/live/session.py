@@ -82,6 +82,11 @@ BRANCH_SHIFT_MIN_MM = 5.0
 #: ``bench_motion --only sim``, 34 of its 56 silently wrong ``ok`` frames, 1 of its 146 right ones; with the
 #: pose tracked 1 of 4 wrong, seed 19 f0 with its tip 28 mm off, and none of the 427 right ones)
 OFF_LUMEN_MAX_MM = 2.0
+#: a wire of which more than this (mm) also projects onto segmented lumen the vessel tree does not follow, 2-20 mm
+#: from it (``Wire3D.lost_lumen_stretch_mm``, ``cta.lostlumen``: two vessels fused in the CTA's mask, the tree kept
+#: one) may run in that lost vessel, at another depth: ``bench_stress`` 7105 f1, the true vessel's first 13 mm
+#: fused with its neighbour, the wire placed in the neighbour 5.9 mm off along the beam over 25 mm, ``ok`` before
+LOST_LUMEN_STRETCH_MAX_MM = 5.0
 #: a wire whose own points are known to worse than this (``Wire3D.uncertainty_mm``, the median over its points of
 #: ``sqrt(trace Sigma)``, an rms 3D error) is not reported ``ok``: an ok frame promises a wire within 2 mm
 #: (``OFF_LUMEN_MAX_MM``, ``bench_stress``'s ``WIRE_OFF_MM``), and one view does not fix the wire's depth inside a
@@ -465,6 +470,8 @@ def frame_verdict(wire3d, wire_uv_px, orientation, *, beyond_tip=None, motion=No
       ``touching_rival``);
     * the wire's rays pass more than ``OFF_LUMEN_MAX_MM`` outside the lumen of the tree path they were
       placed in (``Wire3D.lumen_miss_mm``): the tree lacks the vessel the wire is in, or the pose is off;
+    * more than ``LOST_LUMEN_STRETCH_MAX_MM`` of the wire also projects onto segmented lumen the tree does not
+      follow (``Wire3D.lost_lumen_stretch_mm``): two vessels fused in the CTA, the wire may be in the lost one;
     * the frame's motion update did not fit (``motion``: its ``RegistrationResult``);
     * the wire left the path of the previous frame, which was reported ``ok`` (``prior_was_ok``): the
       reconstruction dropped that path as its prior (``Wire3D.prior_dropped``), the wire fitting another
@@ -520,6 +527,12 @@ def frame_verdict(wire3d, wire_uv_px, orientation, *, beyond_tip=None, motion=No
                    f"that branch a few px before the tip, where the CTA tree may have lost the vessel's distal end, or "
                    f"crossing into a vessel whose lumen touches the path's, which the tree joins elsewhere) and "
                    f"ends {shift_mm:.0f} mm away")
+    lost_mm = float(getattr(wire3d, "lost_lumen_stretch_mm", float("nan")))
+    if lost_mm > LOST_LUMEN_STRETCH_MAX_MM:
+        why.append(f"branch ambiguous: {lost_mm:.0f} mm of the wire also project onto segmented vessel lumen that the CTA's "
+                   f"centerline tree does not follow ({float(wire3d.lost_lumen_shift_mm):.1f} mm away in depth, limit "
+                   f"{LOST_LUMEN_STRETCH_MAX_MM:g} mm): two vessels fused in the CTA and the tree kept one, the wire "
+                   f"may run in the lost vessel")
     if motion is not None and not motion.success:
         why.append(f"motion: {motion.message}")
     if prior_was_ok and getattr(wire3d, "prior_dropped", False):

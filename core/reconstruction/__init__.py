@@ -27,6 +27,10 @@ from guidewire3d.reconstruction.context import (  # noqa: F401
     options_for_tree,
 )
 from guidewire3d.reconstruction.path import (  # noqa: F401
+    LOST_MIN_SHIFT_MM,
+    LOST_RAY_MM,
+    LOST_RAY_STEP_FRACTION,
+    LOST_REACH_MM,
     RIVAL_MIN_SHIFT_MM,
     TOUCH_GEODESIC_MM,
     TOUCH_RADIUS_FRACTION,
@@ -38,6 +42,7 @@ from guidewire3d.reconstruction.path import (  # noqa: F401
     PathCosts,
     ambiguity_mm2,
     branch_alternative,
+    lost_lumen_stretch,
     path_retreat_mm,
     path_step_costs,
     tip_rival,

@@ -9,7 +9,8 @@ costs (:class:`PathCosts`): re-runs without the tracking prior or with a branch'
 (:func:`branch_alternative`), the tip put in another vessel at another depth along the same rays
 (:func:`tip_rival`) or at the end of a leaf of the tree a few px short of the tip
 (:func:`tree_end_rival`), a path that crosses where two vessels' lumens merge but the tree joins
-them elsewhere (:func:`touching_rival`), and how far the path walks back towards the root
+them elsewhere (:func:`touching_rival`), how much of the wire also projects onto segmented lumen the
+tree does not follow (:func:`lost_lumen_stretch`), and how far the path walks back towards the root
 (:func:`path_retreat_mm`). A previous frame whose branch was not settled is no tracking prior
 (:func:`tracking_tip`).
 """
@@ -22,7 +23,7 @@ from guidewire3d import kernels
 from guidewire3d.geometry import fine_pixel_factor
 
 __all__ = ["PathCosts", "viterbi_costs", "viterbi_path", "path_step_costs", "path_retreat_mm", "branch_alternative",
-           "tip_rival", "tree_end_rival", "touching_rival", "ambiguity_mm2", "tracking_tip"]
+           "tip_rival", "tree_end_rival", "touching_rival", "lost_lumen_stretch", "ambiguity_mm2", "tracking_tip"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -461,3 +462,52 @@ def touching_rival(ctx, costs: PathCosts, nodes, opt):
         return float("inf"), 0.0
     k = int(np.argmin(np.where(rival, a1[j], np.inf)))
     return float(a1[j[k]] - own), float(shift[k])
+
+
+#: :func:`lost_lumen_stretch`: a lost-lumen point lies on a wire point's ray when it is within this of the ray (mm;
+#: or ``LOST_RAY_STEP_FRACTION`` of the lost lumen's grid step, if larger)
+LOST_RAY_MM = 0.5
+LOST_RAY_STEP_FRACTION = 0.6
+#: ... at least this far from the wire point (nearer, the wire would be placed about as well) and at most
+#: ``LOST_REACH_MM`` (a vessel beside the path, not one across the body)
+LOST_MIN_SHIFT_MM = 2.0
+LOST_REACH_MM = 20.0
+
+
+def lost_lumen_stretch(ctx, points_lps_mm) -> tuple[float, float, np.ndarray]:
+    """How much of the wire could lie in segmented lumen the tree does not follow: ``(stretch_mm, shift_mm, delta)``.
+
+    The tree's lost lumen (``VesselTree.lost_lumen_lps_mm``, ``cta.lostlumen``: two vessels fused in the CTA's
+    mask, the tree kept one) is invisible to the path through the tree: a wire in the lost vessel is placed in
+    the kept one, at another depth along the beam, and explains the 2D wire as well. A wire point (LPS mm, in
+    the tree's frame) has such an alternative when a lost-lumen point lies on its ray from the source, between
+    ``LOST_MIN_SHIFT_MM`` and ``LOST_REACH_MM`` from it. ``stretch_mm``: the wire's length between
+    consecutive points that both have one; ``shift_mm``: the median distance to the nearest alternative over
+    them (NaN when none); ``delta`` (N, 3): each point's nearest alternative minus the point (NaN rows where
+    none). No alternatives when the tree has no lost lumen or does not know it.
+    """
+    X = np.asarray(points_lps_mm, float).reshape(-1, 3)
+    delta = np.full(X.shape, np.nan)
+    L = getattr(ctx.tree, "lost_lumen_lps_mm", None)
+    if L is None or len(L) == 0 or len(X) < 2:
+        return 0.0, float("nan"), delta
+    kd = ctx.tree.lost_lumen_kdtree
+    tol = max(LOST_RAY_MM, LOST_RAY_STEP_FRACTION * float(ctx.tree.lost_lumen_step_mm))
+    src = np.asarray(ctx.source, float)
+    for i, idx in enumerate(kd.query_ball_point(X, LOST_REACH_MM)):
+        if not idx:
+            continue
+        V = L[idx]
+        d = X[i] - src
+        d = d / max(np.linalg.norm(d), 1e-9)
+        rel = V - src
+        perp = np.linalg.norm(rel - (rel @ d)[:, None] * d, axis=1)
+        far = np.linalg.norm(V - X[i], axis=1)
+        on = np.flatnonzero((perp <= tol) & (far >= LOST_MIN_SHIFT_MM))
+        if len(on):
+            delta[i] = V[on[np.argmin(far[on])]] - X[i]
+    has = np.isfinite(delta[:, 0])
+    both = has[1:] & has[:-1]
+    stretch = float(np.linalg.norm(np.diff(X, axis=0), axis=1)[both].sum())
+    shift = float(np.median(np.linalg.norm(delta[has], axis=1))) if has.any() else float("nan")
+    return stretch, shift, delta

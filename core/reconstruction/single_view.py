@@ -66,6 +66,7 @@ from guidewire3d.reconstruction.context import ReconOptions, build_context, opti
 from guidewire3d.reconstruction.path import (
     ambiguity_mm2,
     branch_alternative,
+    lost_lumen_stretch,
     path_retreat_mm,
     path_step_costs,
     tracking_tip,
@@ -126,6 +127,10 @@ class Wire3D:
         tree point (distance from the ray to the centerline minus the radius, mm at the vessel; 0 inside).
         Empty for the other methods. A stretch of the wire far outside the path's lumen is not in that
         vessel: the tree lacks the one it is in, or the pose is off there (``live.session.OFF_LUMEN_MAX_MM``).
+    lost_lumen_stretch_mm, lost_lumen_shift_mm : float, vessel method: how much of the wire (mm) also projects
+        onto segmented lumen the tree does not follow (``path.lost_lumen_stretch``: two vessels fused in the
+        CTA, the tree kept one), and how far that lumen lies from the wire (median, mm); 0 and NaN when none,
+        NaN for the other methods.
     """
 
     points_lps_mm: np.ndarray
@@ -148,6 +153,8 @@ class Wire3D:
     past_path_mm: float = 0.0
     prior_dropped: bool = False
     lumen_miss_mm: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    lost_lumen_stretch_mm: float = float("nan")
+    lost_lumen_shift_mm: float = float("nan")
 
     def __post_init__(self):
         object.__setattr__(self, "points_lps_mm", _ro(np.reshape(self.points_lps_mm, (-1, 3))))
@@ -193,6 +200,8 @@ class Wire3D:
             "past_path_mm": f(self.past_path_mm),
             "prior_dropped": bool(self.prior_dropped),
             "lumen_miss_mm": np.round(self.lumen_miss_mm, 3).tolist(),
+            "lost_lumen_stretch_mm": f(self.lost_lumen_stretch_mm),
+            "lost_lumen_shift_mm": f(self.lost_lumen_shift_mm),
         }
 
 
@@ -300,13 +309,22 @@ def _reconstruct_vessel(ctx, uv, *, track_tip, image, registration_covariance, o
         msg += " (gaps bridged)"
     if n_skipped:
         msg += f"; the last {n_skipped} anchors fit no lumen (placed beyond the path's end)"
+    # segmented lumen the tree lost along these rays (two vessels fused in the CTA): a second hypothesis for the
+    # point's depth, as likely as the chosen one (second moment about the chosen point: half the squared shift)
+    lost_mm, lost_shift_mm, lost_delta = lost_lumen_stretch(ctx, X)
+    alt = np.isfinite(lost_delta[:, 0])
+    if alt.any():
+        extra = np.zeros((len(X), 3, 3))
+        extra[alt] = 0.5 * lost_delta[alt, :, None] * lost_delta[alt, None, :]
+        amb = extra if amb is None else amb + extra
     ids = np.where(miss > 0, -1, tid)
     retreat_mm = path_retreat_mm(ctx, nodes, max_step_mm=RETREAT_STEP_ANCHORS * opt.dp_step_px * ctx.px_mm)
     w = _finish(ctx, X, uv, ids, depth_std, miss**2, image=image, registration_covariance=registration_covariance,
                 opt=opt, method=ReconMethod.VESSEL, t0=t0, message=msg, lumen=(half_width, miss, amb),
                 reversed_input=bool(reversed_note), tree_rise_mm=float(ctx.s[nodes[-1]] - ctx.s[nodes[0]]),
                 path_checks=(retreat_mm, *branch_alternative(ctx, costs, nodes, total, opt)))
-    return replace(w, past_path_mm=past_mm, prior_dropped=bool(prior_note), lumen_miss_mm=miss)
+    return replace(w, past_path_mm=past_mm, prior_dropped=bool(prior_note), lumen_miss_mm=miss,
+                   lost_lumen_stretch_mm=lost_mm, lost_lumen_shift_mm=lost_shift_mm)
 
 
 def _reconstruct_paper(ctx, uv, *, image, registration_covariance, opt, t0):
