@@ -428,6 +428,7 @@ class Session:
             doubled = tip_end_check(image, uv, at_end=not w3.reversed_input)
             stages["reconstruction"] = stages.get("reconstruction", 0.0) + time.perf_counter() - t1
         verdict, message = frame_verdict(w3, uv, ori, beyond_tip=beyond_tip, doubled_tip=doubled,
+                                         tip_fork=getattr(wire2d, "tip_fork", None),
                                          motion=motion, image_shape=self.carm.shape, continuation=continuation,
                                          prior_was_ok=self._prior_was_ok, pixel_at_iso_mm=self.carm.pixel_at_iso_mm)
         self._prior_was_ok = verdict is Verdict.OK      # the tracker's prior is now this frame's path
@@ -441,7 +442,7 @@ class Session:
 
 
 def frame_verdict(wire3d, wire_uv_px, orientation, *, beyond_tip=None, motion=None, image_shape=None,
-                  continuation=None, doubled_tip=None, prior_was_ok: bool = False,
+                  continuation=None, doubled_tip=None, tip_fork=None, prior_was_ok: bool = False,
                   pixel_at_iso_mm: float | None = None):
     """``(Verdict, message)`` of a frame with a 3D wire: ``OK`` with the reconstruction's message,
     or ``UNCERTAIN`` with every reason that applies, the first first:
@@ -454,6 +455,8 @@ def frame_verdict(wire3d, wire_uv_px, orientation, *, beyond_tip=None, motion=No
       over itself (or runs on under its own projection) before its true tip (``doubled_tip``:
       ``orderedwire.DoubledTip``, of the output's tip end); or barely darker than the background, the
       trace runs past the wire's end (``doubled_tip`` an ``orderedwire.BareTip``);
+    * the wire's mask forks just before the traced tip into a second end (``tip_fork``:
+      ``orderedwire.TipFork``): a tip bent back, whose true end may be at the other branch;
     * the wire runs out of the image (``image_shape``, rows and cols) at its distal end;
     * the tip's vessel runs along the beam: the wire's last px span many mm in 3D
       (``TIP_STRETCH_MAX_MM``; over ``TIP_STRETCH_PX`` at the reference pixel, widened to as many mm on a
@@ -490,6 +493,8 @@ def frame_verdict(wire3d, wire_uv_px, orientation, *, beyond_tip=None, motion=No
         why.append(continuation.explain())
     if doubled_tip is not None:                       # the trace may stop at a bend, short of the tip
         why.append(doubled_tip.explain())
+    if tip_fork is not None and not reversed_:        # the trace took one of two ends
+        why.append(tip_fork.explain())
     distal_uv = uv[0] if reversed_ else uv[-1]         # the output's tip, in 2D
     if image_shape is not None and len(uv) and _at_border(distal_uv, image_shape):
         why.append(f"tip not in view: the wire runs out of the image at its distal end "

@@ -44,6 +44,7 @@ from scipy.sparse import csgraph
 
 __all__ = [
     "BeyondTip",
+    "TipFork",
     "DoubledTip",
     "doubled_tip",
     "BareTip",
@@ -75,6 +76,14 @@ BEYOND_TIP_MAX_GAP_PX = 80.0      # ... whose nearer end is at most this far fro
 BEYOND_TIP_MAX_ANGLE_DEG = 40.0   # ... and within this angle of the tip's outward tangent,
 BEYOND_TIP_NEAR_GAP_PX = 15.0     # ... or at any angle when this near (a wire bent sharply at its tip:
                                   # the segmenter broke the bend, and the piece beyond runs back)
+# The mask forks just before the traced tip: a wire whose tip is bent back (a J tip, or a tip caught in a
+# side branch) thins into a skeleton with two ends there, and the trace takes one (``bench_stress`` 7215 f1:
+# the tip hooked back 17 px, the trace ended at the bend, the 3D tip 8 mm short, ``ok``). A skeleton branch
+# off the trace that leaves it within TIP_FORK_NEAR_PX of the tip (along the trace) and reaches at least
+# TIP_FORK_MIN_PX (or TIP_FORK_MIN_HALF_WIDTHS x the mask's half-width) from it makes the tip uncertain
+TIP_FORK_NEAR_PX = 15.0
+TIP_FORK_MIN_PX = 6.0
+TIP_FORK_MIN_HALF_WIDTHS = 3.0
 # A second layer of wire over the traced tip: where the wire bends back over itself just before its
 # tip, or its vessel turns towards the viewer and back, the distal part projects onto the part
 # before it; the mask holds one line there and the trace stops at the turn, short of the true tip
@@ -170,6 +179,19 @@ class BeyondTip:
 
 
 @dataclass(frozen=True)
+class TipFork:
+    """The wire's mask forks just before its traced tip (see ``OrderedWire.tip_fork``, ``TIP_FORK_*``)."""
+
+    reach_px: float      #: how far the other branch reaches from the trace
+    from_tip_px: float   #: where it leaves the trace, along the trace from the tip
+
+    def explain(self) -> str:
+        return (f"tip uncertain: the wire's mask forks {self.from_tip_px:.0f} px before the traced tip into a second "
+                f"end reaching {self.reach_px:.0f} px from the trace (a tip bent back, or caught in a side branch): "
+                f"the tip may be at that end")
+
+
+@dataclass(frozen=True)
 class BareTip:
     """The traced tip is barely darker than the background: the trace runs past the wire's end
     (see ``BARE_END_RATIO``)."""
@@ -217,6 +239,10 @@ class OrderedWire:
         A piece of the mask that the wire does not include, lying beyond its tip and in line with
         it (``BEYOND_TIP_*``): the wire may continue there, so the tip is not settled. None when
         there is none.
+    tip_fork : TipFork or None
+        A branch of the mask's skeleton that leaves the wire just before its tip and reaches away
+        from it (``TIP_FORK_*``): a tip bent back, whose true end may be at that branch's. None when
+        there is none.
     presence : WirePresence or None
         The presence test of the traced curve (:func:`guidewire3d.xray.wirepresence.wire_presence`;
         None when it did not run: no image, ``check_presence=False``, or no curve was traced).
@@ -231,6 +257,8 @@ class OrderedWire:
     n_gaps_bridged: int = 0
     presence: WirePresence | None = None
     beyond_tip: "BeyondTip | None" = None
+    tip_fork: "TipFork | None" = None
+
     def __bool__(self) -> bool:
         return bool(self.success)
 
@@ -535,6 +563,42 @@ def _bridge(paths, max_gap_px: float):
         if total > best_len:
             best, best_len, best_bridges, best_pieces = np.vstack(seq), total, bridges, pieces
     return best, best_bridges, best_pieces
+
+
+def _tip_fork(uv: np.ndarray, skel_uv: np.ndarray, half_width_px: float) -> TipFork | None:
+    """The skeleton branch (of the skeleton pixels ``skel_uv``, (u, v)) off the ordered wire ``uv`` that leaves it
+    within ``TIP_FORK_NEAR_PX`` of its tip and reaches farthest from it, if that is at least ``TIP_FORK_MIN_PX``
+    (or ``TIP_FORK_MIN_HALF_WIDTHS`` half-widths); else None. Off the wire: farther than the half-width + 1.5
+    px from it; a branch is an 8-connected group of such pixels, attached when its nearest pixel lies within
+    the half-width + 3 px of the wire."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
+    if len(uv) < 3 or len(skel_uv) == 0:
+        return None
+    s = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(uv, axis=0), axis=1))]
+    from_tip = s[-1] - s
+    d, j = cKDTree(uv).query(skel_uv)
+    off = np.flatnonzero(d > half_width_px + 1.5)
+    if len(off) == 0:
+        return None
+    pairs = cKDTree(skel_uv[off]).query_pairs(1.5, output_type="ndarray")
+    n = len(off)
+    g = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n)) if len(pairs) else \
+        coo_matrix((n, n))
+    _, lab = connected_components(g, directed=False)
+    best = None
+    need = max(TIP_FORK_MIN_PX, TIP_FORK_MIN_HALF_WIDTHS * half_width_px)
+    for c in np.unique(lab):
+        members = off[lab == c]
+        a = members[np.argmin(d[members])]
+        if d[a] > half_width_px + 3.0 or from_tip[j[a]] > TIP_FORK_NEAR_PX:
+            continue
+        reach = float(d[members].max())
+        if reach >= need and (best is None or reach > best.reach_px):
+            best = TipFork(reach, float(from_tip[j[a]]))
+    return best
 
 
 def _beyond_tip(uv: np.ndarray, paths, used: set, offset_uv: np.ndarray) -> BeyondTip | None:
@@ -892,8 +956,9 @@ def ordered_wire(mask, *, image=None, proximal_hint_uv=None, max_gap_px: float =
         uv = uv[::-1].copy()
     length = float(np.linalg.norm(np.diff(uv, axis=0), axis=1).sum())
     beyond = _beyond_tip(uv, paths, used, np.array([o_c, o_r], float)) if len(paths) > 1 else None
+    fork = _tip_fork(uv, np.column_stack([sc + o_c, sr + o_r]).astype(float), half_width)
     return OrderedWire(points_uv_px=uv, success=True, message="ok", length_px=length,
-                       n_gaps_bridged=int(n_bridges), presence=presence, beyond_tip=beyond)
+                       n_gaps_bridged=int(n_bridges), presence=presence, beyond_tip=beyond, tip_fork=fork)
 
 
 # --------------------------------------------------------------------------------------------
