@@ -198,6 +198,7 @@ class ReconstructionContext:
         self.Rc, self.tc = Rc, tc
         self.source = -Rc.T @ tc
         self.px_mm = float(np.median(z)) / self.focal  # mm per px at the tree's depth
+        self._lost_lumen_image = None  # the tree's lost lumen in the image at this pose (path.lost_lumen_stretch)
 
     def with_pose(self, pose: Pose) -> "ReconstructionContext":
         """The same tree tables (smoothing, densification, branches, bend offsets: none depends on

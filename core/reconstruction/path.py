@@ -491,21 +491,34 @@ def lost_lumen_stretch(ctx, points_lps_mm) -> tuple[float, float, np.ndarray]:
     L = getattr(ctx.tree, "lost_lumen_lps_mm", None)
     if L is None or len(L) == 0 or len(X) < 2:
         return 0.0, float("nan"), delta
-    kd = ctx.tree.lost_lumen_kdtree
     tol = max(LOST_RAY_MM, LOST_RAY_STEP_FRACTION * float(ctx.tree.lost_lumen_step_mm))
     src = np.asarray(ctx.source, float)
-    for i, idx in enumerate(kd.query_ball_point(X, LOST_REACH_MM)):
-        if not idx:
-            continue
-        V = L[idx]
-        d = X[i] - src
-        d = d / max(np.linalg.norm(d), 1e-9)
+    # the lost lumen in the image (once per pose): a point near a wire point's ray projects near its pixel
+    cached = getattr(ctx, "_lost_lumen_image", None)
+    if cached is None:
+        from scipy.spatial import cKDTree
+
+        cached = cKDTree(ctx.project(L))
+        ctx._lost_lumen_image = cached
+    z = (X @ ctx.Rc.T + ctx.tc)[:, 2]
+    tol_px = tol * ctx.focal / max(float(z.min()) - LOST_REACH_MM, 1.0)   # at the nearest depth: the widest
+    lists = cached.query_ball_point(ctx.project(X), tol_px)
+    n_per = np.fromiter((len(x) for x in lists), np.int64, len(lists))
+    if n_per.sum():
+        owner = np.repeat(np.arange(len(X)), n_per)
+        V = L[np.fromiter((j for x in lists for j in x), np.int64, int(n_per.sum()))]
+        D = V - X[owner]
+        far = np.linalg.norm(D, axis=1)
+        d = X - src
+        d = d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-9)
         rel = V - src
-        perp = np.linalg.norm(rel - (rel @ d)[:, None] * d, axis=1)
-        far = np.linalg.norm(V - X[i], axis=1)
-        on = np.flatnonzero((perp <= tol) & (far >= LOST_MIN_SHIFT_MM))
-        if len(on):
-            delta[i] = V[on[np.argmin(far[on])]] - X[i]
+        perp = np.linalg.norm(rel - np.einsum("ij,ij->i", rel, d[owner])[:, None] * d[owner], axis=1)
+        ok = np.flatnonzero((far >= LOST_MIN_SHIFT_MM) & (far <= LOST_REACH_MM) & (perp <= tol))
+        if len(ok):
+            # per wire point, its nearest alternative
+            order = ok[np.lexsort((far[ok], owner[ok]))]
+            first = order[np.r_[True, owner[order][1:] != owner[order][:-1]]]
+            delta[owner[first]] = D[first]
     has = np.isfinite(delta[:, 0])
     both = has[1:] & has[:-1]
     stretch = float(np.linalg.norm(np.diff(X, axis=0), axis=1)[both].sum())
