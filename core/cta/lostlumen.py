@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import numpy as np
 from scipy import ndimage as ndi
-from scipy.spatial import cKDTree
 
 from guidewire3d import io
 from guidewire3d.errors import InputError
