@@ -38,7 +38,8 @@ from guidewire3d.errors import Guidewire3DError, InputError
 from guidewire3d.geometry import CArm, Pose, nominal_pose
 from guidewire3d.metrics import resample_polyline
 from guidewire3d.live import session as live
-from guidewire3d.live.session import WIRE_MAX_UNCERTAINTY_MM, FrameResult, _no_wire, frame_verdict, orientation_of
+from guidewire3d.live.session import (LOST_LUMEN_WORDS, WIRE_MAX_UNCERTAINTY_MM, FrameResult, _no_wire, frame_verdict,
+                                      orientation_of)
 from guidewire3d.motion.tracking import BiplaneMotionTracker
 from guidewire3d.reconstruction.triangulation import (
     TwoViewContext,
@@ -722,7 +723,10 @@ def _one_plane_distal_reasons(tv, carms) -> str:
     verdict, message = frame_verdict(w, tv.distal_uv_px, None, image_shape=carms[k].shape,
                                      pixel_at_iso_mm=carms[k].pixel_at_iso_mm)
     if verdict is not Verdict.OK:
-        why += [m for m in message.split("; ") if m and not m.startswith("wire depth uncertain")]
+        # its whole-wire depth and the lumen its tree lost along the whole wire are left out: the two views settle the
+        # rest of the wire, and the part's own points carry that lumen in their uncertainty (checked above)
+        why += [m for m in message.split("; ") if m and not m.startswith("wire depth uncertain")
+                and LOST_LUMEN_WORDS not in m]
     if not why:
         return ""
     return (f"distal part from plane {plane} alone: its last {tv.single_view_distal_mm:.0f} mm are seen in plane "

@@ -22,6 +22,7 @@ from guidewire3d.live.session import (  # noqa: F401
     HINT_MARGIN_ALONE,
     HINT_MARGIN_MIN,
     LOST_LUMEN_STRETCH_MAX_MM,
+    LOST_LUMEN_WORDS,
     OFF_LUMEN_MAX_MM,
     TIP_BORDER_PX,
     TIP_MAX_UNCERTAINTY_MM,

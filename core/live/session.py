@@ -87,6 +87,8 @@ OFF_LUMEN_MAX_MM = 2.0
 #: one) may run in that lost vessel, at another depth: ``bench_stress`` 7105 f1, the true vessel's first 13 mm
 #: fused with its neighbour, the wire placed in the neighbour 5.9 mm off along the beam over 25 mm, ``ok`` before
 LOST_LUMEN_STRETCH_MAX_MM = 5.0
+#: the words that name that reason in a verdict's message
+LOST_LUMEN_WORDS = "segmented vessel lumen that the CTA's centerline tree does not follow"
 #: a wire whose own points are known to worse than this (``Wire3D.uncertainty_mm``, the median over its points of
 #: ``sqrt(trace Sigma)``, an rms 3D error) is not reported ``ok``: an ok frame promises a wire within 2 mm
 #: (``OFF_LUMEN_MAX_MM``, ``bench_stress``'s ``WIRE_OFF_MM``), and one view does not fix the wire's depth inside a
@@ -534,8 +536,8 @@ def frame_verdict(wire3d, wire_uv_px, orientation, *, beyond_tip=None, motion=No
                    f"ends {shift_mm:.0f} mm away")
     lost_mm = float(getattr(wire3d, "lost_lumen_stretch_mm", float("nan")))
     if lost_mm > LOST_LUMEN_STRETCH_MAX_MM:
-        why.append(f"branch ambiguous: {lost_mm:.0f} mm of the wire also project onto segmented vessel lumen that the CTA's "
-                   f"centerline tree does not follow ({float(wire3d.lost_lumen_shift_mm):.1f} mm away in depth, limit "
+        why.append(f"branch ambiguous: {lost_mm:.0f} mm of the wire also project onto {LOST_LUMEN_WORDS} "
+                   f"({float(wire3d.lost_lumen_shift_mm):.1f} mm away in depth, limit "
                    f"{LOST_LUMEN_STRETCH_MAX_MM:g} mm): two vessels fused in the CTA and the tree kept one, the wire "
                    f"may run in the lost vessel")
     if motion is not None and not motion.success:
