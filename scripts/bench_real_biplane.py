@@ -63,7 +63,7 @@ def plane_b_cases(poses, seed: int, cache: Path, log) -> list[dict]:
     return have[:len(poses)]
 
 
-def run_pose(P, B, tree):
+def run_pose(P, B, tree, *, frames: bool = True):
     from diagnose_real_anatomy import max_radius_px
     from guidewire3d import metrics
     from guidewire3d.app.biplane import BiplaneSession, register_biplane
@@ -88,7 +88,7 @@ def run_pose(P, B, tree):
     row["lm_true"] = metrics.mtre_mm(rt.pose, pose, Pv)
     row["true_ok"] = rt.success
     row.update(frames=0, ok=0, okwrong=0, wire=float("nan"), tip=float("nan"))
-    if not r.success:
+    if not r.success or not frames:
         return row
     sess = BiplaneSession(tree, carms, r.pose, registration_covariance=r.covariance_6x6, threads=1)
     sess.warm_up(P["frames"][0], B["frames"][0])
@@ -118,6 +118,9 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ra.add_pose_arguments(ap)
     ap.add_argument("--access", action="store_true", help="the tree rooted where the true wire enters (--access-lps)")
+    ap.add_argument("--no-frames", action="store_true", help="the registration columns only (no frame pairs)")
+    ap.add_argument("--only", type=lambda s: [int(k) for k in s.split(",")], default=None, metavar="K[,K...]",
+                    help="only these poses (their index k among the --poses drawn)")
     a = ap.parse_args(argv)
     cache = Path(a.cache).expanduser()
     log = partial(print, file=sys.stderr, flush=True)
@@ -132,8 +135,10 @@ def main(argv=None):
     print(" | ".join(cols))
     rows = []
     for P, B in zip(poses, planes_b):
+        if a.only is not None and int(P["k"]) not in a.only:
+            continue
         tree = rooted_at_access(tree0, P["true_wires"][0][0]) if a.access else tree0
-        row = run_pose(P, B, tree)
+        row = run_pose(P, B, tree, frames=not a.no_frames)
         rows.append(row)
         print(" | ".join(f"{row[c]:.2f}" if isinstance(row[c], float) else str(row[c]) for c in cols), flush=True)
     ok = [r for r in rows if r["reg"] == "ok"]
