@@ -17,7 +17,8 @@ the nominal start, and, when the registration is trusted, ``app.biplane.BiplaneS
 Columns (per pose): ``reg`` the verdict; ``mtre`` mTRE (mm) over the tree points that project into either image at
 the true pose (success = ``reg`` ok and ``mtre`` < 2 mm; ``wrong`` = ok and not); ``lm_true`` the LM minimum refined
 from the true pose (its mTRE: small = the energy's minimum is right); ``expl`` the explained fraction (of the whole
-tree, as the biplane verdict counts it); ``std`` / ``lim`` the pose 1-sigma and its limit; ``frames`` / ``ok`` /
+tree, as the biplane verdict counts it); ``std`` / ``lim`` the pose 1-sigma and its limit; ``mstd`` the model-error
+1-sigma (``app.biplane.MODEL_ERROR_INFLATION``; NaN: not computed) and ``misfit`` each plane's smooth misfit (px, A/B); ``frames`` / ``ok`` /
 ``okwrong`` the frame pairs with a 3D wire, those ``ok``, and those ``ok`` with the wire more than 2 mm or the tip
 more than 5 mm off (silently wrong); ``wire`` / ``tip`` the median 3D mean and tip errors (mm) over the pairs with a
 3D wire, against the part of the true wire in either plane's image; ``why`` the refusal.
@@ -83,7 +84,8 @@ def run_pose(P, B, tree, *, frames: bool = True):
     r = breg.result
     row = dict(pose=P["k"], target=P["target"], t_reg=time.perf_counter() - t0, reg=r.verdict.label,
                mtre=metrics.mtre_mm(r.pose, pose, Pv), expl=r.explained_fraction, std=r.pose_std_mm,
-               lim=r.max_pose_std_mm, why="-" if r.success else r.message.split(" | ")[0].replace("untrustworthy: ", ""))
+               lim=r.max_pose_std_mm, mstd=r.model_std_mm,
+               misfit="/".join(f"{v.misfit_px:.2f}" for v in breg.views), why="-" if r.success else r.message.split(" | ")[0].replace("untrustworthy: ", ""))
     rt = register_biplane(tree, uvs, carms, centerline_radius_px=rads, init_pose=pose, global_search=False)
     row["lm_true"] = metrics.mtre_mm(rt.pose, pose, Pv)
     row["true_ok"] = rt.success
@@ -130,7 +132,7 @@ def main(argv=None):
     planes_b = plane_b_cases(poses, a.seed, cache, log)
     print(f"machine: {machine_line()}; load {os.getloadavg()[0]:.1f}; {len(poses)} poses (seed {a.seed}), "
           f"tree root: {'the access (true wire entry)' if a.access else 'automatic'}")
-    cols = ["pose", "target", "reg", "mtre", "lm_true", "expl", "std", "lim", "frames", "ok", "okwrong", "wire", "tip",
+    cols = ["pose", "target", "reg", "mtre", "lm_true", "expl", "std", "lim", "mstd", "misfit", "frames", "ok", "okwrong", "wire", "tip",
             "t_reg", "why"]
     print(" | ".join(cols))
     rows = []
