@@ -17,7 +17,8 @@ the nominal start, and, when the registration is trusted, ``app.biplane.BiplaneS
 Columns (per pose): ``reg`` the verdict; ``mtre`` mTRE (mm) over the tree points that project into either image at
 the true pose (success = ``reg`` ok and ``mtre`` < 2 mm; ``wrong`` = ok and not); ``lm_true`` the LM minimum refined
 from the true pose (its mTRE: small = the energy's minimum is right); ``expl`` the explained fraction (of the whole
-tree, as the biplane verdict counts it); ``std`` / ``lim`` the pose 1-sigma and its limit; ``frames`` / ``ok`` /
+tree, as the biplane verdict counts it); ``std`` / ``lim`` the pose 1-sigma and its limit; ``mstd`` the model-error
+1-sigma (``app.biplane.MODEL_ERROR_INFLATION``; NaN: not computed) and ``misfit`` each plane's smooth misfit (px, A/B); ``frames`` / ``ok`` /
 ``okwrong`` the frame pairs with a 3D wire, those ``ok``, and those ``ok`` with the wire more than 2 mm or the tip
 more than 5 mm off (silently wrong); ``wire`` / ``tip`` the median 3D mean and tip errors (mm) over the pairs with a
 3D wire, against the part of the true wire in either plane's image; ``why`` the refusal.
@@ -63,7 +64,7 @@ def plane_b_cases(poses, seed: int, cache: Path, log) -> list[dict]:
     return have[:len(poses)]
 
 
-def run_pose(P, B, tree):
+def run_pose(P, B, tree, *, frames: bool = True):
     from diagnose_real_anatomy import max_radius_px
     from guidewire3d import metrics
     from guidewire3d.app.biplane import BiplaneSession, register_biplane
@@ -83,12 +84,13 @@ def run_pose(P, B, tree):
     r = breg.result
     row = dict(pose=P["k"], target=P["target"], t_reg=time.perf_counter() - t0, reg=r.verdict.label,
                mtre=metrics.mtre_mm(r.pose, pose, Pv), expl=r.explained_fraction, std=r.pose_std_mm,
-               lim=r.max_pose_std_mm, why="-" if r.success else r.message.split(" | ")[0].replace("untrustworthy: ", ""))
+               lim=r.max_pose_std_mm, mstd=r.model_std_mm,
+               misfit="/".join(f"{v.misfit_px:.2f}" for v in breg.views), why="-" if r.success else r.message.split(" | ")[0].replace("untrustworthy: ", ""))
     rt = register_biplane(tree, uvs, carms, centerline_radius_px=rads, init_pose=pose, global_search=False)
     row["lm_true"] = metrics.mtre_mm(rt.pose, pose, Pv)
     row["true_ok"] = rt.success
     row.update(frames=0, ok=0, okwrong=0, wire=float("nan"), tip=float("nan"))
-    if not r.success:
+    if not r.success or not frames:
         return row
     sess = BiplaneSession(tree, carms, r.pose, registration_covariance=r.covariance_6x6, threads=1)
     sess.warm_up(P["frames"][0], B["frames"][0])
@@ -118,6 +120,9 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ra.add_pose_arguments(ap)
     ap.add_argument("--access", action="store_true", help="the tree rooted where the true wire enters (--access-lps)")
+    ap.add_argument("--no-frames", action="store_true", help="the registration columns only (no frame pairs)")
+    ap.add_argument("--only", type=lambda s: [int(k) for k in s.split(",")], default=None, metavar="K[,K...]",
+                    help="only these poses (their index k among the --poses drawn)")
     a = ap.parse_args(argv)
     cache = Path(a.cache).expanduser()
     log = partial(print, file=sys.stderr, flush=True)
@@ -127,13 +132,15 @@ def main(argv=None):
     planes_b = plane_b_cases(poses, a.seed, cache, log)
     print(f"machine: {machine_line()}; load {os.getloadavg()[0]:.1f}; {len(poses)} poses (seed {a.seed}), "
           f"tree root: {'the access (true wire entry)' if a.access else 'automatic'}")
-    cols = ["pose", "target", "reg", "mtre", "lm_true", "expl", "std", "lim", "frames", "ok", "okwrong", "wire", "tip",
+    cols = ["pose", "target", "reg", "mtre", "lm_true", "expl", "std", "lim", "mstd", "misfit", "frames", "ok", "okwrong", "wire", "tip",
             "t_reg", "why"]
     print(" | ".join(cols))
     rows = []
     for P, B in zip(poses, planes_b):
+        if a.only is not None and int(P["k"]) not in a.only:
+            continue
         tree = rooted_at_access(tree0, P["true_wires"][0][0]) if a.access else tree0
-        row = run_pose(P, B, tree)
+        row = run_pose(P, B, tree, frames=not a.no_frames)
         rows.append(row)
         print(" | ".join(f"{row[c]:.2f}" if isinstance(row[c], float) else str(row[c]) for c in cols), flush=True)
     ok = [r for r in rows if r["reg"] == "ok"]

@@ -470,19 +470,7 @@ def _model_error_cov(prob: _Problem, ev, sigma_px: float, length_px: float) -> n
     the information."""
     if ev.H_info is None or ev.G_2d is None or not (sigma_px > 0):
         return None
-    uv = prob.m2.uv
-    cell = max(length_px / 4.0, 1.0)
-    key = np.floor(uv / cell).astype(np.int64)
-    _, inv = np.unique(key, axis=0, return_inverse=True)
-    inv = inv.ravel()
-    n = int(inv.max()) + 1
-    cnt = np.bincount(inv, minlength=n).astype(float)
-    centre = np.column_stack([np.bincount(inv, uv[:, d], minlength=n) for d in range(2)]) / cnt[:, None]
-    G = np.stack([np.bincount(inv, ev.G_2d.reshape(len(uv), 12)[:, ch], minlength=n) for ch in range(12)],
-                 axis=1).reshape(n, 6, 2)
-    d2 = ((centre[:, None, :] - centre[None, :, :]) ** 2).sum(axis=2)
-    Kc = np.exp(-0.5 * d2 / float(length_px) ** 2)
-    B = sum(G[:, :, c].T @ Kc @ G[:, :, c] for c in range(2))
+    B = _model_error_info(prob.m2.uv, ev.G_2d, length_px)
     try:
         Hinv = np.linalg.inv(ev.H_info)
     except np.linalg.LinAlgError:
@@ -490,3 +478,50 @@ def _model_error_cov(prob: _Problem, ev, sigma_px: float, length_px: float) -> n
     S = np.diag(prob.scale)
     cov = S @ Hinv @ B @ Hinv @ S * float(sigma_px) ** 2
     return 0.5 * (cov + cov.T)
+
+
+def _model_error_info(uv_px: np.ndarray, G_2d: np.ndarray, length_px: float) -> np.ndarray:
+    """``(6, 6)``: what a unit Gaussian random field of the 2D samples' positions (1 px per component, squared-exponential
+    correlation of length ``length_px``) adds to the information-weighted optimum's score, ``sum G^T K G`` (theta
+    units; :func:`_model_error_cov` is ``S H^-1 B H^-1 S sigma^2``). ``uv_px`` ``(M, 2)`` the 2D samples, ``G_2d``
+    ``(M, 6, 2)`` how they pull the pose (``problem._Eval.G_2d``); pooled in cells of ``length_px / 4``."""
+    uv = np.asarray(uv_px, float)
+    cell = max(length_px / 4.0, 1.0)
+    key = np.floor(uv / cell).astype(np.int64)
+    _, inv = np.unique(key, axis=0, return_inverse=True)
+    inv = inv.ravel()
+    n = int(inv.max()) + 1
+    cnt = np.bincount(inv, minlength=n).astype(float)
+    centre = np.column_stack([np.bincount(inv, uv[:, d], minlength=n) for d in range(2)]) / cnt[:, None]
+    G = np.stack([np.bincount(inv, G_2d.reshape(len(uv), 12)[:, ch], minlength=n) for ch in range(12)],
+                 axis=1).reshape(n, 6, 2)
+    d2 = ((centre[:, None, :] - centre[None, :, :]) ** 2).sum(axis=2)
+    Kc = np.exp(-0.5 * d2 / float(length_px) ** 2)
+    return sum(G[:, :, c].T @ Kc @ G[:, :, c] for c in range(2))
+
+
+def _misfit_field_px(m3: _Model3D, uv_px: np.ndarray, carm: CArm, pose: Pose, length_px: float) -> float:
+    """The smooth part of the disagreement of a roadmap's 2D centerline with the projected 3D one at ``pose``: the
+    offsets of the 2D samples ``uv_px`` ``(M, 2)`` to their nearest projected 3D sample (those within ``INLIER_PX``),
+    averaged with a Gaussian weight of width ``length_px`` (samples pooled in cells of ``length_px / 4``); the RMS
+    per component (px) of that smoothed field over the samples. NaN without an inlier."""
+    uv = np.asarray(uv_px, float)
+    proj = carm.project(m3.dense, pose)
+    proj = proj[np.isfinite(proj).all(axis=1)]
+    if len(proj) == 0 or len(uv) == 0:
+        return float("nan")
+    d, j = cKDTree(proj).query(uv)
+    inl = d <= INLIER_PX
+    if not inl.any():
+        return float("nan")
+    uv, off = uv[inl], proj[j[inl]] - uv[inl]
+    cell = max(length_px / 4.0, 1.0)
+    _, inv = np.unique(np.floor(uv / cell).astype(np.int64), axis=0, return_inverse=True)
+    inv = inv.ravel()
+    n = int(inv.max()) + 1
+    cnt = np.bincount(inv, minlength=n).astype(float)
+    centre = np.column_stack([np.bincount(inv, uv[:, k], minlength=n) for k in range(2)]) / cnt[:, None]
+    total = np.column_stack([np.bincount(inv, off[:, k], minlength=n) for k in range(2)])
+    K = np.exp(-0.5 * ((centre[:, None, :] - centre[None, :, :]) ** 2).sum(axis=2) / float(length_px) ** 2)
+    field = (K @ total) / (K @ cnt)[:, None]  # (n, 2): the smoothed offset at each cell
+    return float(np.sqrt(np.sum(cnt[:, None] * field**2) / (2.0 * cnt.sum())))
