@@ -284,7 +284,8 @@ def _add_batch_parser(sub, full: bool = True) -> None:
                        description="Run reconstruct on every study of MANIFEST, one Dask task per study (a local "
                                    "cluster of --workers processes, or --scheduler), into DIR/<study>/ as "
                                    "reconstruct writes it, and DIR/summary.csv. Failed studies are retried, then "
-                                   "recorded; finished studies are skipped on a rerun. Exit 1 if a study failed.")
+                                   "recorded; a rerun skips a finished study made with the same options and fails one made "
+                                   "with others (remove its folder to reconstruct it). Exit 1 if a study failed.")
     if full:
         from guidewire3d.app import batch
 
