@@ -78,6 +78,18 @@ def test_study_sent_over_dicom_is_reconstructed(tiny_studies, tmp_path):
         (row,) = list(csv.DictReader(f))
     assert (row["study"], row["status"], row["frames_reconstructed"]) == (uid, batch.DONE, "2")
     assert rx.pending() == []
+    # a later session at another access point leaves the study's output as it is, and says so
+    before = {p: p.stat().st_mtime_ns for p in (out / uid).iterdir()}
+    access = truth.tree.points_lps_mm[truth.tree.root]
+    logs2 = []
+    rx2 = StudyReceiver(store, out, port=0, quiet_s=QUIET_S, images=False, access_lps_mm=access,
+                        log=logs2.append).start()
+    try:
+        assert rx2.pending() == []
+    finally:
+        rx2.stop(timeout=WAIT_S)
+    assert any(f"study {uid} is left as it is" in m and "remove the folder" in m for m in logs2), logs2
+    assert {p: p.stat().st_mtime_ns for p in (out / uid).iterdir()} == before
 
 
 def test_bad_options_are_refused(tmp_path):

@@ -195,14 +195,27 @@ class StudyReceiver:
 
     def _scan_store(self) -> None:
         """Studies already in the store (an earlier session) whose output does not exist yet are
-        treated as received now: they are reconstructed after the quiet period like new ones."""
+        treated as received now: they are reconstructed after the quiet period like new ones. A study
+        whose output was made with other options than this session's (another access point, say:
+        ``batch.finished_row``) is left as it is, and the log says so."""
         now = time.monotonic()
         for d in sorted(self.store_dir.iterdir()):
-            if d.is_dir() and _UID.match(d.name) and not (self.out_dir / d.name / "report.json").is_file():
+            if d.is_dir() and _UID.match(d.name) and (self.out_dir / d.name / "report.json").is_file():
+                self._say_if_made_otherwise(d)
+            elif d.is_dir() and _UID.match(d.name):
                 n = sum(1 for p in d.rglob("*.dcm") if not p.name.startswith("."))
                 if n:
                     with self._lock:
                         self._studies[d.name] = _StudyState(instances=n, last_arrival=now)
+
+    def _say_if_made_otherwise(self, study_dir: Path) -> None:
+        try:
+            (spec,) = batch.group_dicom_tree(study_dir, access_lps_mm=self.access_lps_mm)
+        except (InputError, ValueError):
+            return
+        row = batch.finished_row(spec, self.out_dir, images=self.images)
+        if row is not None and row["status"] == batch.FAILED:
+            self._say(f"study {study_dir.name} is left as it is: {row['error']}")
 
     # ---- deciding and reconstructing --------------------------------------------------
     def pending(self) -> list[str]:
