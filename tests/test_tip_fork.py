@@ -66,3 +66,12 @@ def test_the_frame_verdict_names_the_fork():
     # a reconstruction that reversed the 2D order has its tip at the other end: the fork is not at its tip
     w3.reversed_input = True
     assert "mask forks" not in live.frame_verdict(w3, uv, None, tip_fork=fork, image_shape=(1024, 1024))[1]
+
+
+def test_a_wire_leaving_the_image_is_no_fork():
+    """The mask is replicated beyond the border before thinning (so the skeleton does not fork at the cut); that
+    replication is not the wire's, and a fork in it is none."""
+    for end in ((199, 150), (150, 199), (199, 199), (60, 199)):
+        w = ordered_wire(_mask([(40, 20), (90, 90), end], half_width_px=2.0), proximal_hint_uv=(40, 20))
+        assert w, end
+        assert w.tip_fork is None, (end, w.tip_fork)

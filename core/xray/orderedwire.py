@@ -956,7 +956,10 @@ def ordered_wire(mask, *, image=None, proximal_hint_uv=None, max_gap_px: float =
         uv = uv[::-1].copy()
     length = float(np.linalg.norm(np.diff(uv, axis=0), axis=1).sum())
     beyond = _beyond_tip(uv, paths, used, np.array([o_c, o_r], float)) if len(paths) > 1 else None
-    fork = _tip_fork(uv, np.column_stack([sc + o_c, sr + o_r]).astype(float), half_width)
+    skel = np.column_stack([sc + o_c, sr + o_r]).astype(float)
+    # the skeleton of the mask as the image holds it (not of its replication beyond the border, which forks there)
+    skel = skel[(skel[:, 0] >= 0) & (skel[:, 0] <= W - 1) & (skel[:, 1] >= 0) & (skel[:, 1] <= H - 1)]
+    fork = _tip_fork(uv, skel, half_width)
     return OrderedWire(points_uv_px=uv, success=True, message="ok", length_px=length,
                        n_gaps_bridged=int(n_bridges), presence=presence, beyond_tip=beyond, tip_fork=fork)
 
