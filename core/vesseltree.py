@@ -263,14 +263,6 @@ class VesselTree:
 
         return cKDTree(self.points_lps_mm)
 
-    @cached_property
-    def lost_lumen_kdtree(self):
-        """A KD-tree over ``lost_lumen_lps_mm`` (None when there is none)."""
-        from scipy.spatial import cKDTree
-
-        L = self.lost_lumen_lps_mm
-        return None if L is None or len(L) == 0 else cKDTree(L)
-
     # --- conversion ---------------------------------------------------------------------
     def subtree(self, keep) -> "VesselTree":
         """The tree restricted to ``keep`` (bool mask or indices) which must include a connected part with the root."""

@@ -20,6 +20,8 @@ thick vessels (radius 1.8-2.4 mm) the tree lost: 36-74 mm3 at a 1 mm margin; the
 """
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 from scipy import ndimage as ndi
 
@@ -93,8 +95,6 @@ def lost_lumen_lps_mm(mask_zyx: np.ndarray, volume: io.Volume, tree: VesselTree)
 
 def with_lost_lumen(volume: io.Volume, vessels):
     """``vessels`` (a ``cta.vessels3d.CTAVessels``) whose tree carries its lost lumen (:func:`lost_lumen_lps_mm`)."""
-    from dataclasses import replace
-
     pts, step = lost_lumen_lps_mm(vessels.mask_zyx, volume, vessels.tree)
     return replace(vessels, tree=vessels.tree.with_lost_lumen(pts, step))
 
