@@ -21,7 +21,16 @@ tree, as the biplane verdict counts it); ``std`` / ``lim`` the pose 1-sigma and 
 1-sigma (``app.biplane.MODEL_ERROR_INFLATION``; NaN: not computed) and ``misfit`` each plane's smooth misfit (px, A/B); ``frames`` / ``ok`` /
 ``okwrong`` the frame pairs with a 3D wire, those ``ok``, and those ``ok`` with the wire more than 2 mm or the tip
 more than 5 mm off (silently wrong); ``wire`` / ``tip`` the median 3D mean and tip errors (mm) over the pairs with a
-3D wire, against the part of the true wire in either plane's image; ``why`` the refusal.
+3D wire, against the part of the true wire in either plane's image; ``rival`` the rival of the second opinion
+(``app.biplane._closest_rival``): its distance from the result (mm, RMS over the tree), its LM energy above the
+result's (%) and its own mTRE (mm), ``-`` without one; ``why`` the refusal.
+
+``--ends`` (a diagnostic of the rival check): for each pose, every start's LM end (``app.biplane._multi_start_lm``)
+with its energy above the lowest (%), its distance from it (mm), its mTRE and LM status; how far LM re-run from it
+with 100x tighter tolerances and a longer patience moves it (``polish``: 0 = a converged minimum); and, for an end within
+10 % of the energy and at least 1 mm away, the energy along the straight SE(3) path from the lowest end to it (the
+visible segments re-decided at each of 21 poses): its highest point above the rival's end (``barrier``: 0 = the rival
+lies on the lowest end's slope, no second basin) and above the lowest (``rise``). Then the LM minimum from the true pose.
 """
 from __future__ import annotations
 
@@ -87,6 +96,8 @@ def run_pose(P, B, tree, *, frames: bool = True):
                lim=r.max_pose_std_mm, mstd=r.model_std_mm,
                misfit="/".join(f"{v.misfit_px:.2f}" for v in breg.views), why="-" if r.success else r.message.split(" | ")[0].replace("untrustworthy: ", ""))
     rt = register_biplane(tree, uvs, carms, centerline_radius_px=rads, init_pose=pose, global_search=False)
+    row["rival"] = "-" if breg.rival_pose is None else (
+        f"{breg.rival_mm:.2f}mm/+{100 * (breg.rival_energy_ratio - 1):.1f}%/{metrics.mtre_mm(breg.rival_pose, pose, Pv):.2f}")
     row["lm_true"] = metrics.mtre_mm(rt.pose, pose, Pv)
     row["true_ok"] = rt.success
     row.update(frames=0, ok=0, okwrong=0, wire=float("nan"), tip=float("nan"))
@@ -111,6 +122,70 @@ def run_pose(P, B, tree, *, frames: bool = True):
     return row
 
 
+def lm_ends(P, B, tree, log=print):
+    """``--ends``: every start's LM end of the joint registration, how far a tighter LM moves it, the energy along the
+    straight path to each near rival (see the module docstring)."""
+    from diagnose_real_anatomy import max_radius_px
+    from guidewire3d import metrics
+    from guidewire3d.app import biplane as bp
+    from guidewire3d.geometry import Pose, nominal_pose
+    from guidewire3d.registration import model, problem
+    from guidewire3d.xray.roadmap import roadmap_centerline
+
+    carms, truth = (P["carm"], B["carm"]), P["pose"]
+    in_view = np.zeros(len(tree.points_lps_mm), bool)
+    for c in carms:
+        in_view |= c.in_image(c.project(tree.points_lps_mm, truth))
+    Pv = tree.points_lps_mm[in_view]
+    cls = [roadmap_centerline(img, max_radius_px=max_radius_px(tree, c)) for img, c in zip((P["roadmap"], B["roadmap"]), carms)]
+    m3 = model._model_from_input(tree, carms[0])
+    m2s = [model._model_2d(np.asarray(c.points_uv_px, float), np.asarray(c.radius_px, float), cm) for c, cm in zip(cls, carms)]
+    prob = bp._JointProblem([problem._Problem(m3, m2, c, lam=problem.LAMBDA, delta=problem.DELTA) for m2, c in zip(m2s, carms)])
+    cands = bp._joint_search(m3, m2s, carms, nominal_pose(m3.centroid), n_best=bp.JOINT_STARTS)   # as register_biplane
+    gate = max(problem.GATE_WIDE_PX, 3.0 * max(model._search_cell_px(c) for c in carms))
+    ends, _ = bp._multi_start_lm(prob, cands, gate_wide_px=gate, delta_wide=max(problem.DELTA_WIDE, problem.DELTA),
+                                 max_iterations=100)
+    pts = m3.coarse
+
+    def with_vis(vis):
+        for p, v in zip(prob.probs, vis):
+            p.visible3 = v.copy()
+
+    def energy(pose):
+        prob.set_visibility(pose, problem.SUPPORT_GATE_PX)
+        return prob.evaluate(pose, problem.GATE_NARROW_PX, need_jac=False).energy
+
+    def polish(o, vis):
+        with_vis(vis)
+        patience, problem.PATIENCE = problem.PATIENCE, 50
+        try:
+            t = problem._levenberg_marquardt(prob, o.pose, gate_px=problem.GATE_NARROW_PX, max_iterations=1000,
+                                             eps_abs=problem.EPS_ABS_MM / 100, eps_rel=problem.EPS_REL / 100)
+            return problem._narrow_stage(prob, t.pose, 1000)[0]
+        finally:
+            problem.PATIENCE = patience
+
+    best, bvis = ends[0]
+    e0 = best.ev.energy
+    for j, (o, vis) in enumerate(ends):
+        d = bp._rms_mm(o.pose, best.pose, pts)
+        pol = polish(o, vis)
+        line = (f"  end {j}: energy +{100 * (o.ev.energy / e0 - 1):.2f}%, {d:.2f} mm away, mTRE "
+                f"{metrics.mtre_mm(o.pose, truth, Pv):.2f} mm, LM {o.status}; polish moves it "
+                f"{bp._rms_mm(pol.pose, o.pose, pts):.2f} mm (energy {pol.ev.energy - o.ev.energy:+.1f})")
+        if j > 0 and o.ev.energy <= 1.10 * e0 and d >= bp.AMBIGUITY_MM:
+            xi = (o.pose @ best.pose.inverse()).log()
+            path = np.array([energy(Pose.exp(s * xi) @ best.pose) for s in np.linspace(0.0, 1.0, 21)])
+            line += (f"; straight path: barrier {path.max() - path[-1]:.1f} above the rival, rise {path.max() - path[0]:.1f}"
+                     f" above the lowest (the gap {path[-1] - path[0]:.1f})")
+        log(line)
+    with_vis(bvis)
+    prob.set_visibility(truth, problem.SUPPORT_GATE_PX)
+    t, _ = problem._narrow_stage(prob, truth, 100)
+    log(f"  LM from the true pose: energy {100 * (t.ev.energy / e0 - 1):+.2f}% of the lowest end's, "
+        f"{bp._rms_mm(t.pose, best.pose, pts):.2f} mm from it, mTRE {metrics.mtre_mm(t.pose, truth, Pv):.2f} mm")
+
+
 def main(argv=None):
     from diagnose_real_anatomy import prepared_cases
     from guidewire3d.app.bench import machine_line
@@ -123,6 +198,7 @@ def main(argv=None):
     ap.add_argument("--no-frames", action="store_true", help="the registration columns only (no frame pairs)")
     ap.add_argument("--only", type=lambda s: [int(k) for k in s.split(",")], default=None, metavar="K[,K...]",
                     help="only these poses (their index k among the --poses drawn)")
+    ap.add_argument("--ends", action="store_true", help="each pose's LM ends, their polish and the path to each rival")
     a = ap.parse_args(argv)
     cache = Path(a.cache).expanduser()
     log = partial(print, file=sys.stderr, flush=True)
@@ -133,7 +209,7 @@ def main(argv=None):
     print(f"machine: {machine_line()}; load {os.getloadavg()[0]:.1f}; {len(poses)} poses (seed {a.seed}), "
           f"tree root: {'the access (true wire entry)' if a.access else 'automatic'}")
     cols = ["pose", "target", "reg", "mtre", "lm_true", "expl", "std", "lim", "mstd", "misfit", "frames", "ok", "okwrong", "wire", "tip",
-            "t_reg", "why"]
+            "t_reg", "rival", "why"]
     print(" | ".join(cols))
     rows = []
     for P, B in zip(poses, planes_b):
@@ -143,6 +219,8 @@ def main(argv=None):
         row = run_pose(P, B, tree, frames=not a.no_frames)
         rows.append(row)
         print(" | ".join(f"{row[c]:.2f}" if isinstance(row[c], float) else str(row[c]) for c in cols), flush=True)
+        if a.ends:
+            lm_ends(P, B, tree, log=partial(print, flush=True))
     ok = [r for r in rows if r["reg"] == "ok"]
     right = [r for r in ok if r["mtre"] < SUCCESS_MM]
     errs = [e for r in right for e in r.get("wire_all", [])]
