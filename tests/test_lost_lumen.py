@@ -4,7 +4,7 @@ one, a wire in the lost vessel is placed in the kept one at another depth and mu
 import numpy as np
 import pytest
 from guidewire3d import io, live
-from guidewire3d.cta.lostlumen import LOST_LUMEN_MIN_MM3, lost_lumen_lps_mm, lost_lumen_mm3, with_lost_lumen
+from guidewire3d.cta.lostlumen import LOST_LUMEN_MARGIN_MM, LOST_LUMEN_MIN_MM3, lost_lumen_lps_mm, lost_lumen_mm3, with_lost_lumen
 from guidewire3d.errors import InputError
 from guidewire3d.geometry import CArm, Pose, nominal_pose
 from guidewire3d.reconstruction import reconstruct_wire
@@ -155,3 +155,36 @@ def test_the_vessel_stage_gives_the_tree_its_lost_lumen():
     v = with_lost_lumen(_volume(mask), CTAVessels(mask_zyx=mask, surface=None, tree=tree))
     assert len(v.tree.lost_lumen_lps_mm) > 100 and v.tree.lost_lumen_step_mm == SP
     np.testing.assert_array_equal(v.tree.points_lps_mm, tree.points_lps_mm)
+
+
+def _elliptic_tube(shape_zyx, centre_yz, semi_y_mm, semi_z_mm):
+    """Voxels (z, y, x) of a tube along x, its cross-section an ellipse of semi-axes ``semi_y_mm`` (y), ``semi_z_mm``."""
+    z, y, _ = np.indices(shape_zyx) * SP
+    return ((y - centre_yz[0]) / semi_y_mm) ** 2 + ((z - centre_yz[1]) / semi_z_mm) ** 2 <= 1.0
+
+
+def test_a_wide_sections_crescents_are_its_own_lumen_and_a_vessel_fused_to_it_is_lost():
+    """An aorta-like tube whose cross-section is an ellipse (semi-axes 6 and 3.8 mm) holds the tree's ball (its
+    inscribed radius, 3.8 mm) and two crescents beyond it: the same vessel, every point of them inside a ball inscribed
+    in the lumen whose centre lies on the ellipse's medial axis (|y| <= 6 - 3.8^2 / 6 = 3.6 mm, inside the tree's ball),
+    so not lost. A 1.5 mm vessel fused to it at the end of its long axis is (its own axis 3.7 mm beyond the ball)."""
+    shape = (40, 56, 120)
+    a_mm, b_mm, centre = 6.0, 3.8, (12.0, 10.0)
+    x = np.arange(2.0, 58.5, 0.5)
+    tree = VesselTree.from_polylines([np.column_stack([x, np.full_like(x, centre[0]), np.full_like(x, centre[1])])],
+                                     [np.full(len(x), b_mm)], [None])
+    wide = _elliptic_tube(shape, centre, a_mm, b_mm)
+    # ground truth that the crescents matter: beyond the ball by more than the margin, over far more than a piece's minimum
+    z, y, _ = np.indices(shape) * SP
+    crescent = wide & (np.hypot(y - centre[0], z - centre[1]) > b_mm + LOST_LUMEN_MARGIN_MM)
+    assert crescent.sum() * SP ** 3 > 10 * LOST_LUMEN_MIN_MM3
+    assert len(lost_lumen_lps_mm(wide, _volume(wide), tree)[0]) == 0
+    fused = _tube(shape, (15, centre[0] + a_mm + 1.5, centre[1]), (45, centre[0] + a_mm + 1.5, centre[1]), 1.5)
+    mask = wide | fused
+    pts, step = lost_lumen_lps_mm(mask, _volume(mask), tree)
+    to_b = np.linalg.norm(pts[:, [1, 2]] - [centre[0] + a_mm + 1.5, centre[1]], axis=1)
+    assert to_b.max() <= 1.5 + 1e-6                                   # only the fused vessel's lumen ...
+    assert pts[:, 0].min() < 16.0 and pts[:, 0].max() > 44.0          # ... over its length
+    # its axis and beyond: the half of its lumen away from the wide vessel
+    assert np.mean(pts[:, 1] >= centre[0] + a_mm + 1.5 - SP) > 0.5
+    assert lost_lumen_mm3(tree.with_lost_lumen(pts, step), (SP, SP, SP)) > LOST_LUMEN_MIN_MM3
