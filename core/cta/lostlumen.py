@@ -40,6 +40,7 @@ from dataclasses import replace
 
 import numpy as np
 from scipy import ndimage as ndi
+from scipy.spatial import cKDTree
 
 from guidewire3d import io
 from guidewire3d.errors import InputError
@@ -138,8 +139,6 @@ def _covered_by_inscribed_balls(mask_zyx, spacing_zyx, centres_zyx, query_zyx) -
     edt = ndi.distance_transform_edt(crop, sampling=spacing_zyx)[1:-1, 1:-1, 1:-1]
     r_mm = edt[tuple((c - lo).T)]
     level = np.floor(r_mm / _RADIUS_BIN_MM).astype(np.int64)
-    from scipy.spatial import cKDTree
-
     Q = q * spacing_zyx
     for lev in np.unique(level)[::-1]:               # the widest balls first: they cover the most
         todo = np.flatnonzero(~cov)
