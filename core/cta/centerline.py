@@ -21,7 +21,6 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import (
     breadth_first_order,
     connected_components,
-    dijkstra,
     minimum_spanning_tree,
 )
 
@@ -634,22 +633,33 @@ def _subtree_points(tree: VesselTree) -> list:
     return sub
 
 
-def strand_reach_mm(tree: VesselTree, subtree_ids: np.ndarray, keep: np.ndarray) -> tuple[float, float]:
+def strand_reach_mm(tree: VesselTree, subtree_ids: np.ndarray, keep: np.ndarray, *,
+                    index=None) -> tuple[float, float]:
     """``(reach_mm, calibre_mm)`` of a subtree: how far its balls (points, radii) reach beyond the union
     of the balls of the kept points outside it (``max(gap + r)``, ``gap`` the distance of a point outside
     that union, negative inside), and the calibre of the lumen it starts in (the largest radius along
-    its first branch, its start node included: the parent's radius there)."""
+    its first branch, its start node included: the parent's radius there).
+
+    ``index``: a ``cKDTree`` of all the tree's points, to find the balls near the subtree without a pass over
+    every point (the same result; on a 60 m tree of 6,600 branches the passes took 45 of the centerline's 85 s).
+    """
     from scipy.spatial import cKDTree
 
     P, R = tree.points_lps_mm, tree.radius_mm
     S = np.asarray(subtree_ids)
     b = tree.branches[int(tree.point_branch[S[0]])]
     calibre = float(R[b.point_ids].max())
-    outside = keep.copy()
-    outside[S] = False
     # only the balls that could contain a point of the subtree
     lo, hi = P[S].min(axis=0) - R.max(), P[S].max(axis=0) + R.max()
-    cand = np.flatnonzero(outside & np.all((P >= lo) & (P <= hi), axis=1))
+    if index is None:
+        outside = keep.copy()
+        outside[S] = False
+        cand = np.flatnonzero(outside & np.all((P >= lo) & (P <= hi), axis=1))
+    else:  # the points in the box's circumscribed sphere, then the box itself, kept and outside the subtree
+        near = np.asarray(index.query_ball_point(0.5 * (lo + hi), 0.5 * float(np.linalg.norm(hi - lo)) + 1e-9),
+                          dtype=np.int64)
+        near = near[keep[near] & np.all((P[near] >= lo) & (P[near] <= hi), axis=1)]
+        cand = np.sort(near[~np.isin(near, S)])
     if len(cand) == 0:
         return np.inf, calibre
     k = min(32, len(cand))
@@ -682,8 +692,11 @@ def without_lumen_strands(tree: VesselTree, fraction: float = STRAND_FRACTION,
         return tree
     from collections import deque
 
+    from scipy.spatial import cKDTree
+
     sub = _subtree_points(tree)
     keep = np.ones(tree.n_points, bool)
+    index = cKDTree(tree.points_lps_mm)
     queue = deque([tree.branches[0].index])
     while queue:
         k = queue.popleft()
@@ -693,7 +706,7 @@ def without_lumen_strands(tree: VesselTree, fraction: float = STRAND_FRACTION,
             if len(sub[c]) > max_points:
                 judged.append((np.inf, c, False))
                 continue
-            reach, calibre = strand_reach_mm(tree, sub[c], keep)
+            reach, calibre = strand_reach_mm(tree, sub[c], keep, index=index)
             judged.append((reach, c, reach < fraction * calibre))
         for _, c, strand in judged:
             if strand:
@@ -703,6 +716,26 @@ def without_lumen_strands(tree: VesselTree, fraction: float = STRAND_FRACTION,
     return tree if keep.all() else tree.subtree(keep)
 
 
+def _within_mm(adjacency, source: int, limit_mm: float) -> np.ndarray:
+    """The points of a tree (its ``adjacency``, edge lengths in mm) within ``limit_mm`` of ``source`` along it,
+    ``source`` first: what ``dijkstra(..., limit=limit_mm)`` leaves finite, without its dense row per source (a
+    tree of 6,600 branches has 2,300 ends: 11 s of allocation). The path to a point is unique in a tree, so its
+    length is summed in the same order as Dijkstra's."""
+    ip, ix, w = adjacency.indptr, adjacency.indices, adjacency.data
+    out, stack = [source], [(source, -1, 0.0)]
+    while stack:
+        u, came, d = stack.pop()
+        for j in range(ip[u], ip[u + 1]):
+            v = int(ix[j])
+            if v == came:
+                continue
+            dv = d + float(w[j])
+            if dv <= limit_mm:
+                out.append(v)
+                stack.append((v, u, dv))
+    return np.asarray(out, dtype=np.int64)
+
+
 def _rooted_at_widest_end(tree: VesselTree, allowed=None) -> VesselTree:
     """``tree`` re-rooted at the end (leaf or root) whose median radius over the first
     ``ROOT_RADIUS_SPAN_MM`` along the tree is largest (ties: the current root); only among the ends
@@ -710,9 +743,9 @@ def _rooted_at_widest_end(tree: VesselTree, allowed=None) -> VesselTree:
     ends = np.r_[tree.root, tree.leaves[tree.leaves != tree.root]]
     if allowed is not None and np.asarray(allowed, bool)[ends].any():
         ends = ends[np.asarray(allowed, bool)[ends]]
-    d = dijkstra(tree.adjacency, directed=False, indices=ends, limit=ROOT_RADIUS_SPAN_MM)
+    A = tree.adjacency
     r = tree.radius_mm
-    med = np.array([np.median(r[np.isfinite(row)]) for row in d])
+    med = np.array([np.median(r[_within_mm(A, int(e), ROOT_RADIUS_SPAN_MM)]) for e in ends])
     best = int(ends[int(np.argmax(med))])  # argmax: the first (the current root) among equals
     return tree.rerooted(best)
 
