@@ -398,6 +398,14 @@ def est_to_ref_breakdown(vol, labels_zyx, tree, ref_mm, ref_lab, mask_zyx=None) 
     return parts, lines
 
 
+def in_arbitrary_units(vol):
+    """The same CT as an MRA's intensities would be: 0.5 HU + 1000 (the ``au`` row)."""
+    from guidewire3d import io
+
+    return io.Volume(vol.array_zyx * np.float32(0.5) + np.float32(1000.0), vol.spacing_mm, vol.origin_lps_mm,
+                     vol.direction, source=f"{vol.source} (0.5 HU + 1000)")
+
+
 def child(args) -> None:
     """Run one variant in this process; write the result (mask, tree, model, seconds) to --out."""
     import resource
@@ -407,8 +415,7 @@ def child(args) -> None:
 
     vol = io.read_volume(args.ct)
     if args.variant == "au":
-        vol = io.Volume(vol.array_zyx * np.float32(0.5) + np.float32(1000.0), vol.spacing_mm, vol.origin_lps_mm,
-                        vol.direction, source=f"{args.ct} (0.5 HU + 1000)")
+        vol = in_arbitrary_units(vol)
     t0 = time.perf_counter()
     res = vesselmodel.extract_vessels_auto(vol)
     t = time.perf_counter() - t0
@@ -587,8 +594,7 @@ def main(argv=None):
         print("au vs hu, relative difference (isotropic reference): "
               + ", ".join(f"{c} {100 * v:.1f} %" for c, v in rel.items()))
     for variant in a.variants.split(",") if a.seeded else ():
-        v = vol if variant == "hu" else io.Volume(vol.array_zyx * np.float32(0.5) + np.float32(1000.0), vol.spacing_mm,
-                                                  vol.origin_lps_mm, vol.direction, source=f"{vol.source} (0.5 HU + 1000)")
+        v = vol if variant == "hu" else in_arbitrary_units(vol)
         print(f"{variant}: ", end="")
         print_seeded(seeded_rows(v, labels, iso_mm, iso_lab, a.seeded, a.seeded_rng), rows.get(variant, {}).get("length_m"))
     if a.sim_seeds:
