@@ -640,8 +640,9 @@ def strand_reach_mm(tree: VesselTree, subtree_ids: np.ndarray, keep: np.ndarray,
     that union, negative inside), and the calibre of the lumen it starts in (the largest radius along
     its first branch, its start node included: the parent's radius there).
 
-    ``index``: a ``cKDTree`` of all the tree's points, to find the balls near the subtree without a pass over
-    every point (the same result; on a 60 m tree of 6,600 branches the passes took 45 of the centerline's 85 s).
+    ``index``: a ``cKDTree`` of all the tree's points (built here when not given; :func:`without_lumen_strands`
+    builds it once for all its subtrees), to find the balls near the subtree without a pass over every point (on a
+    60 m tree of 6,600 branches those passes took 45 of the centerline's 85 s).
     """
     from scipy.spatial import cKDTree
 
@@ -652,14 +653,12 @@ def strand_reach_mm(tree: VesselTree, subtree_ids: np.ndarray, keep: np.ndarray,
     # only the balls that could contain a point of the subtree
     lo, hi = P[S].min(axis=0) - R.max(), P[S].max(axis=0) + R.max()
     if index is None:
-        outside = keep.copy()
-        outside[S] = False
-        cand = np.flatnonzero(outside & np.all((P >= lo) & (P <= hi), axis=1))
-    else:  # the points in the box's circumscribed sphere, then the box itself, kept and outside the subtree
-        near = np.asarray(index.query_ball_point(0.5 * (lo + hi), 0.5 * float(np.linalg.norm(hi - lo)) + 1e-9),
-                          dtype=np.int64)
-        near = near[keep[near] & np.all((P[near] >= lo) & (P[near] <= hi), axis=1)]
-        cand = np.sort(near[~np.isin(near, S)])
+        index = cKDTree(P)
+    # the points in the box's circumscribed sphere, then in the box itself, kept and outside the subtree
+    near = np.asarray(index.query_ball_point(0.5 * (lo + hi), 0.5 * float(np.linalg.norm(hi - lo)) + 1e-9),
+                      dtype=np.int64)
+    near = near[keep[near] & np.all((P[near] >= lo) & (P[near] <= hi), axis=1)]
+    cand = np.sort(near[~np.isin(near, S)])
     if len(cand) == 0:
         return np.inf, calibre
     k = min(32, len(cand))

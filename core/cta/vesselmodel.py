@@ -1362,9 +1362,7 @@ def _automatic_tree_holding(volume: io.Volume, seeds_lps_mm, *, progress: bool, 
         if not (near_mask(c) or near_mask(_lumen_centre_near(a, c, sp, SEED_CLIMB_MM))):
             return None
     tree = auto.vessels.tree
-    has_child = np.zeros(tree.n_points, bool)
-    has_child[tree.parent[tree.parent >= 0]] = True
-    ends = np.flatnonzero(~has_child | (tree.parent < 0))
+    ends = np.r_[tree.root, tree.leaves[tree.leaves != tree.root]]
     end = int(ends[np.argmin(np.linalg.norm(tree.points_lps_mm[ends] - seeds[0], axis=1))])
     return replace(auto, vessels=replace(auto.vessels, tree=tree.rerooted(end)), seeded="automatic tree")
 
