@@ -417,6 +417,15 @@ class NotTubularError(SegmentationError):
     """The component chosen (at the seeds) has no voxel tubular enough for the tubular support step."""
 
 
+class AmbiguousComponentsError(SegmentationError):
+    """Two separate bright tubular structures of comparable vesselness mass (``VesselOptions.ambiguous_component_ratio``):
+    ``inside_lps_mm`` is a ``(2, 3)`` array, the most tubular voxel of each (the largest first), a seed that picks it."""
+
+    def __init__(self, message: str, inside_lps_mm: np.ndarray):
+        super().__init__(message)
+        self.inside_lps_mm = np.asarray(inside_lps_mm, dtype=float)
+
+
 def frangi_at(img_zyx: np.ndarray, idx_zyx: np.ndarray, spacing_zyx, scales_mm, *, alpha: float = 0.5,
               beta: float = 0.5, gamma: float = 0.15, return_scale: bool = False):
     """Multi-scale Frangi vesselness of bright tubes at the voxels ``idx_zyx`` (max over scales).
@@ -643,15 +652,18 @@ def segment_vessels(volume: io.Volume, *, seeds_lps_mm=None, progress: bool = Fa
         first, second = np.argsort(mass)[::-1][:2] if nlab > 1 else (int(np.argmax(mass)), 0)
         if nlab > 1 and mass[second] >= opt.ambiguous_component_ratio * mass[first]:
             vofs = off + np.array([s.start for s in vcrop])
-            where = []
+            where, inside = [], []
             for k in (first, second):
                 c = cidx[lab_c == k].mean(axis=0) + vofs
                 where.append(",".join(f"{v:.0f}" for v in (M @ c + o)))
-            raise SegmentationError(
+                on = np.flatnonzero(lab_c == k)
+                inside.append(M @ (cidx[on[int(np.argmax(ves_c[on]))]] + vofs) + o)
+            raise AmbiguousComponentsError(
                 f"{what}: the vessel tree is ambiguous: two separate bright tubular structures of comparable size (near "
                 f"LPS {where[0]} and {where[1]} mm; the second holds {mass[second] / mass[first]:.2f}x the first's "
                 f"vesselness, at most {opt.ambiguous_component_ratio:g}x expected of the vessel tree's rivals: a heart "
-                f"chamber or another vessel system may be taken for it); give --seed-lps X,Y,Z inside the vessel")
+                f"chamber or another vessel system may be taken for it); give --seed-lps X,Y,Z inside the vessel",
+                np.array(inside))
         keep = np.zeros(nlab + 1, bool)
         keep[int(first)] = True
     sel = keep[lab]

