@@ -49,7 +49,7 @@ def vessels_record(auto, *, inputs: dict, access_lps_mm=None) -> dict:
         "intensity_model": auto.model.to_dict(),
         "plausibility": auto.plausibility.to_dict(),
         "segmentation": {"pass": auto.segmentation, "first_pass_problems": list(auto.first_pass_problems),
-                         "pruned": auto.pruned, "seeded": auto.seeded},
+                         "pruned": auto.pruned, "seeded": auto.seeded, "bias_field": auto.bias_field},
         "tree": {
             "n_points": int(tree.n_points),
             "n_branches": len(tree.branches),
@@ -129,6 +129,9 @@ def cli_main(args) -> int:
         cut = f", {auto.pruned}" if auto.pruned else ""
         say(f"note: the first vessel tree was implausible ({'; '.join(auto.first_pass_problems)}); {how} is "
             f"written{cut} (check it in the viewer)")
+    if auto.bias_field:
+        say(f"note: the volume as it was gave no plausible vessel tree; {auto.bias_field} and the tree is that of the "
+            f"corrected volume (the intensity levels in vessels.json are its)")
     if auto.seeded == "automatic tree":
         say("the automatic vessel tree holds every seed: it is written, rooted at its end nearest the first seed")
     elif auto.seeded == "seeds":

