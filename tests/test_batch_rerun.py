@@ -234,7 +234,7 @@ def _other_frames(files, tmp_path):
 
 @pytest.mark.parametrize("change", [None, _change_roadmap, _change_slice, _add_slice, _remove_slices, _other_frames],
                          ids=["same-bytes-elsewhere", "roadmap", "ct-slice", "ct-added", "ct-gone", "other-frames"])
-def test_a_rerun_never_reuses_a_study_whose_input_files_changed(made, tmp_path, change):
+def test_a_rerun_never_reuses_a_study_whose_input_files_changed(made, tmp_path, change, capsys):
     """The study's files copied elsewhere are the same inputs (skipped); one file of them changed,
     added, gone or another file named: ``failed``, the error naming the file, the folder untouched."""
     files, uid, far, out0, _ = made
@@ -251,6 +251,8 @@ def test_a_rerun_never_reuses_a_study_whose_input_files_changed(made, tmp_path, 
         return
     said, asked = (r.format(**names) for r in reason)
     assert (rc, row["status"]) == (1, batch.FAILED)
+    assert "0 studies already done (skipped), 1 made otherwise than asked (failed: see the error column of " \
+        f"{out / batch.SUMMARY_NAME}), 0 to run" in capsys.readouterr().err
     assert row["error"] == f"{out / STUDY}: it was made with {said}, this run asks for {asked}: remove the folder " \
                            "to reconstruct it again"
     assert "\n" not in row["error"] and (row["roadmap_frame"], row["series_uid"]) == ("1", uid)  # what it holds

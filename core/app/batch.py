@@ -803,17 +803,20 @@ def run_batch(studies, out_dir, *, workers: int | None = None, scheduler: str | 
     previous = read_summary(summary_path)
     rows: dict[str, dict] = {}
     todo = []
+    refused = 0  # finished, but made otherwise than asked
     for s in studies:
         done = finished_row(s, out_dir, previous.get(s.study), images=images)
         if done is not None:
             rows[s.study] = done
+            refused += done["status"] == FAILED
         elif s.error:
             rows[s.study] = run_study(s, out_dir)
         else:
             todo.append(s)
     if log is not None and len(rows):
         log(f"{sum(r['status'] == SKIPPED for r in rows.values())} studies already done (skipped), "
-            f"{len(todo)} to run")
+            + (f"{refused} made otherwise than asked (failed: see the error column of {summary_path}), "
+               if refused else "") + f"{len(todo)} to run")
 
     def ordered():
         return [rows[s.study] for s in studies if s.study in rows]
