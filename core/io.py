@@ -23,6 +23,7 @@ from collections.abc import Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
+from stat import S_ISREG
 
 import numpy as np
 from guidewire3d.errors import DicomError, GeometryError, InputError, OutputError
@@ -32,6 +33,8 @@ __all__ = [
     "Volume",
     "XARun",
     "read_volume",
+    "volume_files",
+    "file_fingerprints",
     "write_volume",
     "write_ct_series",
     "read_xa",
@@ -560,6 +563,106 @@ def _has_dicm(path: Path) -> bool:
         return False
 
 
+def _choose_series(path: Path, series: dict[str, list[str]], *, series_uid: str | None,
+                   modalities: tuple[str, ...]) -> str:
+    """The series of ``series`` (the DICOM series of ``path``'s folder) that :func:`read_volume` reads:
+    ``series_uid`` if given, else the series of ``modalities`` with the most slices."""
+    folder = path if path.is_dir() else path.parent
+    if not series:
+        if path.is_dir() and not any(folder.iterdir()):
+            raise InputError(f"{folder}: empty directory, expected a DICOM CT series")
+        raise DicomError(f"{folder}: no readable DICOM series found")
+    if series_uid is not None:
+        if series_uid not in series:
+            raise DicomError(f"{folder}: SeriesInstanceUID {series_uid} not found (have {', '.join(series)})")
+        return series_uid
+    import pydicom
+
+    cands = []
+    for uid, files in series.items():
+        try:
+            ds = pydicom.dcmread(files[0], stop_before_pixels=True)
+        except Exception:  # noqa: BLE001
+            continue
+        modality = str(getattr(ds, "Modality", "")).strip()
+        cands.append((modality in modalities, len(files), uid, modality))
+    if not cands:
+        raise DicomError(f"{folder}: no readable DICOM series found")
+    cands.sort(reverse=True)
+    is_ct, _, uid, modality = cands[0]
+    if not is_ct:
+        want = " or ".join(modalities)
+        raise DicomError(f"{path}: no {want} series found (Modality (0008,0060) is {modality or 'missing'}), "
+                         f"expected a {'CTA' if modalities == ('CT',) else 'CTA or MRA volume'}")
+    return uid
+
+
+@_quiet
+def volume_files(path, *, series_uid: str | None = None,
+                 modalities: tuple[str, ...] = ("CT",)) -> tuple[str, list[Path]]:
+    """The files :func:`read_volume` reads for the CTA ``path``, without reading their pixels:
+    ``(series_uid, files)``, the uid ``""`` for a NIfTI/NRRD/MHA file (read alone). A DICOM folder
+    (or one of its files) gives the series ``read_volume`` chooses, by the same rule.
+
+    Raises
+    ------
+    InputError, DicomError
+        As :func:`read_volume` for a missing path or a folder without the series.
+    """
+    path = Path(path)
+    if not path.exists():
+        raise InputError(f"{path}: no such file or directory")
+    if not path.is_dir():
+        _require_file(path, "a CTA (a DICOM series folder, or a NIfTI, NRRD or MHA file)")
+        if not _looks_like_dicom(path):
+            return "", [path]
+    folder = path if path.is_dir() else path.parent
+    series = _dicom_series_in(folder)
+    uid = _choose_series(path, series, series_uid=series_uid, modalities=modalities)
+    return uid, [Path(f) for f in series[uid]]
+
+
+def file_fingerprints(files, *, root=None, threads: int = 4) -> list[dict]:
+    """``{"name", "size", "sha256"}`` of each of ``files``, sorted by name: ``name`` relative to the
+    folder ``root`` (default: each file's own name), ``size`` in bytes, ``sha256`` of the bytes.
+
+    What ``report.json`` records of a run's input files, so that a later run can tell whether they
+    changed (the content, wherever they now lie). Hashed in up to ``threads`` threads (hashlib
+    releases the GIL); ``scripts/bench_fingerprint.py`` measures it.
+
+    Raises
+    ------
+    InputError
+        A file cannot be read; the message names it.
+    """
+    import hashlib
+    from concurrent.futures import ThreadPoolExecutor
+
+    paths = [Path(f) for f in files]
+
+    def one(p: Path) -> dict:
+        try:
+            # O_NONBLOCK: a FIFO or a device opens without waiting for a writer, and is refused below
+            fd = os.open(p, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0))
+            if not S_ISREG(os.fstat(fd).st_mode):
+                os.close(fd)
+                raise InputError(f"{p}: not a regular file, cannot fingerprint it")
+            with os.fdopen(fd, "rb") as f:
+                digest = hashlib.file_digest(f, "sha256")
+                size = f.tell()  # the bytes hashed
+        except OSError as e:
+            raise InputError(f"{p}: cannot read it to fingerprint it ({e.strerror or e})") from None
+        name = os.path.relpath(p, root) if root is not None else p.name
+        return {"name": Path(name).as_posix(), "size": int(size), "sha256": digest.hexdigest()}
+
+    if len(paths) <= 1 or threads <= 1:
+        out = [one(p) for p in paths]
+    else:
+        with ThreadPoolExecutor(max_workers=min(int(threads), len(paths))) as pool:
+            out = list(pool.map(one, paths))
+    return sorted(out, key=lambda d: d["name"])
+
+
 @_quiet
 def read_volume(path, *, series_uid: str | None = None, max_voxels: int = MAX_VOXELS_DEFAULT, log=None,
                 modalities: tuple[str, ...] = ("CT",)) -> Volume:
@@ -602,35 +705,9 @@ def read_volume(path, *, series_uid: str | None = None, max_voxels: int = MAX_VO
     folder = path if path.is_dir() else path.parent
     series = _dicom_series_in(folder)
     _check_unlisted_files(folder, series)
-    if not series:
-        if path.is_dir() and not any(folder.iterdir()):
-            raise InputError(f"{folder}: empty directory, expected a DICOM CT series")
-        raise DicomError(f"{folder}: no readable DICOM series found")
-    if series_uid is not None:
-        if series_uid not in series:
-            raise DicomError(f"{folder}: SeriesInstanceUID {series_uid} not found (have {', '.join(series)})")
-        uid = series_uid
-    else:
-        import pydicom
-
-        cands = []
-        for uid, files in series.items():
-            try:
-                ds = pydicom.dcmread(files[0], stop_before_pixels=True)
-            except Exception:  # noqa: BLE001
-                continue
-            modality = str(getattr(ds, "Modality", "")).strip()
-            cands.append((modality in modalities, len(files), uid, modality))
-        if not cands:
-            raise DicomError(f"{folder}: no readable DICOM series found")
-        cands.sort(reverse=True)
-        is_ct, _, uid, modality = cands[0]
-        if not is_ct:
-            want = " or ".join(modalities)
-            raise DicomError(f"{path}: no {want} series found (Modality (0008,0060) is {modality or 'missing'}), "
-                             f"expected a {'CTA' if modalities == ('CT',) else 'CTA or MRA volume'}")
-        if len(series) > 1 and log is not None:
-            log(f"{folder}: {len(series)} series found, using the largest CT series {uid} ({len(series[uid])} slices)")
+    uid = _choose_series(path, series, series_uid=series_uid, modalities=modalities)
+    if series_uid is None and len(series) > 1 and log is not None:
+        log(f"{folder}: {len(series)} series found, using the largest CT series {uid} ({len(series[uid])} slices)")
     files = series[uid]
     _check_slice_geometry(files, folder)
     reader = sitk.ImageSeriesReader()

@@ -90,6 +90,44 @@ def test_study_sent_over_dicom_is_reconstructed(tiny_studies, tmp_path):
         rx2.stop(timeout=WAIT_S)
     assert any(f"study {uid} is left as it is" in m and "remove the folder" in m for m in logs2), logs2
     assert {p: p.stat().st_mtime_ns for p in (out / uid).iterdir()} == before
+    # ... and records it as batch does: failed, why, and the options the folder was made with
+    row = batch.read_summary(out / batch.SUMMARY_NAME)[uid]
+    assert (row["status"], row["access_lps"], row["frames_reconstructed"]) == (batch.FAILED, "", "2")
+    assert row["error"] == (f"{out / uid}: it was made with no access point, this run asks for --access-lps="
+                            f"{batch._xyz(access)}: remove the folder to reconstruct it again")
+    # a session with the options it was made with reuses it (no longer refused)
+    assert _session(store, out, []) == []
+    assert batch.read_summary(out / batch.SUMMARY_NAME)[uid]["status"] == batch.SKIPPED
+    assert {p: p.stat().st_mtime_ns for p in (out / uid).iterdir()} == before
+    # a CT instance filed again with other bytes while no session ran: the study is made again, as
+    # when more instances arrive, its folder replaced
+    ct_filed = next(p for p in filed if pydicom.dcmread(p, stop_before_pixels=True).Modality == "CT")
+    ds = pydicom.dcmread(ct_filed)
+    ds.ImageComments = "sent again"
+    ds.save_as(ct_filed)
+    logs3 = []
+    assert _session(store, out, logs3, wait_for=report, after_ns=report.stat().st_mtime_ns) == []
+    assert any(f"study {uid}: its files in the store changed since {out / uid} was made" in m
+               and "reconstructing it again" in m for m in logs3), logs3
+    row = batch.read_summary(out / batch.SUMMARY_NAME)[uid]
+    assert (row["status"], row["frames_reconstructed"]) == (batch.DONE, "2")
+    rep = json.loads(report.read_text())
+    assert rep["registration"]["verdict"] == "ok"
+    assert batch.input_changes(batch.group_dicom_tree(store / uid)[0], rep) == []  # made from the files now
+
+
+def _session(store, out, logs, *, access=None, wait_for=None, after_ns=0):
+    """A receiver session on ``store``; with ``wait_for``, until that file is newer than ``after_ns``
+    (bounded by WAIT_S). The studies left pending."""
+    rx = StudyReceiver(store, out, port=0, quiet_s=0.0, images=False, access_lps_mm=access, log=logs.append).start()
+    try:
+        deadline = time.monotonic() + WAIT_S
+        while wait_for is not None and time.monotonic() < deadline and not (
+                wait_for.is_file() and wait_for.stat().st_mtime_ns > after_ns and rx.pending() == []):
+            time.sleep(0.2)
+    finally:
+        rx.stop(timeout=WAIT_S)
+    return rx.pending()
 
 
 def test_bad_options_are_refused(tmp_path):

@@ -8,7 +8,8 @@ local cluster of worker processes bound to 127.0.0.1, or an existing scheduler. 
 unexpectedly (a crash, a killed worker) is retried; a study with bad input fails at once (the same
 input would fail again). Either way it is recorded in ``DIR/summary.csv`` and the batch goes on.
 A study whose folder already holds a ``report.json`` is skipped when it was made with the options
-this run asks for (:func:`finished_row`), and refused (``failed``, its folder untouched) otherwise.
+this run asks for and from input files with the same bytes (``report.json``'s ``inputs.files``:
+:func:`finished_row`), and refused (``failed``, its folder untouched) otherwise.
 """
 from __future__ import annotations
 
@@ -28,8 +29,8 @@ from guidewire3d.methods import ReconMethod, SegMethod, choices
 from guidewire3d.vesseltree import check_access
 
 __all__ = ["StudySpec", "read_manifest", "group_dicom_tree", "load_studies", "run_study", "run_batch",
-           "write_summary", "read_summary", "finished_row", "made_otherwise", "SUMMARY_COLUMNS", "MANIFEST_COLUMNS",
-           "OPTION_COLUMNS"]
+           "write_summary", "read_summary", "finished_row", "made_otherwise", "input_changes", "SUMMARY_COLUMNS",
+           "MANIFEST_COLUMNS", "OPTION_COLUMNS"]
 
 MANIFEST_COLUMNS = ("study", "cta", "roadmap", "frames")
 # optional manifest columns: the `reconstruct` options they set (other columns are ignored)
@@ -519,17 +520,106 @@ def _automatic_roadmap_frame(roadmap) -> int | str:
         return _one_line(e)
 
 
-def made_otherwise(spec: StudySpec, folder, report: dict, *, images: bool = True) -> list[tuple[str, str]]:
+def _automatic_series(cta) -> str:
+    """The series ``reconstruct`` reads from ``cta`` without ``--series-uid`` ("" for a NIfTI/NRRD/MHA
+    file), or why it cannot read one (one line)."""
+    try:
+        return io.volume_files(cta)[0]
+    except Guidewire3DError as e:
+        return _one_line(e)
+
+
+def _fingerprint_list(value) -> list[dict] | None:
+    """``report.json``'s record of one input's files, None when it is not one."""
+    if not isinstance(value, list) or not all(isinstance(d, dict) and {"name", "size", "sha256"} <= d.keys()
+                                              for d in value):
+        return None
+    return value
+
+
+def _changed_files(role: str, made_path: str, made: list[dict], path: Path, now: list[dict]) -> tuple[str, str] | None:
+    """``(made with, asked for)`` naming the first file of input ``role`` whose content differs
+    between ``made`` (recorded under ``made_path``) and ``now`` (read at ``path``); None when the two
+    hold the same bytes (wherever the files lie now)."""
+    def content(files):
+        return sorted((int(d["size"]), str(d["sha256"])) for d in files)
+
+    if content(made) == content(now):
+        return None
+    old, new = ({d["name"]: (int(d["size"]), str(d["sha256"])) for d in fs} for fs in (made, now))
+    changed = [n for n in new if n in old and new[n] != old[n]]
+    added = [n for n in new if n not in old]
+    gone = [n for n in old if n not in new]
+    base = path if path.is_dir() else path.parent  # the names are relative to it
+
+    def at(name):
+        return base / name
+
+    def more(names, verb):
+        return "" if len(names) < 2 else f" and {len(names) - 1} more {verb}"
+
+    if changed:
+        n = changed[0]
+        return (f"the {role} file {at(n)} before it changed{more(changed, 'changed')}",
+                f"the {role} file {at(n)} as it is now")
+    if len(old) == len(new) == 1:  # one file, another name: the manifest names another file
+        return f"the {role} file {made_path}", f"the {role} file {at(next(iter(new)))} (other bytes)"
+    if added:
+        n = added[0]
+        return (f"the {role} {path} without {at(n)}{more(added, 'added')}", f"the {role} {path} with it (added)")
+    n = gone[0]
+    return f"the {role} {path} with {at(n)}{more(gone, 'gone')}", f"the {role} {path} without it (gone)"
+
+
+def input_changes(spec: StudySpec, report: dict) -> list[tuple[str, str]] | None:
+    """How the input files of ``spec`` differ from the ones the finished study (its ``report.json``
+    read as ``report``) was made from: ``(made with, asked for)`` pairs naming the first file that
+    changed, was added or is gone per input, [] when every file holds the same bytes (by size and
+    SHA-256, wherever the files lie now), None when the report has no record of its files (made
+    before ``report.json`` kept them: not comparable). The CTA's files are those of the series the
+    study was made with (whether that is the series asked for is :func:`made_otherwise`'s question).
+    """
+    inputs = report.get("inputs") or {}
+    record = inputs.get("files")
+    if not isinstance(record, dict):
+        return None
+    made = {role: _fingerprint_list(record.get(role)) for role in ("cta", "roadmap", "frames")}
+    if any(v is None for v in made.values()):
+        return None
+    try:
+        now = pipeline.input_files(spec.cta, spec.roadmap, spec.frames, series_uid=inputs.get("series_uid") or None)
+    except Guidewire3DError as e:
+        return [("its input files as they were", f"input files that cannot be read now ({_one_line(e)})")]
+    pairs = []
+    for role in ("cta", "roadmap", "frames"):
+        path = Path(getattr(spec, role))
+        pair = _changed_files(role, str(inputs.get(role, path)), made[role], path, now[role])
+        if pair is not None:
+            pairs.append(pair)
+    return pairs
+
+
+NO_RECORD = ("no record of its input files (made before report.json kept them)",
+             "input files it can compare with the ones the study was made from")
+
+
+def made_otherwise(spec: StudySpec, folder, report: dict, *, images: bool = True,
+                   files: bool = True) -> list[tuple[str, str]]:
     """What the finished study in ``folder`` (its ``report.json`` read as ``report``) was made with
     that ``spec`` does not ask for: ``(made with, asked for)`` pairs, [] when it is the study asked for.
 
     Compared: the access point (to 1e-3 mm, as the report rounds it), ``method``, ``segmenter``,
-    ``track_motion``, ``series_uid`` when given (an empty one is the series read, not compared),
-    ``roadmap_frame`` (empty: the frame ``reconstruct`` chooses, read from the roadmap now), ``force``
-    only where it changes the result (the registration failed: forced, the frames were reconstructed
-    anyway), and ``images``: a study with reconstructed frames made without its PNGs (``--no-images``)
-    is not the study a run with images asks for; one with PNGs serves a ``--no-images`` run.
+    ``track_motion``, ``series_uid`` (empty: the series ``reconstruct`` chooses, read from the CTA
+    folder now), ``roadmap_frame`` (empty: the frame ``reconstruct`` chooses, read from the roadmap
+    now), ``force`` only where it changes the result (the registration failed: forced, the frames
+    were reconstructed anyway), ``images``: a study with reconstructed frames made without its PNGs
+    (``--no-images``) is not the study a run with images asks for; one with PNGs serves a
+    ``--no-images`` run; and with ``files``, the input files' bytes (:func:`input_changes`; a report
+    without their record is not comparable: ``NO_RECORD``). A study whose inputs cannot be assembled
+    now (``spec.error``: its DICOM tree lost the CT series, say) is not the study it was.
     """
+    if spec.error:
+        return [("its input files", f"a study without them ({_one_line(spec.error)})")]
     inputs = report.get("inputs") or {}
     stale = []
     had, want = (None if p is None else tuple(round(float(c), 3) for c in p)
@@ -544,6 +634,10 @@ def made_otherwise(spec: StudySpec, folder, report: dict, *, images: bool = True
     uid = inputs.get("series_uid")
     if spec.series_uid is not None and uid is not None and uid != spec.series_uid:  # None: not a DICOM series
         stale.append((f"series_uid {uid}", f"series_uid {spec.series_uid}"))
+    elif spec.series_uid is None and uid:  # made from a DICOM series: is it the one chosen now?
+        auto = _automatic_series(spec.cta)
+        if auto != uid:
+            stale.append((f"series_uid {uid}", f"the automatic series_uid ({auto or 'none: not a DICOM series'})"))
     frame = inputs.get("roadmap_frame")
     if frame is not None:
         asked = spec.roadmap_frame if spec.roadmap_frame is not None else _automatic_roadmap_frame(spec.roadmap)
@@ -555,33 +649,59 @@ def made_otherwise(spec: StudySpec, folder, report: dict, *, images: bool = True
         stale.append((f"force {bool(inputs['forced'])} (the registration failed)", f"force {spec.force}"))
     if images and report.get("frames") and not any(Path(folder).glob("overlay_*.png")):
         stale.append(("--no-images", "images"))
+    if files:
+        changes = input_changes(spec, report)
+        stale.extend([NO_RECORD] if changes is None else changes)
     return stale
 
 
-def finished_row(spec: StudySpec, out_root, previous: dict | None = None, *, images: bool = True) -> dict | None:
-    """The row of a study whose output folder exists with a report, else None: ``skipped`` (its
-    values read from the report, the measures from ``previous``, its last summary row) when it was
-    made as ``spec`` asks (:func:`made_otherwise`), else ``failed`` with why, the folder untouched."""
+def read_report(folder) -> dict | None:
+    """The ``report.json`` of the output folder ``folder`` as a dict; None when the folder has none
+    (not a finished study); an InputError naming it when it cannot be read as one."""
     import json
 
-    folder = Path(out_root) / spec.study
-    rep = folder / REPORT_NAME
+    rep = Path(folder) / REPORT_NAME
     if not rep.is_file():
         return None
     try:
         report = json.loads(rep.read_text())
-    except (OSError, ValueError):
-        report = {}
+    except (OSError, ValueError) as e:
+        raise InputError(f"{rep}: unreadable ({_one_line(getattr(e, 'strerror', None) or e)})") from None
+    if not isinstance(report, dict):
+        raise InputError(f"{rep}: unreadable (not a JSON object)")
+    return report
+
+
+def finished_row(spec: StudySpec, out_root, previous: dict | None = None, *, images: bool = True,
+                 files: bool = True) -> dict | None:
+    """The row of a study whose output folder exists with a report, else None: ``skipped`` (its
+    values read from the report, the measures from ``previous``, its last summary row) when it was
+    made as ``spec`` asks (:func:`made_otherwise`; ``files=False`` leaves the input files out, for a
+    caller that compared them), else ``failed`` with why, the folder untouched. A report that cannot
+    be read cannot be compared: ``failed`` too."""
+    folder = Path(out_root) / spec.study
     prev = previous or {}
+    try:
+        report = read_report(folder)
+    except InputError as e:
+        return {"study": spec.study, **{k: prev.get(k, "") for k in ("seconds", "peak_rss_mb", "worker")},
+                "status": FAILED, "error": f"{e}: remove the folder to reconstruct it again", **_asked_cells(spec)}
+    if report is None:
+        return None
     row = {**{k: prev.get(k, "") for k in ("seconds", "peak_rss_mb", "worker")},
            **_row_from_report(spec.study, report), "status": SKIPPED, "error": ""}
-    stale = made_otherwise(spec, folder, report, images=images) if report else []
+    stale = made_otherwise(spec, folder, report, images=images, files=files)
     if stale:
         # not the study this run asks for: never reuse it silently
-        row.update(status=FAILED, error=f"{folder}: it was made with {', '.join(a for a, _ in stale)}, this run "
-                                        f"asks for {', '.join(b for _, b in stale)}: remove the folder to "
-                                        "reconstruct it again")
+        row.update(status=FAILED, error=refusal(folder, stale))
     return row
+
+
+def refusal(folder, stale) -> str:
+    """The one-line error of a finished study in ``folder`` made otherwise than asked (``stale``: the
+    ``(made with, asked for)`` pairs of :func:`made_otherwise`)."""
+    return (f"{folder}: it was made with {', '.join(a for a, _ in stale)}, this run asks for "
+            f"{', '.join(b for _, b in stale)}: remove the folder to reconstruct it again")
 
 
 # --------------------------------------------------------------------------------------
@@ -683,17 +803,20 @@ def run_batch(studies, out_dir, *, workers: int | None = None, scheduler: str | 
     previous = read_summary(summary_path)
     rows: dict[str, dict] = {}
     todo = []
+    refused = 0  # finished, but made otherwise than asked
     for s in studies:
         done = finished_row(s, out_dir, previous.get(s.study), images=images)
         if done is not None:
             rows[s.study] = done
+            refused += done["status"] == FAILED
         elif s.error:
             rows[s.study] = run_study(s, out_dir)
         else:
             todo.append(s)
     if log is not None and len(rows):
         log(f"{sum(r['status'] == SKIPPED for r in rows.values())} studies already done (skipped), "
-            f"{len(todo)} to run")
+            + (f"{refused} made otherwise than asked (failed: see the error column of {summary_path}), "
+               if refused else "") + f"{len(todo)} to run")
 
     def ordered():
         return [rows[s.study] for s in studies if s.study in rows]

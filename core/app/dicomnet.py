@@ -6,7 +6,9 @@ instance received is written to ``STORE/<StudyInstanceUID>/<SeriesInstanceUID>/<
 (``batch.run_study``: the same call, the same output rules as ``reconstruct``) once it has a CT
 series and an XA run and no instance arrived for ``quiet_s`` seconds, or at once on
 :meth:`StudyReceiver.reconstruct_now` (``SIGUSR1`` from the command line). A study that receives
-more instances after its reconstruction is reconstructed again (its output folder replaced).
+more instances after its reconstruction is reconstructed again (its output folder replaced), and
+so is a study of the store whose files changed while no session ran; one whose output was made
+with other options than this session's is refused as ``batch`` refuses it (:meth:`_needs_redo`).
 Reconstructions run one at a time in a background thread, so receiving goes on meanwhile; each
 adds its row to ``OUT/summary.csv`` (the format of ``batch``). ``access_lps_mm`` (``--access-lps``)
 is every study's access point, as ``reconstruct --access-lps`` takes it.
@@ -194,28 +196,62 @@ class StudyReceiver:
         return STATUS_SUCCESS
 
     def _scan_store(self) -> None:
-        """Studies already in the store (an earlier session) whose output does not exist yet are
-        treated as received now: they are reconstructed after the quiet period like new ones. A study
-        whose output was made with other options than this session's (another access point, say:
-        ``batch.finished_row``) is left as it is, and the log says so."""
+        """Studies already in the store (an earlier session) are looked at as ``batch`` looks at a
+        rerun's studies. One without an output, or whose store files differ from the ones its output
+        was made from (instances filed after its reconstruction), is treated as received now: it is
+        reconstructed after the quiet period like a new one, its folder replaced (as when more
+        instances arrive). One made from the same files with other options than this session's
+        (another access point, say: ``batch.finished_row``), or whose output cannot be compared, is
+        left as it is: the log says why, and ``summary.csv`` records it ``failed`` as ``batch`` does."""
         now = time.monotonic()
         for d in sorted(self.store_dir.iterdir()):
-            if d.is_dir() and _UID.match(d.name) and (self.out_dir / d.name / "report.json").is_file():
-                self._say_if_made_otherwise(d)
-            elif d.is_dir() and _UID.match(d.name):
-                n = sum(1 for p in d.rglob("*.dcm") if not p.name.startswith("."))
-                if n:
-                    with self._lock:
-                        self._studies[d.name] = _StudyState(instances=n, last_arrival=now)
+            if not (d.is_dir() and _UID.match(d.name)):
+                continue
+            if (self.out_dir / d.name / batch.REPORT_NAME).is_file() and not self._needs_redo(d):
+                continue
+            n = sum(1 for p in d.rglob("*.dcm") if not p.name.startswith("."))
+            if n:
+                with self._lock:
+                    self._studies[d.name] = _StudyState(instances=n, last_arrival=now)
 
-    def _say_if_made_otherwise(self, study_dir: Path) -> None:
+    def _needs_redo(self, study_dir: Path) -> bool:
+        """Whether the finished study of ``study_dir`` is reconstructed again: its store files changed
+        since its output was made. If not, a study made otherwise than this session asks is refused as
+        ``batch`` refuses it (logged, recorded ``failed`` in ``summary.csv``, its folder untouched)."""
         try:
             (spec,) = batch.group_dicom_tree(study_dir, access_lps_mm=self.access_lps_mm)
         except (InputError, ValueError):
-            return
-        row = batch.finished_row(spec, self.out_dir, images=self.images)
-        if row is not None and row["status"] == batch.FAILED:
+            return False
+        folder = self.out_dir / spec.study
+        try:
+            report = batch.read_report(folder)
+        except InputError:
+            report = None  # finished_row refuses it
+        changes = batch.input_changes(spec, report) if report is not None and spec.error is None else None
+        if changes:
+            self._say(f"study {study_dir.name}: its files in the store changed since {folder} was made "
+                      f"({changes[0][1]}): reconstructing it again")
+            return True
+        summary = batch.read_summary(self.out_dir / batch.SUMMARY_NAME)
+        row = batch.finished_row(spec, self.out_dir, summary.get(spec.study), images=self.images,
+                                 files=changes is None)
+        if row is None:
+            return True
+        if row["status"] == batch.FAILED:
             self._say(f"study {study_dir.name} is left as it is: {row['error']}")
+        if row["status"] == batch.FAILED or (summary.get(spec.study) or {}).get("status") == batch.FAILED:
+            self._record(row)  # refused now, or no longer refused (made as this session asks)
+        return False
+
+    def _record(self, row: dict) -> None:
+        """Put ``row`` into ``OUT/summary.csv`` (in place of the study's earlier row)."""
+        with self._lock:
+            summary = batch.read_summary(self.out_dir / batch.SUMMARY_NAME)
+            summary[row["study"]] = row
+            try:
+                batch.write_summary(self.out_dir / batch.SUMMARY_NAME, list(summary.values()))
+            except OSError as e:
+                self._say(f"cannot write {self.out_dir / batch.SUMMARY_NAME}: {e.strerror or e}")
 
     # ---- deciding and reconstructing --------------------------------------------------
     def pending(self) -> list[str]:
@@ -283,12 +319,7 @@ class StudyReceiver:
                 st.queued = False
                 st.waiting_reported = ""
                 self.rows.append(row)
-                summary = batch.read_summary(self.out_dir / batch.SUMMARY_NAME)
-                summary[study] = row
-                try:
-                    batch.write_summary(self.out_dir / batch.SUMMARY_NAME, list(summary.values()))
-                except OSError as e:
-                    self._say(f"cannot write {self.out_dir / batch.SUMMARY_NAME}: {e.strerror or e}")
+            self._record(row)
             self.busy_with = None
             what = (f"registration {row.get('verdict')} ({row.get('residual_px')} px), "
                     f"{row.get('frames_reconstructed')}/{row.get('frames_total')} frames"

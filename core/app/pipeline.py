@@ -19,7 +19,7 @@ from guidewire3d.app import export
 from guidewire3d.cta import vesselmodel
 from guidewire3d.cta.segment import VesselOptions
 from guidewire3d.cta.vessels3d import CTAVessels
-from guidewire3d.errors import InputError
+from guidewire3d.errors import Guidewire3DError, InputError
 from guidewire3d.geometry import CArm, Pose
 from guidewire3d.live import session as live_engine
 from guidewire3d.live.session import FrameResult
@@ -30,7 +30,7 @@ from guidewire3d.xray.orderedwire import OrderedWire
 from guidewire3d.xray.roadmap import Centerline2D, roadmap_centerline
 
 __all__ = ["PipelineResult", "run", "run_to_outdir", "load_inputs", "choose_roadmap_frame", "check_roadmap_frame",
-           "check_seeds", "rooted_vessels", "write_access_record"]
+           "check_seeds", "rooted_vessels", "write_access_record", "input_files"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -83,6 +83,41 @@ def read_xa_input(path, *, overrides=None) -> io.XARun:
     if p.is_dir() or p.suffix.lower() in VIDEO_SUFFIXES:
         return io.read_image_sequence(p)
     return io.read_xa(p, overrides=overrides)
+
+
+def _xa_input_files(path: Path) -> list[Path]:
+    """The files :func:`read_xa_input` reads for ``path``: the DICOM file, a video and its sidecar,
+    or every file of a frames folder (hidden files aside)."""
+    if path.is_dir():
+        return sorted(p for p in path.iterdir() if p.is_file() and not p.name.startswith("."))
+    if path.suffix.lower() in VIDEO_SUFFIXES:
+        return [path] + [s for s in (path.with_suffix(path.suffix + ".json"), path.with_suffix(".json")) if s.is_file()]
+    return [path]
+
+
+def input_files(cta, roadmap, frames, *, series_uid=None) -> dict:
+    """What ``report.json`` records of a run's input files (``inputs.files``): for ``cta``,
+    ``roadmap`` and ``frames``, the ``{"name", "size", "sha256"}`` of each file read
+    (:func:`io.file_fingerprints`; the CTA: the files of the series read, ``series_uid`` or the
+    automatic choice, named relative to their folder). A run compares them to tell whether the files
+    of a finished output changed since it was made.
+
+    Raises
+    ------
+    InputError, DicomError
+        An input is missing or unreadable, or the folder lacks the series.
+    """
+    return _input_files(cta, roadmap, frames, series_uid=series_uid)[1]
+
+
+def _input_files(cta, roadmap, frames, *, series_uid=None) -> tuple[str, dict]:
+    """:func:`input_files` and the series uid of the CTA's files ("" for a NIfTI/NRRD/MHA file)."""
+    cta, roadmap, frames = Path(cta), Path(roadmap), Path(frames)
+    uid, ct_files = io.volume_files(cta, series_uid=series_uid)
+    out = {"cta": io.file_fingerprints(ct_files, root=cta if cta.is_dir() else None)}
+    for role, path in (("roadmap", roadmap), ("frames", frames)):
+        out[role] = io.file_fingerprints(_xa_input_files(path), root=path if path.is_dir() else None)
+    return uid, out
 
 
 def load_inputs(cta, roadmap, frames, *, series_uid=None, overrides=None, log=None):
@@ -323,7 +358,13 @@ def run_to_outdir(cta, roadmap, frames, out_dir, *, series_uid=None, overrides=N
     replace = bool(replace and (out_dir / "report.json").is_file())
     io.require_empty_folder(out_dir, replace=replace, min_free_mb=MIN_FREE_MB)
     t0 = time.perf_counter()
+    try:  # before the files are read: one that changes meanwhile looks changed to a later run, never the same
+        files_uid, files = _input_files(cta, roadmap, frames, series_uid=series_uid)
+    except Guidewire3DError:
+        files_uid, files = None, None  # load_inputs names the bad input
     vol, road, live = load_inputs(cta, roadmap, frames, series_uid=series_uid, overrides=overrides, log=log)
+    if files_uid != vol.series_uid:  # the folder changed between the two reads
+        files = input_files(cta, roadmap, frames, series_uid=vol.series_uid or None)
     roadmap_frame = choose_roadmap_frame(road, roadmap_frame)
     check_seeds(vol, seeds_lps_mm)
     if access_lps_mm is not None:
@@ -347,6 +388,7 @@ def run_to_outdir(cta, roadmap, frames, out_dir, *, series_uid=None, overrides=N
         }
         if access_lps_mm is not None:
             inputs["access_lps_mm"] = [round(float(v), 3) for v in access_lps_mm]
+        inputs["files"] = files
 
         def write(staging: Path) -> None:
             t0 = time.perf_counter()
