@@ -38,7 +38,8 @@ REASONS = {"tip end": "tip end uncertain", "beyond tip": "tip uncertain: a wire-
            "trace doubtful": "2D trace doubtful", "branch ambiguous": "branch ambiguous", "motion": "motion:",
            "path changed": "path changed", "off lumen": "wire off its vessel",
            "wire sigma": "wire depth uncertain", "one-plane distal": "distal part from plane",
-           "lost lumen": "centerline tree does not follow", "tip fork": "mask forks"}
+           "lost lumen": "centerline tree does not follow", "tip fork": "mask forks",
+           "tip skip": "reaches the tip's vessel by a skip"}
 
 
 def options_of(seed: int, draws: str = "standard") -> list[str]:
