@@ -85,7 +85,7 @@ BRANCH_SHIFT_MIN_MM = 5.0
 #: wrong ones (22-46 px): the check costs right tips. Measured: on the simulator at the true pose (seeds 0-149, 4
 #: frames) 4 of 475 right ``ok`` frames become ``uncertain`` and none of the 6 wrong ones is caught; on
 #: ``bench_stress`` 7200-7223 the 2 wrong ``ok`` frames and 4 of 76 right ones; 7100-7115, 7600-7615 and the
-#: wide 7700-7711 none
+#: wide 7700-7711 none; held out, 7800-7815: 1 of 43 right ones (7805 f2, its tip 4.2 mm off) and no wrong one
 TIP_SKIP_MAX_PX = 20.0
 #: a wire whose rays pass more than this (mm, at the vessel) outside the lumen of the tree path they were
 #: placed in (``Wire3D.lumen_miss_mm``) is not in that vessel there: a frame reported ``ok`` promises a wire
