@@ -38,7 +38,8 @@ REASONS = {"tip end": "tip end uncertain", "beyond tip": "tip uncertain: a wire-
            "trace doubtful": "2D trace doubtful", "branch ambiguous": "branch ambiguous", "motion": "motion:",
            "path changed": "path changed", "off lumen": "wire off its vessel",
            "wire sigma": "wire depth uncertain", "one-plane distal": "distal part from plane",
-           "lost lumen": "centerline tree does not follow", "tip fork": "mask forks"}
+           "lost lumen": "centerline tree does not follow", "tip fork": "mask forks",
+           "tip skip": "reaches the tip's vessel by a skip"}
 
 
 def options_of(seed: int, draws: str = "standard") -> list[str]:
@@ -152,7 +153,7 @@ def score(rec: dict, frames: list, truth, args) -> None:
 
 def replay_case(seed: int, args) -> dict:
     """A case of an earlier ``--keep`` run, its live frames run again through ``live.Session`` with the
-    code of now: the kept tree (``registration_inputs.npz``), registration (pose, covariance) and
+    code of now: the kept tree (``registration_inputs.npz``, with its lost lumen), registration (pose, covariance) and
     frames (``frames.dcm``), the session set up as ``pipeline.run`` sets it up; the CTA, the roadmap
     and the registration are not redone. Scored as :func:`run_case` scores."""
     from guidewire3d import io
@@ -175,8 +176,11 @@ def replay_case(seed: int, args) -> dict:
         return rec
     t0 = time.perf_counter()
     z = np.load(small / "registration_inputs.npz")
+    lost = "tree_lost_lumen_lps_mm" in z and "tree_lost_lumen_step_mm" in z   # the tree's lost lumen (stop 39)
     tree = VesselTree(z["tree_points_lps_mm"], z["tree_radius_mm"], z["tree_parent"],
-                      float(z["tree_centerline_sigma_mm"]) if "tree_centerline_sigma_mm" in z else None)
+                      float(z["tree_centerline_sigma_mm"]) if "tree_centerline_sigma_mm" in z else None,
+                      np.asarray(z["tree_lost_lumen_lps_mm"], float).reshape(-1, 3) if lost else None,
+                      float(z["tree_lost_lumen_step_mm"]) if lost else None)
     reg = rj["registration"]
     cov = np.asarray(reg["covariance_6x6"], float) if reg.get("covariance_6x6") is not None else None
     frames = np.asarray(io.read_xa(small / "frames.dcm").frames)

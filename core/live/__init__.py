@@ -26,6 +26,7 @@ from guidewire3d.live.session import (  # noqa: F401
     OFF_LUMEN_MAX_MM,
     TIP_BORDER_PX,
     TIP_MAX_UNCERTAINTY_MM,
+    TIP_SKIP_MAX_PX,
     TIP_STRETCH_MAX_MM,
     TIP_STRETCH_PX,
     TREE_RETREAT_MAX_MM,

@@ -73,6 +73,20 @@ TREE_RETREAT_MAX_MM = 6.0
 #: tips were right, become ``uncertain`` as well
 BRANCH_EXTRA_MAX = 4.0
 BRANCH_SHIFT_MIN_MM = 5.0
+#: a path through the vessel tree that reaches the tip's vessel by a skip (``Wire3D.tip_skip_px``,
+#: ``reconstruction.path.tip_skip_px``): a step within ``path.TIP_SKIP_NEAR_PX`` of the tip whose projected tree route
+#: covers more than this many px (at ``geometry.REFERENCE_PIXEL_AT_ISO_MM``) beyond the wire's own step. The path
+#: then puts the tip in a vessel that the wire's last anchors project onto, entered through tree the wire does not
+#: follow: ``bench_stress`` 7207 f3 (31 px, the tip 7.1 mm off in a side branch; its best rival path 4.35 above
+#: the branch check's limit) and 7223 f3 (43 px: a 2D trace that crossed between the limbs of a hairpin, the tip
+#: 17.7 mm off), both ``ok`` before. Four anchor steps (``ReconOptions.dp_step_px``, 5 px): a path that follows
+#: the wire stays within a few px (the pairwise cost's ``sigma_step_px``, 3 px). Right paths also skip, where the
+#: tree's junction lies off the wire's turn or the 2D wire bridges a gap straight across a bend, by as much as
+#: wrong ones (22-46 px): the check costs right tips. Measured: on the simulator at the true pose (seeds 0-149, 4
+#: frames) 4 of 475 right ``ok`` frames become ``uncertain`` and none of the 6 wrong ones is caught; on
+#: ``bench_stress`` 7200-7223 the 2 wrong ``ok`` frames and 4 of 76 right ones; 7100-7115, 7600-7615 and the
+#: wide 7700-7711 none; held out, 7800-7815: 1 of 43 right ones (7805 f2, its tip 4.2 mm off) and no wrong one
+TIP_SKIP_MAX_PX = 20.0
 #: a wire whose rays pass more than this (mm, at the vessel) outside the lumen of the tree path they were
 #: placed in (``Wire3D.lumen_miss_mm``) is not in that vessel there: a frame reported ``ok`` promises a wire
 #: within 2 mm (``bench_stress`` / ``bench_motion``'s ``WIRE_OFF_MM``), and a reconstruction whose own points lie
@@ -473,6 +487,8 @@ def frame_verdict(wire3d, wire_uv_px, orientation, *, beyond_tip=None, motion=No
       px before the tip, or a path that crosses into a vessel whose lumen touches the chosen route's
       where the tree joins the two elsewhere (``reconstruction.path.branch_alternative``,
       ``touching_rival``);
+    * the path reaches the tip's vessel by a skip: near the tip, the tree route of one step projects onto more
+      than ``TIP_SKIP_MAX_PX`` beyond the wire's own step (``Wire3D.tip_skip_px``);
     * the wire's rays pass more than ``OFF_LUMEN_MAX_MM`` outside the lumen of the tree path they were
       placed in (``Wire3D.lumen_miss_mm``): the tree lacks the vessel the wire is in, or the pose is off;
     * more than ``LOST_LUMEN_STRETCH_MAX_MM`` of the wire also projects onto segmented lumen the tree does not
@@ -534,6 +550,13 @@ def frame_verdict(wire3d, wire_uv_px, orientation, *, beyond_tip=None, motion=No
                    f"that branch a few px before the tip, where the CTA tree may have lost the vessel's distal end, or "
                    f"crossing into a vessel whose lumen touches the path's, which the tree joins elsewhere) and "
                    f"ends {shift_mm:.0f} mm away")
+    skip_px = float(getattr(wire3d, "tip_skip_px", float("nan")))
+    if skip_px > TIP_SKIP_MAX_PX:
+        why.append(f"tip uncertain: the path through the vessel tree reaches the tip's vessel by a skip "
+                   f"{float(wire3d.tip_skip_from_tip_px):.0f} px before the tip: there the tree route projects onto "
+                   f"{skip_px:.0f} px more than the 2D wire (limit {TIP_SKIP_MAX_PX:g} px), so the tip was put in a "
+                   f"vessel the wire's last px project onto but do not lead into (a side branch that overlaps the "
+                   f"wire, or a trace that crossed between two limbs of a bent wire)")
     lost_mm = float(getattr(wire3d, "lost_lumen_stretch_mm", float("nan")))
     if lost_mm > LOST_LUMEN_STRETCH_MAX_MM:
         why.append(f"branch ambiguous: {lost_mm:.0f} mm of the wire also project onto {LOST_LUMEN_WORDS} "

@@ -27,7 +27,9 @@ Default method (``ReconMethod.VESSEL``), one module of this package per step:
        jumps between vessels is no evidence); how far the path walks back towards the root along the
        wire (``Wire3D.tree_retreat_mm``: a 2D trace that took the wrong way at a crossing); and the best
        rival path that avoids a branch the path entered (``Wire3D.branch_extra_cost``,
-       ``branch_tip_shift_mm``). The frame verdict (``live.frame_verdict``) reads the last two.
+       ``branch_tip_shift_mm``); and whether the path reaches its tip's vessel by a skip, a step whose
+       projected tree route is many px longer than the wire's (``Wire3D.tip_skip_px``). The frame verdict
+       (``live.frame_verdict``) reads the last three.
     4. ``placement``: the chosen nodes are joined along the tree into one path. Each 2D wire
        point's ray is intersected with the nearby path segments (ray-segment closest approach,
        preferring the path position interpolated between the anchors). The feasible depths are the
@@ -69,6 +71,7 @@ from guidewire3d.reconstruction.path import (
     lost_lumen_stretch,
     path_retreat_mm,
     path_step_costs,
+    tip_skip_px,
     tracking_tip,
     viterbi_costs,
     viterbi_path,
@@ -131,6 +134,10 @@ class Wire3D:
         onto segmented lumen the tree does not follow (``path.lost_lumen_stretch``: two vessels fused in the
         CTA, the tree kept one), and how far that lumen lies from the wire (median, mm); 0 and NaN when none,
         NaN for the other methods.
+    tip_skip_px, tip_skip_from_tip_px : float, vessel method: the largest skip of the path near the tip
+        (``path.tip_skip_px``: how many px more the projected tree route of one step covers than the 2D wire's
+        step, within ``path.TIP_SKIP_NEAR_PX`` of the tip; px at the reference pixel) and how far from the tip it
+        lies; 0 and NaN when none, NaN for the other methods.
     """
 
     points_lps_mm: np.ndarray
@@ -155,6 +162,8 @@ class Wire3D:
     lumen_miss_mm: np.ndarray = field(default_factory=lambda: np.zeros(0))
     lost_lumen_stretch_mm: float = float("nan")
     lost_lumen_shift_mm: float = float("nan")
+    tip_skip_px: float = float("nan")
+    tip_skip_from_tip_px: float = float("nan")
 
     def __post_init__(self):
         object.__setattr__(self, "points_lps_mm", _ro(np.reshape(self.points_lps_mm, (-1, 3))))
@@ -202,6 +211,8 @@ class Wire3D:
             "lumen_miss_mm": np.round(self.lumen_miss_mm, 3).tolist(),
             "lost_lumen_stretch_mm": f(self.lost_lumen_stretch_mm),
             "lost_lumen_shift_mm": f(self.lost_lumen_shift_mm),
+            "tip_skip_px": f(self.tip_skip_px),
+            "tip_skip_from_tip_px": f(self.tip_skip_from_tip_px),
         }
 
 
@@ -318,13 +329,16 @@ def _reconstruct_vessel(ctx, uv, *, track_tip, image, registration_covariance, o
         extra[alt] = 0.5 * lost_delta[alt, :, None] * lost_delta[alt, None, :]
         amb = extra if amb is None else amb + extra
     ids = np.where(miss > 0, -1, tid)
+    arc_px = np.r_[0.0, np.cumsum(np.sqrt((np.diff(uv, axis=0) ** 2).sum(axis=1)))]
+    skip_px, skip_from_tip_px = tip_skip_px(ctx, nodes, arc_px[aidx], float(arc_px[-1]))
     retreat_mm = path_retreat_mm(ctx, nodes, max_step_mm=RETREAT_STEP_ANCHORS * opt.dp_step_px * ctx.px_mm)
     w = _finish(ctx, X, uv, ids, depth_std, miss**2, image=image, registration_covariance=registration_covariance,
                 opt=opt, method=ReconMethod.VESSEL, t0=t0, message=msg, lumen=(half_width, miss, amb),
                 reversed_input=bool(reversed_note), tree_rise_mm=float(ctx.s[nodes[-1]] - ctx.s[nodes[0]]),
                 path_checks=(retreat_mm, *branch_alternative(ctx, costs, nodes, total, opt)))
     return replace(w, past_path_mm=past_mm, prior_dropped=bool(prior_note), lumen_miss_mm=miss,
-                   lost_lumen_stretch_mm=lost_mm, lost_lumen_shift_mm=lost_shift_mm)
+                   lost_lumen_stretch_mm=lost_mm, lost_lumen_shift_mm=lost_shift_mm, tip_skip_px=skip_px,
+                   tip_skip_from_tip_px=skip_from_tip_px)
 
 
 def _reconstruct_paper(ctx, uv, *, image, registration_covariance, opt, t0):
