@@ -20,6 +20,8 @@ from guidewire3d.reconstruction import (
 from guidewire3d.vesseltree import VesselTree
 from test_reconstruction import AP, _chain, _pose
 
+GATE_PX = 20.0  # the limit the gate was measured with (``live.TIP_SKIP_MAX_PX``'s comment)
+
 ROUTE_TOL_PX = 2.0      # the route's projected length from the dense tree against the polyline's (sampling, corners)
 FOLLOWS_PX = 3.0        # a path that follows the wire: its steps' route excess stays within this (the pairwise
                         # cost's sigma_step_px; the tree points are 0.5 mm = 2.4 px apart here)
@@ -81,7 +83,7 @@ def test_route_excess_of_a_path_that_follows_the_wire_and_of_one_that_skips():
     truth_px = float(np.linalg.norm(np.diff(AP.project(route, pose), axis=0), axis=1).sum()) - (arc[aidx[k + 1]]
                                                                                                   - arc[aidx[k]])
     assert ex_skip[k] == pytest.approx(truth_px, abs=ROUTE_TOL_PX)
-    assert ex_skip[k] > 4 * live.TIP_SKIP_MAX_PX          # far beyond a bifurcation's few px
+    assert ex_skip[k] > 4 * GATE_PX          # far beyond a bifurcation's few px
     others = np.delete(ex_skip, k)
     assert np.abs(others).max() < FOLLOWS_PX            # before and after the jump both follow the wire
     factor = fine_pixel_factor(AP.pixel_at_iso_mm)
@@ -108,10 +110,11 @@ def test_a_skip_far_from_the_tip_is_not_the_tips():
     assert px_far < FOLLOWS_PX
 
 
-def test_the_reconstruction_reports_no_skip_on_a_wire_it_follows_and_the_verdict_reads_it():
+def test_the_reconstruction_reports_no_skip_on_a_wire_it_follows_and_the_verdict_reads_it(monkeypatch):
     """The reconstruction of the exact wire (its tip 10 mm before J, B turned back over it) follows the trunk: its
-    tip within 1 mm, no skip, ``ok``. The same wire with a skip beyond ``TIP_SKIP_MAX_PX`` (as the path that jumps
-    into B measures it) is ``uncertain`` for that reason alone, and one just below the limit stays ``ok``."""
+    tip within 1 mm, no skip, ``ok``. With the gate set (``TIP_SKIP_MAX_PX``, off by default: measured, not gated),
+    the same wire with a skip beyond it (as the path that jumps into B measures it) is ``uncertain`` for that reason
+    alone, and one just below the limit stays ``ok``; without the gate both stay ``ok``."""
     tree = _turned_back_tree()
     pose = _pose(tree)
     W = _wire()
@@ -121,6 +124,8 @@ def test_the_reconstruction_reports_no_skip_on_a_wire_it_follows_and_the_verdict
     assert np.linalg.norm(w.points_lps_mm[-1] - W[-1]) < 1.0
     assert w.tip_skip_px < FOLLOWS_PX
     assert frame_verdict(w, uv, None)[0] is Verdict.OK
+    assert frame_verdict(replace(w, tip_skip_px=4 * GATE_PX, tip_skip_from_tip_px=15.0), uv, None)[0] is Verdict.OK
+    monkeypatch.setattr(live, "TIP_SKIP_MAX_PX", GATE_PX)
     skipped = replace(w, tip_skip_px=live.TIP_SKIP_MAX_PX + 1.0, tip_skip_from_tip_px=15.0)
     verdict, why = frame_verdict(skipped, uv, None)
     assert verdict is Verdict.UNCERTAIN
