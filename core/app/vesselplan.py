@@ -124,11 +124,13 @@ def cli_main(args) -> int:
     auto = run_to_outdir(args.cta, args.out, seeds_lps_mm=args.seed_lps, series_uid=args.series_uid, log=say,
                          progress=sys.stderr.isatty(), access_lps_mm=getattr(args, "access_lps", None))
     m, t = auto.model, auto.vessels.tree
-    if auto.segmentation != "standard":
+    if auto.first_pass_problems:
         how = "the strict pass's tree" if auto.segmentation.startswith("strict") else "the tree"
         cut = f", {auto.pruned}" if auto.pruned else ""
         say(f"note: the first vessel tree was implausible ({'; '.join(auto.first_pass_problems)}); {how} is "
             f"written{cut} (check it in the viewer)")
+    elif auto.pruned:  # blood pools cut, or one of two separate structures chosen, from a tree that passed
+        say(f"note: {auto.pruned} (check it in the viewer)")
     if auto.bias_field:
         say(f"note: the volume as it was gave no plausible vessel tree; {auto.bias_field} and the tree is that of the "
             f"corrected volume (the intensity levels in vessels.json are its)")
