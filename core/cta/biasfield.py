@@ -7,11 +7,12 @@ that is not in HU it estimates the field here and runs once more on the correcte
 
 The estimate is SimpleITK's N4 (Tustison et al. 2010, ``N4BiasFieldCorrectionImageFilter``) over the body
 (:func:`n4_mask`: Otsu's threshold of the log intensities, which a multiplicative field only shifts), on a copy shrunk
-to about ``N4_VOXEL_MM`` (a coil field varies over hundreds of millimetres), its log field then evaluated on the
-volume's own grid.
+to about ``N4_VOXEL_MM`` (a coil field varies over hundreds of millimetres), its log field then interpolated linearly
+onto the volume's own grid.
 """
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -62,8 +63,8 @@ def n4_log_field(volume: io.Volume, body_zyx: np.ndarray, *, voxel_mm: float = N
                  iterations=N4_ITERATIONS) -> np.ndarray:
     """The log of the multiplicative bias field on ``volume``'s grid (float32, zero mean over ``body_zyx``).
 
-    ``body_zyx`` (bool, the volume's grid) is where the field is fitted. Intensities are shifted to be positive
-    first (N4 fits the log of the image); the shift is undone by the caller dividing the original values.
+    ``body_zyx`` (bool, the volume's grid) is where the field is fitted. N4 fits the log of the image, so values
+    below 1 are shifted up first; the field is divided out of the original values (:func:`corrected`).
     """
     import SimpleITK as sitk
 
@@ -89,8 +90,6 @@ def n4_log_field(volume: io.Volume, body_zyx: np.ndarray, *, voxel_mm: float = N
 def corrected(volume: io.Volume) -> tuple[io.Volume, BiasField] | None:
     """``volume`` divided by its N4 bias field (over :func:`n4_mask`), and the field's record; ``None`` when the
     field's range over the body is below ``MIN_FIELD_RANGE`` (nothing to correct) or the body is empty."""
-    import time
-
     body_zyx = n4_mask(volume)
     if not body_zyx.any():
         return None

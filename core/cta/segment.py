@@ -418,8 +418,9 @@ class NotTubularError(SegmentationError):
 
 
 class AmbiguousComponentsError(SegmentationError):
-    """Two separate bright tubular structures of comparable vesselness mass (``VesselOptions.ambiguous_component_ratio``):
-    ``inside_lps_mm`` is a ``(2, 3)`` array, the most tubular voxel of each (the largest first), a seed that picks it."""
+    """Two separate bright tubular structures of comparable vesselness mass
+    (``VesselOptions.ambiguous_component_ratio``): ``inside_lps_mm`` is a ``(2, 3)`` array, the most tubular voxel of
+    each (the largest first), a seed that picks it."""
 
     def __init__(self, message: str, inside_lps_mm: np.ndarray):
         super().__init__(message)

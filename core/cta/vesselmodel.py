@@ -813,7 +813,7 @@ def _estimate_intensity_model(volume: io.Volume, *, seeds_lps_mm=None):
     n_cand = int(cand.sum())
     if n_cand < 20:
         raise NonUniformError(f"{what}: no vessels found (no contrast: nothing brighter than the tissue, "
-                                f"background {bg:.4g}, noise {noise:.3g}); give --seed-lps in a vessel if there is one")
+                              f"background {bg:.4g}, noise {noise:.3g}); give --seed-lps in a vessel if there is one")
     # saturated voxels (the scanner's ceiling: metal, an undiluted bolus) carry no level
     hi_val = float(ds.max())
     cand &= ds < hi_val - max(noise, 1e-6 * abs(hi_val))
@@ -900,9 +900,9 @@ def _estimate_intensity_model(volume: io.Volume, *, seeds_lps_mm=None):
     spread_tissue = _tissue_level_range(ds, body, sp_ds)
     if spread_tissue > MAX_TISSUE_RANGE_CONTRAST * model.contrast:
         raise NonUniformError(f"{what}: intensities not uniform: the tissue level varies by {spread_tissue:.4g} across "
-                                f"the body, {spread_tissue / model.contrast:.2f}x the lumen's contrast ({L:.4g} over "
-                                f"{bg:.4g}; at most {MAX_TISSUE_RANGE_CONTRAST:g}x expected): an intensity bias field "
-                                f"(MR coil shading)? correct it (e.g. N4) or give --seed-lps in a vessel")
+                              f"the body, {spread_tissue / model.contrast:.2f}x the lumen's contrast ({L:.4g} over "
+                              f"{bg:.4g}; at most {MAX_TISSUE_RANGE_CONTRAST:g}x expected): an intensity bias field "
+                              f"(MR coil shading)? correct it (e.g. N4) or give --seed-lps in a vessel")
     # the lumen class's shape: the fraction of the candidates at the lumen level (all, tubular or not) that are tubular
     lumen_tubular = _class_tubular_fraction(vals, ves, L, bg)
     _check_consistent(model, what, vals[tub_all], ves[tub_all], med=med, air=lo_mode, lumen_tubular=lumen_tubular)
@@ -1405,10 +1405,9 @@ def _one_of_two_structures(volume: io.Volume, err, *, progress: bool, options, c
     pool's, not a vessel tree, and counts as refused.
 
     Which of two comparable structures is the vessel tree cannot be told by size, but it can by what the automatic
-    stage finds in each: an MR angiogram's abdominal slab that cuts the heart holds the heart's bright blood beside
-    the aorta's tree (1.35x its vesselness), and the heart's tree is refused as a blood pool while the aorta's
-    passes. Two vessel systems that both pass (arteries and enhanced veins, two carotid systems without their arch)
-    stay ambiguous.
+    stage (without its bias-field retry) finds in each: an MR angiogram's abdominal slab that cuts the heart holds the
+    heart's bright blood beside the aorta's tree (1.35x its vesselness), and the heart's tree is refused as a blood
+    pool while the aorta's passes. Two structures that both pass (the tests' two separate trunks) stay ambiguous.
     """
     t0 = time.perf_counter()
     outcomes = []
@@ -1429,14 +1428,16 @@ def _one_of_two_structures(volume: io.Volume, err, *, progress: bool, options, c
         k = passed[0]
         av = outcomes[k]
         why = str(outcomes[1 - k]).split(": ", 1)[-1]
-        note = f"of two separate bright structures of comparable size, the other's tree (at LPS {where[1 - k]}) was refused: {why}"
+        note = (f"of two separate bright structures of comparable size, the other's tree (at LPS {where[1 - k]}) was "
+                f"refused: {why}")
         secs = dict(av.seconds, structures=time.perf_counter() - t0)
         secs["total"] = secs["structures"]  # both structures' runs
         return replace(av, segmentation=f"{av.segmentation}+one of two", seconds=secs,
                        pruned="; ".join(x for x in (av.pruned, note) if x))
     if passed:
         raise SegmentationError(f"{err}; each alone gives a plausible tree") from None
-    raise SegmentationError(f"{err}; alone, neither gives a plausible tree ({'; '.join(str(o).split(': ', 1)[-1] for o in outcomes)})") from None
+    reasons = "; ".join(str(o).split(": ", 1)[-1] for o in outcomes)
+    raise SegmentationError(f"{err}; alone, neither gives a plausible tree ({reasons})") from None
 
 
 def extract_vessels_auto(volume: io.Volume, *, seeds_lps_mm=None, progress: bool = False, options=None,
@@ -1485,11 +1486,10 @@ def extract_vessels_auto(volume: io.Volume, *, seeds_lps_mm=None, progress: bool
     refused (:func:`_one_of_two_structures`); when both pass or both are refused, the volume is refused as ambiguous.
 
     A volume not in HU (:func:`looks_like_hu`) that all of the above refuses for a reason an intensity bias field can
-    cause (:class:`NonUniformError`) is taken once more divided by its
-    intensity bias field (:func:`guidewire3d.cta.biasfield.corrected`: N4 over the body; an MR receive coil's
-    shading), when that field spans at least ``biasfield.MIN_FIELD_RANGE`` of gain: its tree is returned
-    (``bias_field`` says what was divided out; the model's levels are the corrected volume's), else both reasons are
-    given.
+    cause (:class:`NonUniformError`) is taken once more divided by its bias field (an MR receive coil's shading;
+    :func:`guidewire3d.cta.biasfield.corrected`: N4 over the body), when that field spans at least
+    ``biasfield.MIN_FIELD_RANGE`` of gain: its tree is returned (``bias_field`` says what was divided out; the model's
+    levels are the corrected volume's), else both reasons are given.
 
     Every stage runs on the volume laid out in a canonical axis order
     (:func:`guidewire3d.cta.grid.canonical_volume`): the same physical volume stored in another axis order (a
