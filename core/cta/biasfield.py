@@ -20,6 +20,11 @@ from guidewire3d import io
 
 N4_VOXEL_MM = 6.0  # the shrunk copy N4 fits on (mm)
 N4_ITERATIONS = (50, 50, 50, 50)  # per fitting level (the B-spline control grid doubles at each)
+#: the quick fit (a volume whose tree passed but whose tissue level varies like a field's): it recovers a +-30 % field
+#: (gain range 0.42 against 0.43 for the full fit on the MR-like coronal copy) but not a +-60 % one (0.38 against 0.88),
+#: in 3-13 s where the full fit takes 6-48 s (AMD EPYC, 2 cores, load 3; the CT in arbitrary units: 13 against 26 s)
+N4_QUICK_VOXEL_MM = 8.0
+N4_QUICK_ITERATIONS = (30, 30, 30)
 #: a field whose range over the body (5th-95th percentile of the gain) is below this leaves the volume as it was
 MIN_FIELD_RANGE = 0.05
 
@@ -87,18 +92,21 @@ def n4_log_field(volume: io.Volume, body_zyx: np.ndarray, *, voxel_mm: float = N
     return log - np.float32(np.mean(log[body_zyx])) if body_zyx.any() else log
 
 
-def corrected(volume: io.Volume) -> tuple[io.Volume, BiasField] | None:
-    """``volume`` divided by its N4 bias field (over :func:`n4_mask`), and the field's record; ``None`` when the
-    field's range over the body is below ``MIN_FIELD_RANGE`` (nothing to correct) or the body is empty."""
+def corrected(volume: io.Volume, *, min_range: float = MIN_FIELD_RANGE, quick: bool = False
+              ) -> tuple[io.Volume, BiasField] | None:
+    """``volume`` divided by its N4 bias field (over :func:`n4_mask`; ``quick``: the ``N4_QUICK_*`` fit), and the
+    field's record; ``None`` when the field's range over the body is below ``min_range`` (nothing to correct) or the
+    body is empty."""
     body_zyx = n4_mask(volume)
     if not body_zyx.any():
         return None
     t0 = time.perf_counter()
-    log = n4_log_field(volume, body_zyx)
+    log = (n4_log_field(volume, body_zyx, voxel_mm=N4_QUICK_VOXEL_MM, iterations=N4_QUICK_ITERATIONS) if quick
+           else n4_log_field(volume, body_zyx))
     gain = np.exp(log)
     p5, p95 = (float(v) for v in np.percentile(gain[body_zyx][:: max(1, int(body_zyx.sum()) // 1_000_000)], [5, 95]))
     rec = BiasField(p5, p95, time.perf_counter() - t0)
-    if rec.range < MIN_FIELD_RANGE:
+    if rec.range < min_range:
         return None
     out = io.Volume((np.asarray(volume.array_zyx, dtype=np.float32) / gain).astype(np.float32), volume.spacing_mm,
                     volume.origin_lps_mm, volume.direction, source=volume.source)

