@@ -132,8 +132,8 @@ def cli_main(args) -> int:
     elif auto.pruned:  # blood pools cut, or one of two separate structures chosen, from a tree that passed
         say(f"note: {auto.pruned} (check it in the viewer)")
     if auto.bias_field:
-        say(f"note: the volume as it was gave no plausible vessel tree; {auto.bias_field} and the tree is that of the "
-            f"corrected volume (the intensity levels in vessels.json are its)")
+        say(f"note: {auto.bias_field}; the tree is that of the corrected volume (the intensity levels in vessels.json "
+            f"are its)")
     if auto.seeded == "automatic tree":
         say("the automatic vessel tree holds every seed: it is written, rooted at its end nearest the first seed")
     elif auto.seeded == "seeds":

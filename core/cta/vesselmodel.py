@@ -298,8 +298,8 @@ class IntensityModel:
     #: tubular (``FLOOR_COMPONENT_TUBULAR``)
     floor: float | None = None
     #: the range of the local tissue level across the body over the contrast (:func:`_tissue_level_range`; NaN with
-    #: seeds): a CT's anatomy 0.11-0.25, an MR under a +-30 % coil field 0.35; above ``MAX_TISSUE_RANGE_CONTRAST`` the
-    #: volume is refused, above ``FIELD_SUSPECT_RANGE`` a volume not in HU is checked for a bias field
+    #: seeds; the values measured: ``FIELD_SUSPECT_RANGE``'s comment); above ``MAX_TISSUE_RANGE_CONTRAST`` the volume is
+    #: refused, above ``FIELD_SUSPECT_RANGE`` a volume not in HU is checked for a bias field
     tissue_range: float = float("nan")
     #: its lumen lies above the tissue where a CT's contrast does, relative to its air (:func:`_ct_contrast_rise`): a CT
     #: in other units, which has no coil field
