@@ -1446,7 +1446,7 @@ def _one_of_two_structures(volume: io.Volume, err, *, progress: bool, options, c
     if len(passed) == 1:
         k = passed[0]
         av = outcomes[k]
-        why = str(outcomes[1 - k]).split(": ", 1)[-1]
+        why = _reason(outcomes[1 - k])
         note = (f"of two separate bright structures of comparable size, the other's tree (at LPS {where[1 - k]}) was "
                 f"refused: {why}")
         secs = dict(av.seconds, structures=time.perf_counter() - t0)
@@ -1455,7 +1455,7 @@ def _one_of_two_structures(volume: io.Volume, err, *, progress: bool, options, c
                        pruned="; ".join(x for x in (av.pruned, note) if x))
     if passed:
         raise SegmentationError(f"{err}; each alone gives a plausible tree") from None
-    reasons = "; ".join(str(o).split(": ", 1)[-1] for o in outcomes)
+    reasons = "; ".join(_reason(o) for o in outcomes)
     raise SegmentationError(f"{err}; alone, neither gives a plausible tree ({reasons})") from None
 
 
@@ -1522,31 +1522,36 @@ def extract_vessels_auto(volume: io.Volume, *, seeds_lps_mm=None, progress: bool
         fixed = None if looks_like_hu(volume) else biasfield.corrected(volume)
         if fixed is None:
             raise
-        first = e
-    else:
-        if (seeds_lps_mm is not None or not av.model.tissue_range > FIELD_SUSPECT_RANGE or av.model.ct_like
-                or looks_like_hu(volume)):
-            return av
-        # a tree that passed, from a volume whose tissue level varies like a field's: the tree of the volume without
-        # its field, if there is a field (the MR-like coronal copy under +-30 %: 20 % of its tree in organs)
-        fixed = biasfield.corrected(volume, min_range=FIELD_SUSPECT_GAIN_RANGE, quick=True)
-        if fixed is None:
-            return av
         try:
-            av2 = _extract_vessels_auto(fixed[0], **kw)
-        except SegmentationError:
-            return av
-        av2.seconds["bias_field"] = fixed[1].seconds
-        av2.seconds["total"] = av2.seconds.get("total", 0.0) + fixed[1].seconds + av.seconds.get("total", 0.0)
-        return replace(av2, bias_field=fixed[1].explain())
-    flat, field = fixed
+            return _tree_without_field(*fixed, kw)
+        except SegmentationError as e2:
+            raise SegmentationError(f"{e}; and once {fixed[1].explain()}: {_reason(e2)}") from None
+    if (seeds_lps_mm is not None or not av.model.tissue_range > FIELD_SUSPECT_RANGE or av.model.ct_like
+            or looks_like_hu(volume)):
+        return av
+    # a tree that passed, from a volume whose tissue level varies like a field's: the tree of the volume without its
+    # field, if there is a field (the MR-like coronal copy under +-30 %: 20 % of its tree in organs)
+    fixed = biasfield.corrected(volume, min_range=FIELD_SUSPECT_GAIN_RANGE, quick=True)
+    if fixed is None:
+        return av
     try:
-        av = _extract_vessels_auto(flat, **kw)
-    except SegmentationError as e2:
-        raise SegmentationError(f"{first}; and once {field.explain()}: {str(e2).split(': ', 1)[-1]}") from None
-    av.seconds["bias_field"] = field.seconds
-    av.seconds["total"] = av.seconds.get("total", 0.0) + field.seconds
-    return replace(av, bias_field=field.explain())
+        return _tree_without_field(*fixed, kw, earlier_s=av.seconds.get("total", 0.0))
+    except SegmentationError:
+        return av
+
+
+def _tree_without_field(flat: io.Volume, field, kw: dict, earlier_s: float = 0.0) -> AutoVessels:
+    """:func:`_extract_vessels_auto` of ``flat`` (the volume divided by its bias field ``field``, a
+    ``biasfield.BiasField``), saying so; its time counts N4's and ``earlier_s`` (the run on the volume as it was)."""
+    av = _extract_vessels_auto(flat, **kw)
+    secs = dict(av.seconds, bias_field=field.seconds)
+    secs["total"] = secs.get("total", 0.0) + field.seconds + earlier_s
+    return replace(av, seconds=secs, bias_field=field.explain())
+
+
+def _reason(err: Exception) -> str:
+    """A refusal's reason without the volume's name it starts with."""
+    return str(err).split(": ", 1)[-1]
 
 
 def _extract_vessels_auto(volume: io.Volume, *, seeds_lps_mm=None, progress: bool = False, options=None,
