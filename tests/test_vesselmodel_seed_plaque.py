@@ -61,3 +61,14 @@ def test_the_seeded_tree_leaves_the_plaque_out():
     r = vesselmodel.extract_vessels_auto(plaqued, seeds_lps_mm=[(c - 1.0, c, c)])
     assert r.vessels.tree.total_length_mm > 0.8 * N * SPACING_MM
     assert not np.any(r.vessels.mask_zyx & (plaqued.array_zyx >= vesselmodel.HU_LUMEN_MAX))
+
+
+def test_a_seed_wholly_inside_a_plaques_shell_still_reads_a_level():
+    """A seed whose whole 1.5 mm box lies within ``SEED_CEILING_MARGIN_MM`` of voxels at or above ``HU_LUMEN_MAX`` (a
+    ring of calcification around it) reads the box as it is rather than a level of nothing."""
+    h, n = SPACING_MM, 40
+    v = np.full((n, n, n), TISSUE_HU, np.float32)
+    v[::4, :, :] = PLAQUE_HU  # calcified sheets 2 mm apart: every voxel within 1 mm of one above 650 HU
+    seed = np.array([21.0, 20.0, 20.0])  # between two sheets, its smoothed value about 230 HU: a ceiling applies
+    c, level = vesselmodel._seed_lumen_level(v, seed, np.full(3, h), hu=True)
+    assert np.isfinite(level) and level > TISSUE_HU

@@ -797,12 +797,15 @@ def _seed_lumen_level(a: np.ndarray, idx_zyx: np.ndarray, sp_zyx: np.ndarray, *,
         w0, lo0 = _seed_window(a, c0, sp_zyx, 0.0, None)
         if float(w0[tuple(c0 - lo0)]) < HU_LUMEN_MAX:
             ceiling = HU_LUMEN_MAX
-    c = _lumen_centre_near(a, c0, sp_zyx, SEED_CLIMB_MM, ceiling=ceiling)
-    win, lo = _seed_window(a, c, sp_zyx, 0.0, ceiling)
     r = np.ceil(1.5 / sp_zyx).astype(int)
-    k = c - lo
-    box = win[max(k[0] - r[0], 0):k[0] + r[0] + 1, max(k[1] - r[1], 0):k[1] + r[1] + 1,
-              max(k[2] - r[2], 0):k[2] + r[2] + 1]
+    for cap in ((ceiling, None) if ceiling is not None else (None,)):
+        c = _lumen_centre_near(a, c0, sp_zyx, SEED_CLIMB_MM, ceiling=cap)
+        win, lo = _seed_window(a, c, sp_zyx, 0.0, cap)
+        k = c - lo
+        box = win[max(k[0] - r[0], 0):k[0] + r[0] + 1, max(k[1] - r[1], 0):k[1] + r[1] + 1,
+                  max(k[2] - r[2], 0):k[2] + r[2] + 1]
+        if np.isfinite(box).any():  # else the seed lies in a calcification's shell: read as it is
+            break
     return c, float(np.nanpercentile(box, 75))
 
 
