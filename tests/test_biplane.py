@@ -1,4 +1,5 @@
 """Biplane (issue 23): simulator plane B, joint registration, two-view wire, fallback, CLI."""
+import hashlib
 import json
 
 import numpy as np
@@ -289,6 +290,13 @@ def test_cli_biplane_end_to_end(bcase_dir, tmp_path, capsys):
     assert planes[1]["carm"]["primary_deg"] == pytest.approx(truth.heldout_carm.primary_deg)
     assert all(p["fits_2d"] for p in planes)
     assert rep["inputs"]["roadmap_b"].endswith("roadmap_b.dcm")
+    # every file read is recorded, both planes' (a one-view run's report.json does the same: inputs.files)
+    files = rep["inputs"]["files"]
+    assert set(files) == {"cta", "roadmap", "frames", "roadmap_b", "frames_b"}
+    assert len(files["cta"]) == len([p for p in (bcase_dir / "ct").iterdir() if p.is_file()])
+    for role in ("roadmap_b", "frames_b"):
+        (rec,) = files[role]
+        assert rec["sha256"] == hashlib.sha256((bcase_dir / f"{role}.dcm").read_bytes()).hexdigest()
     assert len(rep["frames"]) == 3
     for fr in rep["frames"]:
         assert fr["biplane"]["views"] in ("AB", "A", "B")

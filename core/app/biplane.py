@@ -1132,11 +1132,21 @@ def run_to_outdir(cta, roadmaps, frames, out_dir, *, series_uid=None, roadmap_fr
     out_dir = Path(out_dir)
     io.require_empty_folder(out_dir, min_free_mb=pipeline.MIN_FREE_MB)
     t0 = time.perf_counter()
+
+    def files_of(uid):  # report.json's inputs.files (as pipeline.run_to_outdir), both planes' XA files
+        return pipeline._input_files(cta, roadmaps[0], frames[0], series_uid=uid, plane_b=(roadmaps[1], frames[1]))
+
+    try:  # before the files are read: one that changes meanwhile looks changed to a later run, never the same
+        files_uid, files = files_of(series_uid)
+    except Guidewire3DError:
+        files_uid, files = None, None  # the readers below name the bad input
     roads = [pipeline.read_xa_input(r) for r in roadmaps]
     lives = [road if Path(f).resolve() == Path(r).resolve() else pipeline.read_xa_input(f)
              for road, r, f in zip(roads, roadmaps, frames)]
     check_inputs(roads, lives, roadmap_frame=roadmap_frame)
     vol = io.read_volume(cta, series_uid=series_uid, log=log)
+    if files_uid != vol.series_uid:  # the folder changed between the two reads
+        files = files_of(vol.series_uid or None)[1]
     pipeline.check_seeds(vol, seeds_lps_mm)
     if access_lps_mm is not None:
         access_lps_mm = check_access(access_lps_mm, bounds_lps_mm=vol.bounds_lps_mm)
@@ -1159,6 +1169,7 @@ def run_to_outdir(cta, roadmaps, frames, out_dir, *, series_uid=None, roadmap_fr
             "forced": bool(force),
             "track_motion": False,
             "biplane": True,
+            "files": files,
         }
         if access_lps_mm is not None:
             inputs["access_lps_mm"] = [round(float(v), 3) for v in access_lps_mm]

@@ -110,12 +110,17 @@ def input_files(cta, roadmap, frames, *, series_uid=None) -> dict:
     return _input_files(cta, roadmap, frames, series_uid=series_uid)[1]
 
 
-def _input_files(cta, roadmap, frames, *, series_uid=None) -> tuple[str, dict]:
-    """:func:`input_files` and the series uid of the CTA's files ("" for a NIfTI/NRRD/MHA file)."""
-    cta, roadmap, frames = Path(cta), Path(roadmap), Path(frames)
+def _input_files(cta, roadmap, frames, *, series_uid=None, plane_b=None) -> tuple[str, dict]:
+    """:func:`input_files` and the series uid of the CTA's files ("" for a NIfTI/NRRD/MHA file); with ``plane_b``
+    (a biplane run's ``(roadmap, frames)`` of plane B) also ``roadmap_b`` and ``frames_b``."""
+    cta = Path(cta)
     uid, ct_files = io.volume_files(cta, series_uid=series_uid)
     out = {"cta": io.file_fingerprints(ct_files, root=cta if cta.is_dir() else None)}
-    for role, path in (("roadmap", roadmap), ("frames", frames)):
+    xa = [("roadmap", roadmap), ("frames", frames)]
+    if plane_b is not None:
+        xa += [("roadmap_b", plane_b[0]), ("frames_b", plane_b[1])]
+    for role, path in xa:
+        path = Path(path)
         out[role] = io.file_fingerprints(_xa_input_files(path), root=path if path.is_dir() else None)
     return uid, out
 
