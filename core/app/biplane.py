@@ -1134,7 +1134,8 @@ def run_to_outdir(cta, roadmaps, frames, out_dir, *, series_uid=None, roadmap_fr
     t0 = time.perf_counter()
 
     def files_of(uid):  # report.json's inputs.files (as pipeline.run_to_outdir), both planes' XA files
-        return pipeline._input_files(cta, roadmaps[0], frames[0], series_uid=uid, plane_b=(roadmaps[1], frames[1]))
+        return pipeline.series_and_input_files(cta, roadmaps[0], frames[0], series_uid=uid,
+                                               plane_b=(roadmaps[1], frames[1]))
 
     try:  # before the files are read: one that changes meanwhile looks changed to a later run, never the same
         files_uid, files = files_of(series_uid)

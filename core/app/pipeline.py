@@ -30,7 +30,7 @@ from guidewire3d.xray.orderedwire import OrderedWire
 from guidewire3d.xray.roadmap import Centerline2D, roadmap_centerline
 
 __all__ = ["PipelineResult", "run", "run_to_outdir", "load_inputs", "choose_roadmap_frame", "check_roadmap_frame",
-           "check_seeds", "rooted_vessels", "write_access_record", "input_files"]
+           "check_seeds", "rooted_vessels", "write_access_record", "input_files", "series_and_input_files"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -107,11 +107,11 @@ def input_files(cta, roadmap, frames, *, series_uid=None) -> dict:
     InputError, DicomError
         An input is missing or unreadable, or the folder lacks the series.
     """
-    return _input_files(cta, roadmap, frames, series_uid=series_uid)[1]
+    return series_and_input_files(cta, roadmap, frames, series_uid=series_uid)[1]
 
 
-def _input_files(cta, roadmap, frames, *, series_uid=None, plane_b=None) -> tuple[str, dict]:
-    """:func:`input_files` and the series uid of the CTA's files ("" for a NIfTI/NRRD/MHA file); with ``plane_b``
+def series_and_input_files(cta, roadmap, frames, *, series_uid=None, plane_b=None) -> tuple[str, dict]:
+    """The series uid of the CTA's files ("" for a NIfTI/NRRD/MHA file) and :func:`input_files`; with ``plane_b``
     (a biplane run's ``(roadmap, frames)`` of plane B) also ``roadmap_b`` and ``frames_b``."""
     cta = Path(cta)
     uid, ct_files = io.volume_files(cta, series_uid=series_uid)
@@ -364,7 +364,7 @@ def run_to_outdir(cta, roadmap, frames, out_dir, *, series_uid=None, overrides=N
     io.require_empty_folder(out_dir, replace=replace, min_free_mb=MIN_FREE_MB)
     t0 = time.perf_counter()
     try:  # before the files are read: one that changes meanwhile looks changed to a later run, never the same
-        files_uid, files = _input_files(cta, roadmap, frames, series_uid=series_uid)
+        files_uid, files = series_and_input_files(cta, roadmap, frames, series_uid=series_uid)
     except Guidewire3DError:
         files_uid, files = None, None  # load_inputs names the bad input
     vol, road, live = load_inputs(cta, roadmap, frames, series_uid=series_uid, overrides=overrides, log=log)
