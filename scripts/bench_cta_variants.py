@@ -163,6 +163,13 @@ def _grid_points(shape, M, o):
     return idx @ M.T + o
 
 
+def field_on(vol, amplitude: float) -> np.ndarray:
+    """:func:`bias_field` (``amplitude``) at the voxels of ``vol`` (an ``io.Volume``), float32 on its grid."""
+    M = np.asarray(vol.direction) @ np.diag(vol.spacing_mm)
+    pts = _grid_points(vol.shape_zyx, M[:, ::-1], np.asarray(vol.origin_lps_mm))
+    return bias_field(pts, amplitude=amplitude).reshape(vol.shape_zyx).astype(np.float32)
+
+
 def _rotation(axis, deg):
     a = np.asarray(axis, float) / np.linalg.norm(axis)
     t = np.radians(deg)
@@ -222,11 +229,9 @@ def build_variant(name: str, data: Path, tmp: Path):
         lab = resample(labels, vol, (v.shape_zyx[::-1], v.spacing_mm, v.origin_lps_mm, v.direction), linear=False)
         return v, lab
     if name in FIELD_VARIANTS:
-        M = np.asarray(vol.direction) @ np.diag(vol.spacing_mm)
-        f = bias_field(_grid_points(A.shape, M[:, ::-1], np.asarray(vol.origin_lps_mm)),
-                       amplitude=int(name[-2:]) / 100.0).reshape(A.shape).astype(np.float32)
-        base = A if name.startswith("hu") else A * np.float32(0.5) + np.float32(1000.0)
-        return io.Volume(base * f, vol.spacing_mm, vol.origin_lps_mm, vol.direction, source=name), labels
+        base = vol if name.startswith("hu") else B.in_arbitrary_units(vol)
+        return io.Volume(base.array_zyx * field_on(vol, int(name[-2:]) / 100.0), vol.spacing_mm, vol.origin_lps_mm,
+                         vol.direction, source=name), labels
     L, P, S = np.eye(3)
     cor = np.column_stack([L, -S, P])           # rows along L, columns towards inferior, slices towards posterior
     if name.startswith(("au_cor", "mr_cor")) or name == "mr_sub_cor":
@@ -266,10 +271,7 @@ def build_variant(name: str, data: Path, tmp: Path):
         M_o = grid[1:]
     v0 = io.Volume(img, *M_o, source=name)
     if name.startswith("mr_cor_bias"):
-        M = np.asarray(v0.direction) @ np.diag(v0.spacing_mm)
-        pts = _grid_points(img.shape, M[:, ::-1], np.asarray(v0.origin_lps_mm))
-        f = bias_field(pts, amplitude=0.6 if name.endswith("60") else 0.3).reshape(img.shape)
-        img = img * f.astype(np.float32)
+        img = img * field_on(v0, 0.6 if name.endswith("60") else 0.3)
 
     def rician(x):
         n1 = rng.normal(0, sigma, x.shape).astype(np.float32)
