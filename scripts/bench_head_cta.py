@@ -128,14 +128,32 @@ TOF_LEVELS = dict(air=10.0, tissue=180.0, fat=330.0, table=40.0, diploe=330.0, b
                   vein=215.0, artery=470.0, noise=9.0)
 
 
+#: The ``tofslab`` variant: a clinical 3D TOF slab over the circle of Willis (as the IXI and TopCoW MRAs are:
+#: 0.47 x 0.47 x 0.8 mm, about 80 mm thick), with what the whole-head ``tof`` lacks: the arterial signal falls by
+#: ``saturation`` of itself from the slab's inferior edge to its superior edge (inflow saturation), a receive
+#: coil's shading (``coil_gain``: the periphery brighter than the centre) and magnitude (Rician) noise.
+#: Its arteries enter at ``artery`` (a clinical TOF's inflowing arteries are 3-5x the brain's signal; the whole-head
+#: ``tof`` keeps 2.35x, which at the slab's top, saturated, would fall below the scalp fat).
+TOF_SLAB = dict(spacing_xyz_mm=(0.47, 0.47, 0.8), z_mm=(-38.0, 42.0), saturation=0.3, coil_gain=0.3, artery=650.0)
+
+
 def head_phantom(mode: str = "hu", spacing_mm: float = 0.7, seed: int = 0):
-    """``(volume, arteries, artery_sd_mm, vein_sd_mm, bone_mask)`` of the synthetic head (see the module)."""
-    h = float(spacing_mm)
-    n = np.round(EXTENT_MM / h).astype(int)
-    z, y, x = np.meshgrid(ORIGIN_MM[2] + h * np.arange(n[2]), ORIGIN_MM[1] + h * np.arange(n[1]),
-                          ORIGIN_MM[0] + h * np.arange(n[0]), indexing="ij", sparse=True)
+    """``(volume, arteries, artery_sd_mm, vein_sd_mm, bone_mask)`` of the synthetic head (see the module).
+
+    ``tofslab`` ignores ``spacing_mm``: it is a clinical TOF slab (``TOF_SLAB``) on its own anisotropic grid.
+    """
+    slab = mode == "tofslab"
+    sp_xyz = np.array(TOF_SLAB["spacing_xyz_mm"] if slab else (spacing_mm,) * 3, float)
+    org_xyz = ORIGIN_MM.copy()
+    ext_xyz = EXTENT_MM.copy()
+    if slab:
+        org_xyz[2], ext_xyz[2] = TOF_SLAB["z_mm"][0], TOF_SLAB["z_mm"][1] - TOF_SLAB["z_mm"][0]
+    h = float(np.prod(sp_xyz) ** (1.0 / 3.0))  # the partial-volume rim's width
+    n = np.round(ext_xyz / sp_xyz).astype(int)
+    z, y, x = np.meshgrid(org_xyz[2] + sp_xyz[2] * np.arange(n[2]), org_xyz[1] + sp_xyz[1] * np.arange(n[1]),
+                          org_xyz[0] + sp_xyz[0] * np.arange(n[0]), indexing="ij", sparse=True)
     rng = np.random.default_rng(seed)
-    lv = TOF_LEVELS if mode == "tof" else HU_LEVELS
+    lv = TOF_LEVELS if mode in ("tof", "tofslab") else HU_LEVELS
     v = np.full((n[2], n[1], n[0]), lv["air"], np.float32)
     hu_v = np.full(v.shape, HU_LEVELS["air"], np.float32)  # the HU levels, for the rules that overlay by level
 
@@ -175,8 +193,8 @@ def head_phantom(mode: str = "hu", spacing_mm: float = 0.7, seed: int = 0):
     arteries, veins = vessel_polylines()
     if mode == "dra1":  # a selective injection of the left internal carotid: only its territory holds contrast
         arteries = {k: arteries[k] for k in SELECTIVE_DRA}
-    sp_zyx = np.full(3, h)
-    org_zyx = ORIGIN_MM[::-1]
+    sp_zyx = sp_xyz[::-1]
+    org_zyx = org_xyz[::-1]
     sd_vein = _signed_distance_to_tubes(veins, v.shape, sp_zyx, org_zyx)
     sd_art = _signed_distance_to_tubes(arteries, v.shape, sp_zyx, org_zyx)
     rotational = mode in ("dra", "dra1")
@@ -184,11 +202,18 @@ def head_phantom(mode: str = "hu", spacing_mm: float = 0.7, seed: int = 0):
         frac = np.clip(0.5 - sd_vein / h, 0, 1)
         v[:] = v * (1 - frac) + lv["vein"] * frac
     level = DRA_ARTERY_HU if rotational else lv["artery"]
+    if slab:  # inflow saturation: the arterial signal falls with the blood's path into the slab
+        level = TOF_SLAB["artery"] * (1.0 - TOF_SLAB["saturation"] * (z - org_xyz[2]) / ext_xyz[2])
     frac = np.clip(0.5 - sd_art / h, 0, 1)
     v[:] = v * (1 - frac) + level * frac
     bone &= sd_art > 0
-    v = ndi.gaussian_filter(v, 0.5 / h).astype(np.float32)
-    v += rng.normal(0, lv["noise"], v.shape).astype(np.float32)
+    v = ndi.gaussian_filter(v, 0.5 / sp_zyx).astype(np.float32)
+    if slab:  # a receive coil array's shading (bright periphery), then magnitude (Rician) noise
+        r2 = (x / 72.0) ** 2 + (y / 88.0) ** 2
+        v *= (1.0 + TOF_SLAB["coil_gain"] * (r2 - 0.5)).astype(np.float32)
+        v = np.hypot(v + rng.normal(0, lv["noise"], v.shape), rng.normal(0, lv["noise"], v.shape)).astype(np.float32)
+    else:
+        v += rng.normal(0, lv["noise"], v.shape).astype(np.float32)
     if rotational:
         fov = (x ** 2 + (y - 5) ** 2 < 85 ** 2) & (z > -60) & (z < 70)
         v[~np.broadcast_to(fov, v.shape)] = 0.0
@@ -199,9 +224,9 @@ def head_phantom(mode: str = "hu", spacing_mm: float = 0.7, seed: int = 0):
         v = np.interp(hu, [-1000, -100, 0, 40, 200, 420, 2000], [10, 380, 200, 260, 500, 900, 60]).astype(np.float32)
         dense_bone = hu > 700
         v[dense_bone] = (80.0 + rng.normal(0, 10, int(dense_bone.sum()))).astype(np.float32)
-    elif mode not in ("hu", "tof"):
+    elif mode not in ("hu", "tof", "tofslab"):
         raise ValueError(f"unknown variant {mode!r}")
-    vol = io.Volume(v, (h, h, h), tuple(ORIGIN_MM), np.eye(3), source=f"head phantom ({mode})")
+    vol = io.Volume(v, tuple(sp_xyz), tuple(org_xyz), np.eye(3), source=f"head phantom ({mode})")
     return vol, arteries, sd_art, sd_vein, bone
 
 
@@ -214,6 +239,8 @@ def evaluate(vol, tree, arteries, sd_art, sd_vein, bone) -> dict:
         est.append(p[a] * (1 - w) + p[b] * w)
     est = np.vstack(est)
     ref = np.vstack([dense_polyline(q) for q in arteries.values()])[:, :3]
+    lo, hi = vol.bounds_lps_mm  # the arteries in the field of view (a slab holds part of them)
+    ref = ref[np.all((ref >= np.asarray(lo) - 1e-6) & (ref <= np.asarray(hi) + 1e-6), axis=1)]
     d_re = cKDTree(est).query(ref)[0]
     idx = np.clip(np.rint(vol.lps_to_index_zyx(est)).astype(int), 0, np.array(vol.shape_zyx) - 1)
     ti = tuple(idx.T)
@@ -236,7 +263,7 @@ def main(argv=None) -> int:
         vol, arteries, sd_art, sd_vein, bone = head_phantom(mode, args.spacing_mm, args.noise_seed)
         true_l = {"hu": ARTERY_HU, "au": 0.5 * ARTERY_HU + 1000, "mra": 900.0, "dra": DRA_ARTERY_HU,
                   "dra1": DRA_ARTERY_HU,
-                  "tof": TOF_LEVELS["artery"]}[mode]
+                  "tof": TOF_LEVELS["artery"], "tofslab": TOF_SLAB["artery"]}[mode]
         t0 = time.perf_counter()
         try:
             r = vesselmodel.extract_vessels_auto(vol, seeds_lps_mm=[SEED_LPS_MM] if args.seed else None)

@@ -955,7 +955,18 @@ def _estimate_intensity_model(volume: io.Volume, *, seeds_lps_mm=None):
 
     def lumen_level(sel):
         modes = _significant_modes(vals[sel], ves[sel], bin_w, origin=bg)
-        return _tubular_lumen_mode(modes, vals, ves, background=bg, med=med, air=lo_mode, hu=hu)
+        L, floor = _tubular_lumen_mode(modes, vals, ves, background=bg, med=med, air=lo_mode, hu=hu)
+        above = sel & (vals > L + LUMEN_BAND_FRACTION * (L - bg))
+        rise = (L - med) / (med - lo_mode) if lo_mode is not None and med > lo_mode else float("nan")
+        if floor is None and CT_CONTRAST_RISE[1] < rise < CT_BONE_MAX_RISE and above.sum() >= 10:
+            # a bright class that is no lumen can out-weigh the lumen's class above it more than the modes' cut
+            # (``MODE_MIN_MASS``): a TOF slab's scalp fat and diploe (``scripts/bench_head_cta.py`` ``tofslab``, its
+            # arteries without the neck's; a coil's shading lifts the fat to 1.0-1.2x the rise). Where such a lowest
+            # mode is refused (:func:`_check_consistent`: at 0.6-1.0x, and at 1.0-2.5x when mostly not tubular, as
+            # :func:`_tubular_lumen_mode` passes it over only then), the brighter modes are those above its class
+            more = _significant_modes(vals[above], ves[above], bin_w, origin=bg)
+            return _tubular_lumen_mode([L, *more], vals, ves, background=bg, med=med, air=lo_mode, hu=hu)
+        return L, floor
 
     L, floor = lumen_level(tub)
     tub &= vals > bg + 0.5 * (L - bg)
@@ -1666,6 +1677,37 @@ def _tree_without_field(flat: io.Volume, field, kw: dict, earlier_s: float = 0.0
     return replace(av, seconds=secs, bias_field=field.explain())
 
 
+def _tree_above_floor(volume: io.Volume, model: IntensityModel, evidence, model_s: float, kw: dict) -> AutoVessels:
+    """The automatic tree of a model with a ``floor`` (a bright class that is no lumen, passed over below the lumen:
+    an MR's fat and fatty marrow); when that is refused, the tree with no lumen below the floor's band
+    (``IntensityModel.floor_cut``), saying so; when that is refused too, the first refusal, with both reasons.
+
+    The floor model's threshold lies below the floor, so that a lumen's partial-volume rim stays lumen, and its
+    components must be mostly tubular (``FLOOR_COMPONENT_TUBULAR``). An artery that touches the floor's class (a
+    cortical artery beside the skull's fatty diploe in a TOF slab, ``scripts/bench_head_cta.py`` ``tofslab``) then
+    joins a component of the class that is mostly not tubular, and the whole tree was refused.
+    """
+    def run(m):
+        av = _extract_vessels_auto(volume, reading=(m, evidence), **kw)
+        av.seconds["model"] = model_s
+        av.seconds["total"] = av.seconds.get("total", 0.0) + model_s
+        return av
+
+    cut = replace(model, floor_cut=True)
+    below = f"no lumen below {cut.vessel_options().lumen_min_hu:.4g} (the bright class at {model.floor:.4g} left out)"
+    try:
+        return run(model)
+    except SegmentationError as e:
+        why = _reason(e).split("; give", 1)[0]
+        try:
+            av = run(cut)
+        except SegmentationError as e2:
+            e.args = (f"{e}; and with {below}: {_reason(e2)}",)  # the same class: a field's refusal stays one
+            raise e from None
+    note = f"{why}; so the tree is that with {below}"
+    return replace(av, segmentation=f"{av.segmentation}+floor cut", pruned="; ".join(x for x in (av.pruned, note) if x))
+
+
 def _reason(err: Exception) -> str:
     """A refusal's reason without the volume's name it starts with."""
     return str(err).split(": ", 1)[-1]
@@ -1701,6 +1743,10 @@ def _extract_vessels_auto(volume: io.Volume, *, seeds_lps_mm=None, progress: boo
     t0 = time.perf_counter()
     model, evidence = reading or _estimate_intensity_model(volume, seeds_lps_mm=seeds_lps_mm)
     secs["model"] = time.perf_counter() - t0
+    if reading is None and seeds_lps_mm is None and model.floor is not None and not model.floor_cut:
+        return _tree_above_floor(volume, model, evidence, secs["model"],
+                                 dict(progress=progress, options=options, centerline_options=centerline_options,
+                                      structure_lps_mm=structure_lps_mm))
     if seeds_lps_mm is not None:
         held = _automatic_tree_holding(volume, seeds_lps_mm, progress=progress, options=options,
                                        centerline_options=centerline_options)
