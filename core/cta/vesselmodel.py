@@ -1604,6 +1604,11 @@ def extract_vessels_auto(volume: io.Volume, *, seeds_lps_mm=None, progress: bool
     each is taken through all of the above alone, and the one whose tree passes is returned when the other's is
     refused (:func:`_one_of_two_structures`); when both pass or both are refused, the volume is refused as ambiguous.
 
+    Without seeds, a model with a ``floor`` (a bright class that is no lumen below the lumen: an MR's fat and fatty
+    marrow) whose tree all of the above refuses is taken once more with no lumen below the floor's band
+    (:func:`_tree_above_floor`; ``segmentation`` ends in "+floor cut"): an artery touching that class had joined it
+    in one component that is mostly not tubular.
+
     A volume not in HU (:func:`looks_like_hu`) that all of the above refuses for a reason an intensity bias field can
     cause (:class:`NonUniformError`) is taken once more divided by its bias field (an MR receive coil's shading;
     :func:`guidewire3d.cta.biasfield.corrected`: N4 over the body), when that field spans at least
@@ -1704,7 +1709,7 @@ def _tree_above_floor(volume: io.Volume, model: IntensityModel, evidence, model_
         except SegmentationError as e2:
             e.args = (f"{e}; and with {below}: {_reason(e2)}",)  # the same class: a field's refusal stays one
             raise e from None
-    note = f"{why}; so the tree is that with {below}"
+    note = f"with the bright class at {model.floor:.4g} above the threshold, {why}; so the tree is that with {below}"
     return replace(av, segmentation=f"{av.segmentation}+floor cut", pruned="; ".join(x for x in (av.pruned, note) if x))
 
 
