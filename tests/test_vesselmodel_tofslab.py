@@ -3,7 +3,7 @@
 The whole-head TOF of ``scripts/bench_head_cta.py`` (``tof``) holds the neck's carotid and vertebral arteries; a
 clinical TOF MRA (IXI, TopCoW) is a slab of about 80 mm over the circle of Willis at 0.47 x 0.47 x 0.8 mm, with
 inflow saturation (the arteries dim towards the slab's top), a receive coil's shading and magnitude noise
-(``tofslab``, ``H.TOF_SLAB``). Two things refused such slabs:
+(``tofslab``, ``H.TOF_SLAB``). Three things refused such slabs:
 
 * without the neck's arteries, the scalp fat and fatty diploe out-weighed the arteries' class more than the modes'
   cut, so the only mode was the fat's (0.68x the tissue's rise above air over the tissue: refused as "a CT's bone
@@ -11,7 +11,10 @@ inflow saturation (the arteries dim towards the slab's top), a receive coil's sh
   over (``_estimate_intensity_model``'s ``lumen_level``);
 * a cortical artery touching the fatty diploe joined it in one component that is mostly not tubular, so no
   component was kept ("no tubular bright structure"). Such a refusal is now retried with no lumen below the fat's
-  band (``_tree_above_floor``), and the tree says so.
+  band (``_tree_above_floor``), and the tree says so;
+* a coil's shading of +-25 % lifted the fat into the lumen band, where a lumen class that is mostly not tubular is
+  refused: in a volume not in HU that refusal is now one a bias field can cause (``AmbiguousLumenFieldError``), so
+  the volume divided by its N4 field is tried.
 
 The truth is the phantom's: its arteries' lumen and centerlines within the slab.
 """
@@ -66,6 +69,14 @@ def test_an_artery_touching_the_diploe_does_not_refuse_the_slab(monkeypatch):
 def test_the_clinical_slab(monkeypatch):
     """The default slab: inflow saturation, coil shading, Rician noise."""
     r, m = _tree(monkeypatch)
+    _assert_arteries(m)
+
+
+def test_a_strongly_shaded_slab_is_divided_by_its_field(monkeypatch):
+    """A +-25 % coil shading lifts the scalp fat to 1.16x the rise and dims the central arteries to its level: the
+    lumen class read there is 7 % tubular. Not in HU, that refusal is one a field can cause, so N4 is tried."""
+    r, m = _tree(monkeypatch, coil_gain=0.5)
+    assert r.bias_field.startswith("an intensity bias field was divided out")
     _assert_arteries(m)
 
 

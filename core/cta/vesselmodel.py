@@ -1098,7 +1098,8 @@ def _check_consistent(model: IntensityModel, what: str, vals: np.ndarray, ves: n
     if (bone_band or (model.hu and model.rotational)) and lumen_tubular < MIN_LUMEN_TUBULAR:
         where = (f"{rise:.2f}x the tissue's rise above air over the tissue, where a CT's bone in other units also lies"
                  if bone_band else "in HU, brighter than a CTA's contrast: a 3DRA's contrast, or a CT's bone")
-        raise AmbiguousLumenError(
+        # not in HU, a coil's shading can lift a bright class that is no lumen into the band (a TOF slab's scalp fat)
+        raise (AmbiguousLumenError if model.hu else AmbiguousLumenFieldError)(
             f"{what}: the intensity model is ambiguous: only {100 * lumen_tubular:.0f}% of the voxels at the lumen level "
             f"{L:.4g} ({where}) are tubular (at least {100 * MIN_LUMEN_TUBULAR:.0f}% expected of a contrast lumen): "
             f"bone around a tubular part, not vessels?; give --seed-lps in a vessel")
