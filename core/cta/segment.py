@@ -80,6 +80,10 @@ class VesselOptions:
     # finite (without seeds): when a separate tubular component holds at least this fraction of the vesselness mass
     # of the largest, the choice between them is refused (``SegmentationError``: give a seed) instead of made
     ambiguous_component_ratio: float = float("inf")
+    # finite: a voxel of the bone's margin at least this bright (the lumen's class) with no voxel darker than
+    # ``lumen_min_hu`` within ``bone_margin_mm`` is lumen, not the bone's rim (:func:`_enclosed_lumen`: a carotid
+    # in its petrous canal, whose whole lumen lies within the margin)
+    enclosed_lumen_min_hu: float = float("inf")
 
 
 def _ball_dilate(mask, radius_mm: float, spacing_zyx) -> np.ndarray:
@@ -92,6 +96,50 @@ def _ball_dilate(mask, radius_mm: float, spacing_zyx) -> np.ndarray:
     out = np.zeros_like(mask)
     out[sl] = kernels.dilate_ball(mask[sl], radius_mm, np.asarray(spacing_zyx, dtype=float))
     return out
+
+
+def _enclosed_lumen(sm: np.ndarray, core: np.ndarray, rim: np.ndarray, lumen_min_hu: float, dark_hu: float,
+                    margin_mm: float, spacing_zyx) -> np.ndarray:
+    """The voxels of the bone's margin that are a lumen enclosed by bone, not the bone's partial-volume rim.
+
+    Parameters
+    ----------
+    sm : (z, y, x) ndarray of float32
+        The lightly smoothed volume.
+    core : (z, y, x) ndarray of bool
+        Bone: ``sm`` at or above the bone level.
+    rim : (z, y, x) ndarray of bool
+        ``core`` dilated by ``margin_mm`` (the bone with its partial-volume rim).
+    lumen_min_hu : float
+        The lowest level of the lumen's class.
+    dark_hu : float
+        Below this a voxel is tissue (or air), not lumen nor bone.
+    margin_mm : float
+        The margin's radius.
+    spacing_zyx : (3,) array_like of float
+
+    Returns
+    -------
+    (z, y, x) ndarray of bool
+        Voxels of ``rim`` outside ``core``, at least ``lumen_min_hu`` bright, with no voxel darker than ``dark_hu``
+        within ``margin_mm``.
+
+    Notes
+    -----
+    The margin is there for the bone's rim: the partial volume between bone and the tissue it faces passes
+    through the lumen's levels within a blur's width of the bone, and the tissue lies within the margin beyond it.
+    A lumen in a bony canal (the internal carotid in the petrous bone, a vertebral artery in a transverse foramen)
+    has bone, not tissue, all around it: its voxels are at the lumen's level and nothing dark lies within the
+    margin. The rim of bone that faces a lumen outside the bone (a vessel along a bone) is such a voxel as well: it
+    joins the lumen it faces, not another structure.
+    """
+    near = rim & ~core & (sm >= lumen_min_hu)
+    if not near.any():
+        return near
+    sl = bbox(near, pad=int(np.ceil(margin_mm / min(spacing_zyx))) + 1)
+    dark = sm[sl] < dark_hu
+    near[sl] &= ~_ball_dilate(dark, margin_mm, spacing_zyx) if dark.any() else True
+    return near
 
 
 def _deeper_than(mask, depth_mm: float, spacing_zyx) -> np.ndarray:
@@ -581,7 +629,12 @@ def segment_vessels(volume: io.Volume, *, seeds_lps_mm=None, progress: bool = Fa
     # -- threshold: bone rim out, local half-maximum
     bone = sm >= opt.bone_min_hu
     if bone.any():
+        core = bone
         bone = _ball_dilate(bone, opt.bone_margin_mm, sp_zyx)
+        if np.isfinite(opt.enclosed_lumen_min_hu):
+            bone &= ~_enclosed_lumen(sm, core, bone, opt.enclosed_lumen_min_hu, opt.lumen_min_hu,
+                                     opt.bone_margin_mm, sp_zyx)
+        del core
     low = sm < opt.lumen_min_hu
     bg = float(np.median(sm[low & ~bone])) if np.any(low & ~bone) else opt.background_hu
     window_bg = bg
@@ -596,6 +649,9 @@ def segment_vessels(volume: io.Volume, *, seeds_lps_mm=None, progress: bool = Fa
     cand = (sm >= thr) & ~bone
     if np.isfinite(opt.min_peak_hu):
         cand &= peak >= opt.min_peak_hu
+    # with enclosed lumens, the vesselness sees the bone as the tissue it is not lumen of (the window clips bone to
+    # the lumen's level: a lumen in a canal would be a flat part of the bright bone, not a tube)
+    dark_bone = bone if np.isfinite(opt.enclosed_lumen_min_hu) else None
     del thr, bone, peak
     lab, nlab = ndi.label(cand, structure=np.ones((3, 3, 3)))
     if nlab == 0:
@@ -624,6 +680,9 @@ def segment_vessels(volume: io.Volume, *, seeds_lps_mm=None, progress: bool = Fa
     if np.isfinite(opt.window_background_hu):
         window_bg = min(max(window_bg, float(opt.window_background_hu)), top - 1.0)
     win = (np.clip(sm[vcrop], window_bg, top) - window_bg) / max(top - window_bg, 1.0)
+    if dark_bone is not None:
+        win[dark_bone[vcrop]] = 0.0
+        del dark_bone
     candv = cand[vcrop]
     cidx = np.argwhere(candv)
     ves_c, scale_c = frangi_at(win, cidx, sp_zyx, opt.vesselness_scales_mm, return_scale=True)
@@ -701,6 +760,10 @@ def segment_vessels(volume: io.Volume, *, seeds_lps_mm=None, progress: bool = Fa
             near = _labels_near(lab2, seeds_idx - vofs, opt.seed_radius_mm, sp_zyx) if seeds_idx is not None else set()
             if near:
                 keep2[sorted(near)] = True
+            elif seeds_idx is not None and np.isfinite(opt.enclosed_lumen_min_hu):
+                # the lumen at the seeds is not tubular (the window's low end too low?): not another piece of it
+                raise NotTubularError(f"{what}: no vessels found (the bright component at the seeds has no voxel "
+                                      f"with a vesselness of {opt.tubular_support_min:g} or more near the seeds)")
             else:
                 keep2[1 + int(np.argmax(np.bincount(lab2.ravel())[1:]))] = True
             if opt.support_gap_mm > 0:
