@@ -1724,15 +1724,19 @@ def _tree_above_floor(volume: io.Volume, model: IntensityModel, evidence, model_
 
     cut = replace(model, floor_cut=True)
     below = f"no lumen below {cut.vessel_options().lumen_min_hu:.4g} (the bright class at {model.floor:.4g} left out)"
+    t0 = time.perf_counter()
     try:
         return run(model)
     except SegmentationError as e:
         why = _reason(e).split("; give", 1)[0]
+        first_s = time.perf_counter() - t0
         try:
             av = run(cut)
         except SegmentationError as e2:
             e.args = (f"{e}; and with {below}: {_reason(e2)}",)  # the same class: a field's refusal stays one
             raise e from None
+    av.seconds["first_pass_refused"] = first_s
+    av.seconds["total"] += first_s
     note = f"with the bright class at {model.floor:.4g} above the threshold, {why}; so the tree is that with {below}"
     return replace(av, segmentation=f"{av.segmentation}+floor cut", pruned="; ".join(x for x in (av.pruned, note) if x))
 
