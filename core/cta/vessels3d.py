@@ -18,7 +18,10 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy import ndimage as ndi
+
 from guidewire3d import io
+from guidewire3d.errors import SegmentationError
 from guidewire3d.cta.centerline import CenterlineOptions, centerline_from_mask
 from guidewire3d.cta.segment import VesselOptions, segment_vessels
 from guidewire3d.cta.surface import surface_from_mask
@@ -67,6 +70,8 @@ def extract_vessels(volume: io.Volume, *, seeds_lps_mm=None, progress: bool = Fa
     mask = segment_vessels(volume, seeds_lps_mm=seeds_lps_mm, progress=progress, options=options)
     secs["segment"] = time.perf_counter() - t0
     mask.setflags(write=False)
+    if seeds_lps_mm is not None:
+        _check_seeds_connected(volume, mask, np.atleast_2d(np.asarray(seeds_lps_mm, dtype=float)))
     kw = dict(spacing_mm=volume.spacing_mm, origin_lps_mm=volume.origin_lps_mm, direction=volume.direction)
 
     def surface():
@@ -84,3 +89,33 @@ def extract_vessels(volume: io.Volume, *, seeds_lps_mm=None, progress: bool = Fa
         surf, secs["surface"] = fut.result()
     secs["total"] = time.perf_counter() - t_start
     return CTAVessels(mask_zyx=mask, surface=surf, tree=tree, seconds=secs)
+
+
+def _check_seeds_connected(volume: io.Volume, mask_zyx: np.ndarray, seeds_lps_mm: np.ndarray) -> None:
+    """SegmentationError when a seed's nearest mask voxel is not in the first seed's connected structure.
+
+    The tree is one connected structure, that of the first seed (:func:`centerline_from_mask`). A second seed in a
+    separate one (the other carotid system of a head whose circle of Willis is broken at the threshold, a vein) had
+    its lumen in the mask and the surface but not in the tree, and nothing said so.
+    """
+    if len(seeds_lps_mm) < 2 or not mask_zyx.any():
+        return
+    lab, n = ndi.label(mask_zyx, structure=np.ones((3, 3, 3)))
+    if n < 2:
+        return
+    vox = np.argwhere(mask_zyx)
+    sp_zyx = np.asarray(volume.spacing_mm, dtype=float)[::-1]
+    idx = volume.lps_to_index_zyx(seeds_lps_mm)
+    near = [vox[int(np.argmin(np.linalg.norm((vox - i) * sp_zyx, axis=1)))] for i in idx]
+    labels = [int(lab[tuple(v)]) for v in near]
+    apart = [k for k, lb in enumerate(labels) if lb != labels[0]]
+    if not apart:
+        return
+    first = vox[lab[tuple(vox.T)] == labels[0]]
+    k = apart[0]
+    gap = float(np.min(np.linalg.norm((first - near[k]) * sp_zyx, axis=1)))
+    seed = ",".join(f"{v:g}" for v in seeds_lps_mm[k])
+    raise SegmentationError(
+        f"{volume.source or 'volume'}: --seed-lps={seed} lies in a vessel structure apart from the first seed's "
+        f"({gap:.0f} mm from it at the lumen threshold; {len(apart)} of {len(seeds_lps_mm)} seeds apart): the tree is "
+        f"one connected structure; give seeds in one structure, or run once for each")
