@@ -10,17 +10,117 @@ import dataclasses
 import json
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 from guidewire3d import io
 from guidewire3d.app import export
 from guidewire3d.cta import lostlumen, vesselmodel
+from guidewire3d.errors import SegmentationError
 from guidewire3d.vesseltree import access_record, check_access, rooted_at_access
 
-__all__ = ["vessels_record", "run_to_outdir", "cli_main"]
+__all__ = ["VesselPlan", "plan_vessels", "vessels_record", "write_plan", "forest_polydata", "run_to_outdir",
+           "cli_main"]
 
 MIN_FREE_MB = 16
+
+
+@dataclass(frozen=True, eq=False)
+class VesselPlan:
+    """The vessels of one volume for planning: one tree, or one tree per separate structure the seeds lie in.
+
+    ``trees[0]`` is the first seed's structure (or the only tree); ``seed_groups[k]`` holds the indices of the seeds
+    in ``trees[k]`` (``((),)`` without seeds). Each tree is an ``AutoVessels`` with its own intensity model,
+    plausibility record, mask, surface and centerline, as a single run of the automatic stage gives it.
+    """
+
+    trees: tuple
+    seed_groups: tuple
+    #: why the volume gave more than one tree (the single run's refusal), else ""
+    forest_reason: str = ""
+
+
+def plan_vessels(vol: io.Volume, *, seeds_lps_mm=None, access_lps_mm=None, progress: bool = False,
+                 log=None) -> VesselPlan:
+    """The vessel tree of ``vol`` (:func:`guidewire3d.cta.vesselmodel.extract_vessels_auto`) with the lost lumen
+    recorded, or, when seeds lie in separate vessel structures, one tree per structure.
+
+    A tree is one connected structure. A head whose left and right carotid systems are apart at the lumen threshold
+    (a circle of Willis broken there, as in about half of people), or an artery and a vein that a user seeds both, has
+    several; with all its seeds in one run the stage refuses the volume (a seed apart from the first seed's structure,
+    ``cta.vessels3d``). Then each seed is run alone; seeds whose trees hold one another form one structure, and each
+    structure's tree is kept when no other structure's mask overlaps it. The original refusal stands when the seeds
+    are all in one structure, when a seed alone is refused, or when two structures' masks overlap (the trees would
+    double a vessel).
+
+    ``access_lps_mm``: the tree nearest the access point is rooted at its point nearest to it
+    (:func:`guidewire3d.vesseltree.rooted_at_access`); the others keep their own roots.
+    """
+    say = log or (lambda _m: None)
+    seeds = None if seeds_lps_mm is None or not len(seeds_lps_mm) else np.asarray(seeds_lps_mm, float).reshape(-1, 3)
+    try:
+        autos = [vesselmodel.extract_vessels_auto(vol, seeds_lps_mm=seeds, progress=progress)]
+        groups = [tuple(range(len(seeds))) if seeds is not None else ()]
+        reason = ""
+    except SegmentationError as err:
+        if seeds is None or len(seeds) < 2:
+            raise
+        autos, groups = _forest(vol, seeds, err, progress=progress, say=say)
+        reason = str(err)
+    autos = [dataclasses.replace(a, vessels=lostlumen.with_lost_lumen(vol, a.vessels)) for a in autos]
+    if access_lps_mm is not None:
+        d = [float(np.min(np.linalg.norm(a.vessels.tree.points_lps_mm - np.asarray(access_lps_mm, float), axis=1)))
+             for a in autos]
+        k = int(np.argmin(d))
+        a = autos[k]
+        autos[k] = dataclasses.replace(a, vessels=dataclasses.replace(
+            a.vessels, tree=rooted_at_access(a.vessels.tree, access_lps_mm)))
+        if k:  # the access point's tree first: it is the one a wire is reconstructed in
+            autos.insert(0, autos.pop(k))
+            groups.insert(0, groups.pop(k))
+    return VesselPlan(trees=tuple(autos), seed_groups=tuple(tuple(g) for g in groups), forest_reason=reason)
+
+
+def _forest(vol: io.Volume, seeds: np.ndarray, err: SegmentationError, *, progress: bool, say):
+    """One ``AutoVessels`` per separate structure the seeds lie in, and the seed indices of each (see
+    :func:`plan_vessels`); raises ``err`` when the seeds do not make two or more separate trees."""
+    say(f"the seeds together gave no tree ({err}); each seed is tried alone")
+    runs, held = [], []
+    for k, s in enumerate(seeds):
+        try:
+            a = vesselmodel.extract_vessels_auto(vol, seeds_lps_mm=s[None], progress=progress)
+        except SegmentationError as e:
+            raise SegmentationError(f"{err}; and --seed-lps={','.join(f'{v:g}' for v in s)} alone: {e}") from None
+        runs.append(a)
+        held.append(vesselmodel.seeds_held(vol, a.vessels.mask_zyx, seeds))
+    groups: list[list[int]] = []
+    for k in range(len(seeds)):
+        for g in groups:
+            if held[g[0]][k] or held[k][g[0]]:
+                g.append(k)
+                break
+        else:
+            groups.append([k])
+    if len(groups) < 2:
+        raise err
+    autos = []
+    for g in groups:  # a tree that holds every seed of its structure, else the structure's seeds together
+        whole = [k for k in g if held[k][g].all()]
+        if whole:
+            autos.append(runs[whole[0]])
+            continue
+        try:
+            autos.append(vesselmodel.extract_vessels_auto(vol, seeds_lps_mm=seeds[g], progress=progress))
+        except SegmentationError as e:
+            raise SegmentationError(f"{err}; and seeds {', '.join(str(k + 1) for k in g)} together: {e}") from None
+    for i in range(len(autos)):
+        for j in range(i + 1, len(autos)):
+            if np.any(autos[i].vessels.mask_zyx & autos[j].vessels.mask_zyx):
+                raise SegmentationError(f"{err}; each seed alone gives a tree, but the trees of seeds {groups[i][0] + 1} "
+                                        f"and {groups[j][0] + 1} overlap: not separate structures") from None
+    say(f"the seeds lie in {len(groups)} separate vessel structures: one tree for each")
+    return autos, groups
 
 
 def vessels_record(auto, *, inputs: dict, access_lps_mm=None) -> dict:
@@ -76,7 +176,7 @@ def vessels_record(auto, *, inputs: dict, access_lps_mm=None) -> dict:
 
 def run_to_outdir(cta, out_dir, *, seeds_lps_mm=None, series_uid=None, progress: bool = True, access_lps_mm=None,
                   log=None):
-    """Read ``cta``, extract its vessels and write ``out_dir`` atomically; returns the ``AutoVessels``.
+    """Read ``cta``, extract its vessels and write ``out_dir`` atomically; returns the :class:`VesselPlan`.
 
     Every check that can be made before the work is made first (the output location, the
     volume, its geometry, the seeds, the access point); a volume without a plausible vessel tree
@@ -89,17 +189,13 @@ def run_to_outdir(cta, out_dir, *, seeds_lps_mm=None, series_uid=None, progress:
     t0 = time.perf_counter()
     vol = io.read_volume(cta, series_uid=series_uid, log=log, modalities=("CT", "MR"))
     vesselmodel.check_geometry(vol)
-    seeds = None if not seeds_lps_mm else np.asarray(seeds_lps_mm, dtype=float).reshape(-1, 3)
+    seeds = None if seeds_lps_mm is None or not len(seeds_lps_mm) else np.asarray(seeds_lps_mm, dtype=float).reshape(-1, 3)
     if access_lps_mm is not None:
         access_lps_mm = check_access(access_lps_mm, bounds_lps_mm=vol.bounds_lps_mm)
     t_load = time.perf_counter() - t0
     with io.staged_folder(out_dir) as staging:
-        auto = vesselmodel.extract_vessels_auto(vol, seeds_lps_mm=seeds, progress=progress)
-        auto = dataclasses.replace(auto, vessels=lostlumen.with_lost_lumen(vol, auto.vessels))
-        auto.seconds["load"] = t_load
-        if access_lps_mm is not None:
-            tree = rooted_at_access(auto.vessels.tree, access_lps_mm)
-            auto = dataclasses.replace(auto, vessels=dataclasses.replace(auto.vessels, tree=tree))
+        plan = plan_vessels(vol, seeds_lps_mm=seeds, access_lps_mm=access_lps_mm, progress=progress, log=log)
+        plan.trees[0].seconds["load"] = t_load
         inputs = {"cta": str(Path(cta).resolve()), "series_uid": vol.series_uid,
                   "shape_zyx": list(vol.shape_zyx), "spacing_mm": list(vol.spacing_mm),
                   "seeds_lps_mm": None if seeds is None else seeds.round(3).tolist()}
@@ -107,45 +203,108 @@ def run_to_outdir(cta, out_dir, *, seeds_lps_mm=None, series_uid=None, progress:
             inputs["access_lps_mm"] = [round(float(v), 3) for v in access_lps_mm]
 
         def write(staging: Path) -> None:
-            export.write_polydata(auto.vessels.tree.to_polydata(), staging / "centerline.vtp")
-            export.write_polydata(auto.vessels.surface, staging / "vessels.stl")
-            export.write_polydata(auto.vessels.surface, staging / "vessels.vtp")
-            rec = vessels_record(auto, inputs=inputs, access_lps_mm=access_lps_mm)
-            io.atomic_write_text(staging / "vessels.json", json.dumps(rec, indent=1))
+            write_plan(plan, staging, inputs=inputs, access_lps_mm=access_lps_mm)
 
         io.write_into(out_dir, staging, write)
-    return auto
+    return plan
+
+
+def write_plan(plan: VesselPlan, folder: Path, *, inputs: dict, access_lps_mm=None) -> None:
+    """``centerline.vtp``, ``vessels.stl``, ``vessels.vtp`` and ``vessels.json`` of a plan, into ``folder``.
+
+    One tree: as ever. Several (seeds in separate structures): the polydata hold every tree, each point carrying its
+    tree's index (point array ``tree``); ``vessels.json`` keeps the first tree's record at the top level (the first
+    seed's structure, or the access point's) and lists every tree under ``"trees"`` (its seeds, the intensity model
+    read for it, its plausibility, tree and branches).
+    """
+    folder = Path(folder)
+    export.write_polydata(forest_polydata(plan, "centerline"), folder / "centerline.vtp")
+    surf = forest_polydata(plan, "surface")
+    export.write_polydata(surf, folder / "vessels.stl")
+    export.write_polydata(surf, folder / "vessels.vtp")
+    rec = vessels_record(plan.trees[0], inputs=inputs, access_lps_mm=access_lps_mm)
+    if len(plan.trees) > 1:
+        rec["trees"] = []
+        for k, (a, g) in enumerate(zip(plan.trees, plan.seed_groups)):
+            r = vessels_record(a, inputs={}, access_lps_mm=access_lps_mm if k == 0 else None)
+            r.pop("inputs")
+            rec["trees"].append({"index": k, "seeds": [int(i) for i in g], **r})
+        rec["forest"] = {"n_trees": len(plan.trees), "reason": plan.forest_reason,
+                         "total_length_mm": round(sum(float(a.vessels.tree.total_length_mm) for a in plan.trees), 1)}
+    io.atomic_write_text(folder / "vessels.json", json.dumps(rec, indent=1))
+
+
+def forest_polydata(plan: VesselPlan, what: str):
+    """Every tree's ``"centerline"`` (``VesselTree.to_polydata``) or ``"surface"`` in one vtkPolyData (LPS mm), with
+    the point array ``tree`` (the tree's index in ``plan.trees``) when there are several."""
+    import vtk
+    from vtk.util.numpy_support import numpy_to_vtk
+
+    parts = [a.vessels.tree.to_polydata() if what == "centerline" else a.vessels.surface for a in plan.trees]
+    if len(parts) == 1:
+        return parts[0]
+    app = vtk.vtkAppendPolyData()
+    for k, poly in enumerate(parts):
+        copy = vtk.vtkPolyData()
+        copy.DeepCopy(poly)
+        arr = numpy_to_vtk(np.full(copy.GetNumberOfPoints(), k, dtype=np.int32), deep=True)
+        arr.SetName("tree")
+        copy.GetPointData().AddArray(arr)
+        app.AddInputData(copy)
+    app.Update()
+    out = vtk.vtkPolyData()
+    out.DeepCopy(app.GetOutput())
+    return out
 
 
 def cli_main(args) -> int:
     def say(msg):
         print(msg, file=sys.stderr)
 
-    auto = run_to_outdir(args.cta, args.out, seeds_lps_mm=args.seed_lps, series_uid=args.series_uid, log=say,
+    plan = run_to_outdir(args.cta, args.out, seeds_lps_mm=args.seed_lps, series_uid=args.series_uid, log=say,
                          progress=sys.stderr.isatty(), access_lps_mm=getattr(args, "access_lps", None))
+    for k, auto in enumerate(plan.trees):
+        which = "" if len(plan.trees) == 1 else f"tree {k + 1} (seeds {', '.join(str(i + 1) for i in plan.seed_groups[k])}): "
+        _say_notes(auto, say, which)
+    auto = plan.trees[0]
+    access = getattr(args, "access_lps", None)
+    if access is not None:
+        rec = access_record(auto.vessels.tree, access)
+        say(f"the tree is rooted at {rec['root_lps_mm']}, its point nearest --access-lps ({rec['distance_mm']:.1f} mm "
+            "from it)")
+    if len(plan.trees) > 1:
+        total = sum(a.vessels.tree.total_length_mm for a in plan.trees)
+        print(f"wrote {args.out}: {len(plan.trees)} separate vessel trees (one per structure the seeds lie in), "
+              f"{sum(len(a.vessels.tree.branches) for a in plan.trees)} branches, {total / 10:.1f} cm of centerline; "
+              f"{sum(a.seconds.get('total', 0.0) for a in plan.trees):.1f} s")
+        for k, a in enumerate(plan.trees):
+            print(f"  tree {k + 1}: {_summary(a)}")
+        return 0
+    print(f"wrote {args.out}: {_summary(auto)}")
+    return 0
+
+
+def _summary(auto) -> str:
     m, t = auto.model, auto.vessels.tree
+    return (f"{len(t.branches)} branches, {t.total_length_mm / 10:.1f} cm of centerline, "
+            f"radius {np.median(t.radius_mm):.1f} mm median / {t.radius_mm.max():.1f} mm max, "
+            f"{auto.plausibility.vessel_cm3:.1f} cm3; lumen {m.lumen:.4g}, background {m.background:.4g} "
+            f"({'HU' if m.hu else 'arbitrary units'}, {m.source}); {auto.seconds.get('total', 0.0):.1f} s")
+
+
+def _say_notes(auto, say, which: str = "") -> None:
     if auto.first_pass_problems:
         how = "the strict pass's tree" if auto.segmentation.startswith("strict") else "the tree"
         cut = f", {auto.pruned}" if auto.pruned else ""
-        say(f"note: the first vessel tree was implausible ({'; '.join(auto.first_pass_problems)}); {how} is "
+        say(f"note: {which}the first vessel tree was implausible ({'; '.join(auto.first_pass_problems)}); {how} is "
             f"written{cut} (check it in the viewer)")
     elif auto.pruned:  # blood pools cut, or one of two separate structures chosen, from a tree that passed
-        say(f"note: {auto.pruned} (check it in the viewer)")
+        say(f"note: {which}{auto.pruned} (check it in the viewer)")
     if auto.bias_field:
-        say(f"note: {auto.bias_field}; the tree is that of the corrected volume (the intensity levels in vessels.json "
-            f"are its)")
+        say(f"note: {which}{auto.bias_field}; the tree is that of the corrected volume (the intensity levels in "
+            f"vessels.json are its)")
     if auto.seeded == "automatic tree":
-        say("the automatic vessel tree holds every seed: it is written, rooted at its end nearest the first seed")
+        say(f"{which}the automatic vessel tree holds every seed: it is written, rooted at its end nearest the first seed")
     elif auto.seeded == "seeds":
-        say("the automatic vessel tree does not hold every seed: the tree is the seeds' own, from the lumen level read "
-            "at them")
-    access = getattr(args, "access_lps", None)
-    if access is not None:
-        rec = access_record(t, access)
-        say(f"the tree is rooted at {rec['root_lps_mm']}, its point nearest --access-lps ({rec['distance_mm']:.1f} mm "
-            "from it)")
-    print(f"wrote {args.out}: {len(t.branches)} branches, {t.total_length_mm / 10:.1f} cm of centerline, "
-          f"radius {np.median(t.radius_mm):.1f} mm median / {t.radius_mm.max():.1f} mm max, "
-          f"{auto.plausibility.vessel_cm3:.1f} cm3; lumen {m.lumen:.4g}, background {m.background:.4g} "
-          f"({'HU' if m.hu else 'arbitrary units'}, {m.source}); {auto.seconds.get('total', 0.0):.1f} s")
-    return 0
+        say(f"{which}the automatic vessel tree does not hold every seed: the tree is the seeds' own, from the lumen level "
+            "read at them")

@@ -55,6 +55,7 @@ __all__ = [
     "check_plausibility",
     "dim_wide_fraction",
     "blood_pool_points",
+    "seeds_held",
     "extract_vessels_auto",
     "extract_vessels_any_units",
     "looks_like_hu",
@@ -1502,6 +1503,30 @@ def _only_dim_wide(pl: Plausibility) -> bool:
     return pl.dim_wide_fraction > MAX_DIM_WIDE_FRACTION and len(pl.problems) == 1
 
 
+def seeds_held(volume: io.Volume, mask_zyx: np.ndarray, seeds_lps_mm) -> np.ndarray:
+    """``(K,)`` bool: which seeds a vessel mask holds.
+
+    A seed is held when the mask holds its voxel or the lumen it lies in (where :func:`_lumen_centre_near` climbs to),
+    each with its 26 neighbours: a seed in the partial volume at a wall, or beside a calcification, is held by the
+    lumen it marks.
+    """
+    a = volume.array_zyx
+    sp = np.asarray(volume.spacing_mm, dtype=float)[::-1]
+    seeds = np.atleast_2d(np.asarray(seeds_lps_mm, dtype=float))
+
+    def near_mask(c):
+        lo, hi = np.maximum(c - 1, 0), np.minimum(c + 2, mask_zyx.shape)
+        return bool(hi.min() > 0 and np.all(lo < mask_zyx.shape)
+                    and mask_zyx[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]].any())
+
+    held = []
+    for s in seeds:
+        c = np.rint(volume.lps_to_index_zyx(s[None])[0]).astype(int)
+        inside = bool(np.all(c >= 0) and np.all(c < a.shape))
+        held.append(near_mask(c) or (inside and near_mask(_lumen_centre_near(a, c, sp, SEED_CLIMB_MM))))
+    return np.array(held, dtype=bool)
+
+
 def _automatic_tree_holding(volume: io.Volume, seeds_lps_mm, *, progress: bool, options, centerline_options):
     """The automatic tree (no seeds) when it holds every seed, rooted at its end nearest the first; else None.
 
@@ -1519,19 +1544,9 @@ def _automatic_tree_holding(volume: io.Volume, seeds_lps_mm, *, progress: bool, 
         auto = extract_vessels_auto(volume, progress=progress, options=options, centerline_options=centerline_options)
     except (SegmentationError, InputError):
         return None
-    a = volume.array_zyx
-    sp = np.asarray(volume.spacing_mm, dtype=float)[::-1]
-    mask = auto.vessels.mask_zyx
     seeds = np.atleast_2d(np.asarray(seeds_lps_mm, dtype=float))
-
-    def near_mask(c):
-        lo, hi = np.maximum(c - 1, 0), np.minimum(c + 2, mask.shape)
-        return bool(mask[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]].any())
-
-    for s in seeds:
-        c = np.rint(volume.lps_to_index_zyx(s[None])[0]).astype(int)
-        if not (near_mask(c) or near_mask(_lumen_centre_near(a, c, sp, SEED_CLIMB_MM))):
-            return None
+    if not seeds_held(volume, auto.vessels.mask_zyx, seeds).all():
+        return None
     tree = auto.vessels.tree
     ends = np.r_[tree.root, tree.leaves[tree.leaves != tree.root]]
     end = int(ends[np.argmin(np.linalg.norm(tree.points_lps_mm[ends] - seeds[0], axis=1))])

@@ -118,4 +118,5 @@ def _check_seeds_connected(volume: io.Volume, mask_zyx: np.ndarray, seeds_lps_mm
     raise SegmentationError(
         f"{volume.source or 'volume'}: --seed-lps={seed} lies in a vessel structure apart from the first seed's "
         f"({gap:.0f} mm from it at the lumen threshold; {len(apart)} of {len(seeds_lps_mm)} seeds apart): the tree is "
-        f"one connected structure; give seeds in one structure, or run once for each")
+        f"one connected structure; give seeds in one structure, or run once for each (`guidewire3d vessels` writes one "
+        f"tree per structure)")
