@@ -139,6 +139,8 @@ if SLICER_APP:
                 "Outputs: the vessel surface, the centerline, the "
                 "registration as a linear transform (correct it with the transform handles, then press Refine), "
                 "a guidewire tube and curve per frame, and a table of per-frame metrics. "
+                "Extract vessels (planning) needs the CTA alone: the vessel surface, the centerline and a table of "
+                "branches, one tree per vessel structure the seed points lie in. "
                 "All computation is done by the guidewire3d Python package, installed on first use."
             )
             self.parent.acknowledgementText = _(
@@ -161,6 +163,8 @@ if SLICER_APP:
         optional; with plane B's roadmap the biplane chain runs (one pose, each wire from both planes).
         access: one markups point where the wire enters the vessels (the sheath tip or the puncture),
         optional; the vessel tree is rooted at its point nearest to it (transfemoral, transradial wires).
+        planVesselModel/planCenterlineModel/branchesTable: the outputs of "Extract vessels" (the CTA
+        alone, for planning), created when empty.
         """
 
         ctaVolume: vtkMRMLScalarVolumeNode
@@ -182,6 +186,9 @@ if SLICER_APP:
         registrationTransform: vtkMRMLLinearTransformNode
         metricsTable: vtkMRMLTableNode
         vesselModel: vtkMRMLModelNode
+        planVesselModel: vtkMRMLModelNode
+        planCenterlineModel: vtkMRMLModelNode
+        branchesTable: vtkMRMLTableNode
 
     #
     # GuidewireReconstructionWidget
@@ -209,6 +216,7 @@ if SLICER_APP:
             self.addObserver(slicer.mrmlScene, slicer.mrmlScene.EndCloseEvent, self.onSceneEndClose)
             self.ui.installButton.connect("clicked(bool)", self.onInstallButton)
             self.ui.applyButton.connect("clicked(bool)", self.onApplyButton)
+            self.ui.extractVesselsButton.connect("clicked(bool)", self.onExtractVesselsButton)
             self.ui.refineButton.connect("clicked(bool)", self.onRefineButton)
             self.ui.adjustButton.connect("toggled(bool)", self.onAdjustToggled)
             self.ui.saveButton.connect("clicked(bool)", self.onSaveButton)
@@ -303,10 +311,14 @@ if SLICER_APP:
             ready = bool(p and p.ctaVolume and (p.roadmapSequence or _path_or_none(p.roadmapPath)))
             self.ui.applyButton.enabled = installed and ready
             self.ui.applyButton.toolTip = _("Run the reconstruction") if ready else _("Select the CTA and the XA roadmap")
+            has_cta = bool(p and p.ctaVolume)
+            self.ui.extractVesselsButton.enabled = installed and has_cta
+            self.ui.extractVesselsButton.toolTip = (_("Extract the vessel trees of the CTA (no X-ray needed)") if has_cta
+                                                    else _("Select the CTA"))
             has_result = self.logic.hasResult()
             self.ui.refineButton.enabled = has_result
             self.ui.adjustButton.enabled = has_result
-            self.ui.saveButton.enabled = has_result
+            self.ui.saveButton.enabled = has_result or self.logic.hasVessels()
 
         def onInstallButton(self) -> None:
             with slicer.util.tryWithErrorDisplay(_("Failed to install guidewire3d."), waitCursor=True):
@@ -316,6 +328,11 @@ if SLICER_APP:
         def onApplyButton(self) -> None:
             with slicer.util.tryWithErrorDisplay(_("Reconstruction failed."), waitCursor=True):
                 self.ui.statusLabel.text = self.logic.process(self._parameterNode)
+            self._checkCanApply()
+
+        def onExtractVesselsButton(self) -> None:
+            with slicer.util.tryWithErrorDisplay(_("Vessel extraction failed."), waitCursor=True):
+                self.ui.statusLabel.text = self.logic.extractVessels(self._parameterNode)
             self._checkCanApply()
 
         def onRefineButton(self) -> None:
@@ -362,6 +379,10 @@ if SLICER_APP:
         def hasResult(self) -> bool:
             return self._core is not None and self._core.result is not None
 
+        def hasVessels(self) -> bool:
+            """True after "Extract vessels" (its nodes can be saved)."""
+            return self._core is not None and self._core.plan is not None
+
         def reset(self) -> None:
             """Forget the last result and its output nodes (the scene is being closed)."""
             self._core = None
@@ -369,6 +390,10 @@ if SLICER_APP:
         def process(self, parameterNode) -> str:
             """Run the reconstruction with the parameters of ``parameterNode``; returns a summary line."""
             return self.core.process_parameters(parameterNode)
+
+        def extractVessels(self, parameterNode) -> str:
+            """Extract the vessel trees of the CTA alone (planning; no X-ray); returns the summary."""
+            return self.core.plan_vessels_parameters(parameterNode)
 
         def refine(self, parameterNode) -> str:
             """Refine from the (user-corrected) registration transform; returns a summary line."""

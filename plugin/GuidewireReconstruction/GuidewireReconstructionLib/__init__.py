@@ -2,6 +2,7 @@
 from .logic import (  # noqa: F401
     CARM_ATTRIBUTE,
     ROLE_ATTRIBUTE,
+    VESSEL_PLAN_ROLES,
     WIRE_RADIUS_MM,
     GuidewireReconstructionCoreLogic,
     OutputNodes,
@@ -16,6 +17,8 @@ from .logic import (  # noqa: F401
     ras_to_lps,
     seeds_from_node,
     access_from_node,
+    check_seeds_inside,
+    plan_summary,
     volume_from_node,
     volume_to_node,
     wire_tube_polydata,

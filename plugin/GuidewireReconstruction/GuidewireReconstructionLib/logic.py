@@ -43,11 +43,13 @@ from vtk.util.numpy_support import numpy_to_vtk, vtk_to_numpy
 from guidewire3d import io
 from guidewire3d.app import export
 from guidewire3d.app import igtl
+from guidewire3d.app import vesselplan
+from guidewire3d.cta import vesselmodel
 from guidewire3d.errors import InputError, ReconstructionError, RegistrationError
 from guidewire3d.geometry import CArm, Pose
 from guidewire3d.methods import ReconMethod
 from guidewire3d.reconstruction import Wire3D
-from guidewire3d.vesseltree import check_access
+from guidewire3d.vesseltree import access_record, check_access
 from guidewire3d.xray.segmentation import SegMethod
 
 __all__ = [
@@ -61,6 +63,8 @@ __all__ = [
     "volume_to_node",
     "seeds_from_node",
     "access_from_node",
+    "check_seeds_inside",
+    "plan_summary",
     "xa_to_sequence_node",
     "xa_from_sequence_node",
     "polydata_lps_to_ras",
@@ -69,6 +73,7 @@ __all__ = [
     "pose_from_transform_node",
     "detector_points_room_lps_mm",
     "OutputNodes",
+    "VESSEL_PLAN_ROLES",
     "GuidewireReconstructionCoreLogic",
     "WIRE_RADIUS_MM",
     "CARM_ATTRIBUTE",
@@ -83,6 +88,8 @@ WIRE_RADIUS_MM = export.WIRE_TUBE_RADIUS_MM
 CARM_ATTRIBUTE = "GuidewireReconstruction.CArm"
 #: Node attribute naming the role of each output node (``vessels``, ``wire``, ...).
 ROLE_ATTRIBUTE = "GuidewireReconstruction.Role"
+#: Roles of the nodes written by "Extract vessels" (:meth:`GuidewireReconstructionCoreLogic.plan_vessels`).
+VESSEL_PLAN_ROLES = ("plan_vessels", "plan_centerline", "plan_branches")
 
 _F = np.diag([-1.0, -1.0, 1.0])  # LPS <-> RAS; the only place this matrix is written
 _F4 = np.eye(4)
@@ -259,6 +266,83 @@ def access_from_node(markups_node) -> np.ndarray | None:
         raise InputError(f"access point: {markups_node.GetName()} holds {len(pts)} points; place one, where the wire "
                          "enters the vessels (the sheath tip or the puncture)")
     return pts[0]
+
+
+def check_seeds_inside(vol: io.Volume, seeds_lps_mm, *, what: str = "seed points") -> None:
+    """InputError naming the first seed (1-based, in RAS as Slicer shows it) that lies outside ``vol``.
+
+    A cheap check made before the vessel stage; whether a seed lies in a bright lumen is the vessel
+    stage's own check (its intensity model, as for ``guidewire3d vessels``).
+
+    Parameters
+    ----------
+    vol : io.Volume
+        The CTA (its voxel grid in LPS).
+    seeds_lps_mm : (K, 3) array_like of float or None
+        The seed points (LPS mm); ``None``: nothing to check.
+    """
+    if seeds_lps_mm is None:
+        return
+    seeds = np.asarray(seeds_lps_mm, dtype=float).reshape(-1, 3)
+    shape = np.array(vol.shape_zyx)
+    for k, s in enumerate(seeds):
+        ras = ", ".join(f"{v:.1f}" for v in lps_to_ras(s))
+        if not np.all(np.isfinite(s)):
+            raise InputError(f"{what}: point {k + 1} is not a finite point")
+        idx = vol.lps_to_index_zyx(s[None])[0]
+        if np.any(idx < -0.5) or np.any(idx > shape - 0.5):
+            raise InputError(f"{what}: point {k + 1} (RAS {ras} mm) lies outside the volume {vol.source}; "
+                             "place the seeds inside its vessels")
+
+
+def plan_summary(plan, *, access_lps_mm=None) -> str:
+    """What "Extract vessels" found, one line per tree: branches, centerline length, radii, vessel
+    volume, the lumen and background levels and their units, and the notes of the vessel stage
+    (strict pass, pruned branches, bias field, how the seeds made the tree).
+
+    ``plan`` is a ``guidewire3d.app.vesselplan.VesselPlan``; ``access_lps_mm`` (LPS mm, optional) adds
+    how far the first tree's root lies from the access point.
+    """
+    trees = plan.trees
+    total_cm = sum(float(a.vessels.tree.total_length_mm) for a in trees) / 10.0
+    n_br = sum(len(a.vessels.tree.branches) for a in trees)
+    if len(trees) == 1:
+        head = f"1 vessel tree: {_count(n_br, 'branch')}, {total_cm:.1f} cm of centerline."
+    else:
+        head = (f"{len(trees)} separate vessel trees (one per structure the seeds lie in): {_count(n_br, 'branch')}, "
+                f"{total_cm:.1f} cm of centerline.")
+    lines = [head]
+    for k, (a, group) in enumerate(zip(trees, plan.seed_groups)):
+        t, m = a.vessels.tree, a.model
+        seeds = f"seeds {', '.join(str(i + 1) for i in group)}" if group else "automatic"
+        units = "HU" if m.hu else "arbitrary units"
+        line = (f"Tree {k + 1} ({seeds}): {_count(len(t.branches), 'branch')}, {t.total_length_mm / 10:.1f} cm, radius "
+                f"{np.median(t.radius_mm):.1f} mm median / {t.radius_mm.max():.1f} mm max, "
+                f"{a.plausibility.vessel_cm3:.1f} cm3; lumen {m.lumen:.4g}, background {m.background:.4g} "
+                f"({units}, from {m.source}).")
+        notes = []
+        if a.first_pass_problems:
+            how = "the strict pass's tree is shown" if a.segmentation.startswith("strict") else "the tree is shown"
+            notes.append(f"the first tree was implausible ({'; '.join(a.first_pass_problems)}); {how}")
+        if a.pruned:
+            notes.append(str(a.pruned))
+        if a.bias_field:
+            notes.append(f"{a.bias_field}; the levels are those of the corrected volume")
+        if a.seeded == "automatic tree":
+            notes.append("the automatic tree holds every seed")
+        elif a.seeded == "seeds":
+            notes.append("the tree is the seeds' own, from the lumen level read at them")
+        if k == 0 and access_lps_mm is not None:
+            rec = access_record(t, access_lps_mm)
+            notes.append(f"rooted at its point nearest the access point, {rec['distance_mm']:.1f} mm from it")
+        if notes:
+            line += " Note: " + "; ".join(notes) + "."
+        lines.append(line)
+    return "\n".join(lines)
+
+
+def _count(n: int, noun: str) -> str:
+    return f"{n} {noun}" if n == 1 else f"{n} {noun}es" if noun.endswith("ch") else f"{n} {noun}s"
 
 
 # --------------------------------------------------------------------------------------
@@ -444,6 +528,15 @@ def _set_curve_points(curve, points_ras_mm) -> None:
     curve.SetControlPointPositionsWorld(pts)
 
 
+def _with_tree_array(poly) -> vtk.vtkPolyData:
+    """``poly`` with the point array ``tree`` (all 0) added when it has none (a plan of one tree); in place."""
+    if poly.GetPointData().GetArray("tree") is None:
+        arr = numpy_to_vtk(np.zeros(poly.GetNumberOfPoints(), dtype=np.int32), deep=True)
+        arr.SetName("tree")
+        poly.GetPointData().AddArray(arr)
+    return poly
+
+
 def _fill_table(table_node, columns: list[tuple[str, str, list]]) -> None:
     table = vtk.vtkTable()
     for name, kind, values in columns:
@@ -476,11 +569,15 @@ class OutputNodes:
     frame_indices: list = field(default_factory=list)  # index in the frames run of each wire node
     carm_b_model: object = None  # vtkMRMLModelNode: plane B's source + detector (biplane), child of ``transform``
     roadmap_b_points_model: object = None  # vtkMRMLModelNode: plane B's 2D roadmap centerline on its detector
+    # "Extract vessels" (plan_vessels: the CTA alone, no X-ray)
+    plan_vessel_model: object = None  # vtkMRMLModelNode: every tree's vessel surface (point array ``tree``)
+    plan_centerline_model: object = None  # vtkMRMLModelNode: every tree's centerline (``tree``, ``branch``, ``radius_mm``)
+    plan_table: object = None  # vtkMRMLTableNode: one row per branch of every tree
 
     def all_nodes(self) -> list:
         singles = [self.transform, self.table, self.vessel_model, self.carm_model, self.roadmap_points_model,
                    self.wire_sequence, self.live_wire_model, self.motion_sequence, self.carm_b_model,
-                   self.roadmap_b_points_model]
+                   self.roadmap_b_points_model, self.plan_vessel_model, self.plan_centerline_model, self.plan_table]
         return [n for n in singles + self.centerline_curves + self.wire_models + self.wire_curves if n is not None]
 
 
@@ -518,6 +615,8 @@ class GuidewireReconstructionCoreLogic:
         self.outputs = OutputNodes()
         self.live = None  # igtl.WireFollower of a connected `guidewire3d live` server (connect_live)
         self.live_status = ""
+        self.plan = None  # vesselplan.VesselPlan of the last plan_vessels() ("Extract vessels")
+        self.plan_summary = ""
 
     # --- live ---------------------------------------------------------------------------
     def connect_live(self, address: str = f"127.0.0.1:{igtl.DEFAULT_PORT}", *, wait_s: float = 10.0):
@@ -785,6 +884,115 @@ class GuidewireReconstructionCoreLogic:
         self.wires3d = [fr.wire3d for fr in self.frame_results]
         self._write_wire_outputs()
         return self.wires3d
+
+    # --- planning: the vessels of the CTA alone ------------------------------------------------
+    def plan_vessels(self, *, cta_volume_node, seeds_node=None, access_node=None,
+                     outputs: OutputNodes | None = None) -> OutputNodes:
+        """"Extract vessels": the vessel trees of the CTA alone, for planning (``guidewire3d vessels``).
+
+        Runs ``guidewire3d.app.vesselplan.plan_vessels`` and writes (or updates in place) three nodes:
+        the vessel surface of every tree (``plan_vessel_model``), every tree's centerline
+        (``plan_centerline_model``: polylines per branch with point arrays ``tree``, ``branch`` and
+        ``radius_mm``) and a table with one row per branch (``plan_table``). :attr:`plan_summary` then
+        holds the summary (:func:`plan_summary`). The reconstruction's nodes are left as they are.
+
+        Parameters
+        ----------
+        cta_volume_node : vtkMRMLScalarVolumeNode
+            The CTA (HU), an MRA or a 3DRA. Its IJK -> RAS matrix (and a linear parent transform) place it.
+        seeds_node : vtkMRMLMarkupsFiducialNode, optional
+            Points inside the vessels of interest. Empty or absent: the automatic tree. Seeds in
+            separate vessel structures give one tree per structure.
+        access_node : vtkMRMLMarkupsFiducialNode, optional
+            One point where the wire will enter the vessels: the tree nearest to it is rooted at its
+            point nearest to it and listed first.
+        outputs : OutputNodes, optional
+            Existing output nodes to update; missing ones are created.
+
+        Raises
+        ------
+        InputError
+            No CTA, implausible voxel spacing or field of view, a seed outside the CTA, an access
+            point holding several points or too far from the CTA: before the vessel stage, and
+            without creating any node.
+        SegmentationError
+            No plausible vessel tree (no node is created or changed).
+        """
+        vol = volume_from_node(cta_volume_node)
+        vesselmodel.check_geometry(vol)
+        seeds = seeds_from_node(seeds_node)
+        if seeds is not None:
+            check_seeds_inside(vol, seeds, what=f"seed points {seeds_node.GetName()}")
+        access = access_from_node(access_node)
+        if access is not None:  # before the heavy work
+            access = check_access(access, bounds_lps_mm=vol.bounds_lps_mm, option="access point")
+        t0 = time.perf_counter()
+        plan = vesselplan.plan_vessels(vol, seeds_lps_mm=seeds, access_lps_mm=access, progress=False, log=log.info)
+        log.info("guidewire3d vessels: %d tree(s), %.1f s", len(plan.trees), time.perf_counter() - t0)
+        if outputs is not None:
+            self.outputs = outputs
+        self.plan = plan
+        self.plan_summary = plan_summary(plan, access_lps_mm=access)
+        self._write_plan_outputs(plan, spacing_mm=vol.spacing_mm)
+        return self.outputs
+
+    def _alive(self, node):
+        """``node`` if it is still in the scene (the user may have deleted it), else None."""
+        return node if node is not None and self.scene.GetNodeByID(node.GetID()) is node else None
+
+    def _write_plan_outputs(self, plan, *, spacing_mm) -> None:
+        o = self.outputs
+        surface = _with_tree_array(polydata_lps_to_ras(vesselplan.forest_polydata(plan, "surface")))
+        o.plan_vessel_model = self._model(self._alive(o.plan_vessel_model), "GW planned vessels", "plan_vessels",
+                                          surface, color=(0.85, 0.3, 0.3), opacity=0.35)
+        centerline = _with_tree_array(polydata_lps_to_ras(vesselplan.forest_polydata(plan, "centerline")))
+        centerline.GetPointData().SetActiveScalars("radius_mm")
+        fresh = self._alive(o.plan_centerline_model) is None
+        o.plan_centerline_model = self._model(self._alive(o.plan_centerline_model), "GW planned centerline",
+                                              "plan_centerline", centerline, color=(0.2, 0.6, 1.0))
+        if fresh:
+            d = o.plan_centerline_model.GetDisplayNode()
+            d.SetLineWidth(3.0)
+            d.SetActiveScalarName("radius_mm")
+            d.SetScalarVisibility(True)
+        o.plan_table = self._alive(o.plan_table) or self._new("vtkMRMLTableNode", "GW vessel branches", "plan_branches")
+        rows = []
+        for k, a in enumerate(plan.trees):
+            rec = vesselplan.vessels_record(a, inputs={"spacing_mm": list(spacing_mm)})
+            rows += [(k, b) for b in rec["branches"]]
+        _fill_table(o.plan_table, [
+            ("tree", "int", [k for k, _ in rows]),
+            ("branch", "int", [b["index"] for _, b in rows]),
+            ("parent", "int", [b["parent"] for _, b in rows]),
+            ("points", "int", [b["n_points"] for _, b in rows]),
+            ("length_mm", "float", [b["length_mm"] for _, b in rows]),
+            ("radius_min_mm", "float", [b["radius_mm"]["min"] for _, b in rows]),
+            ("radius_median_mm", "float", [b["radius_mm"]["median"] for _, b in rows]),
+            ("radius_max_mm", "float", [b["radius_mm"]["max"] for _, b in rows]),
+        ])
+        o.plan_table.SetAttribute("GuidewireReconstruction.Summary", self.plan_summary)
+        o.plan_table.SetAttribute("GuidewireReconstruction.SeedGroups",
+                                  json.dumps([[int(i) + 1 for i in g] for g in plan.seed_groups]))
+
+    def plan_vessels_parameters(self, p) -> str:
+        """Run :meth:`plan_vessels` ("Extract vessels") with the module's parameter node ``p``; returns the summary.
+
+        Reads ``ctaVolume``, ``seeds`` and ``access`` (optional), and the output nodes
+        ``planVesselModel``, ``planCenterlineModel`` and ``branchesTable`` (created when empty, then
+        written back to ``p``). No X-ray input is needed.
+        """
+        o = self.outputs
+        outputs = OutputNodes(**{**o.__dict__,
+                                 "plan_vessel_model": getattr(p, "planVesselModel", None) or o.plan_vessel_model,
+                                 "plan_centerline_model": (getattr(p, "planCenterlineModel", None)
+                                                           or o.plan_centerline_model),
+                                 "plan_table": getattr(p, "branchesTable", None) or o.plan_table})
+        out = self.plan_vessels(cta_volume_node=p.ctaVolume, seeds_node=getattr(p, "seeds", None),
+                                access_node=getattr(p, "access", None), outputs=outputs)
+        p.planVesselModel = out.plan_vessel_model
+        p.planCenterlineModel = out.plan_centerline_model
+        p.branchesTable = out.plan_table
+        return self.plan_summary
 
     # --- the module's parameter node ---------------------------------------------------------
     def process_parameters(self, p) -> str:
@@ -1135,8 +1343,9 @@ class GuidewireReconstructionCoreLogic:
     def save_outputs(self, directory) -> list[Path]:
         """Write every output node through its storage node; returns the written files.
 
-        Vessel surface ``.stl``, wire tubes and C-arm ``.vtk`` (keeps the uncertainty scalars),
-        curves ``.mrk.json``, metrics ``.tsv``, registration ``.h5``. Model and markups files are
+        Vessel surfaces ``.stl``, wire tubes, C-arm and planned centerline ``.vtk`` (keeps the
+        uncertainty and radius scalars), curves ``.mrk.json``, metrics and branches ``.tsv``,
+        registration ``.h5``. Model and markups files are
         written in LPS, as Slicer does by default; loading them back gives the same RAS nodes.
         """
         directory = Path(directory)
@@ -1144,7 +1353,8 @@ class GuidewireReconstructionCoreLogic:
         written = []
         o = self.outputs
         plan = [(o.vessel_model, "stl"), (o.carm_model, "vtk"), (o.roadmap_points_model, "vtk"), (o.transform, "h5"),
-                (o.table, "tsv"), (o.carm_b_model, "vtk"), (o.roadmap_b_points_model, "vtk")]
+                (o.table, "tsv"), (o.carm_b_model, "vtk"), (o.roadmap_b_points_model, "vtk"),
+                (o.plan_vessel_model, "stl"), (o.plan_centerline_model, "vtk"), (o.plan_table, "tsv")]
         plan += [(n, "mrk.json") for n in o.centerline_curves + o.wire_curves]
         plan += [(n, "vtk") for n in o.wire_models]
         for node, ext in plan:
