@@ -128,7 +128,7 @@ def test_one_seed_gives_its_tubes_tree_on_the_axis(hs):
     assert [n.GetAttribute(L.ROLE_ATTRIBUTE) for n in (out.plan_vessel_model, out.plan_centerline_model, t)] == \
         list(L.VESSEL_PLAN_ROLES)
     assert core.plan_summary.startswith("1 vessel tree: ")
-    assert "Tree 1 (seeds 1)" in core.plan_summary and "(HU, from seeds)" in core.plan_summary
+    assert "Tree 1 (seeds 1)" in core.plan_summary and "(HU, seeds)" in core.plan_summary
     assert core.result is None and out.vessel_model is None  # the reconstruction's nodes are untouched
 
 
@@ -302,25 +302,27 @@ def test_summary_names_units_levels_and_every_note():
         model=SimpleNamespace(hu=False, lumen=812.5, background=101.25, source="automatic"),
         plausibility=SimpleNamespace(vessel_cm3=4.44), first_pass_problems=("too long for its volume",),
         segmentation="strict+pruned", pruned="2 dim wide branches cut", bias_field="a bias field of 1.4x divided out",
-        seeded="automatic tree")
+        seeded="automatic tree", seconds={"total": 12.0})
     ct = SimpleNamespace(
         vessels=SimpleNamespace(tree=_fake_tree(40.0, [2.0, 2.0], 1)),
         model=SimpleNamespace(hu=True, lumen=400.0, background=40.0, source="seeds"),
         plausibility=SimpleNamespace(vessel_cm3=0.5), first_pass_problems=(), segmentation="standard", pruned="",
-        bias_field="", seeded="seeds")
+        bias_field="", seeded="seeds", seconds={"total": 3.0})
     text = L.plan_summary(SimpleNamespace(trees=(mr, ct), seed_groups=((0, 2), (1,))))
     assert text.splitlines() == [
         "2 separate vessel trees (one per structure the seeds lie in): 6 branches, 16.3 cm of centerline.",
-        "Tree 1 (seeds 1, 3): 5 branches, 12.3 cm, radius 2.0 mm median / 3.0 mm max, 4.4 cm3; lumen 812.5, "
-        "background 101.2 (arbitrary units, from automatic). Note: the first tree was implausible (too long for its "
-        "volume); the strict pass's tree is shown; 2 dim wide branches cut; a bias field of 1.4x divided out; the "
-        "levels are those of the corrected volume; the automatic tree holds every seed.",
-        "Tree 2 (seeds 2): 1 branch, 4.0 cm, radius 2.0 mm median / 2.0 mm max, 0.5 cm3; lumen 400, background 40 "
-        "(HU, from seeds). Note: the tree is the seeds' own, from the lumen level read at them.",
+        "Tree 1 (seeds 1, 3): 5 branches, 12.3 cm of centerline, radius 2.0 mm median / 3.0 mm max, 4.4 cm3; lumen "
+        "812.5, background 101.2 (arbitrary units, automatic); 12.0 s. Note: the first vessel tree was implausible "
+        "(too long for its volume); the strict pass's tree is kept, 2 dim wide branches cut (check it in the viewer); "
+        "a bias field of 1.4x divided out; the tree is that of the corrected volume (the intensity levels are its); "
+        "the automatic vessel tree holds every seed: it is kept, rooted at its end nearest the first seed.",
+        "Tree 2 (seeds 2): 1 branch, 4.0 cm of centerline, radius 2.0 mm median / 2.0 mm max, 0.5 cm3; lumen 400, "
+        "background 40 (HU, seeds); 3.0 s. Note: the automatic vessel tree does not hold every seed: the tree is the "
+        "seeds' own, from the lumen level read at them.",
     ]
     auto = SimpleNamespace(**{**ct.__dict__, "seeded": ""})
     assert L.plan_summary(SimpleNamespace(trees=(auto,), seed_groups=((),))).splitlines() == [
         "1 vessel tree: 1 branch, 4.0 cm of centerline.",
-        "Tree 1 (automatic): 1 branch, 4.0 cm, radius 2.0 mm median / 2.0 mm max, 0.5 cm3; lumen 400, background 40 "
-        "(HU, from seeds).",
+        "Tree 1 (automatic): 1 branch, 4.0 cm of centerline, radius 2.0 mm median / 2.0 mm max, 0.5 cm3; lumen 400, "
+        "background 40 (HU, seeds); 3.0 s.",
     ]

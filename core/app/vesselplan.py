@@ -20,8 +20,8 @@ from guidewire3d.cta import lostlumen, vesselmodel, vessels3d
 from guidewire3d.errors import SegmentationError
 from guidewire3d.vesseltree import access_record, check_access, rooted_at_access
 
-__all__ = ["VesselPlan", "plan_vessels", "vessels_record", "write_plan", "forest_polydata", "run_to_outdir",
-           "cli_main"]
+__all__ = ["VesselPlan", "plan_vessels", "vessels_record", "write_plan", "forest_polydata", "tree_summary",
+           "tree_notes", "run_to_outdir", "cli_main"]
 
 MIN_FREE_MB = 16
 
@@ -268,7 +268,8 @@ def cli_main(args) -> int:
                          progress=sys.stderr.isatty(), access_lps_mm=getattr(args, "access_lps", None))
     for k, auto in enumerate(plan.trees):
         which = "" if len(plan.trees) == 1 else f"tree {k + 1} (seeds {', '.join(str(i + 1) for i in plan.seed_groups[k])}): "
-        _say_notes(auto, say, which)
+        for note in tree_notes(auto):
+            say(f"note: {which}{note}")
     auto = plan.trees[0]
     access = getattr(args, "access_lps", None)
     if access is not None:
@@ -281,33 +282,39 @@ def cli_main(args) -> int:
               f"{sum(len(a.vessels.tree.branches) for a in plan.trees)} branches, {total / 10:.1f} cm of centerline; "
               f"{sum(a.seconds.get('total', 0.0) for a in plan.trees):.1f} s")
         for k, a in enumerate(plan.trees):
-            print(f"  tree {k + 1}: {_summary(a)}")
+            print(f"  tree {k + 1}: {tree_summary(a)}")
         return 0
-    print(f"wrote {args.out}: {_summary(auto)}")
+    print(f"wrote {args.out}: {tree_summary(auto)}")
     return 0
 
 
-def _summary(auto) -> str:
+def tree_summary(auto) -> str:
+    """One line on an ``AutoVessels``: branches, length, radii, volume, the lumen and background levels and their
+    units, seconds (the command line's and the Slicer module's)."""
     m, t = auto.model, auto.vessels.tree
-    return (f"{len(t.branches)} branches, {t.total_length_mm / 10:.1f} cm of centerline, "
+    n = len(t.branches)
+    return (f"{n} branch{'' if n == 1 else 'es'}, {t.total_length_mm / 10:.1f} cm of centerline, "
             f"radius {np.median(t.radius_mm):.1f} mm median / {t.radius_mm.max():.1f} mm max, "
             f"{auto.plausibility.vessel_cm3:.1f} cm3; lumen {m.lumen:.4g}, background {m.background:.4g} "
             f"({'HU' if m.hu else 'arbitrary units'}, {m.source}); {auto.seconds.get('total', 0.0):.1f} s")
 
 
-def _say_notes(auto, say, which: str = "") -> None:
+def tree_notes(auto) -> list[str]:
+    """What a user must know of how an ``AutoVessels`` tree was made, one sentence each: a strict second pass, what
+    was cut, a bias field divided out, how the seeds made the tree (the command line's and the Slicer module's)."""
+    notes = []
     if auto.first_pass_problems:
         how = "the strict pass's tree" if auto.segmentation.startswith("strict") else "the tree"
         cut = f", {auto.pruned}" if auto.pruned else ""
-        say(f"note: {which}the first vessel tree was implausible ({'; '.join(auto.first_pass_problems)}); {how} is "
-            f"written{cut} (check it in the viewer)")
+        notes.append(f"the first vessel tree was implausible ({'; '.join(auto.first_pass_problems)}); {how} is "
+                     f"kept{cut} (check it in the viewer)")
     elif auto.pruned:  # blood pools cut, or one of two separate structures chosen, from a tree that passed
-        say(f"note: {which}{auto.pruned} (check it in the viewer)")
+        notes.append(f"{auto.pruned} (check it in the viewer)")
     if auto.bias_field:
-        say(f"note: {which}{auto.bias_field}; the tree is that of the corrected volume (the intensity levels in "
-            f"vessels.json are its)")
+        notes.append(f"{auto.bias_field}; the tree is that of the corrected volume (the intensity levels are its)")
     if auto.seeded == "automatic tree":
-        say(f"{which}the automatic vessel tree holds every seed: it is written, rooted at its end nearest the first seed")
+        notes.append("the automatic vessel tree holds every seed: it is kept, rooted at its end nearest the first seed")
     elif auto.seeded == "seeds":
-        say(f"{which}the automatic vessel tree does not hold every seed: the tree is the seeds' own, from the lumen level "
-            "read at them")
+        notes.append("the automatic vessel tree does not hold every seed: the tree is the seeds' own, from the lumen "
+                     "level read at them")
+    return notes

@@ -313,27 +313,11 @@ def plan_summary(plan, *, access_lps_mm=None) -> str:
                 f"{total_cm:.1f} cm of centerline.")
     lines = [head]
     for k, (a, group) in enumerate(zip(trees, plan.seed_groups)):
-        t, m = a.vessels.tree, a.model
         seeds = f"seeds {', '.join(str(i + 1) for i in group)}" if group else "automatic"
-        units = "HU" if m.hu else "arbitrary units"
-        line = (f"Tree {k + 1} ({seeds}): {_count(len(t.branches), 'branch')}, {t.total_length_mm / 10:.1f} cm, radius "
-                f"{np.median(t.radius_mm):.1f} mm median / {t.radius_mm.max():.1f} mm max, "
-                f"{a.plausibility.vessel_cm3:.1f} cm3; lumen {m.lumen:.4g}, background {m.background:.4g} "
-                f"({units}, from {m.source}).")
-        notes = []
-        if a.first_pass_problems:
-            how = "the strict pass's tree is shown" if a.segmentation.startswith("strict") else "the tree is shown"
-            notes.append(f"the first tree was implausible ({'; '.join(a.first_pass_problems)}); {how}")
-        if a.pruned:
-            notes.append(str(a.pruned))
-        if a.bias_field:
-            notes.append(f"{a.bias_field}; the levels are those of the corrected volume")
-        if a.seeded == "automatic tree":
-            notes.append("the automatic tree holds every seed")
-        elif a.seeded == "seeds":
-            notes.append("the tree is the seeds' own, from the lumen level read at them")
+        line = f"Tree {k + 1} ({seeds}): {vesselplan.tree_summary(a)}."
+        notes = vesselplan.tree_notes(a)
         if k == 0 and access_lps_mm is not None:
-            rec = access_record(t, access_lps_mm)
+            rec = access_record(a.vessels.tree, access_lps_mm)
             notes.append(f"rooted at its point nearest the access point, {rec['distance_mm']:.1f} mm from it")
         if notes:
             line += " Note: " + "; ".join(notes) + "."
