@@ -85,6 +85,7 @@ BACKGROUND_PERCENTILE = 75.0
 MODE_MIN_MASS = 0.2
 #: In calibrated CT a contrast lumen is below this (HU); brighter tubes are bone.
 HU_LUMEN_MAX = 650.0
+HU_AIR_RANGE = (-1200.0, -300.0)  # air and lung in HU
 HU_TISSUE_MAX = 200.0  # the tissue level (upper quartile of the body) of a CT in HU: at most this
 HU_BONE_MIN = 620.0
 #: ... unless the tubular structures above HU_LUMEN_MAX outweigh (vesselness-weighted) those below by
@@ -498,6 +499,8 @@ def _body_mask(ds: np.ndarray) -> tuple[np.ndarray, float | None]:
         upper = body & (ds >= t)
         if (hi_med - lo_med) < 4.0 * hi_spread or upper.sum() < 0.15 * n:
             break
+        if lo_mode is not None and HU_AIR_RANGE[0] <= lo_mode <= HU_AIR_RANGE[1] < lo_med:
+            break  # air or lung in HU removed already: a class above -300 is tissue, not air (a crop of the heart)
         body, lo_mode = upper, lo_med
     if lo_mode is None:
         return _body_mask_outside(ds)
@@ -736,7 +739,9 @@ def looks_like_hu(volume: io.Volume) -> bool:
     263-276; CTs in HU: 44-68, the synthetic head's with its thick skull 126).
     """
     check_geometry(volume)
-    ds, _, _, body, _, _, hu = _body_levels(volume)
+    ds, _, _, body, lo_mode, _, hu = _body_levels(volume)
+    if hu and lo_mode is not None:  # air or lung in HU, and the body's median a tissue's: HU, whatever its contrast
+        return True
     return bool(hu and float(np.percentile(ds[body], BACKGROUND_PERCENTILE)) <= HU_TISSUE_MAX)
 
 
@@ -858,6 +863,13 @@ def _estimate_intensity_model(volume: io.Volume, *, seeds_lps_mm=None):
     # the tissue level around vessels: the upper quartile of the body (a CT body's median sits
     # between fat and muscle; the lumen threshold must clear enhancing soft tissue)
     bg = float(np.percentile(bvals, BACKGROUND_PERCENTILE))
+    if hu and bg > HU_TISSUE_MAX:
+        # a CT in HU whose body is largely contrast blood (a crop of the heart, its chambers a third of the body): the
+        # tissue level and spread are those of the body below the contrast
+        tissue = bvals[bvals <= HU_TISSUE_MAX]
+        med_t = float(np.median(tissue))
+        spread = 1.4826 * float(np.median(np.abs(tissue - med_t)))
+        bg = float(np.percentile(tissue, BACKGROUND_PERCENTILE))
     noise = _noise_sigma(a, band=(bg - 2.0 * spread, bg + 2.0 * spread), spacing_zyx=sp_zyx)
     noise = max(noise, 1e-6 * max(abs(bg), 1.0))
 
