@@ -61,6 +61,15 @@ def hs(tmp_path):
     h.scene.Clear(1)
 
 
+def reload_node(scene, cls: str, path):
+    """A new node of class ``cls`` read from ``path`` through its default storage node (a saved output read back)."""
+    node = scene.AddNewNodeByClass(cls)
+    node.AddDefaultStorageNode()
+    node.GetStorageNode().SetFileName(str(path))
+    assert node.GetStorageNode().ReadData(node)
+    return node
+
+
 def _rigid(rng, *, t_scale=20.0, r_scale=0.3) -> Pose:
     return Pose.exp(np.r_[rng.normal(0, t_scale, 3), rng.normal(0, r_scale, 3)])
 
@@ -358,11 +367,7 @@ def test_outputs_save_and_reload_through_storage_nodes(hs, tmp_path):
     assert json.loads(curve_path.read_text())["markups"][0]["coordinateSystem"] == "LPS"
 
     def reload(cls, path):
-        node = hs.scene.AddNewNodeByClass(cls)
-        node.AddDefaultStorageNode()
-        node.GetStorageNode().SetFileName(str(path))
-        assert node.GetStorageNode().ReadData(node)
-        return node
+        return reload_node(hs.scene, cls, path)
 
     by_name = {p.name: p for p in paths}
     for curve in out.centerline_curves + [c for c in out.wire_curves if c.GetNumberOfControlPoints()]:

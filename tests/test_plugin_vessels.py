@@ -24,6 +24,7 @@ PLUGIN_DIR = Path(__file__).resolve().parents[1] / "plugin" / "GuidewireReconstr
 sys.path.insert(0, str(PLUGIN_DIR))
 
 from GuidewireReconstructionLib import logic as L  # noqa: E402
+from test_plugin import reload_node  # noqa: E402
 
 SPACING_MM = 0.5
 RADIUS_MM = 2.0
@@ -231,11 +232,7 @@ def test_planned_nodes_save_and_reload(hs, tmp_path):
     assert sorted(paths) == ["GW_planned_centerline.vtk", "GW_planned_vessels.stl", "GW_vessel_branches.tsv"]
 
     def reload(cls, path):
-        node = hs.scene.AddNewNodeByClass(cls)
-        node.AddDefaultStorageNode()
-        node.GetStorageNode().SetFileName(str(path))
-        assert node.GetStorageNode().ReadData(node)
-        return node
+        return reload_node(hs.scene, cls, path)
 
     back = reload("vtkMRMLModelNode", paths["GW_planned_centerline.vtk"])
     np.testing.assert_allclose(_points_lps(back), _points_lps(out.plan_centerline_model), atol=FLOAT32_MM)
