@@ -73,6 +73,13 @@ def _viewer_screenshot(out_dir, path):
     return render_outdir_screenshot(out_dir, path)
 
 
+def _plan_screenshot(folder, path):
+    """``screenshot.png`` of a vessel plan (``guidewire3d vessels``), rendered offscreen by the viewer's scene code."""
+    from guidewire3d.viewer.plan_scene import render_plan_screenshot
+
+    return render_plan_screenshot(folder, path)
+
+
 def _run_reconstruct(args) -> int:
     from guidewire3d.app import pipeline
     from guidewire3d.registration import Verdict
@@ -213,9 +220,10 @@ def _add_demo_parser(sub) -> None:
 def _add_view_parser(sub) -> None:
     p = sub.add_parser("view", help="desktop viewer on an output folder or on inputs",
                        description="Open the pyvista viewer on a reconstruct output folder "
-                                   "(or on --cta/--roadmap/--frames), or render a screenshot offscreen.")
-    p.add_argument("out_dir", nargs="?", help="a folder written by reconstruct/demo; with --cta/--roadmap/--frames, "
-                                              "the folder their run writes (default: a new temporary folder)")
+                                   "(or on --cta/--roadmap/--frames), or on a vessel plan written by "
+                                   "`guidewire3d vessels`, or render a screenshot offscreen.")
+    p.add_argument("out_dir", nargs="?", help="a folder written by reconstruct/demo/vessels; with --cta/--roadmap/"
+                                              "--frames, the folder their run writes (default: a new temporary folder)")
     p.add_argument("--cta")
     p.add_argument("--roadmap")
     p.add_argument("--frames")
@@ -316,7 +324,9 @@ def _add_vessels_parser(sub) -> None:  # issue 17: the vessel tree alone, any an
                                    "units, 3DRA), segment vessels of 0.5-16 mm radius and write centerline.vtp, "
                                    "vessels.stl, vessels.vtp and vessels.json (branches, lengths, radii, the "
                                    "estimated intensities) into --out. A volume without a plausible vessel tree is "
-                                   "refused (exit 2) with the reason; --seed-lps picks the tree containing a point.")
+                                   "refused (exit 2) with the reason; --seed-lps picks the tree containing a point "
+                                   "(seeds in separate structures: one tree each). screenshot.png shows the plan; "
+                                   "`guidewire3d view OUT` opens it.")
     p.add_argument("--cta", required=True, help="the volume: a DICOM series folder (CT or MR), or a NIfTI/NRRD/MHA file "
                                                 "(CTA in HU, MRA in any units, 3DRA)")
     p.add_argument("--out", required=True, help="output folder (created; must be empty or absent)")
@@ -324,12 +334,13 @@ def _add_vessels_parser(sub) -> None:  # issue 17: the vessel tree alone, any an
                    help="a point in LPS mm inside a vessel lumen: the result is the connected tree containing it "
                         "(repeatable; the first is the root; write --seed-lps=X,Y,Z when X is negative)")
     p.add_argument("--series-uid", default=None, help="SeriesInstanceUID to read from a DICOM folder")
+    p.add_argument("--no-screenshot", action="store_true", help="do not render screenshot.png (offscreen VTK)")
     _add_access_option(p)
 
     def run(args):
         from guidewire3d.app import vesselplan
 
-        return vesselplan.cli_main(args)
+        return vesselplan.cli_main(args, screenshot=None if args.no_screenshot else _plan_screenshot)
 
     p.set_defaults(func=run)
 

@@ -2,7 +2,8 @@
 
 Reads the volume, runs :func:`guidewire3d.cta.vesselmodel.extract_vessels_auto` and writes an output
 folder that appears only when complete (a staging folder renamed at the end, as ``reconstruct``
-does): ``centerline.vtp``, ``vessels.stl``, ``vessels.vtp`` and ``vessels.json``.
+does): ``centerline.vtp``, ``vessels.stl``, ``vessels.vtp``, ``vessels.json`` and, from the command line,
+``screenshot.png``. Seeds in separate vessel structures give one tree each (:func:`plan_vessels`).
 """
 from __future__ import annotations
 
@@ -178,14 +179,15 @@ def vessels_record(auto, *, inputs: dict, access_lps_mm=None) -> dict:
 
 
 def run_to_outdir(cta, out_dir, *, seeds_lps_mm=None, series_uid=None, progress: bool = True, access_lps_mm=None,
-                  log=None):
+                  log=None, screenshot=None):
     """Read ``cta``, extract its vessels and write ``out_dir`` atomically; returns the :class:`VesselPlan`.
 
     Every check that can be made before the work is made first (the output location, the
     volume, its geometry, the seeds, the access point); a volume without a plausible vessel tree
     raises and leaves nothing behind. ``access_lps_mm`` (LPS mm, optional): where the wire will enter;
     the tree written (and returned) is rooted at its point nearest to it
-    (:func:`guidewire3d.vesseltree.rooted_at_access`).
+    (:func:`guidewire3d.vesseltree.rooted_at_access`). ``screenshot(folder, png_path)``, when given (the command
+    line passes the viewer's offscreen renderer, ``viewer.plan_scene``), writes ``screenshot.png`` with the files.
     """
     out_dir = Path(out_dir)
     io.require_empty_folder(out_dir, min_free_mb=MIN_FREE_MB)
@@ -207,6 +209,8 @@ def run_to_outdir(cta, out_dir, *, seeds_lps_mm=None, series_uid=None, progress:
 
         def write(staging: Path) -> None:
             write_plan(plan, staging, inputs=inputs, access_lps_mm=access_lps_mm)
+            if screenshot is not None:
+                screenshot(staging, staging / "screenshot.png")
 
         io.write_into(out_dir, staging, write)
     return plan
@@ -260,12 +264,13 @@ def forest_polydata(plan: VesselPlan, what: str):
     return out
 
 
-def cli_main(args) -> int:
+def cli_main(args, *, screenshot=None) -> int:
     def say(msg):
         print(msg, file=sys.stderr)
 
     plan = run_to_outdir(args.cta, args.out, seeds_lps_mm=args.seed_lps, series_uid=args.series_uid, log=say,
-                         progress=sys.stderr.isatty(), access_lps_mm=getattr(args, "access_lps", None))
+                         progress=sys.stderr.isatty(), access_lps_mm=getattr(args, "access_lps", None),
+                         screenshot=screenshot)
     for k, auto in enumerate(plan.trees):
         which = "" if len(plan.trees) == 1 else f"tree {k + 1} (seeds {', '.join(str(i + 1) for i in plan.seed_groups[k])}): "
         for note in tree_notes(auto):

@@ -1,6 +1,7 @@
 """The desktop viewer: builds the scene, wires keys and sliders to the controller, shows the window.
 
-``guidewire3d view OUT_DIR`` (or ``--cta/--roadmap/--frames [--access-lps]`` to run the pipeline first);
+``guidewire3d view OUT_DIR`` (or ``--cta/--roadmap/--frames [--access-lps]`` to run the pipeline first; a folder
+written by ``guidewire3d vessels`` shows its vessel plan, ``plan_scene``);
 ``--screenshot PATH`` renders offscreen and exits. Keys are listed on screen (``scene.HELP``).
 """
 from __future__ import annotations
@@ -13,6 +14,7 @@ from pathlib import Path
 from guidewire3d.app import igtl, pipeline
 from guidewire3d.app.outdir import load_outdir
 from guidewire3d.errors import Guidewire3DError, InputError
+from guidewire3d.viewer import plan_scene
 from guidewire3d.viewer import scene as sc
 from guidewire3d.viewer.biplane_scene import add_plane_b, plane_b_of_outdir
 from guidewire3d.viewer.controller import Axis, ExportKind, ViewerController
@@ -410,6 +412,15 @@ def cli_main(args) -> int:
         return run_live(args.live, out_dir=out, size_px=size, screenshot=getattr(args, "screenshot", None))
     if any(getattr(args, n, None) for n in ("cta", "roadmap", "frames")):
         out_dir = _run_pipeline(args)
+    elif getattr(args, "out_dir", None) and plan_scene.is_plan_folder(args.out_dir):
+        # a folder written by `guidewire3d vessels`: the plan (no C-arm, no wire)
+        if getattr(args, "access_lps", None) is not None:
+            raise InputError(f"--access-lps: {args.out_dir} is a finished vessel plan; give --access-lps to "
+                             "`guidewire3d vessels`")
+        if getattr(args, "screenshot", None):
+            print(f"screenshot written to {plan_scene.render_plan_screenshot(args.out_dir, args.screenshot, size=size)}")
+            return 0
+        return plan_scene.run_plan_interactive(args.out_dir, size_px=size)
     elif getattr(args, "out_dir", None):
         out_dir = Path(args.out_dir)
         if not (out_dir / "report.json").is_file():

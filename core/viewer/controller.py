@@ -26,7 +26,6 @@ from guidewire3d.app.outdir import (
 )
 from guidewire3d.errors import InputError
 from guidewire3d.geometry import Pose
-from guidewire3d.io import atomic_write_bytes
 from guidewire3d.live import session as live
 from guidewire3d.registration import Verdict
 from guidewire3d.viewer import scene as sc
@@ -674,13 +673,7 @@ class ViewerController:
             pl.window_size = old
             self._fit_2d_cameras()
             pl.render()
-        import cv2
-
-        ok, buf = cv2.imencode(".png", np.ascontiguousarray(np.asarray(img)[..., :3][..., ::-1]))
-        if not ok:
-            raise InputError(f"{path}: PNG encoding failed")
-        atomic_write_bytes(path, buf.tobytes())
-        return path
+        return sc.write_png(path, img)
 
 
 def _covariance_from(registration: dict):

@@ -10,9 +10,12 @@ Coordinates: the 3D viewport is in LPS mm. The 2D viewport draws the image plane
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 from guidewire3d.app.export import WIRE_TUBE_RADIUS_MM
+from guidewire3d.errors import InputError
+from guidewire3d.io import atomic_write_bytes
 from guidewire3d.geometry import CArm, Pose
 
 __all__ = [
@@ -183,6 +186,19 @@ class SceneHandles:
     info_text: object | None  # vtkTextActor, top of the 2D view
     status_text: object | None  # vtkTextActor, bottom of the 2D view
     help_text: object | None
+
+
+def write_png(path, image_rgb) -> Path:
+    """A rendered image (``(H, W, 3|4)`` uint8 RGB[A], as ``Plotter.screenshot`` returns it) written to the PNG
+    ``path`` atomically (nothing half-written); returns the path."""
+    import cv2
+
+    path = Path(path)
+    ok, buf = cv2.imencode(".png", np.ascontiguousarray(np.asarray(image_rgb)[..., :3][..., ::-1]))
+    if not ok:
+        raise InputError(f"{path}: PNG encoding failed")
+    atomic_write_bytes(path, buf.tobytes())
+    return path
 
 
 # --------------------------------------------------------------------------------------
@@ -567,7 +583,7 @@ def beams_eye_camera(renderer, carm: CArm, pose: Pose) -> None:
     cam.SetViewUp(*(-(Rinv @ e_v)))
     cam.SetViewAngle(float(np.degrees(2.0 * np.arctan(carm.rows * carm.pixel_mm / 2.0 / carm.sid_mm))))
     cam.SetClippingRange(0.5 * carm.sod_mm, 1.05 * carm.sid_mm)
-    _mark_camera_set(renderer)
+    mark_camera_set(renderer)
 
 
 def overview_camera(renderer, carm: CArm, pose: Pose, focus_bounds, *, margin: float = 1.4) -> None:
@@ -600,7 +616,7 @@ def overview_camera(renderer, carm: CArm, pose: Pose, focus_bounds, *, margin: f
         dist = max(dist, float(np.max(along + m * lateral / tan_h)))
     cam.SetPosition(*(aim - look * dist))
     renderer.ResetCameraClippingRange()
-    _mark_camera_set(renderer)
+    mark_camera_set(renderer)
 
 
 def _aspect(renderer) -> float:
@@ -621,10 +637,10 @@ def fit_2d_camera(renderer, shape) -> None:
     cam.SetParallelScale(max(rows / 2.0, cols / 2.0 / aspect) * 1.04)
     renderer.ResetCameraClippingRange()
     cam.SetClippingRange(900.0, 1100.0)
-    _mark_camera_set(renderer)
+    mark_camera_set(renderer)
 
 
-def _mark_camera_set(renderer) -> None:
+def mark_camera_set(renderer) -> None:
     """Tell pyvista the camera was placed on purpose (otherwise it resets it at the first render)."""
     if hasattr(renderer, "camera_set"):
         renderer.camera_set = True
