@@ -26,10 +26,11 @@ below is a named constant of this module), in LPS mm, the left ventricle's centr
   (radius 5 mm, cortex 900, marrow 200);
 * the coronary arteries, the truth (``coronary_tree``; paths placed on the heart's surface ``CORONARY_GAP_MM`` =
   1.5-2.5 mm outside the myocardium, chambers and great vessels, in the epicardial fat): the left main (radius 2.0,
-  8 mm) from the left aortic sinus splitting into the LAD (anterior interventricular groove to and round the apex,
-  1.8 -> 0.7 mm) with two diagonals (1.2 -> 0.6) and the LCx (left AV groove, 1.6 -> 0.8) with two marginals
-  (1.1 -> 0.6); the RCA from the right sinus round the right AV groove (2.0 -> 0.8) with a PDA (1.1 -> 0.7) in the
-  posterior interventricular groove. Their contrast is the aorta's, falling by ``--distal-fall`` (0.2: 400 -> 320 HU)
+  16 mm from inside the root, 15 mm of it outside) from the left aortic sinus splitting into the LAD (anterior
+  interventricular groove to and round the apex, 1.8 -> 0.7 mm, 110 mm) with two diagonals (1.2 -> 0.6, 40-45 mm)
+  and the LCx (left AV groove, 1.6 -> 0.8, 91 mm) with two marginals (1.0-1.1 -> 0.6, 47-52 mm); the RCA from the
+  right sinus round the right AV groove (2.0 -> 0.8, 122 mm with its ostial 13 mm) with a PDA (1.1 -> 0.7, 41 mm) in
+  the inferior interventricular groove (the lengths are printed with each run). Their contrast is the aorta's, falling by ``--distal-fall`` (0.2: 400 -> 320 HU)
   over ``DISTAL_FALL_MM`` = 150 mm of path from the ostium;
 * ``--plaques`` (4) calcified plaques (1200 HU, radius 1.0-1.3 mm) at the walls of the proximal LAD and RCA;
 * partial volume at every edge (the fraction of a voxel-sized rim inside), Gaussian blur (``--blur-mm`` = 0.4 mm
