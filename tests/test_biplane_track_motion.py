@@ -140,3 +140,52 @@ def test_a_pair_whose_plane_b_curve_fits_no_vessel_is_uncertain_and_says_why():
     assert summary["verdicts"] == {"ok": 3, "uncertain": 2, "failed": 0}
     assert summary["planes"] == {"AB": 3, "A": 2, "B": 0, "none": 0}
     assert biplane.motion_summary([]) is None
+
+
+def test_live_biplane_tracks_motion_pairs_and_lone_frames(tracked_run, moving_case_dir):
+    """``guidewire3d live`` with two planes and ``--track-motion`` (the runner as ``cli_live`` wires it): pairs are
+    tracked from both planes; a plane-A frame handed out alone (plane B silent) updates the pose from plane A alone
+    and says which plane was left out; every frame's pose follows the breathing."""
+    from guidewire3d import io
+    from guidewire3d.app import sources, stream
+
+    _, out, _ = tracked_run
+    d = moving_case_dir
+    truth = load_truth(d)
+    fa, fb = io.read_xa(d / "frames.dcm").frames, io.read_xa(d / "frames_b.dcm").frames
+    setup = stream.setup_from_outdir(out)
+    session = biplane.BiplaneSession(setup.tree, setup.frames_carms, setup.pose, registration_covariance=setup.covariance,
+                                     segmenter="ridge", track_motion=True)
+    runner = stream.BiplaneRunner(session, None, sources.PairedFrames())
+    got = []
+    try:
+        for t in range(N_FRAMES):
+            a = sources.Frame(fa[t], 100.0 + 0.1 * t, "A")
+            b = sources.Frame(fb[t], 100.0 + 0.1 * t, "B") if t < 3 else None
+            got.append(runner.process(sources.FramePair(a, b, "" if b else "no frame from plane B for 0.4 s")))
+    finally:
+        session.close()
+    P = truth.tree.points_lps_mm
+    for t, bf in enumerate(got):
+        fr = bf.result
+        assert fr.motion is not None and fr.pose.allclose(fr.motion.pose, atol_mm=1e-6)
+        assert metrics.mtre_mm(fr.pose, truth.frame_pose(t), P) < (TRACKED_POSE_TOL_MM if t < 3 else 3.0)
+        if t < 3:
+            assert biplane.motion_planes(fr.motion) == "AB"
+        else:
+            assert biplane.motion_planes(fr.motion) == "A" and bf.views == "A"
+            assert bf.fallback.startswith("one view (plane A only): plane B: no frame from plane B"), bf.fallback
+            assert "plane B shows no curve" in fr.motion.message
+    assert runner.summary.alone == {"A": 2, "B": 0}
+
+
+def test_cli_live_biplane_replay_with_track_motion(tracked_run, moving_case_dir, capsys):
+    from guidewire3d.app.cli import main
+
+    _, out, _ = tracked_run
+    d = moving_case_dir
+    rc = main(["live", "--from", str(out), "--replay", str(d / "frames.dcm"), "--replay", str(d / "frames_b.dcm"),
+               "--fps", "20", "--port", "0", "--segmenter", "ridge", "--track-motion"])
+    text = capsys.readouterr().out
+    assert rc == 0, text
+    assert "pairs processed" in text and "from both planes" in text, text
