@@ -558,9 +558,26 @@ class BiplaneFrame:
             return round(float(x), 4) if np.isfinite(x) else None
 
         uv_b = _uv_of(self.wire2d_b)
-        return {"views": self.views, "fallback": self.fallback, "index_b": int(self.index_b),
-                "projection_error_px_a": f(self.projection_error_px[0]),
-                "projection_error_px_b": f(self.projection_error_px[1]), "wire_uv_px_b": uv_b.tolist()}
+        d = {"views": self.views, "fallback": self.fallback, "index_b": int(self.index_b),
+             "projection_error_px_a": f(self.projection_error_px[0]),
+             "projection_error_px_b": f(self.projection_error_px[1]), "wire_uv_px_b": uv_b.tolist()}
+        m = getattr(self.result, "motion", None)
+        if m is not None:  # track_motion: the frame's ``motion`` record (pose, verdict, message) has the rest
+            d["motion"] = {"planes": motion_planes(m), "pose_std_mm": f(m.pose_std_mm)}
+        return d
+
+
+def motion_planes(motion) -> str:
+    """Which planes' wires updated a pair's pose (``motion``: the ``RegistrationResult`` of
+    ``motion.BiplaneMotionTracker.update``): ``"AB"`` (the two-view fit), ``"A"`` or ``"B"`` (that plane's
+    one-view update: the other showed no curve, or its curve did not fit) or ``""`` (none: the pose was held)."""
+    msg = str(getattr(motion, "message", ""))
+    if msg.startswith("tracked from both planes"):
+        return "AB"
+    for p in PLANES:
+        if f"plane {p} alone (one-view priors)" in msg:
+            return p
+    return ""
 
 
 def _uv_of(wire2d) -> np.ndarray:
@@ -766,6 +783,8 @@ class BiplaneSession:
         if not present:
             msg = "; ".join(why)
             fr = self.sessions[0]._failed(index, wires[0], msg, t0, float("nan"))
+            if motion is not None:  # tracked: the held pose's update is recorded too
+                fr = replace(fr, motion=motion)
             return BiplaneFrame(fr, "", msg, wires[1], (float("nan"), float("nan")), index_b, fr.seconds)
         k = present[0]
         fr_k = self.sessions[k].process_wire(wires[k], image=images[k], index=index)
@@ -1010,12 +1029,20 @@ def _frame_ids(road: io.XARun, live: io.XARun, k: int) -> list[int]:
 
 
 def run(volume, roadmaps, frames, *, roadmap_frame=None, seeds_lps_mm=None, method="vessel", segmenter="unet",
-        force: bool = False, progress: bool = False, access_lps_mm=None, log=None) -> BiplaneResult:
+        force: bool = False, progress: bool = False, access_lps_mm=None, track_motion: bool = False,
+        motion_options=None, log=None) -> BiplaneResult:
     """The biplane chain on in-memory inputs: CTA vessels, both roadmaps' centerlines, the joint
     registration, then every pair of live frames through a :class:`BiplaneSession`.
 
     ``access_lps_mm`` (LPS mm, optional): where the wire enters; the tree is rooted at its point
-    nearest to it, as in :func:`guidewire3d.app.pipeline.run`."""
+    nearest to it, as in :func:`guidewire3d.app.pipeline.run`.
+
+    ``track_motion``: follow breathing and heartbeat from both planes (``BiplaneSession(track_motion=True)``:
+    ``motion.BiplaneMotionTracker``, the joint registration and its covariance as its prior): each pair's two
+    2D wires update the pose, and the pair is reconstructed in that pose with its covariance. Each pair's
+    ``result.pose`` is then its tracked pose and ``result.motion`` the tracker's ``RegistrationResult``; a
+    pair whose update is not ``ok`` is at best ``uncertain``, the motion's message in its own.
+    ``motion_options``: a ``motion.MotionOptions`` (default: its defaults)."""
     check_planes(roadmaps, frames)
     timing: dict[str, float] = {}
     t0 = time.perf_counter()
@@ -1044,7 +1071,8 @@ def run(volume, roadmaps, frames, *, roadmap_frame=None, seeds_lps_mm=None, meth
     records = []
     if reg.success or force:
         session = BiplaneSession(tree, (frames[0].carm, frames[1].carm), reg.pose,
-                                 registration_covariance=reg.covariance_6x6, segmenter=segmenter, method=method)
+                                 registration_covariance=reg.covariance_6x6, segmenter=segmenter, method=method,
+                                 track_motion=bool(track_motion), motion_options=motion_options)
         session.warm_up(live_a[ia[0]], live_b[ib[0]])
         t_frames = time.perf_counter()
         it = zip(ia, ib)
@@ -1052,8 +1080,11 @@ def run(volume, roadmaps, frames, *, roadmap_frame=None, seeds_lps_mm=None, meth
             from tqdm import tqdm
 
             it = tqdm(list(it), desc="frame pairs", unit="pair", file=sys.stderr, leave=False)
-        for i, j in it:
-            records.append(session.process(live_a[i], live_b[j], index=i, index_b=j))
+        try:
+            for i, j in it:
+                records.append(session.process(live_a[i], live_b[j], index=i, index_b=j))
+        finally:
+            session.close()
         timing["frames"] = time.perf_counter() - t_frames
     else:
         timing["frames"] = 0.0
@@ -1077,11 +1108,32 @@ def report_additions(result: BiplaneResult, inputs: dict) -> dict:
         d["frames_carm"] = carm_f.to_dict()
         views.append(d)
     perr = np.array([p.projection_error_px for p in result.pairs], float).reshape(-1, 2)
-    return {"inputs": inputs, "biplane": {"planes": views, "n_pairs": len(result.pairs),
-                                          "two_view_pairs": sum(1 for p in result.pairs if p.views == "AB"),
-                                          "fallback_pairs": sum(1 for p in result.pairs if p.fallback),
-                                          "projection_error_px": {name.lower(): projection_error_summary(perr[:, j])
-                                                                  for j, name in enumerate(PLANES)}}}
+    bp = {"planes": views, "n_pairs": len(result.pairs),
+          "two_view_pairs": sum(1 for p in result.pairs if p.views == "AB"),
+          "fallback_pairs": sum(1 for p in result.pairs if p.fallback),
+          "projection_error_px": {name.lower(): projection_error_summary(perr[:, j])
+                                  for j, name in enumerate(PLANES)}}
+    motion = motion_summary(result.pairs)
+    if motion is not None:
+        bp["motion"] = motion
+    return {"inputs": inputs, "biplane": bp}
+
+
+def motion_summary(pairs) -> dict | None:
+    """``report.json`` ``biplane.motion`` of a run that tracked motion (None when it did not): how many
+    pairs' poses were updated, by verdict (``ok`` / ``uncertain`` / ``failed``: the tracker's, each pair's
+    own is in its ``motion`` record) and by the planes that updated them (``motion_planes``), and the
+    median of the tracked poses' reported 1 sigma (``pose_std_mm``, mm, over the tree)."""
+    ms = [p.result.motion for p in pairs if getattr(p.result, "motion", None) is not None]
+    if not ms:
+        return None
+    std = np.array([m.pose_std_mm for m in ms], float)
+    std = std[np.isfinite(std)]
+    planes = [motion_planes(m) for m in ms]
+    return {"tracked_pairs": len(ms),
+            "verdicts": {v.value: sum(1 for m in ms if m.verdict is v) for v in Verdict},
+            "planes": {k or "none": planes.count(k) for k in ("AB", "A", "B", "")},
+            "pose_std_mm_median": round(float(np.median(std)), 4) if len(std) else None}
 
 
 def projection_error_summary(errors_px) -> dict:
@@ -1111,24 +1163,34 @@ def write_outdir(result: BiplaneResult, out_dir: Path, *, inputs: dict, images: 
         fr["biplane"] = p.to_dict()
     io.atomic_write_text(rep_path, json.dumps(rep, indent=1))
     if images:
-        pose = result.registration.pose
-        cl_uv = result.carm_b.project(result.plane_a.tree.points_lps_mm, pose)
+        reg_pose = result.registration.pose
+        tree_pts = result.plane_a.tree.points_lps_mm
+        cl_uv = result.carm_b.project(tree_pts, reg_pose)
         for p, frame in zip(result.pairs, result.frames_b):
             w3 = p.result.wire3d
+            # a tracked pair (track_motion) was reconstructed in its own pose: its wire and the tree are shown there
+            pose = p.result.pose if getattr(p.result, "motion", None) is not None and p.result.pose is not None \
+                else reg_pose
+            cl_uv_p = cl_uv if pose is reg_pose else result.carm_b.project(tree_pts, pose)
             w3uv = result.frames_carm_b.project(w3.points_lps_mm, pose) if w3 else None
             txt = (f"plane B frame {p.index_b}: {p.views or 'no'} view(s), proj err "
                    f"{p.projection_error_px[1]:.2f} px" if w3 else f"plane B frame {p.index_b}: {w3.message}")
             uv_b = _uv_of(p.wire2d_b)
-            rgb = export.overlay_image(frame, centerline_uv_px=cl_uv, wire2d_uv_px=uv_b, wire3d_uv_px=w3uv, text=txt)
+            rgb = export.overlay_image(frame, centerline_uv_px=cl_uv_p, wire2d_uv_px=uv_b, wire3d_uv_px=w3uv, text=txt)
             export.write_png(Path(out_dir) / f"overlay_b_{p.result.index:04d}.png", rgb)
 
 
 def run_to_outdir(cta, roadmaps, frames, out_dir, *, series_uid=None, roadmap_frame=None, seeds_lps_mm=None,
                   method="vessel", segmenter="unet", force=False, images=True, progress=True, access_lps_mm=None,
-                  log=None, screenshot=None) -> BiplaneResult:
+                  track_motion=False, log=None, screenshot=None) -> BiplaneResult:
     """Read both planes' files and the CTA, run, and write ``out_dir`` atomically (as
     ``pipeline.run_to_outdir``: every input checked before the heavy work, a staging folder renamed
-    at the end; with ``access_lps_mm`` the rooted tree and ``report.json`` ``"access"``)."""
+    at the end; with ``access_lps_mm`` the rooted tree and ``report.json`` ``"access"``).
+
+    ``track_motion`` (see :func:`run`): ``report.json`` ``inputs.track_motion`` says so; each tracked frame
+    gets ``motion`` (its own pose, the tracker's verdict and message, as a one-view run's) and in its
+    ``biplane`` record the planes that updated the pose and its 1 sigma; ``biplane.motion`` sums them up
+    (:func:`motion_summary`)."""
     out_dir = Path(out_dir)
     io.require_empty_folder(out_dir, min_free_mb=pipeline.MIN_FREE_MB)
     t0 = time.perf_counter()
@@ -1154,7 +1216,8 @@ def run_to_outdir(cta, roadmaps, frames, out_dir, *, series_uid=None, roadmap_fr
     t_load = time.perf_counter() - t0
     with io.staged_folder(out_dir) as staging:
         result = run(vol, roads, lives, roadmap_frame=roadmap_frame, seeds_lps_mm=seeds_lps_mm, method=method,
-                     segmenter=segmenter, force=force, progress=progress, access_lps_mm=access_lps_mm, log=log)
+                     segmenter=segmenter, force=force, progress=progress, access_lps_mm=access_lps_mm,
+                     track_motion=track_motion, log=log)
         result.plane_a.timing["load_inputs"] = t_load
         inputs = {
             "cta": str(Path(cta).resolve()),
@@ -1168,7 +1231,7 @@ def run_to_outdir(cta, roadmaps, frames, out_dir, *, series_uid=None, roadmap_fr
             "method": str(getattr(method, "value", method)),
             "segmenter": str(getattr(segmenter, "value", segmenter)),
             "forced": bool(force),
-            "track_motion": False,
+            "track_motion": bool(track_motion),
             "biplane": True,
             "files": files,
         }

@@ -124,20 +124,22 @@ def _run_reconstruct_biplane(args) -> int:
     if given:
         raise InputError(f"{', '.join(given)}: the C-arm overrides describe one view; with two --roadmap each plane's "
                          "own positioner tags are required")
-    if getattr(args, "track_motion", False):
-        raise InputError("--track-motion: not available with two planes yet (biplane runs use the joint roadmap pose)")
     result = biplane.run_to_outdir(args.cta, args.roadmap, args.frames, args.out, series_uid=args.series_uid,
                            roadmap_frame=args.roadmap_frame, seeds_lps_mm=args.seed_lps, method=args.method,
                            segmenter=args.segmenter, force=args.force, images=not args.no_images, progress=True,
-                           access_lps_mm=args.access_lps, log=_stderr, screenshot=_viewer_screenshot)
+                           access_lps_mm=args.access_lps, track_motion=bool(getattr(args, "track_motion", False)),
+                           log=_stderr, screenshot=_viewer_screenshot)
     reg = result.registration.result
     n_ok = sum(1 for p in result.pairs if p)
     n_two = sum(1 for p in result.pairs if p.views == "AB")
     n_unsure = sum(1 for p in result.pairs if p.result.verdict.value == "uncertain")
     unsure = f" ({n_unsure} UNCERTAIN: see verdict_message in report.json)" if n_unsure else ""
     res = ", ".join(f"{v.plane} {v.mean_residual_px:.2f} px" for v in result.registration.views)
+    motion = biplane.motion_summary(result.pairs)
+    tracked = (f"; motion tracked in {motion['tracked_pairs']} pairs, {motion['planes']['AB']} from both planes, "
+               f"{motion['verdicts']['ok']} ok" if motion is not None else "")
     print(f"wrote {args.out}: biplane registration {reg.verdict.label} ({res}), {n_ok}/{len(result.pairs)} frame pairs "
-          f"reconstructed, {n_two} from both planes{unsure}")
+          f"reconstructed, {n_two} from both planes{unsure}{tracked}")
     if not result.plane_a.reconstructed:
         why = ("is uncertain (the overlays fit, the roadmaps do not settle the pose)"
                if reg.verdict is Verdict.UNCERTAIN else "failed")
@@ -199,7 +201,8 @@ def _add_reconstruct_parser(sub) -> None:
                    help="guidewire segmentation: unet (default) or ridge (classical, no network)")
     p.add_argument("--force", action="store_true", help="reconstruct even if the registration failed")
     p.add_argument("--track-motion", action="store_true",
-                   help="follow breathing / heartbeat: update the pose in each frame from its wire (see README, Motion)")
+                   help="follow breathing / heartbeat: update the pose in each frame from its wire; biplane: in each "
+                        "frame pair from both planes' wires (see README, Motion)")
     p.add_argument("--no-images", action="store_true", help="skip screenshot/overlay/metrics PNGs")
     _add_access_option(p)
     _add_geometry_overrides(p)

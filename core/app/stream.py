@@ -513,6 +513,16 @@ class BiplaneRunner(LiveRunner):
 
     def _alone(self, k: int, img, index: int, ts: float, why: str):
         """Plane k's frame reconstructed alone (the other plane left out: ``why``)."""
+        if getattr(self.session, "motion_tracker", None) is not None:
+            # tracking motion (``--track-motion``): through the pair's engine, so that the lone frame updates the
+            # pose from its plane alone (``BiplaneMotionTracker``'s one-view update) before it is reconstructed in it;
+            # its fallback names the plane left out and why, as below
+            t0 = time.perf_counter()
+            wire, image, err = self.session._wire2d(k, img)
+            wires, images, errors = [None, None], [None, None], [why or "no frame", why or "no frame"]
+            wires[k], images[k], errors[k] = wire, image, err
+            return self.session.process_wires(wires[0], wires[1], images=tuple(images), index=index, index_b=index,
+                                              errors=tuple(errors), t0=t0)
         fr = self.session.sessions[k].process(img, index=index, timestamp=ts)
         o = 1 - k
         fallback = f"one view (plane {PLANES[k]} only): plane {PLANES[o]}: {why}"
@@ -625,7 +635,8 @@ def add_cli_options(p) -> None:
                    "consumers without POLYDATA such as ros2_igtl_bridge")
     o.add_argument("--segmenter", default="unet", choices=("unet", "ridge"))
     o.add_argument("--track-motion", action="store_true", help="follow breathing and heartbeat: each frame's wire "
-                   "updates the pose before it is reconstructed (as reconstruct --track-motion; one plane only)")
+                   "updates the pose before it is reconstructed (as reconstruct --track-motion; two planes: each pair's "
+                   "wires, a plane's lone frame its own)")
     b = p.add_argument_group("bounds (default: run until Ctrl-C)")
     b.add_argument("--max-frames", type=int, default=None, metavar="N", help="stop after N processed frames (pairs)")
     b.add_argument("--duration", type=float, default=None, metavar="S", help="stop after S seconds")
@@ -721,8 +732,7 @@ def _check_plane_options(args, two: bool) -> None:
     """The options that need (or do not fit) two planes, once the setup says how many there are."""
     replays = args.replay or []
     if two:
-        for opt, given in (("--video", args.video), ("--watch", args.watch), ("--geometry", args.geometry),
-                           ("--track-motion", args.track_motion)):
+        for opt, given in (("--video", args.video), ("--watch", args.watch), ("--geometry", args.geometry)):
             if given:
                 raise InputError(f"{opt}: not available with two planes (a biplane setup takes OpenIGTLink IMAGE "
                                  "messages of two device names, or --replay twice)")
@@ -821,7 +831,8 @@ class _Ignored:
 def _serve_biplane(args, setup: LiveSetup, replays, say) -> int:
     devices = (args.device_a or DEFAULT_DEVICES[0], args.device_b or DEFAULT_DEVICES[1])
     session = biplane.BiplaneSession(setup.tree, setup.frames_carms, setup.pose,
-                                     registration_covariance=setup.covariance, segmenter=args.segmenter)
+                                     registration_covariance=setup.covariance, segmenter=args.segmenter,
+                                     track_motion=bool(args.track_motion))
     warm_up_biplane(session)
     tol = None if args.pair_tolerance_ms is None else args.pair_tolerance_ms / 1000.0
     mailbox = PairedFrames(tolerance_s=tol, timeout_s=args.plane_timeout)

@@ -697,7 +697,8 @@ class GuidewireReconstructionCoreLogic:
         track_motion : bool
             Follow breathing: each frame's pose is updated from its wire (``reconstruct
             --track-motion``); with a frames sequence the C-arm then follows the frame browser.
-            Not available with two planes.
+            With two planes each pair's pose is updated from both planes' wires
+            (``motion.BiplaneMotionTracker``); both C-arms follow the frame browser.
         roadmap_b, frames_b : str | Path | vtkMRMLSequenceNode | io.XARun, optional
             Plane B's roadmap and live frames (``frames_b=None``: plane B's roadmap run). Each plane's
             geometry comes from its own positioner tags.
@@ -708,8 +709,6 @@ class GuidewireReconstructionCoreLogic:
         segmenter = Segmenter(segmenter)
         if roadmap_b is None and frames_b is not None:
             raise InputError("plane B: give its roadmap as well as its live frames")
-        if roadmap_b is not None and track_motion:
-            raise InputError("track motion: not available with two planes yet")
         vol = volume_from_node(cta_volume_node)
         road = self._xa(roadmap, "roadmap")
         live = road if frames is None else self._xa(frames, "frames")
@@ -728,10 +727,11 @@ class GuidewireReconstructionCoreLogic:
             t0 = time.perf_counter()
             bres = biplane.run(vol, [road, road_b], [live, live_b], roadmap_frame=roadmap_frame, seeds_lps_mm=seeds,
                                method=method.value, segmenter=segmenter.value, force=force, progress=False,
-                               access_lps_mm=access, log=log.info)
+                               access_lps_mm=access, track_motion=bool(track_motion), log=log.info)
             log.info("guidewire3d biplane: %.1f s", time.perf_counter() - t0)
             return self.show_result(bres.plane_a, method=method, segmenter=segmenter, outputs=outputs,
-                                    frames_sequence=live_node if is_seq else None, biplane_result=bres)
+                                    frames_sequence=live_node if is_seq else None, track_motion=track_motion,
+                                    biplane_result=bres)
         t0 = time.perf_counter()
         result = pipeline.run(vol, road, live, roadmap_frame=roadmap_frame, seeds_lps_mm=seeds, method=method.value,
                               segmenter=segmenter.value, force=force, progress=False, pose=pose, log=log.info,
@@ -851,7 +851,7 @@ class GuidewireReconstructionCoreLogic:
         res, reg, b = self.result, self.registration, self.biplane
         session = biplane.BiplaneSession(res.tree, (res.frames_carm, b.frames_carm_b), reg.pose,
                                          registration_covariance=reg.covariance_6x6, segmenter=self.segmenter.value,
-                                         method=self.method.value, threads=1)
+                                         method=self.method.value, threads=1, track_motion=self.track_motion)
         ids = list(getattr(res, "frame_indices", None) or range(len(res.frames)))
         try:
             if len(self.pairs) == len(res.frames):
@@ -1302,8 +1302,9 @@ class GuidewireReconstructionCoreLogic:
         poses = {k: fr.pose for k, fr in zip(o.frame_indices, self.frame_results)
                  if getattr(fr, "motion", None) is not None and getattr(fr, "pose", None) is not None}
         browser = self._frames_browser()
+        followers = (o.carm_model, o.roadmap_points_model, o.carm_b_model, o.roadmap_b_points_model)
         if not poses or browser is None:
-            for node in (o.carm_model, o.roadmap_points_model):
+            for node in followers:
                 if node is not None and o.transform is not None:
                     node.SetAndObserveTransformNodeID(o.transform.GetID())
             return False
@@ -1318,7 +1319,7 @@ class GuidewireReconstructionCoreLogic:
                                                                "motion_sequence", item, browser)
         if proxy is not None:
             proxy.SetAttribute(ROLE_ATTRIBUTE, "motion_proxy")
-            for node in (o.carm_model, o.roadmap_points_model):
+            for node in followers:  # both planes' C-arms and roadmap centerlines (a biplane run's too)
                 if node is not None:
                     node.SetAndObserveTransformNodeID(proxy.GetID())
         return True
