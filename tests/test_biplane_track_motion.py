@@ -189,3 +189,27 @@ def test_cli_live_biplane_replay_with_track_motion(tracked_run, moving_case_dir,
     text = capsys.readouterr().out
     assert rc == 0, text
     assert "pairs processed" in text and "from both planes" in text, text
+
+
+def test_viewer_apply_keeps_each_pairs_tracked_pose(tracked_run, moving_case_dir):
+    """The viewer's Apply re-reconstructs every pair: on a tracked biplane run it rebuilt them all in the fixed roadmap
+    pose (the tracked poses were dropped, found at stop 44); now in each pair's own tracked pose, as one view does."""
+    pytest.importorskip("pyvista")
+    from guidewire3d.viewer.app import open_viewer
+
+    _, out, _ = tracked_run
+    truth = load_truth(moving_case_dir)
+    P = truth.tree.points_lps_mm
+    ctl, handles = open_viewer(out, off_screen=True, persist=False)
+    try:
+        assert ctl.apply(force=True) >= N_FRAMES - 1
+        for k in range(N_FRAMES):
+            ctl.set_frame(k)
+            w = ctl.wire
+            assert w.pose is not None, k  # tracked
+            assert metrics.mtre_mm(w.pose, truth.frame_pose(w.index), P) < TRACKED_POSE_TOL_MM
+            if w.success:
+                e = metrics.wire_errors_mm(w.points_lps_mm, np.asarray(truth.wire_lps_mm[w.index])[truth.wire_visible[w.index]])
+                assert e["mean_error_mm"] < OK_WIRE_OFF_MM, (k, e)
+    finally:
+        handles.plotter.close()

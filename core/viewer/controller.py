@@ -470,8 +470,10 @@ class ViewerController:
     def _apply_biplane(self, cov) -> tuple[list, int]:
         """Every pair again through ``BiplaneSession.process_wires`` (both planes' recorded 2D wires)."""
         pb = self._plane_b
+        # a run that tracked motion is applied the same way (each pair in its own tracked pose), as one view is
+        tracked = any(w.pose is not None for w in self._case.wires)
         session = bp.BiplaneSession(self._case.tree, (self._case.frames_carm, pb.frames_carm), self.pose,
-                                    registration_covariance=cov, threads=1)
+                                    registration_covariance=cov, threads=1, track_motion=tracked)
         new, frames_b, n_ok = [], dict(pb.frames), 0
         try:
             for w in self._case.wires:
@@ -493,7 +495,8 @@ class ViewerController:
                 pts = np.asarray(r.points_lps_mm, float).reshape(-1, 3) if ok else np.zeros((0, 3))
                 unc = np.asarray(r.uncertainty_mm, float).reshape(-1) if ok else np.zeros(0)
                 new.append(WireFrame(w.index, ok, str(fr.message), pts, unc, w.wire_uv_px,
-                                     float(r.projection_error_px), float(r.length_mm), verdict=fr.verdict.value))
+                                     float(r.projection_error_px), float(r.length_mm), verdict=fr.verdict.value,
+                                     pose=fr.pose if fr.motion is not None else None))
                 frames_b[w.index] = PlaneBFrame(k_b, pair.views, pair.fallback, uv_b, *map(float, pair.projection_error_px))
         finally:
             session.close()
