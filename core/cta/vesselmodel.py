@@ -905,8 +905,9 @@ def _estimate_intensity_model(volume: io.Volume, *, seeds_lps_mm=None):
 
     # -- candidates and vesselness
     thr0 = bg + max(CANDIDATE_SPREADS * spread, MIN_CNR * noise)
-    pooled = float(np.mean((bvals >= HU_POOL_RANGE[0]) & (bvals <= HU_LUMEN_MAX)))
-    if hu and thr0 >= POOLED_CANDIDATE_FRACTION * HU_LUMEN_MAX and pooled >= POOLED_BODY_FRACTION:
+    pooled = (float(np.mean((bvals >= HU_POOL_RANGE[0]) & (bvals <= HU_LUMEN_MAX)))
+              if hu and thr0 >= POOLED_CANDIDATE_FRACTION * HU_LUMEN_MAX else 0.0)
+    if pooled >= POOLED_BODY_FRACTION:
         # a crop around the heart: its chambers' contrast blood is a large part of the body, whose spread then puts
         # the candidates' threshold at a CTA's contrast ceiling; no contrast lumen is a candidate, and bone was read
         # as a 3DRA's contrast and refused as such (``scripts/bench_coronary_cta.py``: spread 199 HU, threshold 653)
