@@ -51,6 +51,7 @@ import argparse
 import os
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 from scipy import ndimage as ndi
@@ -59,6 +60,9 @@ from scipy.spatial import cKDTree
 from guidewire3d import io
 from guidewire3d.app import bench, vesselplan
 from guidewire3d.errors import InputError, SegmentationError
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_head_cta import dense_polyline  # noqa: E402  (the same sampling of a polyline with radii)
 
 # ----------------------------------------------------------------------------------------------------------------
 # the grid and the levels
@@ -159,16 +163,6 @@ def _heart_frame():
     w = RV_TOWARD - (RV_TOWARD @ u) * u
     w /= np.linalg.norm(w)
     return u, w, np.cross(u, w)
-
-
-def dense_polyline(poly: np.ndarray, step_mm: float = 0.2) -> np.ndarray:
-    out = []
-    for a, b in zip(poly[:-1], poly[1:]):
-        k = max(int(np.ceil(np.linalg.norm(b[:3] - a[:3]) / step_mm)), 1)
-        w = np.linspace(0, 1, k, endpoint=False)[:, None]
-        out.append(a * (1 - w) + b * w)
-    out.append(poly[-1:])
-    return np.vstack(out)
 
 
 class _Grid:
@@ -546,15 +540,7 @@ def coronary_wall_distance(tree: dict, pts: np.ndarray, k: int = 16) -> np.ndarr
 
 def evaluate(vol, trees, tree: dict, label_zyx) -> dict:
     """A tree's (or a forest's) numbers against the phantom's coronaries and classes (see the module)."""
-    est = []
-    for t in trees:
-        p = t.points_lps_mm
-        est.append(p)
-        for a, b in t.edges:
-            k = max(int(np.ceil(np.linalg.norm(p[b] - p[a]) / 0.2)), 1)
-            w = np.linspace(0, 1, k, endpoint=False)[1:, None]
-            est.append(p[a] * (1 - w) + p[b] * w)
-    est = np.vstack(est)
+    est = np.vstack([t.densified(0.2)[0].points_lps_mm for t in trees])  # a point every 0.2 mm at most
     kd = cKDTree(est)
     cover = {"all": float(np.mean(kd.query(_truth_points(tree)[:, :3])[0] <= COVER_MM))}
     for art, names in MAIN_ARTERIES.items():

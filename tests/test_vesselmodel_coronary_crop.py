@@ -8,18 +8,12 @@ with the seed that helps.
 """
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
-
 import pytest
 
 from guidewire3d.cta import vesselmodel
 from guidewire3d.errors import SegmentationError
 
-_spec = importlib.util.spec_from_file_location(
-    "bench_coronary_cta", Path(__file__).resolve().parents[1] / "scripts" / "bench_coronary_cta.py")
-B = importlib.util.module_from_spec(_spec)
-_spec.loader.exec_module(B)
+from test_bench_coronary_phantom import B  # the benchmark module, loaded once
 
 
 @pytest.fixture(scope="module")
