@@ -415,7 +415,8 @@ def test_vessels_command_writes_the_planning_folder(ct, tmp_path):
     out = tmp_path / "plan"
     rc = cli.main(["vessels", "--cta", str(f), "--out", str(out)])
     assert rc == 0
-    assert sorted(p.name for p in out.iterdir()) == ["centerline.vtp", "vessels.json", "vessels.stl", "vessels.vtp"]
+    assert sorted(p.name for p in out.iterdir()) == ["centerline.vtp", "screenshot.png", "vessels.json", "vessels.stl",
+                                                    "vessels.vtp"]
     rec = json.loads((out / "vessels.json").read_text())
     assert abs(rec["intensity_model"]["lumen"] - 380.0) < 40.0 and rec["intensity_model"]["units"] == "HU"
     assert rec["plausibility"]["ok"] and rec["tree"]["n_branches"] == len(rec["branches"]) >= 3
