@@ -32,6 +32,12 @@ class VesselOptions:
     crop_hu: float = 160.0  # the crop is the bounding box of (2x2x2-averaged) voxels above this
     bone_min_hu: float = 620.0  # brighter than this is bone (or metal), never lumen
     bone_margin_mm: float = 1.6  # the partial-volume rim of bone that is rejected with it
+    #: a bright component smaller than this (mm3) is a calcification (a plaque at a vessel's wall, a speck of noise
+    #: above the bone level), not bone: its rim is ``calcification_margin_mm``, not ``bone_margin_mm``, which around
+    #: a plaque takes a coronary's whole lumen (``scripts/bench_coronary_cta.py``: the LAD ended at its first plaque).
+    #: 0: every bright component is bone
+    calcification_max_mm3: float = 0.0
+    calcification_margin_mm: float = 0.6
     max_vessel_radius_mm: float = 5.0  # regions thicker than this are blobs (heart chambers), not vessels
     vesselness_scales_mm: tuple[float, ...] = (0.8, 1.6, 2.8)  # Frangi scales (Gaussian sigma)
     vesselness_min: float = 0.05  # a voxel with Frangi response above this (0..1) is tubular
@@ -95,6 +101,23 @@ def _ball_dilate(mask, radius_mm: float, spacing_zyx) -> np.ndarray:
     sl = bbox(mask, pad=int(np.ceil(radius_mm / min(spacing_zyx))) + 1)
     out = np.zeros_like(mask)
     out[sl] = kernels.dilate_ball(mask[sl], radius_mm, np.asarray(spacing_zyx, dtype=float))
+    return out
+
+
+def _bone_with_rim(core: np.ndarray, opt: "VesselOptions", spacing_zyx) -> np.ndarray:
+    """Bone (``core``: at or above the bone level) with its partial-volume rim: ``opt.bone_margin_mm`` around bone,
+    ``opt.calcification_margin_mm`` around a component smaller than ``opt.calcification_max_mm3`` (a calcification)."""
+    if not opt.calcification_max_mm3 > 0:
+        return _ball_dilate(core, opt.bone_margin_mm, spacing_zyx)
+    lab, _ = ndi.label(core, structure=np.ones((3, 3, 3)))
+    sizes = np.bincount(lab.ravel()) * float(np.prod(spacing_zyx))
+    small = sizes < opt.calcification_max_mm3
+    small[0] = False
+    calc = small[lab]
+    del lab
+    out = _ball_dilate(core & ~calc, opt.bone_margin_mm, spacing_zyx)
+    if calc.any():
+        out |= _ball_dilate(calc, opt.calcification_margin_mm, spacing_zyx)
     return out
 
 
@@ -630,7 +653,7 @@ def segment_vessels(volume: io.Volume, *, seeds_lps_mm=None, progress: bool = Fa
     bone = sm >= opt.bone_min_hu
     if bone.any():
         core = bone
-        bone = _ball_dilate(bone, opt.bone_margin_mm, sp_zyx)
+        bone = _bone_with_rim(core, opt, sp_zyx)
         if np.isfinite(opt.enclosed_lumen_min_hu):
             bone &= ~_enclosed_lumen(sm, core, bone, opt.enclosed_lumen_min_hu, opt.lumen_min_hu,
                                      opt.bone_margin_mm, sp_zyx)
