@@ -42,7 +42,7 @@ from guidewire3d.metrics import resample_polyline
 from guidewire3d.live import session as live
 from guidewire3d.live.session import (LOST_LUMEN_WORDS, WIRE_MAX_UNCERTAINTY_MM, FrameResult, _no_wire, frame_verdict,
                                       orientation_of)
-from guidewire3d.motion.tracking import BiplaneMotionTracker
+from guidewire3d.motion.tracking import BiplaneMotionTracker, biplane_update_planes
 from guidewire3d.reconstruction.triangulation import (
     TwoViewContext,
     extend_distal,
@@ -569,15 +569,9 @@ class BiplaneFrame:
 
 def motion_planes(motion) -> str:
     """Which planes' wires updated a pair's pose (``motion``: the ``RegistrationResult`` of
-    ``motion.BiplaneMotionTracker.update``): ``"AB"`` (the two-view fit), ``"A"`` or ``"B"`` (that plane's
-    one-view update: the other showed no curve, or its curve did not fit) or ``""`` (none: the pose was held)."""
-    msg = str(getattr(motion, "message", ""))
-    if msg.startswith("tracked from both planes"):
-        return "AB"
-    for p in PLANES:
-        if f"plane {p} alone (one-view priors)" in msg:
-            return p
-    return ""
+    ``motion.BiplaneMotionTracker.update``): ``"AB"``, ``"A"``, ``"B"`` or ``""`` (the pose held);
+    :func:`guidewire3d.motion.tracking.biplane_update_planes`, beside the messages it reads."""
+    return biplane_update_planes(motion)
 
 
 def _uv_of(wire2d) -> np.ndarray:

@@ -996,9 +996,10 @@ def _estimate_intensity_model(volume: io.Volume, *, seeds_lps_mm=None):
     def lumen_level(sel):
         modes = _significant_modes(vals[sel], ves[sel], bin_w, origin=bg)
         L, floor = _tubular_lumen_mode(modes, vals, ves, background=bg, med=med, air=lo_mode, hu=hu)
-        above = sel & (vals > L + LUMEN_BAND_FRACTION * (L - bg))
         rise = (L - med) / (med - lo_mode) if lo_mode is not None and med > lo_mode else float("nan")
-        if floor is None and CT_CONTRAST_RISE[1] < rise < CT_BONE_MAX_RISE and above.sum() >= 10:
+        above = sel & (vals > L + LUMEN_BAND_FRACTION * (L - bg)) if floor is None and \
+            CT_CONTRAST_RISE[1] < rise < CT_BONE_MAX_RISE else None
+        if above is not None and above.sum() >= 10:
             # a bright class that is no lumen can out-weigh the lumen's class above it more than the modes' cut
             # (``MODE_MIN_MASS``): a TOF slab's scalp fat and diploe (``scripts/bench_head_cta.py`` ``tofslab``, its
             # arteries without the neck's; a coil's shading lifts the fat to 1.0-1.2x the rise). Where such a lowest

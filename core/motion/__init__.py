@@ -8,9 +8,11 @@ from guidewire3d.motion.tracking import (  # noqa: F401
     ACROSS_RANGE_MM,
     ACROSS_STARTS,
     ACROSS_STEP_MM,
+    BOTH_PLANES_MESSAGE,
     CROP_MARGIN_PX,
     MAX_CURVE_POINTS,
     MIN_CC_IN_PLANE,
+    ONE_PLANE_MESSAGE,
     MOTION_PIXEL_OPTIONS,
     PLANES,
     SETTLE_CURVE_POINTS,
@@ -24,4 +26,5 @@ from guidewire3d.motion.tracking import (  # noqa: F401
     curve_to_tree_distance_px,
     track_poses,
     track_poses_biplane,
+    biplane_update_planes,
 )

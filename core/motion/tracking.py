@@ -42,7 +42,12 @@ from guidewire3d.registration import RegistrationResult
 from guidewire3d.vesseltree import VesselTree
 
 __all__ = ["MotionOptions", "MotionTracker", "track_poses", "curve_to_tree_distance_px", "BiplaneMotionTracker",
-           "track_poses_biplane", "MOTION_PIXEL_OPTIONS"]
+           "track_poses_biplane", "biplane_update_planes", "MOTION_PIXEL_OPTIONS"]
+
+#: how a ``BiplaneMotionTracker`` result's message says which planes updated the pose (:func:`biplane_update_planes`
+#: reads it back: the two are kept together here)
+BOTH_PLANES_MESSAGE = "tracked from both planes"
+ONE_PLANE_MESSAGE = "plane {} alone (one-view priors)"
 
 #: below this image-plane fraction of the patient's axis (a beam nearly along it) the in-plane
 #: prior is isotropic and the acquisition search is skipped
@@ -783,7 +788,7 @@ class BiplaneMotionTracker:
         self._has_previous = True
         frac = float(np.mean([p[0] for p in per_view]))
         mean_res = float(np.mean([p[1] for p in per_view]))
-        msg = (f"tracked from both planes: {100 * per_view[0][0]:.0f}% / {100 * per_view[1][0]:.0f}% of the curves "
+        msg = (f"{BOTH_PLANES_MESSAGE}: {100 * per_view[0][0]:.0f}% / {100 * per_view[1][0]:.0f}% of the curves "
                f"(A / B) in the projected lumen ({per_view[0][1]:.2f} / {per_view[1][1]:.2f} px outside on average); "
                f"moved {np.linalg.norm(delta[:2]):.1f} mm in plane A's image plane, {delta[2]:+.1f} mm along its beam")
         j = np.unique(np.concatenate([v[4] for v in lin]))
@@ -810,7 +815,7 @@ class BiplaneMotionTracker:
         self.delta = T.T @ trk.delta
         self._has_previous = trk._has_previous
         self._since_check, self.unsettled_mm = trk._since_check, trk.unsettled_mm
-        msg = f"{why}: plane {PLANES[k]} alone (one-view priors): {res.message}"
+        msg = f"{why}: {ONE_PLANE_MESSAGE.format(PLANES[k])}: {res.message}"
         return dataclasses.replace(res, message=msg, success=bool(res.success and not uncertain),
                                    seconds=time.perf_counter() - t0)
 
@@ -908,6 +913,19 @@ class BiplaneMotionTracker:
         for k, (c, JT, w, lumen, _) in enumerate(fit):
             L = L + self.planes[k]._curve_information(c, JT, w, lumen)
         return np.linalg.inv(L)
+
+
+def biplane_update_planes(result: RegistrationResult) -> str:
+    """Which planes' curves updated a pose (``result``: a ``BiplaneMotionTracker.update``'s): ``"AB"`` (the two-view
+    fit), ``"A"`` or ``"B"`` (that plane's one-view update: the other showed no curve, or its curve did not fit) or
+    ``""`` (none: the pose was held)."""
+    msg = str(getattr(result, "message", ""))
+    if msg.startswith(BOTH_PLANES_MESSAGE):
+        return "AB"
+    for p in PLANES:
+        if ONE_PLANE_MESSAGE.format(p) in msg:
+            return p
+    return ""
 
 
 def track_poses_biplane(tree: VesselTree, curves_a_uv_px, curves_b_uv_px, carm_a: CArm, carm_b: CArm,
