@@ -482,6 +482,23 @@ def _floats(path, ds, kw: str, tag: str, n: int) -> np.ndarray:
     return a
 
 
+def _orientation(where, ds, what: str = "ImageOrientationPatient") -> np.ndarray:
+    """ImageOrientationPatient of ``ds`` (6 numbers: two orthogonal unit vectors), or a DicomError naming ``where``
+    and ``what`` (the tag's place)."""
+    iop = _floats(where, ds, "ImageOrientationPatient", "(0020,0037)", 6)
+    row, col = iop[:3], iop[3:]
+    if abs(np.linalg.norm(row) - 1) > 1e-2 or abs(np.linalg.norm(col) - 1) > 1e-2 or abs(row @ col) > 1e-2:
+        raise DicomError(f"{where}: {what} (0020,0037) is not two orthogonal unit vectors: {iop.tolist()}")
+    return iop
+
+
+def _pixel_spacing(where, ds, what: str = "PixelSpacing") -> np.ndarray:
+    ps = _floats(where, ds, "PixelSpacing", "(0028,0030)", 2)
+    if np.any(ps <= 0):
+        raise DicomError(f"{where}: {what} (0028,0030) must be two positive numbers (mm), got {ps.tolist()}")
+    return ps
+
+
 @_quiet
 def _check_slice_geometry(files: list[str], folder: Path) -> None:
     """Check every slice of a CT series (complete, PixelSpacing, positions, same size) and refuse
@@ -490,15 +507,9 @@ def _check_slice_geometry(files: list[str], folder: Path) -> None:
     for f in map(Path, files):
         ds = _read_dicom_header(f, "a CT DICOM slice")
         ipps.append(_floats(f, ds, "ImagePositionPatient", "(0020,0032)", 3))
-        iop_f = _floats(f, ds, "ImageOrientationPatient", "(0020,0037)", 6)
-        row, col = iop_f[:3], iop_f[3:]
-        if abs(np.linalg.norm(row) - 1) > 1e-2 or abs(np.linalg.norm(col) - 1) > 1e-2 or abs(row @ col) > 1e-2:
-            raise DicomError(f"{f}: ImageOrientationPatient (0020,0037) is not two orthogonal unit vectors: "
-                             f"{iop_f.tolist()}")
+        iop_f = _orientation(f, ds)
         iop = iop if iop is not None else iop_f
-        ps = _floats(f, ds, "PixelSpacing", "(0028,0030)", 2)
-        if np.any(ps <= 0):
-            raise DicomError(f"{f}: PixelSpacing (0028,0030) must be two positive numbers (mm), got {ps.tolist()}")
+        _pixel_spacing(f, ds)
         if size is None:
             size = (ds.Rows, ds.Columns, files[0])
         elif (ds.Rows, ds.Columns) != size[:2]:
@@ -506,18 +517,29 @@ def _check_slice_geometry(files: list[str], folder: Path) -> None:
                              f"of {size[2]}")
     if len(files) < 2:
         raise DicomError(f"{folder}: a CT series needs at least 2 slices, found {len(files)}")
+    _check_stack(np.array(ipps), iop, folder)
+
+
+def _check_stack(ipps: np.ndarray, iop: np.ndarray, where, *, frames: bool = False) -> None:
+    """Refuse slice positions ``ipps`` (n, 3; ImagePositionPatient, LPS mm) that are not one evenly spaced stack
+    along the normal of ``iop``: duplicates (``frames``: frames of a multi-frame file, several at one position),
+    uneven steps, gantry tilt."""
     row, col = np.array(iop[:3]), np.array(iop[3:])
     normal = np.cross(row, col)
-    ipps = np.array(ipps)
     pos = ipps @ normal
     order = np.argsort(pos)
     ipps, pos = ipps[order], pos[order]
     steps = np.diff(pos)
     if np.any(steps < 1e-6):
-        raise DicomError(f"{folder}: duplicate slice positions (ImagePositionPatient) in the series")
+        if frames:
+            n_pos = int(np.sum(steps >= 1e-6)) + 1
+            raise DicomError(f"{where}: {len(pos)} frames at only {n_pos} slice positions (PlanePositionSequence "
+                             f"ImagePositionPatient): a time series, several echoes or several stacks in one file; "
+                             f"export one volume as its own series")
+        raise DicomError(f"{where}: duplicate slice positions (ImagePositionPatient) in the series")
     if np.ptp(steps) > 0.01 * max(np.median(steps), 1e-6) + 1e-3:
         raise DicomError(
-            f"{folder}: uneven slice spacing (ImagePositionPatient steps {steps.min():.3f}..{steps.max():.3f} mm); "
+            f"{where}: uneven slice spacing (ImagePositionPatient steps {steps.min():.3f}..{steps.max():.3f} mm); "
             "resample the series to even spacing first"
         )
     # gantry tilt: consecutive positions must move along the slice normal
@@ -525,7 +547,7 @@ def _check_slice_geometry(files: list[str], folder: Path) -> None:
     off_axis = np.linalg.norm(d - (d @ normal) * normal)
     if off_axis > 0.01 * np.linalg.norm(d) + 1e-3:
         raise DicomError(
-            f"{folder}: gantry tilt detected (slices not stacked along ImageOrientationPatient normal); "
+            f"{where}: gantry tilt detected (slices not stacked along ImageOrientationPatient normal); "
             "resample the series first"
         )
 
@@ -585,7 +607,8 @@ def _choose_series(path: Path, series: dict[str, list[str]], *, series_uid: str 
         except Exception:  # noqa: BLE001
             continue
         modality = str(getattr(ds, "Modality", "")).strip()
-        cands.append((modality in modalities, len(files), uid, modality))
+        slices = len(files) if len(files) > 1 else _frames_of(files[0])  # a multi-frame CT / MR: a volume in one file
+        cands.append((modality in modalities, slices, uid, modality))
     if not cands:
         raise DicomError(f"{folder}: no readable DICOM series found")
     cands.sort(reverse=True)
@@ -706,9 +729,13 @@ def read_volume(path, *, series_uid: str | None = None, max_voxels: int = MAX_VO
     series = _dicom_series_in(folder)
     _check_unlisted_files(folder, series)
     uid = _choose_series(path, series, series_uid=series_uid, modalities=modalities)
-    if series_uid is None and len(series) > 1 and log is not None:
-        log(f"{folder}: {len(series)} series found, using the largest CT series {uid} ({len(series[uid])} slices)")
     files = series[uid]
+    frames = _frames_of(files[0]) if len(files) == 1 else 1
+    if series_uid is None and len(series) > 1 and log is not None:
+        log(f"{folder}: {len(series)} series found, using the largest {'/'.join(modalities)} series {uid} "
+            f"({max(len(files), frames)} slices)")
+    if frames > 1:
+        return _read_multiframe_volume(Path(files[0]), uid, max_voxels)
     _check_slice_geometry(files, folder)
     reader = sitk.ImageSeriesReader()
     reader.SetFileNames(files)
@@ -721,6 +748,96 @@ def read_volume(path, *, series_uid: str | None = None, max_voxels: int = MAX_VO
     _check_size(vol, folder, max_voxels)
     _check_finite(vol, folder)
     return vol
+
+
+def _frames_of(path) -> int:
+    """NumberOfFrames of the DICOM file ``path`` (1 when absent or unreadable: the full checks come later)."""
+    import pydicom
+
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            ds = pydicom.dcmread(str(path), stop_before_pixels=True, specific_tags=["NumberOfFrames"])
+        return max(int(ds.get("NumberOfFrames", 1) or 1), 1)
+    except Exception:  # noqa: BLE001
+        return 1
+
+
+def _functional_group(ds, frame: int, sequence: str):
+    """The item of ``sequence`` (e.g. ``PlanePositionSequence``) that applies to ``frame`` of a multi-frame
+    dataset: in its per-frame functional group, else in the shared one; None when neither has it."""
+    for groups, i in (("PerFrameFunctionalGroupsSequence", frame), ("SharedFunctionalGroupsSequence", 0)):
+        seq = ds.get(groups)
+        if seq is not None and len(seq) > i and sequence in seq[i] and len(seq[i].get(sequence) or ()) > 0:
+            return seq[i].get(sequence)[0]
+    return None
+
+
+def _multiframe_geometry(path: Path, ds, n_frames: int) -> None:
+    """Check the geometry a multi-frame CT/MR keeps in its functional groups (every frame's
+    ImagePositionPatient, the orientation, the pixel spacing: one evenly spaced stack) and name the first
+    missing or wrong tag with the frame it belongs to."""
+    if "PerFrameFunctionalGroupsSequence" not in ds and "SharedFunctionalGroupsSequence" not in ds:
+        raise DicomError(f"{path}: a multi-frame image without PerFrameFunctionalGroupsSequence (5200,9230): the "
+                         f"position of each of its {n_frames} frames is unknown, expected an enhanced CT or MR")
+    per_frame = ds.get("PerFrameFunctionalGroupsSequence") or ()
+    if len(per_frame) != n_frames:
+        raise DicomError(f"{path}: PerFrameFunctionalGroupsSequence (5200,9230) has {len(per_frame)} items for "
+                         f"NumberOfFrames {n_frames}")
+    ipps, iop = [], None
+    for k in range(n_frames):
+        where = f"{path}: frame {k + 1}"
+        pos = _functional_group(ds, k, "PlanePositionSequence")
+        if pos is None:
+            raise DicomError(f"{where}: missing PlanePositionSequence (0020,9113) ImagePositionPatient")
+        ipps.append(_floats(where, pos, "ImagePositionPatient", "(0020,0032)", 3))
+        ori = _functional_group(ds, k, "PlaneOrientationSequence")
+        if ori is None:
+            raise DicomError(f"{where}: missing PlaneOrientationSequence (0020,9116) ImageOrientationPatient")
+        iop_k = _orientation(where, ori)
+        if iop is None:
+            iop = iop_k
+        elif np.abs(iop_k - iop).max() > 1e-3:
+            raise DicomError(f"{where}: ImageOrientationPatient (0020,0037) {iop_k.round(4).tolist()} differs from "
+                             f"frame 1's {iop.round(4).tolist()}: several stacks in one file; export one volume")
+        meas = _functional_group(ds, k, "PixelMeasuresSequence")
+        if meas is None:
+            raise DicomError(f"{where}: missing PixelMeasuresSequence (0028,9110) PixelSpacing")
+        _pixel_spacing(where, meas)
+    if n_frames < 2:
+        raise DicomError(f"{path}: a volume needs at least 2 slices, found {n_frames} frame")
+    _check_stack(np.array(ipps), iop, path, frames=True)
+
+
+@_quiet
+def _read_multiframe_volume(path: Path, uid: str, max_voxels: int) -> Volume:
+    """A multi-frame CT or MR file (Enhanced CT / MR Image Storage and their Legacy Converted forms: one frame per
+    slice, the geometry in functional groups) as a Volume, through highdicom (``Image.get_volume``): its stored
+    values through the modality transform (Rescale Slope / Intercept: HU for a CT), not a real-world value map."""
+    import highdicom as hd
+
+    ds = _read_dicom_header(path, "a multi-frame CT or MR DICOM file")
+    n = _number_of_frames(path, ds)
+    if n * ds.Rows * ds.Columns > max_voxels:
+        raise InputError(f"{path}: volume of {n} frames of {ds.Rows} x {ds.Columns} voxels exceeds the limit of "
+                         f"{max_voxels} voxels; crop or downsample it first")
+    _multiframe_geometry(path, ds, n)
+    try:
+        vol = hd.imread(str(path)).get_volume(dtype=np.float32, apply_real_world_transform=False)
+        arr = np.ascontiguousarray(vol.array, dtype=np.float32)
+    except Exception as e:  # noqa: BLE001  (highdicom's and the pixel decoders' errors)
+        ts = getattr(getattr(ds, "file_meta", None), "TransferSyntaxUID", None)
+        raise DicomError(f"{path}: its {n} frames could not be read as one volume (transfer syntax "
+                         f"{getattr(ts, 'name', None) or ts}; {e.__class__.__name__}: "
+                         f"{str(e).strip().splitlines()[0][:120] if str(e).strip() else ''})") from None
+    if arr.ndim != 3 or arr.shape[0] != n:
+        raise DicomError(f"{path}: its {n} frames make a {arr.shape} array, expected one slice per frame")
+    A = np.asarray(vol.affine, dtype=float)  # columns: the slice, row and column steps (LPS mm), the origin
+    steps = A[:3, [2, 1, 0]]  # x (column), y (row), z (slice)
+    spacing = np.linalg.norm(steps, axis=0)
+    out = Volume(arr, tuple(spacing), tuple(A[:3, 3]), steps / spacing, source=str(path), series_uid=uid)
+    _check_finite(out, path)
+    return out
 
 
 def _nifti_nonfinite(path: Path) -> int:
