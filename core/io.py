@@ -508,7 +508,12 @@ def _check_slice_geometry(files: list[str], folder: Path) -> None:
         ds = _read_dicom_header(f, "a CT DICOM slice")
         ipps.append(_floats(f, ds, "ImagePositionPatient", "(0020,0032)", 3))
         iop_f = _orientation(f, ds)
-        iop = iop if iop is not None else iop_f
+        if iop is None:
+            iop, first = iop_f, f
+        elif np.abs(iop_f - iop).max() > 1e-3:  # a radial MIP or localizer series: no volume
+            raise DicomError(f"{f}: ImageOrientationPatient (0020,0037) {iop_f.round(4).tolist()} differs from "
+                             f"{first.name}'s {iop.round(4).tolist()}: the slices are not one stack (a MIP or "
+                             f"localizer series?); give --series-uid")
         _pixel_spacing(f, ds)
         if size is None:
             size = (ds.Rows, ds.Columns, files[0])

@@ -226,6 +226,12 @@ def cta_uneven_slice_spacing(t):
 
 
 @kind
+def cta_slice_of_another_orientation(t):  # a radial MIP's images, or a localizer in the series
+    t.ct(_set(ImageOrientationPatient=[1, 0, 0, 0, 0, -1]), index=7)
+    return t.recon(cta=t.tmp / "ct"), [t.ct_slice(7).name, "ImageOrientationPatient (0020,0037)", "not one stack"]
+
+
+@kind
 def cta_single_slice(t):
     d = t.tmp / "one"
     d.mkdir()
