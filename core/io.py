@@ -590,6 +590,24 @@ def _has_dicm(path: Path) -> bool:
         return False
 
 
+def _one_orientation(files: list[str]) -> bool:
+    """Whether the first, middle and last files of a series share ImageOrientationPatient (a stack of slices, not
+    the images of a radial MIP or a localizer): what :func:`_choose_series` prefers among several series."""
+    import pydicom
+
+    seen = []
+    for f in {files[0], files[len(files) // 2], files[-1]}:
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                v = pydicom.dcmread(f, stop_before_pixels=True, specific_tags=["ImageOrientationPatient"]).get(
+                    "ImageOrientationPatient")
+            seen.append(np.array([float(x) for x in v]))
+        except Exception:  # noqa: BLE001  (a multi-frame file has it in its functional groups; checked later)
+            return True
+    return all(len(a) == 6 and np.abs(a - seen[0]).max() <= 1e-3 for a in seen)
+
+
 def _choose_series(path: Path, series: dict[str, list[str]], *, series_uid: str | None,
                    modalities: tuple[str, ...]) -> str:
     """The series of ``series`` (the DICOM series of ``path``'s folder) that :func:`read_volume` reads:
@@ -613,11 +631,12 @@ def _choose_series(path: Path, series: dict[str, list[str]], *, series_uid: str 
             continue
         modality = str(getattr(ds, "Modality", "")).strip()
         slices = len(files) if len(files) > 1 else _frames_of(files[0])  # a multi-frame CT / MR: a volume in one file
-        cands.append((modality in modalities, slices, uid, modality))
+        stack = len(series) == 1 or _one_orientation(files)
+        cands.append((modality in modalities, stack, slices, uid, modality))
     if not cands:
         raise DicomError(f"{folder}: no readable DICOM series found")
     cands.sort(reverse=True)
-    is_ct, _, uid, modality = cands[0]
+    is_ct, _, _, uid, modality = cands[0]
     if not is_ct:
         want = " or ".join(modalities)
         raise DicomError(f"{path}: no {want} series found (Modality (0008,0060) is {modality or 'missing'}), "

@@ -70,6 +70,30 @@ def test_largest_ct_series_chosen_and_series_uid(tmp_path):
         io.read_volume(mixed, series_uid="9.9")
 
 
+def test_a_radial_mip_series_beside_the_volume_is_not_chosen(tmp_path):
+    """A study folder with the MRA's slices and a larger series of radial MIP images (each at its own orientation):
+    the stack is read, not the MIPs; the MIP series alone, or chosen, is refused naming a file."""
+    rng = np.random.default_rng(6)
+    folder = tmp_path / "study"
+    io.write_ct_series(_volume(rng, shape=(8, 12, 12)), tmp_path / "ct")
+    io.write_ct_series(_volume(rng, shape=(20, 12, 12)), tmp_path / "mip")
+    uid = pydicom.uid.generate_uid()
+    folder.mkdir()
+    for k, f in enumerate(sorted((tmp_path / "mip").glob("*.dcm"))):
+        ds = pydicom.dcmread(f)
+        a = np.radians(9.0 * k)
+        ds.ImageOrientationPatient = [float(np.cos(a)), float(np.sin(a)), 0.0, 0.0, 0.0, -1.0]
+        ds.ImagePositionPatient = [0.0, 0.0, 0.0]
+        ds.SeriesInstanceUID = uid
+        ds.save_as(folder / f"mip_{k:03d}.dcm")
+    for f in (tmp_path / "ct").glob("*.dcm"):
+        f.rename(folder / f"ct_{f.name}")
+    vol = io.read_volume(folder)
+    assert vol.shape_zyx == (8, 12, 12)
+    with pytest.raises(DicomError, match=r"mip_0\d\d\.dcm: ImageOrientationPatient \(0020,0037\).*not one stack"):
+        io.read_volume(folder, series_uid=uid)
+
+
 def test_uneven_slice_spacing_refused(tmp_path):
     rng = np.random.default_rng(4)
     out = io.write_ct_series(_volume(rng, shape=(6, 8, 8)), tmp_path / "ct")
