@@ -240,3 +240,30 @@ def _run(path, n, desc="", when="", angles=(0.0, 0.0), order=0):
 ])
 def test_choose_xa_runs(runs, expected):
     assert batch.choose_xa_runs(runs) == expected
+
+
+def test_a_multi_frame_ct_counts_its_frames(tiny_studies, tmp_path):
+    """A study whose CTA is one multi-frame (enhanced) CT file beside a 3-slice classic series: the multi-frame file,
+    many slices in one file, is the CTA."""
+    hd = pytest.importorskip("highdicom")
+    import pydicom
+    from pydicom.uid import generate_uid
+
+    d = next(iter(tiny_studies.values()))
+    dss = [pydicom.dcmread(f) for f in sorted((d / "ct").iterdir())]
+    for ds in dss:
+        ds.ImageType = ["ORIGINAL", "PRIMARY", "AXIAL"]
+    enh = hd.legacy.LegacyConvertedEnhancedCTImage(legacy_datasets=dss, series_instance_uid=generate_uid(),
+                                                   series_number=9, sop_instance_uid=generate_uid(), instance_number=1)
+    tree = tmp_path / "tree"
+    for sub in ("enh", "loc"):
+        (tree / sub).mkdir(parents=True)
+    enh.save_as(tree / "enh" / "e.dcm", enforce_file_format=True)
+    for f in sorted((d / "ct").iterdir())[:3]:
+        (tree / "loc" / f.name).write_bytes(f.read_bytes())
+    for f in ("roadmap.dcm", "frames.dcm"):
+        (tree / f).write_bytes((d / f).read_bytes())
+    said = []
+    (s,) = batch.group_dicom_tree(tree, log=said.append)
+    assert (s.cta, s.series_uid, s.error) == (str(tree / "enh"), str(enh.SeriesInstanceUID), None)
+    assert f"({len(dss)} slices)" in said[0]

@@ -332,6 +332,7 @@ def group_dicom_tree(root, *, access_lps_mm=None, log=None) -> list[StudySpec]:
         raise InputError(f"{root}: not a folder")
     ct: dict[str, dict[str, list[Path]]] = {}
     xa: dict[str, list[_XARun]] = {}
+    slices: dict[str, int] = {}  # per CT series: its slices (a multi-frame file's frames)
     seen_studies: list[str] = []
     n_files = 0
     for dirpath, dirnames, filenames in os.walk(root):
@@ -350,13 +351,15 @@ def group_dicom_tree(root, *, access_lps_mm=None, log=None) -> list[StudySpec]:
             n_files += 1
             if study not in seen_studies:
                 seen_studies.append(study)
+            try:
+                n = int(ds.get("NumberOfFrames", 1) or 1)
+            except (TypeError, ValueError):
+                n = 1
             if modality == "CT":
-                ct.setdefault(study, {}).setdefault(_text(ds, "SeriesInstanceUID"), []).append(p)
+                uid = _text(ds, "SeriesInstanceUID")
+                ct.setdefault(study, {}).setdefault(uid, []).append(p)
+                slices[uid] = slices.get(uid, 0) + max(n, 1)
             else:
-                try:
-                    n = int(ds.get("NumberOfFrames", 1) or 1)
-                except (TypeError, ValueError):
-                    n = 1
                 when = (_text(ds, "AcquisitionDateTime")
                         or _text(ds, "AcquisitionDate") + _text(ds, "AcquisitionTime")
                         or _text(ds, "ContentDate") + _text(ds, "ContentTime"))
@@ -379,7 +382,7 @@ def group_dicom_tree(root, *, access_lps_mm=None, log=None) -> list[StudySpec]:
         elif not runs:
             error = f"{where}: no XA run (expected a roadmap and live frames)"
         else:
-            uid, files = max(series.items(), key=lambda kv: len(kv[1]))
+            uid, files = max(series.items(), key=lambda kv: slices[kv[0]])
             folders = sorted({str(f.parent) for f in files})
             if len(folders) > 1:
                 error = f"{where}: CT series {uid} is spread over {len(folders)} folders ({folders[0]}, ...); " \
@@ -388,7 +391,7 @@ def group_dicom_tree(root, *, access_lps_mm=None, log=None) -> list[StudySpec]:
                 cta = folders[0]
                 road, live = choose_xa_runs(runs)
         if log is not None:
-            log(f"{name}: " + (error or f"CT {uid} ({len(series[uid])} slices), roadmap {road}, frames {live}"))
+            log(f"{name}: " + (error or f"CT {uid} ({slices[uid]} slices), roadmap {road}, frames {live}"))
         out.append(StudySpec(name, cta, road, live, series_uid=uid, access_lps_mm=access, source=where, error=error))
     return out
 
