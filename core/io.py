@@ -26,6 +26,7 @@ from pathlib import Path
 from stat import S_ISREG
 
 import numpy as np
+from guidewire3d import __version__
 from guidewire3d.errors import DicomError, GeometryError, InputError, OutputError
 from guidewire3d.geometry import CArm
 
@@ -36,6 +37,8 @@ __all__ = [
     "volume_files",
     "file_fingerprints",
     "write_volume",
+    "write_dicom_seg",
+    "affine_of",
     "write_ct_series",
     "read_xa",
     "write_xa",
@@ -934,6 +937,52 @@ def write_volume(vol: Volume, path) -> Path:
     sitk = _sitk_quiet()
     img = vol.to_sitk()
     return atomic_write_via(path, lambda tmp: sitk.WriteImage(img, str(tmp), True))
+
+
+def affine_of(vol: Volume) -> np.ndarray:
+    """The 4 x 4 matrix taking a voxel's ``(z, y, x)`` index (slice, row, column) of ``vol`` to LPS mm: highdicom's
+    convention (columns: the slice, row and column steps, then the origin)."""
+    steps = np.asarray(vol.direction, float) * np.asarray(vol.spacing_mm, float)  # columns x, y, z (mm per index)
+    A = np.eye(4)
+    A[:3, 0], A[:3, 1], A[:3, 2], A[:3, 3] = steps[:, 2], steps[:, 1], steps[:, 0], vol.origin_lps_mm
+    return A
+
+
+def write_dicom_seg(labels_zyx: np.ndarray, vol: Volume, source_files, path, *, segment_names: list[str],
+                    description: str = "guidewire3d vessels") -> Path:
+    """Write ``labels_zyx`` (0 background, ``k`` the ``k``-th of ``segment_names``; on ``vol``'s grid) as a DICOM
+    Segmentation (binary, one segment per name) referencing the DICOM images ``source_files`` that ``vol`` was read
+    from, so that a PACS or 3D Slicer's DICOM module shows it over the study. highdicom places each frame by its own
+    position (the grid need not follow the files' order). Atomic."""
+    import highdicom as hd
+    import pydicom
+    from pydicom.sr.codedict import codes
+
+    labels_zyx = np.asarray(labels_zyx)
+    if labels_zyx.shape != vol.shape_zyx:
+        raise ValueError(f"labels of shape {labels_zyx.shape} on a volume of {vol.shape_zyx}")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        sources = [pydicom.dcmread(str(f), stop_before_pixels=True) for f in source_files]
+    frame_uid = str(sources[0].get("FrameOfReferenceUID", "")) or None
+    algorithm = hd.AlgorithmIdentificationSequence(name="guidewire3d vessels", version=__version__,
+                                                   family=codes.cid7162.ArtificialIntelligence)
+    segments = [hd.seg.SegmentDescription(
+        segment_number=k + 1, segment_label=name[:64], segmented_property_category=codes.SCT.AnatomicalStructure,
+        segmented_property_type=codes.SCT.BloodVessel, algorithm_type=hd.seg.SegmentAlgorithmTypeValues.AUTOMATIC,
+        algorithm_identification=algorithm) for k, name in enumerate(segment_names)]
+    # a label map: highdicom reads values 1..n of an unsigned array as the segments' numbers
+    grid = hd.Volume(labels_zyx.astype(np.uint8), affine_of(vol), coordinate_system="PATIENT",
+                     frame_of_reference_uid=frame_uid)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        seg = hd.seg.Segmentation(
+            source_images=sources, pixel_array=grid, segmentation_type=hd.seg.SegmentationTypeValues.BINARY,
+            segment_descriptions=segments, series_instance_uid=_new_uid(), series_number=990,
+            sop_instance_uid=_new_uid(), instance_number=1, manufacturer="guidewire3d",
+            manufacturer_model_name="guidewire3d vessels", software_versions=__version__, device_serial_number="0",
+            series_description=description[:64])
+    return atomic_write_via(path, lambda tmp: seg.save_as(str(tmp)))
 
 
 def _new_uid() -> str:

@@ -207,8 +207,10 @@ def run_to_outdir(cta, out_dir, *, seeds_lps_mm=None, series_uid=None, progress:
         if access_lps_mm is not None:
             inputs["access_lps_mm"] = [round(float(v), 3) for v in access_lps_mm]
 
+        dicom_files = io.volume_files(cta, series_uid=series_uid, modalities=("CT", "MR"))[1] if vol.series_uid else None
+
         def write(staging: Path) -> None:
-            write_plan(plan, staging, inputs=inputs, access_lps_mm=access_lps_mm)
+            write_plan(plan, staging, inputs=inputs, access_lps_mm=access_lps_mm, volume=vol, dicom_files=dicom_files)
             if screenshot is not None:
                 screenshot(staging, staging / "screenshot.png")
 
@@ -216,8 +218,21 @@ def run_to_outdir(cta, out_dir, *, seeds_lps_mm=None, series_uid=None, progress:
     return plan
 
 
-def write_plan(plan: VesselPlan, folder: Path, *, inputs: dict, access_lps_mm=None) -> None:
-    """``centerline.vtp``, ``vessels.stl``, ``vessels.vtp`` and ``vessels.json`` of a plan, into ``folder``.
+def plan_labels(plan: VesselPlan) -> np.ndarray:
+    """``(z, y, x)`` uint8 on the input volume's grid: 0 background, ``k + 1`` the mask of ``plan.trees[k]`` (the
+    trees' masks do not overlap: :func:`plan_vessels` refuses that)."""
+    labels = np.zeros(plan.trees[0].vessels.mask_zyx.shape, np.uint8)
+    for k, auto in enumerate(plan.trees):
+        labels[auto.vessels.mask_zyx] = k + 1
+    return labels
+
+
+def write_plan(plan: VesselPlan, folder: Path, *, inputs: dict, access_lps_mm=None, volume=None,
+               dicom_files=None) -> None:
+    """``centerline.vtp``, ``vessels.stl``, ``vessels.vtp`` and ``vessels.json`` of a plan, into ``folder``; with
+    ``volume`` (the input, an ``io.Volume``) also ``vessels_mask.nii.gz``, the vessel mask on its grid (0
+    background, ``k + 1`` tree ``k``), and with ``dicom_files`` (the DICOM images it was read from) the same mask as a
+    DICOM Segmentation, ``vessels_seg.dcm``, one segment per tree, referencing those images.
 
     One tree: as ever. Several (seeds in separate structures): the polydata hold every tree, each point carrying its
     tree's index (point array ``tree``); ``vessels.json`` keeps the first tree's record at the top level (the first
@@ -239,6 +254,13 @@ def write_plan(plan: VesselPlan, folder: Path, *, inputs: dict, access_lps_mm=No
         rec["forest"] = {"n_trees": len(plan.trees), "reason": plan.forest_reason,
                          "total_length_mm": round(sum(float(a.vessels.tree.total_length_mm) for a in plan.trees), 1)}
     io.atomic_write_text(folder / "vessels.json", json.dumps(rec, indent=1))
+    if volume is not None:
+        labels = plan_labels(plan)
+        io.write_volume(io.Volume(labels, volume.spacing_mm, volume.origin_lps_mm, volume.direction),
+                        folder / "vessels_mask.nii.gz")
+        if dicom_files:
+            names = ["vessels"] if len(plan.trees) == 1 else [f"vessel tree {k + 1}" for k in range(len(plan.trees))]
+            io.write_dicom_seg(labels, volume, dicom_files, folder / "vessels_seg.dcm", segment_names=names)
 
 
 def forest_polydata(plan: VesselPlan, what: str):
