@@ -93,7 +93,7 @@ def _column(table_node, name) -> list:
 def _parameters(**kw):
     """What the module's parameter node holds for "Extract vessels", as a plain object."""
     p = dict(ctaVolume=None, seeds=None, access=None, planVesselModel=None, planCenterlineModel=None,
-             branchesTable=None)
+             branchesTable=None, planSegmentation=None)
     p.update(kw)
     return SimpleNamespace(**p)
 
@@ -229,7 +229,8 @@ def test_planned_nodes_save_and_reload(hs, tmp_path):
     core = L.GuidewireReconstructionCoreLogic(hs.scene)
     out = core.plan_vessels(cta_volume_node=cta, seeds_node=_points_node(hs.scene, [_seed(0), _seed(1)]))
     paths = {q.name: q for q in core.save_outputs(tmp_path / "out")}
-    assert sorted(paths) == ["GW_planned_centerline.vtk", "GW_planned_vessels.stl", "GW_vessel_branches.tsv"]
+    assert sorted(paths) == ["GW_planned_centerline.vtk", "GW_planned_vessels.stl", "GW_vessel_branches.tsv",
+                             "GW_vessel_segmentation.seg.nrrd"]
 
     def reload(cls, path):
         return reload_node(hs.scene, cls, path)
@@ -239,6 +240,52 @@ def test_planned_nodes_save_and_reload(hs, tmp_path):
     np.testing.assert_array_equal(_array(back, "tree"), _array(out.plan_centerline_model, "tree"))
     table = reload("vtkMRMLTableNode", paths["GW_vessel_branches.tsv"])
     assert _column(table, "length_mm") == pytest.approx(_column(out.plan_table, "length_mm"))
+    seg = reload("vtkMRMLSegmentationNode", paths["GW_vessel_segmentation.seg.nrrd"])
+    assert seg.GetSegmentation().GetNumberOfSegments() == 2
+    for k in (0, 1):
+        np.testing.assert_array_equal(_segment_mask(hs.scene, seg, k, cta), _segment_mask(hs.scene, out.plan_segmentation,
+                                                                                         k, cta))
+
+
+def _segment_mask(scene, seg, k: int, cta) -> np.ndarray:
+    """Segment ``k`` of ``seg`` on the CTA's grid, (k, j, i) as the CTA's array (the module logic's export, as
+    slicer.util would do it with the application's modules)."""
+    import slicer
+
+    logic = slicer.vtkSlicerSegmentationsModuleLogic()
+    logic.SetMRMLScene(scene)
+    lab = scene.AddNewNodeByClass("vtkMRMLLabelMapVolumeNode", "segment export")
+    ids = vtk.vtkStringArray()
+    ids.InsertNextValue(seg.GetSegmentation().GetNthSegmentID(k))
+    assert logic.ExportSegmentsToLabelmapNode(seg, ids, lab, cta)
+    out = np.array(slicer.util.arrayFromVolume(lab)) > 0
+    scene.RemoveNode(lab)
+    return out
+
+
+def test_the_segmentation_holds_each_trees_mask_on_the_ctas_grid(hs):
+    """One segment per tree, on the seeded tube's voxels and not the other's; the CTA's array order and placement
+    (the tubes lie off the origin: an IJK/RAS slip would move them out of the volume)."""
+    cta = L.volume_to_node(_tubes(), scene=hs.scene)
+    core = L.GuidewireReconstructionCoreLogic(hs.scene)
+    out = core.plan_vessels(cta_volume_node=cta, seeds_node=_points_node(hs.scene, [_seed(0), _seed(1)]))
+    seg = out.plan_segmentation
+    assert seg.IsA("vtkMRMLSegmentationNode") and seg.GetAttribute(L.ROLE_ATTRIBUTE) == "plan_segmentation"
+    names = [seg.GetSegmentation().GetNthSegment(k).GetName() for k in range(seg.GetSegmentation().GetNumberOfSegments())]
+    assert names == ["vessel tree 1", "vessel tree 2"]
+    vol = L.volume_from_node(cta)
+    zyx = np.argwhere(np.ones(vol.shape_zyx, bool)).astype(float)
+    lps = vol.index_zyx_to_lps(zyx).reshape(*vol.shape_zyx, 3)
+    for k in (0, 1):
+        m = _segment_mask(hs.scene, seg, k, cta)
+        np.testing.assert_array_equal(m, core.plan.trees[k].vessels.mask_zyx)
+        off = np.linalg.norm(lps[m][:, :2] - AXES_LPS_MM[k], axis=1)
+        assert m.sum() > 500 and off.max() < RADIUS_MM + 2 * SPACING_MM  # tube k's voxels only
+
+    # a rerun with one seed: the same node, one segment
+    core.plan_vessels(cta_volume_node=cta, seeds_node=_points_node(hs.scene, [_seed(1)]))
+    assert core.outputs.plan_segmentation is seg and seg.GetSegmentation().GetNumberOfSegments() == 1
+    assert seg.GetSegmentation().GetNthSegment(0).GetName() == "vessels"
 
 
 # ------------------------------------------------------------------------------------------

@@ -30,6 +30,7 @@ try:  # provided only by the Slicer application (Qt)
         vtkMRMLMarkupsFiducialNode,
         vtkMRMLModelNode,
         vtkMRMLScalarVolumeNode,
+        vtkMRMLSegmentationNode,
         vtkMRMLSequenceNode,
         vtkMRMLTableNode,
     )
@@ -163,8 +164,8 @@ if SLICER_APP:
         optional; with plane B's roadmap the biplane chain runs (one pose, each wire from both planes).
         access: one markups point where the wire enters the vessels (the sheath tip or the puncture),
         optional; the vessel tree is rooted at its point nearest to it (transfemoral, transradial wires).
-        planVesselModel/planCenterlineModel/branchesTable: the outputs of "Extract vessels" (the CTA
-        alone, for planning), created when empty.
+        planVesselModel/planCenterlineModel/branchesTable/planSegmentation: the outputs of "Extract vessels" (the
+        CTA alone, for planning), created when empty.
         """
 
         ctaVolume: vtkMRMLScalarVolumeNode
@@ -189,6 +190,7 @@ if SLICER_APP:
         planVesselModel: vtkMRMLModelNode
         planCenterlineModel: vtkMRMLModelNode
         branchesTable: vtkMRMLTableNode
+        planSegmentation: vtkMRMLSegmentationNode
 
     #
     # GuidewireReconstructionWidget

@@ -557,11 +557,13 @@ class OutputNodes:
     plan_vessel_model: object = None  # vtkMRMLModelNode: every tree's vessel surface (point array ``tree``)
     plan_centerline_model: object = None  # vtkMRMLModelNode: every tree's centerline (``tree``, ``branch``, ``radius_mm``)
     plan_table: object = None  # vtkMRMLTableNode: one row per branch of every tree
+    plan_segmentation: object = None  # vtkMRMLSegmentationNode: every tree's vessel mask, a segment each
 
     def all_nodes(self) -> list:
         singles = [self.transform, self.table, self.vessel_model, self.carm_model, self.roadmap_points_model,
                    self.wire_sequence, self.live_wire_model, self.motion_sequence, self.carm_b_model,
-                   self.roadmap_b_points_model, self.plan_vessel_model, self.plan_centerline_model, self.plan_table]
+                   self.roadmap_b_points_model, self.plan_vessel_model, self.plan_centerline_model, self.plan_table,
+                   self.plan_segmentation]
         return [n for n in singles + self.centerline_curves + self.wire_models + self.wire_curves if n is not None]
 
 
@@ -874,11 +876,13 @@ class GuidewireReconstructionCoreLogic:
                      outputs: OutputNodes | None = None) -> OutputNodes:
         """"Extract vessels": the vessel trees of the CTA alone, for planning (``guidewire3d vessels``).
 
-        Runs ``guidewire3d.app.vesselplan.plan_vessels`` and writes (or updates in place) three nodes:
+        Runs ``guidewire3d.app.vesselplan.plan_vessels`` and writes (or updates in place) four nodes:
         the vessel surface of every tree (``plan_vessel_model``), every tree's centerline
         (``plan_centerline_model``: polylines per branch with point arrays ``tree``, ``branch`` and
-        ``radius_mm``) and a table with one row per branch (``plan_table``). :attr:`plan_summary` then
-        holds the summary (:func:`plan_summary`). The reconstruction's nodes are left as they are.
+        ``radius_mm``), a table with one row per branch (``plan_table``) and the vessel mask as a
+        segmentation on the CTA's grid, one segment per tree (``plan_segmentation``: to check or edit in the
+        Segment Editor). :attr:`plan_summary` then holds the summary (:func:`plan_summary`). The
+        reconstruction's nodes are left as they are.
 
         Parameters
         ----------
@@ -918,7 +922,38 @@ class GuidewireReconstructionCoreLogic:
         self.plan = plan
         self.plan_summary = plan_summary(plan, access_lps_mm=access)
         self._write_plan_outputs(plan, spacing_mm=vol.spacing_mm)
+        self._write_plan_segmentation(plan, cta_volume_node)
         return self.outputs
+
+    def _write_plan_segmentation(self, plan, cta_volume_node) -> None:
+        """``plan_segmentation``: each tree's mask (on the CTA's IJK grid, the array :func:`volume_from_node` read) as
+        a binary-labelmap segment placed by the CTA's IJK -> RAS matrix, under the CTA's parent transform; an
+        existing node's segments are replaced."""
+        o = self.outputs
+        node = self._alive(o.plan_segmentation)
+        if node is None:
+            node = self._new("vtkMRMLSegmentationNode", "GW vessel segmentation", "plan_segmentation")
+            node.CreateDefaultDisplayNodes()
+        node.SetReferenceImageGeometryParameterFromVolumeNode(cta_volume_node)
+        node.SetAndObserveTransformNodeID(cta_volume_node.GetTransformNodeID())
+        segmentation = node.GetSegmentation()
+        segmentation.RemoveAllSegments()
+        ijk_to_ras = vtk.vtkMatrix4x4()
+        cta_volume_node.GetIJKToRASMatrix(ijk_to_ras)
+        colors = ((0.85, 0.3, 0.3), (0.3, 0.55, 0.9), (0.35, 0.75, 0.35), (0.9, 0.7, 0.2))
+        for k, auto in enumerate(plan.trees):
+            mask = np.asarray(auto.vessels.mask_zyx, dtype=np.uint8)
+            img = slicer.vtkOrientedImageData()
+            img.SetDimensions(mask.shape[2], mask.shape[1], mask.shape[0])
+            img.AllocateScalars(vtk.VTK_UNSIGNED_CHAR, 1)
+            vtk_to_numpy(img.GetPointData().GetScalars())[:] = mask.ravel()
+            img.SetImageToWorldMatrix(ijk_to_ras)
+            segment = slicer.vtkSegment()
+            segment.SetName("vessels" if len(plan.trees) == 1 else f"vessel tree {k + 1}")
+            segment.SetColor(*colors[k % len(colors)])
+            segment.AddRepresentation(slicer.vtkSegmentationConverter.GetBinaryLabelmapRepresentationName(), img)
+            segmentation.AddSegment(segment)
+        o.plan_segmentation = node
 
     def _alive(self, node):
         """``node`` if it is still in the scene (the user may have deleted it), else None."""
@@ -962,7 +997,7 @@ class GuidewireReconstructionCoreLogic:
         """Run :meth:`plan_vessels` ("Extract vessels") with the module's parameter node ``p``; returns the summary.
 
         Reads ``ctaVolume``, ``seeds`` and ``access`` (optional), and the output nodes
-        ``planVesselModel``, ``planCenterlineModel`` and ``branchesTable`` (created when empty, then
+        ``planVesselModel``, ``planCenterlineModel``, ``branchesTable`` and ``planSegmentation`` (created when empty, then
         written back to ``p``). No X-ray input is needed.
         """
         o = self.outputs
@@ -970,12 +1005,15 @@ class GuidewireReconstructionCoreLogic:
                                  "plan_vessel_model": getattr(p, "planVesselModel", None) or o.plan_vessel_model,
                                  "plan_centerline_model": (getattr(p, "planCenterlineModel", None)
                                                            or o.plan_centerline_model),
-                                 "plan_table": getattr(p, "branchesTable", None) or o.plan_table})
+                                 "plan_table": getattr(p, "branchesTable", None) or o.plan_table,
+                                 "plan_segmentation": (getattr(p, "planSegmentation", None)
+                                                       or o.plan_segmentation)})
         out = self.plan_vessels(cta_volume_node=p.ctaVolume, seeds_node=getattr(p, "seeds", None),
                                 access_node=getattr(p, "access", None), outputs=outputs)
         p.planVesselModel = out.plan_vessel_model
         p.planCenterlineModel = out.plan_centerline_model
         p.branchesTable = out.plan_table
+        p.planSegmentation = out.plan_segmentation
         return self.plan_summary
 
     # --- the module's parameter node ---------------------------------------------------------
@@ -1339,7 +1377,8 @@ class GuidewireReconstructionCoreLogic:
         o = self.outputs
         plan = [(o.vessel_model, "stl"), (o.carm_model, "vtk"), (o.roadmap_points_model, "vtk"), (o.transform, "h5"),
                 (o.table, "tsv"), (o.carm_b_model, "vtk"), (o.roadmap_b_points_model, "vtk"),
-                (o.plan_vessel_model, "stl"), (o.plan_centerline_model, "vtk"), (o.plan_table, "tsv")]
+                (o.plan_vessel_model, "stl"), (o.plan_centerline_model, "vtk"), (o.plan_table, "tsv"),
+                (o.plan_segmentation, "seg.nrrd")]
         plan += [(n, "mrk.json") for n in o.centerline_curves + o.wire_curves]
         plan += [(n, "vtk") for n in o.wire_models]
         for node, ext in plan:
