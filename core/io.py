@@ -51,11 +51,19 @@ __all__ = [
     "clean_stale_staging",
     "CT_IMAGE_STORAGE",
     "XA_IMAGE_STORAGE",
+    "XRAY_3D_STORAGE",
+    "VOLUME_MODALITIES",
 ]
 
 CT_IMAGE_STORAGE = "1.2.840.10008.5.1.4.1.1.2"
 XA_IMAGE_STORAGE = "1.2.840.10008.5.1.4.1.1.12.1"
 RF_IMAGE_STORAGE = "1.2.840.10008.5.1.4.1.1.12.2"
+
+#: SOP classes of an X-ray volume (a C-arm's 3D rotational angiogram, stored with Modality XA): X-Ray 3D Angiographic
+#: and Craniofacial Image Storage. Read as a vessel volume, whatever their Modality.
+XRAY_3D_STORAGE = ("1.2.840.10008.5.1.4.1.1.13.1.1", "1.2.840.10008.5.1.4.1.1.13.1.2")
+#: the DICOM Modality values of a vessel volume: a CTA (or a 3DRA stored as CT), an MR angiogram
+VOLUME_MODALITIES = ("CT", "MR")
 
 MAX_VOXELS_DEFAULT = 512 * 512 * 1200
 STAGING_OWNER = ".guidewire3d-owner.json"  # inside a staging folder: the pid of the run writing it
@@ -633,9 +641,10 @@ def _choose_series(path: Path, series: dict[str, list[str]], *, series_uid: str 
         except Exception:  # noqa: BLE001
             continue
         modality = str(getattr(ds, "Modality", "")).strip()
+        volume = modality in modalities or str(ds.get("SOPClassUID", "")) in XRAY_3D_STORAGE
         slices = len(files) if len(files) > 1 else _frames_of(files[0])  # a multi-frame CT / MR: a volume in one file
         stack = len(series) == 1 or _one_orientation(files)
-        cands.append((modality in modalities, stack, slices, uid, modality))
+        cands.append((volume, stack, slices, uid, modality))
     if not cands:
         raise DicomError(f"{folder}: no readable DICOM series found")
     cands.sort(reverse=True)
@@ -643,13 +652,13 @@ def _choose_series(path: Path, series: dict[str, list[str]], *, series_uid: str 
     if not is_ct:
         want = " or ".join(modalities)
         raise DicomError(f"{path}: no {want} series found (Modality (0008,0060) is {modality or 'missing'}), "
-                         f"expected a {'CTA' if modalities == ('CT',) else 'CTA or MRA volume'}")
+                         f"expected a {'CTA' if modalities == ('CT',) else 'CTA, MRA or 3DRA volume'}")
     return uid
 
 
 @_quiet
 def volume_files(path, *, series_uid: str | None = None,
-                 modalities: tuple[str, ...] = ("CT",)) -> tuple[str, list[Path]]:
+                 modalities: tuple[str, ...] = VOLUME_MODALITIES) -> tuple[str, list[Path]]:
     """The files :func:`read_volume` reads for the CTA ``path``, without reading their pixels:
     ``(series_uid, files)``, the uid ``""`` for a NIfTI/NRRD/MHA file (read alone). A DICOM folder
     (or one of its files) gives the series ``read_volume`` chooses, by the same rule.
@@ -715,14 +724,15 @@ def file_fingerprints(files, *, root=None, threads: int = 4) -> list[dict]:
 
 @_quiet
 def read_volume(path, *, series_uid: str | None = None, max_voxels: int = MAX_VOXELS_DEFAULT, log=None,
-                modalities: tuple[str, ...] = ("CT",)) -> Volume:
-    """Read a CTA: a DICOM series folder (or one of its files), or a NIfTI/NRRD/MHA file.
+                modalities: tuple[str, ...] = VOLUME_MODALITIES) -> Volume:
+    """Read a vessel volume (a CTA, an MR angiogram, a 3DRA): a DICOM series folder (or one of its files), one
+    multi-frame DICOM file (Enhanced CT / MR, X-Ray 3D Angiographic), or a NIfTI/NRRD/MHA file.
 
-    ``modalities`` are the DICOM Modality (0008,0060) values accepted (``("CT", "MR")`` for
-    the planning command, which also takes an MR angiogram).
+    ``modalities`` are the DICOM Modality (0008,0060) values accepted (``VOLUME_MODALITIES``: CT and MR); an X-ray
+    volume (``XRAY_3D_STORAGE``, Modality XA) is always accepted.
 
-    If a folder holds several series, the CT series with the most slices is read (and ``log``
-    is told); ``series_uid`` chooses one explicitly. Every file is checked first (complete,
+    If a folder holds several series, the one with the most slices is read (a stack of one orientation before one
+    that is not, and ``log`` is told); ``series_uid`` chooses one explicitly. Every file is checked first (complete,
     geometry tags present and sane, finite voxels); a bad one is named in the error.
     """
     path = Path(path)
@@ -759,7 +769,7 @@ def read_volume(path, *, series_uid: str | None = None, max_voxels: int = MAX_VO
     files = series[uid]
     frames = _frames_of(files[0]) if len(files) == 1 else 1
     if series_uid is None and len(series) > 1 and log is not None:
-        log(f"{folder}: {len(series)} series found, using the largest {'/'.join(modalities)} series {uid} "
+        log(f"{folder}: {len(series)} series found, using the largest volume series {uid} "
             f"({max(len(files), frames)} slices)")
     if frames > 1:
         return _read_multiframe_volume(Path(files[0]), uid, max_voxels)

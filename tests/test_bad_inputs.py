@@ -242,7 +242,7 @@ def cta_single_slice(t):
 
 @kind
 def cta_is_an_xa(t):  # an XA where the CTA is expected
-    return t.recon(cta=t.case / "roadmap.dcm"), ["roadmap.dcm", "no CT series", "XA"]
+    return t.recon(cta=t.case / "roadmap.dcm"), ["roadmap.dcm", "no CT or MR series", "XA"]
 
 
 @kind

@@ -64,7 +64,7 @@ def test_largest_ct_series_chosen_and_series_uid(tmp_path):
     said = []
     vol = io.read_volume(mixed, log=said.append)
     assert vol.shape_zyx == (10, 8, 8) and vol.series_uid == "1.2.3.10"
-    assert said and "largest CT series" in said[0]
+    assert said and "largest volume series 1.2.3.10 (10 slices)" in said[0]
     assert io.read_volume(mixed, series_uid="1.2.3.4").shape_zyx == (4, 8, 8)
     with pytest.raises(DicomError, match="not found"):
         io.read_volume(mixed, series_uid="9.9")

@@ -191,3 +191,15 @@ def test_vessels_on_an_enhanced_mr_gives_the_classic_series_tree(classic, tmp_pa
     lines = [x for x in r.stderr.splitlines() if x.strip()]
     assert len(lines) == 1 and "enhanced.dcm: frame 1: missing PixelMeasuresSequence" in lines[0], r.stderr
     assert not (tmp_path / "out_bad").exists()
+
+
+def test_an_x_ray_3d_angiographic_volume_is_read_as_a_vessel_volume(classic, tmp_path):
+    """A C-arm's 3D rotational angiogram stored as X-Ray 3D Angiographic Image Storage (Modality XA, the geometry in
+    functional groups, as an enhanced CT's): a vessel volume for every command, not refused as an XA run."""
+    ds = _enhanced(classic, "CT")
+    ds.SOPClassUID = ds.file_meta.MediaStorageSOPClassUID = io.XRAY_3D_STORAGE[0]
+    ds.Modality = "XA"
+    path = _save(ds, tmp_path)
+    vol = io.read_volume(path)
+    _same_physical_volume(io.read_volume(classic), vol)
+    assert io.volume_files(path.parent)[1] == [path]

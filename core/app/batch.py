@@ -266,7 +266,8 @@ def _header(path: Path):
             if f.read(132)[128:132] != b"DICM":
                 return None
         return pydicom.dcmread(str(path), stop_before_pixels=True,
-                               specific_tags=["StudyInstanceUID", "SeriesInstanceUID", "Modality", "NumberOfFrames",
+                               specific_tags=["StudyInstanceUID", "SeriesInstanceUID", "Modality", "SOPClassUID",
+                                              "NumberOfFrames",
                                               "SeriesDescription", "AcquisitionDateTime", "AcquisitionDate",
                                               "AcquisitionTime", "ContentDate", "ContentTime", "SeriesNumber",
                                               "InstanceNumber", "PositionerPrimaryAngle", "PositionerSecondaryAngle",
@@ -315,7 +316,7 @@ def choose_xa_runs(runs) -> tuple[str, str]:
 def group_dicom_tree(root, *, access_lps_mm=None, log=None) -> list[StudySpec]:
     """The studies of a DICOM folder tree, one per StudyInstanceUID, named by it.
 
-    The CTA is the study's CT series with the most slices (its files must lie in one folder); every
+    The CTA is the study's CT, MR or X-ray 3D (3DRA) series with the most slices (its files must lie in one folder); every
     XA or RF file is one run, and :func:`choose_xa_runs` picks the roadmap and the live frames.
     Files that are not DICOM, hidden files and other modalities are ignored. A study without a CT
     series or without an XA run is returned with ``error`` set (recorded as failed, not run).
@@ -332,7 +333,7 @@ def group_dicom_tree(root, *, access_lps_mm=None, log=None) -> list[StudySpec]:
         raise InputError(f"{root}: not a folder")
     ct: dict[str, dict[str, list[Path]]] = {}
     xa: dict[str, list[_XARun]] = {}
-    slices: dict[str, int] = {}  # per CT series: its slices (a multi-frame file's frames)
+    slices: dict[str, int] = {}  # per volume series: its slices (a multi-frame file's frames)
     seen_studies: list[str] = []
     n_files = 0
     for dirpath, dirnames, filenames in os.walk(root):
@@ -346,7 +347,8 @@ def group_dicom_tree(root, *, access_lps_mm=None, log=None) -> list[StudySpec]:
                 continue
             study = _text(ds, "StudyInstanceUID")
             modality = _text(ds, "Modality").upper()
-            if not study or modality not in ("CT", "XA", "RF"):
+            volume = modality in io.VOLUME_MODALITIES or _text(ds, "SOPClassUID") in io.XRAY_3D_STORAGE
+            if not study or not (volume or modality in ("XA", "RF")):
                 continue
             n_files += 1
             if study not in seen_studies:
@@ -355,7 +357,7 @@ def group_dicom_tree(root, *, access_lps_mm=None, log=None) -> list[StudySpec]:
                 n = int(ds.get("NumberOfFrames", 1) or 1)
             except (TypeError, ValueError):
                 n = 1
-            if modality == "CT":
+            if volume:  # the CTA (or MRA, 3DRA)
                 uid = _text(ds, "SeriesInstanceUID")
                 ct.setdefault(study, {}).setdefault(uid, []).append(p)
                 slices[uid] = slices.get(uid, 0) + max(n, 1)
@@ -378,14 +380,14 @@ def group_dicom_tree(root, *, access_lps_mm=None, log=None) -> list[StudySpec]:
         cta = road = live = ""
         uid = None
         if not series:
-            error = f"{where}: no CT series (expected the CTA)"
+            error = f"{where}: no CT, MR or X-ray 3D series (expected the CTA)"
         elif not runs:
             error = f"{where}: no XA run (expected a roadmap and live frames)"
         else:
             uid, files = max(series.items(), key=lambda kv: slices[kv[0]])
             folders = sorted({str(f.parent) for f in files})
             if len(folders) > 1:
-                error = f"{where}: CT series {uid} is spread over {len(folders)} folders ({folders[0]}, ...); " \
+                error = f"{where}: volume series {uid} is spread over {len(folders)} folders ({folders[0]}, ...); " \
                         "put its files in one folder"
             else:
                 cta = folders[0]
@@ -900,7 +902,7 @@ def cli_batch(args) -> int:
 
     studies = load_studies(args.manifest, access_lps_mm=getattr(args, "access_lps", None))
     if Path(args.manifest).is_dir():
-        say(f"{args.manifest}: {len(studies)} studies ({sum(s.error is None for s in studies)} with a CT series "
+        say(f"{args.manifest}: {len(studies)} studies ({sum(s.error is None for s in studies)} with a CTA series "
             "and XA runs)")
     rows = run_batch(studies, args.out, workers=args.workers, scheduler=args.scheduler, retries=args.retries,
                      images=not args.no_images, progress=True, log=say)

@@ -192,7 +192,7 @@ def run_to_outdir(cta, out_dir, *, seeds_lps_mm=None, series_uid=None, progress:
     out_dir = Path(out_dir)
     io.require_empty_folder(out_dir, min_free_mb=MIN_FREE_MB)
     t0 = time.perf_counter()
-    vol = io.read_volume(cta, series_uid=series_uid, log=log, modalities=("CT", "MR"))
+    vol = io.read_volume(cta, series_uid=series_uid, log=log)
     vesselmodel.check_geometry(vol)
     seeds = None if seeds_lps_mm is None or not len(seeds_lps_mm) else np.asarray(seeds_lps_mm, dtype=float).reshape(-1, 3)
     if access_lps_mm is not None:
@@ -207,7 +207,7 @@ def run_to_outdir(cta, out_dir, *, seeds_lps_mm=None, series_uid=None, progress:
         if access_lps_mm is not None:
             inputs["access_lps_mm"] = [round(float(v), 3) for v in access_lps_mm]
 
-        dicom_files = io.volume_files(cta, series_uid=series_uid, modalities=("CT", "MR"))[1] if vol.series_uid else None
+        dicom_files = io.volume_files(cta, series_uid=series_uid)[1] if vol.series_uid else None
 
         def write(staging: Path) -> None:
             write_plan(plan, staging, inputs=inputs, access_lps_mm=access_lps_mm, volume=vol, dicom_files=dicom_files)
