@@ -6,7 +6,8 @@ myocardium and the chest wall, about 10 HU) as a second "air" class, because the
 superior vena cava (87 % of the centerline in the SVC, where the arm injection's undiluted contrast reads 1300 HU),
 exit 0; a seed in the ascending aorta was refused as "not inside a bright lumen" (427 HU against a "background" of
 420). A class above -300 HU after the lungs is tissue, not air (``vesselmodel._body_mask``), and a CT in HU whose body
-is largely contrast blood takes its tissue level below the contrast.
+is largely contrast blood takes its tissue level below the contrast. Since stop 45 the seeded tree is cut of the web
+of loops the contrast swirling in the right heart makes (``vesselmodel.web_points``).
 """
 from __future__ import annotations
 
@@ -60,4 +61,8 @@ def test_a_seed_in_the_ascending_aorta_of_a_heart_crop_gives_its_tree(heart_crop
     tree = auto.vessels.tree
     assert np.linalg.norm(tree.points_lps_mm - np.asarray(ASCENDING_AORTA_LPS_MM), axis=1).min() < 15.0
     assert _centerline_fraction_in(crop, labels, tree, VEINS) < 0.1
-    assert _centerline_fraction_in(crop, labels, tree, (AORTA,)) > 0.02
+    assert _centerline_fraction_in(crop, labels, tree, (AORTA,)) > 0.1
+    # the contrast swirling in the right heart is a web of loops, not vessels (vesselmodel.web_points): 68 % of the
+    # tree ran in the heart before stop 45, 2 m of thin paths through it
+    assert "in a web of loops removed" in auto.pruned
+    assert _centerline_fraction_in(crop, labels, tree, (HEART,)) < 0.4
