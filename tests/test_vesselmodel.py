@@ -416,7 +416,7 @@ def test_vessels_command_writes_the_planning_folder(ct, tmp_path):
     rc = cli.main(["vessels", "--cta", str(f), "--out", str(out)])
     assert rc == 0
     assert sorted(p.name for p in out.iterdir()) == ["centerline.vtp", "screenshot.png", "vessels.json", "vessels.stl",
-                                                    "vessels.vtp"]
+                                                    "vessels.vtp", "vessels_mask.nii.gz"]  # no DICOM input: no SEG
     rec = json.loads((out / "vessels.json").read_text())
     assert abs(rec["intensity_model"]["lumen"] - 380.0) < 40.0 and rec["intensity_model"]["units"] == "HU"
     assert rec["plausibility"]["ok"] and rec["tree"]["n_branches"] == len(rec["branches"]) >= 3
