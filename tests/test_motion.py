@@ -142,6 +142,31 @@ def test_real_liver_catheter_is_followed_through_breathing():
     assert sum(r.verdict is Verdict.OK for r in res) >= 0.9 * len(res)
 
 
+def test_a_tracked_frames_overlay_draws_its_wire_where_the_frame_shows_it():
+    """``overlay_NNNN.png`` of a tracked frame projects the tree and the 3D wire in the frame's own pose (the one the
+    wire was reconstructed in). Until stop 45 it used the registration's, which drew the wire off the frame's wire by
+    the breathing (the biplane overlays of plane B were already right)."""
+    from types import SimpleNamespace
+
+    from guidewire3d.app import export
+
+    case = simulate(PhantomOptions(seed=5, n_frames=8, breathing_mm=15.0), make_ct=False)
+    s = live.Session(case.tree, case.carm, case.pose, track_motion=True)
+    frs = [s.process(frame) for frame in case.frames]
+    run = SimpleNamespace(registration=SimpleNamespace(pose=case.pose), tree=case.tree, carm=case.carm,
+                          frames_carm=case.carm, frame_results=frs, wires3d=[fr.wire3d for fr in frs])
+    fixed = SimpleNamespace(**{**vars(run), "frame_results": []})  # the same wires drawn in the registration's pose
+    tracked, registered = [], []
+    for k, fr in enumerate(frs):
+        if fr.motion is None or not fr.wire3d.success:
+            continue
+        true_uv = cKDTree(case.wire_uv_px[k])
+        tracked.append(true_uv.query(export.overlay_uv(run, k)[1])[0].mean())
+        registered.append(true_uv.query(export.overlay_uv(fixed, k)[1])[0].mean())
+    assert len(tracked) >= 4
+    assert np.median(tracked) < 2.0 and np.median(registered) > 2 * np.median(tracked), (tracked, registered)
+
+
 def test_reconstruct_track_motion_writes_each_frames_pose(small_case_dir, tmp_path):
     import json
 

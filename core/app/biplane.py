@@ -1163,8 +1163,7 @@ def write_outdir(result: BiplaneResult, out_dir: Path, *, inputs: dict, images: 
         for p, frame in zip(result.pairs, result.frames_b):
             w3 = p.result.wire3d
             # a tracked pair (track_motion) was reconstructed in its own pose: its wire and the tree are shown there
-            pose = p.result.pose if getattr(p.result, "motion", None) is not None and p.result.pose is not None \
-                else reg_pose
+            pose = export.frame_pose(p.result, reg_pose)
             cl_uv_p = cl_uv if pose is reg_pose else result.carm_b.project(tree_pts, pose)
             w3uv = result.frames_carm_b.project(w3.points_lps_mm, pose) if w3 else None
             txt = (f"plane B frame {p.index_b}: {p.views or 'no'} view(s), proj err "

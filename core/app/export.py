@@ -319,6 +319,27 @@ def write_png(path, rgb) -> Path:
     return atomic_write_bytes(path, buf.tobytes())
 
 
+def frame_pose(frame_result, registration_pose):
+    """The pose a live frame's wire was reconstructed in: its tracked pose (``--track-motion``), else the
+    registration's."""
+    if frame_result is not None and getattr(frame_result, "motion", None) is not None \
+            and getattr(frame_result, "pose", None) is not None:
+        return frame_result.pose
+    return registration_pose
+
+
+def overlay_uv(result, k: int):
+    """``(tree_uv_px, wire3d_uv_px or None)`` drawn on live frame ``k``'s overlay: the tree and the 3D wire projected in
+    the pose the wire was reconstructed in (:func:`frame_pose`: a tracked frame's own, else the registration's)."""
+    reg_pose = result.registration.pose
+    frs = list(getattr(result, "frame_results", None) or [])
+    pose = frame_pose(frs[k] if k < len(frs) else None, reg_pose)
+    tree_uv = (result.carm.project(result.tree.points_lps_mm, reg_pose) if pose is reg_pose
+               else result.frames_carm.project(result.tree.points_lps_mm, pose))
+    w3 = result.wires3d[k]
+    return tree_uv, (result.frames_carm.project(w3.points_lps_mm, pose) if w3.success else None)
+
+
 def tracked_motion_mm(result) -> np.ndarray | None:
     """(T, 3) shift of the tree's centroid under each frame's tracked pose against the registration,
     in the C-arm's (u, v, depth) axes, mm; None when the run did not track motion."""
@@ -412,15 +433,14 @@ def write_outdir(result, out_dir, *, inputs: dict, images: bool = True, truth=No
         write_polydata(tube_polydata(line, WIRE_TUBE_RADIUS_MM), out_dir / f"guidewire_{idx:04d}.stl")
     write_report(result, out_dir, inputs=inputs, truth=truth)
     if images:
-        cl_uv = result.carm.project(tree.points_lps_mm, reg.pose)
         planes = None if plane_errors_px is None else np.asarray(plane_errors_px, float).reshape(-1, 2)
         for k, (idx, frame, w2, w3) in enumerate(zip(result.frame_indices, result.frames, result.wires2d,
                                                       result.wires3d)):
-            w3uv = result.frames_carm.project(w3.points_lps_mm, reg.pose) if w3.success else None
+            cl_k, w3uv = overlay_uv(result, k)
             perr = w3.projection_error_px if planes is None else planes[k, 0]
             txt = (f"frame {idx}: proj err {perr:.2f} px, length {w3.length_mm:.1f} mm"
                    if w3.success else f"frame {idx}: {w3.message}")
-            rgb = overlay_image(frame, centerline_uv_px=cl_uv, wire2d_uv_px=getattr(w2, "points_uv_px", None) if w2 else None,
+            rgb = overlay_image(frame, centerline_uv_px=cl_k, wire2d_uv_px=getattr(w2, "points_uv_px", None) if w2 else None,
                                 wire3d_uv_px=w3uv, text=txt)
             write_png(out_dir / f"overlay_{idx:04d}.png", rgb)
         if result.wires3d:

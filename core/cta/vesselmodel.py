@@ -37,7 +37,7 @@ from dataclasses import asdict, dataclass, field, replace
 import numpy as np
 from guidewire3d import io
 from guidewire3d.cta import biasfield, lostlumen, prune, segment, vessels3d
-from guidewire3d.cta.centerline import CenterlineOptions, _rooted_at_widest_end, without_lumen_strands
+from guidewire3d.cta.centerline import CenterlineOptions, _rooted_at_widest_end, _SkeletonPaths, without_lumen_strands
 from guidewire3d.cta.grid import bbox, canonical_volume
 from guidewire3d.cta.prune import _mask_of_points
 from guidewire3d.cta.segment import VesselOptions, frangi_at
@@ -1406,8 +1406,6 @@ def web_points(volume: io.Volume, mask_zyx: np.ndarray, tree, *, radius_mm: floa
     """
     from scipy.spatial import cKDTree
     from skimage.morphology import skeletonize
-
-    from guidewire3d.cta.centerline import _SkeletonPaths
 
     out = np.zeros(tree.n_points, bool)
     if not mask_zyx.any():
