@@ -727,6 +727,17 @@ class BiplaneSession:
         return self.process_wires(got[0][0], got[1][0], images=(got[0][1], got[1][1]), index=index, index_b=index_b,
                                   errors=(got[0][2], got[1][2]), t0=t0)
 
+    def process_one(self, k: int, frame, *, why: str = "", index: int | None = None) -> BiplaneFrame:
+        """Plane ``k``'s frame alone (the other plane's left out: ``why``), through the pair's engine: with
+        ``track_motion`` the lone frame updates the pose from its plane (``BiplaneMotionTracker``'s one-view update)
+        before it is reconstructed in it; the result names the plane left out and why."""
+        t0 = time.perf_counter()
+        wire, image, err = self._wire2d(k, frame)
+        wires, images, errors = [None, None], [None, None], [why or "no frame", why or "no frame"]
+        wires[k], images[k], errors[k] = wire, image, err
+        return self.process_wires(wires[0], wires[1], images=tuple(images), index=index, index_b=index,
+                                  errors=tuple(errors), t0=t0)
+
     def process_wires(self, wire_a, wire_b, *, images=(None, None), index: int | None = None,
                       index_b: int | None = None, errors=("", ""), t0: float | None = None) -> BiplaneFrame:
         """Reconstruct a pair from its ordered 2D wires (``OrderedWire`` or (M, 2) px arrays; None or

@@ -515,14 +515,8 @@ class BiplaneRunner(LiveRunner):
         """Plane k's frame reconstructed alone (the other plane left out: ``why``)."""
         if getattr(self.session, "motion_tracker", None) is not None:
             # tracking motion (``--track-motion``): through the pair's engine, so that the lone frame updates the
-            # pose from its plane alone (``BiplaneMotionTracker``'s one-view update) before it is reconstructed in it;
-            # its fallback names the plane left out and why, as below
-            t0 = time.perf_counter()
-            wire, image, err = self.session._wire2d(k, img)
-            wires, images, errors = [None, None], [None, None], [why or "no frame", why or "no frame"]
-            wires[k], images[k], errors[k] = wire, image, err
-            return self.session.process_wires(wires[0], wires[1], images=tuple(images), index=index, index_b=index,
-                                              errors=tuple(errors), t0=t0)
+            # pose from its plane alone before it is reconstructed in it (``BiplaneSession.process_one``)
+            return self.session.process_one(k, img, why=why, index=index)
         fr = self.session.sessions[k].process(img, index=index, timestamp=ts)
         o = 1 - k
         fallback = f"one view (plane {PLANES[k]} only): plane {PLANES[o]}: {why}"
