@@ -94,3 +94,17 @@ def test_a_forest_is_one_label_per_tree_and_a_nifti_input_has_no_dicom_seg(tubes
     for label, x in ((1, RIGHT_X_MM), (2, LEFT_X_MM)):  # tree 1 is the first seed's structure
         lps = mask.index_zyx_to_lps(np.argwhere(mask.array_zyx == label).astype(float))
         assert len(lps) and np.all(np.abs(lps[:, 0] - x) < 6.0)
+
+
+def test_a_segmentation_highdicom_refuses_leaves_the_plan_with_a_warning(tmp_path, monkeypatch, capsys):
+    """A DICOM input whose headers highdicom cannot make a Segmentation from: the plan is written without
+    vessels_seg.dcm, one warning line says so (the mask is in vessels_mask.nii.gz)."""
+    series = io.write_ct_series(_tube(), tmp_path / "ct")
+
+    def refuse(*a, **k):
+        raise ValueError("Source images must have the same frame of reference")
+    monkeypatch.setattr(io, "write_dicom_seg", refuse)
+    assert cli.main(["vessels", "--cta", str(series), "--out", str(tmp_path / "plan"), "--no-screenshot"]) == 0
+    assert (tmp_path / "plan" / "vessels_mask.nii.gz").exists() and not (tmp_path / "plan" / "vessels_seg.dcm").exists()
+    warn = [x for x in capsys.readouterr().err.splitlines() if "vessels_seg.dcm not written" in x]
+    assert len(warn) == 1 and "same frame of reference" in warn[0]

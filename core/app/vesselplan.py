@@ -210,7 +210,8 @@ def run_to_outdir(cta, out_dir, *, seeds_lps_mm=None, series_uid=None, progress:
         dicom_files = io.volume_files(cta, series_uid=series_uid)[1] if vol.series_uid else None
 
         def write(staging: Path) -> None:
-            write_plan(plan, staging, inputs=inputs, access_lps_mm=access_lps_mm, volume=vol, dicom_files=dicom_files)
+            write_plan(plan, staging, inputs=inputs, access_lps_mm=access_lps_mm, volume=vol, dicom_files=dicom_files,
+                       log=log)
             if screenshot is not None:
                 screenshot(staging, staging / "screenshot.png")
 
@@ -228,11 +229,12 @@ def plan_labels(plan: VesselPlan) -> np.ndarray:
 
 
 def write_plan(plan: VesselPlan, folder: Path, *, inputs: dict, access_lps_mm=None, volume=None,
-               dicom_files=None) -> None:
+               dicom_files=None, log=None) -> None:
     """``centerline.vtp``, ``vessels.stl``, ``vessels.vtp`` and ``vessels.json`` of a plan, into ``folder``; with
     ``volume`` (the input, an ``io.Volume``) also ``vessels_mask.nii.gz``, the vessel mask on its grid (0
     background, ``k + 1`` tree ``k``), and with ``dicom_files`` (the DICOM images it was read from) the same mask as a
-    DICOM Segmentation, ``vessels_seg.dcm``, one segment per tree, referencing those images.
+    DICOM Segmentation, ``vessels_seg.dcm``, one segment per tree, referencing those images (left out, with a warning
+    to ``log``, when highdicom cannot make it from their headers).
 
     One tree: as ever. Several (seeds in separate structures): the polydata hold every tree, each point carrying its
     tree's index (point array ``tree``); ``vessels.json`` keeps the first tree's record at the top level (the first
@@ -260,7 +262,12 @@ def write_plan(plan: VesselPlan, folder: Path, *, inputs: dict, access_lps_mm=No
                         folder / "vessels_mask.nii.gz")
         if dicom_files:
             names = ["vessels"] if len(plan.trees) == 1 else [f"vessel tree {k + 1}" for k in range(len(plan.trees))]
-            io.write_dicom_seg(labels, volume, dicom_files, folder / "vessels_seg.dcm", segment_names=names)
+            try:
+                io.write_dicom_seg(labels, volume, dicom_files, folder / "vessels_seg.dcm", segment_names=names)
+            except (ValueError, TypeError, AttributeError, KeyError) as e:  # highdicom's refusal of a source's header
+                if log is not None:  # the plan stands without it; the mask is in vessels_mask.nii.gz
+                    log(f"warning: vessels_seg.dcm not written: the DICOM Segmentation could not be made from the "
+                        f"input's headers ({e.__class__.__name__}: {str(e).strip().splitlines()[0][:160]})")
 
 
 def forest_polydata(plan: VesselPlan, what: str):
