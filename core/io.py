@@ -648,8 +648,8 @@ def _choose_series(path: Path, series: dict[str, list[str]], *, series_uid: str 
     if not cands:
         raise DicomError(f"{folder}: no readable DICOM series found")
     cands.sort(reverse=True)
-    is_ct, _, _, uid, modality = cands[0]
-    if not is_ct:
+    is_volume, _, _, uid, modality = cands[0]
+    if not is_volume:
         want = " or ".join(modalities)
         raise DicomError(f"{path}: no {want} series found (Modality (0008,0060) is {modality or 'missing'}), "
                          f"expected a {'CTA' if modalities == ('CT',) else 'CTA, MRA or 3DRA volume'}")
