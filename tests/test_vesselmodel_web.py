@@ -75,3 +75,20 @@ def test_a_tree_with_a_loop_or_two_is_not_a_web():
     auto = vesselmodel.extract_vessels_auto(vol, seeds_lps_mm=[SEED_LPS_MM])
     assert not vesselmodel.web_points(vol, auto.vessels.mask_zyx, auto.vessels.tree).any()
     assert "+web" not in auto.segmentation
+
+
+def test_a_wide_point_dimmer_than_a_lumen_is_a_neck():
+    """``dim_neck_points``: a point 3 mm from the wall at 150 HU (lumen 400, background 40: limit 184 HU) is a neck; a
+    1 mm-radius point as dim is a thin vessel's partial volume, and a wide point at the lumen's level a lumen."""
+    from guidewire3d.vesseltree import VesselTree
+
+    v = np.full((40, 40, 40), 400.0, np.float32)
+    v[:, :, 25:] = 150.0  # x >= 25 mm (1 mm voxels): dim
+    vol = io.Volume(v, (1.0, 1.0, 1.0), (0.0, 0.0, 0.0), np.eye(3), source="neck")
+    x = np.arange(5.0, 36.0, 1.0)
+    pts = np.column_stack([x, np.full_like(x, 20.0), np.full_like(x, 20.0)])
+    radius = np.where(x < 32.0, 3.0, 1.0)
+    tree = VesselTree(pts, radius, np.arange(-1, len(x) - 1), 0.5)
+    model = vesselmodel.IntensityModel(40.0, 400.0, 5.0, None, True, 3.0, 1.0)
+    neck = vesselmodel.dim_neck_points(vol, tree, model)
+    np.testing.assert_array_equal(neck, (x >= 26.0) & (x < 32.0))  # the smoothing blurs the edge by a voxel

