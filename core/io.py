@@ -642,7 +642,8 @@ def _choose_series(path: Path, series: dict[str, list[str]], *, series_uid: str 
             continue
         modality = str(getattr(ds, "Modality", "")).strip()
         volume = modality in modalities or str(ds.get("SOPClassUID", "")) in XRAY_3D_STORAGE
-        slices = len(files) if len(files) > 1 else _frames_of(files[0])  # a multi-frame CT / MR: a volume in one file
+        # a multi-frame CT / MR: a volume in one file (its header, read above, has NumberOfFrames)
+        slices = len(files) if len(files) > 1 else max(_int_or(ds.get("NumberOfFrames", 1), 1), 1)
         stack = len(series) == 1 or _one_orientation(files)
         cands.append((volume, stack, slices, uid, modality))
     if not cands:
@@ -787,6 +788,13 @@ def read_volume(path, *, series_uid: str | None = None, max_voxels: int = MAX_VO
     return vol
 
 
+def _int_or(value, default: int) -> int:
+    try:
+        return int(value or default)
+    except (TypeError, ValueError):
+        return default
+
+
 def _frames_of(path) -> int:
     """NumberOfFrames of the DICOM file ``path`` (1 when absent or unreadable: the full checks come later)."""
     import pydicom
@@ -795,9 +803,9 @@ def _frames_of(path) -> int:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             ds = pydicom.dcmread(str(path), stop_before_pixels=True, specific_tags=["NumberOfFrames"])
-        return max(int(ds.get("NumberOfFrames", 1) or 1), 1)
     except Exception:  # noqa: BLE001
         return 1
+    return max(_int_or(ds.get("NumberOfFrames", 1), 1), 1)
 
 
 def _functional_group(ds, frame: int, sequence: str):

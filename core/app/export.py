@@ -328,14 +328,20 @@ def frame_pose(frame_result, registration_pose):
     return registration_pose
 
 
-def overlay_uv(result, k: int):
+def overlay_uv(result, k: int, *, registered_tree_uv=None):
     """``(tree_uv_px, wire3d_uv_px or None)`` drawn on live frame ``k``'s overlay: the tree and the 3D wire projected in
-    the pose the wire was reconstructed in (:func:`frame_pose`: a tracked frame's own, else the registration's)."""
+    the pose the wire was reconstructed in (:func:`frame_pose`: a tracked frame's own, else the registration's).
+    ``registered_tree_uv``: the tree projected in the registration's pose, when the caller has it (every frame not
+    tracked shares it)."""
     reg_pose = result.registration.pose
-    frs = list(getattr(result, "frame_results", None) or [])
+    frs = getattr(result, "frame_results", None) or []
     pose = frame_pose(frs[k] if k < len(frs) else None, reg_pose)
-    tree_uv = (result.carm.project(result.tree.points_lps_mm, reg_pose) if pose is reg_pose
-               else result.frames_carm.project(result.tree.points_lps_mm, pose))
+    if pose is not reg_pose:
+        tree_uv = result.frames_carm.project(result.tree.points_lps_mm, pose)
+    elif registered_tree_uv is not None:
+        tree_uv = registered_tree_uv
+    else:
+        tree_uv = result.carm.project(result.tree.points_lps_mm, reg_pose)
     w3 = result.wires3d[k]
     return tree_uv, (result.frames_carm.project(w3.points_lps_mm, pose) if w3.success else None)
 
@@ -434,9 +440,10 @@ def write_outdir(result, out_dir, *, inputs: dict, images: bool = True, truth=No
     write_report(result, out_dir, inputs=inputs, truth=truth)
     if images:
         planes = None if plane_errors_px is None else np.asarray(plane_errors_px, float).reshape(-1, 2)
+        cl_uv = result.carm.project(tree.points_lps_mm, reg.pose)
         for k, (idx, frame, w2, w3) in enumerate(zip(result.frame_indices, result.frames, result.wires2d,
                                                       result.wires3d)):
-            cl_k, w3uv = overlay_uv(result, k)
+            cl_k, w3uv = overlay_uv(result, k, registered_tree_uv=cl_uv)
             perr = w3.projection_error_px if planes is None else planes[k, 0]
             txt = (f"frame {idx}: proj err {perr:.2f} px, length {w3.length_mm:.1f} mm"
                    if w3.success else f"frame {idx}: {w3.message}")
