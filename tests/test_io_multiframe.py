@@ -104,8 +104,14 @@ def test_frames_stored_out_of_order_read_in_place(classic, tmp_path):
     order = np.random.default_rng(1).permutation(arr.shape[0])
     ds.PerFrameFunctionalGroupsSequence = [copy.deepcopy(ds.PerFrameFunctionalGroupsSequence[i]) for i in order]
     ds.PixelData = np.ascontiguousarray(arr[order]).tobytes()
+    assert not np.array_equal(order, np.arange(len(order)))  # the file's frames are out of order
     vol = io.read_volume(_save(ds, tmp_path), modalities=("CT",))
-    _same_physical_volume(io.read_volume(classic), vol)
+    ref = io.read_volume(classic)
+    _same_physical_volume(ref, vol)
+    # the ramp of 3 HU a slice runs along the slice axis in the volume read, in order: each slice at its own place
+    means = vol.array_zyx.mean(axis=(1, 2))
+    assert np.all(np.abs(np.diff(means)) > 2.0) and (np.all(np.diff(means) > 0) or np.all(np.diff(means) < 0))
+    assert vol.shape_zyx == ref.shape_zyx
 
 
 def test_a_folder_holding_a_localizer_reads_the_multi_frame_volume(classic, tmp_path):
