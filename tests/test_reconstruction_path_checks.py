@@ -42,6 +42,7 @@ def test_a_trace_that_took_the_wrong_way_at_a_crossing_walks_back_through_the_tr
     assert frame_verdict(right, uv, None)[0] is Verdict.OK
     verdict, why = frame_verdict(wrong, wrong_uv, None)
     assert verdict is Verdict.UNCERTAIN and "2D trace doubtful" in why
+    assert "--access-lps" in why  # the other cause, and what to do: a wire entering elsewhere than the root
     # the failure seen in the simulator: the loop taken backwards, the trace ending at the crossing
     # with the tip in its middle
     stub_uv = np.vstack([uv[:i1], uv[i2:][::-1], uv[i1:i2][::-1]])

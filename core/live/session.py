@@ -541,8 +541,10 @@ def frame_verdict(wire3d, wire_uv_px, orientation, *, beyond_tip=None, motion=No
     retreat_mm = float(getattr(wire3d, "tree_retreat_mm", float("nan")))
     if retreat_mm > TREE_RETREAT_MAX_MM:
         why.append(f"2D trace doubtful: along the wire, its path through the vessel tree walks {retreat_mm:.0f} mm "
-                   f"back towards the root (a wire advanced from the root does not; the trace may have taken the "
-                   f"wrong way where the wire crosses itself)")
+                   f"back towards the root (a wire advanced from the root does not: a wire that enters elsewhere, "
+                   f"e.g. from the groin into a tree rooted at its aortic root, needs its access point: "
+                   f"--access-lps, or the access markup in Slicer; or "
+                   f"the trace took the wrong way where the wire crosses itself)")
     miss_mm = np.asarray(getattr(wire3d, "lumen_miss_mm", ()), float)
     if len(miss_mm) and float(miss_mm.max()) > OFF_LUMEN_MAX_MM:
         why.append(_off_lumen_reason(wire3d))
