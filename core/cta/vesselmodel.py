@@ -313,7 +313,7 @@ NECK_LEVEL_FRACTION = 0.4
 #: through a 3.9 mm waist (287-348 HU: not dim) that widens to 9.2 mm; beyond it the pulmonary trunk, the right
 #: ventricle's outflow and the lungs' vessels (1.2 m of its 3.3 m). A vessel's own narrowing (a coarctation, an
 #: ostial stenosis) is the lumen's continuation, not a side exit of a lumen that goes on: it is not a bridge. At
-#: 3.5 mm wide the brachiocephalic trunk's own 1.7 mm points would be a waist.
+#: 3.5 mm wide (without the far junction's condition) the brachiocephalic trunk's own 1.7 mm points were a waist.
 BRIDGE_WIDE_MM = 5.0
 BRIDGE_THROUGH_RATIO = 0.7
 BRIDGE_WAIST_RATIO = 0.5
@@ -1710,7 +1710,8 @@ def bridge_points(tree, *, wide_mm: float = BRIDGE_WIDE_MM, through_ratio: float
             continue
         # the path must reach a lumen that goes on both ways (it crosses a vessel), not the same vessel widening again
         # beyond its own narrowing (a brachiocephalic trunk narrowed where a vein crosses it)
-        if not any(len(kids[path[m]]) > 1 and goes_on(int(path[m]), int(path[m - 1])) for m in range(k + 1, len(prof))):
+        if not any(len(kids[path[m]]) > 1 and goes_on(int(path[m]), int(path[m - 1]))
+                   for m in range(k + 1, len(prof))):
             continue
         # the waist and the narrow run around it, up to where either lumen is as wide as a vessel the waist could not
         # be the bridge of (the stub left would be cut as a strand of its lumen)
@@ -1750,14 +1751,15 @@ def dim_neck_points(volume: io.Volume, tree, model, *, radius_mm: float = NECK_R
     return out
 
 
-def _without_bridges(volume: io.Volume, av: AutoVessels, body_cm3: float, what: str, seeds_lps_mm=None) -> AutoVessels:
+def _without_bridges(volume: io.Volume, av: AutoVessels, body_cm3: float, what: str,
+                     seeds_lps_mm=None) -> AutoVessels:
     """``av`` cut at the waists of its bridges between touching wide lumens (:func:`bridge_points`), and what lies
     beyond them from the seeds' parts (with seeds) or the part of largest wide lumen volume
     (:func:`_without_blood_pools`, cut however short)."""
-    waist = bridge_points(av.vessels.tree)
-    if not waist.any():
+    bridge = bridge_points(av.vessels.tree)
+    if not bridge.any():
         return av
-    return _without_blood_pools(volume, av, body_cm3, what, pool=waist, seeds_lps_mm=seeds_lps_mm, kind="bridge")
+    return _without_blood_pools(volume, av, body_cm3, what, pool=bridge, seeds_lps_mm=seeds_lps_mm, kind="bridge")
 
 
 def _without_dim_necks(volume: io.Volume, av: AutoVessels, body_cm3: float, what: str, seeds_lps_mm) -> AutoVessels:
