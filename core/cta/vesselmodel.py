@@ -1659,8 +1659,6 @@ def _without_webs(volume: io.Volume, av: AutoVessels, body_cm3: float, what: str
     """``av`` without its thin points in a web of loops (:func:`web_points`) and the parts of the tree they separate
     from the seeds' parts (with seeds) or from the part of largest wide lumen volume (:func:`_without_blood_pools`)."""
     web = web_points(volume, av.vessels.mask_zyx, av.vessels.tree)
-    if not web.any():
-        return av
     return _without_blood_pools(volume, av, body_cm3, what, pool=web, seeds_lps_mm=seeds_lps_mm)
 
 
@@ -1682,7 +1680,7 @@ def bridge_points(tree, *, wide_mm: float = BRIDGE_WIDE_MM, through_ratio: float
     out = np.zeros(tree.n_points, bool)
     if r.max() < wide_mm or len(tree.branches) < 3:
         return out
-    P = np.asarray(tree.points_lps_mm, dtype=float)
+    seg = tree.length_at_point_mm  # each point's edge to its parent: along a path from a junction, its steps
     branches, kids, par = tree.branches, tree.children, tree.parent
 
     def goes_on(j: int, came: int) -> bool:
@@ -1696,13 +1694,11 @@ def bridge_points(tree, *, wide_mm: float = BRIDGE_WIDE_MM, through_ratio: float
         if b.parent < 0 or not goes_on(j, int(b.point_ids[1])):
             continue
         path, cur = list(b.point_ids), b
-        length = float(np.linalg.norm(np.diff(P[path], axis=0), axis=1).sum())
-        while length < reach_mm and cur.children:
+        while float(seg[path[1:]].sum()) < reach_mm and cur.children:
             cur = branches[max(cur.children, key=lambda c: r[branches[c].point_ids[1]])]
-            length += float(np.linalg.norm(np.diff(P[cur.point_ids], axis=0), axis=1).sum())
             path.extend(int(i) for i in cur.point_ids[1:])
         path = np.asarray(path)
-        s = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(P[path], axis=0), axis=1))]
+        s = np.r_[0.0, np.cumsum(seg[path[1:]])]
         prof = r[path[s <= reach_mm]]
         k = int(np.argmin(prof))
         far = float(prof[k:].max())
@@ -1756,18 +1752,14 @@ def _without_bridges(volume: io.Volume, av: AutoVessels, body_cm3: float, what: 
     """``av`` cut at the waists of its bridges between touching wide lumens (:func:`bridge_points`), and what lies
     beyond them from the seeds' parts (with seeds) or the part of largest wide lumen volume
     (:func:`_without_blood_pools`, cut however short)."""
-    bridge = bridge_points(av.vessels.tree)
-    if not bridge.any():
-        return av
-    return _without_blood_pools(volume, av, body_cm3, what, pool=bridge, seeds_lps_mm=seeds_lps_mm, kind="bridge")
+    return _without_blood_pools(volume, av, body_cm3, what, pool=bridge_points(av.vessels.tree),
+                                seeds_lps_mm=seeds_lps_mm, kind="bridge")
 
 
 def _without_dim_necks(volume: io.Volume, av: AutoVessels, body_cm3: float, what: str, seeds_lps_mm) -> AutoVessels:
     """A seeded tree in HU without its dim wide necks (:func:`dim_neck_points`) and what lies beyond them from the
     seeds (:func:`_without_blood_pools`, cut however short)."""
     neck = dim_neck_points(volume, av.vessels.tree, av.model)
-    if not neck.any():
-        return av
     return _without_blood_pools(volume, av, body_cm3, what, pool=neck, seeds_lps_mm=seeds_lps_mm, kind="neck")
 
 
