@@ -14,8 +14,9 @@ import scipy.sparse as sp
 from guidewire3d.errors import InputError
 from scipy.sparse.csgraph import dijkstra
 
-__all__ = ["Branch", "VesselTree", "MAX_ACCESS_DISTANCE_MM", "access_record", "check_access",
-           "rooted_at_access"]
+__all__ = ["Branch", "VesselTree", "ACCESS_PATH_MIN_RADIUS_MM", "AORTIC_RADIUS_MM", "CAUDAL_TIE_MM",
+           "MAX_ACCESS_DISTANCE_MM", "access_record", "caudal_access_end", "check_access", "rooted_at_access",
+           "rooted_at_caudal_end"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -491,8 +492,9 @@ def rooted_at_access(tree: VesselTree, access_lps_mm, *, max_distance_mm: float 
     """The tree rooted at its point nearest the access point, where the wire enters the vessels.
 
     The reconstruction and the live engine assume the wire is advanced from the tree's root (the
-    automatic tree's root is its widest end: the aortic root of a chest CTA); a transfemoral or
-    transradial wire comes from elsewhere. The points, radii and edges are those of ``tree``
+    automatic tree's root is the lower end of its aorta, :func:`rooted_at_caudal_end`, where a transfemoral
+    wire enters; without an aorta its widest end); a transradial wire, or one from the other groin, comes from
+    elsewhere. The points, radii and edges are those of ``tree``
     (:meth:`VesselTree.rerooted`); only the direction of the edges on the way to the new root changes.
 
     Parameters
@@ -538,3 +540,52 @@ def access_record(tree: VesselTree, access_lps_mm) -> dict:
         "distance_mm": round(float(np.linalg.norm(root - p)), 2),
         "max_distance_mm": MAX_ACCESS_DISTANCE_MM,
     }
+
+
+#: A tree whose widest lumen has at least this radius holds an aorta (an adult's is 8-16 mm; an iliac or a
+#: femoral artery at most 5-6 mm, a coronary 2.5 mm, the widest intracranial vessel, a dural sinus, 5 mm).
+AORTIC_RADIUS_MM = 7.0
+#: The path from the aorta to a transfemoral access end keeps at least this radius (a common femoral artery's
+#: is 3-4 mm, a popliteal's 2.5-3): side branches (intercostal, lumbar, renal, mesenteric) narrow below it.
+ACCESS_PATH_MIN_RADIUS_MM = 2.5
+#: Ends within this of the most caudal one are taken as equally caudal; the widest path among them wins
+#: (the descending aorta and the superior mesenteric artery both cut by the field of view's lower edge).
+CAUDAL_TIE_MM = 10.0
+
+
+def caudal_access_end(tree: VesselTree) -> int | None:
+    """The point of an aortic tree where a transfemoral wire enters it: its most caudal point reached from its
+    widest point along lumens no narrower than :data:`ACCESS_PATH_MIN_RADIUS_MM`; ``None`` for a tree without an
+    aorta (widest radius below :data:`AORTIC_RADIUS_MM`).
+
+    The groin is the commonest access of endovascular work (aortic, peripheral, neuro and most coronary
+    procedures); a wire from there enters a chest or abdominal CTA's tree at the lower end of its aorta, or of an
+    iliac or femoral artery when the field of view reaches them. The radius along a path is each branch's median
+    (a partial-volume point does not break a lumen), the narrowest on the way from the widest point, the point's
+    own branch included: a lumen cut by the field of view's edge ends in a fork of thin strands, and the point
+    found is then where its wide part ends, not a strand's tip. Among the points within :data:`CAUDAL_TIE_MM` of
+    the most caudal, those on the widest path win (the aorta, not the superior mesenteric artery beside it).
+    """
+    R = np.asarray(tree.radius_mm, float)
+    if tree.n_points < 2 or not np.isfinite(R).any() or np.nanmax(R) < AORTIC_RADIUS_MM:
+        return None
+    t = tree.rerooted(int(np.nanargmax(R)))
+    med = np.array([np.nanmedian(R[b.point_ids[1:]]) for b in t.branches])
+    narrowest = np.zeros(len(t.branches))
+    for b in t.branches:  # parents before children
+        narrowest[b.index] = min(med[b.index], narrowest[b.parent] if b.parent >= 0 else np.inf)
+    path_r = narrowest[t.point_branch]
+    path_r[t.root] = R[t.root]
+    wide = np.flatnonzero(path_r >= ACCESS_PATH_MIN_RADIUS_MM)
+    z = tree.points_lps_mm[wide, 2]  # LPS: +z is superior
+    low = wide[z <= z.min() + CAUDAL_TIE_MM]
+    best = low[path_r[low] >= path_r[low].max()]
+    return int(best[np.argmin(tree.points_lps_mm[best, 2])])
+
+
+def rooted_at_caudal_end(tree: VesselTree) -> VesselTree:
+    """``tree`` rooted at :func:`caudal_access_end` (itself when it has no aorta, or is rooted there already): the
+    default root of an automatic tree, where a transfemoral wire comes from. ``--access-lps`` overrides it
+    (:func:`rooted_at_access`)."""
+    end = caudal_access_end(tree)
+    return tree if end is None else tree.rerooted(end)

@@ -363,7 +363,8 @@ def main(argv=None):
     print(f"tree: extract_vessels_auto{seeded}, {len(tree.points_lps_mm)} points, {len(tree.branches)} branches, "
           f"{tree.total_length_mm / 1000:.2f} m, max radius {tree.radius_mm.max():.1f} mm, centerline sigma "
           f"{tree.centerline_sigma_mm} mm, {rec['seconds']:.0f} s (cached); root: "
-          + ("the access (the wire's entry)" if a.access else "its own (the widest end)"))
+          + ("the access (the wire's entry)" if a.access
+             else "its own (vesseltree.rooted_at_caudal_end: the aorta's lower end)"))
     iodine = ra.iodine_fraction(vol, labels)
     mu_ct = ra.anatomy_mu(vol, labels)
     rows = []

@@ -11,7 +11,8 @@ distance from the true wire (and the part of it along the beam) against its own 
 radius at the point.
 
 ``--root entry`` roots the tree at its point nearest the true wire's entry (its first point, the lowest
-aorta point: a transfemoral wire) instead of the tree's widest end, as the product's ``--access-lps`` does
+aorta point: a transfemoral wire) instead of the tree's own root (since stop 47 the lower end of its aorta,
+``vesseltree.rooted_at_caudal_end``; before, its widest end), as the product's ``--access-lps`` does
 with the access point a clinician gives (``vesseltree.rooted_at_access``).
 
     nice .venv/bin/python scripts/diagnose_real_frames.py --poses 20 [--root entry] [--biplane]
@@ -79,7 +80,7 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ra.add_pose_arguments(ap)
     ap.add_argument("--root", choices=("auto", "entry"), default="auto",
-                    help="auto: the automatic tree as it is (rooted at its widest end); entry: rooted where the "
+                    help="auto: the automatic tree as it is (rooted at its aorta's lower end); entry: rooted where the "
                          "true wire enters, as --access-lps roots it")
     ap.add_argument("--biplane", action="store_true",
                     help="a second plane at the same pose (plane_b: 90 deg from plane A, no angulation), both through "

@@ -46,8 +46,9 @@ def _add_access_option(p: argparse.ArgumentParser, *, note: str = "") -> None:
     p.add_argument("--access-lps", type=_parse_xyz, default=None, metavar="X,Y,Z",
                    help="where the wire enters the vessels, in LPS mm (the sheath tip, or a femoral or radial puncture "
                         "within 150 mm of the CTA's vessels): the vessel tree is rooted at its point nearest to it. "
-                        "The reconstruction assumes the wire advances from the root, by default the tree's widest end "
-                        "(the aortic root of a chest CTA); give this for transfemoral and transradial wires. Write "
+                        "The reconstruction assumes the wire advances from the root: by default the lower end of the "
+                        "tree's aorta, where a transfemoral wire enters (a tree without an aorta: its widest end, a "
+                        "coronary ostium); give this for transradial wires and any other entry. Write "
                         "--access-lps=X,Y,Z when X is negative" + (f". {note}" if note else ""))
 
 

@@ -243,7 +243,9 @@ def run(volume: io.Volume, roadmap: io.XARun, frames: io.XARun, *, roadmap_frame
     access_lps_mm : (3,) array_like of float, optional
         Where the wire enters the vessels (LPS mm: the puncture or the sheath tip): the tree is rooted
         at its point nearest to it (:func:`guidewire3d.vesseltree.rooted_at_access`), since the engine
-        assumes the wire advances from the root. Default: the tree's own root (its widest end).
+        assumes the wire advances from the root. Default: the tree's own root (the lower end of its aorta,
+        where a transfemoral wire enters: :func:`guidewire3d.vesseltree.rooted_at_caudal_end`; without an
+        aorta its widest end).
     """
     timing: dict[str, float] = {}
     t0 = time.perf_counter()

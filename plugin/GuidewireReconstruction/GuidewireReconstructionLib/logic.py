@@ -689,7 +689,8 @@ class GuidewireReconstructionCoreLogic:
         access_node : vtkMRMLMarkupsFiducialNode, optional
             One point where the wire enters the vessels (the sheath tip or the puncture): the vessel
             tree is rooted at its point nearest to it (``access_lps_mm`` of the pipeline), for
-            transfemoral and transradial wires. Empty or absent: the tree's own root (its widest end).
+            transradial wires and any entry other than the groin. Empty or absent: the tree's own root (the
+            lower end of its aorta, where a transfemoral wire enters; without an aorta, its widest end).
         roadmap_frame : int, optional
             Frame of the roadmap run to use (``None`` or negative: the most contrast-filled).
         outputs : OutputNodes, optional
