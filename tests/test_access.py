@@ -165,6 +165,8 @@ def test_vessels_writes_the_tree_rooted_at_the_access(planned):
     np.testing.assert_allclose(b["access"]["access_lps_mm"], access, atol=JSON_MM)
     np.testing.assert_allclose(b["inputs"]["access_lps_mm"], access, atol=JSON_MM)
     assert b["access"]["distance_mm"] == pytest.approx(np.linalg.norm(access - leaf_end), abs=0.02)
+    # how each root was chosen: the simulator's coronary-sized tree has no aorta, so its own is its widest end
+    assert (a["tree"]["root"], b["tree"]["root"]) == ("the widest end", "the access point (--access-lps)")
     assert len(b["branches"]) == len(a["branches"])  # rooted at a leaf's end: the same runs, reversed
     assert np.linalg.norm(np.subtract(b["tree"]["root_lps_mm"], a["tree"]["root_lps_mm"])) > 10.0
     # the same tree: points, radii, edges and length; only the branches' direction changed

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+from guidewire3d.app.vesselplan import root_rule
 from guidewire3d.vesseltree import (ACCESS_PATH_MIN_RADIUS_MM, AORTIC_RADIUS_MM, VesselTree, caudal_access_end,
                                     rooted_at_caudal_end)
 
@@ -66,6 +67,8 @@ def test_an_aortic_tree_is_rooted_at_its_aortas_caudal_end():
     assert z.min() < z[end] - 15  # the intercostals reach lower
     rooted = rooted_at_caudal_end(tree)
     assert rooted.root == end
+    assert root_rule(rooted, seeded=False, access=False).startswith("the lower end of the aorta")
+    assert root_rule(tree, seeded=False, access=False) == "the widest end"  # what vessels.json would say before
     np.testing.assert_array_equal(rooted.points_lps_mm, tree.points_lps_mm)
     assert {tuple(sorted(e)) for e in rooted.edges.tolist()} == {tuple(sorted(e)) for e in tree.edges.tolist()}
 
