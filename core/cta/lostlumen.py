@@ -43,11 +43,12 @@ from scipy import ndimage as ndi
 from scipy.spatial import cKDTree
 
 from guidewire3d import io
+from guidewire3d.cta.grid import bbox
 from guidewire3d.errors import InputError
 from guidewire3d.vesseltree import VesselTree
 
 __all__ = ["LOST_LUMEN_MARGIN_MM", "LOST_LUMEN_MIN_MM3", "LOST_LUMEN_MAX_POINTS", "lost_lumen_lps_mm",
-           "lost_lumen_mm3", "with_lost_lumen"]
+           "lost_lumen_mm3", "lost_pieces", "with_lost_lumen"]
 
 #: a mask voxel farther than this beyond every tree ball (or half the coarsest spacing, if larger) is lost lumen
 LOST_LUMEN_MARGIN_MM = 1.0
@@ -65,57 +66,73 @@ _RADIUS_BIN_MM = 0.25
 
 def lost_lumen_lps_mm(mask_zyx: np.ndarray, volume: io.Volume, tree: VesselTree) -> tuple[np.ndarray, float]:
     """``(points (K, 3) LPS mm, step_mm)``: the mask's lumen that neither a ball of ``tree`` nor a ball inscribed in
-    the mask and centred in one of them covers (the tree vessel's own lumen where it is not round).
+    the mask and centred in one of them covers (the tree vessel's own lumen where it is not round), in pieces of at
+    least ``LOST_LUMEN_MIN_MM3`` (:func:`lost_pieces`).
+
+    ``step_mm`` is the largest spacing of the points' grid (the voxel grid, or a subsample of it when there are more
+    than ``LOST_LUMEN_MAX_POINTS``): two neighbouring points are at most that far apart along an axis.
+    """
+    step = float(np.asarray(volume.spacing_mm, float).max())
+    plab, vol_mm3, crop = lost_pieces(mask_zyx, volume, tree)
+    keep = np.flatnonzero(vol_mm3 >= LOST_LUMEN_MIN_MM3)
+    keep = keep[keep > 0]
+    if len(keep) == 0:
+        return np.zeros((0, 3)), step
+    lv = np.argwhere(np.isin(plab, keep)) + np.array([sl.start for sl in crop])
+    stride = 1
+    while len(lv) > LOST_LUMEN_MAX_POINTS:
+        stride += 1
+        lv = lv[np.all(lv % stride == 0, axis=1)]
+    return volume.index_zyx_to_lps(lv), step * stride
+
+
+def lost_pieces(mask_zyx: np.ndarray, volume: io.Volume, tree: VesselTree) -> tuple[np.ndarray, np.ndarray, tuple]:
+    """``(labels_zyx, volume_mm3, crop)``: the mask's voxels more than ``LOST_LUMEN_MARGIN_MM`` beyond every ball of
+    ``tree`` and outside every ball inscribed in the mask whose centre lies in a tree ball, labelled in 26-connected
+    pieces (0: none) on the mask's bounding box padded by one voxel (``crop``: its slices of ``volume``'s grid), and
+    each label's volume (mm3; index 0 unused).
 
     ``mask_zyx`` is on ``volume``'s grid. Only the mask components that hold a tree point count (a
-    separate component is not reachable along the tree). ``step_mm`` is the largest spacing of the
-    points' grid (the voxel grid, or a subsample of it when there are more than
-    ``LOST_LUMEN_MAX_POINTS``): two neighbouring points are at most that far apart along an axis.
+    separate component is not reachable along the tree).
     """
     m = np.asarray(mask_zyx, bool)
     if m.shape != tuple(volume.shape_zyx):
         raise InputError(f"{volume.source or 'CTA'}: vessel mask shape {m.shape} is not the volume's "
                          f"{tuple(volume.shape_zyx)}")
     sp_zyx = np.asarray(volume.spacing_mm, float)[::-1]
-    step = float(sp_zyx.max())
     if not m.any():
-        return np.zeros((0, 3)), step
+        return np.zeros((0, 0, 0), np.int32), np.zeros(1), (slice(0, 0),) * 3
+    crop = bbox(m, pad=1)
+    m = m[crop]
+    none = np.zeros(m.shape, np.int32), np.zeros(1), crop
+    offset = np.array([sl.start for sl in crop])
     lab, _ = ndi.label(m, structure=np.ones((3, 3, 3), bool))
-    tidx = np.rint(volume.lps_to_index_zyx(tree.points_lps_mm)).astype(np.int64)
+    tidx = np.rint(volume.lps_to_index_zyx(tree.points_lps_mm)).astype(np.int64) - offset
     inside = np.all((tidx >= 0) & (tidx < np.array(m.shape)), axis=1)
     own = np.unique(lab[tuple(tidx[inside].T)])
     own = own[own > 0]
     vox = np.argwhere(np.isin(lab, own))
+    del lab
     if len(vox) == 0:
-        return np.zeros((0, 3)), step
-    P = volume.index_zyx_to_lps(vox)
-    margin = max(LOST_LUMEN_MARGIN_MM, 0.5 * step)
+        return none
+    P = volume.index_zyx_to_lps(vox + offset)
+    margin = max(LOST_LUMEN_MARGIN_MM, 0.5 * float(sp_zyx.max()))
     k = min(_NEAREST, tree.n_points)
     d, j = tree.kdtree.query(P, k=k)
     d, j = d.reshape(len(P), k), j.reshape(len(P), k)
     beyond = (d - tree.radius_mm[j]).min(axis=1)
     far = beyond > margin
     if not far.any():
-        return np.zeros((0, 3)), step
+        return none
     # the tree vessel's own lumen reaches beyond its balls where it is not round: every ball inscribed in the mask
     # whose centre lies in a tree ball is that vessel's lumen (a wire in it is within the vessel, not in another)
     far[far] = ~_covered_by_inscribed_balls(m, sp_zyx, vox[beyond <= 0.0], vox[far])
     if not far.any():
-        return np.zeros((0, 3)), step
+        return none
     fm = np.zeros(m.shape, bool)
     fm[tuple(vox[far].T)] = True
     plab, n = ndi.label(fm, structure=np.ones((3, 3, 3), bool))
-    vol_mm3 = np.bincount(plab.ravel(), minlength=n + 1) * float(np.prod(sp_zyx))
-    keep = np.flatnonzero(vol_mm3 >= LOST_LUMEN_MIN_MM3)
-    keep = keep[keep > 0]
-    if len(keep) == 0:
-        return np.zeros((0, 3)), step
-    lv = np.argwhere(np.isin(plab, keep))
-    stride = 1
-    while len(lv) > LOST_LUMEN_MAX_POINTS:
-        stride += 1
-        lv = lv[np.all(lv % stride == 0, axis=1)]
-    return volume.index_zyx_to_lps(lv), step * stride
+    return plab, np.bincount(plab.ravel(), minlength=n + 1) * float(np.prod(sp_zyx)), crop
 
 
 def _covered_by_inscribed_balls(mask_zyx, spacing_zyx, centres_zyx, query_zyx) -> np.ndarray:

