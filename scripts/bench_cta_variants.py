@@ -48,7 +48,9 @@ are those of ``bench_real_cta.evaluate`` on that grid: ``dice`` (the aorta, in i
 the estimate), ``in_art`` (fraction of the tree's centerline inside the artery labels dilated 3 mm),
 ``in_other`` (inside other labelled structures dilated 1 mm and not in an artery label: veins, heart,
 organs, bone), ``len_m``, ``branches``, ``t_s``; and where the tree's length runs by label group
-(:func:`where_the_tree_runs`).
+(:func:`where_the_tree_runs`), then the root (:func:`where_the_root_is`: its label, radius and height above the
+aorta label's lowest voxel; an aortic tree's default root is its aorta's lower end, where a transfemoral wire
+enters).
 
 Verdict: ``right tree`` when the aorta Dice is at least 0.8 and at most half of the centerline lies in other
 labelled structures (``in_other``: heart, veins, lungs, organs, bone; dilated 1 mm and not within 3 mm of an
@@ -302,6 +304,19 @@ def where_the_tree_runs(vol, labels_zyx, tree, names: dict[int, str]) -> str:
     return " ".join(f"{g} {100 * v:.0f}" for g, v in out.items())
 
 
+def where_the_root_is(vol, labels_zyx, tree, names: dict[int, str]) -> str:
+    """The label at the tree's root and its height above the aorta label's lowest voxel in the volume (mm; the
+    default root, ``vesseltree.rooted_at_caudal_end``, is where a transfemoral wire enters: the aorta's lower end)."""
+    P = tree.points_lps_mm[tree.root]
+    i = np.clip(np.rint(vol.lps_to_index_zyx(P[None])[0]).astype(int), 0, np.array(vol.shape_zyx) - 1)
+    label = names.get(int(labels_zyx[tuple(i)]), "unlabelled")
+    aorta = np.argwhere(labels_zyx == 52)
+    if not len(aorta):
+        return f"{label}, radius {tree.radius_mm[tree.root]:.1f} mm"
+    low = float(vol.index_zyx_to_lps(aorta.astype(float))[:, 2].min())
+    return f"{label}, radius {tree.radius_mm[tree.root]:.1f} mm, {P[2] - low:.0f} mm above the aorta's lowest voxel"
+
+
 def child(a) -> None:
     import resource
 
@@ -328,6 +343,7 @@ def child(a) -> None:
     m = B.evaluate(vol, lab, res.vessels.mask_zyx, res.vessels.tree, idx[inside] * sp_zyx, ref["lab"][inside])
     rec.update({k: v for k, v in m.items() if k != "labels"})
     rec["where"] = where_the_tree_runs(vol, lab, res.vessels.tree, _structures(data))
+    rec["root"] = where_the_root_is(vol, lab, res.vessels.tree, _structures(data))
     rec.update(lumen=res.model.lumen, bg=res.model.background, segmentation=res.segmentation)
     print("RESULT " + json.dumps(rec, default=float))
 
@@ -385,7 +401,8 @@ def main(argv=None) -> int:
                   f"{why[:240]}", flush=True)
         else:
             print(f"{head} | " + " | ".join(f"{r[c]:.3f}" if isinstance(r[c], float) else str(r[c]) for c in cols)
-                  + f" | {r['lumen']:.4g} / {r['bg']:.4g} | {r['segmentation']}; % of length: {r.get('where', '')}",
+                  + f" | {r['lumen']:.4g} / {r['bg']:.4g} | {r['segmentation']}; % of length: {r.get('where', '')}"
+                  + f"; root: {r.get('root', '')}",
                   flush=True)
     return 0
 

@@ -363,4 +363,10 @@ def tree_notes(auto) -> list[str]:
     elif auto.seeded == "seeds":
         notes.append("the automatic vessel tree does not hold every seed: the tree is the seeds' own, from the lumen "
                      "level read at them")
+    else:
+        tree = auto.vessels.tree
+        if caudal_access_end(tree) == tree.root:
+            p = ", ".join(f"{v:.0f}" for v in tree.points_lps_mm[tree.root])
+            notes.append(f"the tree is rooted at the lower end of its aorta (LPS {p} mm), where a transfemoral wire "
+                         "enters: give --access-lps (in Slicer, the access point) for any other entry")
     return notes
