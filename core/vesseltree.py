@@ -567,7 +567,7 @@ def caudal_access_end(tree: VesselTree) -> int | None:
     the most caudal, those on the widest path win (the aorta, not the superior mesenteric artery beside it).
     """
     R = np.asarray(tree.radius_mm, float)
-    if tree.n_points < 2 or not np.isfinite(R).any() or np.nanmax(R) < AORTIC_RADIUS_MM:
+    if len(R) < 2 or not np.isfinite(R).any() or np.nanmax(R) < AORTIC_RADIUS_MM:
         return None
     t = tree.rerooted(int(np.nanargmax(R)))
     med = np.array([np.nanmedian(R[b.point_ids[1:]]) for b in t.branches])

@@ -133,7 +133,8 @@ def root_rule(tree, *, seeded: bool, access: bool) -> str:
         return "the access point (--access-lps)"
     if seeded:
         return "the end nearest the first seed"
-    if caudal_access_end(tree) == tree.root:
+    end = caudal_access_end(tree)  # None without an aorta
+    if end is not None and end == tree.root:
         return "the lower end of the aorta, where a transfemoral wire enters (give --access-lps for any other entry)"
     return "the widest end"
 
@@ -365,7 +366,8 @@ def tree_notes(auto) -> list[str]:
                      "level read at them")
     else:
         tree = auto.vessels.tree
-        if caudal_access_end(tree) == tree.root:
+        end = caudal_access_end(tree)  # None without an aorta
+        if end is not None and end == tree.root:
             p = ", ".join(f"{v:.0f}" for v in tree.points_lps_mm[tree.root])
             notes.append(f"the tree is rooted at the lower end of its aorta (LPS {p} mm), where a transfemoral wire "
                          "enters: give --access-lps (in Slicer, the access point) for any other entry")
