@@ -15,8 +15,8 @@ from guidewire3d.errors import InputError
 from scipy.sparse.csgraph import dijkstra
 
 __all__ = ["Branch", "VesselTree", "ACCESS_PATH_MIN_RADIUS_MM", "AORTIC_RADIUS_MM", "CAUDAL_TIE_MM",
-           "MAX_ACCESS_DISTANCE_MM", "access_record", "caudal_access_end", "check_access", "rooted_at_access",
-           "rooted_at_caudal_end"]
+           "MAX_ACCESS_DISTANCE_MM", "access_record", "caudal_access_end", "check_access", "is_rooted_at_caudal_end",
+           "rooted_at_access", "rooted_at_caudal_end"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -581,6 +581,13 @@ def caudal_access_end(tree: VesselTree) -> int | None:
     low = wide[z <= z.min() + CAUDAL_TIE_MM]
     best = low[path_r[low] >= path_r[low].max()]
     return int(best[np.argmin(tree.points_lps_mm[best, 2])])
+
+
+def is_rooted_at_caudal_end(tree: VesselTree) -> bool:
+    """Whether ``tree`` holds an aorta and is rooted at :func:`caudal_access_end` (what ``vessels.json`` and the
+    notes of ``vessels`` and the Slicer module say of its root)."""
+    end = caudal_access_end(tree)  # None without an aorta
+    return end is not None and end == tree.root
 
 
 def rooted_at_caudal_end(tree: VesselTree) -> VesselTree:

@@ -43,7 +43,6 @@ def _aorta(with_iliacs: bool = False):
     arch = b.line(asc[-1], (0, 40, 60), 12.0, 11.0)
     b.line(arch[len(arch) // 2], (0, 30, 140), 4.0, 3.5)  # a carotid, up out of the view
     desc = b.line(arch[-1], (0, 60, -300), 10.0, 8.0)
-    z = b.P[desc[0]][2]
     for k, i in enumerate(desc[::20][1:]):  # intercostals
         b.line(i, (30 * (-1) ** k, 70, b.P[i][2] - 60), 1.5, 1.0)
     sma_from = min(desc, key=lambda i: abs(b.P[i][2] + 200))
@@ -54,11 +53,11 @@ def _aorta(with_iliacs: bool = False):
     else:
         for side in (-1, 1):
             b.line(desc[-1], (side * 4, 60, -306), 1.0, 0.8)
-    return b, desc, z
+    return b, desc
 
 
 def test_an_aortic_tree_is_rooted_at_its_aortas_caudal_end():
-    b, desc, _ = _aorta()
+    b, desc = _aorta()
     tree = b.tree()
     assert tree.root == 0 and tree.radius_mm[0] == tree.radius_mm.max()  # the widest end: the aortic root
     end = caudal_access_end(tree)
@@ -82,7 +81,7 @@ def test_an_aortic_tree_is_rooted_at_its_aortas_caudal_end():
 
 
 def test_with_iliac_arteries_in_view_the_root_is_at_a_femoral_end():
-    b, _, _ = _aorta(with_iliacs=True)
+    b, _ = _aorta(with_iliacs=True)
     tree = b.tree()
     end = caudal_access_end(tree)
     p = tree.points_lps_mm[end]

@@ -19,7 +19,7 @@ from guidewire3d import io
 from guidewire3d.app import export
 from guidewire3d.cta import lostlumen, vesselmodel, vessels3d
 from guidewire3d.errors import SegmentationError
-from guidewire3d.vesseltree import access_record, caudal_access_end, check_access, rooted_at_access
+from guidewire3d.vesseltree import access_record, check_access, is_rooted_at_caudal_end, rooted_at_access
 
 __all__ = ["VesselPlan", "plan_vessels", "vessels_record", "root_rule", "write_plan", "forest_polydata",
            "tree_summary", "tree_notes", "run_to_outdir", "cli_main"]
@@ -133,8 +133,7 @@ def root_rule(tree, *, seeded: bool, access: bool) -> str:
         return "the access point (--access-lps)"
     if seeded:
         return "the end nearest the first seed"
-    end = caudal_access_end(tree)  # None without an aorta
-    if end is not None and end == tree.root:
+    if is_rooted_at_caudal_end(tree):
         return "the lower end of the aorta, where a transfemoral wire enters (give --access-lps for any other entry)"
     return "the widest end"
 
@@ -366,8 +365,7 @@ def tree_notes(auto) -> list[str]:
                      "level read at them")
     else:
         tree = auto.vessels.tree
-        end = caudal_access_end(tree)  # None without an aorta
-        if end is not None and end == tree.root:
+        if is_rooted_at_caudal_end(tree):
             p = ", ".join(f"{v:.0f}" for v in tree.points_lps_mm[tree.root])
             notes.append(f"the tree is rooted at the lower end of its aorta (LPS {p} mm), where a transfemoral wire "
                          "enters: give --access-lps (in Slicer, the access point) for any other entry")
