@@ -147,6 +147,36 @@ def test_ordered_wire_does_not_bridge_disagreeing_directions():
     assert ow.length_px == pytest.approx(100.0, abs=3.0)
 
 
+def test_ordered_wire_bridges_a_sharp_bend_only_where_the_frame_shows_the_wire():
+    # A V (the aortic arch seen edge-on): down to a vertex, then back up at 45 deg to the first limb. The
+    # segmenter's mask loses the vertex (as on the real-anatomy frames: a 7-9 px gap), and the limbs' directions
+    # disagree across it, so without the frame the trace stops at the bend.
+    shape = (200, 200)
+    down = np.column_stack([np.linspace(40, 100, 200), np.linspace(30, 160, 200)])
+    up = np.column_stack([np.linspace(100, 150, 200), np.linspace(160, 40, 200)])
+    truth = np.vstack([down, up[1:]])
+    wire = _rasterise(truth, shape, 1.5)
+    vv, uu = np.mgrid[0:200, 0:200]
+    mask = wire & (np.hypot(uu - 100.0, vv - 160.0) > 8.0)   # the limbs' ends 6-7 px apart
+    background = 1000.0 + np.random.default_rng(0).normal(0.0, 5.0, shape)
+    frame = background - 80.0 * wire                  # the frame shows the wire round the vertex
+    ow = ordered_wire(mask, image=frame, proximal_hint_uv=truth[0])
+    assert ow and ow.n_bends_bridged == 1
+    assert np.linalg.norm(ow.points_uv_px[-1] - truth[-1]) <= TIP_TOL
+    assert ow.length_px == pytest.approx(polyline_length(truth), rel=LENGTH_REL_TOL)
+    assert symmetric_polyline_distance(ow.points_uv_px, truth, step=0.25) <= 0.5
+    # No frame, or a frame whose wire breaks where the mask does: the trace stops at the bend.
+    for image in (None, background - 80.0 * mask):
+        ow = ordered_wire(mask, image=image, proximal_hint_uv=truth[0])
+        assert ow and ow.n_bends_bridged == 0
+        assert np.linalg.norm(ow.points_uv_px[-1] - np.array([100.0, 160.0])) <= 10.0
+    # A fainter line than the wire (another structure) running on from the gap is not taken for the wire.
+    up_mask = mask & (uu > 100.0)
+    faint = background - 80.0 * (wire & (uu <= 100.0)) - 16.0 * _rasterise(up, shape, 1.5)
+    ow = ordered_wire(mask & ~up_mask | up_mask, image=faint, proximal_hint_uv=truth[0])
+    assert ow and ow.n_bends_bridged == 0
+
+
 def test_ordered_wire_follows_a_hairpin_with_touching_limbs():
     # Down, a tight U-turn whose limbs merge in the mask, then back up: the tip is on the way up.
     down = np.column_stack([np.full(150, 100.0), np.linspace(20, 170, 150)])

@@ -6,7 +6,8 @@ One stage of the paper's pipeline (DESIGN.md, "The flow of data"), and the paper
   Zhang-Suen thinning, an 8-connected pixel graph, the longest path of each skeleton piece
   (a good-continuation trace through junctions, so a wire looping over itself is followed
   through the crossing and spurs are left; double Dijkstra for junction-free pieces), bridging of
-  pieces whose ends are close and whose directions agree, sub-pixel centring across the normal
+  pieces whose ends are close and whose directions agree (with the frame, also across a sharp bend
+  whose vertex the mask lost, where the image shows the wire), sub-pixel centring across the normal
   (mask centroid, weighted by the frame's darkness when given), extension of both ends to the
   mask's end caps, proximal -> distal ordering and resampling at ~1 px. With the frame, a presence
   test (:mod:`guidewire3d.xray.wirepresence`) fails a curve that is not a guidewire (a vessel, a branch
@@ -68,6 +69,19 @@ BRIDGE_MAX_ANGLE_DEG = 50.0       # gap vector vs each end's outward tangent
 TURN_PENALTY_PX = 4.0            # trail score: length - this x (1 - cos turn) at each junction
 TRACE_MAX_STEPS = 5000            # search budget of the trail search
 BRIDGE_FREE_PX = 2.5              # gaps up to this length are bridged regardless of direction
+# A break at a sharp bend. Where the wire's projection turns sharply (the aortic arch seen edge-on makes a V),
+# the segmenter loses the vertex and the mask breaks there; the two limbs' ends are close but their directions
+# disagree, so the direction test leaves the gap and the trace stops at the bend (real anatomy, biplane poses 1,
+# 3 and 9: 7-9 px gaps, the tip 59-63 mm short, every such frame ``uncertain``). With the frame, such a gap is
+# bridged when the image shows a wire across it: the darkest route between the two ends
+# (``skimage.graph.route_through_array`` over the frame's dark-line response, a black top-hat) is as dark a
+# line as the wire on both sides of it. Ends at most BEND_BRIDGE_MAX_PX apart ...
+BEND_BRIDGE_MAX_PX = 15.0
+BEND_ROUTE_MAX_RATIO = 3.0        # ... joined by a route at most this x their distance + BEND_ROUTE_SLACK_PX ...
+BEND_ROUTE_SLACK_PX = 4.0
+BEND_MIN_SUPPORT = 0.5            # ... whose dark-line response is everywhere at least this x the wire's beside it,
+BEND_MIN_LIKE = 0.5               # ... and whose two pieces are alike: the fainter at least this x as dark a line
+BEND_REF_PX = 12                  # the wire's own response: the median over this many px of each piece at its end
 # A piece of the mask left out of the wire that lies beyond the tip, in line with it, makes the tip
 # uncertain (the wire may continue there, through a stretch the segmenter lost): a piece whose
 # traced length is at least this ...
@@ -235,6 +249,9 @@ class OrderedWire:
         Polyline length, px.
     n_gaps_bridged : int
         Number of breaks in the mask that were bridged.
+    n_bends_bridged : int
+        How many of them were at a sharp bend, bridged because the frame shows a wire across
+        (``BEND_*``; with an image only).
     beyond_tip : BeyondTip or None
         A piece of the mask that the wire does not include, lying beyond its tip and in line with
         it (``BEYOND_TIP_*``): the wire may continue there, so the tip is not settled. None when
@@ -255,6 +272,7 @@ class OrderedWire:
     message: str
     length_px: float = 0.0
     n_gaps_bridged: int = 0
+    n_bends_bridged: int = 0
     presence: WirePresence | None = None
     beyond_tip: "BeyondTip | None" = None
     tip_fork: "TipFork | None" = None
@@ -495,12 +513,60 @@ def _end_tangent(path: np.ndarray, at_end: bool) -> np.ndarray:
     return t / nrm if nrm > 0 else np.zeros(2)
 
 
-def _bridge(paths, max_gap_px: float):
-    """Join path ends that are close and whose directions agree; return the longest chain as one
-    ordered (row, col) array, the number of bridges on it and the indices of its pieces."""
+def _bend_route(darkness: np.ndarray, a_rc, b_rc, near_a: np.ndarray, near_b: np.ndarray,
+                half_width_px: float) -> tuple[np.ndarray | None, float]:
+    """The darkest route across a gap of the mask between the ends ``a_rc`` and ``b_rc`` (row, col) of two
+    pieces, and how well the image supports it: the least dark-line response along it (a 3 px running mean),
+    relative to the wire's own response over ``near_a`` and ``near_b`` (each piece's pixels at that end).
+
+    The response is the black top-hat of ``darkness`` (the frame, the wire darker) on a window around the gap,
+    its structuring element wider than the wire. Returns ``(route, support)``: the route's pixels from ``a`` to
+    ``b`` ((K, 2) int rows/cols) or None when it detours (longer than ``BEND_ROUTE_MAX_RATIO`` x the gap +
+    ``BEND_ROUTE_SLACK_PX``) or the wire has no response, and the support (0 when None)."""
+    from skimage.graph import route_through_array
+
+    a, b = np.asarray(a_rc, int), np.asarray(b_rc, int)
+    gap = float(np.linalg.norm(a - b))
+    k = 2 * int(np.ceil(2.0 * half_width_px)) + 3                  # wider than the wire
+    margin = BEND_REF_PX + k
+    lo = np.maximum(np.minimum(a, b) - margin, 0)
+    hi = np.minimum(np.maximum(a, b) + margin + 1, darkness.shape)
+    sub = np.asarray(darkness[lo[0]:hi[0], lo[1]:hi[1]], np.float64)
+    tophat = ndi.grey_closing(sub, size=(k, k)) - sub
+
+    def response(px):
+        q = np.asarray(px, int) - lo
+        q = q[(q >= 0).all(axis=1) & (q < sub.shape).all(axis=1)]
+        return float(np.median(tophat[q[:, 0], q[:, 1]])) if len(q) else 0.0
+
+    ref_a, ref_b = response(near_a), response(near_b)
+    ref = min(ref_a, ref_b)
+    if not ref > 0:
+        return None, 0.0, 0.0
+    like = ref / max(ref_a, ref_b)
+    rel = np.clip(tophat / ref, 0.0, 1.0)
+    route, _ = route_through_array(1.0 / (0.1 + rel), tuple(a - lo), tuple(b - lo), fully_connected=True,
+                                   geometric=True)
+    route = np.asarray(route, int)
+    length = float(np.linalg.norm(np.diff(route, axis=0), axis=1).sum())
+    if length > BEND_ROUTE_MAX_RATIO * gap + BEND_ROUTE_SLACK_PX:
+        return None, 0.0, like
+    prof = rel[route[:, 0], route[:, 1]]
+    if len(prof) >= 3:
+        prof = np.convolve(prof, np.ones(3) / 3.0, mode="valid")
+    return route + lo, float(prof.min()), like
+
+
+def _bridge(paths, max_gap_px: float, darkness: np.ndarray | None = None, half_width_px: float = 1.0,
+            inner_rc: tuple[int, int, int, int] | None = None):
+    """Join path ends that are close and whose directions agree, and, with the frame (``darkness``, in the paths'
+    pixel coordinates), ends at a sharp bend the image shows a wire across (``BEND_*``, :func:`_bend_route`; ends
+    within ``inner_rc`` = (row0, row1, col0, col1), the image's own pixels, 3 px inside); return the longest chain
+    as one ordered (row, col) array, the number of bridges on it, the indices of its pieces and the number of
+    its bridges across a bend."""
     n = len(paths)
     if n == 1 or max_gap_px <= 0:
-        return paths[0][0], 0, {0}
+        return paths[0][0], 0, {0}, 0
     ends = []                                      # (piece, at_end, point, outward tangent)
     for i, (p, _) in enumerate(paths):
         ends.append((i, False, p[0], _end_tangent(p, False)))
@@ -522,6 +588,24 @@ def _bridge(paths, max_gap_px: float):
     valid &= (ok_i & ok_j) | (dist <= BRIDGE_FREE_PX)
     valid = np.triu(valid, 1)
     cost = dist * (2.0 + np.nan_to_num(-cos_i - cos_j))
+    routes = {}
+    if darkness is not None:
+        bend = np.triu((dist <= min(max_gap_px, BEND_BRIDGE_MAX_PX)) & (piece[:, None] != piece[None, :]), 1)
+        bend &= ~valid
+        if inner_rc is not None:
+            r0, r1, c0, c1 = inner_rc
+            inside = ((pts[:, 0] >= r0 + 3) & (pts[:, 0] <= r1 - 4) & (pts[:, 1] >= c0 + 3)
+                      & (pts[:, 1] <= c1 - 4))
+            bend &= inside[:, None] & inside[None, :]
+        for i, j in zip(*np.nonzero(bend)):
+            near = [paths[piece[e]][0][-BEND_REF_PX:] if ends[e][1] else paths[piece[e]][0][:BEND_REF_PX]
+                    for e in (i, j)]
+            route, support, like = _bend_route(darkness, pts[i], pts[j], near[0], near[1], half_width_px)
+            if route is not None and support >= BEND_MIN_SUPPORT and like >= BEND_MIN_LIKE:
+                valid[i, j] = True
+                routes[(int(i), int(j))] = route
+                route_px = float(np.linalg.norm(np.diff(route, axis=0), axis=1).sum())
+                cost[i, j] = 2.0 * route_px                # after any bridge whose directions agree
     ii, jj = np.nonzero(valid)
     order = np.argsort(cost[ii, jj])
     used = np.zeros(len(ends), bool)
@@ -539,12 +623,12 @@ def _bridge(paths, max_gap_px: float):
         used[i] = used[j] = True
         link[i], link[j] = j, i
     # Walk the chains: start from a piece end with no link (every chain is acyclic).
-    best, best_len, best_bridges, best_pieces = None, -1.0, 0, set()
+    best, best_len, best_bridges, best_pieces, best_bends = None, -1.0, 0, set(), 0
     seen = np.zeros(n, bool)
     for start in range(len(ends)):
         if start in link or seen[piece[start]]:
             continue
-        seq, total, bridges, e, pieces = [], 0.0, 0, start, set()
+        seq, total, bridges, e, pieces, bends = [], 0.0, 0, start, set(), 0
         while True:
             i = piece[e]
             seen[i] = True
@@ -557,12 +641,19 @@ def _bridge(paths, max_gap_px: float):
             if other not in link:
                 break
             nxt = link[other]
-            total += dist[other, nxt]
+            route = routes.get((min(other, nxt), max(other, nxt)))
+            if route is None:
+                total += dist[other, nxt]
+            else:                                   # across a bend: the image's route, not the chord
+                route = route if other < nxt else route[::-1]
+                seq.append(route[1:-1])
+                total += float(np.linalg.norm(np.diff(route, axis=0), axis=1).sum())
+                bends += 1
             bridges += 1
             e = nxt
         if total > best_len:
-            best, best_len, best_bridges, best_pieces = np.vstack(seq), total, bridges, pieces
-    return best, best_bridges, best_pieces
+            best, best_len, best_bridges, best_pieces, best_bends = np.vstack(seq), total, bridges, pieces, bends
+    return best, best_bridges, best_pieces, best_bends
 
 
 def _tip_fork(uv: np.ndarray, skel_uv: np.ndarray, half_width_px: float) -> TipFork | None:
@@ -811,7 +902,9 @@ def ordered_wire(mask, *, image=None, proximal_hint_uv=None, max_gap_px: float =
 
     Zhang-Suen thinning of the mask, an 8-connected pixel graph, the longest path of each skeleton
     piece (a good-continuation trace through junctions and crossings; spurs are left), bridging of
-    pieces whose end points are within ``max_gap_px`` with agreeing directions,
+    pieces whose end points are within ``max_gap_px`` with agreeing directions (with ``image``, also
+    ends at a sharp bend, within ``BEND_BRIDGE_MAX_PX``, when the frame's darkest route between them
+    is as dark a line as the wire: ``BEND_*``),
     sub-pixel centring across the local normal, extension of both ends to the mask's end caps,
     proximal -> distal ordering and resampling at ~1 px.
 
@@ -897,7 +990,13 @@ def ordered_wire(mask, *, image=None, proximal_hint_uv=None, max_gap_px: float =
     paths = _longest_paths(sr, sc, m.shape, merge_px=4.0 * half_width + 2.0)
     if not paths:
         return _failed("no skeleton piece of the mask is long enough to be a guidewire")
-    path_rc, n_bridges, used = _bridge(paths, float(max_gap_px))
+    darkness = None
+    if img is not None:
+        darkness = img[r0:r1, c0:c1]                    # the wire darker: _refine weighs by -image
+        if any(map(any, ext)):
+            darkness = _pad_edge(darkness, ext)
+    path_rc, n_bridges, used, n_bends = _bridge(paths, float(max_gap_px), darkness, half_width,
+                                                (-o_r, H - 1 - o_r, -o_c, W - 1 - o_c))
     if len(path_rc) < 2:
         return _failed("no skeleton piece of the mask is long enough to be a guidewire")
     raw_len = float(np.linalg.norm(np.diff(path_rc, axis=0), axis=1).sum())
@@ -910,11 +1009,6 @@ def ordered_wire(mask, *, image=None, proximal_hint_uv=None, max_gap_px: float =
     # Sub-pixel centring.
     maskf = m.view(np.uint8)                            # 0/1, sampled as float64
     half = float(np.clip(np.ceil(half_width + 2.0), 2.0, 8.0))
-    darkness = None
-    if img is not None:
-        darkness = img[r0:r1, c0:c1]                    # the wire darker: _refine weighs by -image
-        if any(map(any, ext)):
-            darkness = _pad_edge(darkness, ext)
     p = _smooth_polyline(path_rc, REFINE_SMOOTH_PX)
     p = _refine(p, maskf, darkness, half)
     p = _smooth_polyline(p, 1.0)
@@ -961,7 +1055,8 @@ def ordered_wire(mask, *, image=None, proximal_hint_uv=None, max_gap_px: float =
     skel = skel[(skel[:, 0] >= 0) & (skel[:, 0] <= W - 1) & (skel[:, 1] >= 0) & (skel[:, 1] <= H - 1)]
     fork = _tip_fork(uv, skel, half_width)
     return OrderedWire(points_uv_px=uv, success=True, message="ok", length_px=length,
-                       n_gaps_bridged=int(n_bridges), presence=presence, beyond_tip=beyond, tip_fork=fork)
+                       n_gaps_bridged=int(n_bridges), n_bends_bridged=int(n_bends), presence=presence,
+                       beyond_tip=beyond, tip_fork=fork)
 
 
 # --------------------------------------------------------------------------------------------
