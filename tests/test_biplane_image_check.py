@@ -105,14 +105,41 @@ def test_distal_part_at_a_wrong_depth_makes_the_pair_uncertain(bcase):
     s = biplane.BiplaneSession(bcase.tree, (bcase.carm, bcase.heldout_carm), bcase.pose, threads=1)
     s._single_view = _bent_single_view(s, 3 * WRONG_DEPTH_MM)
     ua, ub, truth = _cut_pair(bcase, FRAME)
+    tv = tri.extend_distal(tri.triangulate_wire(ua, ub, s.context), ua, ub, s.context, s._single_view)
+    assert metrics.wire_errors_mm(tv.wire3d.points_lps_mm, truth)["tip_error_mm"] > 5.0  # wrong indeed
     pair = s.process_wires(ua, ub, images=_images(bcase, FRAME), index=0)
     assert pair.views == "AB"
-    assert metrics.wire_errors_mm(pair.result.wire3d.points_lps_mm, truth)["tip_error_mm"] > 5.0  # wrong indeed
     assert pair.result.verdict.value == "uncertain"
     assert "distal part from plane B alone: plane A's " + REASON in pair.result.message
     # without plane A's image nothing is judged: the same pair is silently wrong
     blind = s.process_wires(ua, ub, images=(None, None), index=1)
     assert REASON not in blind.result.message and blind.result.verdict.value == "ok"
+
+
+def test_the_depth_of_a_one_plane_part_is_read_in_the_other_planes_image(bcase):
+    """The same wrong depth (18 mm at the tip, along plane B's rays): plane A's image shows where the wire is, and
+    ``depth_from_other_image`` moves the part there along plane B's rays (its projection in B stays); the pair's
+    verdict stays the one-plane part's (``uncertain``). A flat plane A image moves nothing."""
+    s = biplane.BiplaneSession(bcase.tree, (bcase.carm, bcase.heldout_carm), bcase.pose, threads=1)
+    s._single_view = _bent_single_view(s, 3 * WRONG_DEPTH_MM)
+    ua, ub, truth = _cut_pair(bcase, FRAME)
+    img_a, img_b = _images(bcase, FRAME)
+    tv = tri.extend_distal(tri.triangulate_wire(ua, ub, s.context), ua, ub, s.context, s._single_view)
+    before = metrics.wire_errors_mm(tv.wire3d.points_lps_mm, truth)
+    moved, offsets = biplane.depth_from_other_image(tv, img_a, s.context)
+    after = metrics.wire_errors_mm(moved.wire3d.points_lps_mm, truth)
+    assert len(offsets) > 0 and before["tip_error_mm"] > 5.0
+    assert after["tip_error_mm"] < 2.5 and after["mean_error_mm"] < 0.25 * before["mean_error_mm"]
+    same = np.abs(s.context.project(1, moved.wire3d.points_lps_mm) - s.context.project(1, tv.wire3d.points_lps_mm))
+    assert same.max() < 1e-6
+    assert moved.wire3d.length_mm == pytest.approx(metrics.polyline_length(moved.wire3d.points_lps_mm))
+    assert "read in plane A's image" in moved.wire3d.message
+    pair = s.process_wires(ua, ub, images=(img_a, img_b), index=0)
+    assert pair.result.verdict.value == "uncertain" and "read in plane A's image" in pair.result.message
+    assert metrics.wire_errors_mm(pair.result.wire3d.points_lps_mm, truth)["tip_error_mm"] < 2.5
+    flat = np.full_like(img_a, np.median(img_a))
+    unmoved, none = biplane.depth_from_other_image(tv, flat, s.context)
+    assert len(none) == 0 and unmoved is tv
 
 
 def test_plane_a_image_without_the_wire_contradicts_the_distal_part(bcase):

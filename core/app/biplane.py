@@ -20,7 +20,9 @@ both live frames; each plane has its own C-arm geometry (its DICOM positioner ta
   through its own :class:`guidewire3d.live.session.Session` (segmenter with its ROI tracking, ordered
   wire), then the two-view wire of :mod:`guidewire3d.reconstruction.triangulation`; a pair whose wire is missing
   (or cannot be matched) in one plane falls back to the other plane's single-view reconstruction
-  and says so in its record.
+  and says so in its record. A distal part only one plane's 2D wire shows is placed at the depth
+  where the other plane's image shows the wire (:func:`depth_from_other_image`), its verdict the
+  one-plane part's.
 * :func:`run` / :func:`run_to_outdir` (the command line's ``guidewire3d reconstruct`` with
   ``--roadmap A --roadmap B --frames A --frames B``).
 """
@@ -51,6 +53,7 @@ from guidewire3d.reconstruction.triangulation import (
     triangulate_wire,
 )
 from guidewire3d.reconstruction import reconstruct_wire
+from guidewire3d.reconstruction.smoothing import arclength, curvature
 from guidewire3d.registration import model, problem, search, solve, verdict
 from guidewire3d.registration.result import RegistrationResult, Verdict, _failed
 from guidewire3d.vesseltree import check_access
@@ -58,7 +61,8 @@ from guidewire3d.xray.orderedwire import ordered_wire, tip_end_check
 from guidewire3d.xray.segmentation import ridge_probability
 
 __all__ = ["ViewFit", "BiplaneRegistration", "register_biplane", "BiplaneFrame", "BiplaneSession",
-           "pair_frames", "check_planes", "check_inputs", "run", "run_to_outdir", "projection_error_summary", "PLANES"]
+           "pair_frames", "check_planes", "check_inputs", "run", "run_to_outdir", "projection_error_summary", "PLANES",
+           "depth_from_other_image"]
 
 PLANES = ("A", "B")
 #: the two beams must be at least this far apart (deg) for the second plane to measure depth
@@ -116,6 +120,24 @@ IMAGE_CHECK_OFFSETS_MM = (-10.0, -8.0, -6.0, -4.0, 4.0, 6.0, 8.0, 10.0)
 IMAGE_CHECK_MARGIN = 0.25
 IMAGE_CHECK_MIN_MM = 10.0  # a part with less of its length inside the other plane's image is not judged
 IMAGE_CHECK_EDGE_PX = 8.0  # ... inside: this far from the image border
+# The depth of a distal part taken from one plane alone, read in the other plane's image (``depth_from_other_image``):
+# the part's depth is the vessel prior's, 2-10 mm off over the aortic arch (a 20-30 mm lumen) on the real-anatomy pairs,
+# while the other plane's image shows the wire its segmenter lost (where its two limbs touch, or where it fades). Each
+# point of the part moves along its own plane's ray (its projection there stays) by up to DEPTH_SEARCH_MM in steps of
+# DEPTH_STEP_MM, sweeping an epipolar line in the other plane, whose ridge response is read there. A dynamic programme
+# over the part (every DEPTH_SAMPLE_MM, from the two-view tip, where the depth offset is 0) picks one offset per point:
+# the response, minus the lumen penalty ((distance outside the CTA lumen) / DEPTH_LUMEN_MM)^2, minus a smoothness cost
+# DEPTH_SMOOTH x (offset change per mm of wire)^2, with the change capped at DEPTH_MAX_SLOPE per mm. The part is moved
+# when the chosen offsets show wire (response >= IMAGE_CHECK_RIDGE) along at least DEPTH_MIN_SHOWN of its samples
+# inside that image; past the image the last offset is kept. The frame's verdict is not changed: it is the one-plane
+# part's (``_one_plane_distal_reasons``, ``_other_plane_image_reasons``), so the pair stays ``uncertain``.
+DEPTH_SEARCH_MM = 20.0
+DEPTH_STEP_MM = 0.25
+DEPTH_SAMPLE_MM = 1.0
+DEPTH_LUMEN_MM = 1.0
+DEPTH_SMOOTH = 0.5
+DEPTH_MAX_SLOPE = 1.0
+DEPTH_MIN_SHOWN = 0.8
 
 
 # ============================================================================================
@@ -773,12 +795,22 @@ class BiplaneSession:
                 verdict, message = frame_verdict(w3, uv[0], ori, beyond_tip=beyond,
                                                  doubled_tip=_doubled_tip_two_view(tv, uv, images), motion=motion)
                 distal = _one_plane_distal_reasons(tv, self.carms)
-                seen = _other_plane_image_reasons(tv, images, self.context)
+                # the image of the plane that did not see the distal part (a part from one plane alone), its ridge
+                # response computed once for the check and the depth
+                other = images[1 - tv.distal_plane] if tv.single_view_distal_mm > 0 and tv.distal_plane in (0, 1) \
+                    and images is not None and np.ndim(images[1 - tv.distal_plane]) == 2 else None
+                ridge = None if other is None else ridge_probability(np.asarray(other))
+                seen = _other_plane_image_reasons(tv, images, self.context, ridge=ridge)
                 if seen:
                     distal = f"{distal}; {seen}" if distal else seen
                 if distal:
                     verdict = Verdict.UNCERTAIN
                     message = distal if message == w3.message else f"{message}; {distal}"
+                # the part's geometry, not its verdict: its depth where the other plane's image shows the wire
+                moved, offsets = depth_from_other_image(tv, other, self.context, ridge=ridge)
+                if len(offsets):
+                    tv, w3 = moved, moved.wire3d
+                    message = f"{message}; {w3.message.rsplit('; ', 1)[-1]}"
                 fr = FrameResult(index, wires[0], w3, verdict, message, ori, time.perf_counter() - t0, float("nan"),
                                  self.pose, motion)
                 return BiplaneFrame(fr, "AB", "", wires[1], tv.projection_error_px, index_b, fr.seconds)
@@ -843,7 +875,7 @@ def _one_plane_distal_reasons(tv, carms) -> str:
             f"{plane} only (their depth is the vessel prior's), and " + "; ".join(why))
 
 
-def other_plane_image_support(image, points_lps_mm, context, plane: int) -> dict:
+def other_plane_image_support(image, points_lps_mm, context, plane: int, *, ridge=None) -> dict:
     """How far the image of the other plane shows a wire along a 3D curve whose depth only ``plane`` fixes.
 
     The curve ``points_lps_mm (N, 3)`` (ordered) is resampled every half pixel of the other plane (at the isocentre);
@@ -860,6 +892,8 @@ def other_plane_image_support(image, points_lps_mm, context, plane: int) -> dict
         Both planes at the pose.
     plane : int
         0 (A) or 1 (B): the plane that saw the curve; the image is the other one's.
+    ridge : (H, W) ndarray, optional
+        ``ridge_probability(image)``, when at hand.
 
     Returns
     -------
@@ -892,7 +926,7 @@ def other_plane_image_support(image, points_lps_mm, context, plane: int) -> dict
     length = float(w[inside].sum())
     if length <= 0:
         return empty
-    pr = ridge_probability(img)
+    pr = ridge_probability(img) if ridge is None else ridge
     tol = np.arange(-IMAGE_CHECK_TOLERANCE_MM, IMAGE_CHECK_TOLERANCE_MM + 1e-9, step)
     Xi, wi, ri = X[inside], w[inside], ray[inside]
 
@@ -909,7 +943,94 @@ def other_plane_image_support(image, points_lps_mm, context, plane: int) -> dict
             "best_offset_mm": float(offsets[int(np.argmax(shares))])}
 
 
-def _other_plane_image_reasons(tv, images, context) -> str:
+def depth_from_other_image(tv, image, context, *, ridge=None):
+    """``tv`` (a ``TwoViewWire``) with its distal part taken from one plane alone moved along that plane's rays to the
+    depth where the other plane's ``image`` shows the wire (``DEPTH_*``), and the offsets applied (mm, one per point
+    of the part; empty when it was not moved). ``ridge``: that image's ``ridge_probability``, when at hand.
+
+    Returns ``(tv, offsets_mm)``: ``tv`` unchanged when it has no such part, the image is missing, less than
+    ``IMAGE_CHECK_MIN_MM`` of the part lies inside it, or the chosen depths show wire along less than
+    ``DEPTH_MIN_SHOWN`` of it. The moved wire keeps its points' uncertainty (the single view's) and says so in its
+    message."""
+    none = (tv, np.zeros(0))
+    if not tv or tv.single_view_distal_mm <= 0 or tv.distal_plane not in (0, 1):
+        return none
+    img = None if image is None else np.asarray(image)
+    if img is None or img.ndim != 2:
+        return none
+    k, o = int(tv.distal_plane), 1 - int(tv.distal_plane)
+    W = tv.wire3d
+    X = np.asarray(W.points_lps_mm, float)
+    arc = np.asarray(W.arclength_mm, float)
+    part = arc >= arc[-1] - tv.single_view_distal_mm - 1e-9
+    i0 = max(int(np.argmax(part)) - 1, 0)          # the two-view tip: the anchor (offset 0)
+    s_all = arc[i0:] - arc[i0]
+    if len(s_all) < 3 or s_all[-1] < IMAGE_CHECK_MIN_MM:
+        return none
+    src = context.pose.inverse().apply(context.carms[k].source_room_mm[None])[0]
+    s = np.arange(0.0, s_all[-1] + 1e-9, DEPTH_SAMPLE_MM)
+    P = np.column_stack([np.interp(s, s_all, X[i0:, c]) for c in range(3)])
+    ray = P - src
+    ray /= np.linalg.norm(ray, axis=1)[:, None]
+    d = np.arange(-DEPTH_SEARCH_MM, DEPTH_SEARCH_MM + 1e-9, DEPTH_STEP_MM)
+    cand = P[:, None, :] + d[None, :, None] * ray[:, None, :]            # (n, m, 3)
+    n, m = len(P), len(d)
+    uv = context.project(o, cand.reshape(-1, 3))
+    H, Wd = img.shape
+    e = IMAGE_CHECK_EDGE_PX
+    inside = ((uv[:, 0] >= e) & (uv[:, 0] <= Wd - 1 - e) & (uv[:, 1] >= e) & (uv[:, 1] <= H - 1 - e)).reshape(n, m)
+    j0 = int(np.argmin(np.abs(d)))
+    seen = inside[:, j0]                            # the part's own projection lies in the other plane's image
+    if seen.sum() * DEPTH_SAMPLE_MM < IMAGE_CHECK_MIN_MM:
+        return none
+    pr = ridge_probability(img) if ridge is None else ridge
+    resp = kernels.sample_bilinear(pr, uv[:, 1], uv[:, 0], mode="constant", cval=0.0).reshape(n, m)
+    resp[~inside] = 0.0
+    # the distance outside the lumen every 1 mm of depth (the lookup dominates the cost), interpolated between
+    sub = np.unique(np.r_[np.arange(0, m, max(int(round(1.0 / DEPTH_STEP_MM)), 1)), m - 1])
+    out_sub = context.outside_lumen_mm(cand[:, sub].reshape(-1, 3)).reshape(n, len(sub))
+    out = np.stack([np.interp(np.arange(m), sub, row) for row in out_sub])
+    unary = -resp + (out / DEPTH_LUMEN_MM) ** 2
+    # the dynamic programme: offset 0 at the anchor, capped and penalised changes of offset between samples
+    h = max(int(np.floor(DEPTH_MAX_SLOPE * DEPTH_SAMPLE_MM / DEPTH_STEP_MM)), 1)
+    # state j comes from j - h + t (t = 0 .. 2h): a change of (h - t) steps
+    step_cost = DEPTH_SMOOTH * ((h - np.arange(2 * h + 1)) * DEPTH_STEP_MM / DEPTH_SAMPLE_MM) ** 2
+    cost = np.full(m, np.inf)
+    cost[j0] = unary[0, j0]
+    back = np.zeros((n, m), int)
+    pad = np.full(m + 2 * h, np.inf)
+    for i in range(1, n):
+        pad[h:h + m] = cost
+        win = np.lib.stride_tricks.sliding_window_view(pad, 2 * h + 1) + step_cost     # (m, 2h + 1)
+        t = np.argmin(win, axis=1)
+        cost = win[np.arange(m), t] + unary[i]
+        back[i] = np.arange(m) - h + t
+    j = np.empty(n, int)
+    j[-1] = int(np.argmin(cost))
+    for i in range(n - 1, 0, -1):
+        j[i - 1] = back[i, j[i]]
+    chosen = resp[np.arange(n), j]
+    shown = float(np.mean(chosen[seen] >= IMAGE_CHECK_RIDGE))
+    if shown < DEPTH_MIN_SHOWN:
+        return none
+    last = np.flatnonzero(seen)[-1]
+    off = d[j]
+    off[last + 1:] = off[last]                     # past the other plane's image: the last offset kept
+    off_pts = np.interp(s_all, s, off)
+    ray_pts = X[i0:] - src
+    ray_pts /= np.linalg.norm(ray_pts, axis=1)[:, None]
+    Xn = X.copy()
+    Xn[i0:] = X[i0:] + off_pts[:, None] * ray_pts
+    arc_n = arclength(Xn)
+    msg = (f"{W.message}; the depth of the part from plane {'AB'[k]} alone read in plane {'AB'[o]}'s image (moved "
+           f"{np.median(np.abs(off_pts)):.1f} mm along plane {'AB'[k]}'s rays, median, to where the wire shows along "
+           f"{100 * shown:.0f}% of it there)")
+    w3 = replace(W, points_lps_mm=Xn, arclength_mm=arc_n, length_mm=float(arc_n[-1]), curvature_per_mm=curvature(Xn),
+                 message=msg)
+    return replace(tv, wire3d=w3), off_pts
+
+
+def _other_plane_image_reasons(tv, images, context, *, ridge=None) -> str:
     """The ``uncertain`` reason when the other plane's image contradicts a distal part taken from one plane alone
     (``extend_distal``), or "": that part's depth is the vessel prior's; projected into the other plane, the image
     there should show the wire along it (whatever that plane's segmenter made of it). It does not when the share of
@@ -926,7 +1047,7 @@ def _other_plane_image_reasons(tv, images, context) -> str:
     X = np.asarray(tv.wire3d.points_lps_mm, float)
     part = arc >= arc[-1] - tv.single_view_distal_mm - 1e-9
     i0 = max(int(np.argmax(part)) - 1, 0)  # from the two-view tip on
-    s = other_plane_image_support(img, X[i0:], context, k)
+    s = other_plane_image_support(img, X[i0:], context, k, ridge=ridge)
     if not s["length_mm"] >= IMAGE_CHECK_MIN_MM or s["shown"] - s["chance"] >= IMAGE_CHECK_MARGIN:
         return ""
     return (f"distal part from plane {'AB'[k]} alone: plane {'BA'[k]}'s image shows no wire along its projection "
