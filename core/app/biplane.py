@@ -130,7 +130,8 @@ IMAGE_CHECK_EDGE_PX = 8.0  # ... inside: this far from the image border
 # DEPTH_SMOOTH x (offset change per mm of wire)^2, with the change capped at DEPTH_MAX_SLOPE per mm. The part is moved
 # when the chosen offsets show wire (response >= IMAGE_CHECK_RIDGE) along at least DEPTH_MIN_SHOWN of its samples
 # inside that image; past the image the last offset is kept. The frame's verdict is not changed: it is the one-plane
-# part's (``_one_plane_distal_reasons``, ``_other_plane_image_reasons``), so the pair stays ``uncertain``.
+# part's (``_one_plane_distal_reasons``, ``_other_plane_image_reasons``), judged before the move, so a pair that part
+# made ``uncertain`` stays so (the move is geometry, not evidence the verdict weighs).
 DEPTH_SEARCH_MM = 20.0
 DEPTH_STEP_MM = 0.25
 DEPTH_SAMPLE_MM = 1.0

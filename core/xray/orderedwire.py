@@ -514,15 +514,16 @@ def _end_tangent(path: np.ndarray, at_end: bool) -> np.ndarray:
 
 
 def _bend_route(darkness: np.ndarray, a_rc, b_rc, near_a: np.ndarray, near_b: np.ndarray,
-                half_width_px: float) -> tuple[np.ndarray | None, float]:
+                half_width_px: float) -> tuple[np.ndarray | None, float, float]:
     """The darkest route across a gap of the mask between the ends ``a_rc`` and ``b_rc`` (row, col) of two
     pieces, and how well the image supports it: the least dark-line response along it (a 3 px running mean),
     relative to the wire's own response over ``near_a`` and ``near_b`` (each piece's pixels at that end).
 
     The response is the black top-hat of ``darkness`` (the frame, the wire darker) on a window around the gap,
-    its structuring element wider than the wire. Returns ``(route, support)``: the route's pixels from ``a`` to
-    ``b`` ((K, 2) int rows/cols) or None when it detours (longer than ``BEND_ROUTE_MAX_RATIO`` x the gap +
-    ``BEND_ROUTE_SLACK_PX``) or the wire has no response, and the support (0 when None)."""
+    its structuring element wider than the wire. Returns ``(route, support, like)``: the route's pixels from ``a``
+    to ``b`` ((K, 2) int rows/cols) or None when it detours (longer than ``BEND_ROUTE_MAX_RATIO`` x the gap +
+    ``BEND_ROUTE_SLACK_PX``) or the wire has no response; the support (0 when None); and how alike the two pieces
+    are (the fainter's response / the other's; 0 without a response)."""
     from skimage.graph import route_through_array
 
     a, b = np.asarray(a_rc, int), np.asarray(b_rc, int)
