@@ -876,6 +876,11 @@ def _one_plane_distal_reasons(tv, carms) -> str:
             f"{plane} only (their depth is the vessel prior's), and " + "; ".join(why))
 
 
+def _source_lps_mm(context, k: int) -> np.ndarray:
+    """Plane ``k``'s X-ray source in patient (LPS) coordinates at ``context``'s pose."""
+    return context.pose.inverse().apply(context.carms[k].source_room_mm[None])[0]
+
+
 def other_plane_image_support(image, points_lps_mm, context, plane: int, *, ridge=None) -> dict:
     """How far the image of the other plane shows a wire along a 3D curve whose depth only ``plane`` fixes.
 
@@ -917,7 +922,7 @@ def other_plane_image_support(image, points_lps_mm, context, plane: int, *, ridg
     X = resample_polyline(X, step)
     seg = np.r_[np.linalg.norm(np.diff(X, axis=0), axis=1), 0.0]
     w = 0.5 * (seg + np.r_[0.0, seg[:-1]])  # each point's share of the length (mm)
-    src = context.pose.inverse().apply(context.carms[k].source_room_mm[None])[0]
+    src = _source_lps_mm(context, k)
     ray = X - src
     ray /= np.linalg.norm(ray, axis=1)[:, None]
     H, W = img.shape
@@ -968,7 +973,7 @@ def depth_from_other_image(tv, image, context, *, ridge=None):
     s_all = arc[i0:] - arc[i0]
     if len(s_all) < 3 or s_all[-1] < IMAGE_CHECK_MIN_MM:
         return none
-    src = context.pose.inverse().apply(context.carms[k].source_room_mm[None])[0]
+    src = _source_lps_mm(context, k)
     s = np.arange(0.0, s_all[-1] + 1e-9, DEPTH_SAMPLE_MM)
     P = np.column_stack([np.interp(s, s_all, X[i0:, c]) for c in range(3)])
     ray = P - src

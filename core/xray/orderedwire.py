@@ -29,7 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 from guidewire3d import kernels
 from guidewire3d.errors import InputError
-from guidewire3d.metrics import resample_polyline
+from guidewire3d.metrics import polyline_length, resample_polyline
 from guidewire3d.xray.imaging import (
     BLANK_REL_SPREAD,
     as_image,
@@ -549,8 +549,7 @@ def _bend_route(darkness: np.ndarray, a_rc, b_rc, near_a: np.ndarray, near_b: np
     route, _ = route_through_array(1.0 / (0.1 + rel), tuple(a - lo), tuple(b - lo), fully_connected=True,
                                    geometric=True)
     route = np.asarray(route, int)
-    length = float(np.linalg.norm(np.diff(route, axis=0), axis=1).sum())
-    if length > BEND_ROUTE_MAX_RATIO * gap + BEND_ROUTE_SLACK_PX:
+    if polyline_length(route) > BEND_ROUTE_MAX_RATIO * gap + BEND_ROUTE_SLACK_PX:
         return None, 0.0, like
     prof = rel[route[:, 0], route[:, 1]]
     if len(prof) >= 3:
@@ -604,9 +603,8 @@ def _bridge(paths, max_gap_px: float, darkness: np.ndarray | None = None, half_w
             route, support, like = _bend_route(darkness, pts[i], pts[j], near[0], near[1], half_width_px)
             if route is not None and support >= BEND_MIN_SUPPORT and like >= BEND_MIN_LIKE:
                 valid[i, j] = True
-                routes[(int(i), int(j))] = route
-                route_px = float(np.linalg.norm(np.diff(route, axis=0), axis=1).sum())
-                cost[i, j] = 2.0 * route_px                # after any bridge whose directions agree
+                routes[(int(i), int(j))] = (route, polyline_length(route))
+                cost[i, j] = 2.0 * routes[(int(i), int(j))][1]   # after any bridge whose directions agree
     ii, jj = np.nonzero(valid)
     order = np.argsort(cost[ii, jj])
     used = np.zeros(len(ends), bool)
@@ -642,13 +640,13 @@ def _bridge(paths, max_gap_px: float, darkness: np.ndarray | None = None, half_w
             if other not in link:
                 break
             nxt = link[other]
-            route = routes.get((min(other, nxt), max(other, nxt)))
-            if route is None:
+            bend = routes.get((min(other, nxt), max(other, nxt)))
+            if bend is None:
                 total += dist[other, nxt]
             else:                                   # across a bend: the image's route, not the chord
-                route = route if other < nxt else route[::-1]
-                seq.append(route[1:-1])
-                total += float(np.linalg.norm(np.diff(route, axis=0), axis=1).sum())
+                route, route_px = bend
+                seq.append((route if other < nxt else route[::-1])[1:-1])
+                total += route_px
                 bends += 1
             bridges += 1
             e = nxt
