@@ -47,6 +47,7 @@ def test_segment_xa_frames_against_the_truth(small_case, small_case_dir, tmp_pat
         ow = ordered_wire(mask, image=frame)
         np.testing.assert_allclose(uv, np.asarray(ow), atol=0.01)
         assert (rec["wire"]["beyond_tip"] is None) == (ow.beyond_tip is None)
+        assert rec["wire"]["hairpin_px"] == pytest.approx(ow.hairpin_px, abs=0.05)
     assert np.median(tips) <= TIP_MEDIAN_TOL_PX
     # The overlay draws that wire in yellow.
     from scipy.spatial import cKDTree

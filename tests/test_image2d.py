@@ -7,6 +7,7 @@ import pytest
 from scipy.spatial import cKDTree
 
 from guidewire3d.errors import InputError, SegmentationError
+from guidewire3d.xray import orderedwire
 from guidewire3d.xray.orderedwire import discrete_curvature, ordered_wire, wire_graph_spectrum
 from guidewire3d.xray.roadmap import roadmap_centerline, vessel_mask
 from guidewire3d.metrics import dice, polyline_length, resample_polyline, symmetric_polyline_distance
@@ -174,6 +175,49 @@ def test_ordered_wire_bridges_a_sharp_bend_only_where_the_frame_shows_the_wire()
     faint = background - 80.0 * (wire & (uu <= 100.0)) - 16.0 * _rasterise(up, shape, 1.5)
     ow = ordered_wire(mask, image=faint, proximal_hint_uv=truth[0])
     assert ow and ow.n_bends_bridged == 0
+
+
+def test_ordered_wire_joins_the_limb_that_leaves_a_hairpin_whose_limbs_merge_in_the_mask():
+    # Down to a turn, back up alongside itself for 40 px (the limbs 2 px apart: one line in the mask), then out
+    # up and to the right: the distal limb leaves the merged stretch as a piece of its own (the mask broken where
+    # it leaves, as on the real-anatomy frames), its end beside the wire. The tip is at the end of that limb.
+    shape = (200, 200)
+    down = np.column_stack([np.full(151, 100.0), np.linspace(20, 170, 151)])
+    back = np.column_stack([np.full(41, 102.0), np.linspace(170, 130, 41)])
+    out = np.column_stack([np.linspace(102.0, 150.0, 120), np.linspace(130, 40, 120)])
+    truth = np.vstack([down, back[1:], out[1:]])
+    wire = _rasterise(truth, shape, 1.5)
+    vv, uu = np.mgrid[0:200, 0:200]
+    mask = wire & (np.hypot(uu - 104.0, vv - 127.0) > 3.0)
+    background = 1000.0 + np.random.default_rng(0).normal(0.0, 5.0, shape)
+    for image in (None, background - 80.0 * wire):
+        ow = ordered_wire(mask, image=image, proximal_hint_uv=truth[0])
+        assert ow and np.linalg.norm(ow.points_uv_px[-1] - truth[-1]) <= TIP_TOL
+        assert 35.0 <= ow.hairpin_px <= 50.0                    # run back along the merged stretch
+        assert ow.length_px == pytest.approx(polyline_length(truth), rel=LENGTH_REL_TOL)
+        assert ow.beyond_tip is None
+    # The same wire the other way round (it enters at the right, the tip at the top of the left limb): the trace
+    # holds the distal limb and the merged stretch, the piece is the proximal limb, and the order turns.
+    ow = ordered_wire(mask, image=background - 80.0 * wire, proximal_hint_uv=truth[-1])
+    assert ow and np.linalg.norm(ow.points_uv_px[-1] - truth[0]) <= TIP_TOL
+    assert np.linalg.norm(ow.points_uv_px[0] - truth[-1]) <= TIP_TOL and ow.hairpin_px > 35.0
+    # Without the join the trace stops at the turn, 140 px short, and nothing says so: the defect.
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(orderedwire, "HAIRPIN_MAX_BACK_PX", 0.0)
+        ow = ordered_wire(mask, image=background - 80.0 * wire, proximal_hint_uv=truth[0])
+        assert np.linalg.norm(ow.points_uv_px[-1] - np.array([100.0, 170.0])) <= TIP_TOL
+        assert ow.hairpin_px == 0.0 and ow.beyond_tip is None and ow.tip_fork is None
+    # A line 5x fainter than the wire leaving where the limb would is another structure: not joined.
+    faint = background - 80.0 * _rasterise(np.vstack([down, back[1:]]), shape, 1.5) - 16.0 * _rasterise(out, shape, 1.5)
+    ow = ordered_wire(mask, image=faint, proximal_hint_uv=truth[0])
+    assert ow and ow.hairpin_px == 0.0
+    assert np.linalg.norm(ow.points_uv_px[-1] - np.array([101.0, 170.0])) <= TIP_TOL
+    # A piece beside the wire that runs on towards the turn (a branch, a second wire) is no hairpin's limb.
+    side = np.column_stack([np.linspace(103.5, 140.0, 80), np.linspace(110, 190, 80)])
+    straight = _rasterise(down, shape, 1.5) | (_rasterise(side, shape, 1.5) & (np.hypot(uu - 104.0, vv - 111.0) > 3.0))
+    ow = ordered_wire(straight, image=background - 80.0 * straight, proximal_hint_uv=down[0])
+    assert ow and ow.hairpin_px == 0.0
+    assert np.linalg.norm(ow.points_uv_px[-1] - down[-1]) <= TIP_TOL
 
 
 def test_ordered_wire_follows_a_hairpin_with_touching_limbs():

@@ -15,7 +15,9 @@ vessel mask (:func:`guidewire3d.xray.roadmap.vessel_mask`), the guidewire mask
   wire has ``success: false`` and ``message`` "no guidewire in the frame: <why>"; ``beyond_tip``: a
   piece of the wire mask beyond the traced tip and in line with it, so the tip is not settled, or null;
   ``doubled_tip``: the traced tip is about twice as dark as the wire, two layers of wire (it may bend
-  back over itself before its tip: :func:`guidewire3d.xray.orderedwire.doubled_tip`), or null).
+  back over itself before its tip: :func:`guidewire3d.xray.orderedwire.doubled_tip`), or null;
+  ``hairpin_px``: the stretch the wire runs back along itself where a hairpin whose limbs merge in the
+  mask was followed round, px, 0 when none was).
 
 ``<name>`` is the file's stem, with ``_fNNNN`` for the frames of a multi-frame file. Every input
 is read and checked before anything is computed, and the folder appears only when complete.
@@ -153,6 +155,8 @@ def analyse(image: InputImage, *, what: str = "both", segmenter: str = "unet", w
             "beyond_tip": None if ow.beyond_tip is None else {
                 "length_px": round(ow.beyond_tip.length_px, 1), "gap_px": round(ow.beyond_tip.gap_px, 1),
                 "angle_deg": round(ow.beyond_tip.angle_deg, 1), "message": ow.beyond_tip.explain()},
+            # a hairpin whose limbs merge in the mask, followed round (orderedwire.HAIRPIN_*)
+            "hairpin_px": round(float(ow.hairpin_px), 1),
         }
         # two layers of wire at the traced tip (the wire bends back over itself before it): not settled
         doubled = doubled_tip(np.asarray(image.image), np.asarray(ow)) if ow and np.ndim(image.image) == 2 else None

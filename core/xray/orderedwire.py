@@ -7,7 +7,8 @@ One stage of the paper's pipeline (DESIGN.md, "The flow of data"), and the paper
   (a good-continuation trace through junctions, so a wire looping over itself is followed
   through the crossing and spurs are left; double Dijkstra for junction-free pieces), bridging of
   pieces whose ends are close and whose directions agree (with the frame, also across a sharp bend
-  whose vertex the mask lost, where the image shows the wire), sub-pixel centring across the normal
+  whose vertex the mask lost, where the image shows the wire), joining the distal limb of a hairpin whose
+  limbs touch in the mask (it leaves the merged stretch as a piece beside the wire), sub-pixel centring across the normal
   (mask centroid, weighted by the frame's darkness when given), extension of both ends to the
   mask's end caps, proximal -> distal ordering and resampling at ~1 px. With the frame, a presence
   test (:mod:`guidewire3d.xray.wirepresence`) fails a curve that is not a guidewire (a vessel, a branch
@@ -82,6 +83,20 @@ BEND_ROUTE_SLACK_PX = 4.0
 BEND_MIN_SUPPORT = 0.5            # ... whose dark-line response is everywhere at least this x the wire's beside it,
 BEND_MIN_LIKE = 0.5               # ... and whose two pieces are alike: the fainter at least this x as dark a line
 BEND_REF_PX = 12                  # the wire's own response: the median over this many px of each piece at its end
+# A hairpin whose limbs touch in the mask. Where the wire turns back on itself (over the aortic arch seen from
+# the side, at a branch's take-off), the limbs lie side by side for a stretch before the turn; the mask holds
+# one line there, the trace runs along it to the turn and stops, and the distal limb, where it leaves the
+# merged stretch, is a piece of its own whose end lies beside the trace, pointing along it towards the turn
+# (real anatomy, seeds 0 and 1, 320 frames: 20 frames, the 2D tip 52-282 px short and no flag; the simulator,
+# seeds 0-59: 2 of 360 frames, 179 and 282 px short). Such a piece is joined: the wire runs on to the turn,
+# back along the merged stretch and out along the piece. A piece at least HAIRPIN_MIN_PIECE_PX long ...
+HAIRPIN_MIN_PIECE_PX = 15.0
+HAIRPIN_MAX_BACK_PX = 250.0       # ... whose end lies beside the wire at most this far (px) back from its end ...
+HAIRPIN_NEAR_HALF_WIDTHS = 4.0    # ... within this x the mask's mean half-width + HAIRPIN_NEAR_SLACK_PX of it
+HAIRPIN_NEAR_SLACK_PX = 3.0       #     (two limbs side by side: the merged skeleton runs between them) ...
+HAIRPIN_MIN_COS = 0.7             # ... its outward tangent along the wire's direction towards its end (45 deg) ...
+HAIRPIN_MIN_BACK_PX = 3.0         # ... not at the end itself (that is a gap: the bridges above) ...
+HAIRPIN_MIN_LIKE = 0.5            # ... and as dark a line as the wire: its response at least this x the wire's
 # A piece of the mask left out of the wire that lies beyond the tip, in line with it, makes the tip
 # uncertain (the wire may continue there, through a stretch the segmenter lost): a piece whose
 # traced length is at least this ...
@@ -260,6 +275,9 @@ class OrderedWire:
         A branch of the mask's skeleton that leaves the wire just before its tip and reaches away
         from it (``TIP_FORK_*``): a tip bent back, whose true end may be at that branch's. None when
         there is none.
+    hairpin_px : float
+        The length (px) of the stretch the wire runs back along itself where a hairpin whose limbs touch in the
+        mask was joined (``HAIRPIN_*``; 0.0 when none was).
     presence : WirePresence or None
         The presence test of the traced curve (:func:`guidewire3d.xray.wirepresence.wire_presence`;
         None when it did not run: no image, ``check_presence=False``, or no curve was traced).
@@ -276,6 +294,7 @@ class OrderedWire:
     presence: WirePresence | None = None
     beyond_tip: "BeyondTip | None" = None
     tip_fork: "TipFork | None" = None
+    hairpin_px: float = 0.0
 
     def __bool__(self) -> bool:
         return bool(self.success)
@@ -655,6 +674,72 @@ def _bridge(paths, max_gap_px: float, darkness: np.ndarray | None = None, half_w
     return best, best_bridges, best_pieces, best_bends
 
 
+def _line_response(darkness: np.ndarray, pixels_rc: np.ndarray, half_width_px: float) -> float:
+    """The median dark-line response (a black top-hat wider than the wire, on the pixels' bounding box) of
+    ``darkness`` (the frame, the wire darker) at the pixels ``pixels_rc`` ((K, 2) rows/cols)."""
+    q = np.asarray(pixels_rc, int).reshape(-1, 2)
+    q = q[(q >= 0).all(axis=1) & (q < darkness.shape).all(axis=1)]
+    if not len(q):
+        return 0.0
+    k = 2 * int(np.ceil(2.0 * half_width_px)) + 3
+    lo = np.maximum(q.min(axis=0) - k, 0)
+    hi = np.minimum(q.max(axis=0) + k + 1, darkness.shape)
+    sub = np.asarray(darkness[lo[0]:hi[0], lo[1]:hi[1]], np.float64)
+    tophat = ndi.grey_closing(sub, size=(k, k)) - sub
+    return float(np.median(tophat[q[:, 0] - lo[0], q[:, 1] - lo[1]]))
+
+
+def _hairpin(chain_rc: np.ndarray, paths, used: set, half_width_px: float, *, at_last: bool,
+             darkness: np.ndarray | None = None) -> tuple[np.ndarray, float, int | None]:
+    """Join, at one end of the chain ``chain_rc`` ((M, 2) rows/cols; its last point when ``at_last``), the other
+    limb of a hairpin whose limbs touch in the mask (``HAIRPIN_*``): the longest piece of ``paths`` not in
+    ``used`` whose end lies beside the chain's last ``HAIRPIN_MAX_BACK_PX`` px, its outward tangent along the
+    chain towards that end, and its other end away from the chain. The chain runs on to its end, back along
+    itself to beside the piece's end, and out along the piece. With the frame (``darkness``), the piece must be
+    as dark a line as the chain's stretch before it (``HAIRPIN_MIN_LIKE``). The caller checks that the join
+    keeps the wire's order (:func:`ordered_wire`). Returns ``(chain, px run back, piece joined or None)``."""
+    from scipy.spatial import cKDTree
+
+    c = np.asarray(chain_rc, float)
+    c = c if at_last else c[::-1]
+    n = len(c)
+    arc = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(c, axis=0), axis=1))]
+    from_end = arc[-1] - arc
+    tail = np.flatnonzero(from_end <= HAIRPIN_MAX_BACK_PX)
+    if n < 8 or len(tail) < 2:
+        return chain_rc, 0.0, None
+    near = HAIRPIN_NEAR_HALF_WIDTHS * half_width_px + HAIRPIN_NEAR_SLACK_PX
+    tree, whole = cKDTree(c[tail]), cKDTree(c)
+    best = None
+    for i, (p, length) in enumerate(paths):
+        if i in used or length < HAIRPIN_MIN_PIECE_PX:
+            continue
+        for piece_end in (False, True):
+            d, j = tree.query(p[-1] if piece_end else p[0])
+            k = int(tail[j])
+            if d > near or from_end[k] < HAIRPIN_MIN_BACK_PX:
+                continue
+            fwd = c[min(k + 3, n - 1)] - c[max(k - 3, 0)]
+            fwd = fwd / max(float(np.linalg.norm(fwd)), 1e-12)
+            if float(fwd @ _end_tangent(p, piece_end)) < HAIRPIN_MIN_COS:
+                continue
+            if whole.query(p[0] if piece_end else p[-1])[0] <= near:
+                continue                                        # both its ends beside the chain: no limb leaving it
+            if best is None or length > best[0]:
+                best = (length, i, piece_end, k)
+    if best is None:
+        return chain_rc, 0.0, None
+    _, i, piece_end, k = best
+    limb = paths[i][0][::-1] if piece_end else paths[i][0]
+    if darkness is not None:
+        before = c[np.flatnonzero((from_end > from_end[k]) & (from_end <= from_end[k] + 4 * BEND_REF_PX))]
+        ref = _line_response(darkness, np.round(before), half_width_px) if len(before) else 0.0
+        if not ref > 0 or _line_response(darkness, limb, half_width_px) < HAIRPIN_MIN_LIKE * ref:
+            return chain_rc, 0.0, None
+    c = np.vstack([c, c[k:-1][::-1], limb])
+    return (c if at_last else c[::-1]), float(from_end[k]), i
+
+
 def _tip_fork(uv: np.ndarray, skel_uv: np.ndarray, half_width_px: float) -> TipFork | None:
     """The skeleton branch (of the skeleton pixels ``skel_uv``, (u, v)) off the ordered wire ``uv`` that leaves it
     within ``TIP_FORK_NEAR_PX`` of its tip and reaches farthest from it, if that is at least ``TIP_FORK_MIN_PX``
@@ -996,6 +1081,27 @@ def ordered_wire(mask, *, image=None, proximal_hint_uv=None, max_gap_px: float =
             darkness = _pad_edge(darkness, ext)
     path_rc, n_bridges, used, n_bends = _bridge(paths, float(max_gap_px), darkness, half_width,
                                                 (-o_r, H - 1 - o_r, -o_c, W - 1 - o_c))
+    # A hairpin whose limbs touch in the mask (``HAIRPIN_*``): the trace holds one limb and the merged stretch, the
+    # other limb is a piece beside it. At the trace's distal end (the end the ordering below would take as distal:
+    # farther from the hint, else from the image border) that piece is the distal limb, or, when it leads nearer
+    # the hint than the trace's other end, the proximal one (the trace then held the distal limb, and the order
+    # turns). At the proximal end it is joined only when it leads nearer the hint than that end: a side branch
+    # that leaves the wire pointing along it is not joined there.
+    def proximity(rc):
+        uv_end = np.asarray(rc, float)[::-1] + np.array([o_c, o_r], float)
+        if hint is not None:
+            return float(np.linalg.norm(uv_end - hint))
+        return float(min(uv_end[0], uv_end[1], m_full.shape[1] - 1 - uv_end[0], m_full.shape[0] - 1 - uv_end[1]))
+
+    hairpin_px = 0.0
+    for distal in (True, False):
+        at_last = (proximity(path_rc[-1]) >= proximity(path_rc[0])) == distal
+        joined_rc, back_px, piece = _hairpin(path_rc, paths, used, half_width, at_last=at_last, darkness=darkness)
+        if piece is None:
+            continue
+        new_end, replaced = (joined_rc[-1], path_rc[-1]) if at_last else (joined_rc[0], path_rc[0])
+        if distal or proximity(new_end) < proximity(replaced):
+            path_rc, hairpin_px, used = joined_rc, hairpin_px + back_px, used | {piece}
     if len(path_rc) < 2:
         return _failed("no skeleton piece of the mask is long enough to be a guidewire")
     raw_len = float(np.linalg.norm(np.diff(path_rc, axis=0), axis=1).sum())
@@ -1055,7 +1161,7 @@ def ordered_wire(mask, *, image=None, proximal_hint_uv=None, max_gap_px: float =
     fork = _tip_fork(uv, skel, half_width)
     return OrderedWire(points_uv_px=uv, success=True, message="ok", length_px=length,
                        n_gaps_bridged=int(n_bridges), n_bends_bridged=int(n_bends), presence=presence,
-                       beyond_tip=beyond, tip_fork=fork)
+                       beyond_tip=beyond, tip_fork=fork, hairpin_px=hairpin_px)
 
 
 # --------------------------------------------------------------------------------------------
