@@ -89,3 +89,57 @@ def test_the_wire_over_a_dark_band_is_found(case, monkeypatch, k):
     monkeypatch.setattr(seg, "FLAT_FIELD_MIN_RATIO", np.inf)
     old = seg.guidewire_mask(f)
     assert np.count_nonzero(old & t & band) < MIN_BAND_RECALL * np.count_nonzero(t & band)
+
+
+def _top_region(frame, truth, textured: bool, rng):
+    """The frame with its top rows (down to where 30 % of the wire lies above) dark: anatomy (the frame x a
+    textured transmission about 0.06, log-normal at a 20 px scale), or a lead shutter (no anatomy behind it:
+    scatter at 0.02 x the median, a 1.5x ramp from the field's edge, 5 % noise); and those rows."""
+    from scipy import ndimage as ndi
+
+    h, w = frame.shape
+    rows = int(np.quantile(np.nonzero(truth)[0], 0.3))
+    region = np.zeros(frame.shape, bool)
+    region[:rows] = True
+    f = np.asarray(frame, np.float32).copy()
+    if textured:
+        tex = ndi.gaussian_filter(rng.normal(size=frame.shape), 20.0)
+        trans = 0.06 * np.exp(0.45 * tex / tex.std())
+        edge = ndi.gaussian_filter(region.astype(float), 4.0)
+        f *= (1.0 - edge * (1.0 - trans)).astype(np.float32)
+    else:
+        ramp = np.linspace(1.0, 1.5, rows)[:, None] * np.ones((1, w))
+        scatter = 0.02 * float(np.median(frame)) * ramp
+        f[:rows] = (scatter * (1.0 + 0.05 * rng.normal(size=scatter.shape))).astype(np.float32)
+    return f, region
+
+
+def test_dark_anatomy_at_the_border_is_not_a_shutter_and_lead_is(case, monkeypatch):
+    # Real anatomy: the shoulders at the top of a lateral chest view are 10-20x darker than the lungs and enter
+    # from the border; the wire's distal end runs into them. The network found it there, and the shutter rule
+    # cleared it. Behind lead there is nothing but smooth scatter, and that stays a shutter.
+    from scipy import ndimage as ndi
+
+    frames, truth = case
+    rng = np.random.default_rng(3)
+    band = transmission_band(frames[0].shape, float(np.median(np.nonzero(truth[0])[1])))   # the frame is flat-fielded
+    t = np.asarray(truth[0], bool)
+    for textured in (True, False):
+        f, region = _top_region(frames[0] * band, t, textured, rng)
+        inner = ndi.binary_erosion(region, iterations=20)
+        med, spread, _, dark = seg._frame_stats_dark(f)
+        _, _, _, fov = seg._flattened(f, med, spread)     # the field of view guidewire_mask clears the mask outside
+        kept = seg._clear_collimated(t, f, med, dark, fov=fov)
+        if textured:
+            assert fov is not False                        # flat-fielded: dark anatomy, not a collimated frame
+            assert fov is None or float(np.mean(fov[inner])) >= 0.95
+            assert np.count_nonzero(kept & inner) == np.count_nonzero(t & inner) > 0   # the wire there stays
+        else:
+            assert not (kept & inner).any()
+    # With every dark border region taken for a shutter (before), the anatomy's wire was cleared.
+    monkeypatch.setattr(seg, "SHUTTER_MAX_TEXTURE", np.inf)
+    f, region = _top_region(frames[0] * band, t, True, np.random.default_rng(3))
+    med, spread, _, dark = seg._frame_stats_dark(f)
+    _, _, _, fov = seg._flattened(f, med, spread)
+    inner = ndi.binary_erosion(region, iterations=20)
+    assert not (seg._clear_collimated(t, f, med, dark, fov=fov) & inner).any()
