@@ -177,6 +177,34 @@ def test_ordered_wire_bridges_a_sharp_bend_only_where_the_frame_shows_the_wire()
     assert ow and ow.n_bends_bridged == 0
 
 
+def test_ordered_wire_bridges_a_longer_break_in_line_only_where_the_frame_shows_the_wire():
+    # The wire fades where it crosses a dense region: the mask breaks for 22 px, the two pieces in line. Past the
+    # 15 px gap limit, the trace stopped there (the piece beyond only made the tip uncertain).
+    shape = (200, 200)
+    truth = np.column_stack([np.linspace(20, 180, 400), 100.0 + 10.0 * np.sin(np.linspace(0, 1.5, 400))])
+    wire = _rasterise(truth, shape, 1.5)
+    vv, uu = np.mgrid[0:200, 0:200]
+    mask = wire & ((uu < 89) | (uu > 111))
+    background = 1000.0 + np.random.default_rng(0).normal(0.0, 5.0, shape)
+    ow = ordered_wire(mask, image=background - 80.0 * wire, proximal_hint_uv=truth[0])
+    assert ow and ow.n_long_gaps_bridged == 1 and ow.n_bends_bridged == 0
+    assert np.linalg.norm(ow.points_uv_px[-1] - truth[-1]) <= TIP_TOL
+    assert ow.length_px == pytest.approx(polyline_length(truth), rel=LENGTH_REL_TOL)
+    # Where the frame too loses the wire across the break, or without the frame, the trace stops at the break
+    # and the piece beyond makes the tip uncertain.
+    for image in (background - 80.0 * mask, None):
+        ow = ordered_wire(mask, image=image, proximal_hint_uv=truth[0])
+        assert ow and ow.n_long_gaps_bridged == 0 and ow.beyond_tip is not None
+        assert abs(ow.points_uv_px[-1][0] - 89.0) <= 2.0
+    # Two pieces 22 px apart at 30 deg to each other are no break in line.
+    bent = np.vstack([truth[:200], truth[199] + np.column_stack([np.linspace(0, 80, 200) * np.cos(np.radians(30)),
+                                                                 np.linspace(0, 80, 200) * np.sin(np.radians(30))])])
+    bw = _rasterise(bent, shape, 1.5)
+    bmask = bw & (np.linalg.norm(np.stack([uu, vv], -1) - bent[200], axis=-1) > 11.0)
+    ow = ordered_wire(bmask, image=background - 80.0 * bw, proximal_hint_uv=bent[0])
+    assert ow and ow.n_long_gaps_bridged == 0
+
+
 def test_ordered_wire_joins_the_limb_that_leaves_a_hairpin_whose_limbs_merge_in_the_mask():
     # Down to a turn, back up alongside itself for 40 px (the limbs 2 px apart: one line in the mask), then out
     # up and to the right: the distal limb leaves the merged stretch as a piece of its own (the mask broken where

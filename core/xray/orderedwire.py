@@ -7,7 +7,7 @@ One stage of the paper's pipeline (DESIGN.md, "The flow of data"), and the paper
   (a good-continuation trace through junctions, so a wire looping over itself is followed
   through the crossing and spurs are left; double Dijkstra for junction-free pieces), bridging of
   pieces whose ends are close and whose directions agree (with the frame, also across a sharp bend
-  whose vertex the mask lost, where the image shows the wire), joining the distal limb of a hairpin whose
+  whose vertex the mask lost, and across a longer break in line, where the image shows the wire), joining the distal limb of a hairpin whose
   limbs touch in the mask (it leaves the merged stretch as a piece beside the wire), sub-pixel centring across the normal
   (mask centroid, weighted by the frame's darkness when given), extension of both ends to the
   mask's end caps, proximal -> distal ordering and resampling at ~1 px. With the frame, a presence
@@ -83,6 +83,13 @@ BEND_ROUTE_SLACK_PX = 4.0
 BEND_MIN_SUPPORT = 0.5            # ... whose dark-line response is everywhere at least this x the wire's beside it,
 BEND_MIN_LIKE = 0.5               # ... and whose two pieces are alike: the fainter at least this x as dark a line
 BEND_REF_PX = 12                  # the wire's own response: the median over this many px of each piece at its end
+# A longer break in line. Where the wire fades (over the mediastinum, into the shoulders) the mask can break for
+# more than ``max_gap_px`` with the two pieces in line (real anatomy, seeds 0 and 1: 15-21 px gaps at 2-13 deg in 12
+# frames, the tip 20-124 px short, each ``uncertain`` for the piece beyond the tip). With the frame, ends up to
+# LONG_GAP_MAX_PX apart whose directions both agree with the gap within LONG_GAP_MAX_ANGLE_DEG are bridged on the
+# same evidence as a bend (BEND_ROUTE_*, BEND_MIN_SUPPORT, BEND_MIN_LIKE): the frame shows a wire all across.
+LONG_GAP_MAX_PX = 30.0
+LONG_GAP_MAX_ANGLE_DEG = 15.0
 # A hairpin whose limbs touch in the mask. Where the wire turns back on itself (over the aortic arch seen from
 # the side, at a branch's take-off), the limbs lie side by side for a stretch before the turn; the mask holds
 # one line there, the trace runs along it to the turn and stops, and the distal limb, where it leaves the
@@ -267,6 +274,9 @@ class OrderedWire:
     n_bends_bridged : int
         How many of them were at a sharp bend, bridged because the frame shows a wire across
         (``BEND_*``; with an image only).
+    n_long_gaps_bridged : int
+        How many were longer than ``max_gap_px`` and in line, bridged because the frame shows a wire across
+        (``LONG_GAP_*``; with an image only).
     beyond_tip : BeyondTip or None
         A piece of the mask that the wire does not include, lying beyond its tip and in line with
         it (``BEYOND_TIP_*``): the wire may continue there, so the tip is not settled. None when
@@ -291,6 +301,7 @@ class OrderedWire:
     length_px: float = 0.0
     n_gaps_bridged: int = 0
     n_bends_bridged: int = 0
+    n_long_gaps_bridged: int = 0
     presence: WirePresence | None = None
     beyond_tip: "BeyondTip | None" = None
     tip_fork: "TipFork | None" = None
@@ -581,11 +592,11 @@ def _bridge(paths, max_gap_px: float, darkness: np.ndarray | None = None, half_w
     """Join path ends that are close and whose directions agree, and, with the frame (``darkness``, in the paths'
     pixel coordinates), ends at a sharp bend the image shows a wire across (``BEND_*``, :func:`_bend_route`; ends
     within ``inner_rc`` = (row0, row1, col0, col1), the image's own pixels, 3 px inside); return the longest chain
-    as one ordered (row, col) array, the number of bridges on it, the indices of its pieces and the number of
-    its bridges across a bend."""
+    as one ordered (row, col) array, the number of bridges on it, the indices of its pieces, the number of
+    its bridges across a bend and the number across a long break in line (``LONG_GAP_*``)."""
     n = len(paths)
     if n == 1 or max_gap_px <= 0:
-        return paths[0][0], 0, {0}, 0
+        return paths[0][0], 0, {0}, 0, 0
     ends = []                                      # (piece, at_end, point, outward tangent)
     for i, (p, _) in enumerate(paths):
         ends.append((i, False, p[0], _end_tangent(p, False)))
@@ -610,7 +621,10 @@ def _bridge(paths, max_gap_px: float, darkness: np.ndarray | None = None, half_w
     routes = {}
     if darkness is not None:
         bend = np.triu((dist <= min(max_gap_px, BEND_BRIDGE_MAX_PX)) & (piece[:, None] != piece[None, :]), 1)
-        bend &= ~valid
+        c_long = np.cos(np.radians(LONG_GAP_MAX_ANGLE_DEG))
+        long_gap = np.triu((dist > max_gap_px) & (dist <= LONG_GAP_MAX_PX) & (cos_i >= c_long) & (cos_j >= c_long)
+                           & (piece[:, None] != piece[None, :]), 1)
+        bend = (bend | long_gap) & ~valid
         if inner_rc is not None:
             r0, r1, c0, c1 = inner_rc
             inside = ((pts[:, 0] >= r0 + 3) & (pts[:, 0] <= r1 - 4) & (pts[:, 1] >= c0 + 3)
@@ -622,7 +636,7 @@ def _bridge(paths, max_gap_px: float, darkness: np.ndarray | None = None, half_w
             route, support, like = _bend_route(darkness, pts[i], pts[j], near[0], near[1], half_width_px)
             if route is not None and support >= BEND_MIN_SUPPORT and like >= BEND_MIN_LIKE:
                 valid[i, j] = True
-                routes[(int(i), int(j))] = (route, polyline_length(route))
+                routes[(int(i), int(j))] = (route, polyline_length(route), bool(long_gap[i, j]))
                 cost[i, j] = 2.0 * routes[(int(i), int(j))][1]   # after any bridge whose directions agree
     ii, jj = np.nonzero(valid)
     order = np.argsort(cost[ii, jj])
@@ -641,12 +655,12 @@ def _bridge(paths, max_gap_px: float, darkness: np.ndarray | None = None, half_w
         used[i] = used[j] = True
         link[i], link[j] = j, i
     # Walk the chains: start from a piece end with no link (every chain is acyclic).
-    best, best_len, best_bridges, best_pieces, best_bends = None, -1.0, 0, set(), 0
+    best, best_len, best_bridges, best_pieces, best_bends, best_longs = None, -1.0, 0, set(), 0, 0
     seen = np.zeros(n, bool)
     for start in range(len(ends)):
         if start in link or seen[piece[start]]:
             continue
-        seq, total, bridges, e, pieces, bends = [], 0.0, 0, start, set(), 0
+        seq, total, bridges, e, pieces, bends, longs = [], 0.0, 0, start, set(), 0, 0
         while True:
             i = piece[e]
             seen[i] = True
@@ -662,16 +676,18 @@ def _bridge(paths, max_gap_px: float, darkness: np.ndarray | None = None, half_w
             bend = routes.get((min(other, nxt), max(other, nxt)))
             if bend is None:
                 total += dist[other, nxt]
-            else:                                   # across a bend: the image's route, not the chord
-                route, route_px = bend
+            else:                                   # across a bend or a long break: the image's route, not the chord
+                route, route_px, is_long = bend
                 seq.append((route if other < nxt else route[::-1])[1:-1])
                 total += route_px
-                bends += 1
+                longs += int(is_long)
+                bends += int(not is_long)
             bridges += 1
             e = nxt
         if total > best_len:
-            best, best_len, best_bridges, best_pieces, best_bends = np.vstack(seq), total, bridges, pieces, bends
-    return best, best_bridges, best_pieces, best_bends
+            best, best_len, best_bridges, best_pieces, best_bends, best_longs = (np.vstack(seq), total, bridges,
+                                                                                 pieces, bends, longs)
+    return best, best_bridges, best_pieces, best_bends, best_longs
 
 
 def _line_response(darkness: np.ndarray, pixels_rc: np.ndarray, half_width_px: float) -> float:
@@ -987,8 +1003,9 @@ def ordered_wire(mask, *, image=None, proximal_hint_uv=None, max_gap_px: float =
     Zhang-Suen thinning of the mask, an 8-connected pixel graph, the longest path of each skeleton
     piece (a good-continuation trace through junctions and crossings; spurs are left), bridging of
     pieces whose end points are within ``max_gap_px`` with agreeing directions (with ``image``, also
-    ends at a sharp bend, within ``BEND_BRIDGE_MAX_PX``, when the frame's darkest route between them
-    is as dark a line as the wire: ``BEND_*``),
+    ends at a sharp bend, within ``BEND_BRIDGE_MAX_PX``, and ends in line up to ``LONG_GAP_MAX_PX`` apart,
+    when the frame's darkest route between them is as dark a line as the wire: ``BEND_*``, ``LONG_GAP_*``),
+    joining the other limb of a hairpin whose limbs merge in the mask (``HAIRPIN_*``),
     sub-pixel centring across the local normal, extension of both ends to the mask's end caps,
     proximal -> distal ordering and resampling at ~1 px.
 
@@ -1079,7 +1096,7 @@ def ordered_wire(mask, *, image=None, proximal_hint_uv=None, max_gap_px: float =
         darkness = img[r0:r1, c0:c1]                    # the wire darker: _refine weighs by -image
         if any(map(any, ext)):
             darkness = _pad_edge(darkness, ext)
-    path_rc, n_bridges, used, n_bends = _bridge(paths, float(max_gap_px), darkness, half_width,
+    path_rc, n_bridges, used, n_bends, n_long = _bridge(paths, float(max_gap_px), darkness, half_width,
                                                 (-o_r, H - 1 - o_r, -o_c, W - 1 - o_c))
     # A hairpin whose limbs touch in the mask (``HAIRPIN_*``): the trace holds one limb and the merged stretch, the
     # other limb is a piece beside it. At the trace's distal end (the end the ordering below would take as distal:
@@ -1160,7 +1177,8 @@ def ordered_wire(mask, *, image=None, proximal_hint_uv=None, max_gap_px: float =
     skel = skel[(skel[:, 0] >= 0) & (skel[:, 0] <= W - 1) & (skel[:, 1] >= 0) & (skel[:, 1] <= H - 1)]
     fork = _tip_fork(uv, skel, half_width)
     return OrderedWire(points_uv_px=uv, success=True, message="ok", length_px=length,
-                       n_gaps_bridged=int(n_bridges), n_bends_bridged=int(n_bends), presence=presence,
+                       n_gaps_bridged=int(n_bridges), n_bends_bridged=int(n_bends), n_long_gaps_bridged=int(n_long),
+                       presence=presence,
                        beyond_tip=beyond, tip_fork=fork, hairpin_px=hairpin_px)
 
 
