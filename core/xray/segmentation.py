@@ -342,7 +342,7 @@ def _anatomy_fov_small(small: np.ndarray, med: float, f: int, size_px: int) -> n
     b = BORDER_PX       # field_of_view leaves out the image border band; the mask keeps it
     fov[:b], fov[-b:] = fov[b], fov[-b - 1]
     fov[:, :b], fov[:, -b:] = fov[:, b:b + 1], fov[:, -b - 1:-b]
-    if not fov.all():
+    if not fov.all() and np.isfinite(SHUTTER_MAX_TEXTURE):
         fov = fov | _textured_regions(small, ~fov, margin)
     return None if fov.all() else fov
 
