@@ -562,19 +562,9 @@ def _bend_route(darkness: np.ndarray, a_rc, b_rc, near_a: np.ndarray, near_b: np
 
     a, b = np.asarray(a_rc, int), np.asarray(b_rc, int)
     gap = float(np.linalg.norm(a - b))
-    k = 2 * int(np.ceil(2.0 * half_width_px)) + 3                  # wider than the wire
-    margin = BEND_REF_PX + k
-    lo = np.maximum(np.minimum(a, b) - margin, 0)
-    hi = np.minimum(np.maximum(a, b) + margin + 1, darkness.shape)
-    sub = np.asarray(darkness[lo[0]:hi[0], lo[1]:hi[1]], np.float64)
-    tophat = ndi.grey_closing(sub, size=(k, k)) - sub
-
-    def response(px):
-        q = np.asarray(px, int) - lo
-        q = q[(q >= 0).all(axis=1) & (q < sub.shape).all(axis=1)]
-        return float(np.median(tophat[q[:, 0], q[:, 1]])) if len(q) else 0.0
-
-    ref_a, ref_b = response(near_a), response(near_b)
+    tophat, lo = _black_tophat(darkness, np.minimum(a, b) - BEND_REF_PX, np.maximum(a, b) + BEND_REF_PX,
+                               half_width_px)
+    ref_a, ref_b = _median_at(tophat, lo, near_a), _median_at(tophat, lo, near_b)
     ref = min(ref_a, ref_b)
     if not ref > 0:
         return None, 0.0, 0.0
@@ -694,19 +684,38 @@ def _bridge(paths, max_gap_px: float, darkness: np.ndarray | None = None, half_w
     return best, best_bridges, best_pieces, best_bends, best_longs
 
 
+def _tophat_size_px(half_width_px: float) -> int:
+    """The black top-hat's structuring element (px): wider than the wire."""
+    return 2 * int(np.ceil(2.0 * half_width_px)) + 3
+
+
+def _black_tophat(darkness: np.ndarray, lo_rc, hi_rc, half_width_px: float) -> tuple[np.ndarray, np.ndarray]:
+    """The dark-line response of ``darkness`` (the frame, the wire darker): its black top-hat, the structuring
+    element wider than the wire, on the window from ``lo_rc`` to ``hi_rc`` (rows/cols, inclusive) widened by that
+    element and clipped to the frame. Returns ``(response, window origin)``."""
+    k = _tophat_size_px(half_width_px)
+    lo = np.maximum(np.asarray(lo_rc, int) - k, 0)
+    hi = np.minimum(np.asarray(hi_rc, int) + k + 1, darkness.shape)
+    sub = np.asarray(darkness[lo[0]:hi[0], lo[1]:hi[1]], np.float64)
+    return ndi.grey_closing(sub, size=(k, k)) - sub, lo
+
+
+def _median_at(response: np.ndarray, lo: np.ndarray, pixels_rc) -> float:
+    """The median of ``response`` (a window whose origin is ``lo``) at the pixels ``pixels_rc`` inside it, else 0."""
+    q = np.asarray(pixels_rc, int).reshape(-1, 2) - lo
+    q = q[(q >= 0).all(axis=1) & (q < response.shape).all(axis=1)]
+    return float(np.median(response[q[:, 0], q[:, 1]])) if len(q) else 0.0
+
+
 def _line_response(darkness: np.ndarray, pixels_rc: np.ndarray, half_width_px: float) -> float:
-    """The median dark-line response (a black top-hat wider than the wire, on the pixels' bounding box) of
-    ``darkness`` (the frame, the wire darker) at the pixels ``pixels_rc`` ((K, 2) rows/cols)."""
+    """The median dark-line response (:func:`_black_tophat` on the pixels' bounding box) of ``darkness`` at the
+    pixels ``pixels_rc`` ((K, 2) rows/cols)."""
     q = np.asarray(pixels_rc, int).reshape(-1, 2)
     q = q[(q >= 0).all(axis=1) & (q < darkness.shape).all(axis=1)]
     if not len(q):
         return 0.0
-    k = 2 * int(np.ceil(2.0 * half_width_px)) + 3
-    lo = np.maximum(q.min(axis=0) - k, 0)
-    hi = np.minimum(q.max(axis=0) + k + 1, darkness.shape)
-    sub = np.asarray(darkness[lo[0]:hi[0], lo[1]:hi[1]], np.float64)
-    tophat = ndi.grey_closing(sub, size=(k, k)) - sub
-    return float(np.median(tophat[q[:, 0] - lo[0], q[:, 1] - lo[1]]))
+    tophat, lo = _black_tophat(darkness, q.min(axis=0), q.max(axis=0), half_width_px)
+    return _median_at(tophat, lo, q)
 
 
 def _hairpin(chain_rc: np.ndarray, paths, used: set, half_width_px: float, *, at_last: bool,
@@ -720,6 +729,9 @@ def _hairpin(chain_rc: np.ndarray, paths, used: set, half_width_px: float, *, at
     keeps the wire's order (:func:`ordered_wire`). Returns ``(chain, px run back, piece joined or None)``."""
     from scipy.spatial import cKDTree
 
+    pieces = [i for i, (_, length) in enumerate(paths) if i not in used and length >= HAIRPIN_MIN_PIECE_PX]
+    if not pieces:                                              # most frames: the trace is the whole mask
+        return chain_rc, 0.0, None
     c = np.asarray(chain_rc, float)
     c = c if at_last else c[::-1]
     n = len(c)
@@ -731,9 +743,8 @@ def _hairpin(chain_rc: np.ndarray, paths, used: set, half_width_px: float, *, at
     near = HAIRPIN_NEAR_HALF_WIDTHS * half_width_px + HAIRPIN_NEAR_SLACK_PX
     tree, whole = cKDTree(c[tail]), cKDTree(c)
     best = None
-    for i, (p, length) in enumerate(paths):
-        if i in used or length < HAIRPIN_MIN_PIECE_PX:
-            continue
+    for i in pieces:
+        p, length = paths[i]
         for piece_end in (False, True):
             d, j = tree.query(p[-1] if piece_end else p[0])
             k = int(tail[j])

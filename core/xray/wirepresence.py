@@ -191,8 +191,8 @@ def _profiles(img: np.ndarray, uv: np.ndarray, half_px: float, scale: float):
 
 
 def _half_width(offs: np.ndarray, blocks: np.ndarray, scale: float):
-    """Per block: half-depth width of the dark structure at the centre (px), and its depth below
-    the background on each side (darkness units)."""
+    """Per block: half-depth width of the dark structure at the centre (px), its depth below the
+    background on each side (darkness units), and the index of the centre's darkest sample."""
     centre = np.abs(offs) <= CENTRE_PX * max(scale, 1.0)
     ci = np.flatnonzero(centre)[np.argmax(blocks[:, centre], axis=1)]
     rows = np.arange(len(blocks))
@@ -207,15 +207,13 @@ def _half_width(offs: np.ndarray, blocks: np.ndarray, scale: float):
     r = np.where(right.any(axis=1), np.argmax(right, axis=1), len(offs) - 1)
     l_ = np.where(left.any(axis=1), len(offs) - 1 - np.argmax(left[:, ::-1], axis=1), 0)
     width = (r - l_) * PROFILE_STEP_PX
-    return width, c - bg_l, c - bg_r
+    return width, c - bg_l, c - bg_r, ci
 
 
-def _line_on_edge(offs: np.ndarray, blocks: np.ndarray, deep: np.ndarray, scale: float) -> np.ndarray:
-    """Per block: whether the darkest point at the centre is a dark line's, darker than the profile
-    ``EDGE_LINE_PX`` to both sides of it by at least ``EDGE_LINE_MIN`` x ``deep`` (the deeper dip below the
-    background); across a step edge the darkness only rises towards its dark side."""
-    centre = np.abs(offs) <= CENTRE_PX * max(scale, 1.0)
-    ci = np.flatnonzero(centre)[np.argmax(blocks[:, centre], axis=1)]
+def _line_on_edge(offs: np.ndarray, blocks: np.ndarray, ci: np.ndarray, deep: np.ndarray, scale: float) -> np.ndarray:
+    """Per block: whether the darkest point at the centre (index ``ci``, :func:`_half_width`) is a dark line's, darker
+    than the profile ``EDGE_LINE_PX`` to both sides of it by at least ``EDGE_LINE_MIN`` x ``deep`` (the deeper dip
+    below the background); across a step edge the darkness only rises towards its dark side."""
     k = max(int(round(EDGE_LINE_PX * max(scale, 1.0) / PROFILE_STEP_PX)), 1)
     rows = np.arange(len(blocks))
     c = blocks[rows, ci]
@@ -314,7 +312,7 @@ def presence_of_curve(image: np.ndarray, points_uv_px, skeleton_uv_px: np.ndarra
 
     half_px = PROFILE_HALF_PX * max(scale, 0.75)
     offs, prof, blocks, counts = _profiles(img, uv, half_px, scale)
-    width, dip_l, dip_r = _half_width(offs, blocks, scale)
+    width, dip_l, dip_r, ci = _half_width(offs, blocks, scale)
     line = _line_at_centre(half_px, prof, blocks, counts, scale)
     w = counts / counts.sum()                                   # blocks weighted by their arc length
     max_w = max(MAX_WIRE_WIDTH_PX * scale, MIN_WIRE_WIDTH_LIMIT_PX)
@@ -322,7 +320,7 @@ def presence_of_curve(image: np.ndarray, points_uv_px, skeleton_uv_px: np.ndarra
     wide_frac = float(w[wide].sum())
     line_frac = float(w[line].sum())
     deep, shallow = np.maximum(dip_l, dip_r), np.minimum(dip_l, dip_r)
-    edge = (deep > 0) & (shallow <= EDGE_RATIO * deep) & ~_line_on_edge(offs, blocks, deep, scale)
+    edge = (deep > 0) & (shallow <= EDGE_RATIO * deep) & ~_line_on_edge(offs, blocks, ci, deep, scale)
     edge_frac = float(w[edge].sum())
     width_px = float(np.median(width))
 
