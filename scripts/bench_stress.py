@@ -199,6 +199,7 @@ def replay_case(seed: int, args) -> dict:
         records.append(d)
     score(rec, records, load_truth(small), args)
     rec["seconds"] = time.perf_counter() - t0
+    rec["segmented_again"] = session.n_segmented_again
     return rec
 
 
@@ -235,7 +236,8 @@ def main(argv=None) -> int:
                          f"phantom {rec['phantom_exit']}", "YES" if rec["traceback"] else "no",
                          rec.get("registration", "-"), f"{rec['ok']} / {rec['uncertain']} / {rec['failed']}",
                          f"{rec['max_ok_tip_mm']:.1f}" if rec["ok"] else "-", wrong])
-            print(f"  seed {seed}: {rows[-1][5]} ok/uncertain/failed, silently wrong: {wrong}", file=sys.stderr,
+            again = f"; frames segmented again full-frame: {rec['segmented_again']}" if "segmented_again" in rec else ""
+            print(f"  seed {seed}: {rows[-1][5]} ok/uncertain/failed, silently wrong: {wrong}{again}", file=sys.stderr,
                   flush=True)
     print(f"seeds {args.seed0}-{args.seed0 + args.cases - 1}; silently wrong = an ok frame more than "
           f"{args.mean_mm:g} mm off on average or its tip more than {args.tip_mm:g} mm off; machine: "

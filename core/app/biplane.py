@@ -57,7 +57,7 @@ from guidewire3d.reconstruction.smoothing import arclength, curvature
 from guidewire3d.registration import model, problem, search, solve, verdict
 from guidewire3d.registration.result import RegistrationResult, Verdict, _failed
 from guidewire3d.vesseltree import check_access
-from guidewire3d.xray.orderedwire import ordered_wire, tip_end_check
+from guidewire3d.xray.orderedwire import tip_end_check
 from guidewire3d.xray.segmentation import ridge_probability
 
 __all__ = ["ViewFit", "BiplaneRegistration", "register_biplane", "BiplaneFrame", "BiplaneSession",
@@ -730,8 +730,7 @@ class BiplaneSession:
         s = self.sessions[k]
         try:
             img = np.asarray(frame)
-            mask = s.segmenter.segment(img)
-            return ordered_wire(mask, image=img, proximal_hint_uv=s.root_uv_px), img, ""
+            return s.wire2d_of(img), img, ""
         except Guidewire3DError as e:
             return None, None, f"bad frame: {e}"
         except Exception as e:  # noqa: BLE001 - a live session reports a broken frame and goes on

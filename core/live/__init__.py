@@ -29,6 +29,8 @@ from guidewire3d.live.session import (  # noqa: F401
     TIP_SKIP_MAX_PX,
     TIP_STRETCH_MAX_MM,
     TIP_STRETCH_PX,
+    TRACKED_SHRINK_FRACTION,
+    TRACKED_SHRINK_MIN_PX,
     TREE_RETREAT_MAX_MM,
     TREE_RISE_MIN_MM,
     WIRE_MAX_UNCERTAINTY_MM,

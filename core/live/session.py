@@ -128,6 +128,15 @@ TIP_STRETCH_MAX_MM = 4.5
 #: a 2D wire whose distal end is this close to the image border (px) runs out of the view there:
 #: its tip is not seen (it may re-enter the image elsewhere)
 TIP_BORDER_PX = 1.5
+#: the ROI-tracked mask is doubted, and the frame segmented again full-frame
+#: (``GuidewireSegmenter.segment_again_full``), when the wire traced in it is shorter than the previous frame's
+#: by more than ``max(TRACKED_SHRINK_MIN_PX, TRACKED_SHRINK_FRACTION x`` that length), or is not found at all.
+#: The network run on small boxes can lose a faint stretch inside a box that the full frame shows, the wire then
+#: in two pieces too far apart to join: ``bench_stress`` 8112 f4 (a 0.25 mm wire moving 10 mm), 311 px of a
+#: 508 px wire traced, the tip 27 mm off, ``ok``. A wire pulled back at 50 mm/s retracts about 12 px a frame
+#: at 15 frames/s; the full frame then confirms the shorter wire at the cost of one more network pass
+TRACKED_SHRINK_MIN_PX = 24.0
+TRACKED_SHRINK_FRACTION = 0.1
 
 
 @dataclass(frozen=True, eq=False)
@@ -311,6 +320,8 @@ class Session:
         self.track_motion = bool(track_motion)
         self.motion_options = motion_options
         self.n_frames = 0
+        self.n_segmented_again = 0      # frames whose tracked mask was doubted and segmented again full-frame
+        self._last_wire_px = None       # the previous frame's traced 2D wire length
         self.tracker = None
         self._prior_was_ok = False  # the frame whose path is the tracker's prior was reported ok
         self.set_pose(pose, registration_covariance=registration_covariance)
@@ -348,6 +359,7 @@ class Session:
             self._segmenter.reset()
         self.tracker.previous = None
         self._prior_was_ok = False
+        self._last_wire_px = None
         if self.motion_tracker is not None:
             self.motion_tracker.reset()
 
@@ -366,11 +378,7 @@ class Session:
         stages = {}
         try:
             img = np.asarray(frame)
-            mask = self.segmenter.segment(img)
-            t1 = time.perf_counter()
-            stages["segmentation"] = t1 - t0
-            wire2d = ordered_wire(mask, image=img, proximal_hint_uv=self.root_uv_px)
-            stages["ordered_wire"] = time.perf_counter() - t1
+            wire2d = self.wire2d_of(img, stages)
         except Guidewire3DError as e:
             return self._failed(index, None, f"bad frame: {e}", t0, timestamp)
         except Exception as e:  # noqa: BLE001 - a live session reports a broken frame and goes on
@@ -378,6 +386,32 @@ class Session:
             return self._failed(index, None, f"internal error in the 2D analysis: {e.__class__.__name__}: {e}",
                                 t0, timestamp)
         return self._finish(index, wire2d, img, t0, timestamp, stages)
+
+    def wire2d_of(self, img: np.ndarray, stages: dict | None = None) -> OrderedWire:
+        """The frame's ordered 2D wire: the segmenter's mask (ROI-tracked between frames), traced, its
+        proximal end nearest the projected tree root. When the tracked mask's wire is much shorter than
+        the previous frame's, or not found (``TRACKED_SHRINK_*``), the frame is segmented again
+        full-frame and traced in that mask. Adds each stage's seconds to ``stages``."""
+        stages = {} if stages is None else stages
+        seg = self.segmenter
+        seg_s = order_s = 0.0
+        for again in (False, True):
+            t0 = time.perf_counter()
+            mask = seg.segment_again_full(img) if again else seg.segment(img)
+            t1 = time.perf_counter()
+            wire2d = ordered_wire(mask, image=img, proximal_hint_uv=self.root_uv_px)
+            seg_s, order_s = seg_s + t1 - t0, order_s + time.perf_counter() - t1
+            prev = self._last_wire_px
+            if (again or prev is None or getattr(seg, "last_mode", "") not in ("roi", "roi-grown")
+                    or not hasattr(seg, "segment_again_full")
+                    or (wire2d and wire2d.length_px >= prev - max(TRACKED_SHRINK_MIN_PX,
+                                                                  TRACKED_SHRINK_FRACTION * prev))):
+                break
+            self.n_segmented_again += 1
+        stages["segmentation"] = stages.get("segmentation", 0.0) + seg_s
+        stages["ordered_wire"] = stages.get("ordered_wire", 0.0) + order_s
+        self._last_wire_px = float(wire2d.length_px) if wire2d else None
+        return wire2d
 
     def process_wire(self, wire2d, *, image=None, index: int | None = None,
                      timestamp: float = float("nan")) -> FrameResult:

@@ -1226,6 +1226,7 @@ class GuidewireSegmenter:
     _prev_cells: np.ndarray | None = field(default=None, init=False, repr=False)
     _advance_cells: np.ndarray | None = field(default=None, init=False, repr=False)
     _count: int = field(default=0, init=False, repr=False)
+    _before: tuple | None = field(default=None, init=False, repr=False)   # the state before the last frame
     last_mode: str = field(default="", init=False)
 
     def __post_init__(self):
@@ -1241,6 +1242,7 @@ class GuidewireSegmenter:
         self._prev = None
         self._prev_cells = self._advance_cells = None
         self._count = 0
+        self._before = None
         self.last_mode = ""
 
     # --- boxes ------------------------------------------------------------------------------------
@@ -1313,6 +1315,23 @@ class GuidewireSegmenter:
 
     def segment(self, frame) -> np.ndarray:
         """Segment the next frame; returns an (H, W) bool mask (empty when no wire is seen)."""
+        self._before = (self._prev, self._prev_cells, self._advance_cells, self._count)
+        return self._segment(frame, False)
+
+    def segment_again_full(self, frame) -> np.ndarray:
+        """The frame :meth:`segment` was last given, segmented again full-frame, the tracking state
+        taken on from this mask as if the first pass had given it.
+
+        For a caller that doubts the tracked pass's mask: a network run on small boxes sees
+        ``context_px`` around each, and it may lose a faint stretch of wire inside a box that the
+        full frame shows, leaving the wire in two pieces too far apart to join (``bench_stress`` 8112
+        f4: a 0.25 mm wire moving 10 mm, 190 px of its distal part lost, the tip 27 mm off, ``ok``).
+        """
+        if self._before is not None:
+            self._prev, self._prev_cells, self._advance_cells, self._count = self._before
+        return self._segment(frame, True)
+
+    def _segment(self, frame, full: bool) -> np.ndarray:
         a = _as_frame(frame)
         med, spread, degenerate, dark = _frame_stats_dark(a)
         if degenerate:
@@ -1321,7 +1340,7 @@ class GuidewireSegmenter:
             self._count += 1
             return np.zeros(a.shape, bool)
         mask = None
-        force_full = self.full_frame_every and self._count % self.full_frame_every == 0
+        force_full = full or (self.full_frame_every and self._count % self.full_frame_every == 0)
         seg, seg_med, seg_spread, fov = _flattened(a, med, spread)
         if self._prev is not None and self._prev.shape == a.shape and self._prev.any() and not force_full:
             mask = self._tracked(seg, self._prev, (seg_med, seg_spread))
