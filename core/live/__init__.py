@@ -21,6 +21,7 @@ from guidewire3d.live.session import (  # noqa: F401
     BRANCH_SHIFT_MIN_MM,
     HINT_MARGIN_ALONE,
     HINT_MARGIN_MIN,
+    LOOK_AGAIN_PX,
     LOST_LUMEN_STRETCH_MAX_MM,
     LOST_LUMEN_WORDS,
     OFF_LUMEN_MAX_MM,

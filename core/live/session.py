@@ -129,7 +129,7 @@ TIP_STRETCH_MAX_MM = 4.5
 #: its tip is not seen (it may re-enter the image elsewhere)
 TIP_BORDER_PX = 1.5
 #: the ROI-tracked mask is doubted, and the frame segmented again full-frame
-#: (``GuidewireSegmenter.segment_again_full``), when the wire traced in it is shorter than the previous frame's
+#: (``GuidewireSegmenter.segment_again``), when the wire traced in it is shorter than the previous frame's
 #: by more than ``max(TRACKED_SHRINK_MIN_PX, TRACKED_SHRINK_FRACTION x`` that length), or is not found at all.
 #: The network run on small boxes can lose a faint stretch inside a box that the full frame shows, the wire then
 #: in two pieces too far apart to join: ``bench_stress`` 8112 f4 (a 0.25 mm wire moving 10 mm), 311 px of a
@@ -137,6 +137,11 @@ TIP_BORDER_PX = 1.5
 #: at 15 frames/s; the full frame then confirms the shorter wire at the cost of one more network pass
 TRACKED_SHRINK_MIN_PX = 24.0
 TRACKED_SHRINK_FRACTION = 0.1
+#: ... and the tracked pass is run again, looking around the new tip too, when the traced tip moved more than this
+#: from the previous frame's (px): the first pass looked ``segmentation.LOOK_AHEAD_PX`` (32 px) around the old tip
+#: only, and a wire that advanced further may go on beyond a gap there (``bench_stress`` 8318 f1: the wire crossing
+#: its own proximal part 38 px beyond the last tip, the trace stopped at the crossing, the tip 8 mm off, ``ok``)
+LOOK_AGAIN_PX = 16.0
 
 
 @dataclass(frozen=True, eq=False)
@@ -322,6 +327,7 @@ class Session:
         self.n_frames = 0
         self.n_segmented_again = 0      # frames whose tracked mask was doubted and segmented again full-frame
         self._last_wire_px = None       # the previous frame's traced 2D wire length
+        self._last_tip_uv = None        # ... and its distal end, where the next tracked pass also looks
         self.tracker = None
         self._prior_was_ok = False  # the frame whose path is the tracker's prior was reported ok
         self.set_pose(pose, registration_covariance=registration_covariance)
@@ -359,7 +365,7 @@ class Session:
             self._segmenter.reset()
         self.tracker.previous = None
         self._prior_was_ok = False
-        self._last_wire_px = None
+        self._last_wire_px = self._last_tip_uv = None
         if self.motion_tracker is not None:
             self.motion_tracker.reset()
 
@@ -388,29 +394,45 @@ class Session:
         return self._finish(index, wire2d, img, t0, timestamp, stages)
 
     def wire2d_of(self, img: np.ndarray, stages: dict | None = None) -> OrderedWire:
-        """The frame's ordered 2D wire: the segmenter's mask (ROI-tracked between frames), traced, its
-        proximal end nearest the projected tree root. When the tracked mask's wire is much shorter than
-        the previous frame's, or not found (``TRACKED_SHRINK_*``), the frame is segmented again
-        full-frame and traced in that mask. Adds each stage's seconds to ``stages``."""
+        """The frame's ordered 2D wire: the segmenter's mask (ROI-tracked between frames, looking also
+        around the previous frame's tip), traced, its proximal end nearest the projected tree root.
+
+        A tracked mask is doubted (``segmentation.GuidewireSegmenter.segment_again``):
+
+        * when its wire is much shorter than the previous frame's, or not found (``TRACKED_SHRINK_*``):
+          the frame is segmented again full-frame;
+        * when its tip advanced more than ``LOOK_AGAIN_PX`` from the previous frame's: the tracked pass
+          is run again, looking around the new tip too (the wire may go on beyond a gap there).
+
+        Adds each stage's seconds to ``stages``."""
         stages = {} if stages is None else stages
         seg = self.segmenter
+        redo = hasattr(seg, "segment_again")
+        prev_px, prev_tip = self._last_wire_px, self._last_tip_uv
+        look = [] if prev_tip is None or not redo else [prev_tip]
         seg_s = order_s = 0.0
-        for again in (False, True):
+        t0 = time.perf_counter()
+        mask = seg.segment(img, look_uv=look) if look else seg.segment(img)
+        t1 = time.perf_counter()
+        wire2d = ordered_wire(mask, image=img, proximal_hint_uv=self.root_uv_px)
+        seg_s, order_s = t1 - t0, time.perf_counter() - t1
+        again = None
+        if redo and prev_px is not None and getattr(seg, "last_mode", "") in ("roi", "roi-grown"):
+            if not wire2d or wire2d.length_px < prev_px - max(TRACKED_SHRINK_MIN_PX, TRACKED_SHRINK_FRACTION * prev_px):
+                again = {"full": True}
+            elif np.linalg.norm(wire2d.tip_uv_px - prev_tip) > LOOK_AGAIN_PX:
+                again = {"look_uv": look + [wire2d.tip_uv_px]}
+        if again is not None:
             t0 = time.perf_counter()
-            mask = seg.segment_again_full(img) if again else seg.segment(img)
+            mask = seg.segment_again(img, **again)
             t1 = time.perf_counter()
             wire2d = ordered_wire(mask, image=img, proximal_hint_uv=self.root_uv_px)
             seg_s, order_s = seg_s + t1 - t0, order_s + time.perf_counter() - t1
-            prev = self._last_wire_px
-            if (again or prev is None or getattr(seg, "last_mode", "") not in ("roi", "roi-grown")
-                    or not hasattr(seg, "segment_again_full")
-                    or (wire2d and wire2d.length_px >= prev - max(TRACKED_SHRINK_MIN_PX,
-                                                                  TRACKED_SHRINK_FRACTION * prev))):
-                break
             self.n_segmented_again += 1
         stages["segmentation"] = stages.get("segmentation", 0.0) + seg_s
         stages["ordered_wire"] = stages.get("ordered_wire", 0.0) + order_s
         self._last_wire_px = float(wire2d.length_px) if wire2d else None
+        self._last_tip_uv = np.asarray(wire2d.tip_uv_px, float).copy() if wire2d else None
         return wire2d
 
     def process_wire(self, wire2d, *, image=None, index: int | None = None,

@@ -113,6 +113,12 @@ ROI_MAX_FRACTION = 0.6
 # more is a jump, not an advance), grown by ADVANCE_GROW_PX, are in the next frame's first pass
 ADVANCE_MAX_CELLS = 24
 ADVANCE_GROW_PX = 16
+# ... and, given a look point (``GuidewireSegmenter.segment(frame, look_uv=...)``: the live session passes the
+# previous frame's traced tip), the cells within LOOK_AHEAD_PX of it: a wire that advances past a gap in its mask
+# (where it crosses its own proximal part, the catheter) leaves boxes it does not touch, and a wire seen only in
+# boxes around the last mask is never seen beyond that gap (bench_stress 8318 f1-f3: the trace stopped at the
+# crossing while the wire ran on 60-260 px, the tip 8-18 mm off, ok). 32 px holds a gap up to about 24 px
+LOOK_AHEAD_PX = 32
 UNET_CONTEXT_PX = 16               # image context around a one-off box (guidewire_mask, unet_probability)
 # Flat field: an X-ray frame is transmitted intensity, so a wire darkens it by a *fraction* of the local
 # background (Beer-Lambert). Over real chest anatomy (lungs beside the mediastinum and spine) the field of
@@ -1056,6 +1062,19 @@ def cover_boxes(band: np.ndarray, *, cell_px: int = UNET_MULTIPLE, context_px: i
     return _cover_cells(_cells_of(band, int(cell_px)), band.shape, int(cell_px), context_px, call_cost_px)
 
 
+def _cells_near(uv, radius_px: float, shape_cells: tuple[int, int], g: int) -> np.ndarray:
+    """(nh, nw) bool: the ``g`` x ``g`` cells that hold a pixel within ``radius_px`` (max norm) of ``uv``
+    (u, v) px; none when ``uv`` is not finite."""
+    cells = np.zeros(shape_cells, bool)
+    u, v = (float(x) for x in np.asarray(uv, float).reshape(2))
+    if np.isfinite(u) and np.isfinite(v):
+        nh, nw = shape_cells
+        i0, i1 = max(int((v - radius_px) // g), 0), min(int((v + radius_px) // g) + 1, nh)
+        j0, j1 = max(int((u - radius_px) // g), 0), min(int((u + radius_px) // g) + 1, nw)
+        cells[i0:i1, j0:j1] = True
+    return cells
+
+
 def _cells_of(band: np.ndarray, g: int) -> np.ndarray:
     """(ceil(H / g), ceil(W / g)) bool: the ``g`` x ``g`` cells that hold a True pixel of ``band``."""
     h, w = band.shape
@@ -1255,14 +1274,16 @@ class GuidewireSegmenter:
         return SEGMENTERS[self.method].mask(a, stats, None, backend=self.backend, num_threads=self.num_threads,
                                             context_px=self.context_px)
 
-    def _tracked(self, a: np.ndarray, prev: np.ndarray, stats) -> np.ndarray | None:
-        """The mask in boxes around ``prev`` (grown where the wire leaves them), or ``None`` when
-        the frame must be segmented full-frame."""
+    def _tracked(self, a: np.ndarray, prev: np.ndarray, stats, look_uv=None) -> np.ndarray | None:
+        """The mask in boxes around ``prev`` and ``look_uv`` (grown where the wire leaves them), or
+        ``None`` when the frame must be segmented full-frame."""
         g, seg = UNET_MULTIPLE, SEGMENTERS[self.method]
         limit_px = ROI_MAX_FRACTION * a.size
         covered = band_cells(prev, self.roi_margin_px, g)
         if self._advance_cells is not None and self._advance_cells.shape == covered.shape:
             covered = covered | self._advance_cells
+        for uv in () if look_uv is None else np.asarray(look_uv, float).reshape(-1, 2):
+            covered = covered | _cells_near(uv, LOOK_AHEAD_PX, covered.shape, g)
         boxes = self._cover(covered, a.shape)
         area_px = sum((v1 - v0) * (u1 - u0) for u0, v0, u1, v1 in boxes)
         if not boxes or area_px > limit_px:
@@ -1313,25 +1334,31 @@ class GuidewireSegmenter:
                 adv = cv2.dilate(new.view(np.uint8), np.ones((r, r), np.uint8)).view(bool)
         self._prev_cells, self._advance_cells = cells, adv
 
-    def segment(self, frame) -> np.ndarray:
-        """Segment the next frame; returns an (H, W) bool mask (empty when no wire is seen)."""
+    def segment(self, frame, *, look_uv=None) -> np.ndarray:
+        """Segment the next frame; returns an (H, W) bool mask (empty when no wire is seen).
+
+        ``look_uv`` (u, v) px or (n, 2), optional: where the wire may go on beyond what the last mask
+        showed (the previous frame's traced tip); a tracked pass also looks within ``LOOK_AHEAD_PX`` of it."""
         self._before = (self._prev, self._prev_cells, self._advance_cells, self._count)
-        return self._segment(frame, False)
+        return self._segment(frame, False, look_uv)
 
-    def segment_again_full(self, frame) -> np.ndarray:
-        """The frame :meth:`segment` was last given, segmented again full-frame, the tracking state
-        taken on from this mask as if the first pass had given it.
+    def segment_again(self, frame, *, full: bool = False, look_uv=None) -> np.ndarray:
+        """The frame :meth:`segment` was last given, segmented again, the tracking state taken on from
+        this mask as if the first pass had given it: full-frame, or tracked with the look points
+        ``look_uv`` (see :meth:`segment`).
 
-        For a caller that doubts the tracked pass's mask: a network run on small boxes sees
+        For a caller that doubts the tracked pass's mask. A network run on small boxes sees
         ``context_px`` around each, and it may lose a faint stretch of wire inside a box that the
         full frame shows, leaving the wire in two pieces too far apart to join (``bench_stress`` 8112
         f4: a 0.25 mm wire moving 10 mm, 190 px of its distal part lost, the tip 27 mm off, ``ok``).
+        A wire whose tip advanced past the look point may go on beyond a gap the boxes do not reach
+        (``bench_stress`` 8318 f1): look again from the new tip.
         """
         if self._before is not None:
             self._prev, self._prev_cells, self._advance_cells, self._count = self._before
-        return self._segment(frame, True)
+        return self._segment(frame, full, look_uv)
 
-    def _segment(self, frame, full: bool) -> np.ndarray:
+    def _segment(self, frame, full: bool, look_uv=None) -> np.ndarray:
         a = _as_frame(frame)
         med, spread, degenerate, dark = _frame_stats_dark(a)
         if degenerate:
@@ -1343,7 +1370,7 @@ class GuidewireSegmenter:
         force_full = full or (self.full_frame_every and self._count % self.full_frame_every == 0)
         seg, seg_med, seg_spread, fov = _flattened(a, med, spread)
         if self._prev is not None and self._prev.shape == a.shape and self._prev.any() and not force_full:
-            mask = self._tracked(seg, self._prev, (seg_med, seg_spread))
+            mask = self._tracked(seg, self._prev, (seg_med, seg_spread), look_uv)
         if mask is None:
             mask = self._full(seg, (seg_med, seg_spread))
         if mask.any():
