@@ -236,7 +236,7 @@ def main(argv=None) -> int:
                          f"phantom {rec['phantom_exit']}", "YES" if rec["traceback"] else "no",
                          rec.get("registration", "-"), f"{rec['ok']} / {rec['uncertain']} / {rec['failed']}",
                          f"{rec['max_ok_tip_mm']:.1f}" if rec["ok"] else "-", wrong])
-            again = f"; frames segmented again full-frame: {rec['segmented_again']}" if "segmented_again" in rec else ""
+            again = f"; frames segmented again: {rec['segmented_again']}" if "segmented_again" in rec else ""
             print(f"  seed {seed}: {rows[-1][5]} ok/uncertain/failed, silently wrong: {wrong}{again}", file=sys.stderr,
                   flush=True)
     print(f"seeds {args.seed0}-{args.seed0 + args.cases - 1}; silently wrong = an ok frame more than "

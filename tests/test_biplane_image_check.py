@@ -161,3 +161,27 @@ def test_plane_must_be_a_or_b(bcase):
     _, _, truth = _visible(bcase, FRAME)
     with pytest.raises(InputError, match="plane must be 0 .A. or 1 .B."):
         biplane.other_plane_image_support(_images(bcase, FRAME)[0], truth, ctx, 2)
+
+
+@pytest.mark.parametrize("limit_mm", [None, float("inf")])
+def test_a_part_moved_far_from_the_vessel_priors_depth_makes_the_pair_uncertain(monkeypatch, limit_mm):
+    """``bench_biplane`` seed 5 (4 frames), frame 2: plane A's last 50 mm are taken from plane A alone, and the depth
+    search moves them 7.0 mm (median) along plane A's rays into another vessel where plane B's image shows wire: 11 mm
+    off on average, the tip 29 mm off. The image and the CTA tree disagree by more than ``DEPTH_MOVE_MAX_MM``: the pair
+    is ``uncertain``; without that limit it was ``ok``."""
+    if limit_mm is not None:
+        monkeypatch.setattr(biplane, "DEPTH_MOVE_MAX_MM", limit_mm)
+    case = simulate(PhantomOptions(seed=5, n_frames=4, biplane=True), make_ct=False)
+    s = biplane.BiplaneSession(case.tree, (case.carm, case.heldout_carm), case.pose, threads=1)
+    pairs = [s.process(case.frames[t], case.heldout_frames[t], index=t) for t in range(3)]
+    r = pairs[2].result
+    t = 2
+    seen = case.carm.in_image(case.wire_uv_px[t]) | case.heldout_carm.in_image(case.heldout_wire_uv_px[t])
+    e = metrics.wire_errors_mm(r.wire3d.points_lps_mm, np.asarray(case.wire_lps_mm[t])[seen])
+    assert e["mean_error_mm"] > 5.0 and e["tip_error_mm"] > 10.0          # the moved part is wrong
+    assert "read in plane B's image (moved" in r.message
+    if limit_mm is None:
+        assert r.verdict.value == "uncertain"
+        assert "the image and the CTA tree disagree on its depth" in r.message
+    else:
+        assert r.verdict.value == "ok"                                      # silently wrong

@@ -16,12 +16,29 @@ from guidewire3d.live import session as live
 from guidewire3d.phantom import PhantomOptions, simulate
 
 
+def _run(look: bool):
+    from guidewire3d.xray import segmentation
+
+    case = simulate(PhantomOptions(seed=0, n_frames=30, breathing_mm=15, cardiac_mm=2), make_ct=False)
+    with pytest.MonkeyPatch.context() as mp:
+        if not look:   # the tracked segmentation as before stop 50: no look around the last tip
+            mp.setattr(segmentation, "LOOK_AHEAD_PX", 0)
+            mp.setattr(live, "LOOK_AGAIN_PX", float("inf"))
+        s = live.Session(case.tree, case.carm, case.pose, track_motion=True)
+        s.warm_up(case.frames[0])
+        return case, [s.process(f) for f in case.frames[:24]]  # as bench_motion runs it: 30 frames simulated
+
+
 @pytest.fixture(scope="module")
 def tracked():
-    case = simulate(PhantomOptions(seed=0, n_frames=30, breathing_mm=15, cardiac_mm=2), make_ct=False)
-    s = live.Session(case.tree, case.carm, case.pose, track_motion=True)
-    s.warm_up(case.frames[0])
-    return case, [s.process(f) for f in case.frames[:24]]  # as bench_motion runs it: 30 frames simulated
+    """The sequence with the tracked segmentation of before stop 50, whose trace stops at the bend in frames 16-17."""
+    return _run(look=False)
+
+
+@pytest.fixture(scope="module")
+def tracked_looking():
+    """The sequence as shipped: the tracked pass also looks around the last tip (``segmentation.LOOK_AHEAD_PX``)."""
+    return _run(look=True)
 
 
 def _seen_tip_off_mm(case, t, fr) -> float:
@@ -43,4 +60,16 @@ def test_no_ok_frame_of_the_sequence_has_its_tip_far_off(tracked):
     case, frames = tracked
     ok = [t for t, fr in enumerate(frames) if fr.verdict.value == "ok"]
     assert len(ok) >= 5  # frames 1, 18-21 and 23: right tips
+    assert max(_seen_tip_off_mm(case, t, frames[t]) for t in ok) < 5.0
+
+
+def test_looking_around_the_last_tip_the_trace_reaches_the_tip_beyond_the_bend(tracked_looking):
+    """Shipped: the tracked pass looks around the previous frame's tip and sees the wire beyond the bend: frame 17 is
+    traced to its seen tip and ``ok`` (16.3 mm short before); frame 16 stays short and ``uncertain`` (the dark line
+    beyond its tip); no ok frame of the sequence is far off."""
+    case, frames = tracked_looking
+    assert frames[17].verdict.value == "ok" and _seen_tip_off_mm(case, 17, frames[17]) < 2.0
+    assert frames[16].verdict.value == "uncertain"
+    ok = [t for t, fr in enumerate(frames) if fr.verdict.value == "ok"]
+    assert len(ok) >= 6
     assert max(_seen_tip_off_mm(case, t, frames[t]) for t in ok) < 5.0

@@ -129,9 +129,13 @@ IMAGE_CHECK_EDGE_PX = 8.0  # ... inside: this far from the image border
 # the response, minus the lumen penalty ((distance outside the CTA lumen) / DEPTH_LUMEN_MM)^2, minus a smoothness cost
 # DEPTH_SMOOTH x (offset change per mm of wire)^2, with the change capped at DEPTH_MAX_SLOPE per mm. The part is moved
 # when the chosen offsets show wire (response >= IMAGE_CHECK_RIDGE) along at least DEPTH_MIN_SHOWN of its samples
-# inside that image; past the image the last offset is kept. The frame's verdict is not changed: it is the one-plane
-# part's (``_one_plane_distal_reasons``, ``_other_plane_image_reasons``), judged before the move, so a pair that part
-# made ``uncertain`` stays so (the move is geometry, not evidence the verdict weighs).
+# inside that image; past the image the last offset is kept. The frame's verdict is the one-plane part's
+# (``_one_plane_distal_reasons``, ``_other_plane_image_reasons``), judged before the move, so a pair that part made
+# ``uncertain`` stays so; and a move of more than DEPTH_MOVE_MAX_MM (median over the part) makes the pair
+# ``uncertain``: the image and the vessel prior then disagree on the part's depth, and either may be the wrong one.
+# On the two real-anatomy draws (true pose) the 12 ok pairs moved 0.0-2.2 mm (the uncertain ones up to 8.1 mm);
+# in the simulator's bench_biplane seed 5 frame 2 a 7.0 mm move took the part into another vessel where plane B's image
+# shows wire, 11 mm off on average with the tip 29 mm off, and the pair was ``ok``.
 DEPTH_SEARCH_MM = 20.0
 DEPTH_STEP_MM = 0.25
 DEPTH_SAMPLE_MM = 1.0
@@ -139,6 +143,7 @@ DEPTH_LUMEN_MM = 1.0
 DEPTH_SMOOTH = 0.5
 DEPTH_MAX_SLOPE = 1.0
 DEPTH_MIN_SHOWN = 0.8
+DEPTH_MOVE_MAX_MM = 3.0
 
 
 # ============================================================================================
@@ -811,6 +816,13 @@ class BiplaneSession:
                 if len(offsets):
                     tv, w3 = moved, moved.wire3d
                     message = f"{message}; {w3.message.rsplit('; ', 1)[-1]}"
+                    move_mm = float(np.median(np.abs(offsets)))
+                    if move_mm > DEPTH_MOVE_MAX_MM:
+                        verdict = Verdict.UNCERTAIN
+                        message = (f"distal part from plane {PLANES[tv.distal_plane]} alone: its depth read in plane "
+                                   f"{PLANES[1 - tv.distal_plane]}'s image lies {move_mm:.1f} mm (median) from the "
+                                   f"vessel prior's (limit {DEPTH_MOVE_MAX_MM:g} mm): the image and the CTA tree "
+                                   f"disagree on its depth; {message}")
                 fr = FrameResult(index, wires[0], w3, verdict, message, ori, time.perf_counter() - t0, float("nan"),
                                  self.pose, motion)
                 return BiplaneFrame(fr, "AB", "", wires[1], tv.projection_error_px, index_b, fr.seconds)
