@@ -300,7 +300,9 @@ class Session:
     segmenter : str, segmentation.SegMethod or a segmenter object
         ``"unet"`` (default) or ``"ridge"``: a ``segmentation.GuidewireSegmenter`` created on first
         use (a session fed 2D wires only, e.g. the viewer's *apply*, never loads a network); or an
-        object with ``segment(frame) -> mask`` and ``reset()``.
+        object with ``segment(frame) -> mask`` and ``reset()`` (one that also has
+        ``segment(frame, look_uv=...)``, ``segment_again(frame, full=..., look_uv=...)`` and ``last_mode``,
+        as ``GuidewireSegmenter`` has, gets its tracked masks doubted: :meth:`wire2d_of`).
     method : str or reconstruction.ReconMethod
         3D reconstruction method (default ``"vessel"``).
     track_motion : bool
@@ -325,7 +327,7 @@ class Session:
         self.track_motion = bool(track_motion)
         self.motion_options = motion_options
         self.n_frames = 0
-        self.n_segmented_again = 0      # frames whose tracked mask was doubted and segmented again full-frame
+        self.n_segmented_again = 0      # frames whose tracked mask was doubted and segmented again (wire2d_of)
         self._last_wire_px = None       # the previous frame's traced 2D wire length
         self._last_tip_uv = None        # ... and its distal end, where the next tracked pass also looks
         self.tracker = None
