@@ -114,5 +114,6 @@ def test_a_two_view_wires_distal_part_from_one_plane_keeps_that_views_promise():
     why = _one_plane_distal_reasons(tv(deep, single), (carm, carm))
     assert "known to 3.0 mm" in why and "2D trace doubtful" not in why
     # the single-view wire's own depth over its whole length (the two views settle its proximal part) is left out
-    wide = SimpleNamespace(**{**vars(single), "uncertainty_mm": np.full(50, 3.0)})
+    # (its tip within the tip's own limit, live.TIP_MAX_UNCERTAINTY_MM, 2.25 mm since stop 50)
+    wide = SimpleNamespace(**{**vars(single), "uncertainty_mm": np.r_[np.full(49, 3.0), 2.0]})
     assert _one_plane_distal_reasons(tv(two, wide), (carm, carm)) == ""
