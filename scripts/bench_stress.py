@@ -39,7 +39,8 @@ REASONS = {"tip end": "tip end uncertain", "beyond tip": "tip uncertain: a wire-
            "path changed": "path changed", "off lumen": "wire off its vessel",
            "wire sigma": "wire depth uncertain", "one-plane distal": "distal part from plane",
            "lost lumen": "centerline tree does not follow", "tip fork": "mask forks",
-           "tip skip": "reaches the tip's vessel by a skip"}
+           "tip skip": "reaches the tip's vessel by a skip",
+           "tip slide": "passes through the lumen of"}
 
 
 def options_of(seed: int, draws: str = "standard") -> list[str]:

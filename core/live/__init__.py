@@ -16,6 +16,7 @@ from guidewire3d.live.continuation import (  # noqa: F401
     downstream_paths,
     wire_continuation,
 )
+from guidewire3d.live.tipslide import SLIDE_CLEARANCE_MM, SLIDE_MAX_MM, tip_slide_mm  # noqa: F401
 from guidewire3d.live.session import (  # noqa: F401
     BRANCH_EXTRA_MAX,
     BRANCH_SHIFT_MIN_MM,

@@ -33,6 +33,7 @@ import numpy as np
 from guidewire3d import kernels, reconstruction
 from guidewire3d.errors import Guidewire3DError
 from guidewire3d.live.continuation import wire_continuation
+from guidewire3d.live.tipslide import tip_slide_mm
 from guidewire3d.geometry import CArm, Pose, fine_pixel_factor
 from guidewire3d.motion.tracking import MotionTracker
 from guidewire3d.registration import Verdict
@@ -61,7 +62,10 @@ TREE_RISE_MIN_MM = 5.0
 #: true tree, correct tips stay below 2 mm). An ``ok`` frame promises its tip within 5 mm, about 2.2 x this.
 #: It was 3 mm until stop 50: of the ``ok`` frames with a tip 1 sigma of 2.25-3 mm, 3 of 6 were more than
 #: 5 mm off (``bench_stress`` 7808 f4, 2.95 mm, 5.8 mm off; 8509 f4, 2.41 mm, 5.75 mm off; one simulated
-#: frame at the true pose), against 0 of the 4 at 2-2.25 mm and 10 of 591 (other causes) below 1.5 mm
+#: frame at the true pose), against 0 of the 4 at 2-2.25 mm and 10 of 591 (other causes) below 1.5 mm.
+#: Since stop 51 the tip's uncertainty *along* its vessel counts too (``frame_verdict``'s ``tip_slide_mm``): the
+#: stretch of vessel through whose lumen the 2D tip's ray passes (``live.tipslide``), any point of which
+#: projects onto the tip, as a uniform spread (its length / sqrt 12), added in quadrature
 TIP_MAX_UNCERTAINTY_MM = 2.25
 #: a path through the vessel tree that walks back towards the root by more than this (mm) along the
 #: wire (``Wire3D.tree_retreat_mm``) does not follow the wire: the 2D trace took the wrong way at a
@@ -502,6 +506,12 @@ class Session:
             continuation = wire_continuation(image, self.tree, self.carm, self.pose, int(on_tree[-1]),
                                              uv[::-1] if w3.reversed_input else uv)
             stages["reconstruction"] = stages.get("reconstruction", 0.0) + time.perf_counter() - t1
+        slide_mm = None
+        if self.method == "vessel" and len(on_tree):  # the lumen the tip's ray passes through, along the vessel
+            t1 = time.perf_counter()
+            slide_mm = tip_slide_mm(self.tree, self.carm, self.pose, uv[0] if w3.reversed_input else uv[-1],
+                                    int(on_tree[-1]))
+            stages["reconstruction"] = stages.get("reconstruction", 0.0) + time.perf_counter() - t1
         doubled = None
         if image is not None and image.ndim == 2:    # two layers of wire at the output's tip (a fold before
             t1 = time.perf_counter()                 # it), or none (the trace runs past the wire's end)
@@ -510,7 +520,8 @@ class Session:
         verdict, message = frame_verdict(w3, uv, ori, beyond_tip=beyond_tip, doubled_tip=doubled,
                                          tip_fork=getattr(wire2d, "tip_fork", None),
                                          motion=motion, image_shape=self.carm.shape, continuation=continuation,
-                                         prior_was_ok=self._prior_was_ok, pixel_at_iso_mm=self.carm.pixel_at_iso_mm)
+                                         prior_was_ok=self._prior_was_ok, pixel_at_iso_mm=self.carm.pixel_at_iso_mm,
+                                         tip_slide_mm=slide_mm)
         self._prior_was_ok = verdict is Verdict.OK      # the tracker's prior is now this frame's path
         return FrameResult(index, wire2d, w3, verdict, message, ori, time.perf_counter() - t0, timestamp,
                            self.pose, motion, stages)
@@ -523,7 +534,7 @@ class Session:
 
 def frame_verdict(wire3d, wire_uv_px, orientation, *, beyond_tip=None, motion=None, image_shape=None,
                   continuation=None, doubled_tip=None, tip_fork=None, prior_was_ok: bool = False,
-                  pixel_at_iso_mm: float | None = None):
+                  pixel_at_iso_mm: float | None = None, tip_slide_mm: float | None = None):
     """``(Verdict, message)`` of a frame with a 3D wire: ``OK`` with the reconstruction's message,
     or ``UNCERTAIN`` with every reason that applies, the first first:
 
@@ -541,7 +552,10 @@ def frame_verdict(wire3d, wire_uv_px, orientation, *, beyond_tip=None, motion=No
     * the tip's vessel runs along the beam: the wire's last px span many mm in 3D
       (``TIP_STRETCH_MAX_MM``; over ``TIP_STRETCH_PX`` at the reference pixel, widened to as many mm on a
       view finer than that, ``pixel_at_iso_mm``; None: ``TIP_STRETCH_PX`` as it is);
-    * the tip's uncertainty exceeds ``TIP_MAX_UNCERTAINTY_MM``;
+    * the tip's uncertainty exceeds ``TIP_MAX_UNCERTAINTY_MM``: its 1 sigma across the wire
+      (``Wire3D.uncertainty_mm[-1]``) and along it, ``tip_slide_mm`` / sqrt 12 (``tip_slide_mm``: the stretch of
+      vessel through whose lumen the 2D tip's ray passes, ``live.tipslide.tip_slide_mm``; None: not measured),
+      in quadrature;
     * the wire's points are known to worse than ``WIRE_MAX_UNCERTAINTY_MM`` (their median 1 sigma,
       ``wire_uncertainty_mm``): one view does not place a wire in depth inside a wide lumen;
     * the path through the tree walks back towards the root (``TREE_RETREAT_MAX_MM``);
@@ -591,9 +605,14 @@ def frame_verdict(wire3d, wire_uv_px, orientation, *, beyond_tip=None, motion=No
                    f"its last {stretch_px:.3g} px (limit {TIP_STRETCH_MAX_MM:g} mm), so a tip a pixel off in 2D "
                    f"lies mm off in 3D")
     tip_sigma_mm = float(wire3d.uncertainty_mm[-1]) if len(wire3d.uncertainty_mm) else 0.0
-    if tip_sigma_mm > TIP_MAX_UNCERTAINTY_MM:
-        why.append(f"tip uncertain: its position is known to {tip_sigma_mm:.1f} mm (1 sigma, limit "
-                   f"{TIP_MAX_UNCERTAINTY_MM:g} mm); {wire3d.message}")
+    along_mm = float(tip_slide_mm) / math.sqrt(12.0) if tip_slide_mm is not None else 0.0
+    tip_total_mm = math.hypot(tip_sigma_mm, along_mm)
+    if tip_total_mm > TIP_MAX_UNCERTAINTY_MM:
+        parts = (f" ({tip_sigma_mm:.1f} mm across the wire, {along_mm:.1f} mm along its vessel: the tip's ray passes "
+                 f"through the lumen of {tip_slide_mm:.1f} mm of it, where one view does not see the wire's end)"
+                 if along_mm > 0 else "")
+        why.append(f"tip uncertain: its position is known to {tip_total_mm:.1f} mm (1 sigma, limit "
+                   f"{TIP_MAX_UNCERTAINTY_MM:g} mm){parts}; {wire3d.message}")
     wire_sigma_mm = wire_uncertainty_mm(wire3d)
     if wire_sigma_mm > WIRE_MAX_UNCERTAINTY_MM:
         why.append(f"wire depth uncertain: its points are known to {wire_sigma_mm:.1f} mm (median 1 sigma, limit "
