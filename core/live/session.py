@@ -40,6 +40,7 @@ from guidewire3d.registration import Verdict
 from guidewire3d.vesseltree import VesselTree
 from guidewire3d.xray import segmentation
 from guidewire3d.xray.orderedwire import OrderedWire, ordered_wire, tip_end_check
+from guidewire3d.xray.wirepresence import catheter_end
 
 __all__ = ["Orientation", "FrameResult", "Session", "orientation_of", "frame_verdict", "tip_stretch_mm",
            "wire_uncertainty_mm"]
@@ -512,6 +513,11 @@ class Session:
             slide_mm = tip_slide_mm(self.tree, self.carm, self.pose, uv[0] if w3.reversed_input else uv[-1],
                                     int(on_tree[-1]))
             stages["reconstruction"] = stages.get("reconstruction", 0.0) + time.perf_counter() - t1
+        cath = None
+        if image is not None and image.ndim == 2:    # the trace ends on a catheter (the wire beyond it not seen)
+            t1 = time.perf_counter()
+            cath = catheter_end(image, uv, self.carm.pixel_at_iso_mm, at_end=not w3.reversed_input)
+            stages["reconstruction"] = stages.get("reconstruction", 0.0) + time.perf_counter() - t1
         doubled = None
         if image is not None and image.ndim == 2:    # two layers of wire at the output's tip (a fold before
             t1 = time.perf_counter()                 # it), or none (the trace runs past the wire's end)
@@ -521,7 +527,7 @@ class Session:
                                          tip_fork=getattr(wire2d, "tip_fork", None),
                                          motion=motion, image_shape=self.carm.shape, continuation=continuation,
                                          prior_was_ok=self._prior_was_ok, pixel_at_iso_mm=self.carm.pixel_at_iso_mm,
-                                         tip_slide_mm=slide_mm)
+                                         tip_slide_mm=slide_mm, catheter_end=cath)
         self._prior_was_ok = verdict is Verdict.OK      # the tracker's prior is now this frame's path
         return FrameResult(index, wire2d, w3, verdict, message, ori, time.perf_counter() - t0, timestamp,
                            self.pose, motion, stages)
@@ -534,7 +540,7 @@ class Session:
 
 def frame_verdict(wire3d, wire_uv_px, orientation, *, beyond_tip=None, motion=None, image_shape=None,
                   continuation=None, doubled_tip=None, tip_fork=None, prior_was_ok: bool = False,
-                  pixel_at_iso_mm: float | None = None, tip_slide_mm: float | None = None):
+                  pixel_at_iso_mm: float | None = None, tip_slide_mm: float | None = None, catheter_end=None):
     """``(Verdict, message)`` of a frame with a 3D wire: ``OK`` with the reconstruction's message,
     or ``UNCERTAIN`` with every reason that applies, the first first:
 
@@ -546,6 +552,8 @@ def frame_verdict(wire3d, wire_uv_px, orientation, *, beyond_tip=None, motion=No
       over itself (or runs on under its own projection) before its true tip (``doubled_tip``:
       ``orderedwire.DoubledTip``, of the output's tip end); or barely darker than the background, the
       trace runs past the wire's end (``doubled_tip`` an ``orderedwire.BareTip``);
+    * the traced end is as wide as a catheter (``catheter_end``: ``wirepresence.CatheterEnd``,
+      ``CATHETER_END_MIN_MM``): the trace is the catheter's, the wire beyond it not seen;
     * the wire's mask forks just before the traced tip into a second end (``tip_fork``:
       ``orderedwire.TipFork``): a tip bent back, whose true end may be at the other branch;
     * the wire runs out of the image (``image_shape``, rows and cols) at its distal end;
@@ -592,6 +600,8 @@ def frame_verdict(wire3d, wire_uv_px, orientation, *, beyond_tip=None, motion=No
         why.append(doubled_tip.explain())
     if tip_fork is not None and not reversed_:        # the trace took one of two ends
         why.append(tip_fork.explain())
+    if catheter_end is not None:                      # the trace is the catheter's: the wire beyond it is not seen
+        why.append(catheter_end.explain())
     distal_uv = uv[0] if reversed_ else uv[-1]         # the output's tip, in 2D
     if image_shape is not None and len(uv) and _at_border(distal_uv, image_shape):
         why.append(f"tip not in view: the wire runs out of the image at its distal end "

@@ -43,8 +43,9 @@ from dataclasses import dataclass
 import numpy as np
 from guidewire3d import kernels
 from guidewire3d.errors import InputError
+from guidewire3d.metrics import resample_polyline
 
-__all__ = ["WirePresence", "wire_presence", "presence_of_curve"]
+__all__ = ["WirePresence", "wire_presence", "presence_of_curve", "CatheterEnd", "catheter_end"]
 
 REFERENCE_SIZE_PX = 512.0         # lengths below are for a frame of this size; they scale with it
 BLOCK_PX = 16                     # arc length over which profiles are averaged (noise)
@@ -347,3 +348,64 @@ def presence_of_curve(image: np.ndarray, points_uv_px, skeleton_uv_px: np.ndarra
     else:
         return WirePresence(True, "guidewire", **ev)
     return WirePresence(False, f"no guidewire: {why}", **ev)
+
+
+# A traced wire that ends on a catheter. Where the wire beyond a guiding catheter is too faint for the segmenter (a
+# 0.25 mm wire), the trace is the catheter alone and its end the catheter's tip: ``bench_stress`` 9103, 6 frames
+# ``ok`` with the tip 30-50 mm short (the wire 0.4 mm right as far as it went). The distal end's half-depth width
+# (:func:`_half_width`, in mm at the isocentre, the narrower of the last two blocks of ``BLOCK_PX``) tells a catheter
+# (4F-6F, 1.3-2 mm; 9103: 1.8-2.1 mm) from a guidewire (at most 0.97 mm, 0.038"). On the ``ok`` frames of 128
+# ``bench_stress`` cases (seeds 8700-8723, 8800-8815 wide, 8900-8939, 9000-9023 wide, 9100-9123; 432 frames, every
+# wire diameter) the right ones measured at most 1.01 mm (0.89 mm wires), 9103's 1.78-2.13 mm.
+CATHETER_END_MIN_MM = 1.3
+
+
+@dataclass(frozen=True)
+class CatheterEnd:
+    """A traced wire whose distal end is as wide as a catheter (``width_mm``, half-depth, mm at the isocentre)."""
+
+    width_mm: float
+
+    def explain(self) -> str:
+        return (f"tip uncertain: the traced end is {self.width_mm:.1f} mm wide, a catheter's, not a guidewire's (at "
+                f"most {CATHETER_END_MIN_MM:g} mm): the wire, if it runs on beyond the catheter, is not seen there")
+
+
+def distal_width_mm(image, points_uv_px, pixel_at_iso_mm: float, *, at_end: bool = True) -> float:
+    """The half-depth width (mm at the isocentre) of the dark line at a traced wire's distal end: the narrower of
+    its last two blocks of ``BLOCK_PX`` px (the curve resampled at 1 px); NaN for a curve shorter than that.
+
+    Parameters
+    ----------
+    image : (H, W) array_like
+        The frame (the wire darker than the background).
+    points_uv_px : (N, 2) array_like of float
+        The traced wire, ordered proximal -> distal (``at_end``; else distal -> proximal).
+    pixel_at_iso_mm : float
+        The view's pixel size at the isocentre (``CArm.pixel_at_iso_mm``).
+    """
+    img = np.asarray(image)
+    if img.ndim != 2:
+        return float("nan")
+    if img.dtype.kind not in "fiu":
+        img = img.astype(np.float64)
+    uv = np.asarray(points_uv_px, dtype=np.float64).reshape(-1, 2)
+    if not at_end:
+        uv = uv[::-1]
+    scale = max(img.shape) / REFERENCE_SIZE_PX
+    block = max(int(round(BLOCK_PX * scale)), 4)
+    if len(uv) < 2:
+        return float("nan")
+    uv = resample_polyline(uv[::-1], 1.0)[: 2 * block + 1][::-1]         # the last 2 blocks, 1 px apart
+    if len(uv) < 2 * block:
+        return float("nan")
+    offs, _, blocks, _ = _profiles(img, uv, PROFILE_HALF_PX * max(scale, 0.75), scale)
+    width, *_ = _half_width(offs, blocks, scale)
+    return float(width.min() * pixel_at_iso_mm)
+
+
+def catheter_end(image, points_uv_px, pixel_at_iso_mm: float, *, at_end: bool = True) -> CatheterEnd | None:
+    """A :class:`CatheterEnd` when the traced wire's distal end (:func:`distal_width_mm`) is wider than
+    ``CATHETER_END_MIN_MM``, else None."""
+    w = distal_width_mm(image, points_uv_px, pixel_at_iso_mm, at_end=at_end)
+    return CatheterEnd(w) if w > CATHETER_END_MIN_MM else None
