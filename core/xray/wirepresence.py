@@ -396,7 +396,10 @@ def distal_width_mm(image, points_uv_px, pixel_at_iso_mm: float, *, at_end: bool
     block = max(int(round(BLOCK_PX * scale)), 4)
     if len(uv) < 2:
         return float("nan")
-    uv = resample_polyline(uv[::-1], 1.0)[: 2 * block + 1][::-1]         # the last 2 blocks, 1 px apart
+    back = uv[::-1]                                                      # tip first
+    s_px = np.cumsum(np.linalg.norm(np.diff(back, axis=0), axis=1))
+    back = back[: int(np.searchsorted(s_px, 2 * block + 1)) + 2]         # the last 2 blocks and a px ...
+    uv = resample_polyline(back, 1.0)[: 2 * block + 1][::-1]             # ... 1 px apart, tip last
     if len(uv) < 2 * block:
         return float("nan")
     offs, _, blocks, _ = _profiles(img, uv, PROFILE_HALF_PX * max(scale, 0.75), scale)
