@@ -3,7 +3,8 @@
 Where the wire beyond a guiding catheter is too faint for the segmenter (a 0.25 mm wire), the trace is the catheter
 alone and its end the catheter's tip (``bench_stress`` 9103: six frames ``ok`` with the tip 30-50 mm short).
 ``wirepresence.catheter_end`` measures the traced end's half-depth width in mm at the isocentre; wider than
-``CATHETER_END_MIN_MM`` (1.3 mm; a guidewire is at most 0.97 mm) the frame is ``uncertain``.
+``CATHETER_END_MIN_MM`` (1.3 mm; a guidewire is at most 0.97 mm) and than ``CATHETER_END_MIN_PX`` (6 px: blur alone
+widens a line by about 2 px) the frame is ``uncertain``.
 """
 from __future__ import annotations
 
@@ -45,6 +46,11 @@ def test_the_distal_width_is_the_lines_half_depth_width_in_mm(width_px, catheter
     assert (end is not None) is catheter
     if catheter:
         assert end.explain().startswith(f"tip uncertain: the traced end is {w:.1f} mm wide, a catheter's")
+    # at a coarse pixel (0.45 mm at the isocentre, as on the real-anatomy frames) a 4 px line is 1.8 mm wide, but
+    # no wider than blur makes a guidewire: not a catheter
+    assert wirepresence.catheter_end(*_band_frame(4.0), 0.45) is None
+    if catheter:                                            # 9-10 px: wider than blur makes any guidewire
+        assert wirepresence.catheter_end(img, uv, 0.45) is not None
     # a curve shorter than two blocks (BLOCK_PX scaled to the frame: 8 px here) is not measured
     assert np.isnan(wirepresence.distal_width_mm(img, uv[:10], 0.2))
 

@@ -356,8 +356,12 @@ def presence_of_curve(image: np.ndarray, points_uv_px, skeleton_uv_px: np.ndarra
 # (:func:`_half_width`, in mm at the isocentre, the narrower of the last two blocks of ``BLOCK_PX``) tells a catheter
 # (4F-6F, 1.3-2 mm; 9103: 1.8-2.1 mm) from a guidewire (at most 0.97 mm, 0.038"). On the ``ok`` frames of 128
 # ``bench_stress`` cases (seeds 8700-8723, 8800-8815 wide, 8900-8939, 9000-9023 wide, 9100-9123; 432 frames, every
-# wire diameter) the right ones measured at most 1.01 mm (0.89 mm wires), 9103's 1.78-2.13 mm.
+# wire diameter) the right ones measured at most 1.01 mm (0.89 mm wires), 9103's 1.78-2.13 mm. In px the width has a
+# floor, the blur (about 2 px at any pixel size) and the sampling: on the real-anatomy frames of
+# ``diagnose_real_frames.py`` (0.37-0.45 mm a pixel at the isocentre) a 0.89 mm wire's end measures 2.5-4.5 px, 1.0-1.8
+# mm; a catheter's end must also be wider than ``CATHETER_END_MIN_PX`` (9103: 8-9 px).
 CATHETER_END_MIN_MM = 1.3
+CATHETER_END_MIN_PX = 6.0
 
 
 @dataclass(frozen=True)
@@ -368,7 +372,8 @@ class CatheterEnd:
 
     def explain(self) -> str:
         return (f"tip uncertain: the traced end is {self.width_mm:.1f} mm wide, a catheter's, not a guidewire's (at "
-                f"most {CATHETER_END_MIN_MM:g} mm): the wire, if it runs on beyond the catheter, is not seen there")
+                f"most {CATHETER_END_MIN_MM:g} mm), or the wire's end lost in a wider dark structure: the wire, if it "
+                f"runs on beyond it, is not seen there")
 
 
 def distal_width_mm(image, points_uv_px, pixel_at_iso_mm: float, *, at_end: bool = True) -> float:
@@ -409,6 +414,6 @@ def distal_width_mm(image, points_uv_px, pixel_at_iso_mm: float, *, at_end: bool
 
 def catheter_end(image, points_uv_px, pixel_at_iso_mm: float, *, at_end: bool = True) -> CatheterEnd | None:
     """A :class:`CatheterEnd` when the traced wire's distal end (:func:`distal_width_mm`) is wider than
-    ``CATHETER_END_MIN_MM``, else None."""
+    ``CATHETER_END_MIN_MM`` and than ``CATHETER_END_MIN_PX`` (blur alone widens a line by about 2 px), else None."""
     w = distal_width_mm(image, points_uv_px, pixel_at_iso_mm, at_end=at_end)
-    return CatheterEnd(w) if w > CATHETER_END_MIN_MM else None
+    return CatheterEnd(w) if w > CATHETER_END_MIN_MM and w > CATHETER_END_MIN_PX * pixel_at_iso_mm else None
