@@ -552,8 +552,8 @@ def frame_verdict(wire3d, wire_uv_px, orientation, *, beyond_tip=None, motion=No
       over itself (or runs on under its own projection) before its true tip (``doubled_tip``:
       ``orderedwire.DoubledTip``, of the output's tip end); or barely darker than the background, the
       trace runs past the wire's end (``doubled_tip`` an ``orderedwire.BareTip``);
-    * the traced end is as wide as a catheter (``catheter_end``: ``wirepresence.CatheterEnd``,
-      ``CATHETER_END_MIN_MM``): the trace is the catheter's, the wire beyond it not seen;
+    * the traced end is as wide as a catheter (``catheter_end``: ``wirepresence.CatheterEnd``, wider than
+      ``CATHETER_END_MIN_MM`` and ``CATHETER_END_MIN_PX``): the trace is the catheter's, the wire beyond it not seen;
     * the wire's mask forks just before the traced tip into a second end (``tip_fork``:
       ``orderedwire.TipFork``): a tip bent back, whose true end may be at the other branch;
     * the wire runs out of the image (``image_shape``, rows and cols) at its distal end;

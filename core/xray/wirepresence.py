@@ -45,7 +45,7 @@ from guidewire3d import kernels
 from guidewire3d.errors import InputError
 from guidewire3d.metrics import resample_polyline
 
-__all__ = ["WirePresence", "wire_presence", "presence_of_curve", "CatheterEnd", "catheter_end"]
+__all__ = ["WirePresence", "wire_presence", "presence_of_curve", "CatheterEnd", "catheter_end", "distal_width_mm"]
 
 REFERENCE_SIZE_PX = 512.0         # lengths below are for a frame of this size; they scale with it
 BLOCK_PX = 16                     # arc length over which profiles are averaged (noise)
