@@ -513,14 +513,12 @@ class Session:
             slide_mm = tip_slide_mm(self.tree, self.carm, self.pose, uv[0] if w3.reversed_input else uv[-1],
                                     int(on_tree[-1]))
             stages["reconstruction"] = stages.get("reconstruction", 0.0) + time.perf_counter() - t1
-        cath = None
-        if image is not None and image.ndim == 2:    # the trace ends on a catheter (the wire beyond it not seen)
+        cath = doubled = None
+        if image is not None and image.ndim == 2:    # the image at the output's tip:
             t1 = time.perf_counter()
+            # the trace ends on a catheter (the wire beyond it not seen)
             cath = catheter_end(image, uv, self.carm.pixel_at_iso_mm, at_end=not w3.reversed_input)
-            stages["reconstruction"] = stages.get("reconstruction", 0.0) + time.perf_counter() - t1
-        doubled = None
-        if image is not None and image.ndim == 2:    # two layers of wire at the output's tip (a fold before
-            t1 = time.perf_counter()                 # it), or none (the trace runs past the wire's end)
+            # two layers of wire (a fold before the tip), or none (the trace runs past the wire's end)
             doubled = tip_end_check(image, uv, at_end=not w3.reversed_input)
             stages["reconstruction"] = stages.get("reconstruction", 0.0) + time.perf_counter() - t1
         verdict, message = frame_verdict(w3, uv, ori, beyond_tip=beyond_tip, doubled_tip=doubled,
