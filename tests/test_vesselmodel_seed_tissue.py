@@ -1,7 +1,7 @@
-"""With seeds, the tissue level is read below the lumen (``vesselmodel._tissue_below_lumen``).
+"""With seeds, the tissue level of a body largely bone is read below the bone (``vesselmodel._tissue_below_bone``).
 
-The automatic model's background is the body's upper quartile; in a head, whose skull and diploe are more than a
-quarter of the body, that lies in bone (126 HU on the synthetic head of ``scripts/bench_head_cta.py``, its tissue
+The automatic model's background is the body's upper quartile; in a head, whose skull and diploe are a fifth of the
+body, that lies in bone (126 HU on the synthetic head of ``scripts/bench_head_cta.py``, its tissue
 at 35-40 HU). The lumen threshold's local peak (``PEAK_FRACTION`` of the contrast above it) then lost every artery
 thinner than about 1.1 mm radius: a seed in the left carotid gave the left carotid, the basilar artery and pieces of
 the circle, 27 % of the arteries, and none of the right side. Ground truth: the phantom's arteries."""
