@@ -961,7 +961,7 @@ def _estimate_intensity_model(volume: io.Volume, *, seeds_lps_mm=None):
         L = float(np.median(levels))
         ct_like = _ct_contrast_rise(L, med, lo_mode)
         bone = _bone_level(ds, bg, L, hu, vox_cm3, ct_like=ct_like)
-        if bone is not None and float(np.mean(bvals >= bone)) > SKULL_BODY_FRACTION:
+        if bone is not None and SKULL_BODY_FRACTION < float(np.mean(bvals >= bone)) < 1.0:  # some tissue below
             bg = _tissue_below_bone(bvals, bone)
             again = _bone_level(ds, bg, L, hu, vox_cm3, ct_like=ct_like)
             bone = bone if again is None else again
