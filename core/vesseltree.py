@@ -16,7 +16,7 @@ from scipy.sparse.csgraph import dijkstra
 
 __all__ = ["Branch", "VesselTree", "ACCESS_PATH_MIN_RADIUS_MM", "AORTIC_RADIUS_MM", "CAUDAL_TIE_MM",
            "MAX_ACCESS_DISTANCE_MM", "access_record", "caudal_access_end", "check_access", "is_rooted_at_caudal_end",
-           "rooted_at_access", "rooted_at_caudal_end"]
+           "SEED_END_WIDTH_TIE", "rooted_at_access", "rooted_at_caudal_end", "rooted_for_seed", "seed_end"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -596,3 +596,43 @@ def rooted_at_caudal_end(tree: VesselTree) -> VesselTree:
     (:func:`rooted_at_access`)."""
     end = caudal_access_end(tree)
     return tree if end is None else tree.rerooted(end)
+
+
+#: :func:`seed_end`: ends whose way out from the seed is at least this fraction as wide as the widest way out are
+#: taken as equally wide, and the nearest of them along the tree wins (the seeded carotid's lower end, 2.4 mm, over
+#: the other carotid's, reached through a 0.8 mm communicating artery).
+SEED_END_WIDTH_TIE = 0.8
+
+
+def seed_end(tree: VesselTree, seed_lps_mm) -> int:
+    """The end of ``tree`` (its root or a leaf) where a wire enters, for a tree made from a seed: of the ends reached
+    from the tree's point nearest the seed along the widest lumens (the narrowest branch on the way, each branch's
+    median radius, at least :data:`SEED_END_WIDTH_TIE` of the widest way's), the nearest along the tree.
+
+    Along the tree, not straight: a seed in a carotid in the neck is 30 mm from a vertebral artery's end across the
+    neck, and 200 mm from it through the circle of Willis; the carotid's own lower end is 38 mm below the seed
+    (the synthetic head, ``scripts/bench_head_cta.py --seed``). And along wide lumens: a thin side branch's end near
+    the seed (an external carotid's, an intercostal's) is not where a wire comes from.
+    """
+    i, _ = tree.nearest_point(np.asarray(seed_lps_mm, dtype=float).reshape(3))
+    t = tree.rerooted(int(i[0]))
+    R = np.asarray(t.radius_mm, float)
+    med = np.array([np.nanmedian(R[b.point_ids[1:]]) if len(b.point_ids) > 1 else R[b.point_ids[0]]
+                    for b in t.branches])
+    narrowest = np.zeros(len(t.branches))
+    for b in t.branches:  # parents before children
+        narrowest[b.index] = min(med[b.index], narrowest[b.parent] if b.parent >= 0 else np.inf)
+    n_links = np.array([len(c) for c in t.children]) + (t.parent >= 0)
+    ends = np.flatnonzero(n_links <= 1)
+    path_r = np.nan_to_num(narrowest[t.point_branch[ends]], nan=0.0)
+    wide = ends[path_r >= SEED_END_WIDTH_TIE * path_r.max()]
+    d = t.geodesic_mm([t.root])[0]
+    return int(wide[np.argmin(d[wide])])
+
+def rooted_for_seed(tree: VesselTree, seed_lps_mm) -> VesselTree:
+    """The default root of a tree made from seeds (``seed_lps_mm``, the first seed): where a transfemoral wire enters
+    a tree that holds an aorta (:func:`rooted_at_caudal_end`, as without seeds: a seed says which tree, not where the
+    wire comes from), else its end nearest the seed along the tree (:func:`seed_end`). ``--access-lps`` overrides
+    both (:func:`rooted_at_access`)."""
+    end = caudal_access_end(tree)
+    return tree.rerooted(seed_end(tree, seed_lps_mm) if end is None else end)

@@ -131,10 +131,10 @@ def root_rule(tree, *, seeded: bool, access: bool) -> str:
     """What ``vessels.json`` says of how the tree's root was chosen (``"tree"."root"``)."""
     if access:
         return "the access point (--access-lps)"
-    if seeded:
-        return "the end nearest the first seed"
     if is_rooted_at_caudal_end(tree):
         return "the lower end of the aorta, where a transfemoral wire enters (give --access-lps for any other entry)"
+    if seeded:
+        return "the end nearest the first seed along the tree"
     return "the widest end"
 
 
@@ -358,15 +358,16 @@ def tree_notes(auto) -> list[str]:
         notes.append(f"{auto.pruned} (check it in the viewer)")
     if auto.bias_field:
         notes.append(f"{auto.bias_field}; the tree is that of the corrected volume (the intensity levels are its)")
+    tree = auto.vessels.tree
+    caudal = is_rooted_at_caudal_end(tree)
     if auto.seeded == "automatic tree":
-        notes.append("the automatic vessel tree holds every seed: it is kept, rooted at its end nearest the first seed")
+        notes.append("the automatic vessel tree holds every seed: it is kept"
+                     + ("" if caudal else ", rooted at its end nearest the first seed along the tree"))
     elif auto.seeded == "seeds":
         notes.append("the automatic vessel tree does not hold every seed: the tree is the seeds' own, from the lumen "
-                     "level read at them")
-    else:
-        tree = auto.vessels.tree
-        if is_rooted_at_caudal_end(tree):
-            p = ", ".join(f"{v:.0f}" for v in tree.points_lps_mm[tree.root])
-            notes.append(f"the tree is rooted at the lower end of its aorta (LPS {p} mm), where a transfemoral wire "
-                         "enters: give --access-lps (in Slicer, the access point) for any other entry")
+                     "level read at them" + ("" if caudal else ", rooted at its end nearest the first seed along it"))
+    if caudal:
+        p = ", ".join(f"{v:.0f}" for v in tree.points_lps_mm[tree.root])
+        notes.append(f"the tree is rooted at the lower end of its aorta (LPS {p} mm), where a transfemoral wire "
+                     "enters: give --access-lps (in Slicer, the access point) for any other entry")
     return notes

