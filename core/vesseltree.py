@@ -629,10 +629,11 @@ def seed_end(tree: VesselTree, seed_lps_mm) -> int:
     d = t.geodesic_mm([t.root])[0]
     return int(wide[np.argmin(d[wide])])
 
+
 def rooted_for_seed(tree: VesselTree, seed_lps_mm) -> VesselTree:
     """The default root of a tree made from seeds (``seed_lps_mm``, the first seed): where a transfemoral wire enters
     a tree that holds an aorta (:func:`rooted_at_caudal_end`, as without seeds: a seed says which tree, not where the
-    wire comes from), else its end nearest the seed along the tree (:func:`seed_end`). ``--access-lps`` overrides
-    both (:func:`rooted_at_access`)."""
+    wire comes from), else the end nearest the seed along its widest lumens (:func:`seed_end`). ``--access-lps``
+    overrides both (:func:`rooted_at_access`)."""
     end = caudal_access_end(tree)
     return tree.rerooted(seed_end(tree, seed_lps_mm) if end is None else end)

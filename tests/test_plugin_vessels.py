@@ -359,10 +359,12 @@ def test_summary_names_units_levels_and_every_note():
         "812.5, background 101.2 (arbitrary units, automatic); 12.0 s. Note: the first vessel tree was implausible "
         "(too long for its volume); the strict pass's tree is kept, 2 dim wide branches cut (check it in the viewer); "
         "a bias field of 1.4x divided out; the tree is that of the corrected volume (the intensity levels are its); "
-        "the automatic vessel tree holds every seed: it is kept, rooted at its end nearest the first seed along the tree.",
+        "the automatic vessel tree holds every seed: it is kept, rooted at its end nearest the first seed along its "
+        "widest lumens.",
         "Tree 2 (seeds 2): 1 branch, 4.0 cm of centerline, radius 2.0 mm median / 2.0 mm max, 0.5 cm3; lumen 400, "
         "background 40 (HU, seeds); 3.0 s. Note: the automatic vessel tree does not hold every seed: the tree is the "
-        "seeds' own, from the lumen level read at them, rooted at its end nearest the first seed along it.",
+        "seeds' own, from the lumen level read at them, rooted at its end nearest the first seed along its widest "
+        "lumens.",
     ]
     auto = SimpleNamespace(**{**ct.__dict__, "seeded": ""})
     assert L.plan_summary(SimpleNamespace(trees=(auto,), seed_groups=((),))).splitlines() == [

@@ -1,7 +1,8 @@
 """The default root of a seeded tree (``vesseltree.seed_end``, ``rooted_for_seed``): an aortic tree's lower end, as
-without seeds; else the end nearest the first seed *along the tree*. Until stop 53 it was the end nearest the seed
-in a straight line: on the synthetic head, seeded in the left carotid in the neck, a 2.6 mm spur of the left vertebral
-artery across the neck (30 mm away; 200 mm along the tree through the circle of Willis), not the carotid's lower end.
+without seeds; else the end nearest the first seed *along the tree*, of those reached along its widest lumens. Until
+stop 53 it was the end nearest the seed in a straight line: on the synthetic head, seeded in the left carotid in the
+neck, a 2.6 mm spur of the left vertebral artery across the neck (30 mm away; 200 mm along the tree through the circle
+of Willis), not the carotid's lower end.
 Ground truth: hand-built trees whose entry is known, and the head phantom's arteries."""
 from __future__ import annotations
 
@@ -42,7 +43,7 @@ def test_the_seeded_root_is_the_end_nearest_along_the_tree():
     rooted = rooted_for_seed(tree.rerooted(vert_end), seed)
     assert rooted.root == 0
     np.testing.assert_array_equal(rooted.points_lps_mm, tree.points_lps_mm)
-    assert root_rule(rooted, seeded=True, access=False) == "the end nearest the first seed along the tree"
+    assert root_rule(rooted, seeded=True, access=False) == "the end nearest the first seed along its widest lumens"
     side_end = int(np.argmin(np.linalg.norm(tree.points_lps_mm - (40, -20, -55), axis=1)))
     assert tree.geodesic_mm([tree.nearest_point(seed)[0][0]])[0][side_end] < 40.0
     # a seed in the thin branch itself: every way out is as thin, so its nearest end

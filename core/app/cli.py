@@ -336,8 +336,8 @@ def _add_vessels_parser(sub) -> None:  # issue 17: the vessel tree alone, any an
     p.add_argument("--out", required=True, help="output folder (created; must be empty or absent)")
     p.add_argument("--seed-lps", type=_parse_xyz, action="append", default=None, metavar="X,Y,Z",
                    help="a point in LPS mm inside a vessel lumen: the result is the connected tree containing it "
-                        "(repeatable; a tree without an aorta is rooted at its end nearest the first seed, one with an aorta at "
-                        "the aorta's lower end; write --seed-lps=X,Y,Z when X is negative)")
+                        "(repeatable; the tree is rooted at its aorta's lower end, or without an aorta at its end "
+                        "nearest the first seed along its widest lumens; write --seed-lps=X,Y,Z when X is negative)")
     p.add_argument("--series-uid", default=None, help="SeriesInstanceUID to read from a DICOM folder")
     p.add_argument("--no-screenshot", action="store_true", help="do not render screenshot.png (offscreen VTK)")
     _add_access_option(p)

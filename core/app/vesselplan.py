@@ -134,7 +134,7 @@ def root_rule(tree, *, seeded: bool, access: bool) -> str:
     if is_rooted_at_caudal_end(tree):
         return "the lower end of the aorta, where a transfemoral wire enters (give --access-lps for any other entry)"
     if seeded:
-        return "the end nearest the first seed along the tree"
+        return "the end nearest the first seed along its widest lumens"
     return "the widest end"
 
 
@@ -360,12 +360,12 @@ def tree_notes(auto) -> list[str]:
         notes.append(f"{auto.bias_field}; the tree is that of the corrected volume (the intensity levels are its)")
     tree = auto.vessels.tree
     caudal = is_rooted_at_caudal_end(tree)
+    seed_root = "" if caudal else ", rooted at its end nearest the first seed along its widest lumens"
     if auto.seeded == "automatic tree":
-        notes.append("the automatic vessel tree holds every seed: it is kept"
-                     + ("" if caudal else ", rooted at its end nearest the first seed along the tree"))
+        notes.append(f"the automatic vessel tree holds every seed: it is kept{seed_root}")
     elif auto.seeded == "seeds":
         notes.append("the automatic vessel tree does not hold every seed: the tree is the seeds' own, from the lumen "
-                     "level read at them" + ("" if caudal else ", rooted at its end nearest the first seed along it"))
+                     f"level read at them{seed_root}")
     if caudal:
         p = ", ".join(f"{v:.0f}" for v in tree.points_lps_mm[tree.root])
         notes.append(f"the tree is rooted at the lower end of its aorta (LPS {p} mm), where a transfemoral wire "

@@ -1984,7 +1984,7 @@ def extract_vessels_auto(volume: io.Volume, *, seeds_lps_mm=None, progress: bool
     The tree is rooted where a transfemoral wire enters it, with seeds or without
     (:func:`guidewire3d.vesseltree.rooted_at_caudal_end`): the most caudal point of its aorta's wide lumens (or of an
     iliac or femoral artery in the field of view); a tree without an aorta keeps its widest end (a coronary
-    ostium, a carotid), or with seeds its end nearest the first seed along the tree
+    ostium, a carotid), or with seeds its end nearest the first seed along its widest lumens
     (:func:`guidewire3d.vesseltree.seed_end`). ``--access-lps`` (:func:`guidewire3d.vesseltree.rooted_at_access`)
     roots it elsewhere.
 
@@ -2001,8 +2001,8 @@ def extract_vessels_auto(volume: io.Volume, *, seeds_lps_mm=None, progress: bool
 def _default_root(tree: VesselTree, seeds_lps_mm=None) -> VesselTree:
     """``tree`` rooted where a wire is taken to enter it when no access point is given: the lower end of its aorta
     (:func:`guidewire3d.vesseltree.rooted_at_caudal_end`), with or without seeds; a tree without an aorta at its widest
-    end without seeds (as the centerline stage roots it), at its end nearest the first seed along the tree with them
-    (:func:`guidewire3d.vesseltree.rooted_for_seed`)."""
+    end without seeds (as the centerline stage roots it), at its end nearest the first seed along its widest lumens
+    with them (:func:`guidewire3d.vesseltree.rooted_for_seed`)."""
     if seeds_lps_mm is None:
         return rooted_at_caudal_end(tree)
     return rooted_for_seed(tree, np.atleast_2d(np.asarray(seeds_lps_mm, dtype=float))[0])
