@@ -678,7 +678,8 @@ def segment_vessels(volume: io.Volume, *, seeds_lps_mm=None, progress: bool = Fa
         # threshold's more smoothed copy: a coronary artery 1.2 mm wide in epicardial fat peaks there at 184 HU
         # where its axis is 347 HU, under a 246 HU check, and the distal half of the LAD and all of the posterior
         # descending artery fell out (scripts/bench_coronary_cta.py); an enhancing organ's plateau stays below it
-        cand &= ndi.maximum_filter(no_bone, size=tuple(peak_size)) >= opt.min_peak_hu
+        # (the window's maximum reaches the level where any voxel of it does: a max of booleans, 4x faster)
+        cand &= ndi.maximum_filter(no_bone >= opt.min_peak_hu, size=tuple(peak_size))
     del no_bone
     # with enclosed lumens, the vesselness sees the bone as the tissue it is not lumen of (the window clips bone to
     # the lumen's level: a lumen in a canal would be a flat part of the bright bone, not a tube)
