@@ -93,6 +93,9 @@ MODE_MIN_MASS = 0.2
 HU_LUMEN_MAX = 650.0
 HU_AIR_RANGE = (-1200.0, -300.0)  # air and lung in HU
 HU_TISSUE_MAX = 200.0  # the tissue level (upper quartile of the body) of a CT in HU: at most this
+#: :func:`_hu_tree_of_bright_ct`: a volume's median in this range (a CT's tissue in HU) and values below this
+HU_MEDIAN_RANGE = (-60.0, 160.0)
+HU_BELOW_WATER = -20.0
 HU_BONE_MIN = 620.0
 #: ... unless the tubular structures above HU_LUMEN_MAX outweigh (vesselness-weighted) those below by
 #: this factor: a 3D rotational angiogram in HU, whose intra-arterial contrast (1000-4000 HU) is brighter
@@ -2259,6 +2262,32 @@ def _extract_vessels_auto(volume: io.Volume, *, seeds_lps_mm=None, progress: boo
                             f"{model.lumen:.4g}, background {model.background:.4g}); {hint}")
 
 
+def _hu_tree_of_bright_ct(volume: io.Volume, *, seeds_lps_mm=None, progress: bool = False):
+    """The HU defaults' tree (``vessels3d.CTAVessels``, with its lost lumen, rooted by :func:`_default_root`) of a
+    volume that :func:`looks_like_hu` did not take for HU and whose intensity model refused it, when the volume reads
+    as a CT in HU after all (much bone or contrast, no air in the field of view) and that tree is plausible; else None.
+
+    Tried only for a volume whose median lies in a CT's tissue range (``HU_MEDIAN_RANGE``) and which holds values
+    below ``HU_BELOW_WATER`` (fat or air in HU; an MR magnitude image has none). A simulated CT with bone and contrast
+    distractors and no air (``phantom`` seed 2019, ``distractors``, small volume: median 48 HU, minimum -62 HU) had
+    its bright distractors (16 % of the volume) taken for its body and its tissue for air, so it went to the intensity
+    model, which refused it as ambiguous (bone outweighs the CTA's contrast 6.9x), while the HU defaults give its tree.
+    """
+    a = volume.array_zyx
+    med = float(np.median(a[::2, ::2, ::2]))
+    if not (HU_MEDIAN_RANGE[0] <= med <= HU_MEDIAN_RANGE[1] and float(a.min()) < HU_BELOW_WATER):
+        return None
+    try:
+        res = vessels3d.extract_vessels(volume, seeds_lps_mm=seeds_lps_mm, progress=progress)
+    except SegmentationError:
+        return None
+    pl = check_plausibility(volume, res.mask_zyx, res.tree, body_cm3=_body_cm3(volume),
+                            seeded=seeds_lps_mm is not None)
+    if not pl.ok:
+        return None
+    return lostlumen.with_lost_lumen(volume, replace(res, tree=_default_root(res.tree, seeds_lps_mm)))
+
+
 def extract_vessels_any_units(volume: io.Volume, *, seeds_lps_mm=None, progress: bool = False, log=None):
     """The vessel stage of ``reconstruct``, ``live``, ``listen`` and biplane runs: a ``vessels3d.CTAVessels``.
 
@@ -2295,7 +2324,18 @@ def extract_vessels_any_units(volume: io.Volume, *, seeds_lps_mm=None, progress:
         except SegmentationError as e2:
             raise SegmentationError(f"{first}; read with its own intensity model: {e2}") from None
     else:
-        auto = extract_vessels_auto(volume, seeds_lps_mm=seeds_lps_mm, progress=progress)
+        try:
+            auto = extract_vessels_auto(volume, seeds_lps_mm=seeds_lps_mm, progress=progress)
+        except SegmentationError as e:
+            res = _hu_tree_of_bright_ct(volume, seeds_lps_mm=seeds_lps_mm, progress=progress)
+            if res is None:
+                raise
+            if log is not None:
+                log(f"{volume.source or 'CTA'}: its own intensity model refused it ({e}); its median and the fat or air "
+                    f"below water read as a CT's in HU (much bone or contrast, no air in view): its vessel tree from the "
+                    f"HU defaults "
+                    f"({res.tree.total_length_mm / 10:.0f} cm, {len(res.tree.branches)} branches)")
+            return res
     if log is not None:
         m = auto.model
         log(f"{volume.source or 'CTA'}: {why}; its vessel tree from its own intensity model (lumen {m.lumen:.4g}, "
