@@ -2299,7 +2299,9 @@ def extract_vessels_any_units(volume: io.Volume, *, seeds_lps_mm=None, progress:
     to numbers that are not HU. So does a volume in HU where the HU defaults find no vessels (a 3DRA,
     whose intra-arterial contrast lies far above bone), or a tree that :func:`check_plausibility` (without the
     model's dim-axis check) finds implausible (a real chest-abdomen CTA: 61 m of centerline in 6716 branches);
-    when the model refuses it too, both reasons are given. Either tree is rooted by :func:`_default_root` (an aortic
+    when the model refuses it too, both reasons are given. A volume not taken for HU whose model refuses it gets the HU
+    defaults' tree when it reads as a CT in HU after all and that tree is plausible (:func:`_hu_tree_of_bright_ct`: much
+    bone or contrast and no air in view), said in ``log``. Either tree is rooted by :func:`_default_root` (an aortic
     tree at its caudal end).
     """
     why = "not in HU"
@@ -2333,8 +2335,7 @@ def extract_vessels_any_units(volume: io.Volume, *, seeds_lps_mm=None, progress:
             if log is not None:
                 log(f"{volume.source or 'CTA'}: its own intensity model refused it ({e}); its median and the fat or air "
                     f"below water read as a CT's in HU (much bone or contrast, no air in view): its vessel tree from the "
-                    f"HU defaults "
-                    f"({res.tree.total_length_mm / 10:.0f} cm, {len(res.tree.branches)} branches)")
+                    f"HU defaults ({res.tree.total_length_mm / 10:.0f} cm, {len(res.tree.branches)} branches)")
             return res
     if log is not None:
         m = auto.model
