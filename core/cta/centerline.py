@@ -772,15 +772,17 @@ def _end_run(adjacency, degree: np.ndarray, end: int) -> tuple[list, float]:
             return path, length
 
 
-def end_radius_mm(tree: VesselTree, ends: np.ndarray) -> np.ndarray:
+def end_radius_mm(tree: VesselTree, ends: np.ndarray, *, caps: bool = True) -> np.ndarray:
     """The radius of each end of ``tree`` (point ids) that the rooting compares: the median over the first
-    ``ROOT_RADIUS_SPAN_MM`` along the tree, or, for the arms of a blunt end's cap (``FAN_LENGTH_RADII``), the
-    larger of that and the trunk's median over ``FAN_TRUNK_SPAN_MM`` from their junction."""
+    ``ROOT_RADIUS_SPAN_MM`` along the tree, or, with ``caps``, for the arms of a blunt end's cap
+    (``FAN_LENGTH_RADII``), the larger of that and the trunk's median over ``FAN_TRUNK_SPAN_MM`` from their junction."""
     A = tree.adjacency
     r = tree.radius_mm
-    degree = np.diff(A.indptr)
     ends = np.asarray(ends, dtype=np.int64)
     out = np.array([np.median(r[_within_mm(A, int(e), ROOT_RADIUS_SPAN_MM)]) for e in ends])
+    if not caps:
+        return out
+    degree = np.diff(A.indptr)
     arms: dict[int, list] = {}
     for e in np.r_[tree.root, tree.leaves[tree.leaves != tree.root]]:
         path, length = _end_run(A, degree, int(e))
@@ -815,11 +817,7 @@ def _rooted_at_widest_end(tree: VesselTree, allowed=None, *, caps: bool = False)
     ends = np.r_[tree.root, tree.leaves[tree.leaves != tree.root]]
     if allowed is not None and np.asarray(allowed, bool)[ends].any():
         ends = ends[np.asarray(allowed, bool)[ends]]
-    if caps:
-        med = end_radius_mm(tree, ends)
-    else:
-        A = tree.adjacency
-        med = np.array([np.median(tree.radius_mm[_within_mm(A, int(e), ROOT_RADIUS_SPAN_MM)]) for e in ends])
+    med = end_radius_mm(tree, ends, caps=caps)
     best = int(ends[int(np.argmax(med))])  # argmax: the first (the current root) among equals
     return tree.rerooted(best)
 

