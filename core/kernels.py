@@ -33,7 +33,7 @@ __all__ = ["viterbi_forward", "viterbi_backward", "sample_bilinear", "cover_cell
            "diameter_path", "nearest_sq_dist", "warm_up", "dilate_ball", "ball_offsets", "skeleton_paths",
            "viterbi_pairwise", "place_on_path", "lumen_covariance", "pspline_system", "penalised_fit",
            "polyline_measures", "branch_ambiguity", "epipolar_candidates", "triangulate_dlt", "two_view_viterbi",
-           "NearestGrid", "resample_polyline", "two_view_covariance"]
+           "NearestGrid", "resample_polyline", "two_view_covariance", "best_line"]
 
 _LOCK = threading.Lock()
 #: image dtypes sampled as they are (one compiled specialisation each); others are converted to float64
@@ -447,11 +447,38 @@ def _compile():
                 out[i] = best
             return out
 
+        @jit
+        def best_line(c, max_step):
+            n_o, n = c.shape
+            acc = c[:, 0].copy()
+            nxt = np.empty(n_o)
+            back = np.zeros((n_o, n), np.int64)
+            for i in range(1, n):
+                for o in range(n_o):
+                    best = -np.inf
+                    arg = o
+                    for src in range(min(o + max_step, n_o - 1), max(o - max_step, 0) - 1, -1):
+                        if acc[src] > best:            # the first largest, from the highest row down
+                            best = acc[src]
+                            arg = src
+                    nxt[o] = best + c[o, i]
+                    back[o, i] = arg
+                acc[:] = nxt
+            k = 0
+            for o in range(1, n_o):
+                if acc[o] > acc[k]:
+                    k = o
+            line = np.empty(n, np.int64)
+            line[n - 1] = k
+            for i in range(n - 1, 0, -1):
+                line[i - 1] = back[line[i], i]
+            return acc[k], line
+
         _COMPILED.update(viterbi_forward=viterbi_forward, viterbi_backward=viterbi_backward,
                          sample_bilinear=sample_bilinear, cover_cells=cover_cells,
                          pixel_graph=pixel_graph, induced_subgraph=induced_subgraph,
                          graph_components=graph_components, dijkstra=dijkstra, walk_predecessors=walk_predecessors,
-                         zhang_suen=zhang_suen, nearest_sq_dist=nearest_sq_dist)
+                         zhang_suen=zhang_suen, nearest_sq_dist=nearest_sq_dist, best_line=best_line)
         return _COMPILED
 
 
@@ -1747,6 +1774,19 @@ def nearest_sq_dist(points, curve, radius: float) -> np.ndarray:
              np.require(np.asarray(curve, np.float64).reshape(-1, 2), requirements=["C", "W"]), float(radius) + 1.0)
 
 
+def best_line(contrast, max_step: int) -> tuple[float, np.ndarray]:
+    """The best line through a table ``contrast`` (rows, samples): one row per sample, moving at most ``max_step``
+    rows between neighbouring samples, with the largest sum. Returns ``(sum, rows (samples,) int64)``: a Viterbi
+    pass; among equal sums the first row, and the highest predecessor row (the numpy recursion it replaced:
+    ``tests/test_continuation.py``)."""
+    f = _compile()["best_line"]
+    c = np.require(np.asarray(contrast, np.float64), requirements=["C", "W"])
+    if c.ndim != 2 or c.shape[0] < 1 or c.shape[1] < 1:
+        raise ValueError(f"best_line: contrast must be a non-empty 2D table, got shape {c.shape}")
+    total, line = f(c, int(max_step))
+    return float(total), line
+
+
 def pixel_graph(rows, cols, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """8-connected graph of pixels as CSR arrays ``(indptr, indices, weights_px)``: node ``k`` is pixel
     ``(rows[k], cols[k])``, its neighbours sorted by node index (as scipy's ``coo_matrix(...).tocsr()``
@@ -2072,6 +2112,7 @@ def warm_up() -> None:
         diameter_path(*g, 0)
         skeleton_pixels(np.eye(3, dtype=bool))
         nearest_sq_dist(np.zeros((1, 2)), np.ones((2, 2)), 1.0)
+        best_line(np.zeros((3, 2)), 1)
         _warm_up_reconstruction()
         _warm_up_triangulation()
 

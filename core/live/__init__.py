@@ -5,6 +5,7 @@ The public names of the modules below, importable from ``guidewire3d.live``.
 from guidewire3d.live.continuation import (  # noqa: F401
     BACKGROUND_PX,
     BEYOND_MM,
+    LINE_STEP_PX,
     MIN_CONTRAST_RATIO,
     MIN_SAMPLES,
     MIN_Z,
@@ -12,7 +13,9 @@ from guidewire3d.live.continuation import (  # noqa: F401
     OFFSET_PX,
     SKIP_PX,
     WINDOW_PX,
+    WIRE_OFFSET_PX,
     WireContinuation,
+    best_line_contrast,
     downstream_paths,
     wire_continuation,
 )
