@@ -98,3 +98,30 @@ def test_an_mr_magnitude_volume_gets_no_hu_fallback():
     a = np.full((40, 40, 40), 50.0, np.float32)
     vol = io.Volume(a, (1.0, 1.0, 1.0), (0.0, 0.0, 0.0), np.eye(3), source="flat")
     assert vesselmodel._hu_tree_of_bright_ct(vol) is None
+
+
+def test_the_planning_command_takes_the_same_ct_as_reconstruct(tmp_path, capsys):
+    """``guidewire3d vessels`` on seed 2019's CT: exit 2 until stop 55 (its intensity model refused it, as in
+    ``reconstruct`` before stop 54), now the HU defaults' tree that ``reconstruct`` takes, said on the console and in
+    ``vessels.json``, rooted at the true root, with the levels measured on it."""
+    import json
+
+    from guidewire3d.app import cli
+
+    case = simulate(PhantomOptions(seed=2019, distractors=True, volume="small", n_frames=1))
+    f = io.write_volume(case.volume, tmp_path / "ct2019.nii.gz")
+    out = tmp_path / "plan"
+    rc = cli.main(["vessels", "--cta", str(f), "--out", str(out)])
+    std = capsys.readouterr()
+    assert rc == 0, std.err
+    assert "its vessel tree from the HU defaults" in std.out + std.err
+    rec = json.loads((out / "vessels.json").read_text())
+    assert rec["segmentation"]["pass"] == "HU defaults" and "refused" in rec["segmentation"]["fallback"]
+    m = rec["intensity_model"]
+    assert m["source"] == "HU defaults" and m["units"] == "HU" and m["lumen"] > m["background"] + 100.0
+    true_root = case.tree.points_lps_mm[case.tree.root]
+    assert np.linalg.norm(np.asarray(rec["tree"]["root_lps_mm"]) - true_root) < 5.0
+    assert rec["tree"]["total_length_mm"] > 300.0
+    # the same tree as the vessel stage of reconstruct
+    res = vesselmodel.extract_vessels_any_units(case.volume)
+    assert rec["tree"]["total_length_mm"] == pytest.approx(res.tree.total_length_mm, abs=0.2)

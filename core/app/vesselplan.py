@@ -60,15 +60,23 @@ def plan_vessels(vol: io.Volume, *, seeds_lps_mm=None, access_lps_mm=None, progr
     """
     say = log or (lambda _m: None)
     seeds = None if seeds_lps_mm is None or not len(seeds_lps_mm) else np.asarray(seeds_lps_mm, float).reshape(-1, 3)
+    groups = [tuple(range(len(seeds))) if seeds is not None else ()]
+    reason = ""
     try:
         autos = [vesselmodel.extract_vessels_auto(vol, seeds_lps_mm=seeds, progress=progress)]
-        groups = [tuple(range(len(seeds))) if seeds is not None else ()]
-        reason = ""
     except SegmentationError as err:
-        if seeds is None or len(seeds) < 2:
+        # a CT in HU that reads otherwise through much bone and no air in view: the HU defaults' tree, as
+        # ``reconstruct`` takes it (seeds apart are a forest's matter, not this)
+        fb = (None if isinstance(err, vessels3d.SeedsApartError)
+              else vesselmodel.hu_defaults_auto(vol, err, seeds_lps_mm=seeds, progress=progress))
+        if fb is not None:
+            say(f"{vol.source or 'CTA'}: {fb.fallback}")
+            autos = [fb]
+        elif seeds is None or len(seeds) < 2:
             raise
-        autos, groups = _forest(vol, seeds, err, progress=progress, say=say)
-        reason = str(err)
+        else:
+            autos, groups = _forest(vol, seeds, err, progress=progress, say=say)
+            reason = str(err)
     autos = [dataclasses.replace(a, vessels=lostlumen.with_lost_lumen(vol, a.vessels)) for a in autos]
     if access_lps_mm is not None:
         d = [float(np.min(np.linalg.norm(a.vessels.tree.points_lps_mm - np.asarray(access_lps_mm, float), axis=1)))
@@ -164,7 +172,8 @@ def vessels_record(auto, *, inputs: dict, access_lps_mm=None) -> dict:
         "intensity_model": auto.model.to_dict(),
         "plausibility": auto.plausibility.to_dict(),
         "segmentation": {"pass": auto.segmentation, "first_pass_problems": list(auto.first_pass_problems),
-                         "pruned": auto.pruned, "seeded": auto.seeded, "bias_field": auto.bias_field},
+                         "pruned": auto.pruned, "seeded": auto.seeded, "bias_field": auto.bias_field,
+                         "fallback": auto.fallback},
         "tree": {
             "n_points": int(tree.n_points),
             "n_branches": len(tree.branches),
@@ -349,6 +358,8 @@ def tree_notes(auto) -> list[str]:
     """What a user must know of how an ``AutoVessels`` tree was made, one sentence each: a strict second pass, what
     was cut, a bias field divided out, how the seeds made the tree (the command line's and the Slicer module's)."""
     notes = []
+    if auto.fallback:
+        notes.append(f"{auto.fallback} (check it in the viewer)")
     if auto.first_pass_problems:
         how = "the strict pass's tree" if auto.segmentation.startswith("strict") else "the tree"
         cut = f", {auto.pruned}" if auto.pruned else ""

