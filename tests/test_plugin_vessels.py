@@ -346,12 +346,12 @@ def test_summary_names_units_levels_and_every_note():
         model=SimpleNamespace(hu=False, lumen=812.5, background=101.25, source="automatic"),
         plausibility=SimpleNamespace(vessel_cm3=4.44), first_pass_problems=("too long for its volume",),
         segmentation="strict+pruned", pruned="2 dim wide branches cut", bias_field="a bias field of 1.4x divided out",
-        seeded="automatic tree", seconds={"total": 12.0})
+        seeded="automatic tree", seconds={"total": 12.0}, fallback="")
     ct = SimpleNamespace(
         vessels=SimpleNamespace(tree=_fake_tree(40.0, [2.0, 2.0], 1)),
         model=SimpleNamespace(hu=True, lumen=400.0, background=40.0, source="seeds"),
         plausibility=SimpleNamespace(vessel_cm3=0.5), first_pass_problems=(), segmentation="standard", pruned="",
-        bias_field="", seeded="seeds", seconds={"total": 3.0})
+        bias_field="", seeded="seeds", seconds={"total": 3.0}, fallback="")
     text = L.plan_summary(SimpleNamespace(trees=(mr, ct), seed_groups=((0, 2), (1,))))
     assert text.splitlines() == [
         "2 separate vessel trees (one per structure the seeds lie in): 6 branches, 16.3 cm of centerline.",
@@ -372,3 +372,18 @@ def test_summary_names_units_levels_and_every_note():
         "Tree 1 (automatic): 1 branch, 4.0 cm of centerline, radius 2.0 mm median / 2.0 mm max, 0.5 cm3; lumen 400, "
         "background 40 (HU, seeds); 3.0 s.",
     ]
+
+
+def test_summary_says_when_the_tree_is_the_hu_defaults():
+    """A tree from the HU defaults after the intensity model refused the volume (``vesselmodel.hu_defaults_auto``):
+    the note says why, first."""
+    ct = SimpleNamespace(
+        vessels=SimpleNamespace(tree=_fake_tree(40.0, [2.0, 2.0], 1)),
+        model=SimpleNamespace(hu=True, lumen=410.0, background=45.0, source="HU defaults"),
+        plausibility=SimpleNamespace(vessel_cm3=0.5), first_pass_problems=(), segmentation="HU defaults", pruned="",
+        bias_field="", seeded="", seconds={"total": 3.0},
+        fallback="its own intensity model refused it (ambiguous); its median and the fat or air below water read as a "
+                 "CT's in HU (much bone or contrast, no air in view): its vessel tree from the HU defaults")
+    text = L.plan_summary(SimpleNamespace(trees=(ct,), seed_groups=((),)))
+    assert "(HU, HU defaults)" in text
+    assert "Note: its own intensity model refused it (ambiguous);" in text and "(check it in the viewer)" in text
