@@ -69,8 +69,7 @@ def plan_vessels(vol: io.Volume, *, seeds_lps_mm=None, access_lps_mm=None, progr
         # ``reconstruct`` takes it (seeds apart are a forest's matter, not this)
         fb = (None if isinstance(err, vessels3d.SeedsApartError)
               else vesselmodel.hu_defaults_auto(vol, err, seeds_lps_mm=seeds, progress=progress))
-        if fb is not None:
-            say(f"{vol.source or 'CTA'}: {fb.fallback}")
+        if fb is not None:      # said once, in the tree's notes (tree_notes)
             autos = [fb]
         elif seeds is None or len(seeds) < 2:
             raise
