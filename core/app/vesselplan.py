@@ -62,6 +62,7 @@ def plan_vessels(vol: io.Volume, *, seeds_lps_mm=None, access_lps_mm=None, progr
     seeds = None if seeds_lps_mm is None or not len(seeds_lps_mm) else np.asarray(seeds_lps_mm, float).reshape(-1, 3)
     groups = [tuple(range(len(seeds))) if seeds is not None else ()]
     reason = ""
+    t0 = time.perf_counter()
     try:
         autos = [vesselmodel.extract_vessels_auto(vol, seeds_lps_mm=seeds, progress=progress)]
     except SegmentationError as err:
@@ -70,6 +71,7 @@ def plan_vessels(vol: io.Volume, *, seeds_lps_mm=None, access_lps_mm=None, progr
         fb = (None if isinstance(err, vessels3d.SeedsApartError)
               else vesselmodel.hu_defaults_auto(vol, err, seeds_lps_mm=seeds, progress=progress))
         if fb is not None:      # said once, in the tree's notes (tree_notes)
+            fb.seconds["total"] = time.perf_counter() - t0      # the refused model's time with the fallback's
             autos = [fb]
         elif seeds is None or len(seeds) < 2:
             raise

@@ -2320,9 +2320,10 @@ def hu_defaults_auto(volume: io.Volume, refusal: SegmentationError, *, seeds_lps
     ``reconstruct``, ``live`` and biplane runs take (:func:`_hu_tree_of_bright_ct`), as an :class:`AutoVessels`
     whose ``fallback`` says why, and whose model holds the levels measured on that tree (``source`` "HU defaults"): the
     lumen the median of its mask, the background the median of the voxels at a soft tissue's level (-100..200 HU),
-    bone the HU defaults' bone level, the noise not measured (NaN). None when the volume does not read so, or that
-    tree is implausible (the refusal then stands). A simulated CT with bone and contrast distractors and no air in view
-    (``phantom`` seed 2019) was refused by ``vessels`` while ``reconstruct`` took it."""
+    bone the HU defaults' bone level, the noise not measured (NaN); ``seconds`` its own (``plan_vessels`` counts the
+    refused model's in). None when the volume does not read so, or that tree is implausible (the refusal then stands).
+    A simulated CT with bone and contrast distractors and no air in view (``phantom`` seed 2019) was refused by
+    ``vessels`` while ``reconstruct`` took it."""
     t0 = time.perf_counter()
     fb = _hu_tree_of_bright_ct(volume, seeds_lps_mm=seeds_lps_mm, progress=progress)
     if fb is None:

@@ -37,7 +37,11 @@ frames                             single offset, 0.5   best line, 0.7      best
 0.25 mm, 60-179 (421; 54 off)      22 / 5               37 / 8              32 / 6
 simulator's wires, 0-59 (293; 2)   0 / 0                0 / 1               0 / 1
 simulator's wires, 60-179 (550; 6) 2 / 0                2 / 0               2 / 0
+kept stress cases (663; 23 off)    1 / 0                6 / 1               3 / 1
 =================================  ===================  ==================  ==================
+
+(the last row: the 202 cases ``bench_stress.py --keep`` kept at stop 54, seeds 9400-9923, replayed with their trees and
+poses; the details in ``scripts/MEASUREMENTS.md``, *Stop 55*)
 """
 from __future__ import annotations
 
@@ -67,7 +71,8 @@ WIRE_OFFSET_PX = 2
 MIN_SAMPLES = 8
 #: a continuation at least this fraction of the traced wire's contrast ...
 MIN_CONTRAST_RATIO = 0.7
-#: ... and this many standard errors above zero makes the tip uncertain
+#: ... and this many standard errors above zero makes the tip uncertain (the best line through noise alone reads
+#: 4-6 standard errors too: since stop 55 the ratio decides)
 MIN_Z = 2.5
 
 
