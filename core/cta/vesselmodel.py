@@ -2323,7 +2323,13 @@ def hu_defaults_auto(volume: io.Volume, refusal: SegmentationError, *, seeds_lps
     bone the HU defaults' bone level, the noise not measured (NaN); ``seconds`` its own (``plan_vessels`` counts the
     refused model's in). None when the volume does not read so, or that tree is implausible (the refusal then stands).
     A simulated CT with bone and contrast distractors and no air in view (``phantom`` seed 2019) was refused by
-    ``vessels`` while ``reconstruct`` took it."""
+    ``vessels`` while ``reconstruct`` took it.
+
+    Only for a volume :func:`looks_like_hu` does not take for HU, as in ``reconstruct``: one it takes keeps the intensity
+    model's verdict in the planning command (a CT whose tubular bone outweighs its vessels is refused as ambiguous
+    there and a seed decides: ``tests/test_vesselmodel.py``; the head CT in HU of ``bench_head_cta.py``)."""
+    if looks_like_hu(volume):
+        return None
     t0 = time.perf_counter()
     fb = _hu_tree_of_bright_ct(volume, seeds_lps_mm=seeds_lps_mm, progress=progress)
     if fb is None:
