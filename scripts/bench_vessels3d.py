@@ -22,6 +22,11 @@ the medians. Measures, per case:
   single-view registration turns it into a depth error (0.3 per mille ~ 0.2 mm at 700 mm);
 * ``dice``: mask vs the true lumen; ``bad_distr``: distractor voxels in the mask farther than 2 mm
   from the true lumen (must be 0);
+* ``detour``: true centerline points covered by the estimate (within max(1 mm, r)) that the estimated tree
+  reaches from its root by a route more than ``DETOUR_MM`` longer than the true one (the route's length at the
+  nearest estimated point against the true arclength from the root, both from the true root): a branch cut from
+  its parent and reached through another vessel it touches, which a wire cannot follow; ``detour_big``: those
+  of radius 1 mm or more (a topology error, where the other columns measure geometry);
 * ``t_s``: wall seconds of ``extract_vessels``.
 """
 from __future__ import annotations
@@ -73,6 +78,21 @@ def scale_bias_permil(est, truth, *, end_zone_mm=0.5, max_dist_mm=1.5, iteration
     return 1000.0 * (1.0 / s - 1.0)
 
 
+#: ``detour``: a true point reached by a route this much longer than the true one (mm)
+DETOUR_MM = 10.0
+
+
+def detoured_points(truth, est) -> tuple[int, int]:
+    """``(n, n_big)``: the true points covered by ``est`` (within max(1 mm, r)) whose estimated route from the root is
+    more than ``DETOUR_MM`` longer than the true route, and of those the ones of radius 1 mm or more."""
+    d, j = cKDTree(est.points_lps_mm).query(truth.points_lps_mm)
+    covered = d < np.maximum(1.0, truth.radius_mm)
+    s_est = est.arclength_from_root_mm[j]
+    s_est = s_est - (s_est[truth.root] if covered[truth.root] else 0.0)
+    bad = covered & (s_est - truth.arclength_from_root_mm > DETOUR_MM)
+    return int(bad.sum()), int((bad & (truth.radius_mm >= 1.0)).sum())
+
+
 def evaluate(case, res):
     from guidewire3d.metrics import dice
 
@@ -114,7 +134,9 @@ def evaluate(case, res):
     sp_zyx = np.asarray(case.volume.spacing_mm)[::-1]
     far = ndi.distance_transform_edt(~case.lumen_mask_zyx, sampling=sp_zyx) > 2.0
     bad = int((res.mask_zyx & case.distractor_mask_zyx & far).sum()) if case.distractor_mask_zyx is not None else 0
+    detour, detour_big = detoured_points(truth, est)
     return dict(
+        detour=detour, detour_big=detour_big,
         mean_mm=float(d.mean()), p95_mm=float(np.percentile(d, 95)), cover_mm=float(cover.mean()),
         recall=hits / max(n_big, 1), hits=hits, n_true=n_big, stubs=f"{stub_hits}/{n_stub}", false=false, r_err_mm=float(np.median(r_err)),
         scale_pm=scale_bias_permil(est, truth),
@@ -134,7 +156,7 @@ def main(argv=None):
 
     print(f"machine: {bench.machine_line()}, volume={a.volume}")
     cols = ["seed", "distr", "shape", "mean_mm", "p95_mm", "cover_mm", "recall", "n_true", "stubs", "false", "r_err_mm",
-            "scale_pm", "dice", "bad_distr", "t_s"]
+            "scale_pm", "dice", "bad_distr", "detour", "detour_big", "t_s"]
     print(" | ".join(f"{c:>9}" for c in cols))
     rows = []
     for seed in range(a.first_seed, a.first_seed + a.seeds):
@@ -156,6 +178,8 @@ def main(argv=None):
           f"too small in {np.mean(sc < 0):.0%} of cases")
     print(f"pooled branch recall (radius >= 1 mm): {hits}/{n_true} = {hits / max(n_true, 1):.3f}; "
           f"false branches: {sum(r['false'] for r in rows)} in {len(rows)} cases")
+    print(f"detoured (reached by a route more than {DETOUR_MM:g} mm longer than the true one): "
+          f"{sum(r['detour'] for r in rows)} of the true points, {sum(r['detour_big'] for r in rows)} of radius >= 1 mm")
     print(f"worst: p95_mm {max(r['p95_mm'] for r in rows):.3f}, recall {min(r['recall'] for r in rows):.3f}, "
           f"false {max(r['false'] for r in rows)}, bad_distr {max(r['bad_distr'] for r in rows)}, "
           f"t_s {max(r['t_s'] for r in rows):.1f}")
