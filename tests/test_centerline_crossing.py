@@ -9,8 +9,11 @@ origin, hung backwards from the crossing, and the tip was put in another vessel 
 from __future__ import annotations
 
 import numpy as np
+from scipy.spatial import cKDTree
+from skimage.morphology import skeletonize
 
 from guidewire3d.cta.centerline import _crossings, centerline_from_mask
+from guidewire3d.cta.grid import edt_mm
 
 SP_MM = 0.5
 
@@ -50,13 +53,8 @@ def _first_branch_route_mm(tree):
 
 def test_a_crossing_is_found_and_a_bifurcation_is_not():
     m = _crossing_mask(0.75)
-    from skimage.morphology import skeletonize
-    from scipy.spatial import cKDTree
-
     vox = np.column_stack(np.nonzero(skeletonize(m)))
     pairs = cKDTree(vox).query_pairs(np.sqrt(3) + 1e-6, output_type="ndarray")
-    from guidewire3d.cta.grid import edt_mm
-
     r = edt_mm(m, np.full(3, SP_MM))[tuple(vox.T)]
     cross = _crossings(vox, pairs, r, np.full(3, SP_MM))
     at = vox[cross >= 0] * SP_MM                            # z, y, x mm

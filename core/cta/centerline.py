@@ -1088,7 +1088,7 @@ def _recut_loops(T, pairs: np.ndarray, r: np.ndarray, vox: np.ndarray, sp_zyx: n
 
     Measured on the simulator's CTs (``bench_vessels3d``'s volumes; true tree points covered by the estimate
     that its tree reaches by a route more than 10 mm longer than the true one): seeds 0-19, 788 -> 259 points
-    (of radius 1 mm or more: 357 -> 76), 5 seeds better, 1 worse (seed 12, 13 -> 38); seeds 20-39, not used for
+    (of radius 1 mm or more: 357 -> 76), 6 seeds better, 1 worse (seed 12, 13 -> 38); seeds 20-39, not used for
     the setting, 1003 -> 848 (318 -> 234), 2 better, 1 worse (35, 80 -> 103, all thinner than 1 mm).
     ``pairs``: the skeleton graph's edges, ``r``: the distance to the wall per voxel (mm), ``root``: the tree's
     root voxel. Returns the tree (CSR) and whether any cut moved."""
