@@ -1094,9 +1094,8 @@ def _recut_loops(T, pairs: np.ndarray, r: np.ndarray, vox: np.ndarray, sp_zyx: n
     root voxel. Returns the tree (CSR) and whether any cut moved."""
     from scipy.sparse.csgraph import breadth_first_order
 
-    in_tree = set(map(tuple, np.sort(np.column_stack(T.nonzero()), axis=1).tolist()))
-    closing = [tuple(p) for p in np.sort(pairs, axis=1).tolist() if tuple(p) not in in_tree]
-    if not closing:
+    closing = pairs[np.asarray(T[pairs[:, 0], pairs[:, 1]]).ravel() == 0]    # the skeleton's edges the tree cut
+    if not len(closing):
         return T, False
     cross = _crossings(vox, pairs, r, sp_zyx)
     if not (cross >= 0).any():
@@ -1104,7 +1103,7 @@ def _recut_loops(T, pairs: np.ndarray, r: np.ndarray, vox: np.ndarray, sp_zyx: n
     T = T.tolil()
     moved = False
     pred = depth = None
-    for u, v in closing:
+    for u, v in closing.tolist():
         if cross[u] >= 0 or cross[v] >= 0:                 # cut at a crossing already
             continue
         if pred is None:                                   # the tree as it stands (after any cut moved)
