@@ -1087,9 +1087,9 @@ def _recut_loops(T, pairs: np.ndarray, r: np.ndarray, vox: np.ndarray, sp_zyx: n
       :func:`_voxel_tree`, checks).
 
     Measured on the simulator's CTs (``bench_vessels3d``'s volumes; true tree points covered by the estimate
-    that its tree reaches by a route more than 10 mm longer than the true one): seeds 0-19, 788 -> 259 points
-    (of radius 1 mm or more: 357 -> 76), 6 seeds better, 1 worse (seed 12, 13 -> 38); seeds 20-39, not used for
-    the setting, 1003 -> 848 (318 -> 234), 2 better, 1 worse (35, 80 -> 103, all thinner than 1 mm).
+    that its tree reaches by a route more than 10 mm longer than the true one): seeds 0-19, 788 -> 234 points
+    (of radius 1 mm or more: 357 -> 51), 6 seeds better, none worse; seeds 20-39, not used for the setting,
+    1003 -> 859 (318 -> 234), 1 better, 1 worse (35, 80 -> 103, all thinner than 1 mm).
     ``pairs``: the skeleton graph's edges, ``r``: the distance to the wall per voxel (mm), ``root``: the tree's
     root voxel. Returns the tree (CSR) and whether any cut moved."""
     from scipy.sparse.csgraph import breadth_first_order
