@@ -122,3 +122,72 @@ def test_a_trace_cut_short_on_a_simulated_frame_is_uncertain(seed):
     short = live.Session(case.tree, case.carm, case.pose).process_wire(cut, image=frame)
     assert short.verdict is Verdict.UNCERTAIN, short.message
     assert "continues along the vessel" in short.message
+
+
+def _hairpin_case(limb_drawn: bool, seed: int = 0, gap_mm: float = 1.2):
+    """A vessel that turns back on itself: out along x to 0, a half turn, and back ``gap_mm`` beside the way out
+    (about 5.7 px in this geometry). A wire drawn out to the turn and, optionally, round it and 20 mm back; the trace
+    is the way out, to the turn (``bench_stress`` 10400 f3-f5: the mask held one line where the two limbs ran 4-8 px
+    apart, the trace stopped at the turn, tips 24-33 mm off and ``ok``)."""
+    carm = CArm(0.0, 0.0, 1000.0, 700.0, 0.3, (256, 256))
+    out = np.stack([np.arange(-20.0, 0.0, 0.25), np.zeros(80), np.zeros(80)], axis=1)
+    a = np.linspace(-0.5 * np.pi, 0.5 * np.pi, 9)[1:-1]
+    r = 0.5 * gap_mm
+    turn = np.stack([r * np.cos(a), np.zeros(len(a)), r + r * np.sin(a)], axis=1)
+    back = np.stack([np.arange(0.0, -15.0, -0.25), np.zeros(60), np.full(60, gap_mm)], axis=1)
+    pts = np.concatenate([out, turn, back])
+    tree = VesselTree(pts, np.full(len(pts), 0.6), np.arange(-1, len(pts) - 1))
+    pose = Pose.identity()
+    uv = np.asarray(carm.project(pts, pose))
+    tip = len(out) - 1
+    rng = np.random.default_rng(seed)
+    img = 1000.0 + 8.0 * rng.standard_normal((256, 256))
+    vv, uu = np.mgrid[0:256, 0:256]
+    line = uv if limb_drawn else uv[:tip + 1]
+    d = np.min(np.hypot(uu[..., None] - line[None, None, :, 0], vv[..., None] - line[None, None, :, 1]), axis=-1)
+    img -= 40.0 * np.exp(-0.5 * (d / 0.75) ** 2)
+    return img, tree, carm, pose, tip, uv[:tip + 1]
+
+
+def test_a_limb_running_back_beside_the_trace_is_seen():
+    """The limb beyond the turn runs 4 px beside the trace, so the background on the trace's side of it is the
+    traced wire, which halves its contrast (``bench_stress`` 10400 f3-f5 read 40-44 % of the wire's contrast, below the
+    70 % limit, until stop 57). The traced wire is now neither line nor background, and a path that runs back beside
+    the trace needs half the wire's contrast."""
+    img, tree, carm, pose, tip, wire = _hairpin_case(True, gap_mm=0.85)
+    c = C.wire_continuation(img, tree, carm, pose, tip, wire)
+    assert c is not None and c.wire_goes_on, c
+    assert c.beside_wire_fraction >= C.BESIDE_WIRE_FRACTION
+    # on the limb itself (offset 0, from 15 px beyond the turn) the trace as background halves the contrast
+    zero = np.zeros(1)
+    limb = C._resample_1px(np.asarray(carm.project(tree.points_lps_mm[tip:], pose), float))[15: 15 + C.WINDOW_PX]
+    blind = C._line_contrast(img, limb, zero)[0]
+    seen = C._line_contrast(img, limb, zero, C.on_traced_wire(wire, 2.0, 5.0))[0]
+    assert np.isfinite(seen).all()
+    assert seen.mean() > 1.6 * blind.mean()
+
+
+def test_a_trace_ending_at_the_turn_is_not_flagged():
+    """The wire stops at the turn: the path back beside the trace must not read the traced wire itself as the
+    limb (at offsets up to 6 px the line reaches the trace, 5.7 px away; until stop 57 it read 94 % of the wire's
+    contrast there and made the frame uncertain)."""
+    img, tree, carm, pose, tip, wire = _hairpin_case(False)
+    c = C.wire_continuation(img, tree, carm, pose, tip, wire)
+    assert c is not None and not c.wire_goes_on, c
+    assert c.beside_wire_fraction >= C.BESIDE_WIRE_FRACTION
+    assert c.contrast_ratio < C.MIN_CONTRAST_RATIO_BESIDE
+
+
+def test_the_wire_half_width_is_its_narrower_side():
+    """A 1.5 px line (Gaussian sigma 0.75 px) is dark to 1-2 px either side; a second line 5 px beside it widens
+    one side of its profile only."""
+    rng = np.random.default_rng(0)
+    img = 1000.0 + 4.0 * rng.standard_normal((64, 64))
+    vv = np.mgrid[0:64, 0:64][0].astype(float)
+    one = img - 40.0 * np.exp(-0.5 * ((vv - 30.0) / 0.75) ** 2)
+    uv = np.stack([np.arange(10.0, 50.0), np.full(40, 30.0)], axis=1)
+    assert 1.0 <= C.wire_half_width_px(one, uv) <= 2.0
+    two = one - 40.0 * np.exp(-0.5 * ((vv - 35.0) / 0.75) ** 2)
+    assert C.wire_half_width_px(two, uv) == C.wire_half_width_px(one, uv)
+    thick = img - 40.0 * np.exp(-0.5 * ((vv - 30.0) / 2.5) ** 2)
+    assert C.wire_half_width_px(thick, uv) >= 3.0

@@ -4,20 +4,27 @@ The public names of the modules below, importable from ``guidewire3d.live``.
 """
 from guidewire3d.live.continuation import (  # noqa: F401
     BACKGROUND_PX,
+    BESIDE_WIRE_FRACTION,
     BEYOND_MM,
     LINE_STEP_PX,
     MIN_CONTRAST_RATIO,
+    MIN_CONTRAST_RATIO_BESIDE,
     MIN_SAMPLES,
     MIN_Z,
     NEAR_WIRE_PX,
     OFFSET_PX,
     SKIP_PX,
     WINDOW_PX,
+    WIRE_CLEAR_MARGIN_PX,
+    WIRE_EDGE_FRACTION,
     WIRE_OFFSET_PX,
+    WIRE_PROFILE_PX,
     WireContinuation,
     best_line_contrast,
     downstream_paths,
+    on_traced_wire,
     wire_continuation,
+    wire_half_width_px,
 )
 from guidewire3d.live.tipslide import SLIDE_CLEARANCE_MM, SLIDE_MAX_MM, tip_slide_mm  # noqa: F401
 from guidewire3d.live.session import (  # noqa: F401

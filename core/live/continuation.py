@@ -61,6 +61,13 @@ SKIP_PX = 3.0
 NEAR_WIRE_PX = 4.0
 #: the background is sampled this far to both sides of the line
 BACKGROUND_PX = 4.0
+#: an image sample within the traced wire's dark half-width plus this margin (px) is on it: neither the
+#: continuation's line nor its background
+WIRE_CLEAR_MARGIN_PX = 1.0
+#: the wire's half-width is where its cross profile falls below this fraction of its depth ...
+WIRE_EDGE_FRACTION = 0.25
+#: ... read out to this many px from the trace (the background beyond)
+WIRE_PROFILE_PX = 8
 #: perpendicular offsets tried for the continuation's line, px (each side) ...
 OFFSET_PX = 6
 #: ... along a line that moves at most this far sideways (px) per px along the path
@@ -74,6 +81,11 @@ MIN_CONTRAST_RATIO = 0.7
 #: ... and this many standard errors above zero makes the tip uncertain (the best line through noise alone reads
 #: 4-6 standard errors too: since stop 55 the ratio decides)
 MIN_Z = 2.5
+#: a path measured mostly (at least this fraction of its samples) within ``OFFSET_PX + BACKGROUND_PX`` of the traced
+#: wire runs back beside it (a hairpin), where the segmenter merges the two limbs into one line ...
+BESIDE_WIRE_FRACTION = 0.5
+#: ... and a continuation of this fraction of the wire's contrast suffices
+MIN_CONTRAST_RATIO_BESIDE = 0.5
 
 
 @dataclass(frozen=True)
@@ -89,14 +101,23 @@ class WireContinuation:
     z: float
     length_px: int
     offset_px: float
+    beside_wire_fraction: float = 0.0
 
     @property
     def wire_goes_on(self) -> bool:
         """Whether the image shows the wire going on beyond the traced tip."""
-        return self.contrast_ratio >= MIN_CONTRAST_RATIO and self.z >= MIN_Z
+        limit = MIN_CONTRAST_RATIO_BESIDE if self.runs_beside_wire else MIN_CONTRAST_RATIO
+        return self.contrast_ratio >= limit and self.z >= MIN_Z
+
+    @property
+    def runs_beside_wire(self) -> bool:
+        """Whether the path measured runs back beside the traced wire (a hairpin), judged by the lower limit."""
+        return self.beside_wire_fraction >= BESIDE_WIRE_FRACTION
 
     def explain(self) -> str:
-        return (f"tip uncertain: a dark line continues along the vessel beyond the traced tip "
+        where = (" (the vessel turns back beside the traced wire, where the segmentation can merge the two limbs)"
+                 if self.runs_beside_wire else "")
+        return (f"tip uncertain: a dark line continues along the vessel beyond the traced tip{where} "
                 f"({100 * self.contrast_ratio:.0f} % of the wire's contrast over {self.length_px} px, "
                 f"{self.z:.1f} standard errors): the wire may go on there, past what was segmented")
 
@@ -111,16 +132,69 @@ def _resample_1px(uv: np.ndarray) -> np.ndarray:
     return np.stack([np.interp(t, s, uv[:, 0]), np.interp(t, s, uv[:, 1])], axis=1)
 
 
-def _line_contrast(image: np.ndarray, uv: np.ndarray, offsets_px: np.ndarray) -> np.ndarray:
+def _line_contrast(image: np.ndarray, uv: np.ndarray, offsets_px: np.ndarray, on_wire=None) -> np.ndarray:
     """(len(offsets), len(uv)): background (``BACKGROUND_PX`` to both sides) minus the line, at each
-    perpendicular offset of the polyline ``uv`` (positive where the line is darker)."""
+    perpendicular offset of the polyline ``uv`` (positive where the line is darker).
+
+    With ``on_wire`` (a function of image points (N, 2), u, v px, to a bool (N,) array: which lie on the traced wire,
+    :func:`on_traced_wire`), the traced wire is neither line nor background: a background sample on it is replaced
+    by the other side's, and a cell whose line sample, or both of whose background samples, lie on it is NaN (a limb
+    running back beside the traced wire, whose background on one side is the traced wire itself, read about half its
+    contrast; a line riding onto the trace read the trace)."""
     rc = uv[:, ::-1]
     nrm = polyline_normals(rc)
     o = np.concatenate([offsets_px, offsets_px - BACKGROUND_PX, offsets_px + BACKGROUND_PX])
     q = rc[None] + o[:, None, None] * nrm[None]
-    v = kernels.sample_bilinear(image, q[..., 0].ravel(), q[..., 1].ravel(), mode="nearest").reshape(3, len(offsets_px),
-                                                                                                   len(rc))
-    return 0.5 * (v[1] + v[2]) - v[0]
+    shape = (3, len(offsets_px), len(rc))
+    v = kernels.sample_bilinear(image, q[..., 0].ravel(), q[..., 1].ravel(), mode="nearest").reshape(shape)
+    if on_wire is None:
+        return 0.5 * (v[1] + v[2]) - v[0]
+    near = np.asarray(on_wire(q[..., ::-1].reshape(-1, 2)), bool).reshape(shape)
+    background = np.where(near[1] & ~near[2], v[2], np.where(near[2] & ~near[1], v[1], 0.5 * (v[1] + v[2])))
+    return np.where(near[0] | (near[1] & near[2]), np.nan, background - v[0])
+
+
+def on_traced_wire(wire_uv_px, clear_px: float, tip_zone_px: float):
+    """A function of image points (N, 2) (u, v px) to bool (N,): which lie on the traced wire ``wire_uv_px``
+    (ordered, its last point the tip), within ``clear_px`` of one of its points more than ``tip_zone_px`` px from the
+    tip along it. The last ``tip_zone_px`` px are left out: the wire's continuation begins beside them."""
+    wire = np.asarray(wire_uv_px, float).reshape(-1, 2)
+    from_tip_px = np.concatenate([np.cumsum(np.linalg.norm(np.diff(wire[::-1], axis=0), axis=1))[::-1], [0.0]])
+    shaft = wire[from_tip_px > tip_zone_px]
+
+    def on_wire(points_uv_px):
+        p = np.asarray(points_uv_px, float).reshape(-1, 2)
+        if not len(shaft):
+            return np.zeros(len(p), bool)
+        return kernels.nearest_sq_dist(p, shaft, clear_px) <= clear_px ** 2
+
+    return on_wire
+
+
+def wire_half_width_px(image: np.ndarray, uv: np.ndarray) -> float:
+    """The dark half-width (px) of a wire traced along ``uv``: its mean cross profile out to ``WIRE_PROFILE_PX`` to
+    both sides, the background the brighter of its two outer px, and on each side the first offset where the profile
+    is less than ``WIRE_EDGE_FRACTION`` of the wire's depth below it; the narrower side (a second line beside the wire
+    widens one side)."""
+    rc = uv[:, ::-1]
+    nrm = polyline_normals(rc)
+    o = np.arange(-WIRE_PROFILE_PX, WIRE_PROFILE_PX + 1, dtype=float)
+    q = rc[None] + o[:, None, None] * nrm[None]
+    prof = kernels.sample_bilinear(image, q[..., 0].ravel(), q[..., 1].ravel(),
+                                   mode="nearest").reshape(len(o), len(rc)).mean(axis=1)
+    background = max(prof[:2].mean(), prof[-2:].mean())
+    centre = WIRE_PROFILE_PX
+    depth = background - prof[centre - 1: centre + 2].min()
+    if not depth > 0.0:
+        return 0.0
+    dark = background - prof >= WIRE_EDGE_FRACTION * depth
+    sides = []
+    for step in (-1, 1):
+        k = 0
+        while k < WIRE_PROFILE_PX and dark[centre + step * (k + 1)]:
+            k += 1
+        sides.append(k)
+    return float(min(sides))
 
 
 def best_line_contrast(contrast: np.ndarray, offsets_px: np.ndarray, *,
@@ -186,8 +260,12 @@ def wire_continuation(image, tree, carm, pose, tip_point_id: int, wire_uv_px) ->
     if not wire_contrast > 0.0:
         return None
     h, w = img.shape
+    clear = wire_half_width_px(img, distal) + WIRE_CLEAR_MARGIN_PX
     tip_uv = wire[-1]
     others = wire[:-3] if len(wire) > 3 else wire[:0]
+    # the continuation's line and background do not read the traced wire (its dark width and a margin), but for its
+    # last px, beside which the continuation begins
+    on_wire = on_traced_wire(wire, clear, SKIP_PX + clear)
     offsets = np.arange(-OFFSET_PX, OFFSET_PX + 1, dtype=float)
     paths = [p for p in downstream_paths(tree, tip_point_id, BEYOND_MM) if len(p) >= 2]
     if not paths:
@@ -206,12 +284,19 @@ def wire_continuation(image, tree, carm, pose, tip_point_id: int, wire_uv_px) ->
         uv = uv[keep][:WINDOW_PX]
         if len(uv) < MIN_SAMPLES:
             continue
-        c = _line_contrast(img, uv, offsets)
-        spread = 1.4826 * float(np.median(np.abs(c - np.median(c))))
+        reach = OFFSET_PX + BACKGROUND_PX
+        beside = float((kernels.nearest_sq_dist(uv, others, reach) <= reach ** 2).mean()) if len(others) else 0.0
+        c = _line_contrast(img, uv, offsets, on_wire)
+        c = c[:, ~np.isnan(c).all(axis=0)]        # samples whose every offset is on the traced wire: no evidence
+        if c.shape[1] < MIN_SAMPLES:
+            continue
+        valid = c[~np.isnan(c)]
+        spread = 1.4826 * float(np.median(np.abs(valid - np.median(valid))))
+        c = np.nan_to_num(c, nan=0.0)             # a cell on the traced wire: no evidence either way
         mean, offset = best_line_contrast(c, offsets)
         cand = WireContinuation(contrast_ratio=mean / wire_contrast,
                                 z=mean / max(spread / np.sqrt(c.shape[1] / 2.0), 1e-12),
-                                length_px=int(c.shape[1]), offset_px=offset)
+                                length_px=int(c.shape[1]), offset_px=offset, beside_wire_fraction=beside)
         if best is None or (cand.wire_goes_on, cand.contrast_ratio) > (best.wire_goes_on, best.contrast_ratio):
             best = cand
     return best
