@@ -42,6 +42,23 @@ kept stress cases (663; 23 off)    1 / 0                6 / 1               3 / 
 
 (the last row: the 202 cases ``bench_stress.py --keep`` kept at stop 54, seeds 9400-9923, replayed with their trees and
 poses; the details in ``scripts/MEASUREMENTS.md``, *Stop 55*)
+
+Since stop 57 the traced wire is neither the line nor its background (:func:`on_traced_wire`: within the wire's dark
+half-width, :func:`wire_half_width_px`, plus ``WIRE_CLEAR_MARGIN_PX`` of the trace, but for its last px, beside which
+the continuation begins), and a path measured mostly beside the trace (``BESIDE_WIRE_FRACTION`` of its samples within
+``OFFSET_PX + BACKGROUND_PX``) needs ``MIN_CONTRAST_RATIO_BESIDE`` of the wire's contrast. A wire that turns back in a
+hairpin whose limbs lie 4-8 px apart is held by the segmenter as one line and traced to the turn: the returning limb's
+background on one side was the traced wire, and it read 40-44 % (``bench_stress`` 10400 f3-f5, ``ok`` with tips 24-33
+mm off); on a trace that ends at the turn the line rode onto the trace itself. Caught / right made uncertain, the same
+frames as above read again (*Stop 57* in ``scripts/MEASUREMENTS.md``):
+
+=======================================================  ==================  ==================
+frames (``ok`` without the check; off)                   stop 55 (0.7)       stop 57
+=======================================================  ==================  ==================
+0.25 mm wires, seeds 0-179 (657; 80 off)                 61 / 11             61 / 13
+simulator's wires, seeds 0-179 (843; 8 off)              2 / 1               3 / 1
+kept stress cases 8700-10423, replayed (1568; 45 off)    10 / 4              16 / 3
+=======================================================  ==================  ==================
 """
 from __future__ import annotations
 
