@@ -40,7 +40,8 @@ REASONS = {"tip end": "tip end uncertain", "beyond tip": "tip uncertain: a wire-
            "wire sigma": "wire depth uncertain", "one-plane distal": "distal part from plane",
            "lost lumen": "centerline tree does not follow", "tip fork": "mask forks",
            "tip skip": "reaches the tip's vessel by a skip",
-           "tip slide": "passes through the lumen of", "catheter end": "a catheter's, not a guidewire's"}
+           "tip slide": "passes through the lumen of", "catheter end": "a catheter's, not a guidewire's",
+           "tip hidden": "runs back over the traced wire"}
 
 
 def options_of(seed: int, draws: str = "standard") -> list[str]:

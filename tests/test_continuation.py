@@ -191,3 +191,48 @@ def test_the_wire_half_width_is_its_narrower_side():
     assert C.wire_half_width_px(two, uv) == C.wire_half_width_px(one, uv)
     thick = img - 40.0 * np.exp(-0.5 * ((vv - 30.0) / 2.5) ** 2)
     assert C.wire_half_width_px(thick, uv) >= 3.0
+
+
+def _loop_case(return_height_mm: float, seed: int = 0):
+    """A vessel out along x to 0, a full loop up and round (3 mm deeper by its end), and on back along x
+    ``return_height_mm`` above the way out (0: over the way out in projection). The wire is drawn out and round the
+    loop; the trace is the same, its tip where the loop comes round (``bench_stress`` 10614 f1: the wire's last 15 mm
+    ran back over its own shaft, ``ok`` with the tip 14.9 mm short)."""
+    carm = CArm(0.0, 0.0, 1000.0, 700.0, 0.3, (256, 256))
+    out = np.stack([np.arange(-20.0, 0.0, 0.25), np.zeros(80), np.zeros(80)], axis=1)
+    t = np.linspace(0.0, 1.0, 51)[1:]
+    a = -0.5 * np.pi + 2.0 * np.pi * t
+    loop = np.stack([2.0 * np.cos(a), 3.0 * t, 2.0 + 2.0 * np.sin(a) + return_height_mm * t], axis=1)
+    back = np.stack([np.arange(-0.25, -16.0, -0.25), np.full(63, 3.0), np.full(63, return_height_mm)], axis=1)
+    pts = np.concatenate([out, loop, back])
+    tree = VesselTree(pts, np.full(len(pts), 0.6), np.arange(-1, len(pts) - 1))
+    pose = Pose.identity()
+    uv = np.asarray(carm.project(pts, pose))
+    tip = len(out) + len(loop) - 1
+    rng = np.random.default_rng(seed)
+    img = 1000.0 + 8.0 * rng.standard_normal((256, 256))
+    vv, uu = np.mgrid[0:256, 0:256]
+    line = uv[:tip + 1]
+    d = np.min(np.hypot(uu[..., None] - line[None, None, :, 0], vv[..., None] - line[None, None, :, 1]), axis=-1)
+    img -= 40.0 * np.exp(-0.5 * (d / 0.75) ** 2)
+    return img, tree, carm, pose, tip, uv[:tip + 1]
+
+
+def test_a_vessel_running_back_over_the_wire_hides_the_tip():
+    """Beyond the tip the vessel runs back over the wire's own shaft: the image cannot show whether the wire goes
+    on there, so the tip is in doubt although no line is seen (stop 56's check read nothing there)."""
+    img, tree, carm, pose, tip, wire = _loop_case(0.0)
+    c = C.wire_continuation(img, tree, carm, pose, tip, wire)
+    assert c is not None and c.hidden_by_wire and c.tip_in_doubt, c
+    assert c.hidden_px >= C.HIDDEN_MIN_PX and not c.wire_goes_on
+    assert "over the traced wire" in c.explain()
+    fr = live.Session(tree, carm, pose).process_wire(wire, image=img)
+    assert fr.verdict is Verdict.UNCERTAIN and "hidden by its own shaft" in fr.message, fr.message
+
+
+def test_a_vessel_running_back_beside_the_wire_does_not_hide_the_tip():
+    """The same loop coming back 2.5 mm above the way out (12 px in the image): nothing is hidden and no line is
+    there."""
+    img, tree, carm, pose, tip, wire = _loop_case(2.5)
+    c = C.wire_continuation(img, tree, carm, pose, tip, wire)
+    assert c is not None and c.hidden_px < C.HIDDEN_MIN_PX and not c.tip_in_doubt, c

@@ -59,10 +59,16 @@ frames (``ok`` without the check; off)                   stop 55 (0.7)       sto
 simulator's wires, seeds 0-179 (843; 8 off)              2 / 1               3 / 1
 kept stress cases 8700-10423, replayed (1568; 45 off)    10 / 4              16 / 3
 =======================================================  ==================  ==================
+
+And where a path beyond the tip runs back over the wire's own shaft (the trace more than ``SHAFT_FROM_TIP_PX`` from
+its tip) for ``HIDDEN_MIN_PX`` of its first ``HIDDEN_WINDOW_PX`` px, the image cannot show the wire going on at all:
+the tip is in doubt (``WireContinuation.hidden_by_wire``; ``bench_stress`` 10614 f1, its last 15 mm over its own
+shaft, ``ok`` with the tip 14.9 mm short). With both, ``bench_stress --replay`` of the kept cases and fresh seeds
+(2554 frames): 1695 ``ok`` / 38 wrong with stop 56's code, 1685 / 29 with stop 57's.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from guidewire3d import kernels
@@ -103,6 +109,12 @@ MIN_Z = 2.5
 BESIDE_WIRE_FRACTION = 0.5
 #: ... and a continuation of this fraction of the wire's contrast suffices
 MIN_CONTRAST_RATIO_BESIDE = 0.5
+#: the traced wire farther than this (px along it) from its tip is its shaft ...
+SHAFT_FROM_TIP_PX = 80.0
+#: ... and a path beyond the tip that runs within ``NEAR_WIRE_PX`` of the shaft for this many of its first
+#: ``HIDDEN_WINDOW_PX`` px is hidden by the wire itself: one view cannot show whether the wire goes on there
+HIDDEN_MIN_PX = 25
+HIDDEN_WINDOW_PX = 60
 
 
 @dataclass(frozen=True)
@@ -119,6 +131,7 @@ class WireContinuation:
     length_px: int
     offset_px: float
     beside_wire_fraction: float = 0.0
+    hidden_px: int = 0
 
     @property
     def wire_goes_on(self) -> bool:
@@ -127,11 +140,26 @@ class WireContinuation:
         return self.contrast_ratio >= limit and self.z >= MIN_Z
 
     @property
+    def hidden_by_wire(self) -> bool:
+        """Whether a path beyond the tip runs back over the traced wire's own shaft (``hidden_px``, px of its first
+        ``HIDDEN_WINDOW_PX``), where the image cannot show the wire going on."""
+        return self.hidden_px >= HIDDEN_MIN_PX
+
+    @property
+    def tip_in_doubt(self) -> bool:
+        """Whether the wire may go on beyond the traced tip: a line seen there, or a stretch hidden by the wire."""
+        return self.wire_goes_on or self.hidden_by_wire
+
+    @property
     def runs_beside_wire(self) -> bool:
         """Whether the path measured runs back beside the traced wire (a hairpin), judged by the lower limit."""
         return self.beside_wire_fraction >= BESIDE_WIRE_FRACTION
 
     def explain(self) -> str:
+        if not self.wire_goes_on and self.hidden_by_wire:
+            return (f"tip uncertain: beyond the traced tip its vessel runs back over the traced wire for {self.hidden_px}"
+                    f" px of the next {HIDDEN_WINDOW_PX}: one view cannot show whether the wire goes on there, hidden by "
+                    f"its own shaft")
         where = (" (the vessel turns back beside the traced wire, where the segmentation can merge the two limbs)"
                  if self.runs_beside_wire else "")
         return (f"tip uncertain: a dark line continues along the vessel beyond the traced tip{where} "
@@ -283,6 +311,7 @@ def wire_continuation(image, tree, carm, pose, tip_point_id: int, wire_uv_px) ->
     # the continuation's line and background do not read the traced wire (its dark width and a margin), but for its
     # last px, beside which the continuation begins
     on_wire = on_traced_wire(wire, clear, SKIP_PX + clear)
+    from_tip_px = np.concatenate([np.cumsum(np.linalg.norm(np.diff(wire[::-1], axis=0), axis=1))[::-1], [0.0]])
     offsets = np.arange(-OFFSET_PX, OFFSET_PX + 1, dtype=float)
     paths = [p for p in downstream_paths(tree, tip_point_id, BEYOND_MM) if len(p) >= 2]
     if not paths:
@@ -291,11 +320,15 @@ def wire_continuation(image, tree, carm, pose, tip_point_id: int, wire_uv_px) ->
     where = np.full(tree.n_points, -1, np.int64)
     where[ids] = np.arange(len(ids))
     proj = np.asarray(carm.project(tree.points_lps_mm[ids], pose), float)     # one projection for all paths
-    best = None
+    shaft = wire[from_tip_px > SHAFT_FROM_TIP_PX]
+    best, hidden = None, 0
     for path in paths:
         uv = _resample_1px(proj[where[path]])
         keep = np.linalg.norm(uv - tip_uv, axis=1) > SKIP_PX
         keep &= (uv[:, 0] >= 0) & (uv[:, 0] <= w - 1) & (uv[:, 1] >= 0) & (uv[:, 1] <= h - 1)
+        if len(shaft):                    # the path's px on the wire's own shaft, of its first HIDDEN_WINDOW_PX
+            ahead = uv[keep][:HIDDEN_WINDOW_PX]
+            hidden = max(hidden, int((kernels.nearest_sq_dist(ahead, shaft, NEAR_WIRE_PX) <= NEAR_WIRE_PX ** 2).sum()))
         if len(others):
             keep &= kernels.nearest_sq_dist(uv, others, NEAR_WIRE_PX) > NEAR_WIRE_PX ** 2
         uv = uv[keep][:WINDOW_PX]
@@ -316,4 +349,7 @@ def wire_continuation(image, tree, carm, pose, tip_point_id: int, wire_uv_px) ->
                                 length_px=int(c.shape[1]), offset_px=offset, beside_wire_fraction=beside)
         if best is None or (cand.wire_goes_on, cand.contrast_ratio) > (best.wire_goes_on, best.contrast_ratio):
             best = cand
-    return best
+    if best is None:
+        return (WireContinuation(contrast_ratio=0.0, z=0.0, length_px=0, offset_px=0.0, hidden_px=hidden)
+                if hidden >= HIDDEN_MIN_PX else None)
+    return replace(best, hidden_px=hidden)

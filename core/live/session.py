@@ -592,7 +592,7 @@ def frame_verdict(wire3d, wire_uv_px, orientation, *, beyond_tip=None, motion=No
         why.append(orientation.explain())
     if beyond_tip is not None and not reversed_:      # the segmenter may have lost a stretch before the tip
         why.append(beyond_tip.explain())
-    elif continuation is not None and continuation.wire_goes_on:
+    elif continuation is not None and continuation.tip_in_doubt:
         why.append(continuation.explain())
     if doubled_tip is not None:                       # the trace may stop at a bend, short of the tip
         why.append(doubled_tip.explain())
