@@ -123,7 +123,10 @@ class WireContinuation:
 
     ``contrast_ratio`` is its mean line contrast over the traced wire's (both in image units, each along its best
     line, :func:`best_line_contrast`); ``z`` its contrast in standard errors; ``length_px`` the samples it was
-    measured on; ``offset_px`` the mean perpendicular offset of its line from the projected centerline.
+    measured on; ``offset_px`` the mean perpendicular offset of its line from the projected centerline;
+    ``beside_wire_fraction`` the share of its samples within ``OFFSET_PX + BACKGROUND_PX`` of the traced wire;
+    ``hidden_px`` the most px, of any path's first ``HIDDEN_WINDOW_PX`` beyond the tip, within ``NEAR_WIRE_PX`` of the
+    traced wire's shaft (all zero but ``hidden_px`` when no line could be measured).
     """
 
     contrast_ratio: float
@@ -199,13 +202,17 @@ def _line_contrast(image: np.ndarray, uv: np.ndarray, offsets_px: np.ndarray, on
     return np.where(near[0] | (near[1] & near[2]), np.nan, background - v[0])
 
 
+def _from_tip_px(wire: np.ndarray) -> np.ndarray:
+    """(M,) px along the polyline ``wire`` (M, 2) from each point to its last (the tip)."""
+    return np.concatenate([np.cumsum(np.linalg.norm(np.diff(wire[::-1], axis=0), axis=1))[::-1], [0.0]])
+
+
 def on_traced_wire(wire_uv_px, clear_px: float, tip_zone_px: float):
     """A function of image points (N, 2) (u, v px) to bool (N,): which lie on the traced wire ``wire_uv_px``
     (ordered, its last point the tip), within ``clear_px`` of one of its points more than ``tip_zone_px`` px from the
     tip along it. The last ``tip_zone_px`` px are left out: the wire's continuation begins beside them."""
     wire = np.asarray(wire_uv_px, float).reshape(-1, 2)
-    from_tip_px = np.concatenate([np.cumsum(np.linalg.norm(np.diff(wire[::-1], axis=0), axis=1))[::-1], [0.0]])
-    shaft = wire[from_tip_px > tip_zone_px]
+    shaft = wire[_from_tip_px(wire) > tip_zone_px]
 
     def on_wire(points_uv_px):
         p = np.asarray(points_uv_px, float).reshape(-1, 2)
@@ -311,7 +318,6 @@ def wire_continuation(image, tree, carm, pose, tip_point_id: int, wire_uv_px) ->
     # the continuation's line and background do not read the traced wire (its dark width and a margin), but for its
     # last px, beside which the continuation begins
     on_wire = on_traced_wire(wire, clear, SKIP_PX + clear)
-    from_tip_px = np.concatenate([np.cumsum(np.linalg.norm(np.diff(wire[::-1], axis=0), axis=1))[::-1], [0.0]])
     offsets = np.arange(-OFFSET_PX, OFFSET_PX + 1, dtype=float)
     paths = [p for p in downstream_paths(tree, tip_point_id, BEYOND_MM) if len(p) >= 2]
     if not paths:
@@ -320,7 +326,7 @@ def wire_continuation(image, tree, carm, pose, tip_point_id: int, wire_uv_px) ->
     where = np.full(tree.n_points, -1, np.int64)
     where[ids] = np.arange(len(ids))
     proj = np.asarray(carm.project(tree.points_lps_mm[ids], pose), float)     # one projection for all paths
-    shaft = wire[from_tip_px > SHAFT_FROM_TIP_PX]
+    shaft = wire[_from_tip_px(wire) > SHAFT_FROM_TIP_PX]
     best, hidden = None, 0
     for path in paths:
         uv = _resample_1px(proj[where[path]])
