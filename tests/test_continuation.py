@@ -126,7 +126,7 @@ def test_a_trace_cut_short_on_a_simulated_frame_is_uncertain(seed):
 
 def _hairpin_case(limb_drawn: bool, seed: int = 0, gap_mm: float = 1.2):
     """A vessel that turns back on itself: out along x to 0, a half turn, and back ``gap_mm`` beside the way out
-    (about 5.7 px in this geometry). A wire drawn out to the turn and, optionally, round it and 20 mm back; the trace
+    (about 5.7 px in this geometry). A wire drawn out to the turn and, optionally, round it and 15 mm back; the trace
     is the way out, to the turn (``bench_stress`` 10400 f3-f5: the mask held one line where the two limbs ran 4-8 px
     apart, the trace stopped at the turn, tips 24-33 mm off and ``ok``)."""
     carm = CArm(0.0, 0.0, 1000.0, 700.0, 0.3, (256, 256))
