@@ -335,13 +335,13 @@ def wire_continuation(image, tree, carm, pose, tip_point_id: int, wire_uv_px) ->
         if len(shaft):                    # the path's px on the wire's own shaft, of its first HIDDEN_WINDOW_PX
             ahead = uv[keep][:HIDDEN_WINDOW_PX]
             hidden = max(hidden, int((kernels.nearest_sq_dist(ahead, shaft, NEAR_WIRE_PX) <= NEAR_WIRE_PX ** 2).sum()))
-        if len(others):
-            keep &= kernels.nearest_sq_dist(uv, others, NEAR_WIRE_PX) > NEAR_WIRE_PX ** 2
-        uv = uv[keep][:WINDOW_PX]
+        reach = OFFSET_PX + BACKGROUND_PX          # distances to the trace, exact out to reach (> NEAR_WIRE_PX)
+        d2 = kernels.nearest_sq_dist(uv, others, reach) if len(others) else np.full(len(uv), np.inf)
+        keep &= d2 > NEAR_WIRE_PX ** 2
+        uv, d2 = uv[keep][:WINDOW_PX], d2[keep][:WINDOW_PX]
         if len(uv) < MIN_SAMPLES:
             continue
-        reach = OFFSET_PX + BACKGROUND_PX
-        beside = float((kernels.nearest_sq_dist(uv, others, reach) <= reach ** 2).mean()) if len(others) else 0.0
+        beside = float((d2 <= reach ** 2).mean()) if len(others) else 0.0
         c = _line_contrast(img, uv, offsets, on_wire)
         c = c[:, ~np.isnan(c).all(axis=0)]        # samples whose every offset is on the traced wire: no evidence
         if c.shape[1] < MIN_SAMPLES:
