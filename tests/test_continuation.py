@@ -236,3 +236,50 @@ def test_a_vessel_running_back_beside_the_wire_does_not_hide_the_tip():
     img, tree, carm, pose, tip, wire = _loop_case(2.5)
     c = C.wire_continuation(img, tree, carm, pose, tip, wire)
     assert c is not None and c.hidden_px < C.HIDDEN_MIN_PX and not c.tip_in_doubt, c
+
+
+def _sibling_case(branch_drawn: bool, seed: int = 0):
+    """A straight vessel along x with a branch leaving it at x = 0 at a right angle in the image. The wire is drawn
+    along the vessel to the junction and, optionally, on along the branch for 20 mm; the trace (and the reconstructed
+    tip) go 2 mm past the junction along the vessel (``bench_stress`` 10305 f2: the trace stopped where the wire
+    crossed itself, the 3D tip put 6.2 mm short, just past a junction whose other branch the wire took)."""
+    carm = CArm(0.0, 0.0, 1000.0, 700.0, 0.3, (256, 256))
+    main = np.stack([np.linspace(-30, 30, 121), np.zeros(121), np.zeros(121)], axis=1)
+    j = 60                                                   # x = 0
+    s = np.arange(0.5, 25.0, 0.5)[:, None]
+    branch = s * np.array([[0.0, 0.0, 1.0]])
+    pts = np.concatenate([main, branch])
+    parent = np.concatenate([np.arange(-1, 120), [j], np.arange(121, 121 + len(branch) - 1)])
+    tree = VesselTree(pts, np.full(len(pts), 1.0), parent)
+    pose = Pose.identity()
+    uv = np.asarray(carm.project(pts, pose))
+    tip = j + 4
+    rng = np.random.default_rng(seed)
+    img = 1000.0 + 8.0 * rng.standard_normal((256, 256))
+    vv, uu = np.mgrid[0:256, 0:256]
+    line = np.concatenate([uv[:j + 1], uv[121:121 + 40]]) if branch_drawn else uv[:tip + 1]
+    d = np.min(np.hypot(uu[..., None] - line[None, None, :, 0], vv[..., None] - line[None, None, :, 1]), axis=-1)
+    img -= 40.0 * np.exp(-0.5 * (d / 0.75) ** 2)
+    return img, tree, carm, pose, tip, uv[:tip + 1]
+
+
+def test_a_wire_going_on_along_a_branch_just_before_the_tip_is_seen():
+    """The wire leaves along the branch 2 mm before the reconstructed tip: the tip's own vessel beyond it shows no
+    line (stop 57 read only that), the branch does."""
+    img, tree, carm, pose, tip, wire = _sibling_case(True)
+    own = [p for p in C.downstream_paths(tree, tip, C.BEYOND_MM)]
+    assert all(121 not in p for p in own)                     # the branch is not downstream of the tip
+    c = C.wire_continuation(img, tree, carm, pose, tip, wire)
+    assert c is not None and c.wire_goes_on and c.contrast_ratio > 0.8, c
+    assert c.branch_before_tip_mm == pytest.approx(2.0, abs=0.01)
+    assert "along a branch that leaves the wire's vessel 2.0 mm before the traced tip" in c.explain()
+    fr = live.Session(tree, carm, pose).process_wire(wire, image=img)
+    assert fr.verdict is Verdict.UNCERTAIN and "along a branch" in fr.message, fr.message
+
+
+def test_a_branch_before_the_tip_without_a_line_is_not_flagged():
+    img, tree, carm, pose, tip, wire = _sibling_case(False)
+    c = C.wire_continuation(img, tree, carm, pose, tip, wire)
+    assert c is not None and not c.tip_in_doubt, c
+    assert C.sibling_paths(tree, tip, C.SIBLING_BACK_MM, C.BEYOND_MM)          # the branch was read
+    assert abs(c.contrast_ratio) < 0.5 * C.MIN_CONTRAST_RATIO

@@ -125,3 +125,64 @@ def test_a_tip_whose_vessel_crosses_the_beam_stays_ok(oblique_tip_case):
     assert e["tip_error_mm"] < 2.0 and tip_2d_px < 2.0
     assert slide < 5.0
     assert fr.verdict is Verdict.OK, fr.message
+
+
+def _turning_vessel(carm: CArm, tilt_deg: float, dive_mm: float = 12.0):
+    """A vessel 30 mm across the beam to the isocentre, then ``dive_mm`` along the beam tilted ``tilt_deg`` off it
+    (points every ``STEP_MM``, radius 0.6 mm), rooted at its far end; and the index of its point at the turn."""
+    d = carm.beam_direction
+    side = np.cross(d, [0.0, 0.0, 1.0])
+    side /= np.linalg.norm(side)
+    a = np.radians(tilt_deg)
+    t = np.cos(a) * d + np.sin(a) * side
+    before = np.arange(-30.0, 0.0 + 1e-9, STEP_MM)[:, None] * side[None, :]
+    after = np.arange(STEP_MM, dive_mm + 1e-9, STEP_MM)[:, None] * t[None, :]
+    points = np.concatenate([before, after])
+    tree = VesselTree(points, np.full(len(points), 0.6), np.arange(-1, len(points) - 1))
+    return tree, len(before) - 1
+
+
+def test_the_forward_stretch_is_the_vessel_beyond_the_tip_that_projects_onto_it():
+    """``bench_stress`` 10916 f3: the 2D tip right to 3 px, the 3D tip 9.6 mm short, ``ok``; the vessel beyond it ran
+    10.6 mm along the beam within 5 px of the 2D tip (its lumen, 0.5-1.1 mm, too thin for the ray to cross more than
+    6.8 mm of it). Here a vessel that dives 12 mm along the beam, 5 degrees off it, beyond the tip: all of it projects
+    within 5 px (0.4 px per mm), 11 mm more than across the beam; one that goes on across the beam adds nothing."""
+    carm = CArm(0.0, 0.0, 1000.0, 700.0, 0.3, (512, 512))
+    pose = Pose.identity()
+    tree, tip = _turning_vessel(carm, 5.0)
+    tip_uv = carm.project(tree.points_lps_mm[[tip]], pose)[0]
+    in_plane_mm = live.TIP_STRETCH_PX * carm.pixel_at_iso_mm       # what 5 px span across the beam (1.05 mm)
+    got = tipslide.forward_stretch_mm(tree, carm, pose, tip_uv, tip, stretch_px=live.TIP_STRETCH_PX)
+    assert got == pytest.approx(12.0 - in_plane_mm, abs=STEP_MM)
+    assert tipslide.tip_slide_mm(tree, carm, pose, tip_uv, tip) < 7.0       # the lumen crossed is shorter
+    # 30 degrees off the beam: 2.5 px per mm, out of the 5 px after 2 mm
+    tree30, tip30 = _turning_vessel(carm, 30.0)
+    uv30 = carm.project(tree30.points_lps_mm[[tip30]], pose)[0]
+    assert tipslide.forward_stretch_mm(tree30, carm, pose, uv30, tip30, stretch_px=live.TIP_STRETCH_PX) == \
+        pytest.approx(2.0 - in_plane_mm, abs=0.3)
+    # the same vessel going on across the beam beyond a tip 10 mm before its turn: nothing more than 5 px span there
+    across = tip - int(10.0 / STEP_MM)
+    uv_across = carm.project(tree.points_lps_mm[[across]], pose)[0]
+    assert tipslide.forward_stretch_mm(tree, carm, pose, uv_across, across, stretch_px=live.TIP_STRETCH_PX) == \
+        pytest.approx(0.0, abs=STEP_MM)
+
+
+def test_the_frame_verdict_names_the_forward_stretch():
+    n = 50
+    uv = np.column_stack([np.arange(n, dtype=float), np.full(n, 100.0)])
+    X = np.column_stack([np.arange(n) * 0.3, np.zeros(n), np.zeros(n)])
+
+    class W:
+        points_lps_mm = X
+        uncertainty_mm = np.full(n, 0.5)
+        message = "ok: 50 points"
+        reversed_input = False
+
+    # 0.5 mm across, 7 / sqrt 12 = 2.0 mm along: 2.08 mm, under the limit
+    assert live.frame_verdict(W(), uv, None, image_shape=(512, 512), forward_mm=7.0) == (Verdict.OK, "ok: 50 points")
+    # the longer of the two stretches counts
+    verdict, message = live.frame_verdict(W(), uv, None, image_shape=(512, 512), tip_slide_mm=2.0, forward_mm=10.6)
+    assert verdict is Verdict.UNCERTAIN
+    assert message.startswith("tip uncertain: its position is known to 3.1 mm (1 sigma, limit 2.25 mm) (0.5 mm across "
+                              "the wire, 3.1 mm along its vessel: beyond the tip its vessel runs along the beam, 10.6 mm "
+                              "more of it projecting within 5 px of the 2D tip than across the beam"), message

@@ -16,6 +16,7 @@ from guidewire3d.live.continuation import (  # noqa: F401
     NEAR_WIRE_PX,
     OFFSET_PX,
     SHAFT_FROM_TIP_PX,
+    SIBLING_BACK_MM,
     SKIP_PX,
     WINDOW_PX,
     WIRE_CLEAR_MARGIN_PX,
@@ -26,10 +27,11 @@ from guidewire3d.live.continuation import (  # noqa: F401
     best_line_contrast,
     downstream_paths,
     on_traced_wire,
+    sibling_paths,
     wire_continuation,
     wire_half_width_px,
 )
-from guidewire3d.live.tipslide import SLIDE_CLEARANCE_MM, SLIDE_MAX_MM, tip_slide_mm  # noqa: F401
+from guidewire3d.live.tipslide import SLIDE_CLEARANCE_MM, SLIDE_MAX_MM, forward_stretch_mm, tip_slide_mm  # noqa: F401
 from guidewire3d.live.session import (  # noqa: F401
     BRANCH_EXTRA_MAX,
     BRANCH_SHIFT_MIN_MM,

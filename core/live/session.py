@@ -33,7 +33,7 @@ import numpy as np
 from guidewire3d import kernels, reconstruction
 from guidewire3d.errors import Guidewire3DError
 from guidewire3d.live.continuation import wire_continuation
-from guidewire3d.live.tipslide import tip_slide_mm
+from guidewire3d.live.tipslide import forward_stretch_mm, tip_slide_mm
 from guidewire3d.geometry import CArm, Pose, fine_pixel_factor
 from guidewire3d.motion.tracking import MotionTracker
 from guidewire3d.registration import Verdict
@@ -507,11 +507,14 @@ class Session:
             continuation = wire_continuation(image, self.tree, self.carm, self.pose, int(on_tree[-1]),
                                              uv[::-1] if w3.reversed_input else uv)
             stages["reconstruction"] = stages.get("reconstruction", 0.0) + time.perf_counter() - t1
-        slide_mm = None
+        slide_mm = forward_mm = None
         if self.method == "vessel" and len(on_tree):  # the lumen the tip's ray passes through, along the vessel
             t1 = time.perf_counter()
             slide_mm = tip_slide_mm(self.tree, self.carm, self.pose, uv[0] if w3.reversed_input else uv[-1],
                                     int(on_tree[-1]))
+            forward_mm = forward_stretch_mm(self.tree, self.carm, self.pose, uv[0] if w3.reversed_input else uv[-1],
+                                            int(on_tree[-1]), stretch_px=TIP_STRETCH_PX * fine_pixel_factor(
+                                                self.carm.pixel_at_iso_mm))
             stages["reconstruction"] = stages.get("reconstruction", 0.0) + time.perf_counter() - t1
         cath = doubled = None
         if image is not None and image.ndim == 2:    # the image at the output's tip:
@@ -525,7 +528,7 @@ class Session:
                                          tip_fork=getattr(wire2d, "tip_fork", None),
                                          motion=motion, image_shape=self.carm.shape, continuation=continuation,
                                          prior_was_ok=self._prior_was_ok, pixel_at_iso_mm=self.carm.pixel_at_iso_mm,
-                                         tip_slide_mm=slide_mm, catheter_end=cath)
+                                         tip_slide_mm=slide_mm, catheter_end=cath, forward_mm=forward_mm)
         self._prior_was_ok = verdict is Verdict.OK      # the tracker's prior is now this frame's path
         return FrameResult(index, wire2d, w3, verdict, message, ori, time.perf_counter() - t0, timestamp,
                            self.pose, motion, stages)
@@ -538,7 +541,8 @@ class Session:
 
 def frame_verdict(wire3d, wire_uv_px, orientation, *, beyond_tip=None, motion=None, image_shape=None,
                   continuation=None, doubled_tip=None, tip_fork=None, prior_was_ok: bool = False,
-                  pixel_at_iso_mm: float | None = None, tip_slide_mm: float | None = None, catheter_end=None):
+                  pixel_at_iso_mm: float | None = None, tip_slide_mm: float | None = None, catheter_end=None,
+                  forward_mm: float | None = None):
     """``(Verdict, message)`` of a frame with a 3D wire: ``OK`` with the reconstruction's message,
     or ``UNCERTAIN`` with every reason that applies, the first first:
 
@@ -559,8 +563,11 @@ def frame_verdict(wire3d, wire_uv_px, orientation, *, beyond_tip=None, motion=No
       (``TIP_STRETCH_MAX_MM``; over ``TIP_STRETCH_PX`` at the reference pixel, widened to as many mm on a
       view finer than that, ``pixel_at_iso_mm``; None: ``TIP_STRETCH_PX`` as it is);
     * the tip's uncertainty exceeds ``TIP_MAX_UNCERTAINTY_MM``: its 1 sigma across the wire
-      (``Wire3D.uncertainty_mm[-1]``) and along it, ``tip_slide_mm`` / sqrt 12 (``tip_slide_mm``: the stretch of
-      vessel through whose lumen the 2D tip's ray passes, ``live.tipslide.tip_slide_mm``; None: not measured),
+      (``Wire3D.uncertainty_mm[-1]``) and along it, the longer of ``tip_slide_mm`` and ``forward_mm`` over sqrt 12
+      (``tip_slide_mm``: the stretch of vessel through whose lumen the 2D tip's ray passes,
+      ``live.tipslide.tip_slide_mm``; ``forward_mm``: how much more of the vessel beyond the tip projects within
+      ``TIP_STRETCH_PX`` of the 2D tip than across the beam, ``live.tipslide.forward_stretch_mm``, since stop 58; None:
+      not measured),
       in quadrature;
     * the wire's points are known to worse than ``WIRE_MAX_UNCERTAINTY_MM`` (their median 1 sigma,
       ``wire_uncertainty_mm``): one view does not place a wire in depth inside a wide lumen;
@@ -613,12 +620,16 @@ def frame_verdict(wire3d, wire_uv_px, orientation, *, beyond_tip=None, motion=No
                    f"its last {stretch_px:.3g} px (limit {TIP_STRETCH_MAX_MM:g} mm), so a tip a pixel off in 2D "
                    f"lies mm off in 3D")
     tip_sigma_mm = float(wire3d.uncertainty_mm[-1]) if len(wire3d.uncertainty_mm) else 0.0
-    along_mm = float(tip_slide_mm) / math.sqrt(12.0) if tip_slide_mm is not None else 0.0
+    slide = float(tip_slide_mm) if tip_slide_mm is not None else 0.0
+    forward = float(forward_mm) if forward_mm is not None else 0.0
+    along_mm = max(slide, forward) / math.sqrt(12.0)
     tip_total_mm = math.hypot(tip_sigma_mm, along_mm)
     if tip_total_mm > TIP_MAX_UNCERTAINTY_MM:
-        parts = (f" ({tip_sigma_mm:.1f} mm across the wire, {along_mm:.1f} mm along its vessel: the tip's ray passes "
-                 f"through the lumen of {tip_slide_mm:.1f} mm of it, where one view does not see the wire's end)"
-                 if along_mm > 0 else "")
+        where = (f"the tip's ray passes through the lumen of {slide:.1f} mm of it" if slide >= forward else
+                 f"beyond the tip its vessel runs along the beam, {forward:.1f} mm more of it projecting within "
+                 f"{stretch_px:.3g} px of the 2D tip than across the beam")
+        parts = (f" ({tip_sigma_mm:.1f} mm across the wire, {along_mm:.1f} mm along its vessel: {where}, where one view "
+                 f"does not see the wire's end)" if along_mm > 0 else "")
         why.append(f"tip uncertain: its position is known to {tip_total_mm:.1f} mm (1 sigma, limit "
                    f"{TIP_MAX_UNCERTAINTY_MM:g} mm){parts}; {wire3d.message}")
     wire_sigma_mm = wire_uncertainty_mm(wire3d)

@@ -23,12 +23,19 @@ right ones (tips 1.3-3.3 mm off). At the true pose (the simulator, seeds 0-199, 
 frames and made 12 of 629 right ones ``uncertain``; on seeds drawn after it (9100-9315) it caught none and made 8 of
 223 right ones ``uncertain``: the tip's position along the stretch is not seen, and the path's prior gets it right more
 often than a uniform spread says.
+
+Since stop 58 :func:`forward_stretch_mm` measures the tip's vessel beyond it as seen in the image: the run of the tree
+downstream of the tip that projects within ``live.TIP_STRETCH_PX`` of the 2D tip, less what those px span across the
+beam. A thin leaf that dives along the beam beyond the tip projects onto the tip for its whole length while its lumen
+is too thin for the ray to cross more than part of it (``bench_stress`` 10916 f3: 10 mm within 4 px, 6.8 mm of lumen
+crossed, ``ok`` with the tip 9.6 mm short). ``live.frame_verdict`` takes the longer of the two as the tip's spread.
 """
 from __future__ import annotations
 
 import math
 
 import numpy as np
+from guidewire3d.live.continuation import downstream_paths
 
 #: the tree is followed this far (mm) from the tip's point, back and forward
 SLIDE_MAX_MM = 30.0
@@ -102,3 +109,30 @@ def tip_slide_mm(tree, carm, pose, tip_uv_px, tip_point_id: int, *, clearance_mm
         far = max(far, float(s[i] - s[tip]))
         stack.extend(c for c in children[i] if s[c] - s[tip] <= max_mm and inside(c))
     return float(s[tip] - s[first]) + far
+
+
+def forward_stretch_mm(tree, carm, pose, tip_uv_px, tip_point_id: int, *, stretch_px: float,
+                       max_mm: float = SLIDE_MAX_MM) -> float:
+    """How much more vessel (mm along the tree) beyond the reconstructed tip projects within ``stretch_px`` of the 2D
+    tip than a vessel across the beam would: from the tip's tree point into every branch downstream (each up to
+    ``max_mm``), the longest run of points from the tip on whose projection stays that close, less the ``stretch_px``
+    at the isocentre's pixel size (what a vessel in the image plane spans over those px); 0 at the least. Where the
+    tip's vessel turns along the beam beyond the tip, the wire may go on along it with nothing more to see in the
+    image (``live.frame_verdict`` counts it as the tip's spread along its vessel, as ``tip_slide_mm``; the px are
+    those of ``live.tip_stretch_mm``, which measures the 3D wire's own last px)."""
+    paths = [p for p in downstream_paths(tree, int(tip_point_id), max_mm) if len(p) >= 2]
+    if not paths:
+        return 0.0
+    ids = np.unique(np.concatenate(paths))
+    where = np.full(tree.n_points, -1, np.int64)
+    where[ids] = np.arange(len(ids))
+    near = np.linalg.norm(np.asarray(carm.project(tree.points_lps_mm[ids], pose), float)
+                          - np.asarray(tip_uv_px, float).reshape(1, 2), axis=1) <= stretch_px
+    s = tree.arclength_from_root_mm
+    best = 0.0
+    for p in paths:
+        inside = near[where[p]]
+        n = len(p) if inside.all() else int(np.argmin(inside))     # the run from the tip
+        if n >= 2:
+            best = max(best, float(s[p[n - 1]] - s[p[0]]))
+    return max(best - stretch_px * float(carm.pixel_at_iso_mm), 0.0)
