@@ -58,17 +58,23 @@ def test_the_stretch_is_the_lumen_the_ray_crosses_along_the_vessel(angle_deg):
     assert tipslide.tip_slide_mm(tree, carm, pose, off_uv, tip) == 0.0
 
 
-def test_the_frame_verdict_names_the_stretch():
-    n = 50
+def _straight_wire(n: int = 50):
+    """A 3D wire of ``n`` points 0.3 mm apart across the beam (1 sigma 0.5 mm each, message "ok: 50 points") and its
+    2D trace, 1 px apart: what ``frame_verdict`` reads of a frame."""
     uv = np.column_stack([np.arange(n, dtype=float), np.full(n, 100.0)])
     X = np.column_stack([np.arange(n) * 0.3, np.zeros(n), np.zeros(n)])
 
     class W:
         points_lps_mm = X
         uncertainty_mm = np.full(n, 0.5)
-        message = "ok: 50 points"
+        message = f"ok: {n} points"
         reversed_input = False
 
+    return W, uv
+
+
+def test_the_frame_verdict_names_the_stretch():
+    W, uv = _straight_wire()
     # 0.5 mm across, 7 / sqrt 12 = 2.0 mm along: 2.08 mm, under the limit (2.25 mm)
     assert live.frame_verdict(W(), uv, None, image_shape=(512, 512), tip_slide_mm=7.0) == (Verdict.OK, "ok: 50 points")
     assert live.frame_verdict(W(), uv, None, image_shape=(512, 512), tip_slide_mm=None) == (Verdict.OK, "ok: 50 points")
@@ -168,16 +174,7 @@ def test_the_forward_stretch_is_the_vessel_beyond_the_tip_that_projects_onto_it(
 
 
 def test_the_frame_verdict_names_the_forward_stretch():
-    n = 50
-    uv = np.column_stack([np.arange(n, dtype=float), np.full(n, 100.0)])
-    X = np.column_stack([np.arange(n) * 0.3, np.zeros(n), np.zeros(n)])
-
-    class W:
-        points_lps_mm = X
-        uncertainty_mm = np.full(n, 0.5)
-        message = "ok: 50 points"
-        reversed_input = False
-
+    W, uv = _straight_wire()
     # 0.5 mm across, 7 / sqrt 12 = 2.0 mm along: 2.08 mm, under the limit
     assert live.frame_verdict(W(), uv, None, image_shape=(512, 512), forward_mm=7.0) == (Verdict.OK, "ok: 50 points")
     # the longer of the two stretches counts
