@@ -41,7 +41,7 @@ REASONS = {"tip end": "tip end uncertain", "beyond tip": "tip uncertain: a wire-
            "lost lumen": "centerline tree does not follow", "tip fork": "mask forks",
            "tip skip": "reaches the tip's vessel by a skip",
            "tip slide": "passes through the lumen of", "catheter end": "a catheter's, not a guidewire's",
-           "tip hidden": "runs back over the traced wire"}
+           "tip hidden": "runs back over the traced wire", "tip dives": "beyond the tip its vessel runs along the beam"}
 
 
 def options_of(seed: int, draws: str = "standard") -> list[str]:
