@@ -58,5 +58,6 @@ from guidewire3d.live.session import (  # noqa: F401
     log,
     orientation_of,
     tip_stretch_mm,
+    tip_stretch_px,
     wire_uncertainty_mm,
 )

@@ -301,17 +301,16 @@ def downstream_paths(tree, point_id: int, max_mm: float) -> list[np.ndarray]:
 def sibling_paths(tree, point_id: int, back_mm: float, max_mm: float) -> list[tuple[np.ndarray, float]]:
     """The paths of tree points that leave the way from the root to ``point_id`` at a junction at most ``back_mm``
     before it (along the tree), each from that junction into a branch the way does not take, up to ``max_mm``
-    beyond the junction (:func:`downstream_paths`); with each, how far (mm along the tree) before ``point_id`` it
-    leaves."""
-    children, parent = tree.children, tree.parent
-    s = tree.arclength_from_root_mm
+    beyond the branch's first point (:func:`downstream_paths`); with each, how far (mm along the tree) before
+    ``point_id`` it leaves."""
+    children, parent, s = tree.children, tree.parent, tree.arclength_from_root_mm
+    tip = int(point_id)
     out = []
-    prev, a = int(point_id), int(parent[int(point_id)])
-    while a >= 0 and s[int(point_id)] - s[a] <= back_mm:
-        for c in children[a]:
-            if int(c) != prev:
-                out += [(np.concatenate([[a], p]), float(s[int(point_id)] - s[a]))
-                        for p in downstream_paths(tree, int(c), max_mm)]
+    prev, a = tip, int(parent[tip])
+    while a >= 0 and s[tip] - s[a] <= back_mm:
+        before_mm = float(s[tip] - s[a])
+        out += [(np.concatenate([[a], p]), before_mm)
+                for c in children[a] if int(c) != prev for p in downstream_paths(tree, int(c), max_mm)]
         prev, a = a, int(parent[a])
     return out
 

@@ -513,8 +513,7 @@ class Session:
             slide_mm = tip_slide_mm(self.tree, self.carm, self.pose, uv[0] if w3.reversed_input else uv[-1],
                                     int(on_tree[-1]))
             forward_mm = forward_stretch_mm(self.tree, self.carm, self.pose, uv[0] if w3.reversed_input else uv[-1],
-                                            int(on_tree[-1]), stretch_px=TIP_STRETCH_PX * fine_pixel_factor(
-                                                self.carm.pixel_at_iso_mm))
+                                            int(on_tree[-1]), stretch_px=tip_stretch_px(self.carm.pixel_at_iso_mm))
             stages["reconstruction"] = stages.get("reconstruction", 0.0) + time.perf_counter() - t1
         cath = doubled = None
         if image is not None and image.ndim == 2:    # the image at the output's tip:
@@ -612,7 +611,7 @@ def frame_verdict(wire3d, wire_uv_px, orientation, *, beyond_tip=None, motion=No
         why.append(f"tip not in view: the wire runs out of the image at its distal end "
                    f"(u {distal_uv[0]:.0f}, v {distal_uv[1]:.0f} px)")
     # (one view: a second view, ``method`` "biplane", sees the depth the first does not)
-    stretch_px = TIP_STRETCH_PX * (1.0 if pixel_at_iso_mm is None else fine_pixel_factor(pixel_at_iso_mm))
+    stretch_px = tip_stretch_px(pixel_at_iso_mm)
     stretch_mm = (tip_stretch_mm(wire3d, uv, stretch_px=stretch_px) if getattr(wire3d, "method", "") != "biplane"
                   else 0.0)
     if stretch_mm > TIP_STRETCH_MAX_MM:
@@ -698,6 +697,12 @@ def _off_lumen_reason(wire3d) -> str:
     return (f"wire off its vessel: {span_mm:.0f} mm of the 3D wire lie up to {miss[k]:.1f} mm outside the lumen of the "
             f"tree path it was placed in ({from_tip_mm:.0f} mm before the tip; limit {OFF_LUMEN_MAX_MM:g} mm): the "
             f"vessel tree lacks the one the wire is in there, or the pose is off")
+
+
+def tip_stretch_px(pixel_at_iso_mm: float | None) -> float:
+    """``TIP_STRETCH_PX`` on a view of ``pixel_at_iso_mm`` (widened on one finer than the reference pixel,
+    ``fine_pixel_factor``; None: as it is): the px over which ``tip_stretch_mm`` and ``forward_stretch_mm`` measure."""
+    return TIP_STRETCH_PX * (1.0 if pixel_at_iso_mm is None else fine_pixel_factor(pixel_at_iso_mm))
 
 
 def tip_stretch_mm(wire3d, wire_uv_px, *, stretch_px: float = TIP_STRETCH_PX) -> float:
