@@ -145,6 +145,9 @@ def main(argv=None):
             print(f"  ok: pose {r['k']} frame {r['t']}: wire {r['err']:.2f} mm, tip {r['tip']:.2f} mm; its points' "
                   f"median 1 sigma {r['sig']:.1f} mm, the tip's {r['tip_sig']:.1f} mm"
                   + ("  SILENTLY WRONG" if r["err"] > b.WIRE_OFF_MM or r["tip"] > b.TIP_OFF_MM else ""))
+    for r in rows:
+        if r["verdict"] == "failed":
+            print(f"  failed: pose {r['k']} frame {r['t']}: {r['msg']}")
     from bench_stress import REASONS
 
     reasons = collections.Counter(name for r in rows if r["verdict"] == "uncertain"
