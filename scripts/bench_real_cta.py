@@ -661,8 +661,9 @@ def main(argv=None):
               f"{np.nanpercentile(d, 90):.2f} mm ({np.isnan(d).sum()} sections without a point)")
     print("axis check: each point's distance to the centroid of its artery label's cross-section across its own "
           "direction (round sections only; no skeleton: the same yardstick for the references and the estimate)")
-    print(axis_check_line(labels, sp_zyx, ref_mm, reference_tangents_mm(ref_mm, ref_lab), "the skeleton on the labels' grid"))
-    print(axis_check_line(labels, sp_zyx, iso_mm, reference_tangents_mm(iso_mm, iso_lab), "the isotropic skeleton"))
+    for what, pts, lab in (("the skeleton on the labels' grid", ref_mm, ref_lab),
+                           ("the isotropic skeleton", iso_mm, iso_lab)):
+        print(axis_check_line(labels, sp_zyx, pts, reference_tangents_mm(pts, lab), what))
     cols = ["ref->est_mm", "ref->est_aorta_mm", "ref->est_named_mm", "est->ref_mm", "aorta_cov", "named_cov",
             "aorta_dice", "in_art", "in_other", "length_m", "branches", "lumen", "bg", "t_s", "peak_GB"]
     print("variant | " + " | ".join(cols))
