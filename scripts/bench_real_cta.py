@@ -61,7 +61,8 @@ product's own centring, run on the label), for both references and each estimate
 aorta and for the named arteries. Two distances to a skeleton reference add that skeleton's own offset from the
 axis; this line reads the estimate's alone. Where the label is not the lumen (calcified plaque inside the
 labelled wall: the lowest 20 slices of this CT, 4-8 % of the aorta label's voxels above 700 HU) the lumen's
-centroid, which the estimate follows, differs from the label's.
+centroid differs from the label's (there the estimate's median offset is 1.24 mm from the label's, 0.94 mm from
+the label's less those voxels).
 
 ``--seeded N`` also runs the automatic stage with one seed at a time, N per artery, each a random voxel inside the
 artery's label (:func:`seeded_rows`; issue 17's "a seed anywhere inside a lumen gives the connected vessel tree that
