@@ -52,6 +52,10 @@ organs, bone), ``len_m``, ``branches``, ``t_s``; and where the tree's length run
 aorta label's lowest voxel; an aortic tree's default root is its aorta's lower end, where a transfemoral wire
 enters).
 
+Under each tree's row, its ``axis check`` (``bench_real_cta.axis_check_line``): each point's distance to the centroid
+of its artery label's round cross-section across its own direction, on the variant's grid (the labels resampled
+there, nearest neighbour): the estimate's axis against the label itself, with no skeleton.
+
 Verdict: ``right tree`` when the aorta Dice is at least 0.8 and at most half of the centerline lies in other
 labelled structures (``in_other``: heart, veins, lungs, organs, bone; dilated 1 mm and not within 3 mm of an
 artery label); ``WRONG TREE (exit 0)`` for any other tree that was not refused; ``refused`` with the reason.
@@ -343,6 +347,7 @@ def child(a) -> None:
     m = B.evaluate(vol, lab, res.vessels.mask_zyx, res.vessels.tree, idx[inside] * sp_zyx, ref["lab"][inside])
     rec.update({k: v for k, v in m.items() if k != "labels"})
     rec["where"] = where_the_tree_runs(vol, lab, res.vessels.tree, _structures(data))
+    rec["axis"] = B.axis_check_line(lab, sp_zyx, *B.tree_points_and_tangents_mm(vol, res.vessels.tree), a.variant)
     rec["root"] = where_the_root_is(vol, lab, res.vessels.tree, _structures(data))
     rec.update(lumen=res.model.lumen, bg=res.model.background, segmentation=res.segmentation)
     print("RESULT " + json.dumps(rec, default=float))
@@ -404,6 +409,7 @@ def main(argv=None) -> int:
                   + f" | {r['lumen']:.4g} / {r['bg']:.4g} | {r['segmentation']}; % of length: {r.get('where', '')}"
                   + f"; root: {r.get('root', '')}",
                   flush=True)
+            print(f"  {r['axis']}", flush=True)
     return 0
 
 
