@@ -458,17 +458,11 @@ def label_axis_offsets(labels_zyx, spacing_zyx, points_mm, tangents_mm, label) -
 def tree_points_and_tangents_mm(vol, tree) -> tuple[np.ndarray, np.ndarray]:
     """The tree's points as (z, y, x) mm from ``vol``'s first voxel, and each point's direction there (towards it
     from its parent; the root's towards its first child)."""
+    from guidewire3d.cta.vesselmodel import _tangents_mm
+
     sp = np.asarray(vol.spacing_mm)[::-1]
     q = vol.lps_to_index_zyx(np.asarray(tree.points_lps_mm, dtype=float)) * sp
-    par = np.asarray(tree.parent)
-    t = np.zeros_like(q)
-    has = par >= 0
-    t[has] = q[has] - q[par[has]]
-    for r in np.flatnonzero(~has):
-        kids = np.flatnonzero(par == r)
-        if len(kids):
-            t[r] = q[kids[0]] - q[r]
-    return q, t
+    return q, _tangents_mm(q, tree)
 
 
 def reference_tangents_mm(points_mm, labels_of_points, k: int = 7) -> np.ndarray:
