@@ -337,7 +337,7 @@ BRIDGE_REACH_MM = 40.0
 #: kidney subtrees cut at 0.62 and 0.65 (738 mm of its 2.28 m tree in the kidneys); the highest other subtree in the 16
 #: copies, 0.40 (the brachiocephalic trunk under a +-30 % coil field, read before the field is divided out) and the CT
 #: in HU's thyroid gland, 0.38. Under a +-60 % field read as it is, that trunk's subtrees reach 0.55-0.59 (the stage
-#: divides that copy by its field first, and there nothing is cut).
+#: reads both field copies divided by their fields, and there nothing is cut).
 PARENCHYMA_RADIUS_MM = 2.5
 PARENCHYMA_LEVEL_FRACTION = 0.85
 PARENCHYMA_FRACTION = 0.5
