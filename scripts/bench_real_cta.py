@@ -426,7 +426,7 @@ def label_axis_offsets(labels_zyx, spacing_zyx, points_mm, tangents_mm, label) -
     an estimate and a reference are checked alike against the label itself (its voxels' 0.5 level, so a label
     drawn a voxel wide on one side moves the centroid by half a voxel).
     """
-    from guidewire3d.cta.centerline import _cross_section_centres
+    from guidewire3d.cta.centerline import _cross_section_centres_boxed
     from guidewire3d.cta.grid import bbox, edt_mm
 
     sp = np.asarray(spacing_zyx, dtype=float)
@@ -449,7 +449,7 @@ def label_axis_offsets(labels_zyx, spacing_zyx, points_mm, tangents_mm, label) -
     # the rays run out to 2 r + two voxels: with r = 1.5 x the wall distance they reach the far wall of a point up to
     # half the radius off the axis
     r = np.maximum(edt_mm(sub, sp)[tuple(i[inside].T)], 1.0) * 1.5
-    c, good = _cross_section_centres(ql[inside], r, sub.astype(np.float32), sp, tangents=t[inside])
+    c, good = _cross_section_centres_boxed(sub, sp, ql[inside], r, t[inside])
     out[inside] = np.where(good, np.linalg.norm(c - ql[inside], axis=1), np.nan)
     ok[inside] = good
     return out, ok

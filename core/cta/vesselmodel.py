@@ -37,8 +37,8 @@ from dataclasses import asdict, dataclass, field, replace
 import numpy as np
 from guidewire3d import io
 from guidewire3d.cta import biasfield, lostlumen, prune, segment, vessels3d
-from guidewire3d.cta.centerline import (CenterlineOptions, _cross_section_centres, _rooted_at_widest_end, _SkeletonPaths,
-                                        without_lumen_strands)
+from guidewire3d.cta.centerline import (CenterlineOptions, _cross_section_centres_boxed, _rooted_at_widest_end,
+                                        _SkeletonPaths, without_lumen_strands)
 from guidewire3d.cta.grid import bbox, canonical_volume
 from guidewire3d.cta.prune import _mask_of_points
 from guidewire3d.cta.segment import VesselOptions, frangi_at
@@ -1859,16 +1859,8 @@ def parenchyma_points(volume: io.Volume, mask_zyx: np.ndarray, tree, model, *,
     sp = np.asarray(volume.spacing_mm, dtype=float)[::-1]
     q = idx * sp
     cand = np.flatnonzero(like)
-    # the rays run out to 2 x 1.5 r plus two finest voxels (:func:`_cross_section_centres`): the box holds them
-    reach = 3.0 * r[cand].max() + 2.0 * sp.min()
-    lo = np.maximum(np.floor((q[cand].min(axis=0) - reach) / sp).astype(int) - 1, 0)
-    hi = np.minimum(np.ceil((q[cand].max(axis=0) + reach) / sp).astype(int) + 2, np.array(mask_zyx.shape))
-    occ = np.asarray(mask_zyx[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]], dtype=np.float32)
-    tang = _tangents_mm(q, tree)
-    for a in range(0, len(cand), 4096):  # the rays' samples take ~23 kB a point
-        c = cand[a:a + 4096]
-        _, round_ = _cross_section_centres(q[c] - lo * sp, 1.5 * r[c], occ, sp, tangents=tang[c])
-        like[c[round_]] = False
+    _, round_ = _cross_section_centres_boxed(mask_zyx, sp, q[cand], 1.5 * r[cand], _tangents_mm(q, tree)[cand])
+    like[cand[round_]] = False
     seg = tree.length_at_point_mm
     branches = tree.branches
     own = [np.asarray(b.point_ids if b.parent < 0 else b.point_ids[1:], dtype=np.int64) for b in branches]
