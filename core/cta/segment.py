@@ -272,8 +272,21 @@ ANEURYSM_MIN_ANGLE_DEG = 140.0
 #: inferior mesenteric artery, a vein the sac presses on) ...
 ANEURYSM_SIDE_PORT_RATIO = 0.5
 #: ... and the blob is at most this many times the widest vessel's radius deep (40 mm against 16 mm: a fusiform aortic
-#: aneurysm 8 cm across)
+#: aneurysm 8 cm across), and at least that radius (a blob cut by the field of view is not seen whole).
 ANEURYSM_MAX_RADIUS_FACTOR = 2.5
+#: ... Or, the ports read this far (mm) outside the blob: the lumen that reaches there through lumen connected to it.
+#: A sac's wall that bulges past the blob zone is a cap a few mm thick, read as a wide port beside the blob; it ends
+#: before this, and the vessel's sections go on (the sagittal MR copy with a 5 cm aneurysm: two such caps, 22 and 21 mm
+#: wide, and the aorta below, 129 degrees from one of them; read 10 mm out, the aorta's sections, 12 and 10 mm) ...
+ANEURYSM_RING_MM = 10.0
+#: ... in a ring this thick (mm) ...
+ANEURYSM_RING_THICKNESS_MM = 3.0
+#: ... with the same widths, and the vessel leaving through the two widest in opposite directions: the centroid of the
+#: lumen beyond each (the next this many mm, within that of the port), seen from the port, at least
+#: ``ANEURYSM_MIN_ANGLE_DEG`` apart from the other (the sacs on MR copies, 155-158; the hearts of the CT and its 16
+#: copies at most 90), and at least ``ANEURYSM_EXIT_MIN_MM`` from it (a pool all round the blob has no direction)
+ANEURYSM_EXIT_MM = 10.0
+ANEURYSM_EXIT_MIN_MM = 3.0
 
 
 def _aneurysm_zone(mask, blob, radius_mm: float, spacing_zyx) -> np.ndarray:
@@ -294,6 +307,16 @@ def _aneurysm_zone(mask, blob, radius_mm: float, spacing_zyx) -> np.ndarray:
     sagittal MR copy that shell and the aorta, 124 degrees apart), or through several of a size (the pulmonary veins,
     the venae cavae).
 
+    Where a sac bulges past the blob zone, its wall beyond is a cap a few mm thick that the shell reads as wide ports
+    of its own (the sagittal MR copy with a 5 cm aneurysm: two caps, 22 and 21 mm, besides the aorta). So a blob the
+    shell does not read as an aneurysm is read again ``ANEURYSM_RING_MM`` outside it, in a ring of the lumen that
+    reaches there through lumen connected to it: the caps have ended and the vessel's sections go on. There the two
+    widest ports must be as wide and as alone, and the vessel must leave through them in opposite directions (the
+    centroid of the lumen ``ANEURYSM_EXIT_MM`` beyond each port, seen from it, at least ``ANEURYSM_MIN_ANGLE_DEG``
+    apart): a direction, unlike the angle about the centroid, that an eccentric sac does not bend. A chamber's two
+    widest there are the pool round it and a vessel, or two vessels leaving on one side (at most 90 degrees on the CT
+    and its copies). A blob less deep than ``radius_mm`` (cut by the field of view) is not read: a sac is seen whole.
+
     Returns
     -------
     (z, y, x) ndarray of bool
@@ -304,32 +327,79 @@ def _aneurysm_zone(mask, blob, radius_mm: float, spacing_zyx) -> np.ndarray:
     out = np.zeros(mask.shape, bool)
     if not inside.any():
         return out
+    port_min_mm = max(ANEURYSM_PORT_MIN_FRACTION * radius_mm, ANEURYSM_PORT_MIN_VOXELS * float(sp.max()))
+    reach_mm = ANEURYSM_RING_MM + ANEURYSM_RING_THICKNESS_MM + ANEURYSM_EXIT_MM
+    grow = np.ceil(reach_mm / sp).astype(int) + 1
     lab, n = ndi.label(inside, structure=np.ones((3, 3, 3)))
     for k, box in enumerate(ndi.find_objects(lab), 1):
-        box = tuple(slice(max(b.start - 2, 0), b.stop + 2) for b in box)
+        box = tuple(slice(max(b.start - g, 0), min(b.stop + g, s)) for b, g, s in zip(box, grow, mask.shape))
         part = lab[box] == k
-        if float(edt_mm(np.pad(part, 1), sp).max()) > ANEURYSM_MAX_RADIUS_FACTOR * radius_mm:
+        depth_mm = float(edt_mm(np.pad(part, 1), sp).max())
+        if not radius_mm <= depth_mm <= ANEURYSM_MAX_RADIUS_FACTOR * radius_mm:
             continue
-        shell = ndi.binary_dilation(part, structure=np.ones((3, 3, 3))) & mask[box] & ~blob[box]
-        ports, n_ports = ndi.label(shell, structure=np.ones((3, 3, 3)))
+        rest = mask[box] & ~blob[box]
         centre = np.argwhere(part).mean(axis=0) * sp
-        found = []                          # (radius mm, centroid mm from the blob's)
-        for q in range(1, n_ports + 1):
-            pts = np.argwhere(ports == q) * sp
-            if len(pts) < 4:
-                continue
-            var = np.sort(np.maximum(np.linalg.eigvalsh(np.cov(pts.T)), 0.0))[::-1]
-            found.append((2.0 * np.sqrt(0.5 * (var[0] + var[1])), pts.mean(axis=0) - centre))
-        found.sort(key=lambda f: -f[0])
-        port_min_mm = max(ANEURYSM_PORT_MIN_FRACTION * radius_mm, ANEURYSM_PORT_MIN_VOXELS * float(sp.max()))
-        if (len(found) < 2 or found[1][0] < port_min_mm
-                or (len(found) > 2 and found[2][0] > ANEURYSM_SIDE_PORT_RATIO * found[1][0])):
+        # the ports beside the blob, directed from its centroid
+        shell = ndi.binary_dilation(part, structure=np.ones((3, 3, 3))) & rest
+        found = [(r, c - centre) for r, c, _ in _ports_mm(shell, sp)]
+        if _through_ports(found, port_min_mm):
+            out[box] |= part
             continue
-        a, b = found[0][1], found[1][1]
-        cos = float(a @ b) / max(float(np.linalg.norm(a) * np.linalg.norm(b)), 1e-9)
-        if np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))) >= ANEURYSM_MIN_ANGLE_DEG:
+        # the ports in a ring outside it, directed by where the lumen goes on beyond them
+        out_mm = edt_mm(~part, sp)
+        near = rest & (out_mm <= ANEURYSM_RING_MM + ANEURYSM_RING_THICKNESS_MM)
+        reached, _ = ndi.label(near | part, structure=np.ones((3, 3, 3)))
+        near &= reached == reached[tuple(np.argwhere(part)[0])]
+        ring = near & (out_mm > ANEURYSM_RING_MM)
+        beyond = rest & (out_mm > ANEURYSM_RING_MM + ANEURYSM_RING_THICKNESS_MM) & (out_mm <= reach_mm)
+        ports = _ports_mm(ring, sp)
+        found = [(r, c) for r, c, _ in ports]
+        if not _through_ports(found, port_min_mm, directions=False):
+            continue
+        rest_lab, _ = ndi.label(rest, structure=np.ones((3, 3, 3)))
+        beyond_mm = np.argwhere(beyond) * sp
+        beyond_lab = rest_lab[beyond]
+        for i, (r, c, vox) in enumerate(ports[:2]):
+            on = beyond_mm[np.isin(beyond_lab, np.unique(rest_lab[tuple(vox.T)]))]
+            on = on[np.linalg.norm(on - c, axis=1) <= ANEURYSM_EXIT_MM + ANEURYSM_RING_THICKNESS_MM]
+            found[i] = (r, on.mean(axis=0) - c if len(on) else np.zeros(3))
+        if _through_ports(found, port_min_mm, min_norm_mm=ANEURYSM_EXIT_MIN_MM):
             out[box] |= part
     return out
+
+
+def _ports_mm(ports_mask, sp):
+    """The 26-connected patches of ``ports_mask`` of at least 4 voxels, widest first: ``(radius mm, centroid mm,
+    voxels)``, the radius twice the RMS of the two largest principal standard deviations (a disc of radius r has r / 2
+    along each)."""
+    lab, _ = ndi.label(ports_mask, structure=np.ones((3, 3, 3)))
+    found = []
+    for q, sl in enumerate(ndi.find_objects(lab), 1):
+        vox = np.argwhere(lab[sl] == q) + np.array([b.start for b in sl])
+        if len(vox) < 4:
+            continue
+        pts = vox * sp
+        var = np.sort(np.maximum(np.linalg.eigvalsh(np.cov(pts.T)), 0.0))[::-1]
+        found.append((2.0 * np.sqrt(0.5 * (var[0] + var[1])), pts.mean(axis=0), vox))
+    found.sort(key=lambda f: -f[0])
+    return found
+
+
+def _through_ports(found, port_min_mm: float, *, min_norm_mm: float = 0.0, directions: bool = True) -> bool:
+    """Whether ``found`` (``(radius mm, direction mm)``, widest first) are a vessel's way through a blob: the two
+    widest at least ``port_min_mm`` wide, any other at most ``ANEURYSM_SIDE_PORT_RATIO`` of the second, and (unless
+    not ``directions``) their directions, each at least ``min_norm_mm`` long, at least ``ANEURYSM_MIN_ANGLE_DEG``
+    apart."""
+    if (len(found) < 2 or found[1][0] < port_min_mm
+            or (len(found) > 2 and found[2][0] > ANEURYSM_SIDE_PORT_RATIO * found[1][0])):
+        return False
+    if not directions:
+        return True
+    a, b = found[0][1], found[1][1]
+    na, nb = float(np.linalg.norm(a)), float(np.linalg.norm(b))
+    if min(na, nb) < max(min_norm_mm, 1e-9):
+        return False
+    return np.degrees(np.arccos(np.clip(float(a @ b) / (na * nb), -1.0, 1.0))) >= ANEURYSM_MIN_ANGLE_DEG
 
 
 #: :func:`_chain_axis`: two cut-off pieces are sections of one tube when their sections about the chain's axis agree
