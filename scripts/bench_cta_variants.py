@@ -66,7 +66,10 @@ there, nearest neighbour): the estimate's axis against the label itself, with no
 
 Verdict: ``right tree`` when the aorta Dice is at least 0.8 and at most half of the centerline lies in other
 labelled structures (``in_other``: heart, veins, lungs, organs, bone; dilated 1 mm and not within 3 mm of an
-artery label); ``WRONG TREE (exit 0)`` for any other tree that was not refused; ``refused`` with the reason.
+artery label); ``WRONG TREE (exit 0)`` for any other tree that was not refused; ``refused`` with the reason. A tree
+whose notes say that a region was cut as a heart chamber though a vessel may run through it
+(``CTAVessels.cut_through_lps_mm``, README *An aneurysm is not a heart chamber*) adds ``said cut through``: a wrong tree
+so noted is not silent.
 Why this rule: the aorta is the trunk in every territory this CT shows (chest, upper abdomen, both slabs), so
 a tree whose aorta lumen is not recovered (Dice < 0.8: cut, a different structure, or tissue around it) is
 not the arterial tree a user asked for, and a tree with most of its length in structures known not to be
@@ -427,6 +430,7 @@ def child(a) -> None:
     rec["axis"] = B.axis_check_line(lab, sp_zyx, *B.tree_points_and_tangents_mm(vol, res.vessels.tree), a.variant)
     rec["root"] = where_the_root_is(vol, lab, res.vessels.tree, _structures(data))
     rec.update(lumen=res.model.lumen, bg=res.model.background, segmentation=res.segmentation)
+    rec["cut_through"] = [list(q) for q in res.vessels.cut_through_lps_mm]
     print("RESULT " + json.dumps(rec, default=float))
 
 
@@ -435,7 +439,10 @@ def verdict(r: dict) -> str:
         return "refused"
     if "error" in r:
         return "error"
-    return "right tree" if r["aorta_dice"] >= RIGHT_DICE and r["in_other"] <= RIGHT_MAX_IN_OTHER else "WRONG TREE (exit 0)"
+    if r["aorta_dice"] >= RIGHT_DICE and r["in_other"] <= RIGHT_MAX_IN_OTHER:
+        return "right tree" + (", said cut through" if r.get("cut_through") else "")
+    # a wrong tree whose notes say where a vessel may run through a region cut as a heart chamber is not silent
+    return "wrong tree, said cut through" if r.get("cut_through") else "WRONG TREE (exit 0)"
 
 
 def main(argv=None) -> int:

@@ -139,8 +139,27 @@ def test_a_chamber_is_not_an_aneurysm_read_beyond_it():
     chamber = _ball(z, y, x, c, 30.0) | _tube(z, y, x, c, (1, 0, 0.3), 12.0, 80.0)
     for other in (_tube(z, y, x, c, (0, 1, 0), 10.0, 80.0), _tube(z, y, x, c, (1, 0.2, -0.8), 11.0, 80.0)):
         mask = chamber | other
-        assert segment._blob_zone(mask, REAL_LIMIT_MM, np.asarray(sp)).any()
-        assert not _kept_at(mask, sp).any()
+        blob = segment._blob_zone(mask, REAL_LIMIT_MM, np.asarray(sp))
+        assert blob.any()
+        kept, doubtful = segment._aneurysm_reading(mask, blob, REAL_LIMIT_MM, np.asarray(sp))
+        assert not kept.any() and doubtful == []          # cut, and nothing to say
+
+
+def test_a_sac_beside_another_wide_vessel_is_cut_and_said():
+    """The eccentric sac with a second vessel as wide as the aorta crossing in front of it (a thoracic aneurysm against
+    the left pulmonary artery): three wide ports, so it is cut as before, but the vessel through it is recorded, near
+    the sac's centre."""
+    sp = (1.5, 1.5, 1.5)
+    mask = _eccentric_sac(sp)
+    z, y, x = _grid(mask.shape)
+    z, y, x = z * sp[0], y * sp[1], x * sp[2]
+    mask |= _tube(z, y, x, (100.0, 81.5, 0.0), (0, 0, 1), 11.0, 100.0)
+    blob = segment._blob_zone(mask, REAL_LIMIT_MM, np.asarray(sp))
+    kept, doubtful = segment._aneurysm_reading(mask, blob, REAL_LIMIT_MM, np.asarray(sp))
+    assert not kept.any()
+    assert len(doubtful) == 1
+    sac_centre_mm = np.array([85.0, 38.0 + 0.9 * 15.0, 50.0 + 0.3 * 15.0])
+    assert np.linalg.norm(doubtful[0] * np.asarray(sp) - sac_centre_mm) < 10.0
 
 
 # --- end to end: an automatic tree through a fusiform aneurysm -------------------------------------------------------
@@ -204,6 +223,29 @@ def test_the_plan_says_it_read_an_aneurysm(auto):
     assert any("read as an aneurysm" in n for n in vesselplan.tree_notes(auto))
     rec = vesselplan.vessels_record(auto, inputs={"spacing_mm": [1.0, 1.0, 1.0]})
     assert rec["tree"]["aneurysm"] == wide
+
+
+def test_a_sac_cut_beside_another_vessel_is_said(aaa, auto):
+    """End to end: the synthetic aorta's sac with a vessel as wide as 7 mm crossing in front of it. The sac is cut and
+    the tree ends below it, as before stop 62, but no longer silently: ``vessels.json`` records where
+    (``tree.cut_through_lps_mm``) and the plan's notes say the tree may stop there."""
+    A = np.array(aaa.array_zyx)
+    z, y = np.meshgrid(*[np.arange(n, dtype=float) for n in CT_SHAPE[:2]], indexing="ij", sparse=True)
+    cy = AXIS_YX[0] + 0.4 * (AAA_MM - AORTA_MM) + 18.0
+    cross = np.broadcast_to(((y - cy) ** 2 + (z - (0.5 * sum(AAA_Z) + 5.0)) ** 2 <= 7.0 ** 2)[..., None], CT_SHAPE).copy()
+    cross[:, :, :4] = cross[:, :, -4:] = False
+    A[cross] = LUMEN + np.random.default_rng(1).normal(0.0, 10.0, int(cross.sum()))
+    vol = io.Volume(A.astype(np.float32), (1.0, 1.0, 1.0), (0.0, 0.0, 0.0), np.eye(3), source="AAA beside a vessel")
+    beside = vesselmodel.extract_vessels_auto(vol)
+    low, high, _ = _reach(beside.vessels.tree)
+    assert high < AAA_Z[0] + 20.0                          # the tree stops at the sac (the wrong tree, as before) ...
+    (where,) = beside.vessels.cut_through_lps_mm            # ... and says where
+    assert abs(where[2] - 0.5 * sum(AAA_Z)) < 10.0 and abs(where[0] - AXIS_YX[1]) < 10.0
+    assert any("cut as a heart chamber, though a vessel leaves it on opposite sides" in n
+               for n in vesselplan.tree_notes(beside))
+    rec = vesselplan.vessels_record(beside, inputs={"spacing_mm": [1.0, 1.0, 1.0]})
+    assert len(rec["tree"]["cut_through_lps_mm"]) == 1
+    assert auto.vessels.cut_through_lps_mm == ()          # the sac alone: kept, nothing to say
 
 
 def test_without_the_rule_the_aorta_beyond_the_sac_is_lost(aaa, monkeypatch):

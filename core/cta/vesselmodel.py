@@ -1705,7 +1705,7 @@ def _without_blood_pools(volume: io.Volume, av: AutoVessels, body_cm3: float, wh
     mask.setflags(write=False)
     surf = surface_from_mask(mask, spacing_mm=volume.spacing_mm, origin_lps_mm=volume.origin_lps_mm,
                              direction=volume.direction)
-    new = vessels3d.CTAVessels(mask_zyx=mask, surface=surf, tree=sub, seconds=dict(ves.seconds))
+    new = replace(ves, mask_zyx=mask, surface=surf, tree=sub, seconds=dict(ves.seconds))
     pl = check_plausibility(volume, mask, sub, body_cm3=body_cm3, model=av.model)
     extra = ""
     if not pl.ok and _only_dim_wide(pl):  # what the pools hid: the same pruning as the first tree's
@@ -2237,8 +2237,7 @@ def _extract_vessels_auto(volume: io.Volume, *, seeds_lps_mm=None, progress: boo
                                    reading=reading)
         mask = layout.to_input(av.vessels.mask_zyx)
         mask.setflags(write=False)
-        return replace(av, vessels=vessels3d.CTAVessels(mask_zyx=mask, surface=av.vessels.surface,
-                                                        tree=av.vessels.tree, seconds=av.vessels.seconds))
+        return replace(av, vessels=replace(av.vessels, mask_zyx=mask))
     copt = centerline_options or CenterlineOptions()
     if copt.strand_fraction > 0:
         # the strands of wide lumens go last (:func:`centerline.without_lumen_strands`): every check and cut above

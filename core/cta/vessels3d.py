@@ -47,6 +47,9 @@ class CTAVessels:
     surface: object  # vtkPolyData, triangles with normals, LPS mm
     tree: VesselTree  # centerline graph, LPS mm
     seconds: dict = field(default_factory=dict)  # stage -> wall seconds (surface and centerline run side by side)
+    # LPS mm: regions deeper than the widest vessel cut as heart chambers though a vessel may run through them
+    # (``segment_vessels``' record): the tree may stop there
+    cut_through_lps_mm: tuple = ()
 
 
 def extract_vessels(volume: io.Volume, *, seeds_lps_mm=None, progress: bool = False,
@@ -76,7 +79,8 @@ def extract_vessels(volume: io.Volume, *, seeds_lps_mm=None, progress: bool = Fa
     """
     secs = {}
     t_start = t0 = time.perf_counter()
-    mask = segment_vessels(volume, seeds_lps_mm=seeds_lps_mm, progress=progress, options=options)
+    record = {}
+    mask = segment_vessels(volume, seeds_lps_mm=seeds_lps_mm, progress=progress, options=options, record=record)
     secs["segment"] = time.perf_counter() - t0
     mask.setflags(write=False)
     if seeds_lps_mm is not None:
@@ -97,7 +101,8 @@ def extract_vessels(volume: io.Volume, *, seeds_lps_mm=None, progress: bool = Fa
         secs["centerline"] = time.perf_counter() - t0
         surf, secs["surface"] = fut.result()
     secs["total"] = time.perf_counter() - t_start
-    return CTAVessels(mask_zyx=mask, surface=surf, tree=tree, seconds=secs)
+    return CTAVessels(mask_zyx=mask, surface=surf, tree=tree, seconds=secs,
+                      cut_through_lps_mm=tuple(record.get("cut_through_lps_mm", ())))
 
 
 def _check_seeds_connected(volume: io.Volume, mask_zyx: np.ndarray, seeds_lps_mm: np.ndarray) -> None:
