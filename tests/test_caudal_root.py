@@ -72,10 +72,10 @@ def test_an_aortic_tree_is_rooted_at_its_aortas_caudal_end():
     assert root_rule(tree, seeded=False, access=False) == "the widest end"  # what vessels.json would say before
     # what `vessels` and the Slicer module say of it
     auto = SimpleNamespace(fallback="", first_pass_problems=(), pruned="", bias_field="", seeded="",
-                           vessels=SimpleNamespace(tree=rooted))
+                           vessels=SimpleNamespace(tree=rooted, cut_through_lps_mm=()))
     assert any("rooted at the lower end of its aorta" in n and "--access-lps" in n for n in tree_notes(auto))
     assert not tree_notes(SimpleNamespace(fallback="", first_pass_problems=(), pruned="", bias_field="", seeded="",
-                                          vessels=SimpleNamespace(tree=tree)))
+                                          vessels=SimpleNamespace(tree=tree, cut_through_lps_mm=())))
     np.testing.assert_array_equal(rooted.points_lps_mm, tree.points_lps_mm)
     assert {tuple(sorted(e)) for e in rooted.edges.tolist()} == {tuple(sorted(e)) for e in tree.edges.tolist()}
 

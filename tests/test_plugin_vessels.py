@@ -342,13 +342,13 @@ def _fake_tree(length_mm: float, radii_mm, n_branches: int):
 
 def test_summary_names_units_levels_and_every_note():
     mr = SimpleNamespace(
-        vessels=SimpleNamespace(tree=_fake_tree(123.0, [1.0, 2.0, 3.0], 5)),
+        vessels=SimpleNamespace(tree=_fake_tree(123.0, [1.0, 2.0, 3.0], 5), cut_through_lps_mm=((12.4, -30.0, 250.6),)),
         model=SimpleNamespace(hu=False, lumen=812.5, background=101.25, source="automatic"),
         plausibility=SimpleNamespace(vessel_cm3=4.44), first_pass_problems=("too long for its volume",),
         segmentation="strict+pruned", pruned="2 dim wide branches cut", bias_field="a bias field of 1.4x divided out",
         seeded="automatic tree", seconds={"total": 12.0}, fallback="")
     ct = SimpleNamespace(
-        vessels=SimpleNamespace(tree=_fake_tree(40.0, [2.0, 2.0], 1)),
+        vessels=SimpleNamespace(tree=_fake_tree(40.0, [2.0, 2.0], 1), cut_through_lps_mm=()),
         model=SimpleNamespace(hu=True, lumen=400.0, background=40.0, source="seeds"),
         plausibility=SimpleNamespace(vessel_cm3=0.5), first_pass_problems=(), segmentation="standard", pruned="",
         bias_field="", seeded="seeds", seconds={"total": 3.0}, fallback="")
@@ -360,7 +360,9 @@ def test_summary_names_units_levels_and_every_note():
         "(too long for its volume); the strict pass's tree is kept, 2 dim wide branches cut (check it in the viewer); "
         "a bias field of 1.4x divided out; the tree is that of the corrected volume (the intensity levels are its); "
         "the automatic vessel tree holds every seed: it is kept, rooted at its end nearest the first seed along its "
-        "widest lumens.",
+        "widest lumens; a region deeper than the widest vessel expected (16 mm) at LPS 12, -30, 251 mm was cut as a "
+        "heart chamber, though a vessel leaves it on opposite sides: it may be an aneurysm beside other vessels, and "
+        "the tree may stop there or miss the vessel beyond it (check it in the viewer).",
         "Tree 2 (seeds 2): 1 branch, 4.0 cm of centerline, radius 2.0 mm median / 2.0 mm max, 0.5 cm3; lumen 400, "
         "background 40 (HU, seeds); 3.0 s. Note: the automatic vessel tree does not hold every seed: the tree is the "
         "seeds' own, from the lumen level read at them, rooted at its end nearest the first seed along its widest "
@@ -378,7 +380,7 @@ def test_summary_says_when_the_tree_is_the_hu_defaults():
     """A tree from the HU defaults after the intensity model refused the volume (``vesselmodel.hu_defaults_auto``):
     the note says why, first."""
     ct = SimpleNamespace(
-        vessels=SimpleNamespace(tree=_fake_tree(40.0, [2.0, 2.0], 1)),
+        vessels=SimpleNamespace(tree=_fake_tree(40.0, [2.0, 2.0], 1), cut_through_lps_mm=()),
         model=SimpleNamespace(hu=True, lumen=410.0, background=45.0, source="HU defaults"),
         plausibility=SimpleNamespace(vessel_cm3=0.5), first_pass_problems=(), segmentation="HU defaults", pruned="",
         bias_field="", seeded="", seconds={"total": 3.0},

@@ -65,7 +65,7 @@ def test_a_seeded_aortic_tree_is_rooted_at_its_aortas_lower_end():
     assert root_rule(rooted, seeded=True, access=False).startswith("the lower end of the aorta")
     for seeded in ("automatic tree", "seeds"):
         notes = tree_notes(SimpleNamespace(fallback="", first_pass_problems=(), pruned="", bias_field="", seeded=seeded,
-                                           vessels=SimpleNamespace(tree=rooted)))
+                                           vessels=SimpleNamespace(tree=rooted, cut_through_lps_mm=())))
         assert any("rooted at the lower end of its aorta" in n for n in notes), notes
         assert not any("nearest the first seed" in n for n in notes), notes
 
