@@ -878,7 +878,7 @@ def segment_vessels(volume: io.Volume, *, seeds_lps_mm=None, progress: bool = Fa
     # widening by the radius's voxel noise (:func:`_blob_zone`)
     ccrop = bbox(cand, pad=2)
     blob = _blob_zone(cand[ccrop], opt.max_vessel_radius_mm, sp_zyx)
-    sac = np.zeros(cand.shape, bool)       # aneurysms: blobs a vessel runs through, kept (:func:`_aneurysm_zone`)
+    sac = np.zeros(cand.shape, bool)       # aneurysms: blobs a vessel runs through, kept (:func:`_aneurysm_reading`)
     if blob.any():
         sac[ccrop], doubtful = _aneurysm_reading(cand[ccrop], blob, opt.max_vessel_radius_mm, sp_zyx)
         cand[ccrop] &= ~blob | sac[ccrop]
