@@ -430,7 +430,7 @@ def child(a) -> None:
     rec["axis"] = B.axis_check_line(lab, sp_zyx, *B.tree_points_and_tangents_mm(vol, res.vessels.tree), a.variant)
     rec["root"] = where_the_root_is(vol, lab, res.vessels.tree, _structures(data))
     rec.update(lumen=res.model.lumen, bg=res.model.background, segmentation=res.segmentation)
-    rec["cut_through"] = [list(q) for q in res.vessels.cut_through_lps_mm]
+    rec["cut_through"] = [list(q) for q in getattr(res.vessels, "cut_through_lps_mm", ())]   # () before stop 62
     print("RESULT " + json.dumps(rec, default=float))
 
 

@@ -147,7 +147,7 @@ def test_a_chamber_is_not_an_aneurysm_read_beyond_it():
 
 def test_a_sac_beside_another_wide_vessel_is_cut_and_said():
     """The eccentric sac with a second vessel as wide as the aorta crossing in front of it (a thoracic aneurysm against
-    the left pulmonary artery): three wide ports, so it is cut as before, but the vessel through it is recorded, near
+    other wide lumen): three wide ports, so it is cut as before, but the vessel through it is recorded, near
     the sac's centre."""
     sp = (1.5, 1.5, 1.5)
     mask = _eccentric_sac(sp)
@@ -232,7 +232,8 @@ def test_a_sac_cut_beside_another_vessel_is_said(aaa, auto):
     A = np.array(aaa.array_zyx)
     z, y = np.meshgrid(*[np.arange(n, dtype=float) for n in CT_SHAPE[:2]], indexing="ij", sparse=True)
     cy = AXIS_YX[0] + 0.4 * (AAA_MM - AORTA_MM) + 18.0
-    cross = np.broadcast_to(((y - cy) ** 2 + (z - (0.5 * sum(AAA_Z) + 5.0)) ** 2 <= 7.0 ** 2)[..., None], CT_SHAPE).copy()
+    section = (y - cy) ** 2 + (z - (0.5 * sum(AAA_Z) + 5.0)) ** 2 <= 7.0 ** 2       # a tube along x, 7 mm radius
+    cross = np.broadcast_to(section[..., None], CT_SHAPE).copy()
     cross[:, :, :4] = cross[:, :, -4:] = False
     A[cross] = LUMEN + np.random.default_rng(1).normal(0.0, 10.0, int(cross.sum()))
     vol = io.Volume(A.astype(np.float32), (1.0, 1.0, 1.0), (0.0, 0.0, 0.0), np.eye(3), source="AAA beside a vessel")

@@ -335,8 +335,8 @@ def _aneurysm_reading(mask, blob, radius_mm: float, spacing_zyx):
 
     A blob that is not read as an aneurysm, but where two of the ``ANEURYSM_DOUBT_PORTS`` widest ports in the ring are
     wide and the lumen leaves them nearly opposite (``ANEURYSM_DOUBT_ANGLE_DEG``), is cut and said: a vessel may run
-    through it beside other lumen (a thoracic aneurysm against the left pulmonary artery, or merged with the heart's
-    blood; no heart of the CT, its 16 copies, the coronary and the simulator's CTAs has such a pair).
+    through it beside other lumen (a thoracic aneurysm against other wide lumen in front of it, or merged with the
+    heart's blood; no heart of the CT, its 16 copies, the coronary and the simulator's CTAs has such a pair).
 
     Returns
     -------
