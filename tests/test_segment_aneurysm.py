@@ -225,10 +225,9 @@ def test_the_plan_says_it_read_an_aneurysm(auto):
     assert rec["tree"]["aneurysm"] == wide
 
 
-def test_a_sac_cut_beside_another_vessel_is_said(aaa, auto):
-    """End to end: the synthetic aorta's sac with a vessel as wide as 7 mm crossing in front of it. The sac is cut and
-    the tree ends below it, as before stop 62, but no longer silently: ``vessels.json`` records where
-    (``tree.cut_through_lps_mm``) and the plan's notes say the tree may stop there."""
+@pytest.fixture(scope="module")
+def beside(aaa) -> io.Volume:
+    """The synthetic aorta's sac with a vessel 7 mm in radius crossing in front of it."""
     A = np.array(aaa.array_zyx)
     z, y = np.meshgrid(*[np.arange(n, dtype=float) for n in CT_SHAPE[:2]], indexing="ij", sparse=True)
     cy = AXIS_YX[0] + 0.4 * (AAA_MM - AORTA_MM) + 18.0
@@ -236,17 +235,37 @@ def test_a_sac_cut_beside_another_vessel_is_said(aaa, auto):
     cross = np.broadcast_to(section[..., None], CT_SHAPE).copy()
     cross[:, :, :4] = cross[:, :, -4:] = False
     A[cross] = LUMEN + np.random.default_rng(1).normal(0.0, 10.0, int(cross.sum()))
-    vol = io.Volume(A.astype(np.float32), (1.0, 1.0, 1.0), (0.0, 0.0, 0.0), np.eye(3), source="AAA beside a vessel")
-    beside = vesselmodel.extract_vessels_auto(vol)
-    low, high, _ = _reach(beside.vessels.tree)
+    return io.Volume(A.astype(np.float32), (1.0, 1.0, 1.0), (0.0, 0.0, 0.0), np.eye(3), source="AAA beside a vessel")
+
+
+def test_a_sac_cut_beside_another_vessel_is_said(beside, auto):
+    """End to end: the sac with a vessel crossing in front of it is cut and the tree ends below it, as before stop 62,
+    but no longer silently: ``vessels.json`` records where (``tree.cut_through_lps_mm``) and the plan's notes say the
+    tree may stop there."""
+    cut = vesselmodel.extract_vessels_auto(beside)
+    low, high, _ = _reach(cut.vessels.tree)
     assert high < AAA_Z[0] + 20.0                          # the tree stops at the sac (the wrong tree, as before) ...
-    (where,) = beside.vessels.cut_through_lps_mm            # ... and says where
+    (where,) = cut.vessels.cut_through_lps_mm              # ... and says where
     assert abs(where[2] - 0.5 * sum(AAA_Z)) < 10.0 and abs(where[0] - AXIS_YX[1]) < 10.0
     assert any("cut as a heart chamber, though a vessel leaves it on opposite sides" in n
-               for n in vesselplan.tree_notes(beside))
-    rec = vesselplan.vessels_record(beside, inputs={"spacing_mm": [1.0, 1.0, 1.0]})
+               for n in vesselplan.tree_notes(cut))
+    rec = vesselplan.vessels_record(cut, inputs={"spacing_mm": [1.0, 1.0, 1.0]})
     assert len(rec["tree"]["cut_through_lps_mm"]) == 1
     assert auto.vessels.cut_through_lps_mm == ()          # the sac alone: kept, nothing to say
+
+
+def test_the_vessel_stage_of_reconstruct_says_it_too(beside):
+    """``reconstruct``, ``live`` and biplane runs (``extract_vessels_any_units``) log the same sentence, with the
+    volume's name, for a volume read with its own intensity model (here in arbitrary units, 0.5 HU + 1000, as an MR
+    would be; in HU this volume gets the HU defaults' tree, whose 5 mm limit does not read the sac at all)."""
+    au = io.Volume((0.5 * np.asarray(beside.array_zyx) + 1000.0).astype(np.float32), beside.spacing_mm,
+                   beside.origin_lps_mm, beside.direction, source=beside.source)
+    assert not vesselmodel.looks_like_hu(au)
+    said = []
+    ves = vesselmodel.extract_vessels_any_units(au, log=said.append)
+    assert len(ves.cut_through_lps_mm) == 1
+    note = vesselmodel.cut_through_note(ves.cut_through_lps_mm[0])
+    assert f"AAA beside a vessel: {note}" in said
 
 
 def test_without_the_rule_the_aorta_beyond_the_sac_is_lost(aaa, monkeypatch):

@@ -393,12 +393,7 @@ def tree_notes(auto) -> list[str]:
         notes.append(f"the tree runs through a lumen {wide['radius_mm']:.0f} mm in radius (LPS {p} mm), wider than the "
                      f"widest vessel expected ({vesselmodel.MAX_RADIUS_MM:g} mm): read as an aneurysm, kept because "
                      "the vessel runs through it (check it in the viewer)")
-    for q in auto.vessels.cut_through_lps_mm:
-        p = ", ".join(f"{v:.0f}" for v in q)
-        notes.append(f"a region deeper than the widest vessel expected ({vesselmodel.MAX_RADIUS_MM:g} mm) at LPS {p} "
-                     "mm was cut as a heart chamber, though a vessel leaves it on opposite sides: it may be an aneurysm "
-                     "beside other vessels, and the tree may stop there or miss the vessel beyond it (check it in the "
-                     "viewer)")
+    notes += [vesselmodel.cut_through_note(q) for q in auto.vessels.cut_through_lps_mm]
     return notes
 
 

@@ -56,6 +56,7 @@ __all__ = [
     "check_plausibility",
     "dim_wide_fraction",
     "blood_pool_points",
+    "cut_through_note",
     "web_points",
     "dim_neck_points",
     "parenchyma_points",
@@ -2452,6 +2453,23 @@ def hu_defaults_auto(volume: io.Volume, refusal: SegmentationError, *, seeds_lps
                        fallback=_fallback_words(refusal))
 
 
+def cut_through_note(lps_mm) -> str:
+    """What a user reads of a region cut as a heart chamber though a vessel may run through it (``lps_mm``, one of
+    ``vessels3d.CTAVessels.cut_through_lps_mm``; ``segment._aneurysm_reading``)."""
+    p = ", ".join(f"{v:.0f}" for v in lps_mm)
+    return (f"a region deeper than the widest vessel expected ({MAX_RADIUS_MM:g} mm) at LPS {p} mm was cut as a heart "
+            "chamber, though a vessel leaves it on opposite sides: it may be an aneurysm beside other vessels, and the "
+            "tree may stop there or miss the vessel beyond it (check it in the viewer)")
+
+
+def _said(volume: io.Volume, vessels, log):
+    """``vessels``, after saying in ``log`` where a vessel may run through a region cut as a heart chamber."""
+    if log is not None:
+        for q in vessels.cut_through_lps_mm:
+            log(f"{volume.source or 'CTA'}: {cut_through_note(q)}")
+    return vessels
+
+
 def extract_vessels_any_units(volume: io.Volume, *, seeds_lps_mm=None, progress: bool = False, log=None):
     """The vessel stage of ``reconstruct``, ``live``, ``listen`` and biplane runs: a ``vessels3d.CTAVessels``.
 
@@ -2466,13 +2484,14 @@ def extract_vessels_any_units(volume: io.Volume, *, seeds_lps_mm=None, progress:
     when the model refuses it too, both reasons are given. A volume not taken for HU whose model refuses it gets the HU
     defaults' tree when it reads as a CT in HU after all and that tree is plausible (:func:`_hu_tree_of_bright_ct`: much
     bone or contrast and no air in view), said in ``log``. Either tree is rooted by :func:`_default_root` (an aortic
-    tree at its caudal end).
+    tree at its caudal end). A region cut as a heart chamber though a vessel may run through it is said in ``log``
+    (:func:`cut_through_note`).
     """
     why = "not in HU"
     if looks_like_hu(volume):
         res, first, why, _ = _hu_defaults_tree(volume, seeds_lps_mm=seeds_lps_mm, progress=progress)
         if res is not None:
-            return res
+            return _said(volume, res, log)
         try:
             auto = extract_vessels_auto(volume, seeds_lps_mm=seeds_lps_mm, progress=progress)
         except SegmentationError as e2:
@@ -2488,10 +2507,10 @@ def extract_vessels_any_units(volume: io.Volume, *, seeds_lps_mm=None, progress:
             if log is not None:
                 log(f"{volume.source or 'CTA'}: {_fallback_words(e)} ({res.tree.total_length_mm / 10:.0f} cm, "
                     f"{len(res.tree.branches)} branches)")
-            return res
+            return _said(volume, res, log)
     if log is not None:
         m = auto.model
         log(f"{volume.source or 'CTA'}: {why}; its vessel tree from its own intensity model (lumen {m.lumen:.4g}, "
             f"background {m.background:.4g}{', a 3DRA' if m.rotational else ''}; "
             f"{auto.vessels.tree.total_length_mm / 10:.0f} cm, {len(auto.vessels.tree.branches)} branches)")
-    return lostlumen.with_lost_lumen(volume, auto.vessels)
+    return _said(volume, lostlumen.with_lost_lumen(volume, auto.vessels), log)
