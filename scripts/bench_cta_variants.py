@@ -271,7 +271,7 @@ def with_aneurysm(vol, labels_zyx, *, radius_mm: float = AAA_RADIUS_MM, slices=N
         m = labels_zyx[z] == 52
         if site == "thoracic":        # the part nearest the spine (rows run forward: the direction's y is -1)
             parts, n = ndi.label(m)
-            rows = ndi.mean(np.mgrid[0:m.shape[0], 0:m.shape[1]][0], parts, range(1, n + 1))
+            rows = [c[0] for c in ndi.center_of_mass(m, parts, range(1, n + 1))]
             m = parts == 1 + int(np.argmin(rows))
         cy, cx = np.argwhere(m).mean(axis=0)
         r0 = np.sqrt(m.sum() / np.pi) * sp

@@ -362,7 +362,8 @@ def _aneurysm_reading(mask, blob, radius_mm: float, spacing_zyx):
         if not radius_mm <= depth_mm <= ANEURYSM_MAX_RADIUS_FACTOR * radius_mm:
             continue
         rest = mask[box] & ~blob[box]
-        centre = np.argwhere(part).mean(axis=0) * sp
+        part_vox = np.argwhere(part)
+        centre = part_vox.mean(axis=0) * sp
         # the ports beside the blob, directed from its centroid
         shell = ndi.binary_dilation(part, structure=np.ones((3, 3, 3))) & rest
         found = [(r, c - centre) for r, c, _ in _ports_mm(shell, sp)]
@@ -373,7 +374,7 @@ def _aneurysm_reading(mask, blob, radius_mm: float, spacing_zyx):
         out_mm = edt_mm(~part, sp)
         near = rest & (out_mm <= ANEURYSM_RING_MM + ANEURYSM_RING_THICKNESS_MM)
         reached, _ = ndi.label(near | part, structure=np.ones((3, 3, 3)))
-        near &= reached == reached[tuple(np.argwhere(part)[0])]
+        near &= reached == reached[tuple(part_vox[0])]
         ring = near & (out_mm > ANEURYSM_RING_MM)
         beyond = rest & (out_mm > ANEURYSM_RING_MM + ANEURYSM_RING_THICKNESS_MM) & (out_mm <= reach_mm)
         ports = _ports_mm(ring, sp)
@@ -393,7 +394,7 @@ def _aneurysm_reading(mask, blob, radius_mm: float, spacing_zyx):
         elif any(_through_ports([found[i], found[j]], port_min_mm, min_norm_mm=ANEURYSM_EXIT_MIN_MM,
                                 min_angle_deg=ANEURYSM_DOUBT_ANGLE_DEG)
                  for i in range(len(wide)) for j in range(i + 1, len(wide))):
-            doubtful.append(np.argwhere(part).mean(axis=0) + np.array([b.start for b in box]))
+            doubtful.append(centre / sp + np.array([b.start for b in box]))
     return out, doubtful
 
 
@@ -414,16 +415,14 @@ def _ports_mm(ports_mask, sp):
     return found
 
 
-def _through_ports(found, port_min_mm: float, *, min_norm_mm: float = 0.0, directions: bool = True,
+def _through_ports(found, port_min_mm: float, *, min_norm_mm: float = 0.0,
                    min_angle_deg: float = ANEURYSM_MIN_ANGLE_DEG) -> bool:
     """Whether ``found`` (``(radius mm, direction mm)``, widest first) are a vessel's way through a blob: the two
-    widest at least ``port_min_mm`` wide, any other at most ``ANEURYSM_SIDE_PORT_RATIO`` of the second, and (unless
-    not ``directions``) their directions, each at least ``min_norm_mm`` long, at least ``min_angle_deg`` apart."""
+    widest at least ``port_min_mm`` wide, any other at most ``ANEURYSM_SIDE_PORT_RATIO`` of the second, and their
+    directions, each at least ``min_norm_mm`` long, at least ``min_angle_deg`` apart."""
     if (len(found) < 2 or found[1][0] < port_min_mm
             or (len(found) > 2 and found[2][0] > ANEURYSM_SIDE_PORT_RATIO * found[1][0])):
         return False
-    if not directions:
-        return True
     a, b = found[0][1], found[1][1]
     na, nb = float(np.linalg.norm(a)), float(np.linalg.norm(b))
     if min(na, nb) < max(min_norm_mm, 1e-9):
