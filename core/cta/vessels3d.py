@@ -54,7 +54,8 @@ class CTAVessels:
 
 def extract_vessels(volume: io.Volume, *, seeds_lps_mm=None, progress: bool = False,
                     options: VesselOptions | None = None,
-                    centerline_options: CenterlineOptions | None = None) -> CTAVessels:
+                    centerline_options: CenterlineOptions | None = None,
+                    wide_radius_mm: float | None = None) -> CTAVessels:
     """Segmentation, surface and centerline graph of a CTA, with stage timings.
 
     Parameters
@@ -65,6 +66,9 @@ def extract_vessels(volume: io.Volume, *, seeds_lps_mm=None, progress: bool = Fa
         Points in the vessels; the first also picks the centerline root.
     progress : bool
         tqdm bars per stage.
+    wide_radius_mm : float, optional
+        The widest vessel the caller takes, when ``options`` expect narrower ones: see
+        :func:`guidewire3d.cta.segment.segment_vessels`.
 
     Returns
     -------
@@ -80,7 +84,8 @@ def extract_vessels(volume: io.Volume, *, seeds_lps_mm=None, progress: bool = Fa
     secs = {}
     t_start = t0 = time.perf_counter()
     record = {}
-    mask = segment_vessels(volume, seeds_lps_mm=seeds_lps_mm, progress=progress, options=options, record=record)
+    mask = segment_vessels(volume, seeds_lps_mm=seeds_lps_mm, progress=progress, options=options, record=record,
+                           wide_radius_mm=wide_radius_mm)
     secs["segment"] = time.perf_counter() - t0
     mask.setflags(write=False)
     if seeds_lps_mm is not None:
