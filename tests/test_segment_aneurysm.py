@@ -302,6 +302,25 @@ def test_reconstructs_vessel_stage_on_the_aneurysm_in_hu_runs_through_the_sac(aa
     assert any("the HU defaults cut a vessel wider than their 5 mm" in s for s in said), said
 
 
+def test_an_aorta_through_the_field_of_view_in_hu_is_the_tree():
+    """No sac at all: an aorta 12 mm in radius that leaves the field of view at both ends, in HU. The HU defaults'
+    aneurysm reading finds no way through it (the lumen beyond it is outside the volume), so it was cut, and their
+    tree, plausible, was its renal-like branch alone (15-23 mm of it for aortas of 8, 12 and 15 mm), used by
+    ``reconstruct`` with no word. Now the vessel stage's tree is the aorta."""
+    z, y, x = np.meshgrid(*[np.arange(n, dtype=float) for n in CT_SHAPE], indexing="ij", sparse=True)
+    lumen = np.broadcast_to((y - 42.0) ** 2 + (x - 42.0) ** 2 <= 12.0 ** 2, CT_SHAPE)
+    lumen = lumen | (((y - 42.0) ** 2 + (z - 60.0) ** 2 <= 3.0 ** 2) & (x >= 42.0) & (x < 80))
+    v = np.where(lumen, LUMEN, BACKGROUND) + np.random.default_rng(2).normal(0.0, 10.0, CT_SHAPE)
+    vol = io.Volume(v.astype(np.float32), (1.0, 1.0, 1.0), (0.0, 0.0, 0.0), np.eye(3), source="aorta")
+    assert vesselmodel.looks_like_hu(vol)
+    said = []
+    tree = vesselmodel.extract_vessels_any_units(vol, log=said.append).tree
+    p = tree.points_lps_mm
+    on_axis = np.hypot(p[:, 0] - 42.0, p[:, 1] - 42.0) < 3.0
+    assert on_axis.sum() > 100 and np.ptp(p[on_axis, 2]) > 140.0 and tree.radius_mm[on_axis].max() > 10.0
+    assert any("the HU defaults cut a vessel wider than their 5 mm" in s for s in said), said
+
+
 def test_in_hu_the_vessel_stage_says_it_too(beside):
     """The sac beside another vessel, in HU: the HU defaults refuse it as above, and the intensity model's tree, cut
     at the sac, is said."""
