@@ -11,8 +11,8 @@ path the ``vessels`` command uses, ``guidewire3d.cta.vesselmodel.extract_vessels
 process limited to 2 threads; with ``--stage reconstruct``, through the vessel stage of ``reconstruct``, ``live`` and
 biplane runs instead, ``extract_vessels_any_units`` (a CT in HU through the HU defaults first; the ``lumen / bg``
 column then holds the path it logged). ``--seed aorta``: with one seed, a voxel drawn (a fixed random draw) inside
-the variant's aorta label eroded by one voxel, a click inside its lumen (``--seed-lps``). A refusal (``InputError`` / ``SegmentationError``: exit 2 at the command line)
-is a row of its own.
+the variant's aorta label eroded by one voxel, a click inside its lumen (``--seed-lps``). A refusal (``InputError`` /
+``SegmentationError``: exit 2 at the command line) is a row of its own.
 
 Variants (``hu*``: the CT in HU; ``au*``: 0.5 HU + 1000; ``mr*``: an MR contrast built from the labels):
 
@@ -47,8 +47,8 @@ Variants (``hu*``: the CT in HU; ``au*``: 0.5 HU + 1000; ``mr*``: an MR contrast
   (``--variants taa``: ``hu+taa``, ``au_cor+taa``, ``mr_cor+taa``, ``mr_sag+taa``): the same with a sac of the
   descending thoracic aorta (``site="thoracic"``: over ``TAA_SLICES``, beside the heart, bulging to the left and a
   little forward).
-* ``--variants crops`` (``CROP_VARIANTS``, not in ``all``): ``hu_crop{H}_{Z0}_{Z1}``, the CT in HU cropped as a user crops
-  a volume to a region (3D Slicer's Crop Volume): slices ``Z0`` to ``Z1`` (of 133, 2.5 mm apart, from the bottom: 0-50
+* ``--variants crops`` (``CROP_VARIANTS``, not in ``all``): ``hu_crop{H}_{Z0}_{Z1}``, the CT in HU cropped as a user
+  crops a volume to a region (3D Slicer's Crop Volume): slices ``Z0`` to ``Z1`` (of 133, 2.5 mm apart, from the bottom: 0-50
   the abdomen and pelvis, 30-90 the heart, 60-120 the upper chest), ``H`` mm either side of the aorta label's centroid
   over those slices in both in-plane axes (clipped to the volume).
 * ``--variants fields`` (not in ``all``): ``hu_bias15`` / ``hu_bias30`` / ``au_bias15`` / ``au_bias30``, the CT in HU or
@@ -304,7 +304,7 @@ def cropped(vol, labels_zyx, half_mm: float, z0: int, z1: int, name: str):
     in both in-plane axes (clipped to the volume), with the origin moved to the crop's first voxel."""
     from guidewire3d import io
 
-    cz, cy, cx = np.argwhere(labels_zyx[z0:z1] == 52).mean(axis=0)
+    _, cy, cx = np.argwhere(labels_zyx[z0:z1] == 52).mean(axis=0)
     sp = np.asarray(vol.spacing_mm)[::-1]
     lo = [z0] + [max(int(c - half_mm / s), 0) for c, s in zip((cy, cx), sp[1:])]
     hi = [z1] + [min(int(c + half_mm / s), n) for c, s, n in zip((cy, cx), sp[1:], labels_zyx.shape[1:])]
