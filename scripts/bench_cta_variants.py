@@ -443,9 +443,7 @@ def child(a) -> None:
     rec = {"variant": a.variant, "shape": list(vol.shape_zyx), "spacing": [round(s, 3) for s in vol.spacing_mm]}
     seeds = None
     if a.seed == "aorta":
-        from scipy import ndimage as ndi
-
-        inner = np.argwhere(ndi.binary_erosion(lab == 52, structure=ndi.generate_binary_structure(3, 1)))
+        inner = B.inside_voxels(lab, 52)
         seeds = vol.index_zyx_to_lps(inner[np.random.default_rng(0).integers(len(inner))][None].astype(float))
         rec["seed_lps"] = [round(float(v), 1) for v in seeds[0]]
     t0 = time.perf_counter()

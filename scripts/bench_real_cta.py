@@ -562,23 +562,29 @@ def sim_rows(n: int) -> list[dict]:
     return rows
 
 
+def inside_voxels(labels_zyx: np.ndarray, label: int) -> np.ndarray:
+    """``(K, 3)`` voxel indices (z, y, x) inside ``label``, the label eroded by one voxel (6-connected): where a click
+    inside the lumen, not on its wall, lands."""
+    from scipy import ndimage as ndi
+
+    return np.argwhere(ndi.binary_erosion(labels_zyx == label, structure=ndi.generate_binary_structure(3, 1)))
+
+
 def seeded_rows(vol, labels_zyx, iso_mm, iso_lab, per_artery: int, rng_seed: int = 0) -> list[dict]:
     """Issue 17's "seeds that always work": ``extract_vessels_auto`` with one seed at a time, each a random voxel
     inside an artery label (the label eroded by one voxel: a click inside the lumen, not on its wall), on ``vol``
     as given (HU or arbitrary units). Per seed: the tree's length, how much of the seed's artery and of the aorta it
     covers (the isotropic reference within 3 mm), the fraction of its centerline in other labelled structures
     (heart, veins, organs: what a wrongly low lumen level lets in) and the seconds; or the error."""
-    from scipy import ndimage as ndi
     from scipy.spatial import cKDTree
 
     from guidewire3d.cta import vesselmodel
 
     sp_zyx = np.asarray(vol.spacing_mm)[::-1]
     rng = np.random.default_rng(rng_seed)
-    cross = ndi.generate_binary_structure(3, 1)
     rows = []
     for lab in sorted(int(v) for v in np.unique(iso_lab)):
-        inner = np.argwhere(ndi.binary_erosion(labels_zyx == lab, structure=cross))
+        inner = inside_voxels(labels_zyx, lab)
         for _ in range(per_artery if len(inner) else 0):
             zyx = inner[rng.integers(len(inner))]
             seed = vol.index_zyx_to_lps(zyx[None].astype(float))[0]

@@ -926,11 +926,11 @@ def segment_vessels(volume: io.Volume, *, seeds_lps_mm=None, progress: bool = Fa
     ccrop = bbox(cand, pad=2)
     blob = _blob_zone(cand[ccrop], opt.max_vessel_radius_mm, sp_zyx)
     sac = np.zeros(cand.shape, bool)       # aneurysms: blobs a vessel runs through, kept (:func:`_aneurysm_reading`)
-    wide = None        # (the candidates before the cut, the lumen cut), in ccrop, for :func:`_cut_wide`
+    cut = None         # the lumen the blob step cut, in ccrop, for :func:`_cut_wide`
     if blob.any():
         sac[ccrop], doubtful = _aneurysm_reading(cand[ccrop], blob, opt.max_vessel_radius_mm, sp_zyx)
         if wide_radius_mm is not None and wide_radius_mm > opt.max_vessel_radius_mm:
-            wide = (cand[ccrop].copy(), cand[ccrop] & blob & ~sac[ccrop])
+            cut = cand[ccrop] & blob & ~sac[ccrop]
         cand[ccrop] &= ~blob | sac[ccrop]
         if record is not None and doubtful:
             at = np.asarray(doubtful) + off + np.array([c.start for c in ccrop])
@@ -1059,10 +1059,11 @@ def segment_vessels(volume: io.Volume, *, seeds_lps_mm=None, progress: bool = Fa
     out = np.zeros(volume.shape_zyx, bool)
     full = tuple(slice(c.start + v.start, c.start + v.stop) for c, v in zip(crop, vcrop))
     out[full] = sel
-    if wide is not None and wide[1].any():
+    if cut is not None and cut.any():
         tree = np.zeros(cand.shape, bool)
         tree[vcrop] = sel
-        at = _cut_wide(wide[0], wide[1], tree[ccrop], opt.max_vessel_radius_mm, wide_radius_mm, sp_zyx)
+        # the candidates before the cut: ``cand`` is not changed after it
+        at = _cut_wide(cand[ccrop] | cut, cut, tree[ccrop], opt.max_vessel_radius_mm, wide_radius_mm, sp_zyx)
         if at:
             at = volume.index_zyx_to_lps(np.asarray(at) + off + np.array([c.start for c in ccrop]))
             raise WideVesselCutError(
