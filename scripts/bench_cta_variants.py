@@ -11,7 +11,9 @@ path the ``vessels`` command uses, ``guidewire3d.cta.vesselmodel.extract_vessels
 process limited to 2 threads; with ``--stage reconstruct``, through the vessel stage of ``reconstruct``, ``live`` and
 biplane runs instead, ``extract_vessels_any_units`` (a CT in HU through the HU defaults first; the ``lumen / bg``
 column then holds the path it logged). ``--seed aorta``: with one seed, a voxel drawn (a fixed random draw) inside
-the variant's aorta label eroded by one voxel, a click inside its lumen (``--seed-lps``). A refusal (``InputError`` /
+the variant's aorta label eroded by one voxel, a click inside its lumen (``--seed-lps``); the reference is then the
+seed's arteries, those connected to its voxel through the artery labels in the field of view (a crop that cuts the
+aortic arch holds two parts of the aorta, and a seed in one asks for its tree; :func:`seeds_arteries`). A refusal (``InputError`` /
 ``SegmentationError``: exit 2 at the command line) is a row of its own.
 
 Variants (``hu*``: the CT in HU; ``au*``: 0.5 HU + 1000; ``mr*``: an MR contrast built from the labels):
@@ -77,7 +79,9 @@ labelled structures (``in_other``: heart, veins, lungs, organs, bone; dilated 1 
 artery label); ``WRONG TREE (exit 0)`` for any other tree that was not refused; ``refused`` with the reason. A tree
 whose notes say that a region was cut as a heart chamber though a vessel may run through it
 (``CTAVessels.cut_through_lps_mm``, README *An aneurysm is not a heart chamber*) adds ``said cut through``: a wrong tree
-so noted is not silent.
+so noted is not silent. So do ``said ambiguous`` (the intensity model's note that it took the brighter tubular class)
+and ``said short`` (a seeded tree's note that it holds little of the bright tubular lumen connected to its seeds,
+``vesselmodel.SEEDED_MIN_LUMEN_IN_TREE``; since stop 64).
 Why this rule: the aorta is the trunk in every territory this CT shows (chest, upper abdomen, both slabs), so
 a tree whose aorta lumen is not recovered (Dice < 0.8: cut, a different structure, or tissue around it) is
 not the arterial tree a user asked for, and a tree with most of its length in structures known not to be
@@ -127,6 +131,7 @@ TAA_SLICES = (64, 88)
 #: ... and the soft tissue round it (mm): its wall and the lung it presses on
 TAA_WALL_MM = 3.0
 RIGHT_DICE, RIGHT_MAX_IN_OTHER = 0.8, 0.5
+APART = 1000   # with a seed: the artery labels' voxels apart from the seed's arteries in the field of view
 NOISE_SIGMA = 20.0
 BONE_PREFIXES = ("vertebrae", "sacrum", "rib_", "sternum", "costal", "clavicula", "scapula", "hip_", "femur",
                  "humerus", "skull")
@@ -404,7 +409,8 @@ def build_variant(name: str, data: Path, tmp: Path):
 def where_the_tree_runs(vol, labels_zyx, tree, names: dict[int, str]) -> str:
     """The percentage of the tree's (densely resampled) centerline in each group of labels, at the nearest voxel:
     art(eries of the reference), heart (with the pulmonary veins and the left atrial appendage), lung (its
-    vessels), veins (systemic), bone, organ (any other label), none (unlabelled)."""
+    vessels), veins (systemic), bone, apart (with a seed: arteries not connected to the seed's, ``APART``), organ
+    (any other label), none (unlabelled)."""
     est = B._dense(tree)
     idx = np.clip(np.rint(vol.lps_to_index_zyx(est)).astype(int), 0, np.array(labels_zyx.shape) - 1)
     lab = labels_zyx[tuple(idx.T)]
@@ -412,6 +418,7 @@ def where_the_tree_runs(vol, labels_zyx, tree, names: dict[int, str]) -> str:
               "vein": [k for k, n in names.items() if n.startswith(SYSTEMIC_VEINS)],
               "bone": [k for k, n in names.items() if n.startswith(BONE_PREFIXES)]}
     out = {g: float(np.isin(lab, ids).mean()) for g, ids in groups.items()}
+    out["apart"] = float(np.mean(lab == APART))
     out["none"] = float(np.mean(lab == 0))
     out["organ"] = 1.0 - sum(out.values())
     return " ".join(f"{g} {100 * v:.0f}" for g, v in out.items())
@@ -430,6 +437,24 @@ def where_the_root_is(vol, labels_zyx, tree, names: dict[int, str]) -> str:
     return f"{label}, radius {tree.radius_mm[tree.root]:.1f} mm, {P[2] - low:.0f} mm above the aorta's lowest voxel"
 
 
+def seeds_arteries(labels_zyx: np.ndarray, seed_zyx, ref_idx_zyx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(labels, apart)``: the labels with the artery labels' voxels apart from the seed's (not connected to its voxel
+    through artery labels, 26-connected, in this field of view) relabelled ``APART``, and which reference points
+    (``ref_idx_zyx``, fractional voxel indices) lie nearest such voxels. A seed asks for the connected tree that holds
+    it: where a crop cuts the aortic arch, a seed in the descending aorta does not ask for the ascending one."""
+    from scipy import ndimage as ndi
+
+    art = np.isin(labels_zyx, list(B.ARTERIES))
+    comp, _ = ndi.label(art, structure=np.ones((3, 3, 3), bool))
+    own = comp[tuple(seed_zyx)]
+    out = labels_zyx.copy()
+    out[art & (comp != own)] = APART
+    _, near = ndi.distance_transform_edt(~art, return_indices=True)
+    i = np.clip(np.rint(ref_idx_zyx).astype(int), 0, np.array(labels_zyx.shape) - 1)
+    at = tuple(near[(slice(None),) + tuple(i.T)])
+    return out, comp[at] != own
+
+
 def child(a) -> None:
     import resource
 
@@ -439,13 +464,20 @@ def child(a) -> None:
     data = Path(a.data)
     with tempfile.TemporaryDirectory() as tmp:
         vol, lab = build_variant(a.variant, data, Path(tmp))
-    ref = np.load(a.ref)
     rec = {"variant": a.variant, "shape": list(vol.shape_zyx), "spacing": [round(s, 3) for s in vol.spacing_mm]}
     seeds = None
+    ref = np.load(a.ref)
+    sp_zyx = np.asarray(vol.spacing_mm)[::-1]
+    idx = vol.lps_to_index_zyx(ref["lps"])
+    inside = np.all((idx >= -0.5) & (idx <= np.array(vol.shape_zyx) - 0.5), axis=1)
     if a.seed == "aorta":
         inner = B.inside_voxels(lab, 52)
-        seeds = vol.index_zyx_to_lps(inner[np.random.default_rng(0).integers(len(inner))][None].astype(float))
+        zyx = inner[np.random.default_rng(0).integers(len(inner))]
+        seeds = vol.index_zyx_to_lps(zyx[None].astype(float))
         rec["seed_lps"] = [round(float(v), 1) for v in seeds[0]]
+        lab, apart = seeds_arteries(lab, zyx, idx)
+        inside &= ~apart
+        rec["apart_cm3"] = float(np.count_nonzero(lab == APART)) * float(np.prod(vol.spacing_mm)) / 1000.0
     t0 = time.perf_counter()
     said = []
     try:
@@ -460,9 +492,6 @@ def child(a) -> None:
         return
     rec["t_s"] = time.perf_counter() - t0
     rec["peak_GB"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024 ** 2
-    sp_zyx = np.asarray(vol.spacing_mm)[::-1]
-    idx = vol.lps_to_index_zyx(ref["lps"])
-    inside = np.all((idx >= -0.5) & (idx <= np.array(vol.shape_zyx) - 0.5), axis=1)
     m = B.evaluate(vol, lab, ves.mask_zyx, ves.tree, idx[inside] * sp_zyx, ref["lab"][inside])
     rec.update({k: v for k, v in m.items() if k != "labels"})
     rec["where"] = where_the_tree_runs(vol, lab, ves.tree, _structures(data))
@@ -475,6 +504,8 @@ def child(a) -> None:
         said = [res.pruned]
     # the intensity model said it was ambiguous and which class it took (``AutoVessels.pruned``, logged by reconstruct)
     rec["ambiguous"] = any("is ambiguous" in s for s in said)
+    # a seeded tree that says it may stop short of the vessel its seeds lie in (since stop 64)
+    rec["short"] = any("it may stop short of the vessel the seeds lie in" in s for s in said)
     rec["cut_through"] = [list(q) for q in getattr(ves, "cut_through_lps_mm", ())]   # () before stop 62
     print("RESULT " + json.dumps(rec, default=float))
 
@@ -485,11 +516,14 @@ def verdict(r: dict) -> str:
     if "error" in r:
         return "error"
     if r["aorta_dice"] >= RIGHT_DICE and r["in_other"] <= RIGHT_MAX_IN_OTHER:
-        return "right tree" + (", said cut through" if r.get("cut_through") else "")
+        return "right tree" + (", said cut through" if r.get("cut_through") else "") + (
+            ", said short" if r.get("short") else "")
     # a wrong tree whose notes say where a vessel may run through a region cut as a heart chamber, or that the
     # intensity model was ambiguous and which class it took, is not silent
     if r.get("cut_through"):
         return "wrong tree, said cut through"
+    if r.get("short"):
+        return "wrong tree, said short"
     return "wrong tree, said ambiguous" if r.get("ambiguous") else "WRONG TREE (exit 0)"
 
 
@@ -544,6 +578,8 @@ def main(argv=None) -> int:
         r = json.loads(line[-1][7:]) if line else {"error": (p.stderr.strip().splitlines() or ["failed"])[-1]}
         v = verdict(r)
         head = f"{name} | {r.get('shape', '')} | {r.get('spacing', '')} | {v}"
+        if r.get("apart_cm3"):
+            head += f" (seed's arteries only: {r['apart_cm3']:.0f} cm3 apart)"
         if v in ("refused", "error"):
             why = r.get("refused", r.get("error", ""))
             print(f"{head} | " + " | ".join("-" for _ in cols[:-1]) + f" | {r.get('t_s', float('nan')):.0f} | - | "

@@ -88,6 +88,34 @@ def test_wide_trunk_keeps_its_side_branches(calibre):
     assert len(tree.leaves) == 3  # two branch ends and the trunk's far end (the root is the other)
 
 
+def _aorta_leaving_the_view(R=12.0, below_mm=30.0):
+    """A mask on 1 mm voxels: an aorta of radius ``R`` along z through the whole field of view (it leaves it at both
+    ends), a 3 mm branch leaving it sideways ``below_mm`` above the lower face and another 30 mm higher."""
+    nz, ny, nx = 190, 84, 84
+    z, y, x = np.meshgrid(*(np.arange(n, dtype=float) for n in (nz, ny, nx)), indexing="ij", sparse=True)
+    m = ((y - 42) ** 2 + (x - 42) ** 2 <= R ** 2) & (z >= 0)
+    m = m | ((np.hypot(z - below_mm, y - 42) <= 3.0) & (x <= 42))
+    m = m | ((np.hypot(z - below_mm - 30, y - 42) <= 3.0) & (x >= 42))
+    return m
+
+
+@pytest.mark.parametrize("below", [30.0, 40.0])
+def test_a_vessel_leaving_the_field_of_view_is_no_spur_of_a_branch_near_the_face(below):
+    """The volume's face is no wall: an aorta that leaves the field of view ``below`` mm under a side branch's origin
+    reaches out of that junction's ball by less than twice its radius up to where its skeleton stops (a radius short
+    of the face, a cap to the thinning), and was pruned as a spur: the tree began at the branch (a 12 mm aorta lost its
+    last 30 mm). Its lumen meets the face, so it reaches out to the face."""
+    m = _aorta_leaving_the_view(below_mm=below)
+    tree = centerline_from_mask(m, spacing_mm=(1.0, 1.0, 1.0), origin_lps_mm=np.zeros(3))
+    z = tree.points_lps_mm[:, 2]
+    assert z.min() <= 12.0 + 2.0          # the axis runs on to about a radius from the lower face
+    assert z.max() >= 189 - 12.0 - 2.0    # and from the upper one
+    # the axis below the branch is there, on the aorta's axis, and no extra leaf is kept at either face
+    low = tree.points_lps_mm[z < below - 12.0]
+    assert len(low) and np.abs(low[:, :2] - 42.0).max() < 1.5
+    assert len(tree.leaves) == 3           # the upper end of the aorta and the two branch ends (the root the other)
+
+
 # -- strand systems of a wide lumen (``centerline.without_lumen_strands``) --------------------------------
 
 def _polyline(a, b, step=0.5):

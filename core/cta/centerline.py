@@ -566,6 +566,8 @@ def centerline_from_mask(mask_zyx, *, spacing_mm, origin_lps_mm, direction=None,
     bar.update()
 
     # -- skeleton + skan pruning
+    # where vessels leave the field of view (on the mask's own grid only)
+    faces = _face_points_mm(ms, off, m.shape, sk_sp) if ms is mp else None
     skel = skeletonize(ms).astype(bool)
     if skel.sum() < 2:
         # Lee's thinning can erase a perfectly symmetric axis-aligned tube of even width
@@ -602,14 +604,21 @@ def centerline_from_mask(mask_zyx, *, spacing_mm, origin_lps_mm, direction=None,
             jc = np.round(sk.coordinates[junction]).astype(int)
             r_j = D_mm[tuple(jc)]
             coords = np.round(sk.coordinates[ids]).astype(int)
+            if junction != ids[0]:
+                coords = coords[::-1]   # junction first, the end last
             length = lengths[k]
             path_mm = coords * sk_sp
-            gap = _ball_gap(path_mm, jc * sk_sp, r_j)
-            if inner_kd is not None:
-                d_nn, nn = inner_kd.query(path_mm, k=min(_CONTAINER_K, len(inner)))
-                d_nn, nn = d_nn.reshape(len(path_mm), -1), nn.reshape(len(path_mm), -1)
-                gap = np.minimum(gap, np.min(d_nn - inner_r[nn], axis=1))
-            spur = _is_spur(gap, D_mm[tuple(coords.T)], h, opt.spur_protrusion, opt.spur_calibre)
+
+            def gap_of(q_mm, jc=jc, r_j=r_j):
+                g = _ball_gap(q_mm, jc * sk_sp, r_j)
+                if inner_kd is not None:
+                    d_nn, nn = inner_kd.query(q_mm, k=min(_CONTAINER_K, len(inner)))
+                    d_nn, nn = d_nn.reshape(len(q_mm), -1), nn.reshape(len(q_mm), -1)
+                    g = np.minimum(g, np.min(d_nn - inner_r[nn], axis=1))
+                return g
+
+            gap, D_path = _with_face_contact(gap_of(path_mm), D_mm[tuple(coords.T)], path_mm[-1], faces, h, gap_of)
+            spur = _is_spur(gap, D_path, h, opt.spur_protrusion, opt.spur_calibre)
             if opt.spur_factor > 0:
                 spur |= length < opt.spur_factor * r_j
                 if opt.min_ridge_support > 0:
@@ -646,7 +655,7 @@ def centerline_from_mask(mask_zyx, *, spacing_mm, origin_lps_mm, direction=None,
 
     # -- branches, refinement, resampling (skeleton's grid); centring, radius (the mask's grid)
     pts, rad, par = _branches_to_points(tree_par, root, vox, pos_vox, Ds, D_mm, mp, sp_zyx, sk_rel, h, opt,
-                                        sk_sp=sk_sp)
+                                        sk_sp=sk_sp, faces=faces)
     bar.update()
     bar.close()
     if len(pts) < 2:
@@ -861,6 +870,41 @@ def _kdtree(points):
 def _ball_gap(path_mm: np.ndarray, centre_mm: np.ndarray, R_mm: float) -> np.ndarray:
     """How far each point of ``path_mm`` (n, 3) lies outside the ball (``centre_mm``, ``R_mm``)."""
     return np.linalg.norm(np.asarray(path_mm, dtype=float) - np.asarray(centre_mm, dtype=float), axis=1) - float(R_mm)
+
+
+def _face_points_mm(ms: np.ndarray, off: np.ndarray, shape, sk_sp: np.ndarray):
+    """``(k-d tree, points)`` (mm, on the skeleton's grid) of the mask's voxels that lie on a face of the volume
+    (``ms`` is the mask on the volume's own grid, index ``v + off`` in it, of ``shape``): where a vessel leaves the
+    field of view. None when there are none."""
+    idx = np.argwhere(ms)
+    q = idx + off
+    on = np.any((q == 0) | (q == np.asarray(shape) - 1), axis=1)
+    if not on.any():
+        return None
+    pts = idx[on] * sk_sp
+    return _kdtree(pts), pts
+
+
+def _with_face_contact(gap: np.ndarray, D_path: np.ndarray, end_mm: np.ndarray, faces, h: float,
+                       gap_of) -> tuple[np.ndarray, np.ndarray]:
+    """``(gap, D)`` of a terminal path, with one more point where its lumen leaves the field of view.
+
+    The field of view's face is no wall: a vessel that leaves the volume goes on beyond it, but its distance transform
+    and thinning see the face as a cap, so its skeleton stops about a radius short of it and its length beyond its last
+    junction (what the spur rule reads) is that much short. An aorta leaving the field of view 30 mm below a side
+    branch's origin was pruned as a spur of it (its 12 mm radius). When the lumen at the path's end (its ball, with
+    two voxels of slack) meets a face of the volume (``faces``, :func:`_face_points_mm`), the face point nearest the
+    end counts as a point of the path, with the end's radius: the path reaches out to the face. The corners of a cut
+    vessel's cap stay spurs: they reach the face within the cap's own ball. ``gap_of``: the gap of points (mm) against
+    the balls the path is judged against."""
+    if faces is None:
+        return gap, D_path
+    kd, pts = faces
+    r_end = float(D_path[-1])
+    d, i = kd.query(end_mm)
+    if not np.isfinite(d) or d > r_end + 2.0 * h:
+        return gap, D_path
+    return np.append(gap, gap_of(pts[i][None])), np.append(D_path, r_end)
 
 
 def _is_spur(gap_mm: np.ndarray, D_path_mm: np.ndarray, h: float, factor: float, calibre_factor: float = 0.0) -> bool:
@@ -1200,13 +1244,14 @@ def _recut_loops(T, pairs: np.ndarray, r: np.ndarray, vox: np.ndarray, sp_zyx: n
     return T, moved
 
 
-def _branches_to_points(par, root, vox, pos, Ds, D_mm, mp, sp_zyx, sp_rel, h, opt, sk_sp=None):
+def _branches_to_points(par, root, vox, pos, Ds, D_mm, mp, sp_zyx, sp_rel, h, opt, sk_sp=None, faces=None):
     """Points (index units of ``mp``), radii and parents of the tree ``par`` over skeleton voxels ``vox``.
 
     ``vox``, ``pos``, ``Ds``, ``D_mm`` and ``sp_rel`` are on the skeleton's grid (spacing ``sk_sp``,
     mm, ``sp_zyx`` when None), which shares its first voxel centre with the mask's grid (``mp``,
     ``sp_zyx``): the isotropic grid of :func:`_isotropic_mask` or the mask's own. Spur pruning and the
-    sub-voxel ridge step run on the skeleton's grid; cross-section centring and radii on the mask.
+    sub-voxel ridge step run on the skeleton's grid; cross-section centring and radii on the mask. ``faces``: where
+    the mask meets the volume's faces (:func:`_face_points_mm`), for the spur rule (:func:`_with_face_contact`).
     """
     sk_sp = sp_zyx if sk_sp is None else np.asarray(sk_sp, dtype=float)
     n = len(par)
@@ -1258,12 +1303,17 @@ def _branches_to_points(par, root, vox, pos, Ds, D_mm, mp, sp_zyx, sp_rel, h, op
                 continue  # the node would become an end: keep its longest spur
             ids_a = np.asarray(ids)
             path_mm = vox[ids_a] * sk_sp
-            gap = _ball_gap(path_mm, vox[ids[0]] * sk_sp, r_vox[ids[0]])
-            if inner_kd is not None:
-                d_nn, nn = inner_kd.query(path_mm, k=min(_CONTAINER_K, len(inner)))
-                d_nn, nn = d_nn.reshape(len(path_mm), -1), nn.reshape(len(path_mm), -1)
-                gap = np.minimum(gap, np.min(d_nn - r_vox[inner][nn], axis=1))
-            spur = _is_spur(gap, r_vox[ids_a], h, opt.spur_protrusion, opt.spur_calibre)
+
+            def gap_of(q_mm, i0=ids[0]):
+                g = _ball_gap(q_mm, vox[i0] * sk_sp, r_vox[i0])
+                if inner_kd is not None:
+                    d_nn, nn = inner_kd.query(q_mm, k=min(_CONTAINER_K, len(inner)))
+                    d_nn, nn = d_nn.reshape(len(q_mm), -1), nn.reshape(len(q_mm), -1)
+                    g = np.minimum(g, np.min(d_nn - r_vox[inner][nn], axis=1))
+                return g
+
+            gap, D_path = _with_face_contact(gap_of(path_mm), r_vox[ids_a], path_mm[-1], faces, h, gap_of)
+            spur = _is_spur(gap, D_path, h, opt.spur_protrusion, opt.spur_calibre)
             if opt.spur_factor > 0:
                 spur |= length < opt.spur_factor * r_vox[ids[0]]
             if spur and len(br) > 1:

