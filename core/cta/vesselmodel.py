@@ -2416,7 +2416,7 @@ def _extract_vessels_auto(volume: io.Volume, *, seeds_lps_mm=None, progress: boo
                 note = (f"the tree holds only {100 * frac:.0f}% of the bright tubular lumen connected to the seeds and "
                         f"not cut as another structure (at least {100 * SEEDED_MIN_LUMEN_IN_TREE:.0f}% expected): it may "
                         f"stop short of the vessel the seeds lie in (cut into pieces, or joined to a larger bright "
-                        f"structure such as a heart chamber); check it, or give more --seed-lps along the vessel")
+                        f"structure such as a heart chamber): give more --seed-lps along the vessel")
                 av = replace(av, pruned="; ".join(x for x in (av.pruned, note) if x))
             return replace(av, plausibility=replace(av.plausibility, lumen_in_tree=frac))
         if evidence is None:
