@@ -13,8 +13,8 @@ biplane runs instead, ``extract_vessels_any_units`` (a CT in HU through the HU d
 column then holds the path it logged). ``--seed aorta``: with one seed, a voxel drawn (a fixed random draw) inside
 the variant's aorta label eroded by one voxel, a click inside its lumen (``--seed-lps``); the reference is then the
 seed's arteries, those connected to its voxel through the artery labels in the field of view (a crop that cuts the
-aortic arch holds two parts of the aorta, and a seed in one asks for its tree; :func:`seeds_arteries`). A refusal (``InputError`` /
-``SegmentationError``: exit 2 at the command line) is a row of its own.
+aortic arch holds two parts of the aorta, and a seed in one asks for its tree; :func:`seeds_arteries`). A refusal
+(``InputError`` / ``SegmentationError``: exit 2 at the command line) is a row of its own.
 
 Variants (``hu*``: the CT in HU; ``au*``: 0.5 HU + 1000; ``mr*``: an MR contrast built from the labels):
 

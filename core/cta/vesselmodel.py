@@ -1346,8 +1346,9 @@ def _near_mask(mask_zyx: np.ndarray, points_zyx: np.ndarray, spacing_zyx_mm, tol
 def seeded_lumen_in_tree_fraction(before_zyx: np.ndarray, mask_zyx: np.ndarray, points_zyx: np.ndarray,
                                   weights: np.ndarray, spacing_zyx_mm, *,
                                   tolerance_mm: float = LUMEN_TREE_TOLERANCE_MM) -> float:
-    """The ``weights``-weighted fraction of the seeds' bright tubular lumen (``points_zyx``, :func:`seeds_lumen_evidence`)
-    that the seeded tree's mask holds (as :func:`lumen_in_tree_fraction`), leaving out what its own cuts took:
+    """The ``weights``-weighted fraction of the seeds' bright tubular lumen (``points_zyx``,
+    :func:`seeds_lumen_evidence`) that the seeded tree's mask holds (as :func:`lumen_in_tree_fraction`), leaving out
+    what its own cuts took:
     the points near the seeded segmentation before the cuts (``before_zyx``: blood pools, webs of loops, bridges, dim
     necks, parenchyma) and not near the mask after them were judged another structure's (a vessel crossing at a waist,
     a heart chamber). What counts against the tree is the connected lumen its segmentation never held."""
@@ -2414,9 +2415,9 @@ def _extract_vessels_auto(volume: io.Volume, *, seeds_lps_mm=None, progress: boo
             frac = seeded_lumen_in_tree_fraction(before, av.vessels.mask_zyx, *near, sp)
             if frac < SEEDED_MIN_LUMEN_IN_TREE:
                 note = (f"the tree holds only {100 * frac:.0f}% of the bright tubular lumen connected to the seeds and "
-                        f"not cut as another structure (at least {100 * SEEDED_MIN_LUMEN_IN_TREE:.0f}% expected): it may "
-                        f"stop short of the vessel the seeds lie in (cut into pieces, or joined to a larger bright "
-                        f"structure such as a heart chamber): give more --seed-lps along the vessel")
+                        f"not cut as another structure (at least {100 * SEEDED_MIN_LUMEN_IN_TREE:.0f}% expected): "
+                        f"it may stop short of the vessel the seeds lie in (cut into pieces, or joined to a larger "
+                        f"bright structure such as a heart chamber): give more --seed-lps along the vessel")
                 av = replace(av, pruned="; ".join(x for x in (av.pruned, note) if x))
             return replace(av, plausibility=replace(av.plausibility, lumen_in_tree=frac))
         if evidence is None:
