@@ -610,12 +610,7 @@ def centerline_from_mask(mask_zyx, *, spacing_mm, origin_lps_mm, direction=None,
             path_mm = coords * sk_sp
 
             def gap_of(q_mm, jc=jc, r_j=r_j):
-                g = _ball_gap(q_mm, jc * sk_sp, r_j)
-                if inner_kd is not None:
-                    d_nn, nn = inner_kd.query(q_mm, k=min(_CONTAINER_K, len(inner)))
-                    d_nn, nn = d_nn.reshape(len(q_mm), -1), nn.reshape(len(q_mm), -1)
-                    g = np.minimum(g, np.min(d_nn - inner_r[nn], axis=1))
-                return g
+                return _gap_to_balls(q_mm, jc * sk_sp, r_j, inner_kd, inner_r)
 
             gap, D_path = _with_face_contact(gap_of(path_mm), D_mm[tuple(coords.T)], path_mm[-1], faces, h, gap_of)
             spur = _is_spur(gap, D_path, h, opt.spur_protrusion, opt.spur_calibre)
@@ -870,6 +865,18 @@ def _kdtree(points):
 def _ball_gap(path_mm: np.ndarray, centre_mm: np.ndarray, R_mm: float) -> np.ndarray:
     """How far each point of ``path_mm`` (n, 3) lies outside the ball (``centre_mm``, ``R_mm``)."""
     return np.linalg.norm(np.asarray(path_mm, dtype=float) - np.asarray(centre_mm, dtype=float), axis=1) - float(R_mm)
+
+
+def _gap_to_balls(q_mm: np.ndarray, centre_mm: np.ndarray, R_mm: float, inner_kd, inner_r: np.ndarray) -> np.ndarray:
+    """How far each point of ``q_mm`` (n, 3) lies outside the union of the ball (``centre_mm``, ``R_mm``: a junction's)
+    and the maximal balls of the skeleton not on terminal paths (``inner_kd`` over their centres, ``inner_r`` their
+    radii; its ``_CONTAINER_K`` nearest), negative inside: what the spur rule reads (:func:`_is_spur`)."""
+    g = _ball_gap(q_mm, centre_mm, R_mm)
+    if inner_kd is not None:
+        d_nn, nn = inner_kd.query(q_mm, k=min(_CONTAINER_K, len(inner_r)))
+        d_nn, nn = d_nn.reshape(len(q_mm), -1), nn.reshape(len(q_mm), -1)
+        g = np.minimum(g, np.min(d_nn - inner_r[nn], axis=1))
+    return g
 
 
 def _face_points_mm(ms: np.ndarray, off: np.ndarray, shape, sk_sp: np.ndarray):
@@ -1290,6 +1297,7 @@ def _branches_to_points(par, root, vox, pos, Ds, D_mm, mp, sp_zyx, sp_rel, h, op
         inner = [np.asarray(i2) for k2, (i2, _) in enumerate(br) if k2 in has_child]
         inner = np.unique(np.concatenate(inner)) if inner else np.zeros(0, np.int64)
         inner_kd = _kdtree(vox[inner] * sk_sp) if len(inner) else None
+        inner_r = r_vox[inner]
         spurs = []
         for k, (ids, pb) in enumerate(br):
             if k in has_child or pb < 0 and len(br) == 1:
@@ -1305,12 +1313,7 @@ def _branches_to_points(par, root, vox, pos, Ds, D_mm, mp, sp_zyx, sp_rel, h, op
             path_mm = vox[ids_a] * sk_sp
 
             def gap_of(q_mm, i0=ids[0]):
-                g = _ball_gap(q_mm, vox[i0] * sk_sp, r_vox[i0])
-                if inner_kd is not None:
-                    d_nn, nn = inner_kd.query(q_mm, k=min(_CONTAINER_K, len(inner)))
-                    d_nn, nn = d_nn.reshape(len(q_mm), -1), nn.reshape(len(q_mm), -1)
-                    g = np.minimum(g, np.min(d_nn - r_vox[inner][nn], axis=1))
-                return g
+                return _gap_to_balls(q_mm, vox[i0] * sk_sp, r_vox[i0], inner_kd, inner_r)
 
             gap, D_path = _with_face_contact(gap_of(path_mm), r_vox[ids_a], path_mm[-1], faces, h, gap_of)
             spur = _is_spur(gap, D_path, h, opt.spur_protrusion, opt.spur_calibre)
