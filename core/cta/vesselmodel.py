@@ -98,6 +98,7 @@ MODE_MIN_MASS = 0.2
 HU_LUMEN_MAX = 650.0
 HU_AIR_RANGE = (-1200.0, -300.0)  # air and lung in HU
 HU_TISSUE_MAX = 200.0  # the tissue level (upper quartile of the body) of a CT in HU: at most this
+HU_TISSUE_MIN_FRACTION = 0.25  # a body in HU that is largely contrast blood: at least this much of it tissue
 #: :func:`_hu_tree_of_bright_ct`: a volume's median in this range (a CT's tissue in HU) and values below this
 HU_MEDIAN_RANGE = (-60.0, 160.0)
 HU_BELOW_WATER = -20.0
@@ -817,7 +818,14 @@ def _body_levels(volume: io.Volume):
     ds = _block_mean(a, f)
     body, lo_mode = _body_mask(ds)
     med = float(np.median(ds[body]))
-    hu = bool(-60.0 <= med <= 160.0 and (lo_mode is None or -1200.0 <= lo_mode <= -300.0))
+    air_hu = lo_mode is not None and HU_AIR_RANGE[0] <= lo_mode <= HU_AIR_RANGE[1]
+    hu = bool(HU_MEDIAN_RANGE[0] <= med <= HU_MEDIAN_RANGE[1] and (lo_mode is None or air_hu))
+    if not hu and air_hu and med <= HU_LUMEN_MAX:
+        # air or lung in HU round a body that is largely contrast blood (a crop of the chest round the heart: its
+        # median 166 HU): the tissue is the body below the contrast
+        tissue = ds[body][ds[body] <= HU_TISSUE_MAX]
+        hu = bool(tissue.size >= HU_TISSUE_MIN_FRACTION * int(body.sum())
+                  and HU_MEDIAN_RANGE[0] <= float(np.median(tissue)) <= HU_MEDIAN_RANGE[1])
     return ds, f, sp_zyx * f, body, lo_mode, med, hu
 
 
