@@ -68,6 +68,9 @@ VOLUME_MODALITIES = ("CT", "MR")
 MAX_VOXELS_DEFAULT = 512 * 512 * 1200
 STAGING_OWNER = ".guidewire3d-owner.json"  # inside a staging folder: the pid of the run writing it
 STALE_HOURS = 1.0  # a staging folder without an owner record is stale after this long
+#: a stack of slices is even when no slice lies farther than this fraction of the mean step from an even stack between
+#: the first and the last (as SimpleITK places them): positions written with few decimals are not uneven
+SLICE_POSITION_TOLERANCE = 0.1
 
 
 # --------------------------------------------------------------------------------------
@@ -553,10 +556,15 @@ def _check_stack(ipps: np.ndarray, iop: np.ndarray, where, *, frames: bool = Fal
                              f"ImagePositionPatient): a time series, several echoes or several stacks in one file; "
                              f"export one volume as its own series")
         raise DicomError(f"{where}: duplicate slice positions (ImagePositionPatient) in the series")
-    if np.ptp(steps) > 0.01 * max(np.median(steps), 1e-6) + 1e-3:
+    # each slice against an even stack from the first to the last: a series of 0.625 mm slices whose positions are
+    # written with two decimals steps 0.62 and 0.63 mm, and was refused (steps within 1 % of each other were asked)
+    step = (pos[-1] - pos[0]) / (len(pos) - 1)
+    off = float(np.abs(pos - np.linspace(pos[0], pos[-1], len(pos))).max())
+    if off > SLICE_POSITION_TOLERANCE * step:
         raise DicomError(
-            f"{where}: uneven slice spacing (ImagePositionPatient steps {steps.min():.3f}..{steps.max():.3f} mm); "
-            "resample the series to even spacing first"
+            f"{where}: uneven slice spacing (ImagePositionPatient steps {steps.min():.3f}..{steps.max():.3f} mm; a "
+            f"slice {off:.3f} mm off an even stack of {step:.3f} mm steps, at most "
+            f"{100 * SLICE_POSITION_TOLERANCE:.0f}% of a step expected); resample the series to even spacing first"
         )
     # gantry tilt: consecutive positions must move along the slice normal
     d = ipps[-1] - ipps[0]

@@ -105,6 +105,25 @@ def test_uneven_slice_spacing_refused(tmp_path):
         io.read_volume(out)
 
 
+def test_slice_positions_written_with_two_decimals_are_an_even_stack(tmp_path):
+    """0.625 mm slices whose ImagePositionPatient is written with two decimals step 0.62 and 0.63 mm: no slice is
+    more than 0.005 mm off an even stack, and SimpleITK places them on one (the mean step). They were refused as
+    "uneven slice spacing" (steps within 1 % of each other were asked)."""
+    rng = np.random.default_rng(6)
+    vol = _volume(rng, shape=(40, 8, 8), spacing=(0.7, 0.7, 0.625))
+    out = io.write_ct_series(vol, tmp_path / "ct")
+    for f in sorted(out.glob("*.dcm")):
+        ds = pydicom.dcmread(f)
+        ds.ImagePositionPatient[2] = f"{float(ds.ImagePositionPatient[2]):.2f}"
+        ds.save_as(f)
+    zs = sorted(float(pydicom.dcmread(f).ImagePositionPatient[2]) for f in out.glob("*.dcm"))
+    assert np.ptp(np.diff(zs)) > 0.009   # 0.62 and 0.63 mm steps
+    back = io.read_volume(out)
+    assert back.shape_zyx == vol.shape_zyx
+    assert back.spacing_mm[2] == pytest.approx(0.625, abs=1e-3)
+    assert np.allclose(back.array_zyx, vol.array_zyx, atol=1.0)
+
+
 def test_xa_multiframe_round_trip(tmp_path):
     rng = np.random.default_rng(5)
     carm = CArm(-32.5, 17.25, 1080.0, 760.0, 0.308, (64, 80))
