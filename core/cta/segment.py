@@ -943,9 +943,12 @@ def segment_vessels(volume: io.Volume, *, seeds_lps_mm=None, progress: bool = Fa
         raise SegmentationError(f"{what}: no vessels found (only blob-like bright regions)")
     vcrop = bbox(cand, pad=int(np.ceil(max(opt.vesselness_scales_mm) / sp_zyx.min())) + 1)
     top = float(np.percentile(sm[cand], 95))
+    # the window's least width, relative to the volume's own scale (an MRA stored as 0..1 has a contrast of 0.5: a
+    # width of at least 1 unit, as for HU, halved its window and moved every vesselness)
+    least = 1e-3 * max(abs(top), abs(window_bg), 1e-12)
     if np.isfinite(opt.window_background_hu):
-        window_bg = min(max(window_bg, float(opt.window_background_hu)), top - 1.0)
-    win = (np.clip(sm[vcrop], window_bg, top) - window_bg) / max(top - window_bg, 1.0)
+        window_bg = min(max(window_bg, float(opt.window_background_hu)), top - least)
+    win = (np.clip(sm[vcrop], window_bg, top) - window_bg) / max(top - window_bg, least)
     if dark_bone is not None:
         win[dark_bone[vcrop]] = 0.0
         del dark_bone
