@@ -99,7 +99,7 @@ HU_LUMEN_MAX = 650.0
 HU_AIR_RANGE = (-1200.0, -300.0)  # air and lung in HU
 HU_TISSUE_MAX = 200.0  # the tissue level (upper quartile of the body) of a CT in HU: at most this
 HU_TISSUE_MIN_FRACTION = 0.25  # a body in HU that is largely contrast blood: at least this much of it tissue
-HU_MIN_SPAN = 100.0  # a CT in HU: its values (0.5th to 99.5th percentile, block-averaged) span at least this
+HU_MIN_SPAN = 100.0  # a CT in HU: its values (block-averaged, :func:`_body_levels`) span at least this
 #: :func:`_hu_tree_of_bright_ct`: a volume's median in this range (a CT's tissue in HU) and values below this
 HU_MEDIAN_RANGE = (-60.0, 160.0)
 HU_BELOW_WATER = -20.0
@@ -831,8 +831,7 @@ def _body_levels(volume: io.Volume):
         # a CT in HU spans hundreds of HU (air, fat, tissue, contrast, bone); a volume whose values span a few units
         # is in other units, whatever its median (a subtracted MRA stored as 0..1: its median 0.01 read as HU, and it
         # was refused as "a CT without contrast")
-        lo, hi = np.percentile(ds, [0.5, 99.5])
-        hu = bool(hi - lo >= HU_MIN_SPAN)
+        hu = bool(float(ds.max()) - float(ds.min()) >= HU_MIN_SPAN)
     return ds, f, sp_zyx * f, body, lo_mode, med, hu
 
 
