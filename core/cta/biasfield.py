@@ -27,6 +27,9 @@ N4_QUICK_VOXEL_MM = 8.0
 N4_QUICK_ITERATIONS = (30, 30, 30)
 #: a field whose range over the body (5th-95th percentile of the gain) is below this leaves the volume as it was
 MIN_FIELD_RANGE = 0.05
+#: :func:`_unit`: a volume whose values (its minimum to its 99.5th percentile) span less than this is read in units of
+#: its span / ``UNIT_SPAN``
+UNIT_SPAN = 100.0
 
 
 @dataclass(frozen=True)
@@ -46,6 +49,17 @@ class BiasField:
                 f"{self.gain_p95:.2f})")
 
 
+def _unit(a: np.ndarray) -> float:
+    """The volume's unit for the log intensities N4 and its mask read: 1 for values spanning ``UNIT_SPAN`` or more (a
+    CT's, an MR's hundreds or thousands, as before), else the span / ``UNIT_SPAN``: a volume in small units (an MRA stored
+    as 0..1) reads as it would in those (its log would be nearly linear, and the shift of 1 before the log larger than
+    its contrast: under a +-60 % field its tree was wrong, with no word)."""
+    step = max(1, int(round((a.size / 2_000_000) ** (1 / 3))))
+    sub = a[::step, ::step, ::step]
+    span = float(np.percentile(sub, 99.5)) - float(sub.min())
+    return 1.0 if span >= UNIT_SPAN or span <= 0 else span / UNIT_SPAN
+
+
 def n4_mask(volume: io.Volume) -> np.ndarray:
     """The body N4 fits over: voxels above Otsu's threshold of ``log(1 + max(a - min, 0))``, opened by one voxel.
 
@@ -58,7 +72,7 @@ def n4_mask(volume: io.Volume) -> np.ndarray:
     from skimage.filters import threshold_otsu
 
     a = np.asarray(volume.array_zyx, dtype=np.float32)
-    la = np.log1p(np.maximum(a - float(a.min()), 0.0))
+    la = np.log1p(np.maximum(a - float(a.min()), 0.0) / _unit(a))
     step = max(1, int(round((la.size / 2_000_000) ** (1 / 3))))
     t = float(threshold_otsu(la[::step, ::step, ::step]))
     return ndi.binary_opening(la > t, iterations=1)
@@ -74,8 +88,8 @@ def n4_log_field(volume: io.Volume, body_zyx: np.ndarray, *, voxel_mm: float = N
     import SimpleITK as sitk
 
     a = np.asarray(volume.array_zyx, dtype=np.float32)
-    lo = float(a.min())
-    img = sitk.GetImageFromArray(a - lo + 1.0 if lo < 1.0 else a)
+    lo, u = float(a.min()), _unit(a)
+    img = sitk.GetImageFromArray((a - lo + u if lo < u else a) / u)
     img.SetSpacing(tuple(float(s) for s in volume.spacing_mm))
     msk = sitk.GetImageFromArray(np.ascontiguousarray(body_zyx, dtype=np.uint8))
     msk.CopyInformation(img)
