@@ -50,18 +50,19 @@ class BiasField:
 
 
 def _unit(a: np.ndarray) -> float:
-    """The volume's unit for the log intensities N4 and its mask read: 1 for values spanning ``UNIT_SPAN`` or more (a
-    CT's, an MR's hundreds or thousands, as before), else the span / ``UNIT_SPAN``: a volume in small units (an MRA stored
-    as 0..1) reads as it would in those (its log would be nearly linear, and the shift of 1 before the log larger than
-    its contrast: under a +-60 % field its tree was wrong, with no word)."""
+    """The volume's unit for the log intensities N4 and its mask read: 1 for values spanning ``UNIT_SPAN`` or more
+    (a CT's, an MR's hundreds or thousands, as before), else the span / ``UNIT_SPAN``: a volume in small units (an MRA
+    stored as 0..1) reads as it would in those (its log would be nearly linear, and the shift of 1 before the log larger
+    than its contrast: under a +-60 % field its tree was wrong, with no word)."""
     step = max(1, int(round((a.size / 2_000_000) ** (1 / 3))))
     sub = a[::step, ::step, ::step]
     span = float(np.percentile(sub, 99.5)) - float(sub.min())
     return 1.0 if span >= UNIT_SPAN or span <= 0 else span / UNIT_SPAN
 
 
-def n4_mask(volume: io.Volume) -> np.ndarray:
-    """The body N4 fits over: voxels above Otsu's threshold of ``log(1 + max(a - min, 0))``, opened by one voxel.
+def n4_mask(volume: io.Volume, *, unit: float | None = None) -> np.ndarray:
+    """The body N4 fits over: voxels above Otsu's threshold of ``log(1 + max(a - min, 0) / unit)``, opened by one voxel
+    (``unit``: :func:`_unit`, computed when not given).
 
     In log intensities a multiplicative field adds a smooth offset, so air (near the noise floor) and tissue stay two
     classes where a threshold of the intensities themselves, or the intensity model's body mask, loses the field's dark
@@ -72,14 +73,14 @@ def n4_mask(volume: io.Volume) -> np.ndarray:
     from skimage.filters import threshold_otsu
 
     a = np.asarray(volume.array_zyx, dtype=np.float32)
-    la = np.log1p(np.maximum(a - float(a.min()), 0.0) / _unit(a))
+    la = np.log1p(np.maximum(a - float(a.min()), 0.0) / (_unit(a) if unit is None else unit))
     step = max(1, int(round((la.size / 2_000_000) ** (1 / 3))))
     t = float(threshold_otsu(la[::step, ::step, ::step]))
     return ndi.binary_opening(la > t, iterations=1)
 
 
 def n4_log_field(volume: io.Volume, body_zyx: np.ndarray, *, voxel_mm: float = N4_VOXEL_MM,
-                 iterations=N4_ITERATIONS) -> np.ndarray:
+                 iterations=N4_ITERATIONS, unit: float | None = None) -> np.ndarray:
     """The log of the multiplicative bias field on ``volume``'s grid (float32, zero mean over ``body_zyx``).
 
     ``body_zyx`` (bool, the volume's grid) is where the field is fitted. N4 fits the log of the image, so values
@@ -88,7 +89,7 @@ def n4_log_field(volume: io.Volume, body_zyx: np.ndarray, *, voxel_mm: float = N
     import SimpleITK as sitk
 
     a = np.asarray(volume.array_zyx, dtype=np.float32)
-    lo, u = float(a.min()), _unit(a)
+    lo, u = float(a.min()), (_unit(a) if unit is None else unit)
     img = sitk.GetImageFromArray((a - lo + u if lo < u else a) / u)
     img.SetSpacing(tuple(float(s) for s in volume.spacing_mm))
     msk = sitk.GetImageFromArray(np.ascontiguousarray(body_zyx, dtype=np.uint8))
@@ -111,12 +112,13 @@ def corrected(volume: io.Volume, *, min_range: float = MIN_FIELD_RANGE, quick: b
     """``volume`` divided by its N4 bias field (over :func:`n4_mask`; ``quick``: the ``N4_QUICK_*`` fit), and the
     field's record; ``None`` when the field's range over the body is below ``min_range`` (nothing to correct) or the
     body is empty."""
-    body_zyx = n4_mask(volume)
+    unit = _unit(np.asarray(volume.array_zyx))
+    body_zyx = n4_mask(volume, unit=unit)
     if not body_zyx.any():
         return None
     t0 = time.perf_counter()
-    log = (n4_log_field(volume, body_zyx, voxel_mm=N4_QUICK_VOXEL_MM, iterations=N4_QUICK_ITERATIONS) if quick
-           else n4_log_field(volume, body_zyx))
+    log = (n4_log_field(volume, body_zyx, voxel_mm=N4_QUICK_VOXEL_MM, iterations=N4_QUICK_ITERATIONS, unit=unit)
+           if quick else n4_log_field(volume, body_zyx, unit=unit))
     gain = np.exp(log)
     p5, p95 = (float(v) for v in np.percentile(gain[body_zyx][:: max(1, int(body_zyx.sum()) // 1_000_000)], [5, 95]))
     rec = BiasField(p5, p95, time.perf_counter() - t0)
