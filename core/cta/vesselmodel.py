@@ -865,6 +865,12 @@ def looks_like_hu(volume: io.Volume) -> bool:
     return bool(hu and float(np.percentile(ds[body], BACKGROUND_PERCENTILE)) <= HU_TISSUE_MAX)
 
 
+def _lightly_smoothed(a: np.ndarray, sp_zyx: np.ndarray) -> np.ndarray:
+    """``a`` (float32) smoothed by a Gaussian of 0.6 of its finest voxel step, in mm along every axis: what a seed's
+    lumen level and the lumen connected to the seeds are read on."""
+    return ndi.gaussian_filter(np.asarray(a, dtype=np.float32), 0.6 * sp_zyx.min() / sp_zyx)
+
+
 def _seed_window(a: np.ndarray, c_zyx: np.ndarray, sp_zyx: np.ndarray, reach_mm: float, ceiling: float | None):
     """The lightly smoothed image around ``c_zyx`` (``reach_mm`` + 2 mm), its corner, and where it does not count
     (NaN): nowhere, or with ``ceiling`` the voxels at or above it and those within ``SEED_CEILING_MARGIN_MM`` of
@@ -877,7 +883,7 @@ def _seed_window(a: np.ndarray, c_zyx: np.ndarray, sp_zyx: np.ndarray, reach_mm:
     if ceiling is not None and np.any(raw >= ceiling):
         out = ndi.distance_transform_edt(raw < ceiling, sampling=sp_zyx) <= SEED_CEILING_MARGIN_MM
         raw = np.where(out, np.float32(np.median(raw[~out])) if (~out).any() else np.float32(ceiling), raw)
-    win = ndi.gaussian_filter(raw, 0.6 * sp_zyx.min() / sp_zyx)
+    win = _lightly_smoothed(raw, sp_zyx)
     if out is not None:
         win[out] = np.nan
     return win, lo
@@ -2013,7 +2019,7 @@ def seeds_lumen_evidence(volume: io.Volume, model: IntensityModel, seeds_lps_mm)
         return None
     a = volume.array_zyx
     sp = np.asarray(volume.spacing_mm, dtype=float)[::-1]
-    sm = ndi.gaussian_filter(np.asarray(a, dtype=np.float32), 0.6 * sp.min() / sp)
+    sm = _lightly_smoothed(a, sp)
     lab, _ = ndi.label(sm >= model.background + 0.5 * model.contrast, structure=np.ones((3, 3, 3), bool))
     del sm
     ids = set()
