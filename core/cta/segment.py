@@ -92,6 +92,16 @@ class VesselOptions:
     # ``lumen_min_hu`` within ``bone_margin_mm`` is lumen, not the bone's rim (:func:`_enclosed_lumen`: a carotid
     # in its petrous canal, whose whole lumen lies within the margin)
     enclosed_lumen_min_hu: float = float("inf")
+    # finite: bone is also a class below the lumen, told by its thickness (:func:`_thick_bone`): the voxels below
+    # ``thick_bone_max_hu`` of the regions at least ``thick_bone_hu`` bright that a ball of ``thick_bone_mm`` fits in
+    # (a morphological opening), with ``thick_bone_margin_mm`` round them. A 3D rotational angiogram's bone lies
+    # below its intra-arterial contrast, where its thin arteries' partial volume lies too. With ``thick_bone_max_hu``
+    # finite, a lumen component needs a voxel at least that bright (thin bone is not thick, but touches no contrast)
+    thick_bone_hu: float = float("inf")
+    thick_bone_max_hu: float = float("inf")
+    thick_bone_mm: float = 1.5
+    thick_bone_margin_mm: float = 0.7
+    thick_bone_reach_mm: float = 1.0  # ... and below it, within this of a tubular voxel or the contrast
 
 
 def _ball_dilate(mask, radius_mm: float, spacing_zyx) -> np.ndarray:
@@ -165,6 +175,23 @@ def _enclosed_lumen(sm: np.ndarray, core: np.ndarray, rim: np.ndarray, lumen_min
     dark = sm[sl] < dark_hu
     near[sl] &= ~_ball_dilate(dark, margin_mm, spacing_zyx) if dark.any() else True
     return near
+
+
+def _thick_bone(sm: np.ndarray, opt: "VesselOptions", spacing_zyx) -> np.ndarray:
+    """The bone of a class below the lumen (``opt.thick_bone_hu``), told from the lumen by its thickness.
+
+    The regions of ``opt.thick_bone_hu <= sm < opt.thick_bone_max_hu`` (the bone's class, below the contrast) that a
+    ball of radius ``opt.thick_bone_mm`` fits in (their opening by it), widened by ``opt.thick_bone_margin_mm`` (the
+    partial volume round them), less what is at least ``opt.thick_bone_max_hu`` bright (an artery in a bony canal). A
+    thin artery whose partial volume lies at the bone's level is thinner than the ball and stays lumen, and so does a
+    wide artery's rim; where either touches bone, the margin cuts it there only.
+    """
+    m = (sm >= opt.thick_bone_hu) & (sm < opt.thick_bone_max_hu)
+    core = _deeper_than(m, opt.thick_bone_mm, spacing_zyx)
+    if not core.any():
+        return core
+    opened = _ball_dilate(core, opt.thick_bone_mm, spacing_zyx) & m
+    return _ball_dilate(opened, opt.thick_bone_margin_mm, spacing_zyx) & (sm < opt.thick_bone_max_hu)
 
 
 def _deeper_than(mask, depth_mm: float, spacing_zyx) -> np.ndarray:
@@ -886,6 +913,12 @@ def segment_vessels(volume: io.Volume, *, seeds_lps_mm=None, progress: bool = Fa
             bone &= ~_enclosed_lumen(sm, core, bone, opt.enclosed_lumen_min_hu, opt.lumen_min_hu,
                                      opt.bone_margin_mm, sp_zyx)
         del core
+    # with enclosed lumens, the vesselness sees the bone as the tissue it is not lumen of (the window clips bone to
+    # the lumen's level: a lumen in a canal would be a flat part of the bright bone, not a tube); not the thick bone
+    # below the lumen's level, which the window does not clip
+    dark_bone = bone if np.isfinite(opt.enclosed_lumen_min_hu) else None
+    if np.isfinite(opt.thick_bone_hu):
+        bone = bone | _thick_bone(sm, opt, sp_zyx)
     low = sm < opt.lumen_min_hu
     bg = float(np.median(sm[low & ~bone])) if np.any(low & ~bone) else opt.background_hu
     window_bg = bg
@@ -907,9 +940,14 @@ def segment_vessels(volume: io.Volume, *, seeds_lps_mm=None, progress: bool = Fa
         # (the window's maximum reaches the level where any voxel of it does: a max of booleans, 4x faster)
         cand &= ndi.maximum_filter(no_bone >= opt.min_peak_hu, size=tuple(peak_size))
     del no_bone
-    # with enclosed lumens, the vesselness sees the bone as the tissue it is not lumen of (the window clips bone to
-    # the lumen's level: a lumen in a canal would be a flat part of the bright bone, not a tube)
-    dark_bone = bone if np.isfinite(opt.enclosed_lumen_min_hu) else None
+    if np.isfinite(opt.thick_bone_max_hu):
+        # below the contrast, only what touches it: thin bone (a vertebra's cortex, a plate's edge) is no lumen
+        lab, nlab = ndi.label(cand, structure=np.ones((3, 3, 3)))
+        touch = np.zeros(nlab + 1, bool)
+        touch[lab[cand & (sm >= opt.thick_bone_max_hu)]] = True
+        touch[0] = False
+        cand = touch[lab]
+        del lab, touch
     del thr, bone, peak
     lab, nlab = ndi.label(cand, structure=np.ones((3, 3, 3)))
     if nlab == 0:
@@ -956,6 +994,19 @@ def segment_vessels(volume: io.Volume, *, seeds_lps_mm=None, progress: bool = Fa
     cidx = np.argwhere(candv)
     ves_c, scale_c = frangi_at(win, cidx, sp_zyx, opt.vesselness_scales_mm, return_scale=True)
     del win
+    if np.isfinite(opt.thick_bone_max_hu):
+        # below the contrast, a candidate is lumen only near a tubular voxel or the contrast: a plate of bone thinner
+        # than the ball (a skull's table) that an artery touches is a sheet, and would take the artery with it
+        anchor = np.zeros(candv.shape, bool)
+        anchor[tuple(cidx[ves_c >= opt.tubular_support_min].T)] = True
+        anchor |= candv & (sm[vcrop] >= opt.thick_bone_max_hu)
+        near = _ball_dilate(anchor, opt.thick_bone_reach_mm, sp_zyx)
+        stay = near[tuple(cidx.T)]
+        del anchor, near
+        if not stay.all():
+            candv = candv.copy()
+            candv[tuple(cidx[~stay].T)] = False
+            cidx, ves_c, scale_c = cidx[stay], ves_c[stay], scale_c[stay]
     bar.update()
 
     # -- components: the largest tubular one (or those touching a seed)

@@ -414,8 +414,20 @@ class IntensityModel:
     ct_like: bool = False
     #: the brighter reading of an ambiguous volume (:func:`_brighter_reading`): ``floor`` is the darker tubular class
     #: the model first read as the lumen (a 3DRA's bone, an MRA's veins), and no voxel below ``floor +
-    #: LUMEN_BAND_FRACTION (lumen - floor)`` is lumen
+    #: LUMEN_BAND_FRACTION (lumen - floor)`` is lumen; in a 3DRA (:attr:`thick_floor`) only where that class is thick
     floor_cut: bool = False
+    #: the floor is a class that is mostly not tubular (:func:`_tree_above_floor`: bone, fat, marrow): cut where it is
+    #: thick (:attr:`thick_floor`)
+    floor_not_tubular: bool = False
+
+    @property
+    def thick_floor(self) -> bool:
+        """Whether the cut floor is bone (a 3DRA's in HU, below a lumen brighter than a CTA's contrast) or another
+        class that is mostly not tubular (:attr:`floor_not_tubular`), cut where it is thick
+        (``segment.VesselOptions.thick_bone_hu``) rather than everywhere below its band: a thin artery's partial
+        volume lies at its level."""
+        return self.floor_cut and self.floor is not None and (self.floor_not_tubular or (
+            self.hu and self.lumen > HU_LUMEN_MAX))
 
     @property
     def contrast(self) -> float:
@@ -443,6 +455,9 @@ class IntensityModel:
         scales = tuple(sorted(set(base.vesselness_scales_mm) | {5.0, 9.0})) if max_radius_mm > 8 else \
             base.vesselness_scales_mm
         cut = self.floor + LUMEN_BAND_FRACTION * (self.lumen - self.floor) if self.floor_cut else -np.inf
+        if self.thick_floor:  # the floor is bone, told by its thickness: below the cut only there
+            base = replace(base, thick_bone_hu=0.5 * (self.background + self.floor), thick_bone_max_hu=cut)
+            cut = -np.inf
         return replace(base, lumen_min_hu=max(self.background + LUMEN_MIN_FRACTION * c, cut),
                        crop_hu=self.background + CROP_FRACTION * c, bone_min_hu=float(bone),
                        max_vessel_radius_mm=float(max_radius_mm), vesselness_scales_mm=scales,
@@ -1181,8 +1196,9 @@ def _seeded_floor(volume: io.Volume, seed_level: float) -> float | None:
     centerline in the petrous bone, at 1700 HU beside 2500 HU arteries). The volume's own reading says where that
     bone is when it is refused as ambiguous with a brighter tubular class (:func:`_brighter_reading`): the class it
     first read as the lumen, mostly not tubular or outweighed by a tubular class above it, is the floor, when it
-    lies below the seed's level (no voxel below ``floor + LUMEN_BAND_FRACTION (seed_level - floor)`` is lumen,
-    ``IntensityModel.floor_cut``). A volume the automatic model reads without ambiguity has no floor.
+    lies below the seed's level (no voxel below ``floor + LUMEN_BAND_FRACTION (seed_level - floor)`` is lumen where
+    that class is thick, ``IntensityModel.floor_cut``, ``thick_floor``). A volume the automatic model reads without
+    ambiguity has no floor.
     """
     try:
         _estimate_intensity_model(volume)
@@ -1211,7 +1227,8 @@ def _brighter_reading(model: IntensityModel, vals: np.ndarray, ves: np.ndarray, 
     model's bone level (else ``LUMEN_BAND_FRACTION`` of the contrast above its lumen); it needs at least
     ``MIN_LUMEN_TUBULAR`` of the candidates within ``LUMEN_BAND_FRACTION`` of its contrast tubular (the test a
     lumen read where bone may lie must pass). The model's lumen becomes the floor (``IntensityModel.floor_cut``):
-    no lumen below a quarter of the way from it to the new level, and no bone level above. A 3DRA of a selective
+    no lumen below a quarter of the way from it to the new level (in a 3DRA, where the floor's class is thick:
+    :attr:`IntensityModel.thick_floor`), and no bone level above. A 3DRA of a selective
     injection (``scripts/bench_head_cta.py`` ``dra1``) was read on its petrous bone (1700 HU, 44 % tubular) with
     its arteries (2500 HU, 2070 at their partial-volume mode, all tubular) above it.
     """
@@ -2278,8 +2295,9 @@ def _brighter_tree(volume: io.Volume, err: SegmentationError, kw: dict, refusal:
     except SegmentationError as e2:
         raise SegmentationError(f"{refusal}; and read with its brighter tubular class at {model.lumen:.4g} as the "
                                 f"lumen: {_reason(e2)}") from None
+    where = " where it is thick (bone)" if model.thick_floor else ""
     note = (f"{_reason(err).split('; give', 1)[0]}; so the tree is that of its brighter tubular class, at "
-            f"{model.lumen:.4g}, with the class at {model.floor:.4g} left out")
+            f"{model.lumen:.4g}, with the class at {model.floor:.4g} left out{where}")
     return replace(av, segmentation=f"{av.segmentation}+brighter class",
                    pruned="; ".join(x for x in (av.pruned, note) if x))
 
@@ -2301,7 +2319,9 @@ def _tree_above_floor(volume: io.Volume, model: IntensityModel, evidence, model_
     The floor model's threshold lies below the floor, so that a lumen's partial-volume rim stays lumen, and its
     components must be mostly tubular (``FLOOR_COMPONENT_TUBULAR``). An artery that touches the floor's class (a
     cortical artery beside the skull's fatty diploe in a TOF slab, ``scripts/bench_head_cta.py`` ``tofslab``) then
-    joins a component of the class that is mostly not tubular, and the whole tree was refused.
+    joins a component of the class that is mostly not tubular, and the whole tree was refused. That class is cut
+    where it is thick (``IntensityModel.floor_not_tubular``, :attr:`IntensityModel.thick_floor`; since stop 66, before
+    everywhere): a 3DRA stored without its rescale has its bone there, and its thin arteries' axes at that level.
     """
     def run(m):
         av = _extract_vessels_auto(volume, reading=(m, evidence), **kw)
@@ -2309,8 +2329,9 @@ def _tree_above_floor(volume: io.Volume, model: IntensityModel, evidence, model_
         av.seconds["total"] = av.seconds.get("total", 0.0) + model_s
         return av
 
-    cut = replace(model, floor_cut=True)
-    below = f"no lumen below {cut.vessel_options().lumen_min_hu:.4g} (the bright class at {model.floor:.4g} left out)"
+    cut = replace(model, floor_cut=True, floor_not_tubular=True)
+    below = (f"no lumen below {cut.vessel_options().thick_bone_max_hu:.4g} where the bright class at "
+             f"{model.floor:.4g} is thick (left out there)")
     t0 = time.perf_counter()
     try:
         return run(model)
