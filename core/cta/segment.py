@@ -940,14 +940,6 @@ def segment_vessels(volume: io.Volume, *, seeds_lps_mm=None, progress: bool = Fa
         # (the window's maximum reaches the level where any voxel of it does: a max of booleans, 4x faster)
         cand &= ndi.maximum_filter(no_bone >= opt.min_peak_hu, size=tuple(peak_size))
     del no_bone
-    if np.isfinite(opt.thick_bone_max_hu):
-        # below the contrast, only what touches it: thin bone (a vertebra's cortex, a plate's edge) is no lumen
-        lab, nlab = ndi.label(cand, structure=np.ones((3, 3, 3)))
-        touch = np.zeros(nlab + 1, bool)
-        touch[lab[cand & (sm >= opt.thick_bone_max_hu)]] = True
-        touch[0] = False
-        cand = touch[lab]
-        del lab, touch
     del thr, bone, peak
     lab, nlab = ndi.label(cand, structure=np.ones((3, 3, 3)))
     if nlab == 0:
@@ -955,6 +947,12 @@ def segment_vessels(volume: io.Volume, *, seeds_lps_mm=None, progress: bool = Fa
     sizes = np.bincount(lab.ravel())
     sizes[0] = 0
     keep = sizes * voxel_mm3 >= opt.min_component_mm3
+    if np.isfinite(opt.thick_bone_max_hu):
+        # below the contrast, only what touches it: thin bone (a vertebra's cortex, a plate's edge) is no lumen
+        touch = np.zeros(nlab + 1, bool)
+        touch[lab[cand & (sm >= opt.thick_bone_max_hu)]] = True
+        keep &= touch
+        del touch
     cand &= keep[lab]
     if not cand.any():
         raise SegmentationError(f"{what}: no vessels found (no bright structure larger than "
