@@ -49,13 +49,18 @@ class BiasField:
                 f"{self.gain_p95:.2f})")
 
 
+def _sample(a: np.ndarray) -> np.ndarray:
+    """Every ``step``-th voxel of ``a`` along each axis: about two million voxels (the whole of a smaller volume)."""
+    step = max(1, int(round((a.size / 2_000_000) ** (1 / 3))))
+    return a[::step, ::step, ::step]
+
+
 def _unit(a: np.ndarray) -> float:
     """The volume's unit for the log intensities N4 and its mask read: 1 for values spanning ``UNIT_SPAN`` or more
     (a CT's, an MR's hundreds or thousands, as before), else the span / ``UNIT_SPAN``: a volume in small units (an MRA
     stored as 0..1) reads as it would in those (its log would be nearly linear, and the shift of 1 before the log larger
     than its contrast: under a +-60 % field its tree was wrong, with no word)."""
-    step = max(1, int(round((a.size / 2_000_000) ** (1 / 3))))
-    sub = a[::step, ::step, ::step]
+    sub = _sample(a)
     span = float(np.percentile(sub, 99.5)) - float(sub.min())
     return 1.0 if span >= UNIT_SPAN or span <= 0 else span / UNIT_SPAN
 
@@ -74,8 +79,7 @@ def n4_mask(volume: io.Volume, *, unit: float | None = None) -> np.ndarray:
 
     a = np.asarray(volume.array_zyx, dtype=np.float32)
     la = np.log1p(np.maximum(a - float(a.min()), 0.0) / (_unit(a) if unit is None else unit))
-    step = max(1, int(round((la.size / 2_000_000) ** (1 / 3))))
-    t = float(threshold_otsu(la[::step, ::step, ::step]))
+    t = float(threshold_otsu(_sample(la)))
     return ndi.binary_opening(la > t, iterations=1)
 
 
