@@ -59,6 +59,7 @@ from scipy.spatial import cKDTree
 
 from guidewire3d import io
 from guidewire3d.app import bench, vesselplan
+from guidewire3d.cta import vesselmodel
 from guidewire3d.errors import InputError, SegmentationError
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -611,6 +612,8 @@ def main(argv=None) -> int:
         m = evaluate(vol, [a.vessels.tree for a in plan.trees], tree, label)
         what = f"tree ({r.segmentation})" if len(plan.trees) == 1 else \
             f"{len(plan.trees)} trees ({', '.join(a.segmentation for a in plan.trees)})"
+        if any(vesselmodel.SEEDED_SHORT in a.pruned for a in plan.trees):   # a seeded tree that says it may stop short
+            what += ", said short"
         c, f = m["cover"], m["frac"]
         print(f"{run} | {what} | {dt:.0f} | {r.model.lumen:.0f} / {r.model.background:.0f} | {c['all']:.2f} "
               f"({c['LAD']:.2f}, {c['LCx']:.2f}, {c['RCA']:.2f}) | {f['coronaries']:.2f} / {f['aorta']:.2f} / "

@@ -54,6 +54,7 @@ from scipy.spatial import cKDTree
 
 from guidewire3d import io
 from guidewire3d.app import bench, vesselplan
+from guidewire3d.cta import vesselmodel
 from guidewire3d.errors import InputError, SegmentationError
 
 EXTENT_MM = np.array([150.0, 180.0, 170.0])  # x, y, z (LPS)
@@ -288,6 +289,8 @@ def main(argv=None) -> int:
         m = evaluate(vol, [a.vessels.tree for a in plan.trees], arteries, sd_art, sd_vein, bone)
         what = f"tree ({r.segmentation})" if len(plan.trees) == 1 else \
             f"{len(plan.trees)} trees ({', '.join(a.segmentation for a in plan.trees)})"
+        if any(vesselmodel.SEEDED_SHORT in a.pruned for a in plan.trees):   # a seeded tree that says it may stop short
+            what += ", said short"
         print(f"{mode} | {what} | {dt:.0f} | {r.model.lumen:.0f} ({true_l:.0f}) | {m['art_covered']:.2f} | "
               f"{m['in_arteries']:.2f} / {m['in_veins']:.2f} / {m['in_bone']:.2f} | {m['length_m']:.2f}, {m['branches']}",
               flush=True)
