@@ -35,7 +35,7 @@ import time
 from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
-from guidewire3d import io
+from guidewire3d import io, kernels
 from guidewire3d.cta import biasfield, lostlumen, prune, segment, vessels3d
 from guidewire3d.cta.centerline import (CenterlineOptions, _cross_section_centres_boxed, _rooted_at_widest_end,
                                         _SkeletonPaths, without_lumen_strands)
@@ -2074,12 +2074,6 @@ SEEDED_SHORT = ("it may stop short of the vessel the seeds lie in (cut into piec
                 "structure such as a heart chamber): give more --seed-lps along the vessel")
 
 
-def _distance_mm(shape, centre_zyx, spacing_zyx) -> np.ndarray:
-    """Each voxel's distance (mm) to the voxel ``centre_zyx`` of a grid of ``shape``."""
-    g = np.indices(shape, dtype=np.float32)
-    return np.sqrt(sum(((g[i] - centre_zyx[i]) * spacing_zyx[i]) ** 2 for i in range(3)))
-
-
 def seed_lumen_ball(volume: io.Volume, model: IntensityModel, seed_lps_mm) -> tuple[np.ndarray, float]:
     """``(centre_zyx, radius_mm)``: the widest ball inside the lumen a seed lies in that holds the seed's lumen voxel
     (:func:`_seed_lumen_level`), within ``2 MAX_RADIUS_MM`` of it; ``radius_mm`` 0 when that voxel is not lumen.
@@ -2100,7 +2094,9 @@ def seed_lumen_ball(volume: io.Volume, model: IntensityModel, seed_lps_mm) -> tu
     if model.bone is not None:
         lumen &= sm < model.bone
     depth = ndi.distance_transform_edt(lumen, sampling=sp)
-    dist = _distance_mm(lumen.shape, c - lo, sp)
+    g = np.indices(lumen.shape, dtype=np.float32)   # each voxel's distance (mm) to the seed's lumen voxel
+    dist = np.sqrt(sum(((g[i] - (c - lo)[i]) * sp[i]) ** 2 for i in range(3)))
+    del g
     holds = lumen & (depth >= dist)
     if not holds.any():
         return c, 0.0
@@ -2116,10 +2112,9 @@ def _seed_lumen_not_held(volume: io.Volume, model: IntensityModel, mask_zyx: np.
         centre, r = seed_lumen_ball(volume, model, s)
         if r < SEED_BALL_MIN_RADIUS_MM:
             continue
-        h = np.ceil(r / sp).astype(int)
-        lo, hi = np.maximum(centre - h, 0), np.minimum(centre + h + 1, mask_zyx.shape)
-        box = mask_zyx[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]]
-        held = float(np.mean(box[_distance_mm(box.shape, centre - lo, sp) <= r]))
+        ball = centre + kernels.ball_offsets(r, sp)
+        ball = ball[np.all((ball >= 0) & (ball < mask_zyx.shape), axis=1)]
+        held = float(np.mean(mask_zyx[tuple(ball.T)]))
         if held < SEED_BALL_MIN_HELD:
             where = ",".join(f"{v:.0f}" for v in s)
             return (f"the tree holds only {100 * held:.0f}% of the lumen at the seed at LPS {where} mm (a ball of "
